@@ -1,0 +1,7 @@
+"""MDP families: pure batched dynamics, TorchRL envs, Gymnasium registration."""
+
+from taskvar_torch.envs.instances import WindyInstances
+from taskvar_torch.envs.windy import WindyLayout, WindyModel, make_layout
+from taskvar_torch.envs.windy_env import WindyGridEnv
+
+__all__ = ["WindyGridEnv", "WindyInstances", "WindyLayout", "WindyModel", "make_layout"]

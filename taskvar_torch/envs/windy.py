@@ -1,0 +1,324 @@
+"""Windy gridworld family (paper §3.3.1, SPEC §1.1): layouts, pure batched dynamics, exact model.
+
+Cells are flat indices ``row * width + col`` (row 0 is north). Everything a step needs is
+precomputed into small lookup tables (:class:`WindyModel`), so one step over a batch is three
+gathers and a comparison:
+
+    moved = move[cell, action]                     # the agent's move (walls and edges block)
+    nxt   = where(u < p, push[moved, direction], moved)   # one gust if it ends in a windy cell
+
+``push[c, d] == c`` for non-windy cells, so the wind needs no separate mask. Instance parameters
+``(p, direction)`` are batched tensors; nothing else varies across the family.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+ACTIONS = ("north", "south", "east", "west")
+"""Action ``i`` moves one cell in ``ACTIONS[i]``; wind direction indices use the same order."""
+DIRECTIONS = ACTIONS
+_DELTAS = ((-1, 0), (1, 0), (0, 1), (0, -1))  # (drow, dcol) per action / wind direction
+_CELL_CHARS = {"S": "start", "W": "windy", "#": "wall", "G": "goal", ".": "free"}
+
+DEFAULT_MAP = """
+S W . G G
+S . # G G
+S . # G G
+S . # G G
+S W . G G
+"""
+"""SPEC §1.1 default: a wall in column 2 with exits on the border rows, wind just west of them."""
+
+MIDDLE_EXITS_MAP = """
+S . # G G
+S W . G G
+S . # G G
+S W . G G
+S . # G G
+"""
+"""The "middle exits" reading of the paper's Figure 1: exits at rows 1 and 3."""
+
+WHOLE_COLUMN_WINDY_MAP = """
+S W . G G
+S W # G G
+S W # G G
+S W # G G
+S W . G G
+"""
+"""Border exits with every cell of column 1 windy: interruption changes behaviour here."""
+
+LAYOUTS = {
+    "default": DEFAULT_MAP,
+    "middle_exits": MIDDLE_EXITS_MAP,
+    "whole_column_windy": WHOLE_COLUMN_WINDY_MAP,
+}
+
+
+def direction_index(direction: str | int) -> int:
+    """Index of a wind direction name (``"north"``...) or a validated index."""
+    if isinstance(direction, str):
+        name = direction.lower()
+        if name not in DIRECTIONS:
+            raise ValueError(f"direction must be one of {list(DIRECTIONS)}, got {direction!r}")
+        return DIRECTIONS.index(name)
+    if isinstance(direction, (int, np.integer)) and 0 <= int(direction) < len(DIRECTIONS):
+        return int(direction)
+    raise ValueError(
+        f"direction must be one of {list(DIRECTIONS)} (or an index 0..3), got {direction!r}"
+    )
+
+
+@dataclass(frozen=True)
+class WindyLayout:
+    """A parsed map: rows of ``S`` start, ``W`` windy, ``#`` wall, ``G`` goal, ``.`` free."""
+
+    rows: tuple[str, ...]
+
+    @classmethod
+    def from_map(cls, text: str) -> WindyLayout:
+        """Parse a map string (cells separated by spaces or not); raises ``ValueError`` naming the problem."""
+        if not isinstance(text, str):
+            raise ValueError(f"map must be a string, got {type(text).__name__}")
+        rows = [line.replace(" ", "").strip() for line in text.strip().splitlines()]
+        rows = [r for r in rows if r]
+        if not rows:
+            raise ValueError("map is empty: expected rows of S, W, #, G, .")
+        width = len(rows[0])
+        for i, r in enumerate(rows):
+            if len(r) != width:
+                raise ValueError(
+                    f"map row {i} has {len(r)} cells, expected {width}: every row must be equally long"
+                )
+            bad = sorted(set(r) - set(_CELL_CHARS))
+            if bad:
+                raise ValueError(
+                    f"map row {i} has unknown cell characters {bad}; allowed: {sorted(_CELL_CHARS)}"
+                )
+        layout = cls(tuple(rows))
+        if not any("S" in r for r in rows):
+            raise ValueError("map has no start cell 'S'")
+        if not any("G" in r for r in rows):
+            raise ValueError("map has no goal cell 'G'")
+        if layout.num_exits < 1:
+            raise ValueError("map has no exit: no free cell is next to a goal cell")
+        return layout
+
+    @classmethod
+    def named(cls, name: str) -> WindyLayout:
+        """One of the shipped layouts: ``default``, ``middle_exits``, ``whole_column_windy``."""
+        if name not in LAYOUTS:
+            raise ValueError(f"layout must be one of {sorted(LAYOUTS)} or a map string, got {name!r}")
+        return cls.from_map(LAYOUTS[name])
+
+    @property
+    def height(self) -> int:
+        return len(self.rows)
+
+    @property
+    def width(self) -> int:
+        return len(self.rows[0])
+
+    @property
+    def num_cells(self) -> int:
+        return self.height * self.width
+
+    def char(self, cell: int) -> str:
+        return self.rows[cell // self.width][cell % self.width]
+
+    def cells_of(self, ch: str) -> list[int]:
+        return [c for c in range(self.num_cells) if self.char(c) == ch]
+
+    def neighbour(self, cell: int, d: int) -> int:
+        """Cell reached from ``cell`` moving in direction ``d``; walls and edges leave it in place."""
+        r, c = divmod(cell, self.width)
+        dr, dc = _DELTAS[d]
+        r2, c2 = r + dr, c + dc
+        if not (0 <= r2 < self.height and 0 <= c2 < self.width) or self.rows[r2][c2] == "#":
+            return cell
+        return r2 * self.width + c2
+
+    @property
+    def exit_cells(self) -> list[list[int]]:
+        """Exits: connected groups of non-goal, non-wall cells next to a goal cell, ordered by row."""
+        is_exit = set()
+        for cell in range(self.num_cells):
+            if self.char(cell) in "#G":
+                continue
+            if any(self.char(self.neighbour(cell, d)) == "G" for d in range(4)):
+                is_exit.add(cell)
+        groups: list[list[int]] = []
+        seen: set[int] = set()
+        for cell in sorted(is_exit):
+            if cell in seen:
+                continue
+            stack, group = [cell], []
+            seen.add(cell)
+            while stack:
+                c = stack.pop()
+                group.append(c)
+                for d in range(4):
+                    n = self.neighbour(c, d)
+                    if n in is_exit and n not in seen:
+                        seen.add(n)
+                        stack.append(n)
+            groups.append(sorted(group))
+        return groups
+
+    @property
+    def num_exits(self) -> int:
+        return len(self.exit_cells)
+
+    @property
+    def exit_names(self) -> tuple[str, ...]:
+        """``exit_north``/``exit_south`` for two exits, else ``exit_0``... by row."""
+        n = self.num_exits
+        if n == 2:
+            return ("exit_north", "exit_south")
+        return tuple(f"exit_{k}" for k in range(n))
+
+    def render_text(self, cell: int | None = None) -> str:
+        """The map as text, with ``A`` at ``cell``."""
+        out = []
+        for r, row in enumerate(self.rows):
+            chars = list(row)
+            if cell is not None and cell // self.width == r:
+                chars[cell % self.width] = "A"
+            out.append(" ".join(chars))
+        return "\n".join(out) + "\n"
+
+
+def make_layout(
+    height: int,
+    width: int,
+    num_exits: int = 2,
+    wall_col: int | None = None,
+    wind_cells_per_exit: int = 1,
+) -> WindyLayout:
+    """Scaled-up generator (SPEC §1.1): a full-height wall with ``num_exits`` one-cell gaps.
+
+    Exits are spread evenly from the north to the south border row (two exits sit on the border
+    rows, as in the default layout); the ``wind_cells_per_exit`` cells immediately west of each exit
+    are windy; the left column is the start column and everything east of the wall is goal.
+    """
+    if num_exits < 2:
+        raise ValueError(f"num_exits must be >= 2, got {num_exits}")
+    if wall_col is None:
+        wall_col = width // 2
+    if height < num_exits:
+        raise ValueError(f"height must be >= num_exits ({num_exits}), got {height}")
+    if not (1 + wind_cells_per_exit <= wall_col <= width - 2):
+        raise ValueError(
+            f"wall_col must be in [{1 + wind_cells_per_exit}, {width - 2}] for width {width} and "
+            f"wind_cells_per_exit {wind_cells_per_exit}, got {wall_col}"
+        )
+    if wind_cells_per_exit < 0:
+        raise ValueError(f"wind_cells_per_exit must be >= 0, got {wind_cells_per_exit}")
+    exit_rows = sorted({round(k * (height - 1) / (num_exits - 1)) for k in range(num_exits)})
+    if len(exit_rows) != num_exits:
+        raise ValueError(f"height {height} too small for {num_exits} distinct exits")
+    grid = [["."] * width for _ in range(height)]
+    for r in range(height):
+        grid[r][0] = "S"
+        grid[r][wall_col] = "." if r in exit_rows else "#"
+        for c in range(wall_col + 1, width):
+            grid[r][c] = "G"
+    for r in exit_rows:
+        for k in range(1, wind_cells_per_exit + 1):
+            grid[r][wall_col - k] = "W"
+    return WindyLayout(tuple("".join(row) for row in grid))
+
+
+def default_horizon(layout: WindyLayout) -> int:
+    """100 steps on the paper's 5x5 grid, growing with size: ``max(100, 4 * (height + width))``."""
+    return max(100, 4 * (layout.height + layout.width))
+
+
+class WindyModel:
+    """Lookup tables of one layout on one device; the pure step functions read only these.
+
+    Attributes (all tensors on ``device``):
+        move: (S, A) int64, cell after the agent's move.
+        push: (S, D) int64, cell after a gust (== the cell itself where not windy).
+        is_goal: (S,) bool. is_windy: (S,) bool. exit_id: (S,) int64, exit of a cell or -1.
+        start_cells: (K,) int64.
+    """
+
+    def __init__(self, layout: WindyLayout, device: torch.device | str = "cpu"):
+        self.layout = layout
+        self.device = torch.device(device)
+        S, A = layout.num_cells, len(ACTIONS)
+        move = np.array([[layout.neighbour(c, a) for a in range(A)] for c in range(S)])
+        windy = np.array([layout.char(c) == "W" for c in range(S)])
+        push = np.array(
+            [[layout.neighbour(c, d) if windy[c] else c for d in range(A)] for c in range(S)]
+        )
+        exit_id = np.full(S, -1)
+        for k, group in enumerate(layout.exit_cells):
+            exit_id[group] = k
+        # numpy copies, used by the single-environment Gymnasium path
+        self.np_move, self.np_push = move, push
+        self.np_is_goal = np.array([layout.char(c) == "G" for c in range(S)])
+        self.np_exit_id = exit_id
+        self.np_start_cells = np.array(layout.cells_of("S"))
+        t = dict(dtype=torch.int64, device=self.device)
+        self.move = torch.as_tensor(move, **t)
+        self.push = torch.as_tensor(push, **t)
+        self.move_flat = self.move.reshape(-1)
+        self.push_flat = self.push.reshape(-1)
+        self.is_goal = torch.as_tensor(self.np_is_goal, device=self.device)
+        self.is_windy = torch.as_tensor(windy, device=self.device)
+        self.exit_id = torch.as_tensor(exit_id, **t)
+        self.start_cells = torch.as_tensor(self.np_start_cells, **t)
+        self.num_cells, self.num_actions = S, A
+
+
+def step(
+    model: WindyModel,
+    cell: torch.Tensor,  # (B,) int64
+    action: torch.Tensor,  # (B,) int64
+    p: torch.Tensor,  # (B,) float
+    direction: torch.Tensor,  # (B,) int64
+    u: torch.Tensor,  # (B,) float in [0, 1): the step's uniform draw
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """One batched step (SPEC §1.1 default timing: move, then at most one gust).
+
+    Returns ``(next_cell, terminated)``; the reward is -1 for every step.
+    """
+    moved = model.move_flat[cell * 4 + action]  # (B,)
+    gust = model.push_flat[moved * 4 + direction]  # (B,)
+    nxt = torch.where(u < p, gust, moved)
+    return nxt, model.is_goal[nxt]
+
+
+def transition_tensors(
+    model: WindyModel,
+    p: torch.Tensor,  # (B,) float
+    direction: torch.Tensor,  # (B,) int64
+    dtype: torch.dtype = torch.float64,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Exact model ``P[B, S, A, S']`` and ``R[B, S, A]`` of the same dynamics as :func:`step`.
+
+    Goal cells are absorbing with reward 0 (the episode has ended there); every other action costs
+    -1. Built from the same ``move``/``push`` tables as :func:`step`, and checked against sampled
+    steps in the tests.
+    """
+    p = torch.as_tensor(p, dtype=dtype, device=model.device).reshape(-1)
+    direction = torch.as_tensor(direction, dtype=torch.int64, device=model.device).reshape(-1)
+    B, S, A = p.shape[0], model.num_cells, model.num_actions
+    moved = model.move.unsqueeze(0).expand(B, S, A)  # (B, S, A)
+    gust = model.push[moved, direction.view(B, 1, 1)]  # (B, S, A)
+    P = torch.zeros(B, S, A, S, dtype=dtype, device=model.device)
+    pp = p.view(B, 1, 1).expand(B, S, A)
+    P.scatter_add_(3, moved.unsqueeze(-1), (1.0 - pp).unsqueeze(-1))
+    P.scatter_add_(3, gust.unsqueeze(-1), pp.unsqueeze(-1))
+    goal = model.is_goal
+    P[:, goal] = 0.0
+    goal_idx = goal.nonzero().squeeze(-1)
+    P[:, goal_idx, :, goal_idx] = 1.0
+    R = torch.full((B, S, A), -1.0, dtype=dtype, device=model.device)
+    R[:, goal] = 0.0
+    return P, R

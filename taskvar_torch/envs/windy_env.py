@@ -1,0 +1,282 @@
+"""TorchRL ``EnvBase`` over the batched windy dynamics (SPEC §1, DESIGN "Env state and params")."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from taskvar_torch import keys, rng
+from taskvar_torch.envs import windy
+from taskvar_torch.envs.instances import WindyInstances, windy_instances
+
+OBS_ENCODINGS = ("onehot", "coords_patch")
+_C_START = rng.RESET_COUNTER + 4
+
+
+def observation_table(
+    layout: windy.WindyLayout, encoding: str = "onehot", patch_radius: int = 2
+) -> np.ndarray:
+    """Observation of every cell, ``(S, D)`` float32; the env gathers rows of it.
+
+    ``onehot``: one-hot over cells (D = S). ``coords_patch``: normalised ``(row, col)`` then a
+    ``(2r+1)^2`` local patch per channel wall-or-edge, windy, goal (D = 2 + 3 (2r+1)^2), for grids
+    too large for one-hot. The instance is never in the observation.
+    """
+    S = layout.num_cells
+    if encoding == "onehot":
+        return np.eye(S, dtype=np.float32)
+    if encoding != "coords_patch":
+        raise ValueError(f"observation encoding must be one of {list(OBS_ENCODINGS)}, got {encoding!r}")
+    if patch_radius < 0:
+        raise ValueError(f"patch_radius must be >= 0, got {patch_radius}")
+    H, W, r = layout.height, layout.width, patch_radius
+    k = 2 * r + 1
+    out = np.zeros((S, 2 + 3 * k * k), dtype=np.float32)
+    for cell in range(S):
+        row, col = divmod(cell, W)
+        out[cell, 0] = row / max(H - 1, 1)
+        out[cell, 1] = col / max(W - 1, 1)
+        for i, dr in enumerate(range(-r, r + 1)):
+            for j, dc in enumerate(range(-r, r + 1)):
+                rr, cc = row + dr, col + dc
+                inside = 0 <= rr < H and 0 <= cc < W
+                ch = layout.rows[rr][cc] if inside else "#"
+                base = 2 + i * k + j
+                out[cell, base] = ch == "#"
+                out[cell, base + k * k] = ch == "W"
+                out[cell, base + 2 * k * k] = ch == "G"
+    return out
+
+
+def resolve_layout(layout: str | windy.WindyLayout) -> windy.WindyLayout:
+    """A :class:`WindyLayout` from a layout name, a map string, or a layout."""
+    if isinstance(layout, windy.WindyLayout):
+        return layout
+    if isinstance(layout, str) and layout in windy.LAYOUTS:
+        return windy.WindyLayout.named(layout)
+    if isinstance(layout, str) and "\n" in layout.strip():
+        return windy.WindyLayout.from_map(layout)
+    raise ValueError(
+        f"layout must be one of {sorted(windy.LAYOUTS)}, a multi-line map string or a WindyLayout, "
+        f"got {layout!r}"
+    )
+
+
+class WindyGridEnv(EnvBase):
+    """Batched windy gridworld family (paper §3.3.1) as a TorchRL environment.
+
+    ## Description
+    A grid with a wall pierced by exits; wind blows in the cells just west of the exits. Each
+    sub-environment draws its own hidden instance ``(p, direction)`` at every (partial) reset.
+
+    ## Action Space
+    ``Categorical(4)``: 0 north, 1 south, 2 east, 3 west. Walls and edges block moves.
+
+    ## Observation Space
+    ``observation``: one-hot cell (``onehot``) or coordinates plus a local patch
+    (``coords_patch``); ``cell``: the flat cell index ``row * width + col`` (int64).
+    ``("instance", "p")``, ``("instance", "direction")``: the hidden instance, for analysis only.
+
+    ## Starting State
+    A uniformly random start cell (``S``), or ``start=(row, col)``.
+
+    ## Reward
+    -1 per step until a goal cell is reached.
+
+    ## Episode End
+    Terminated on entering a goal cell; truncated after ``horizon`` steps.
+
+    ## Task parameters
+    ``p`` in [0, 1]: probability that a gust pushes the agent one cell toward ``direction`` when it
+    ends a step in a windy cell. Drawn from ``instances`` (``train``, ``test``, ``south``,
+    ``north``, or a :class:`WindyInstances`).
+
+    Args:
+        num_envs: batch size N.
+        layout: layout name, map string or :class:`WindyLayout`.
+        instances: instance distribution.
+        horizon: steps before truncation (default :func:`windy.default_horizon`).
+        obs_encoding: ``onehot`` or ``coords_patch``.
+        start: optional fixed start ``(row, col)``.
+        seed: seed; sub-environment ``i`` draws from key ``(seed, index_offset + i)``, so any split
+            of N environments reproduces the same trajectories.
+        index_offset: global index of sub-environment 0.
+        validate_actions: check actions are in range (one host sync per step).
+        device: torch device.
+
+    Examples:
+        >>> env = WindyGridEnv(num_envs=8, seed=0)
+        >>> td = env.rollout(10)
+        >>> td["next", "reward"].shape
+        torch.Size([8, 10, 1])
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        layout: str | windy.WindyLayout = "default",
+        instances: str | WindyInstances | dict = "train",
+        horizon: int | None = None,
+        obs_encoding: str = "onehot",
+        patch_radius: int = 2,
+        start: tuple[int, int] | None = None,
+        seed: int = 0,
+        index_offset: int = 0,
+        validate_actions: bool = True,
+        device: torch.device | str = "cpu",
+    ):
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
+        self.layout = resolve_layout(layout)
+        self.model = windy.WindyModel(self.layout, self.device)
+        self.instances = windy_instances(instances)
+        self.horizon = int(horizon) if horizon is not None else windy.default_horizon(self.layout)
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        self.obs_encoding = obs_encoding
+        self._obs_table = torch.as_tensor(
+            observation_table(self.layout, obs_encoding, patch_radius), device=self.device
+        )
+        self.start = None
+        if start is not None:
+            r, c = start
+            H, W = self.layout.height, self.layout.width
+            if not (0 <= r < H and 0 <= c < W):
+                raise ValueError(f"start must be a (row, col) inside {H}x{W}, got {start}")
+            cell = r * W + c
+            if self.layout.char(cell) in "#G":
+                raise ValueError(f"start {start} is a wall or goal cell; choose a free cell")
+            self.start = cell
+        self.index_offset = int(index_offset)
+        self.validate_actions = validate_actions
+        self._make_specs()
+        self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
+        self._set_seed(seed)
+
+    @property
+    def num_envs(self) -> int:
+        return self.batch_size[0]
+
+    def _make_specs(self) -> None:
+        N, S = self.num_envs, self.model.num_cells
+        D = self._obs_table.shape[1]
+        dev = self.device
+        self.observation_spec = Composite(
+            {
+                keys.OBSERVATION: Bounded(0.0, 1.0, shape=(N, D), dtype=torch.float32, device=dev),
+                keys.CELL: Categorical(S, shape=(N,), dtype=torch.int64, device=dev),
+                keys.INSTANCE: Composite(
+                    p=Bounded(0.0, 1.0, shape=(N,), dtype=torch.float32, device=dev),
+                    direction=Categorical(4, shape=(N,), dtype=torch.int64, device=dev),
+                    shape=(N,),
+                    device=dev,
+                ),
+            },
+            shape=(N,),
+            device=dev,
+        )
+        self.action_spec = Categorical(4, shape=(N,), dtype=torch.int64, device=dev)
+        self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
+        flag = Categorical(2, shape=(N, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(
+            {k: flag.clone() for k in (keys.DONE, keys.TERMINATED, keys.TRUNCATED)},
+            shape=(N,),
+            device=dev,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        seed = 0 if seed is None else int(seed)
+        idx = torch.arange(self.num_envs, device=self.device) + self.index_offset
+        self._base_key = rng.sub_env_key(seed, idx)
+        self._episode = torch.full_like(self._episode, -1)
+        self._seed = seed
+
+    def _out(self, cell, p, direction, reward=None, terminated=None, truncated=None):
+        N = self.num_envs
+        td = {
+            keys.OBSERVATION: self._obs_table[cell],
+            keys.CELL: cell,
+            keys.INSTANCE: TensorDict._new_unsafe(
+                {"p": p, "direction": direction}, batch_size=self.batch_size, device=self.device
+            ),
+        }
+        if terminated is None:
+            terminated = torch.zeros(N, 1, dtype=torch.bool, device=self.device)
+            truncated = terminated
+        else:
+            td[keys.REWARD] = reward
+        td[keys.TERMINATED] = terminated
+        td[keys.TRUNCATED] = truncated
+        td[keys.DONE] = terminated | truncated
+        return TensorDict._new_unsafe(td, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        if reset is None or not hasattr(self, "_cell"):
+            idx = None
+            episode = self._episode + 1
+        else:
+            idx = reset.reshape(-1).nonzero().squeeze(-1)  # indices of the sub-envs to reset
+            episode = self._episode.index_put((idx,), self._episode[idx] + 1)
+        self._episode = episode
+        base = self._base_key if idx is None else self._base_key[idx]
+        key = rng.episode_key(base, episode if idx is None else episode[idx])
+        p, direction = self.instances.sample(key)
+        if self.start is None:
+            starts = self.model.start_cells
+            cell = starts[rng.draw_index(key, _C_START, starts.numel())]
+        else:
+            cell = torch.full_like(key, self.start)
+        t = torch.zeros_like(key)
+        if idx is None:
+            self._key, self._p, self._dir, self._cell, self._t = key, p, direction, cell, t
+        else:  # out-of-place updates: tensors already handed out are never mutated
+            self._key = self._key.index_put((idx,), key)
+            self._p = self._p.index_put((idx,), p)
+            self._dir = self._dir.index_put((idx,), direction)
+            self._cell = self._cell.index_put((idx,), cell)
+            self._t = self._t.index_put((idx,), t)
+        return self._out(self._cell, self._p, self._dir)
+
+    def _reset_proc_data(self, tensordict, tensordict_reset):
+        # ``_reset`` returns every sub-environment's current data (unchanged where not reset), so a
+        # plain update is exact; it avoids TorchRL's whole-batch ``where`` merge on partial resets.
+        self._complete_done(self.full_done_spec, tensordict_reset)
+        if tensordict is None:
+            return tensordict_reset
+        tensordict.pop("_reset", None)
+        return tensordict.update(tensordict_reset)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get(keys.ACTION).reshape(-1)
+        if self.validate_actions and (
+            bool((action < 0).any()) or bool((action >= self.model.num_actions).any())
+        ):
+            bad = action[(action < 0) | (action >= self.model.num_actions)][0].item()
+            raise ValueError(f"action must be in [0, {self.model.num_actions - 1}], got {bad}")
+        u = rng.draw_uniform(self._key, self._t)  # (N,): this step's wind draw
+        cell, terminated = windy.step(self.model, self._cell, action, self._p, self._dir, u)
+        self._cell = cell
+        self._t = self._t + 1
+        terminated = terminated.unsqueeze(-1)
+        truncated = (self._t >= self.horizon).unsqueeze(-1) & ~terminated
+        reward = torch.full((self.num_envs, 1), -1.0, device=self.device)
+        return self._out(cell, self._p, self._dir, reward, terminated, truncated)
+
+    def render(self, index: int = 0, mode: str = "ansi"):
+        """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""
+        from taskvar_torch.envs import render
+
+        cell = int(self._cell[index])
+        p, d = float(self._p[index]), windy.DIRECTIONS[int(self._dir[index])]
+        if mode == "ansi":
+            return render.windy_ansi(self.layout, cell, p, d)
+        if mode == "rgb_array":
+            return render.windy_rgb(self.layout, cell, d)
+        raise ValueError(f"render mode must be one of ['ansi', 'rgb_array'], got {mode!r}")

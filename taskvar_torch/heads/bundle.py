@@ -1,0 +1,93 @@
+"""The one interface controllers see: a bundle of heads (DESIGN.md "Heads").
+
+Each head is a ``TensorDictModule`` with explicit keys and shapes:
+
+=============  =============================  ==============  =============================
+head           function (paper)               out key         shape
+=============  =============================  ==============  =============================
+averaging      Q_avg(s, a)  (§3.1)            action_value    (B, A)
+options        Q_o(s, a)    (§3.2)            option_action_value (B, O, A)
+switching      Q_mu(s, o)   (§3.2, mu_bar)    option_value    (B, O)
+max_value      Q_hat(s, o)  (§3.3, Def. 1)    max_value       (B, O)
+robustness     R(o, s, a)   (§3.4.3)          robustness      (B, O, A)
+=============  =============================  ==============  =============================
+
+Trained networks (``heads/``) and the exact oracle's tables (``oracle.py``) both build a
+:class:`Heads`, so the same controller code runs on either.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torch import nn
+
+from taskvar_torch import keys
+
+HEAD_NAMES = ("averaging", "options", "switching", "max_value", "robustness")
+HEAD_OUT_KEYS = {
+    "averaging": keys.ACTION_VALUE,
+    "options": keys.OPTION_ACTION_VALUE,
+    "switching": keys.OPTION_VALUE,
+    "max_value": keys.MAX_VALUE,
+    "robustness": keys.ROBUSTNESS,
+}
+
+
+class Heads(TensorDictModuleBase):
+    """A bundle of heads; calling it writes every present head's output into the tensordict.
+
+    Args:
+        option_names: names of the O options, in the order of the option dimension.
+        averaging, options, switching, max_value, robustness: ``TensorDictModule``s (any may be
+            ``None`` when a family or method does not need it).
+        softmax_temperature: ``None`` for a greedy mu_bar, else the temperature of a softmax mu_bar.
+    """
+
+    def __init__(
+        self,
+        option_names: Sequence[str],
+        averaging: nn.Module | None = None,
+        options: nn.Module | None = None,
+        switching: nn.Module | None = None,
+        max_value: nn.Module | None = None,
+        robustness: nn.Module | None = None,
+        softmax_temperature: float | None = None,
+    ):
+        super().__init__()
+        self.option_names = tuple(option_names)
+        self.softmax_temperature = softmax_temperature
+        mods = dict(
+            averaging=averaging,
+            options=options,
+            switching=switching,
+            max_value=max_value,
+            robustness=robustness,
+        )
+        self.heads = nn.ModuleDict({k: m for k, m in mods.items() if m is not None})
+        in_keys: list = []
+        for m in self.heads.values():
+            for k in m.in_keys:
+                if k not in in_keys:
+                    in_keys.append(k)
+        self.in_keys = in_keys
+        self.out_keys = [HEAD_OUT_KEYS[k] for k in self.heads]
+
+    def has(self, name: str) -> bool:
+        return name in self.heads
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        for m in self.heads.values():
+            td = m(td)
+        return td
+
+    def mu_bar(self, option_value: torch.Tensor) -> torch.Tensor:
+        """mu_bar(s, .) from Q_mu(s, .) ``(B, O)``: one-hot greedy (ties: lowest index) or softmax."""
+        if self.softmax_temperature is None:
+            return nn.functional.one_hot(option_value.argmax(-1), option_value.shape[-1]).to(
+                option_value.dtype
+            )
+        return torch.softmax(option_value / self.softmax_temperature, dim=-1)

@@ -1,0 +1,37 @@
+"""The tensordict key vocabulary, declared once (DESIGN.md "Key interfaces").
+
+Envs, heads, controllers, learners and experiments import these names rather than spelling strings.
+Everything under ``INSTANCE`` is hidden task information: no policy, head or controller reads it;
+analysis code may, to group results by instance.
+"""
+
+from __future__ import annotations
+
+OBSERVATION = "observation"
+ACTION = "action"
+REWARD = "reward"
+DONE = "done"
+TERMINATED = "terminated"
+TRUNCATED = "truncated"
+NEXT = "next"
+
+# Integer position / event state, kept beside the observation so subtask rewards can be computed
+# from raw transitions (SPEC §2). Windy: ``cell`` (flat row*W+col). Wargus: see envs/wargus.py.
+CELL = "cell"
+STEP_COUNT = "step_count"
+
+INSTANCE = "instance"  # ("instance", name): hidden instance parameters (never in the observation)
+
+# Head outputs (DESIGN.md): averaging (B, A), options (B, O, A), switching (B, O),
+# max-value (B, O), robustness (B, O, A).
+ACTION_VALUE = "action_value"
+OPTION_ACTION_VALUE = "option_action_value"
+OPTION_VALUE = "option_value"
+MAX_VALUE = "max_value"
+ROBUSTNESS = "robustness"
+
+# Controller carried state and decision traces (SPEC §3).
+OPTION = "option"
+RUNNING_OPTION = "running_option"
+HIERARCHY_LEVEL = "hierarchy_level"
+INTERRUPTED = "interrupted"
