@@ -1,0 +1,149 @@
+"""Gymnasium ``Env`` for one windy gridworld (SPEC §1, "for people who live in Gymnasium").
+
+It steps the same lookup tables and keyed random stream as :class:`WindyGridEnv`, so with the same
+seed it produces bit-identical trajectories to sub-environment 0 of the TorchRL env.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from taskvar_torch import rng
+from taskvar_torch.envs import render, windy
+from taskvar_torch.envs.instances import WindyInstances, windy_instances
+from taskvar_torch.envs.windy_env import _C_START, observation_table, resolve_layout
+
+
+class WindyGridGymEnv(gym.Env):
+    """The windy gridworld family (paper §3.3.1) as a single Gymnasium environment.
+
+    ## Description
+    Reach any goal cell (``G``) through one of the exits in the wall; wind blows in the cells just
+    west of the exits with an unknown direction and strength that are fixed for an episode.
+
+    ## Action Space
+    ``Discrete(4)``: 0 north, 1 south, 2 east, 3 west.
+
+    ## Observation Space
+    ``Box(0, 1, (D,), float32)``: the one-hot cell (``onehot``) or coordinates and a local patch
+    (``coords_patch``). The instance is never in the observation.
+
+    ## Starting State
+    A uniformly random start cell ``S`` (or ``options={"start": (row, col)}``).
+
+    ## Reward
+    -1 per step.
+
+    ## Episode End
+    ``terminated`` on reaching a goal cell, ``truncated`` after ``horizon`` steps.
+
+    ## Arguments
+    ``layout`` (name or map string), ``instances`` (``train``/``test``/``south``/``north`` or a
+    :class:`WindyInstances`), ``horizon``, ``obs_encoding``, ``patch_radius``, ``render_mode``
+    (``ansi`` or ``rgb_array``).
+
+    ## Task parameters
+    ``reset(options={"instance": {"p": 0.7, "direction": "north"}})`` pins an instance; ``info``
+    reports it as ``info["instance"]``.
+    """
+
+    metadata = {"render_modes": ["ansi", "rgb_array"], "render_fps": 4}
+
+    def __init__(
+        self,
+        layout: str | windy.WindyLayout = "default",
+        instances: str | WindyInstances | dict = "train",
+        horizon: int | None = None,
+        obs_encoding: str = "onehot",
+        patch_radius: int = 2,
+        render_mode: str | None = None,
+    ):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}"
+            )
+        self.layout = resolve_layout(layout)
+        self.model = windy.WindyModel(self.layout, "cpu")
+        self.instances = windy_instances(instances)
+        self.horizon = int(horizon) if horizon is not None else windy.default_horizon(self.layout)
+        self.render_mode = render_mode
+        self._obs = observation_table(self.layout, obs_encoding, patch_radius)
+        self.observation_space = gym.spaces.Box(0.0, 1.0, (self._obs.shape[1],), np.float32)
+        self.action_space = gym.spaces.Discrete(4)
+        self._base_key = np.asarray(rng.sub_env_key(0, np.zeros(1, dtype=np.int64)))
+        self._episode = -1
+        self._cell = int(self.model.np_start_cells[0])
+        self._t, self._p, self._dir = 0, np.float32(0.0), 0
+        self._key = np.zeros(1, dtype=np.int64)
+
+    def _info(self) -> dict[str, Any]:
+        return {
+            "instance": {"p": float(self._p), "direction": windy.DIRECTIONS[self._dir]},
+            "cell": divmod(self._cell, self.layout.width),
+        }
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Start an episode; ``options`` may hold ``instance`` (``p``, ``direction``) and ``start``."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self._base_key = np.asarray(rng.sub_env_key(int(seed), np.zeros(1, dtype=np.int64)))
+            self._episode = -1
+        options = dict(options or {})
+        unknown = sorted(set(options) - {"instance", "start"})
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {unknown}; allowed: ['instance', 'start']")
+        self._episode += 1
+        key = torch.as_tensor(rng.episode_key(self._base_key, self._episode))  # (1,)
+        p, d = self.instances.sample(key)
+        self._p, self._dir = np.float32(p[0].item()), int(d[0])
+        if "instance" in options:
+            inst = dict(options["instance"])
+            bad = sorted(set(inst) - {"p", "direction"})
+            if bad:
+                raise ValueError(f"unknown instance field(s) {bad}; allowed: ['direction', 'p']")
+            if "p" in inst:
+                if not 0.0 <= float(inst["p"]) <= 1.0:
+                    raise ValueError(f"p must be in [0, 1], got {inst['p']}")
+                self._p = np.float32(inst["p"])
+            if "direction" in inst:
+                self._dir = windy.direction_index(inst["direction"])
+        starts = self.model.np_start_cells
+        self._cell = int(starts[int(rng.draw_index(key.numpy(), _C_START, len(starts))[0])])
+        if "start" in options:
+            r, c = options["start"]
+            H, W = self.layout.height, self.layout.width
+            if not (0 <= r < H and 0 <= c < W) or self.layout.rows[r][c] in "#G":
+                raise ValueError(f"start must be a free (row, col) cell inside {H}x{W}, got {options['start']}")
+            self._cell = r * W + c
+        self._key = key.numpy()
+        self._t = 0
+        return self._obs[self._cell].copy(), self._info()
+
+    def step(self, action):
+        """Move, then at most one gust (SPEC §1.1); reward -1."""
+        if not self.action_space.contains(action) and not (
+            isinstance(action, (int, np.integer)) and 0 <= int(action) < 4
+        ):
+            raise ValueError(f"action must be in [0, 3], got {action!r}")
+        a = int(action)
+        moved = int(self.model.np_move[self._cell, a])
+        u = rng.draw_uniform(self._key, np.int64(self._t))[0]
+        if u < self._p:
+            moved = int(self.model.np_push[moved, self._dir])
+        self._cell = moved
+        self._t += 1
+        terminated = bool(self.model.np_is_goal[moved])
+        truncated = self._t >= self.horizon and not terminated
+        return self._obs[moved].copy(), -1.0, terminated, truncated, self._info()
+
+    def render(self):
+        direction = windy.DIRECTIONS[self._dir]
+        if self.render_mode == "ansi":
+            return render.windy_ansi(self.layout, self._cell, float(self._p), direction)
+        if self.render_mode == "rgb_array":
+            return render.windy_rgb(self.layout, self._cell, direction)
+        return None
