@@ -1,0 +1,620 @@
+"""Strict experiment configs (DESIGN.md "Config"): frozen dataclasses mirrored by ``configs/*.yaml``.
+
+Loading goes through OmegaConf structured configs: the YAML file is merged into the schema built
+from :class:`Config`, then Hydra-style ``key.sub=value`` overrides are merged on top, and the result
+is converted back to frozen dataclasses. An unknown or misspelt key anywhere, or a value of the
+wrong type, is a one-line ``ValueError`` naming the full dotted key (and, for unknown keys, the keys
+allowed at that level); values outside their allowed set or range are checked in
+``Config.__post_init__`` and name the field and the allowed values.
+
+Every field carries a docstring (the string literal right below it); :func:`config_help` turns them
+into ``--help`` text.
+
+Examples:
+    >>> cfg = load_config("configs/windy.yaml", ["train.lr=0.01"])
+    >>> cfg.train.lr
+    0.01
+    >>> config_from_dict(config_to_dict(cfg)) == cfg
+    True
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import difflib
+import inspect
+import os
+import tempfile
+import textwrap
+import typing
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from taskvar_torch.envs import windy
+from taskvar_torch.envs.instances import WindyInstances
+
+FAMILIES = ("wargus", "windy")
+OBS_ENCODINGS = ("coords_patch", "onehot")  # same set as envs.windy_env.OBS_ENCODINGS
+ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
+TARGET_UPDATES = ("hard", "soft")
+SWITCHING_MODES = ("intra", "smdp")
+MU_BAR_MODES = ("greedy", "softmax")
+METHODS = ("averaging", "hierarchy", "interruption", "options")
+GENERATED = "generated"
+"""``env.layout`` value that builds the grid from ``env.height``/``env.width``/... (make_layout)."""
+
+
+@dataclass(frozen=True)
+class WargusConfig:
+    """Wargus resource-gathering family (SPEC §1.2); read only when ``family='wargus'``."""
+
+    size: int = 32
+    """Grid side length (size x size cells, no obstacles)."""
+    num_patrols: int = 1
+    """Number of enemy patrols."""
+    num_items: int = 1
+    """Number of items present at a time."""
+    sight: int = 8
+    """An object is seen when its Chebyshev distance to the viewer is < sight."""
+    shoot_range: int = 5
+    """A patrol shoots when the agent is within this Chebyshev distance."""
+    hit_prob: float = 1.0
+    """Probability that a shot destroys the agent."""
+    patrol_speed: float = 0.8
+    """Probability that a patrol moves on a given step."""
+    horizon: int = 500
+    """Steps before truncation."""
+    noop: bool = False
+    """Add a no-op action to the 8 compass moves."""
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """The environment family: windy fields at this level, Wargus fields under ``env.wargus``."""
+
+    num_envs: int = 16
+    """Number of environments simulated in parallel for training (the batch size N)."""
+    layout: str = "default"
+    """Windy layout: a name (default, middle_exits, whole_column_windy), a multi-line map string,
+    or 'generated' to build it from height/width/num_exits/wall_col/wind_cells_per_exit."""
+    height: int | None = None
+    """Generated windy grid: number of rows (only with layout='generated')."""
+    width: int | None = None
+    """Generated windy grid: number of columns (only with layout='generated')."""
+    num_exits: int | None = None
+    """Generated windy grid: exits in the wall, >= 2 (only with layout='generated'; default 2)."""
+    wall_col: int | None = None
+    """Generated windy grid: column of the wall (only with layout='generated'; default width // 2)."""
+    wind_cells_per_exit: int | None = None
+    """Generated windy grid: windy cells west of each exit (only with layout='generated'; default 1)."""
+    instances: str = "train"
+    """Windy training instance distribution: train, test, south or north."""
+    horizon: int | None = None
+    """Windy steps before truncation; null: max(100, 4 * (height + width))."""
+    obs_encoding: str = "onehot"
+    """Windy observation: onehot (one-hot cell) or coords_patch (coordinates + local patch)."""
+    patch_radius: int = 2
+    """Windy coords_patch encoding: radius r of the (2r+1)^2 local patch."""
+    wargus: WargusConfig = field(default_factory=WargusConfig)
+    """Wargus family parameters."""
+
+
+@dataclass(frozen=True)
+class HeadsConfig:
+    """Network shapes shared by every head (averaging, options, switching, max-value, robustness)."""
+
+    hidden: tuple[int, ...] = (64, 64)
+    """MLP hidden layer widths; [] gives a linear head."""
+    activation: str = "relu"
+    """Hidden-layer activation: elu, gelu, relu, silu or tanh."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Offline training of every head from one stream of experience (SPEC §2)."""
+
+    gamma: float = 0.99
+    """Discount of the environment and subtask rewards."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    batch_size: int = 256
+    """Transitions per gradient step (one shared sample for all heads)."""
+    buffer_size: int = 100_000
+    """Replay buffer capacity in transitions."""
+    frames_per_batch: int = 256
+    """Environment steps (summed over the N environments) collected between update phases."""
+    total_frames: int = 200_000
+    """Total environment steps to collect."""
+    updates_per_batch: int = 4
+    """Gradient steps after each collected batch (update-to-data ratio)."""
+    init_random_frames: int = 5_000
+    """Steps of uniformly random actions collected before learning starts."""
+    eps_start: float = 1.0
+    """Initial epsilon of epsilon-greedy exploration."""
+    eps_end: float = 0.05
+    """Final epsilon."""
+    eps_decay_frames: int = 100_000
+    """Steps over which epsilon decays linearly from eps_start to eps_end."""
+    target_update: str = "soft"
+    """Target-network update: soft (Polyak, target_tau) or hard (copy every target_period)."""
+    target_tau: float = 0.01
+    """Soft target update rate (target_update='soft')."""
+    target_period: int = 500
+    """Gradient steps between hard target copies (target_update='hard')."""
+    double_q: bool = True
+    """Use double Q-learning targets."""
+    max_value_expectile: float = 0.95
+    """Expectile level of the max-value head's upper estimator, in (0, 1)."""
+    switching: str = "smdp"
+    """Option-switching learner: smdp (option-level transitions) or intra (intra-option)."""
+    mu_bar: str = "greedy"
+    """mu_bar over Q_mu: greedy or softmax."""
+    mu_bar_temperature: float = 1.0
+    """Softmax temperature of mu_bar (mu_bar='softmax')."""
+    robustness_gamma: float = 0.9
+    """Discount of the robustness critics (Wargus)."""
+    robustness_tau: float = 2.0
+    """Robustness threshold tau of the hierarchy controller (Wargus)."""
+    max_grad_norm: float | None = 10.0
+    """Gradient-norm clipping; null disables it."""
+    checkpoint_every: int = 50_000
+    """Save a checkpoint every this many frames; 0: only the final one."""
+    log_every: int = 5_000
+    """Write a log row every this many frames."""
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Evaluation of a trained bundle on an instance distribution (SPEC §5)."""
+
+    method: str = "interruption"
+    """Controller: averaging, options, interruption or hierarchy."""
+    episodes: int = 1_000
+    """Evaluation episodes."""
+    test: str = "test"
+    """Test instance distribution (windy: train, test, south or north)."""
+    batch_size: int = 1_000
+    """Environments evaluated in parallel."""
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """The paper's experiments (SPEC §5): windy Figure 2, Wargus Figure 4."""
+
+    runs: int = 5
+    """Independent repetitions (windy: test runs; Wargus: repetitions)."""
+    episodes_per_run: int = 10_000
+    """Windy Figure 2: test episodes per run."""
+    trials: int = 500
+    """Wargus Figure 4: trials per repetition."""
+    learning_episodes_per_trial: int = 30
+    """Wargus Figure 4: learning episodes per trial."""
+    test_episodes_per_trial: int = 5
+    """Wargus Figure 4: nominal test episodes per trial (fixed seeds, no learning)."""
+    quick_overrides: tuple[str, ...] = ()
+    """key.sub=value overrides applied by load_config(..., quick=True) (smoke tests, notebooks)."""
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole experiment: family, seed, device, environment, heads, training, evaluation."""
+
+    family: str = "windy"
+    """MDP family: wargus or windy."""
+    seed: int = 0
+    """Master seed of environments, networks and exploration."""
+    device: str = "cpu"
+    """Torch device for environments and networks (cpu, cuda, cuda:1...)."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    """Environment family."""
+    heads: HeadsConfig = field(default_factory=HeadsConfig)
+    """Network shapes."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Training."""
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    """Evaluation."""
+    experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
+    """Experiments."""
+
+    def __post_init__(self):
+        _validate(self)
+
+
+# --------------------------------------------------------------------------------------------
+# validation
+
+
+def _one_of(key: str, value: Any, allowed: Sequence[str]) -> None:
+    if value not in allowed:
+        raise ValueError(f"{key} must be one of {sorted(allowed)}, got {value!r}")
+
+
+def _at_least(key: str, value: int | float | None, low: int | float) -> None:
+    if value is not None and value < low:
+        raise ValueError(f"{key} must be >= {low}, got {value}")
+
+
+def _within(key: str, value: float, low: float, high: float, open_low: bool = False) -> None:
+    ok = (low < value if open_low else low <= value) and value <= high
+    if not ok:
+        raise ValueError(f"{key} must be in {'(' if open_low else '['}{low}, {high}], got {value}")
+
+
+def _validate(cfg: Config) -> None:
+    """Check value ranges and choices; every error names the dotted key and what is allowed."""
+    _one_of("family", cfg.family, FAMILIES)
+    try:
+        torch.device(cfg.device)
+    except (RuntimeError, ValueError) as e:
+        raise ValueError(
+            f"device must be a torch device such as 'cpu' or 'cuda:0', got {cfg.device!r}"
+        ) from e
+    env, w = cfg.env, cfg.env.wargus
+    _at_least("env.num_envs", env.num_envs, 1)
+    _one_of("env.instances", env.instances, WindyInstances.NAMES)
+    _at_least("env.horizon", env.horizon, 1)
+    _one_of("env.obs_encoding", env.obs_encoding, OBS_ENCODINGS)
+    _at_least("env.patch_radius", env.patch_radius, 0)
+    windy_layout(env)  # raises a ValueError naming the layout keys
+    _at_least("env.wargus.size", w.size, 2)
+    _at_least("env.wargus.num_patrols", w.num_patrols, 1)
+    _at_least("env.wargus.num_items", w.num_items, 1)
+    _at_least("env.wargus.sight", w.sight, 1)
+    _at_least("env.wargus.shoot_range", w.shoot_range, 0)
+    _within("env.wargus.hit_prob", w.hit_prob, 0.0, 1.0)
+    _within("env.wargus.patrol_speed", w.patrol_speed, 0.0, 1.0)
+    _at_least("env.wargus.horizon", w.horizon, 1)
+
+    for i, h in enumerate(cfg.heads.hidden):
+        _at_least(f"heads.hidden[{i}]", h, 1)
+    _one_of("heads.activation", cfg.heads.activation, ACTIVATIONS)
+
+    t = cfg.train
+    _within("train.gamma", t.gamma, 0.0, 1.0, open_low=True)
+    _within("train.robustness_gamma", t.robustness_gamma, 0.0, 1.0, open_low=True)
+    if not t.lr > 0:
+        raise ValueError(f"train.lr must be > 0, got {t.lr}")
+    _at_least("train.batch_size", t.batch_size, 1)
+    _at_least("train.buffer_size", t.buffer_size, t.batch_size)
+    _at_least("train.frames_per_batch", t.frames_per_batch, 1)
+    _at_least("train.total_frames", t.total_frames, 0)
+    _at_least("train.updates_per_batch", t.updates_per_batch, 0)
+    _at_least("train.init_random_frames", t.init_random_frames, 0)
+    _within("train.eps_start", t.eps_start, 0.0, 1.0)
+    _within("train.eps_end", t.eps_end, 0.0, 1.0)
+    _at_least("train.eps_decay_frames", t.eps_decay_frames, 0)
+    _one_of("train.target_update", t.target_update, TARGET_UPDATES)
+    _within("train.target_tau", t.target_tau, 0.0, 1.0, open_low=True)
+    _at_least("train.target_period", t.target_period, 1)
+    if not 0.0 < t.max_value_expectile < 1.0:
+        raise ValueError(
+            f"train.max_value_expectile must be in (0, 1), got {t.max_value_expectile}"
+        )
+    _one_of("train.switching", t.switching, SWITCHING_MODES)
+    _one_of("train.mu_bar", t.mu_bar, MU_BAR_MODES)
+    if not t.mu_bar_temperature > 0:
+        raise ValueError(f"train.mu_bar_temperature must be > 0, got {t.mu_bar_temperature}")
+    if t.max_grad_norm is not None and not t.max_grad_norm > 0:
+        raise ValueError(f"train.max_grad_norm must be > 0 or null, got {t.max_grad_norm}")
+    _at_least("train.checkpoint_every", t.checkpoint_every, 0)
+    _at_least("train.log_every", t.log_every, 1)
+
+    _one_of("eval.method", cfg.eval.method, METHODS)
+    _at_least("eval.episodes", cfg.eval.episodes, 1)
+    if cfg.family == "windy":
+        _one_of("eval.test", cfg.eval.test, WindyInstances.NAMES)
+    _at_least("eval.batch_size", cfg.eval.batch_size, 1)
+
+    x = cfg.experiment
+    for name in ("runs", "episodes_per_run", "trials", "learning_episodes_per_trial"):
+        _at_least(f"experiment.{name}", getattr(x, name), 1)
+    _at_least("experiment.test_episodes_per_trial", x.test_episodes_per_trial, 1)
+
+
+_GENERATOR_KEYS = ("height", "width", "num_exits", "wall_col", "wind_cells_per_exit")
+
+
+def windy_layout(env: EnvConfig) -> windy.WindyLayout:
+    """The windy layout an ``EnvConfig`` describes (a name, a map string, or generated).
+
+    Raises:
+        ValueError: naming ``env.layout`` or the generator key at fault.
+    """
+    if env.layout != GENERATED:
+        stray = [k for k in _GENERATOR_KEYS if getattr(env, k) is not None]
+        if stray:
+            raise ValueError(
+                f"env.{stray[0]} is only read when env.layout={GENERATED!r}; "
+                f"remove it or set env.layout={GENERATED!r} (env.layout is {env.layout!r})"
+            )
+        if env.layout in windy.LAYOUTS:
+            return windy.WindyLayout.named(env.layout)
+        if "\n" not in env.layout.strip():
+            raise ValueError(
+                f"env.layout must be one of {sorted([*windy.LAYOUTS, GENERATED])} or a multi-line "
+                f"map string, got {env.layout!r}"
+            )
+        try:
+            return windy.WindyLayout.from_map(env.layout)
+        except ValueError as e:
+            raise ValueError(f"env.layout: {e}") from None
+    for k in ("height", "width"):
+        if getattr(env, k) is None:
+            raise ValueError(f"env.{k} is required when env.layout={GENERATED!r}")
+    try:
+        return windy.make_layout(
+            env.height,
+            env.width,
+            num_exits=2 if env.num_exits is None else env.num_exits,
+            wall_col=env.wall_col,
+            wind_cells_per_exit=1 if env.wind_cells_per_exit is None else env.wind_cells_per_exit,
+        )
+    except ValueError as e:
+        raise ValueError(f"env (layout={GENERATED!r}): {e}") from None
+
+
+def windy_env_kwargs(cfg: Config) -> dict[str, Any]:
+    """Keyword arguments of ``WindyGridEnv`` for the training environment of ``cfg``.
+
+    Examples:
+        >>> env = WindyGridEnv(**windy_env_kwargs(cfg))  # doctest: +SKIP
+    """
+    if cfg.family != "windy":
+        raise ValueError(f"windy_env_kwargs needs family='windy', got family={cfg.family!r}")
+    e = cfg.env
+    return {
+        "num_envs": e.num_envs,
+        "layout": windy_layout(e),
+        "instances": e.instances,
+        "horizon": e.horizon,
+        "obs_encoding": e.obs_encoding,
+        "patch_radius": e.patch_radius,
+        "seed": cfg.seed,
+        "device": cfg.device,
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# strict loading
+
+
+def _schema_class(dotted: str) -> type | None:
+    """The dataclass that holds the last component of ``dotted`` (``train.lr`` -> TrainConfig)."""
+    cls: type = Config
+    for part in [p for p in dotted.split(".") if p][:-1]:
+        hints = typing.get_type_hints(cls)
+        if part not in hints or not dataclasses.is_dataclass(hints[part]):
+            return None
+        cls = hints[part]
+    return cls
+
+
+def _first_non_mapping(node: Any, cls: type, prefix: str = "") -> str | None:
+    """First dotted key whose value should be a section (mapping) but is not."""
+    if not isinstance(node, Mapping):
+        return None
+    hints = typing.get_type_hints(cls)
+    for k, v in node.items():
+        t = hints.get(k)
+        if t is not None and dataclasses.is_dataclass(t):
+            if not isinstance(v, Mapping):
+                return f"{prefix}{k}"
+            found = _first_non_mapping(v, t, f"{prefix}{k}.")
+            if found:
+                return found
+    return None
+
+
+def _config_error(e: OmegaConfBaseException, source: str, raw: Any) -> ValueError:
+    """Turn an OmegaConf error into a one-line ValueError naming the dotted key."""
+    key = getattr(e, "full_key", None)
+    first = (
+        str(getattr(e, "msg", None) or e).strip().splitlines()[0]
+        if str(e).strip()
+        else type(e).__name__
+    )
+    if not key:
+        key = _first_non_mapping(raw, Config)
+        if key:
+            cls = _schema_class(key + ".x")
+            return ValueError(
+                f"config key {key!r} ({source}) must be a section of "
+                f"{[f.name for f in dataclasses.fields(cls)]}, got {_raw_value(raw, key)!r}"
+            )
+        return ValueError(f"invalid config ({source}): {first}")
+    leaf = key.split(".")[-1]
+    cls = _schema_class(key)
+    allowed = [f.name for f in dataclasses.fields(cls)] if cls is not None else []
+    if cls is not None and leaf not in allowed:
+        level = key.rsplit(".", 1)[0] if "." in key else "the top level"
+        hint = difflib.get_close_matches(leaf, allowed, n=1)
+        mean = f" (did you mean {hint[0]!r}?)" if hint else ""
+        return ValueError(
+            f"unknown config key {key!r} ({source}){mean}; allowed keys in {level}: {', '.join(allowed)}"
+        )
+    return ValueError(f"bad value for config key {key!r} ({source}): {first}")
+
+
+def _raw_value(raw: Any, dotted: str) -> Any:
+    """Value at ``dotted`` in a nested mapping, or None."""
+    node = raw
+    for part in dotted.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+def _merge(base: DictConfig, update: Any, source: str) -> DictConfig:
+    raw = OmegaConf.to_container(update) if isinstance(update, DictConfig) else update
+    if not isinstance(raw, Mapping):
+        raise ValueError(
+            f"config ({source}) must be a mapping of keys to values, got {type(raw).__name__}"
+        )
+    try:
+        return OmegaConf.merge(base, update)
+    except OmegaConfBaseException as e:
+        raise _config_error(e, source, raw) from None
+
+
+def _to_config(node: DictConfig, source: str) -> Config:
+    try:
+        cfg = OmegaConf.to_object(node)
+    except OmegaConfBaseException as e:
+        raise _config_error(e, source, None) from None
+    except ValueError as e:  # Config.__post_init__: range and choice checks
+        raise ValueError(f"{e} ({source})") from None
+    assert isinstance(cfg, Config)
+    return cfg
+
+
+def _parse_override(item: str) -> DictConfig:
+    if not isinstance(item, str) or "=" not in item or item.startswith(("+", "~")):
+        raise ValueError(f"override {item!r} must look like key.sub=value (e.g. train.lr=0.01)")
+    try:
+        return OmegaConf.from_dotlist([item])
+    except OmegaConfBaseException as e:
+        raise ValueError(f"override {item!r} cannot be parsed: {str(e).splitlines()[0]}") from None
+
+
+def _apply_overrides(node: DictConfig, overrides: Sequence[str]) -> DictConfig:
+    if isinstance(overrides, str):
+        overrides = [overrides]
+    for item in overrides:
+        node = _merge(node, _parse_override(item), f"override {item!r}")
+    return node
+
+
+def _schema() -> DictConfig:
+    node = OmegaConf.structured(Config)
+    OmegaConf.set_readonly(node, False)
+    return node
+
+
+def load_config(
+    path: str | os.PathLike, overrides: Sequence[str] = (), quick: bool = False
+) -> Config:
+    """Load a YAML config strictly, then apply ``key.sub=value`` overrides.
+
+    Args:
+        path: YAML file mirroring :class:`Config`; keys left out take the dataclass defaults.
+        overrides: Hydra-style dotlist strings, applied in order after the file.
+        quick: apply ``experiment.quick_overrides`` (before ``overrides``).
+
+    Returns:
+        The frozen :class:`Config`.
+
+    Raises:
+        ValueError: a missing file, an unknown key, a wrong type or a value out of range, in one
+            line naming the dotted key.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"config file {str(path)!r} does not exist")
+    try:
+        data = OmegaConf.load(path)
+    except Exception as e:  # yaml.YAMLError and friends
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise ValueError(f"config file {str(path)!r} is not valid YAML: {first}") from None
+    if not isinstance(data, DictConfig):
+        raise ValueError(f"config file {str(path)!r} must hold a mapping, got a list")
+    node = _merge(_schema(), data, f"in {path}")
+    cfg = _to_config(node, f"in {path}")
+    if quick:
+        node = _apply_overrides(node, cfg.experiment.quick_overrides)
+    else:  # still validate the quick overrides, so a typo there fails now, not in CI later
+        _to_config(_apply_overrides(node.copy(), cfg.experiment.quick_overrides), "quick_overrides")
+    node = _apply_overrides(node, overrides)
+    return _to_config(node, f"in {path} with overrides")
+
+
+def apply_overrides(cfg: Config, overrides: Sequence[str]) -> Config:
+    """``cfg`` with Hydra-style ``key.sub=value`` overrides applied (same strict errors)."""
+    node = _merge(_schema(), OmegaConf.structured(cfg), "config")
+    return _to_config(_apply_overrides(node, overrides), "with overrides")
+
+
+def config_to_dict(cfg: Config) -> dict[str, Any]:
+    """Plain nested dict of str/int/float/bool/None/list (tuples become lists), e.g. for checkpoints."""
+    out = OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True)
+    assert isinstance(out, dict)
+    return out
+
+
+def config_from_dict(d: Mapping[str, Any], source: str = "config dict") -> Config:
+    """Strictly rebuild a :class:`Config` from :func:`config_to_dict` output (same errors as YAML)."""
+    if not isinstance(d, Mapping):
+        raise ValueError(f"config ({source}) must be a mapping, got {type(d).__name__}")
+    try:
+        data = OmegaConf.create(dict(d))
+    except OmegaConfBaseException as e:
+        raise ValueError(f"config ({source}) is not plain data: {str(e).splitlines()[0]}") from None
+    return _to_config(_merge(_schema(), data, source), source)
+
+
+def config_to_yaml(cfg: Config) -> str:
+    """YAML text of ``cfg`` (every key), loadable by :func:`load_config`."""
+    return OmegaConf.to_yaml(OmegaConf.create(config_to_dict(cfg)))
+
+
+def save_config_yaml(cfg: Config, path: str | os.PathLike) -> None:
+    """Write ``cfg`` as YAML atomically (temporary file in the same folder, fsync, rename)."""
+    path = Path(path)
+    text = config_to_yaml(cfg)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+# --------------------------------------------------------------------------------------------
+# --help
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """The docstring below each field of a config dataclass, by field name."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs: dict[str, str] = {}
+    for stmt, nxt in zip(body, body[1:]):
+        if (
+            isinstance(stmt, ast.AnnAssign)
+            and isinstance(stmt.target, ast.Name)
+            and isinstance(nxt, ast.Expr)
+            and isinstance(nxt.value, ast.Constant)
+            and isinstance(nxt.value.value, str)
+        ):
+            docs[stmt.target.id] = " ".join(nxt.value.value.split())
+    return docs
+
+
+def config_help(cls: type = Config, prefix: str = "") -> str:
+    """``--help`` text: one line per dotted key with its type, default and docstring."""
+    lines = []
+    docs = field_docs(cls)
+    hints = typing.get_type_hints(cls)
+    default = cls()
+    for f in dataclasses.fields(cls):
+        t = hints[f.name]
+        if dataclasses.is_dataclass(t):
+            lines.append(f"{prefix}{f.name}: {docs.get(f.name, '')}")
+            lines.append(config_help(t, f"{prefix}{f.name}."))
+            continue
+        value = getattr(default, f.name)
+        shown = list(value) if isinstance(value, tuple) else value
+        tname = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
+        lines.append(f"  {prefix}{f.name} ({tname}, default {shown!r}): {docs.get(f.name, '')}")
+    return "\n".join(lines)
