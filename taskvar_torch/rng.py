@@ -2,29 +2,36 @@
 
 A ``torch.Generator`` hands out one stream per *batch*, so a sub-environment's draws would change
 with the number of environments it is batched with. Like Gymnax/JAX keys, we instead give every
-sub-environment episode an integer key and draw ``u = hash(key, counter)``: the draw depends only on
-(seed, sub-environment index, episode, step), never on N, the device or the order of calls. That
-gives bit-identical trajectories whatever N is split into, and common random numbers for paired
-evaluation (SPEC §5) for free. Works on numpy ``int64`` arrays and torch ``int64`` tensors alike.
+sub-environment episode an integer key and draw ``bits = hash(key, counter)``: the draw depends
+only on (seed, sub-environment index, episode, step), never on N, the device or the order of calls.
+That gives bit-identical trajectories whatever N is split into, and common random numbers for
+paired evaluation (SPEC §5) for free.
+
+Keys are uint32 values. The generic functions work on Python ints, numpy ``int64`` arrays and torch
+``int64`` tensors; the ``*_i32`` functions are the hot-path versions on torch ``int32`` tensors
+(uint32 bit patterns, wrapping multiplication), 2-4x faster, and agree bit for bit (tested).
 """
 
 from __future__ import annotations
 
+import torch
+
 MASK32 = 0xFFFFFFFF
 _GOLDEN = 0x9E3779B9  # Weyl increment (2^32 / golden ratio)
+_M1, _M2 = 0x7FEB352D, 0x846CA68B  # lowbias32 multipliers (C. Wellons)
 _INV24 = 1.0 / (1 << 24)
 
 # Counters at and above RESET_COUNTER are reserved for draws made at reset (instance, start cell);
-# step ``t`` of an episode uses counter ``t``.
+# step ``t`` of an episode uses counters below it.
 RESET_COUNTER = 1 << 30
 
 
 def hash32(x):
-    """lowbias32 integer hash (C. Wellons) on int64 values holding uint32s; returns uint32 in int64."""
+    """lowbias32 integer hash on values holding uint32s (int / int64 array / int64 tensor)."""
     x = x ^ (x >> 16)
-    x = (x * 0x7FEB352D) & MASK32
+    x = (x * _M1) & MASK32
     x = x ^ (x >> 15)
-    x = (x * 0x846CA68B) & MASK32
+    x = (x * _M2) & MASK32
     return x ^ (x >> 16)
 
 
@@ -34,19 +41,23 @@ def draw_bits(key, counter):
 
 
 def draw_uniform(key, counter):
-    """Uniform float in [0, 1) with 24 random bits, for ``(key, counter)``."""
+    """Uniform in [0, 1) on the 24-bit grid ``k / 2^24``, for ``(key, counter)``."""
     bits = draw_bits(key, counter) >> 8
-    if hasattr(bits, "to"):  # torch
-        import torch
-
+    if isinstance(bits, torch.Tensor):
         return bits.to(torch.float32) * _INV24
+    if isinstance(bits, int):
+        return bits * _INV24
     return bits.astype("float32") * _INV24
 
 
 def draw_index(key, counter, n):
-    """Uniform integer in ``[0, n)`` for ``(key, counter)`` (n may be a tensor or int, n < 2^24)."""
-    bits = draw_bits(key, counter) >> 8
-    return (bits * n) >> 24
+    """Uniform integer in ``[0, n)`` for ``(key, counter)`` (n < 2^24)."""
+    return ((draw_bits(key, counter) >> 8) * n) >> 24
+
+
+def probability_threshold(p: torch.Tensor) -> torch.Tensor:
+    """int32 threshold ``ceil(p * 2^24)`` so that ``(bits >> 8) < threshold`` iff ``u < p`` exactly."""
+    return torch.ceil(p.to(torch.float64) * (1 << 24)).to(torch.int32)
 
 
 def sub_env_key(seed: int, index):
@@ -57,3 +68,23 @@ def sub_env_key(seed: int, index):
 def episode_key(base_key, episode):
     """Key of episode number ``episode`` of the sub-environment with ``base_key``."""
     return hash32((base_key ^ hash32((episode + 0x632BE5AB) & MASK32)) & MASK32)
+
+
+def to_i32(key: torch.Tensor) -> torch.Tensor:
+    """uint32 values held in int64 -> the same bit pattern in int32."""
+    return (key - ((key >> 31) << 32)).to(torch.int32)
+
+
+def draw_bits_i32(key: torch.Tensor, counter: torch.Tensor | int) -> torch.Tensor:
+    """:func:`draw_bits` on int32 keys/counters; returns the uint32 bit pattern as int32."""
+    x = key + counter * (_GOLDEN - (1 << 32))  # int32 wrapping arithmetic
+    x = x ^ ((x >> 16) & 0xFFFF)  # logical shifts: mask off the sign-extended bits
+    x = x * (_M1)
+    x = x ^ ((x >> 15) & 0x1FFFF)
+    x = x * (_M2 - (1 << 32))
+    return x ^ ((x >> 16) & 0xFFFF)
+
+
+def bernoulli_i32(key: torch.Tensor, counter: torch.Tensor | int, threshold: torch.Tensor) -> torch.Tensor:
+    """``u(key, counter) < p`` with ``threshold = probability_threshold(p)``: bool, hot path."""
+    return ((draw_bits_i32(key, counter) >> 8) & 0xFFFFFF) < threshold

@@ -148,7 +148,7 @@ def test_wind_pushes_agent_north_with_probability_p():
     cell = torch.full((n,), 4 * 5 + 0)
     action = torch.full((n,), 2)
     u = rng.draw_uniform(rng.sub_env_key(0, torch.arange(n)), 0)
-    nxt, term = windy.step(model, cell, action, torch.full((n,), p), torch.zeros(n, dtype=torch.long), u)
+    nxt, term = windy.step(model, cell, action, torch.zeros(n, dtype=torch.long), u < p)
     frac = (nxt == 3 * 5 + 1).float().mean().item()
     assert set(nxt.unique().tolist()) == {3 * 5 + 1, 4 * 5 + 1}
     assert abs(frac - p) < 4 * (p * (1 - p) / n) ** 0.5
@@ -157,7 +157,7 @@ def test_wind_pushes_agent_north_with_probability_p():
 
 def test_north_wind_at_north_exit_is_harmless():
     model = WindyModel(WindyLayout.named("default"))
-    nxt, _ = windy.step(model, torch.tensor([0]), torch.tensor([2]), torch.tensor([1.0]), torch.tensor([0]), torch.tensor([0.0]))
+    nxt, _ = windy.step(model, torch.tensor([0]), torch.tensor([2]), torch.tensor([0]), torch.tensor([True]))
     assert nxt.item() == 1  # pushed north into the edge: stays in the windy cell (0, 1)
 
 
@@ -172,7 +172,7 @@ def test_dynamics_match_transition_tensors(layout):
         actions = torch.arange(A).repeat_interleave(n).repeat(S)
         keys = rng.sub_env_key(17, torch.arange(cells.numel()))
         u = rng.draw_uniform(keys, 5)
-        nxt, _ = windy.step(model, cells, actions, torch.full_like(u, p), torch.full_like(cells, d), u)
+        nxt, _ = windy.step(model, cells, actions, torch.full_like(cells, d), u < p)
         counts = torch.zeros(S * A, S, dtype=torch.float64)
         counts.index_put_((cells * A + actions, nxt), torch.ones_like(u, dtype=torch.float64), accumulate=True)
         freq = (counts / n).view(S, A, S)

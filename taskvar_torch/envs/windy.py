@@ -1,14 +1,16 @@
 """Windy gridworld family (paper §3.3.1, SPEC §1.1): layouts, pure batched dynamics, exact model.
 
 Cells are flat indices ``row * width + col`` (row 0 is north). Everything a step needs is
-precomputed into small lookup tables (:class:`WindyModel`), so one step over a batch is three
-gathers and a comparison:
+precomputed into small lookup tables (:class:`WindyModel`):
 
-    moved = move[cell, action]                     # the agent's move (walls and edges block)
-    nxt   = where(u < p, push[moved, direction], moved)   # one gust if it ends in a windy cell
+    moved = move[cell, action]                    # the agent's move (walls and edges block)
+    nxt   = push[moved, direction] if gust else moved   # one gust if it ends in a windy cell
 
-``push[c, d] == c`` for non-windy cells, so the wind needs no separate mask. Instance parameters
-``(p, direction)`` are batched tensors; nothing else varies across the family.
+``push[c, d] == c`` for non-windy cells, so the wind needs no separate mask. Both are folded into
+one table ``next[cell, action, direction, gust]``, so a batched step is one gather. The randomness
+is an input: ``gust`` is the step's Bernoulli(p) draw, made by the caller from keyed random numbers
+(``rng.py``) or any generator. Instance parameters ``(p, direction)`` are batched tensors; nothing
+else varies across the family.
 """
 
 from __future__ import annotations
@@ -267,8 +269,9 @@ class WindyModel:
         t = dict(dtype=torch.int64, device=self.device)
         self.move = torch.as_tensor(move, **t)
         self.push = torch.as_tensor(push, **t)
-        self.move_flat = self.move.reshape(-1)
-        self.push_flat = self.push.reshape(-1)
+        # next_flat[((cell * 4 + action) * 4 + direction) * 2 + gust]: the whole step in one table
+        nxt = np.stack([np.broadcast_to(move[:, :, None], (S, A, A)), push[move]], axis=-1)
+        self.next_flat = torch.as_tensor(nxt.reshape(-1).copy(), **t)
         self.is_goal = torch.as_tensor(self.np_is_goal, device=self.device)
         self.is_windy = torch.as_tensor(windy, device=self.device)
         self.exit_id = torch.as_tensor(exit_id, **t)
@@ -280,18 +283,16 @@ def step(
     model: WindyModel,
     cell: torch.Tensor,  # (B,) int64
     action: torch.Tensor,  # (B,) int64
-    p: torch.Tensor,  # (B,) float
     direction: torch.Tensor,  # (B,) int64
-    u: torch.Tensor,  # (B,) float in [0, 1): the step's uniform draw
+    gust: torch.Tensor,  # (B,) bool: the wind blows this step (a Bernoulli(p) draw)
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """One batched step (SPEC §1.1 default timing: move, then at most one gust).
 
     Returns ``(next_cell, terminated)``; the reward is -1 for every step.
     """
-    moved = model.move_flat[cell * 4 + action]  # (B,)
-    gust = model.push_flat[moved * 4 + direction]  # (B,)
-    nxt = torch.where(u < p, gust, moved)
-    return nxt, model.is_goal[nxt]
+    idx = cell * 32 + action * 8 + direction * 2 + gust  # (B,)
+    nxt = model.next_flat.index_select(0, idx)  # (B,)
+    return nxt, model.is_goal.index_select(0, nxt)
 
 
 def transition_tensors(

@@ -200,7 +200,7 @@ class WindyGridEnv(EnvBase):
     def _out(self, cell, p, direction, reward=None, terminated=None, truncated=None):
         N = self.num_envs
         td = {
-            keys.OBSERVATION: self._obs_table[cell],
+            keys.OBSERVATION: self._obs_table.index_select(0, cell),
             keys.CELL: cell,
             keys.INSTANCE: TensorDict._new_unsafe(
                 {"p": p, "direction": direction}, batch_size=self.batch_size, device=self.device
@@ -233,15 +233,18 @@ class WindyGridEnv(EnvBase):
             cell = starts[rng.draw_index(key, _C_START, starts.numel())]
         else:
             cell = torch.full_like(key, self.start)
-        t = torch.zeros_like(key)
+        key32, threshold = rng.to_i32(key), rng.probability_threshold(p)
+        t = torch.zeros_like(key32)
         if idx is None:
-            self._key, self._p, self._dir, self._cell, self._t = key, p, direction, cell, t
+            self._key32, self._threshold, self._t = key32, threshold, t
+            self._p, self._dir, self._cell = p, direction, cell
         else:  # out-of-place updates: tensors already handed out are never mutated
-            self._key = self._key.index_put((idx,), key)
+            self._key32 = self._key32.index_put((idx,), key32)
+            self._threshold = self._threshold.index_put((idx,), threshold)
+            self._t = self._t.index_put((idx,), t)
             self._p = self._p.index_put((idx,), p)
             self._dir = self._dir.index_put((idx,), direction)
             self._cell = self._cell.index_put((idx,), cell)
-            self._t = self._t.index_put((idx,), t)
         return self._out(self._cell, self._p, self._dir)
 
     def _reset_proc_data(self, tensordict, tensordict_reset):
@@ -260,8 +263,8 @@ class WindyGridEnv(EnvBase):
         ):
             bad = action[(action < 0) | (action >= self.model.num_actions)][0].item()
             raise ValueError(f"action must be in [0, {self.model.num_actions - 1}], got {bad}")
-        u = rng.draw_uniform(self._key, self._t)  # (N,): this step's wind draw
-        cell, terminated = windy.step(self.model, self._cell, action, self._p, self._dir, u)
+        gust = rng.bernoulli_i32(self._key32, self._t, self._threshold)  # (N,) this step's wind
+        cell, terminated = windy.step(self.model, self._cell, action, self._dir, gust)
         self._cell = cell
         self._t = self._t + 1
         terminated = terminated.unsqueeze(-1)

@@ -74,11 +74,13 @@ class WindyGridGymEnv(gym.Env):
         self._obs = observation_table(self.layout, obs_encoding, patch_radius)
         self.observation_space = gym.spaces.Box(0.0, 1.0, (self._obs.shape[1],), np.float32)
         self.action_space = gym.spaces.Discrete(4)
+        self._move, self._push = self.model.np_move.tolist(), self.model.np_push.tolist()
+        self._goal = self.model.np_is_goal.tolist()
         self._base_key = np.asarray(rng.sub_env_key(0, np.zeros(1, dtype=np.int64)))
         self._episode = -1
         self._cell = int(self.model.np_start_cells[0])
         self._t, self._p, self._dir = 0, np.float32(0.0), 0
-        self._key = np.zeros(1, dtype=np.int64)
+        self._key = 0
 
     def _info(self) -> dict[str, Any]:
         return {
@@ -119,24 +121,21 @@ class WindyGridGymEnv(gym.Env):
             if not (0 <= r < H and 0 <= c < W) or self.layout.rows[r][c] in "#G":
                 raise ValueError(f"start must be a free (row, col) cell inside {H}x{W}, got {options['start']}")
             self._cell = r * W + c
-        self._key = key.numpy()
+        self._key = int(key[0])  # python-int hashing is the fastest for a single env
         self._t = 0
         return self._obs[self._cell].copy(), self._info()
 
     def step(self, action):
         """Move, then at most one gust (SPEC §1.1); reward -1."""
-        if not self.action_space.contains(action) and not (
-            isinstance(action, (int, np.integer)) and 0 <= int(action) < 4
-        ):
-            raise ValueError(f"action must be in [0, 3], got {action!r}")
         a = int(action)
-        moved = int(self.model.np_move[self._cell, a])
-        u = rng.draw_uniform(self._key, np.int64(self._t))[0]
-        if u < self._p:
-            moved = int(self.model.np_push[moved, self._dir])
+        if not 0 <= a < 4 or a != action:
+            raise ValueError(f"action must be in [0, 3], got {action!r}")
+        moved = int(self._move[self._cell][a])
+        if rng.draw_uniform(self._key, self._t) < self._p:
+            moved = int(self._push[moved][self._dir])
         self._cell = moved
         self._t += 1
-        terminated = bool(self.model.np_is_goal[moved])
+        terminated = self._goal[moved]
         truncated = self._t >= self.horizon and not terminated
         return self._obs[moved].copy(), -1.0, terminated, truncated, self._info()
 
