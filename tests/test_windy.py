@@ -276,3 +276,13 @@ def test_scaled_layout_generator():
     assert [g[0] // 51 for g in lay.exit_cells] == [0, 17, 33, 50]
     assert sum(r.count("W") for r in lay.rows) == 8
     assert windy.default_horizon(lay) == 408 and windy.default_horizon(WindyLayout.named("default")) == 100
+
+
+def test_noise_seed_keeps_instances_and_starts_but_changes_gusts():
+    gen = torch.Generator().manual_seed(4)
+    actions = torch.randint(0, 4, (200, 64), generator=gen)
+    a = rollout_cells(WindyGridEnv(num_envs=64, seed=5), actions)
+    b = rollout_cells(WindyGridEnv(num_envs=64, seed=5, noise_seed=1), actions)
+    assert torch.equal(a["p"][0], b["p"][0])  # same first instances
+    assert torch.equal(WindyGridEnv(num_envs=64, seed=5).reset()["cell"], WindyGridEnv(num_envs=64, seed=5, noise_seed=1).reset()["cell"])
+    assert not torch.equal(a["cell"], b["cell"])

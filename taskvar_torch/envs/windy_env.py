@@ -104,6 +104,10 @@ class WindyGridEnv(EnvBase):
         seed: seed; sub-environment ``i`` draws from key ``(seed, index_offset + i)``, so any split
             of N environments reproduces the same trajectories.
         index_offset: global index of sub-environment 0.
+        noise_seed: salt of the per-step wind stream. Two envs with the same ``seed`` draw the same
+            instances and start cells; with the same ``noise_seed`` they also see the same gusts
+            (common random numbers), with different ones independent gusts (the null comparison
+            of SPEC §5).
         validate_actions: check actions are in range (one host sync per step).
         device: torch device.
 
@@ -127,6 +131,7 @@ class WindyGridEnv(EnvBase):
         start: tuple[int, int] | None = None,
         seed: int = 0,
         index_offset: int = 0,
+        noise_seed: int = 0,
         validate_actions: bool = True,
         device: torch.device | str = "cpu",
     ):
@@ -154,6 +159,8 @@ class WindyGridEnv(EnvBase):
                 raise ValueError(f"start {start} is a wall or goal cell; choose a free cell")
             self.start = cell
         self.index_offset = int(index_offset)
+        self.noise_seed = int(noise_seed)
+        self._noise_salt = rng.hash32(rng.hash32(self.noise_seed & rng.MASK32) ^ 0x5BD1E995)
         self.validate_actions = validate_actions
         self._make_specs()
         self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
@@ -233,7 +240,8 @@ class WindyGridEnv(EnvBase):
             cell = starts[rng.draw_index(key, _C_START, starts.numel())]
         else:
             cell = torch.full_like(key, self.start)
-        key32, threshold = rng.to_i32(key), rng.probability_threshold(p)
+        noise_key = key if self.noise_seed == 0 else rng.hash32(key ^ self._noise_salt)
+        key32, threshold = rng.to_i32(noise_key), rng.probability_threshold(p)
         t = torch.zeros_like(key32)
         if idx is None:
             self._key32, self._threshold, self._t = key32, threshold, t
