@@ -1,0 +1,35 @@
+# The two set-up commands of the README. Each creates .venv, installs the pinned local CPU torch
+# first (an unpinned torch would pull gigabytes of CUDA packages), then the package.
+PYTHON ?= python3
+VENV ?= .venv
+BIN := $(VENV)/bin
+OUT ?= results/oracle
+
+.PHONY: demo test install install-test lint clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --upgrade pip
+
+install: $(BIN)/python
+	$(BIN)/python -m pip install torch==2.13.0
+	$(BIN)/python -m pip install -e .
+
+install-test: $(BIN)/python
+	$(BIN)/python -m pip install torch==2.13.0
+	$(BIN)/python -m pip install -e ".[test]"
+
+## demo: install everything and run the main job (train, evaluate, print the table, write the plot)
+demo: install
+	$(BIN)/python -m taskvar_torch.experiments.oracle_table --out $(OUT)
+
+## test: install the test extras and run the whole suite (what .ci/run calls)
+test: install-test
+	$(BIN)/ruff check taskvar_torch tests benchmarks
+	$(BIN)/python -m pytest -q
+
+lint:
+	$(BIN)/ruff check taskvar_torch tests benchmarks
+
+clean:
+	rm -rf $(VENV) results .pytest_cache
