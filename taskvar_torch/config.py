@@ -487,9 +487,15 @@ def _parse_override(item: str) -> DictConfig:
 def _apply_overrides(node: DictConfig, overrides: Sequence[str]) -> DictConfig:
     if isinstance(overrides, str):
         overrides = [overrides]
-    for item in overrides:
-        node = _merge(node, _parse_override(item), f"override {item!r}")
-    return node
+    parsed = [_parse_override(item) for item in overrides]
+    if not parsed:
+        return node
+    try:  # one merge; on failure, redo them one by one to name the culprit
+        return OmegaConf.merge(node, *parsed)
+    except OmegaConfBaseException:
+        for item, update in zip(overrides, parsed):
+            node = _merge(node, update, f"override {item!r}")
+        return node
 
 
 def _schema() -> DictConfig:
@@ -543,9 +549,15 @@ def apply_overrides(cfg: Config, overrides: Sequence[str]) -> Config:
 
 def config_to_dict(cfg: Config) -> dict[str, Any]:
     """Plain nested dict of str/int/float/bool/None/list (tuples become lists), e.g. for checkpoints."""
-    out = OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True)
-    assert isinstance(out, dict)
-    return out
+
+    def plain(x: Any) -> Any:
+        if isinstance(x, Mapping):
+            return {k: plain(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [plain(v) for v in x]
+        return x
+
+    return plain(OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True))
 
 
 def config_from_dict(d: Mapping[str, Any], source: str = "config dict") -> Config:

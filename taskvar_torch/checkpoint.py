@@ -1,0 +1,435 @@
+"""Checkpoint bundles (SPEC §6): plain data only, atomic writes, clear refusals.
+
+A bundle is a dict of plain data: tensors, dicts, lists, tuples, str, int, float, bool and None
+(``torch.load(..., weights_only=True)`` accepts nothing else, so loading never executes code from
+the file). :func:`save_checkpoint` adds a format tag, a format version and the library versions;
+the conventional keys are:
+
+==============  =============================================================================
+key             content
+==============  =============================================================================
+config          the run's :class:`~taskvar_torch.config.Config` as a plain dict (required)
+models          ``{name: state_dict}`` of every head, target networks included
+optimizers      ``{name: optimizer.state_dict()}``
+counters        step counters, e.g. ``{"frames": 1000, "updates": 250}``
+rng             :func:`rng_state` (torch CPU, CUDA, numpy, python and named generators)
+replay          optional replay-buffer contents as plain tensors
+==============  =============================================================================
+
+Writes go to a temporary file in the destination folder, are flushed and fsynced, then renamed over
+the destination (``os.replace``), so a crash never leaves a half-written checkpoint at ``path``.
+Every loading failure is a one-line :class:`CheckpointError` naming the problem and the path.
+
+Examples:
+    >>> bundle = make_bundle(cfg, models={"averaging": net}, optimizers={"adam": opt})
+    >>> save_checkpoint("run/final.pt", bundle)
+    >>> bundle = load_checkpoint("run/final.pt", expected_config=cfg)
+    >>> load_state_dicts(bundle, models={"averaging": net}, optimizers={"adam": opt})
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import os
+import pickle
+import platform
+import random
+import tempfile
+import warnings
+from collections import OrderedDict
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+import taskvar_torch
+from taskvar_torch.config import Config, config_to_dict
+
+FORMAT = "taskvar_torch.checkpoint"
+FORMAT_VERSION = 1
+RUNTIME_KEYS = (
+    "device",
+    "train.total_frames",
+    "train.checkpoint_every",
+    "train.log_every",
+    "eval",
+    "experiment",
+)
+"""Config keys (dotted prefixes) that may differ between a checkpoint and the config resuming or
+evaluating it: they change how long or where a run goes, not what the weights mean."""
+
+_LEAVES = (str, int, float, bool, type(None), torch.dtype, torch.device)  # exact types only
+
+
+class CheckpointError(ValueError):
+    """A checkpoint cannot be written or read; the message is one line naming the path."""
+
+
+# --------------------------------------------------------------------------------------------
+# versions and RNG
+
+
+def library_versions() -> dict[str, str]:
+    """Versions of this package and the libraries a checkpoint depends on."""
+
+    def version(dist: str) -> str:
+        try:
+            return importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            return "not installed"
+
+    return {
+        "taskvar_torch": str(taskvar_torch.__version__),
+        "torch": str(torch.__version__),
+        "torchrl": version("torchrl"),
+        "tensordict": version("tensordict"),
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
+
+
+def rng_state(generators: Mapping[str, torch.Generator] | None = None) -> dict[str, Any]:
+    """Every random state a run may draw from, as plain data.
+
+    Args:
+        generators: named explicit ``torch.Generator`` objects to include.
+
+    Returns:
+        ``{"torch": uint8 tensor, "cuda": [uint8 tensor] (empty without CUDA), "numpy": {...},
+        "python": {...}, "generators": {name: uint8 tensor}}``.
+    """
+    name, keys, pos, has_gauss, cached = np.random.get_state()
+    version, mt, gauss_next = random.getstate()
+    return {
+        "torch": torch.get_rng_state(),
+        "cuda": torch.cuda.get_rng_state_all() if torch.cuda.is_available() else [],
+        "numpy": {
+            "bit_generator": str(name),
+            "keys": torch.from_numpy(np.asarray(keys, dtype=np.int64)),
+            "pos": int(pos),
+            "has_gauss": int(has_gauss),
+            "cached_gaussian": float(cached),
+        },
+        "python": {"version": int(version), "state": list(mt), "gauss_next": gauss_next},
+        "generators": {k: g.get_state() for k, g in (generators or {}).items()},
+    }
+
+
+def set_rng_state(
+    state: Mapping[str, Any], generators: Mapping[str, torch.Generator] | None = None
+) -> None:
+    """Restore what :func:`rng_state` returned (CUDA states only where CUDA is available).
+
+    Args:
+        state: a :func:`rng_state` dict.
+        generators: the named generators to restore; each must be present in ``state``.
+    """
+    torch.set_rng_state(state["torch"].cpu())
+    cuda = state.get("cuda") or []
+    if cuda and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all([s.cpu() for s in cuda[: torch.cuda.device_count()]])
+    n = state["numpy"]
+    np.random.set_state(
+        (
+            n["bit_generator"],
+            n["keys"].cpu().numpy().astype(np.uint32),
+            n["pos"],
+            n["has_gauss"],
+            n["cached_gaussian"],
+        )
+    )
+    p = state["python"]
+    random.setstate((p["version"], tuple(p["state"]), p["gauss_next"]))
+    saved = state.get("generators", {})
+    for k, g in (generators or {}).items():
+        if k not in saved:
+            raise CheckpointError(f"no state for generator {k!r}; saved: {sorted(saved)}")
+        g.set_state(saved[k].cpu())
+
+
+# --------------------------------------------------------------------------------------------
+# bundles
+
+
+def _state_dict(x: nn.Module | torch.optim.Optimizer | Mapping) -> Mapping:
+    return x.state_dict() if hasattr(x, "state_dict") else x
+
+
+def make_bundle(
+    config: Config | Mapping[str, Any],
+    models: Mapping[str, nn.Module | Mapping[str, Any]],
+    optimizers: Mapping[str, torch.optim.Optimizer | Mapping[str, Any]] | None = None,
+    counters: Mapping[str, int | float] | None = None,
+    rng: Mapping[str, Any] | None = None,
+    replay: Mapping[str, Any] | None = None,
+    **extra: Any,
+) -> dict[str, Any]:
+    """A bundle with the conventional keys (modules and optimizers become state dicts).
+
+    Args:
+        config: the run's config (a :class:`Config` or its plain dict).
+        models: heads and target networks by name.
+        optimizers: optimizers by name.
+        counters: step counters.
+        rng: RNG states; default :func:`rng_state` now.
+        replay: optional replay-buffer contents as plain tensors.
+        **extra: further plain-data entries.
+    """
+    bundle = {
+        "config": config_to_dict(config) if isinstance(config, Config) else dict(config),
+        "models": {k: _state_dict(m) for k, m in models.items()},
+        "optimizers": {k: _state_dict(o) for k, o in (optimizers or {}).items()},
+        "counters": dict(counters or {}),
+        "rng": dict(rng) if rng is not None else rng_state(),
+        **extra,
+    }
+    if replay is not None:
+        bundle["replay"] = dict(replay)
+    return bundle
+
+
+def load_state_dicts(
+    bundle: Mapping[str, Any],
+    models: Mapping[str, nn.Module],
+    optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
+) -> None:
+    """Load a bundle's state dicts into live modules and optimizers (strict, clear errors).
+
+    Raises:
+        CheckpointError: a name is missing from the bundle or a state dict does not fit.
+    """
+    for group, targets in (("models", models), ("optimizers", optimizers or {})):
+        saved = bundle.get(group, {})
+        for name, obj in targets.items():
+            if name not in saved:
+                raise CheckpointError(
+                    f"checkpoint has no {group}[{name!r}]; it has {sorted(saved)}"
+                )
+            try:
+                obj.load_state_dict(saved[name])
+            except (RuntimeError, ValueError, KeyError) as e:
+                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                raise CheckpointError(
+                    f"checkpoint {group}[{name!r}] does not fit the network built from the "
+                    f"config: {first}"
+                ) from None
+
+
+def _check_plain(obj: Any, where: str) -> None:
+    """Raise CheckpointError naming the first entry that ``weights_only`` loading would refuse."""
+    if type(obj) in (torch.Tensor, nn.Parameter, *_LEAVES):  # not subclasses: str(TorchVersion)
+        return
+    if type(obj) in (dict, OrderedDict):
+        for k, v in obj.items():
+            if not isinstance(k, (str, int)):
+                raise CheckpointError(
+                    f"{where} has a key of type {type(k).__name__}: use str or int"
+                )
+            _check_plain(v, f"{where}[{k!r}]")
+        return
+    if type(obj) in (list, tuple, torch.Size):
+        for i, v in enumerate(obj):
+            _check_plain(v, f"{where}[{i}]")
+        return
+    if isinstance(obj, torch.Tensor):
+        raise CheckpointError(
+            f"{where} is a tensor subclass {type(obj).__qualname__}; store "
+            "x.as_subclass(torch.Tensor) instead"
+        )
+    raise CheckpointError(
+        f"{where} holds a {type(obj).__module__}.{type(obj).__qualname__}; checkpoints hold plain "
+        "data only (tensors, dicts, lists, str, int, float, bool, None)"
+    )
+
+
+def save_checkpoint(path: str | os.PathLike, bundle: Mapping[str, Any]) -> Path:
+    """Write ``bundle`` atomically to ``path`` (parent folders are created).
+
+    Args:
+        path: destination file.
+        bundle: plain data with at least ``config``; ``format``, ``format_version`` and
+            ``versions`` are added.
+
+    Returns:
+        ``path`` as a :class:`Path`.
+
+    Raises:
+        CheckpointError: the bundle holds something other than plain data, or has no config; the
+            file at ``path`` (if any) is left untouched and no temporary file remains.
+    """
+    path = Path(path)
+    if not isinstance(bundle, Mapping):
+        raise CheckpointError(
+            f"cannot save {str(path)!r}: a bundle is a dict, got {type(bundle).__name__}"
+        )
+    if "config" not in bundle:
+        raise CheckpointError(f"cannot save {str(path)!r}: the bundle has no 'config' entry")
+    for k in ("format", "format_version"):
+        if k in bundle:
+            raise CheckpointError(f"cannot save {str(path)!r}: {k!r} is reserved; remove it")
+    data = {"format": FORMAT, "format_version": FORMAT_VERSION, "versions": library_versions()}
+    data.update(bundle)
+    if isinstance(data["config"], Config):
+        data["config"] = config_to_dict(data["config"])
+    try:
+        _check_plain(data, "bundle")
+    except CheckpointError as e:
+        raise CheckpointError(f"cannot save {str(path)!r}: {e}") from None
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(data, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    try:  # make the rename itself durable
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    except OSError:
+        pass
+    return path
+
+
+# --------------------------------------------------------------------------------------------
+# loading
+
+
+def _first_line(e: BaseException, limit: int = 160) -> str:
+    text = str(e).strip()
+    line = text.splitlines()[0].split(". ")[0] if text else type(e).__name__
+    return line if len(line) <= limit else line[: limit - 3] + "..."
+
+
+def _refusal_detail(e: BaseException) -> str:
+    for line in str(e).splitlines():
+        line = line.replace("WeightsUnpickler error:", "").strip()
+        if "unsupported global" in line.lower() or line.startswith("Unsupported"):
+            line = line.split(" was not an allowed global")[0].split(" whose module")[0]
+            return line.rstrip(".")[:120]
+    return "unsupported pickle content"
+
+
+def _flatten(d: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(d, Mapping):
+        return {prefix.rstrip("."): d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if isinstance(v, Mapping):
+            out.update(_flatten(v, f"{prefix}{k}."))
+        else:
+            out[f"{prefix}{k}"] = list(v) if isinstance(v, tuple) else v
+    return out
+
+
+def config_differences(
+    saved: Mapping[str, Any],
+    expected: Config | Mapping[str, Any],
+    ignore: Sequence[str] = RUNTIME_KEYS,
+) -> list[tuple[str, Any, Any]]:
+    """``(dotted key, saved value, expected value)`` for every differing key not under ``ignore``.
+
+    A key present on one side only shows ``"<absent>"`` on the other.
+    """
+    exp = config_to_dict(expected) if isinstance(expected, Config) else expected
+    a, b = _flatten(saved), _flatten(exp)
+
+    def ignored(k: str) -> bool:
+        return any(k == p or k.startswith(p + ".") for p in ignore)
+
+    missing = "<absent>"
+    diffs = []
+    for k in list(a) + [k for k in b if k not in a]:
+        if ignored(k):
+            continue
+        va, vb = a.get(k, missing), b.get(k, missing)
+        if va != vb:
+            diffs.append((k, va, vb))
+    return diffs
+
+
+def load_checkpoint(
+    path: str | os.PathLike,
+    expected_config: Config | Mapping[str, Any] | None = None,
+    map_location: str | torch.device | None = "cpu",
+    ignore: Sequence[str] = RUNTIME_KEYS,
+) -> dict[str, Any]:
+    """Load a bundle with ``torch.load(weights_only=True)``; never executes code from the file.
+
+    Args:
+        path: checkpoint file.
+        expected_config: when given, the saved config must match it on every key not under
+            ``ignore``.
+        map_location: where tensors go.
+        ignore: dotted config prefixes allowed to differ (default :data:`RUNTIME_KEYS`).
+
+    Returns:
+        The bundle dict.
+
+    Raises:
+        CheckpointError: one line naming the problem and the path: missing, truncated or corrupt,
+            containing code or objects, not a taskvar_torch checkpoint, an unreadable format
+            version, or trained with a different config.
+    """
+    path = Path(path)
+    where = repr(str(path))
+    if not path.exists():
+        raise CheckpointError(f"checkpoint {where} does not exist")
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {where} is not a file")
+    try:
+        with warnings.catch_warnings():  # torch's pickle-protocol notes would only add noise
+            warnings.simplefilter("ignore")
+            data = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise CheckpointError(
+            f"refusing to load {where}: not a plain-data checkpoint (it contains code or objects: "
+            f"{_refusal_detail(e)})"
+        ) from None
+    except PermissionError as e:
+        raise CheckpointError(f"cannot read checkpoint {where}: {_first_line(e)}") from None
+    except Exception as e:  # RuntimeError, OSError (zip), EOFError, KeyError... from a damaged file
+        raise CheckpointError(
+            f"checkpoint {where} is truncated or corrupt ({type(e).__name__}: {_first_line(e)})"
+        ) from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        what = (
+            f"a dict with keys {sorted(map(str, data))[:8]}"
+            if isinstance(data, dict)
+            else f"a {type(data).__name__}"
+        )
+        raise CheckpointError(f"{where} is not a taskvar_torch checkpoint (it holds {what})")
+    version = data.get("format_version")
+    if type(version) is not int or version < 1:
+        raise CheckpointError(f"checkpoint {where} is corrupt: format_version is {version!r}")
+    if version > FORMAT_VERSION:
+        written = data.get("versions", {}).get("taskvar_torch", "?")
+        raise CheckpointError(
+            f"checkpoint {where} has format version {version} (written by taskvar_torch {written}); "
+            f"this taskvar_torch {taskvar_torch.__version__} reads versions up to {FORMAT_VERSION}"
+        )
+    if not isinstance(data.get("config"), dict):
+        raise CheckpointError(f"checkpoint {where} is corrupt: it has no config dict")
+    if expected_config is not None:
+        diffs = config_differences(data["config"], expected_config, ignore)
+        if diffs:
+            key, saved, wanted = diffs[0]
+            more = (
+                f" (also differ: {', '.join(k for k, _, _ in diffs[1:4])}" if len(diffs) > 1 else ""
+            )
+            if more:
+                more += ", ...)" if len(diffs) > 4 else ")"
+            raise CheckpointError(
+                f"checkpoint {where} was trained with {key}={saved!r} but the config says "
+                f"{wanted!r}{more}"
+            )
+    return data

@@ -1,0 +1,369 @@
+"""Strict configs: every file loads, misspelt keys and bad values are one-line errors naming them."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+from omegaconf import OmegaConf
+
+from taskvar_torch.config import (
+    Config,
+    EnvConfig,
+    EvalConfig,
+    ExperimentConfig,
+    HeadsConfig,
+    TrainConfig,
+    WargusConfig,
+    apply_overrides,
+    config_from_dict,
+    config_help,
+    config_to_dict,
+    field_docs,
+    load_config,
+    save_config_yaml,
+    windy_env_kwargs,
+    windy_layout,
+)
+from taskvar_torch.envs import WindyGridEnv
+
+CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
+CONFIG_FILES = sorted(CONFIG_DIR.glob("*.yaml"))
+WINDY = CONFIG_DIR / "windy.yaml"
+
+# Keys only one family reads: a config file of the other family must not set them (DESIGN.md:
+# no config key that nothing reads).
+WINDY_ONLY = (
+    "env.layout",
+    "env.height",
+    "env.width",
+    "env.num_exits",
+    "env.wall_col",
+    "env.wind_cells_per_exit",
+    "env.instances",
+    "env.horizon",
+    "env.obs_encoding",
+    "env.patch_radius",
+    "experiment.episodes_per_run",
+)
+WARGUS_ONLY = (
+    "env.wargus",
+    "train.robustness_gamma",
+    "train.robustness_tau",
+    "experiment.trials",
+    "experiment.learning_episodes_per_trial",
+    "experiment.test_episodes_per_trial",
+)
+
+
+def _raises_one_line(match_all: list[str], fn, *args, **kwargs) -> str:
+    with pytest.raises(ValueError) as info:
+        fn(*args, **kwargs)
+    msg = str(info.value)
+    assert "\n" not in msg, msg
+    for part in match_all:
+        assert part in msg, f"{part!r} not in {msg!r}"
+    return msg
+
+
+def _flat_keys(node, prefix: str = "") -> list[str]:
+    out = []
+    for k, v in node.items():
+        out.append(f"{prefix}{k}")
+        if isinstance(v, dict):
+            out.extend(_flat_keys(v, f"{prefix}{k}."))
+    return out
+
+
+def _write(tmp_path: Path, text: str, name: str = "c.yaml") -> Path:
+    p = tmp_path / name
+    p.write_text(text)
+    return p
+
+
+# ---------------------------------------------------------------- every shipped file
+
+
+def test_configs_folder_has_the_spec_files():
+    names = {p.name for p in CONFIG_FILES}
+    for required in (
+        "windy.yaml",
+        "windy_middle_exits.yaml",
+        "windy_whole_column.yaml",
+        "windy_large.yaml",
+        "windy_xl.yaml",
+        "wargus.yaml",
+        "wargus_large.yaml",
+    ):
+        assert required in names
+
+
+@pytest.mark.parametrize("path", CONFIG_FILES, ids=lambda p: p.name)
+def test_every_config_file_loads_strictly(path: Path):
+    cfg = load_config(path)
+    assert isinstance(cfg, Config)
+    quick = load_config(path, quick=True)
+    assert quick.train.total_frames <= cfg.train.total_frames
+    assert quick.experiment.runs <= cfg.experiment.runs
+    # the file's keys are exactly schema keys, and they round-trip
+    raw = OmegaConf.to_container(OmegaConf.load(path))
+    schema = set(_flat_keys(config_to_dict(Config())))
+    assert set(_flat_keys(raw)) <= schema
+    assert config_from_dict(config_to_dict(cfg)) == cfg
+
+
+@pytest.mark.parametrize("path", CONFIG_FILES, ids=lambda p: p.name)
+def test_config_files_set_no_key_of_the_other_family(path: Path):
+    cfg = load_config(path)
+    keys = _flat_keys(OmegaConf.to_container(OmegaConf.load(path)))
+    foreign = WARGUS_ONLY if cfg.family == "windy" else WINDY_ONLY
+    unread = [k for k in keys if any(k == f or k.startswith(f + ".") for f in foreign)]
+    assert not unread, f"{path.name} sets keys a {cfg.family} run never reads: {unread}"
+
+
+@pytest.mark.parametrize(
+    "path", [p for p in CONFIG_FILES if p.name.startswith("windy")], ids=lambda p: p.name
+)
+def test_windy_config_files_build_their_environment(path: Path):
+    cfg = load_config(path, ["env.num_envs=2"])
+    env = WindyGridEnv(**windy_env_kwargs(cfg))
+    td = env.reset()
+    assert td["observation"].shape[0] == 2
+    layout = windy_layout(cfg.env)
+    assert env.layout == layout
+
+
+def test_scaled_up_windy_files_have_the_spec_sizes():
+    large = windy_layout(load_config(CONFIG_DIR / "windy_large.yaml").env)
+    xl = windy_layout(load_config(CONFIG_DIR / "windy_xl.yaml").env)
+    assert (large.height, large.width, large.num_exits) == (25, 25, 2)
+    assert (xl.height, xl.width, xl.num_exits) == (51, 51, 4)
+    assert load_config(CONFIG_DIR / "windy_large.yaml").env.obs_encoding == "coords_patch"
+    assert windy_layout(load_config(CONFIG_DIR / "windy_middle_exits.yaml").env).rows[1] == "SW.GG"
+    wl = load_config(CONFIG_DIR / "wargus_large.yaml").env.wargus
+    assert (wl.size, wl.num_patrols) == (64, 3)
+    assert load_config(CONFIG_DIR / "wargus.yaml").train.robustness_gamma == 0.9
+
+
+# ---------------------------------------------------------------- unknown keys
+
+
+def test_misspelt_top_level_key_is_an_error_naming_it(tmp_path: Path):
+    p = _write(tmp_path, "famly: windy\n")
+    msg = _raises_one_line(["'famly'", "family", "seed", "experiment", str(p)], load_config, p)
+    assert "did you mean 'family'" in msg
+
+
+@pytest.mark.parametrize(
+    "text, key, allowed",
+    [
+        ("train:\n  lrr: 0.01\n", "train.lrr", "updates_per_batch"),
+        ("env:\n  wargus:\n    sigth: 3\n", "env.wargus.sigth", "shoot_range"),
+        ("heads:\n  hiden: [3]\n", "heads.hiden", "activation"),
+    ],
+)
+def test_misspelt_nested_key_is_an_error_naming_the_dotted_key(tmp_path, text, key, allowed):
+    p = _write(tmp_path, text)
+    _raises_one_line([repr(key), allowed], load_config, p)
+
+
+def test_section_given_a_scalar_is_an_error_naming_it(tmp_path: Path):
+    _raises_one_line(
+        ["'heads'", "hidden", "activation"], load_config, _write(tmp_path, "heads: 3\n")
+    )
+
+
+def test_missing_file_and_non_mapping_file_are_errors(tmp_path: Path):
+    _raises_one_line(["does not exist"], load_config, tmp_path / "nope.yaml")
+    _raises_one_line(["mapping"], load_config, _write(tmp_path, "- 1\n- 2\n"))
+
+
+def test_wrong_type_in_file_names_key_and_file(tmp_path: Path):
+    p = _write(tmp_path, "seed: abc\n")
+    _raises_one_line(["'seed'", str(p), "Integer"], load_config, p)
+    p = _write(tmp_path, "train:\n  batch_size: 2.5\n", "d.yaml")
+    _raises_one_line(["'train.batch_size'"], load_config, p)
+
+
+# ---------------------------------------------------------------- overrides
+
+
+def test_override_applies_and_leaves_the_rest_alone():
+    base = load_config(WINDY)
+    cfg = load_config(WINDY, ["train.lr=0.01", "heads.hidden=[32,16]", "env.wargus.sight=3"])
+    assert cfg.train.lr == 0.01
+    assert cfg.heads.hidden == (32, 16)
+    assert cfg.env.wargus.sight == 3
+    assert (
+        dataclasses.replace(
+            cfg,
+            train=dataclasses.replace(cfg.train, lr=base.train.lr),
+            heads=base.heads,
+            env=dataclasses.replace(cfg.env, wargus=base.env.wargus),
+        )
+        == base
+    )
+
+
+def test_later_overrides_win_and_quick_comes_before_cli():
+    cfg = load_config(WINDY, ["train.total_frames=777"], quick=True)
+    assert cfg.train.total_frames == 777
+    assert cfg.experiment.runs == 2  # from quick_overrides
+    assert load_config(WINDY, ["seed=1", "seed=2"]).seed == 2
+
+
+def test_layout_map_string_override_and_null():
+    cfg = load_config(WINDY, ["env.layout=middle_exits", "env.horizon=null"])
+    assert cfg.env.layout == "middle_exits" and cfg.env.horizon is None
+
+
+@pytest.mark.parametrize(
+    "override, parts",
+    [
+        ("train.lrr=0.01", ["'train.lrr'", "override", "did you mean 'lr'", "batch_size"]),
+        ("trian.lr=0.01", ["'trian'", "did you mean 'train'"]),
+        ("train.lr=abc", ["'train.lr'", "abc", "Float"]),
+        ("seed=1.5", ["'seed'", "Integer"]),
+        ("train.double_q=maybe", ["'train.double_q'"]),
+        ("train.lr", ["key.sub=value"]),
+        ("+train.new=1", ["key.sub=value"]),
+    ],
+)
+def test_bad_override_is_a_one_line_error_naming_it(override, parts):
+    _raises_one_line(parts, load_config, WINDY, [override])
+
+
+def test_apply_overrides_on_a_config_object():
+    cfg = apply_overrides(Config(), ["family=wargus", "eval.test=nominal"])
+    assert cfg.family == "wargus" and cfg.eval.test == "nominal"
+    _raises_one_line(["'eval.tset'"], apply_overrides, cfg, ["eval.tset=x"])
+
+
+def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
+    p = _write(tmp_path, "experiment:\n  quick_overrides: ['train.total_frame=10']\n")
+    _raises_one_line(["'train.total_frame'"], load_config, p)
+
+
+# ---------------------------------------------------------------- values
+
+
+@pytest.mark.parametrize(
+    "override, parts",
+    [
+        ("family=atari", ["family must be one of ['wargus', 'windy']", "'atari'"]),
+        ("train.switching=hybrid", ["train.switching must be one of ['intra', 'smdp']"]),
+        ("train.mu_bar=eps", ["train.mu_bar must be one of ['greedy', 'softmax']"]),
+        ("train.target_update=polyak", ["train.target_update must be one of ['hard', 'soft']"]),
+        ("env.obs_encoding=pixels", ["env.obs_encoding must be one of ['coords_patch', 'onehot']"]),
+        ("env.instances=east", ["env.instances must be one of", "'south'"]),
+        ("eval.method=random", ["eval.method must be one of", "'interruption'"]),
+        ("eval.test=west", ["eval.test must be one of"]),
+        ("heads.activation=sigmoid", ["heads.activation must be one of", "'relu'"]),
+        ("env.layout=tiny", ["env.layout must be one of", "'middle_exits'", "'generated'"]),
+        ("device=gpu", ["device must be a torch device"]),
+    ],
+)
+def test_bad_choice_names_field_and_allowed_values(override, parts):
+    _raises_one_line(parts, load_config, WINDY, [override])
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("train.gamma=0", "train.gamma"),
+        ("train.gamma=1.5", "train.gamma"),
+        ("train.lr=0", "train.lr"),
+        ("train.max_value_expectile=1.0", "train.max_value_expectile"),
+        ("train.buffer_size=10", "train.buffer_size"),
+        ("env.num_envs=0", "env.num_envs"),
+        ("env.wargus.hit_prob=1.5", "env.wargus.hit_prob"),
+        ("env.wargus.patrol_speed=-0.1", "env.wargus.patrol_speed"),
+        ("heads.hidden=[64,0]", "heads.hidden[1]"),
+        ("train.max_grad_norm=0", "train.max_grad_norm"),
+    ],
+)
+def test_out_of_range_value_names_the_field(override, key):
+    _raises_one_line([key], load_config, WINDY, [override])
+
+
+def test_wargus_eval_test_is_not_checked_against_windy_names():
+    assert load_config(CONFIG_DIR / "wargus.yaml").eval.test == "nominal"
+
+
+def test_generator_keys_need_layout_generated():
+    _raises_one_line(["env.height", "generated"], load_config, WINDY, ["env.height=9"])
+    _raises_one_line(
+        ["env.width is required"], load_config, WINDY, ["env.layout=generated", "env.height=9"]
+    )
+    _raises_one_line(
+        ["num_exits"],
+        load_config,
+        WINDY,
+        ["env.layout=generated", "env.height=9", "env.width=9", "env.num_exits=1"],
+    )
+    cfg = load_config(
+        WINDY, ["env.layout=generated", "env.height=7", "env.width=9", "env.num_exits=3"]
+    )
+    assert windy_layout(cfg.env).num_exits == 3
+
+
+def test_map_string_layout_in_yaml(tmp_path: Path):
+    text = "env:\n  layout: |\n    S W . G\n    S . # G\n    S W . G\n"
+    cfg = load_config(_write(tmp_path, text))
+    assert windy_layout(cfg.env).rows == ("SW.G", "S.#G", "SW.G")
+    bad = "env:\n  layout: |\n    S W . G\n    S . #\n"
+    _raises_one_line(["env.layout", "row 1"], load_config, _write(tmp_path, bad, "b.yaml"))
+
+
+def test_windy_env_kwargs_refuses_wargus():
+    _raises_one_line(["family='windy'"], windy_env_kwargs, Config(family="wargus"))
+
+
+# ---------------------------------------------------------------- dict, yaml, dataclass
+
+
+def test_dict_round_trip_is_plain_data_and_strict():
+    cfg = load_config(CONFIG_DIR / "windy_large.yaml", ["train.max_grad_norm=null"])
+    d = config_to_dict(cfg)
+    assert json.loads(json.dumps(d)) == d  # only plain data
+    assert isinstance(d["heads"]["hidden"], list)
+    assert config_from_dict(d) == cfg
+    d["train"]["lrr"] = 1.0
+    _raises_one_line(["'train.lrr'", "checkpoint"], config_from_dict, d, source="checkpoint x.pt")
+    _raises_one_line(["mapping"], config_from_dict, [1, 2])
+
+
+def test_save_config_yaml_round_trips_and_leaves_no_temp_files(tmp_path: Path):
+    cfg = load_config(CONFIG_DIR / "wargus_large.yaml", ["seed=7"])
+    out = tmp_path / "config.yaml"
+    save_config_yaml(cfg, out)
+    save_config_yaml(cfg, out)  # overwrite
+    assert load_config(out) == cfg
+    assert [p.name for p in tmp_path.iterdir()] == ["config.yaml"]
+
+
+def test_config_is_frozen_and_validated_on_construction():
+    cfg = Config()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.seed = 3  # type: ignore[misc]
+    with pytest.raises(ValueError, match="train.eps_start"):
+        dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, eps_start=2.0))
+
+
+@pytest.mark.parametrize(
+    "cls",
+    [Config, EnvConfig, WargusConfig, HeadsConfig, TrainConfig, EvalConfig, ExperimentConfig],
+)
+def test_every_field_has_a_help_docstring(cls):
+    docs = field_docs(cls)
+    missing = [f.name for f in dataclasses.fields(cls) if not docs.get(f.name)]
+    assert not missing
+
+
+def test_config_help_lists_dotted_keys_with_defaults():
+    text = config_help()
+    assert "train.lr (float, default 0.001): Adam learning rate." in text
+    assert "env.wargus.sight (int, default 8)" in text
+    assert "heads.hidden (tuple[int, ...], default [64, 64])" in text
