@@ -39,9 +39,9 @@ from omegaconf.errors import OmegaConfBaseException
 
 from taskvar_torch.envs import windy
 from taskvar_torch.envs.instances import WindyInstances
+from taskvar_torch.envs.windy_env import OBS_ENCODINGS
 
 FAMILIES = ("wargus", "windy")
-OBS_ENCODINGS = ("coords_patch", "onehot")  # same set as envs.windy_env.OBS_ENCODINGS
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
 TARGET_UPDATES = ("hard", "soft")
 SWITCHING_MODES = ("intra", "smdp")
@@ -77,7 +77,10 @@ class WargusConfig:
 
 @dataclass(frozen=True)
 class EnvConfig:
-    """The environment family: windy fields at this level, Wargus fields under ``env.wargus``."""
+    """The environment: shared and windy fields at this level, Wargus fields under ``env.wargus``.
+
+    Only the keys of ``family`` are validated and read; the other family's are ignored.
+    """
 
     num_envs: int = 16
     """Number of environments simulated in parallel for training (the batch size N)."""
@@ -95,7 +98,8 @@ class EnvConfig:
     wind_cells_per_exit: int | None = None
     """Generated windy grid: windy cells west of each exit (only with layout='generated'; default 1)."""
     instances: str = "train"
-    """Windy training instance distribution: train, test, south or north."""
+    """Training instance distribution; windy: train, test, south or north; Wargus: train, test or
+    nominal."""
     horizon: int | None = None
     """Windy steps before truncation; null: max(100, 4 * (height + width))."""
     obs_encoding: str = "onehot"
@@ -179,7 +183,7 @@ class EvalConfig:
     episodes: int = 1_000
     """Evaluation episodes."""
     test: str = "test"
-    """Test instance distribution (windy: train, test, south or north)."""
+    """Test instance distribution (names as for env.instances)."""
     batch_size: int = 1_000
     """Environments evaluated in parallel."""
 
@@ -256,21 +260,24 @@ def _validate(cfg: Config) -> None:
         raise ValueError(
             f"device must be a torch device such as 'cpu' or 'cuda:0', got {cfg.device!r}"
         ) from e
-    env, w = cfg.env, cfg.env.wargus
+    env = cfg.env
     _at_least("env.num_envs", env.num_envs, 1)
-    _one_of("env.instances", env.instances, WindyInstances.NAMES)
-    _at_least("env.horizon", env.horizon, 1)
-    _one_of("env.obs_encoding", env.obs_encoding, OBS_ENCODINGS)
-    _at_least("env.patch_radius", env.patch_radius, 0)
-    windy_layout(env)  # raises a ValueError naming the layout keys
-    _at_least("env.wargus.size", w.size, 2)
-    _at_least("env.wargus.num_patrols", w.num_patrols, 1)
-    _at_least("env.wargus.num_items", w.num_items, 1)
-    _at_least("env.wargus.sight", w.sight, 1)
-    _at_least("env.wargus.shoot_range", w.shoot_range, 0)
-    _within("env.wargus.hit_prob", w.hit_prob, 0.0, 1.0)
-    _within("env.wargus.patrol_speed", w.patrol_speed, 0.0, 1.0)
-    _at_least("env.wargus.horizon", w.horizon, 1)
+    if cfg.family == "windy":  # each family's own keys; the other family's are never read
+        _one_of("env.instances", env.instances, WindyInstances.NAMES)
+        _one_of("eval.test", cfg.eval.test, WindyInstances.NAMES)
+        _at_least("env.horizon", env.horizon, 1)
+        _one_of("env.obs_encoding", env.obs_encoding, OBS_ENCODINGS)
+        _at_least("env.patch_radius", env.patch_radius, 0)
+        windy_layout(env)  # raises a ValueError naming the layout keys
+    else:
+        from taskvar_torch.envs import wargus  # the family's own validation, not a copy of it
+
+        _one_of("env.instances", env.instances, wargus.WargusInstances.NAMES)
+        _one_of("eval.test", cfg.eval.test, wargus.WargusInstances.NAMES)
+        try:
+            wargus.WargusConfig(**dataclasses.asdict(env.wargus))
+        except ValueError as e:
+            raise ValueError(f"env.wargus.{e}") from None
 
     for i, h in enumerate(cfg.heads.hidden):
         _at_least(f"heads.hidden[{i}]", h, 1)
@@ -308,8 +315,6 @@ def _validate(cfg: Config) -> None:
 
     _one_of("eval.method", cfg.eval.method, METHODS)
     _at_least("eval.episodes", cfg.eval.episodes, 1)
-    if cfg.family == "windy":
-        _one_of("eval.test", cfg.eval.test, WindyInstances.NAMES)
     _at_least("eval.batch_size", cfg.eval.batch_size, 1)
 
     x = cfg.experiment

@@ -42,7 +42,6 @@ WINDY_ONLY = (
     "env.num_exits",
     "env.wall_col",
     "env.wind_cells_per_exit",
-    "env.instances",
     "env.horizon",
     "env.obs_encoding",
     "env.patch_radius",
@@ -278,8 +277,6 @@ def test_bad_choice_names_field_and_allowed_values(override, parts):
         ("train.max_value_expectile=1.0", "train.max_value_expectile"),
         ("train.buffer_size=10", "train.buffer_size"),
         ("env.num_envs=0", "env.num_envs"),
-        ("env.wargus.hit_prob=1.5", "env.wargus.hit_prob"),
-        ("env.wargus.patrol_speed=-0.1", "env.wargus.patrol_speed"),
         ("heads.hidden=[64,0]", "heads.hidden[1]"),
         ("train.max_grad_norm=0", "train.max_grad_norm"),
     ],
@@ -288,8 +285,26 @@ def test_out_of_range_value_names_the_field(override, key):
     _raises_one_line([key], load_config, WINDY, [override])
 
 
-def test_wargus_eval_test_is_not_checked_against_windy_names():
+@pytest.mark.parametrize(
+    "override, parts",
+    [
+        ("env.wargus.hit_prob=1.5", ["env.wargus.hit_prob", "[0, 1]"]),
+        ("env.wargus.patrol_speed=-0.1", ["env.wargus.patrol_speed"]),
+        ("env.wargus.shoot_range=8", ["env.wargus.shoot_range", "[0, 7]"]),
+        ("env.wargus.size=2", ["env.wargus.size"]),
+        ("env.instances=south", ["env.instances must be one of", "'nominal'"]),
+        ("eval.test=south", ["eval.test must be one of", "'nominal'"]),
+    ],
+)
+def test_wargus_values_are_checked_by_the_family_rules(override, parts):
+    _raises_one_line(parts, load_config, CONFIG_DIR / "wargus.yaml", [override])
+
+
+def test_only_the_chosen_family_keys_are_validated():
     assert load_config(CONFIG_DIR / "wargus.yaml").eval.test == "nominal"
+    # windy never reads env.wargus, and Wargus never reads the windy layout
+    assert load_config(WINDY, ["env.wargus.shoot_range=8"]).env.wargus.shoot_range == 8
+    assert load_config(CONFIG_DIR / "wargus.yaml", ["env.obs_encoding=x"]).family == "wargus"
 
 
 def test_generator_keys_need_layout_generated():
