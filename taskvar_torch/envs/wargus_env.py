@@ -1,0 +1,294 @@
+"""TorchRL ``EnvBase`` over the batched Wargus dynamics (paper §3.5, SPEC §1.2, DESIGN "Env state")."""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+from taskvar_torch import keys, rng
+from taskvar_torch.envs import wargus
+from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, WargusState
+
+
+def check_start(config: WargusConfig, start: tuple[int, int] | None) -> tuple[int, int] | None:
+    """Validate a ``(row, col)`` start cell; ``ValueError`` naming the range."""
+    if start is None:
+        return None
+    try:
+        r, c = (int(v) for v in start)
+    except (TypeError, ValueError):
+        raise ValueError(f"start must be a (row, col) pair of integers, got {start!r}") from None
+    n = config.size
+    if not (0 <= r < n and 0 <= c < n):
+        raise ValueError(f"start must be a (row, col) with row, col in [0, {n - 1}], got {start!r}")
+    return r, c
+
+
+class WargusEnv(EnvBase):
+    """Batched Wargus resource-gathering family (paper §3.5) as a TorchRL environment.
+
+    ## Description
+    On a ``size x size`` grid the agent collects items while ``num_patrols`` patrols hunt it:
+    a patrol walks at random until it sees the agent, then chases it and shoots once per step in
+    range. Each sub-environment draws its own hidden instance (an instance seed: the item-location
+    and patrol processes) at every (partial) reset. Dynamics and step order: ``envs/wargus.py``.
+
+    ## Action Space
+    ``Categorical(8)``: 0 N, 1 NE, 2 E, 3 SE, 4 S, 5 SW, 6 W, 7 NW; ``Categorical(9)`` with
+    ``noop=True`` (8 stays). Moves are clipped at the edges.
+
+    ## Observation Space
+    ``observation`` (N, 24) float32, laid out in ``envs/wargus.py`` (own position, nearest item and
+    patrol bearings, seen flags, offsets when seen). Integer state for relabelling subtask rewards
+    from raw transitions: ``agent_pos`` (N, 2) int64, ``item_seen`` (N,) bool, ``patrol_seen``
+    (N,) bool, ``picked`` (N,) int64 (items picked on the step that led here). Hidden, for
+    analysis only: ``("instance", "seed")`` (N,) int64, ``("instance", "patrol_pos")`` (N, K, 2),
+    ``("instance", "item_pos")`` (N, M, 2).
+
+    ## Starting State
+    Agent at a uniform cell (or ``start``), items elsewhere, patrols outside the agent's sight.
+
+    ## Reward
+    +1 per item picked.
+
+    ## Episode End
+    Terminated when a shot destroys the agent; truncated after ``horizon`` steps.
+
+    ## Arguments
+    ``config`` (a :class:`WargusConfig` or dict) and/or its fields as keywords (``size``,
+    ``num_patrols``, ``num_items``, ``sight``, ``shoot_range``, ``hit_prob``, ``patrol_speed``,
+    ``horizon``, ``noop``; non-``None`` keywords override ``config``).
+
+    ## Task parameters
+    The instance seed, drawn from ``instances`` (``train``, ``test``, ``nominal`` or a
+    :class:`WargusInstances`).
+
+    Args:
+        num_envs: batch size N.
+        config: base config.
+        instances: instance distribution.
+        start: optional fixed agent start ``(row, col)``.
+        seed: sub-environment ``i`` draws its episode keys from ``(seed, index_offset + i)``, so
+            any split of N environments reproduces the same trajectories.
+        index_offset: global index of sub-environment 0.
+        validate_actions: check actions are in range (one host sync per step).
+        device: torch device.
+
+    Examples:
+        >>> env = WargusEnv(num_envs=8, seed=0)
+        >>> td = env.rollout(10)
+        >>> td["next", "observation"].shape
+        torch.Size([8, 10, 24])
+    """
+
+    batch_locked = True
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        config: WargusConfig | dict | None = None,
+        *,
+        size: int | None = None,
+        num_patrols: int | None = None,
+        num_items: int | None = None,
+        sight: int | None = None,
+        shoot_range: int | None = None,
+        hit_prob: float | None = None,
+        patrol_speed: float | None = None,
+        horizon: int | None = None,
+        noop: bool | None = None,
+        instances: str | WargusInstances | dict = "train",
+        start: tuple[int, int] | None = None,
+        seed: int = 0,
+        index_offset: int = 0,
+        validate_actions: bool = True,
+        device: torch.device | str = "cpu",
+    ):
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        self.config = WargusConfig.from_any(
+            config,
+            size=size,
+            num_patrols=num_patrols,
+            num_items=num_items,
+            sight=sight,
+            shoot_range=shoot_range,
+            hit_prob=hit_prob,
+            patrol_speed=patrol_speed,
+            horizon=horizon,
+            noop=noop,
+        )
+        super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
+        self.model = wargus.WargusModel(self.config, self.device)
+        self.instances = wargus.wargus_instances(instances)
+        self.horizon = self.config.horizon
+        st = check_start(self.config, start)
+        self.start = None if st is None else torch.tensor(st, dtype=torch.int64, device=self.device)
+        self.index_offset = int(index_offset)
+        self.validate_actions = validate_actions
+        self._make_specs()
+        self._index = torch.arange(self.num_envs, device=self.device) + self.index_offset  # (N,)
+        self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
+        self._set_seed(seed)
+
+    @property
+    def num_envs(self) -> int:
+        return self.batch_size[0]
+
+    def _make_specs(self) -> None:
+        N, K, M = self.num_envs, self.config.num_patrols, self.config.num_items
+        n, dev = self.config.size, self.device
+
+        def pos(*shape: int) -> Bounded:
+            return Bounded(0, n - 1, shape=shape, dtype=torch.int64, device=dev)
+
+        flag = Categorical(2, shape=(N,), dtype=torch.bool, device=dev)
+        self.observation_spec = Composite(
+            {
+                # scalar bounds: per-element ones (m.obs_low / m.obs_high, used by the Gymnasium
+                # Box) would be materialised by TorchRL as two (N, 24) tensors
+                keys.OBSERVATION: Bounded(
+                    -1.0, 1.0, shape=(N, wargus.OBS_DIM), dtype=torch.float32, device=dev
+                ),
+                wargus.AGENT_POS: pos(N, 2),
+                wargus.ITEM_SEEN: flag.clone(),
+                wargus.PATROL_SEEN: flag.clone(),
+                wargus.PICKED: Bounded(0, M, shape=(N,), dtype=torch.int64, device=dev),
+                keys.INSTANCE: Composite(
+                    {
+                        wargus.INSTANCE_SEED: Bounded(
+                            0, rng.MASK32, shape=(N,), dtype=torch.int64, device=dev
+                        ),
+                        wargus.PATROL_POS: pos(N, K, 2),
+                        wargus.ITEM_POS: pos(N, M, 2),
+                    },
+                    shape=(N,),
+                    device=dev,
+                ),
+            },
+            shape=(N,),
+            device=dev,
+        )
+        self.action_spec = Categorical(
+            self.config.num_actions, shape=(N,), dtype=torch.int64, device=dev
+        )
+        self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
+        done = Categorical(2, shape=(N, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(
+            {k: done.clone() for k in (keys.DONE, keys.TERMINATED, keys.TRUNCATED)},
+            shape=(N,),
+            device=dev,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        seed = 0 if seed is None else int(seed)
+        self._base_key = rng.sub_env_key(seed, self._index)  # (N,)
+        self._episode = torch.full_like(self._episode, -1)
+        self._seed = seed
+
+    def _out(
+        self,
+        picked: torch.Tensor,  # (N,) int64
+        reward: torch.Tensor | None = None,  # (N, 1) float32
+        terminated: torch.Tensor | None = None,  # (N, 1) bool
+        truncated: torch.Tensor | None = None,  # (N, 1) bool
+    ) -> TensorDictBase:
+        state = self._state
+        obs, item_seen, patrol_seen = wargus.observe(self.model, state)
+        td = {
+            keys.OBSERVATION: obs,
+            wargus.AGENT_POS: state.agent,
+            wargus.ITEM_SEEN: item_seen,
+            wargus.PATROL_SEEN: patrol_seen,
+            wargus.PICKED: picked,
+            keys.INSTANCE: TensorDict._new_unsafe(
+                {
+                    wargus.INSTANCE_SEED: self._iseed,
+                    wargus.PATROL_POS: state.patrols,
+                    wargus.ITEM_POS: state.items,
+                },
+                batch_size=self.batch_size,
+                device=self.device,
+            ),
+        }
+        if terminated is None:
+            terminated = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
+            truncated = terminated
+        else:
+            td[keys.REWARD] = reward
+        td[keys.TERMINATED] = terminated
+        td[keys.TRUNCATED] = truncated
+        td[keys.DONE] = terminated | truncated
+        return TensorDict._new_unsafe(td, batch_size=self.batch_size, device=self.device)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        if reset is None or not hasattr(self, "_state"):
+            idx = None
+            episode = self._episode + 1
+        else:
+            idx = reset.reshape(-1).nonzero().squeeze(-1)  # indices of the sub-envs to reset
+            episode = self._episode.index_put((idx,), self._episode[idx] + 1)
+        self._episode = episode
+        if idx is None:
+            base, index, ep = self._base_key, self._index, episode
+        else:
+            base, index, ep = self._base_key[idx], self._index[idx], episode[idx]
+        ekey = rng.episode_key(base, ep)  # (n,) env episode keys
+        iseed = self.instances.sample(ekey, index, ep)  # (n,) instance seeds
+        ikey = wargus.instance_key(iseed)  # (n,)
+        st = wargus.reset(self.model, ikey, self.start)
+        if idx is None:
+            self._iseed, self._ikey, self._state = iseed, ikey, st
+            self._picked = torch.zeros_like(iseed)
+        else:  # out-of-place updates: tensors already handed out are never mutated
+            self._iseed = self._iseed.index_put((idx,), iseed)
+            self._ikey = self._ikey.index_put((idx,), ikey)
+            old = self._state
+            self._state = WargusState(
+                old.agent.index_put((idx,), st.agent),
+                old.patrols.index_put((idx,), st.patrols),
+                old.items.index_put((idx,), st.items),
+                old.t.index_put((idx,), st.t),
+            )
+            self._picked = self._picked.index_put((idx,), torch.zeros_like(iseed))
+        return self._out(self._picked)
+
+    def _reset_proc_data(self, tensordict, tensordict_reset):
+        # ``_reset`` returns every sub-environment's current data (unchanged where not reset), so a
+        # plain update is exact; it avoids TorchRL's whole-batch ``where`` merge on partial resets.
+        self._complete_done(self.full_done_spec, tensordict_reset)
+        if tensordict is None:
+            return tensordict_reset
+        tensordict.pop("_reset", None)
+        return tensordict.update(tensordict_reset)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get(keys.ACTION).reshape(-1)  # (N,)
+        if self.validate_actions:
+            wargus.check_actions(self.model, action)
+        state, picked, destroyed = wargus.step(self.model, self._state, action, self._ikey)
+        self._state, self._picked = state, picked
+        terminated = destroyed.unsqueeze(-1)  # (N, 1)
+        truncated = (state.t >= self.horizon).unsqueeze(-1) & ~terminated  # (N, 1)
+        reward = picked.to(torch.float32).unsqueeze(-1)  # (N, 1)
+        return self._out(picked, reward, terminated, truncated)
+
+    def render(self, index: int = 0, mode: str = "ansi"):
+        """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""
+        from taskvar_torch.envs import wargus_render
+
+        if not 0 <= index < self.num_envs:
+            raise ValueError(f"index must be in [0, {self.num_envs - 1}], got {index}")
+        s = self._state
+        frame = wargus_render.Frame.from_tensors(
+            self.config,
+            s.agent[index],
+            s.patrols[index],
+            s.items[index],
+            t=int(s.t[index]),
+            seed=int(self._iseed[index]),
+        )
+        return wargus_render.render(frame, mode)

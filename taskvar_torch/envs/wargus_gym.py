@@ -1,0 +1,195 @@
+"""Gymnasium front end of the Wargus family (SPEC §1 item 2, paper §3.5).
+
+One environment, stepped through the same pure batched functions as :class:`WargusEnv` with a batch
+of one, so that ``WargusGymEnv`` after ``reset(seed=s)`` and ``WargusEnv(num_envs=1, seed=s)``
+produce bit-identical trajectories for the same actions.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+from taskvar_torch import rng
+from taskvar_torch.envs import wargus, wargus_render
+from taskvar_torch.envs.wargus import WargusConfig, WargusInstances
+from taskvar_torch.envs.wargus_env import check_start
+
+_OPTION_KEYS = ("instance", "start")
+
+
+class WargusGymEnv(gym.Env):
+    """Wargus resource gathering (paper §3.5, SPEC §1.2) as a single Gymnasium environment.
+
+    ## Description
+    Collect items on a ``size x size`` grid while patrols walk at random, chase the agent once they
+    see it (Chebyshev distance ``< sight``) and shoot it within ``shoot_range``. Step order and
+    instance semantics: ``taskvar_torch/envs/wargus.py``.
+
+    ## Action Space
+    ``Discrete(8)``: 0 N, 1 NE, 2 E, 3 SE, 4 S, 5 SW, 6 W, 7 NW; ``Discrete(9)`` with ``noop``.
+
+    ## Observation Space
+    ``Box(24,)`` float32: own position / (size - 1); nearest item bearing one-hot (8), seen flag,
+    offset / sight when seen; the same for the nearest patrol (layout in ``envs/wargus.py``).
+
+    ## Starting State
+    Agent at a uniform cell (or ``options["start"]``), items elsewhere, patrols out of sight.
+
+    ## Reward
+    +1 per item picked.
+
+    ## Episode End
+    Terminated when a shot destroys the agent; truncated after ``horizon`` steps.
+
+    ## Arguments
+    ``render_mode`` (``None``, ``"ansi"``, ``"rgb_array"``), the :class:`WargusConfig` fields
+    (``size``, ``num_patrols``, ``num_items``, ``sight``, ``shoot_range``, ``hit_prob``,
+    ``patrol_speed``, ``horizon``, ``noop``) and ``instances`` (``"train"``, ``"test"``,
+    ``"nominal"``, a dict or a :class:`WargusInstances`).
+
+    ## Task parameters
+    The instance is an integer seed of the item-location and patrol processes. ``reset`` accepts
+    ``options={"instance": {"seed": s}, "start": (row, col)}`` to pin the instance and the start
+    cell for that episode. The instance is reported in ``info["instance"]`` (with the hidden
+    patrol and item positions), never in the observation.
+
+    Examples:
+        >>> env = WargusGymEnv(render_mode="ansi")
+        >>> obs, info = env.reset(seed=0, options={"instance": {"seed": 7}})
+        >>> obs.shape, info["instance"]["seed"]
+        ((24,), 7)
+    """
+
+    metadata = {"render_modes": list(wargus_render.RENDER_MODES), "render_fps": 8}
+
+    def __init__(
+        self,
+        render_mode: str | None = None,
+        size: int = 32,
+        num_patrols: int = 1,
+        num_items: int = 1,
+        sight: int = 8,
+        shoot_range: int = 5,
+        hit_prob: float = 1.0,
+        patrol_speed: float = 0.8,
+        horizon: int = 500,
+        noop: bool = False,
+        instances: str | WargusInstances | dict = "train",
+    ):
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}"
+            )
+        self.render_mode = render_mode
+        self.config = WargusConfig(
+            size=size,
+            num_patrols=num_patrols,
+            num_items=num_items,
+            sight=sight,
+            shoot_range=shoot_range,
+            hit_prob=hit_prob,
+            patrol_speed=patrol_speed,
+            horizon=horizon,
+            noop=noop,
+        )
+        self.instances = wargus.wargus_instances(instances)
+        self.model = wargus.WargusModel(self.config, "cpu")
+        self.action_space = gym.spaces.Discrete(self.config.num_actions)
+        self.observation_space = gym.spaces.Box(
+            low=self.model.obs_low.numpy(),
+            high=self.model.obs_high.numpy(),
+            shape=(wargus.OBS_DIM,),
+            dtype=np.float32,
+        )
+        self._index = torch.zeros(1, dtype=torch.int64)  # the gym env is sub-environment 0
+        self._base_key: torch.Tensor | None = None
+        self._episode = -1
+        self._state: wargus.WargusState | None = None
+
+    def _obs_info(self, picked: int) -> tuple[np.ndarray, dict[str, Any]]:
+        s = self._state
+        obs, item_seen, patrol_seen = wargus.observe(self.model, s)
+        info = {
+            "instance": {
+                "seed": int(self._iseed[0]),
+                "patrol_pos": s.patrols[0].numpy().copy(),
+                "item_pos": s.items[0].numpy().copy(),
+            },
+            wargus.AGENT_POS: tuple(int(v) for v in s.agent[0]),
+            wargus.ITEM_SEEN: bool(item_seen[0]),
+            wargus.PATROL_SEEN: bool(patrol_seen[0]),
+            wargus.PICKED: picked,
+            "t": int(s.t[0]),
+        }
+        return obs[0].numpy().copy(), info
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start an episode: the next one of this env's seed stream, or pin it with ``options``."""
+        super().reset(seed=seed)
+        options = dict(options or {})
+        unknown = sorted(set(options) - set(_OPTION_KEYS))
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {unknown}; allowed: {list(_OPTION_KEYS)}")
+        if seed is None and self._base_key is None:
+            seed = int(self.np_random.integers(0, 2**31 - 1))
+        if seed is not None:
+            self._base_key = rng.sub_env_key(int(seed), self._index)  # (1,)
+            self._episode = 0
+        else:
+            self._episode += 1
+        episode = torch.full((1,), self._episode, dtype=torch.int64)
+        ekey = rng.episode_key(self._base_key, episode)  # (1,)
+        inst = options.get("instance")
+        if inst is None:
+            iseed = self.instances.sample(ekey, self._index, episode)
+        else:
+            if not isinstance(inst, dict) or set(inst) != {"seed"}:
+                raise ValueError(f'options["instance"] must be {{"seed": int}}, got {inst!r}')
+            s = inst["seed"]
+            if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or not 0 <= s <= rng.MASK32:
+                raise ValueError(f"instance seed must be an integer in [0, {rng.MASK32}], got {s!r}")
+            iseed = torch.tensor([int(s)], dtype=torch.int64)
+        start = check_start(self.config, options.get("start"))
+        self._iseed = iseed
+        self._ikey = wargus.instance_key(iseed)
+        self._state = wargus.reset(
+            self.model, self._ikey, None if start is None else torch.tensor(start, dtype=torch.int64)
+        )
+        return self._obs_info(0)
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """One step; ``ValueError`` for an action outside ``[0, num_actions)``."""
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        try:
+            a = int(action)
+        except (TypeError, ValueError):
+            raise ValueError(f"action must be an integer in [0, {self.config.num_actions - 1}], got {action!r}") from None
+        if a != action or not 0 <= a < self.config.num_actions:
+            raise ValueError(f"action must be an integer in [0, {self.config.num_actions - 1}], got {action!r}")
+        act = torch.tensor([a], dtype=torch.int64)
+        self._state, picked, destroyed = wargus.step(self.model, self._state, act, self._ikey)
+        terminated = bool(destroyed[0])
+        truncated = (not terminated) and int(self._state.t[0]) >= self.config.horizon
+        n = int(picked[0])
+        obs, info = self._obs_info(n)
+        return obs, float(n), terminated, truncated, info
+
+    def render(self) -> str | np.ndarray | None:
+        """Text (``ansi``) or a uint8 (H, W, 3) image (``rgb_array``) of the current state."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called with render_mode=None; pass render_mode to the constructor")
+            return None
+        if self._state is None:
+            raise RuntimeError("call reset() before render()")
+        s = self._state
+        frame = wargus_render.Frame.from_tensors(
+            self.config, s.agent[0], s.patrols[0], s.items[0], int(s.t[0]), int(self._iseed[0])
+        )
+        return wargus_render.render(frame, self.render_mode)
