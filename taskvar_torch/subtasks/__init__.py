@@ -5,6 +5,7 @@ transitions, so one stream of raw transitions can be relabelled for every option
 """
 
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
+from taskvar_torch.subtasks.wargus import WargusSubtasks
 from taskvar_torch.subtasks.windy import WindySubtasks
 
-__all__ = ["Hierarchy", "Subtasks", "WindySubtasks"]
+__all__ = ["Hierarchy", "Subtasks", "WargusSubtasks", "WindySubtasks"]
