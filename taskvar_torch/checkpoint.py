@@ -34,7 +34,6 @@ import os
 import pickle
 import platform
 import random
-import tempfile
 import warnings
 from collections import OrderedDict
 from collections.abc import Mapping, Sequence
@@ -46,7 +45,7 @@ import torch
 from torch import nn
 
 import taskvar_torch
-from taskvar_torch.config import Config, config_to_dict
+from taskvar_torch.config import Config, atomic_write, config_to_dict
 
 FORMAT = "taskvar_torch.checkpoint"
 FORMAT_VERSION = 1
@@ -278,25 +277,7 @@ def save_checkpoint(path: str | os.PathLike, bundle: Mapping[str, Any]) -> Path:
         _check_plain(data, "bundle")
     except CheckpointError as e:
         raise CheckpointError(f"cannot save {str(path)!r}: {e}") from None
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(data, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    try:  # make the rename itself durable
-        dir_fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-    except OSError:
-        pass
+    atomic_write(path, lambda f: torch.save(data, f))
     return path
 
 

@@ -25,13 +25,13 @@ import dataclasses
 import difflib
 import inspect
 import os
-import tempfile
+import secrets
 import textwrap
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import torch
 from omegaconf import DictConfig, OmegaConf
@@ -146,6 +146,9 @@ class TrainConfig:
     """Final epsilon."""
     eps_decay_frames: int = 100_000
     """Steps over which epsilon decays linearly from eps_start to eps_end."""
+    option_behaviour_prob: float = 0.5
+    """Share of training episodes whose behaviour runs mu_bar-picked options (epsilon-greedy in
+    their option heads) instead of epsilon-greedy in the averaging head."""
     target_update: str = "soft"
     """Target-network update: soft (Polyak, target_tau) or hard (copy every target_period)."""
     target_tau: float = 0.01
@@ -156,7 +159,7 @@ class TrainConfig:
     """Use double Q-learning targets."""
     max_value_expectile: float = 0.95
     """Expectile level of the max-value head's upper estimator, in (0, 1)."""
-    switching: str = "smdp"
+    switching: str = "intra"
     """Option-switching learner: smdp (option-level transitions) or intra (intra-option)."""
     mu_bar: str = "greedy"
     """mu_bar over Q_mu: greedy or softmax."""
@@ -297,6 +300,7 @@ def _validate(cfg: Config) -> None:
     _within("train.eps_start", t.eps_start, 0.0, 1.0)
     _within("train.eps_end", t.eps_end, 0.0, 1.0)
     _at_least("train.eps_decay_frames", t.eps_decay_frames, 0)
+    _within("train.option_behaviour_prob", t.option_behaviour_prob, 0.0, 1.0)
     _one_of("train.target_update", t.target_update, TARGET_UPDATES)
     _within("train.target_tau", t.target_tau, 0.0, 1.0, open_low=True)
     _at_least("train.target_period", t.target_period, 1)
@@ -582,19 +586,45 @@ def config_to_yaml(cfg: Config) -> str:
 
 
 def save_config_yaml(cfg: Config, path: str | os.PathLike) -> None:
-    """Write ``cfg`` as YAML atomically (temporary file in the same folder, fsync, rename)."""
+    """Write ``cfg`` as YAML atomically (see :func:`atomic_write`)."""
+    text = config_to_yaml(cfg).encode()
+    atomic_write(path, lambda f: f.write(text))
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], Any]) -> Path:
+    """Call ``write(f)`` on a temporary file beside ``path``, fsync it, then rename it to ``path``.
+
+    Readers see the old file or the new one, never a partial one; on any failure (exceptions and
+    KeyboardInterrupt included) the temporary file is removed and ``path`` is untouched. The new
+    file gets the usual permissions (0666 minus the umask). Parent folders are created.
+    """
     path = Path(path)
-    text = config_to_yaml(cfg)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        tmp = path.parent / f".{path.name}.{secrets.token_hex(6)}.tmp"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            break
+        except FileExistsError:  # pragma: no cover - 48 random bits
+            continue
     try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            write(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
-        Path(tmp).unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
         raise
+    try:  # make the rename itself durable
+        dir_fd = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(dir_fd)
+        finally:
+            os.close(dir_fd)
+    except OSError:
+        pass
+    return path
 
 
 # --------------------------------------------------------------------------------------------

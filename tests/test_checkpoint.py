@@ -274,7 +274,9 @@ def test_runtime_keys_may_differ_unless_asked(tmp_path: Path):
     load_checkpoint(path, expected_config=longer)  # resuming longer / evaluating elsewhere is fine
     with pytest.raises(CheckpointError, match="trained with train.total_frames=200000 but"):
         load_checkpoint(path, expected_config=longer, ignore=("device", "eval"))
-    with pytest.raises(CheckpointError, match="trained with device='cpu' but the config says 'cuda'"):
+    with pytest.raises(
+        CheckpointError, match="trained with device='cpu' but the config says 'cuda'"
+    ):
         load_checkpoint(path, expected_config=longer, ignore=())
 
 
@@ -374,3 +376,10 @@ def test_cuda_tensors_load_on_cpu(tmp_path: Path):
     assert all(t.device.type == "cpu" for t in bundle["models"]["n"].values())
     assert len(bundle["rng"]["cuda"]) == torch.cuda.device_count()
     set_rng_state(bundle["rng"])
+
+
+def test_saved_file_has_the_usual_permissions(tmp_path: Path):
+    plain = tmp_path / "plain"
+    plain.write_bytes(b"")
+    path = save_checkpoint(tmp_path / "c.pt", make_bundle(Config(), {}))
+    assert path.stat().st_mode & 0o777 == plain.stat().st_mode & 0o777

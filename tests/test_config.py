@@ -382,3 +382,19 @@ def test_config_help_lists_dotted_keys_with_defaults():
     assert "train.lr (float, default 0.001): Adam learning rate." in text
     assert "env.wargus.sight (int, default 8)" in text
     assert "heads.hidden (tuple[int, ...], default [64, 64])" in text
+
+
+def test_failed_config_write_keeps_previous_file(tmp_path: Path, monkeypatch):
+    out = tmp_path / "config.yaml"
+    save_config_yaml(Config(seed=1), out)
+    before = out.read_bytes()
+
+    def fail(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr("os.replace", fail)
+    with pytest.raises(OSError, match="disk full"):
+        save_config_yaml(Config(seed=2), out)
+    monkeypatch.undo()
+    assert out.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["config.yaml"]
