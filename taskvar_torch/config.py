@@ -437,7 +437,12 @@ def _config_error(e: OmegaConfBaseException, source: str, raw: Any) -> ValueErro
                 f"config key {key!r} ({source}) must be a section of "
                 f"{[f.name for f in dataclasses.fields(cls)]}, got {_raw_value(raw, key)!r}"
             )
-        return ValueError(f"invalid config ({source}): {first}")
+        key = _failing_leaf(raw)
+        if not key:
+            return ValueError(f"invalid config ({source}): {first}")
+        value = _raw_value(raw, key)
+        if "$VALUE" in first:  # an unformatted OmegaConf template: "... converted to Integer"
+            first = f"{value!r} could not be converted to {first.rsplit(' ', 1)[-1]}"
     leaf = key.split(".")[-1]
     cls = _schema_class(key)
     allowed = [f.name for f in dataclasses.fields(cls)] if cls is not None else []
@@ -449,6 +454,30 @@ def _config_error(e: OmegaConfBaseException, source: str, raw: Any) -> ValueErro
             f"unknown config key {key!r} ({source}){mean}; allowed keys in {level}: {', '.join(allowed)}"
         )
     return ValueError(f"bad value for config key {key!r} ({source}): {first}")
+
+
+def _failing_leaf(raw: Any) -> str | None:
+    """The first dotted leaf of ``raw`` that fails to merge on its own (OmegaConf sometimes loses
+    the key, e.g. for a bad list element)."""
+    if not isinstance(raw, Mapping):
+        return None
+
+    def leaves(node: Mapping, prefix: str = ""):
+        for k, v in node.items():
+            if isinstance(v, Mapping) and v:
+                yield from leaves(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}", v
+
+    for dotted, value in leaves(raw):
+        single: Any = value
+        for part in reversed(dotted.split(".")):
+            single = {part: single}
+        try:
+            OmegaConf.merge(_schema(), single)
+        except OmegaConfBaseException:
+            return dotted
+    return None
 
 
 def _raw_value(raw: Any, dotted: str) -> Any:

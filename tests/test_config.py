@@ -184,6 +184,8 @@ def test_wrong_type_in_file_names_key_and_file(tmp_path: Path):
     _raises_one_line(["'seed'", str(p), "Integer"], load_config, p)
     p = _write(tmp_path, "train:\n  batch_size: 2.5\n", "d.yaml")
     _raises_one_line(["'train.batch_size'"], load_config, p)
+    p = _write(tmp_path, "seed: 1\nheads:\n  activation: relu\n  hidden: [8, x]\n", "e.yaml")
+    _raises_one_line(["'heads.hidden'", "[8, 'x']", str(p)], load_config, p)
 
 
 # ---------------------------------------------------------------- overrides
@@ -226,6 +228,7 @@ def test_layout_map_string_override_and_null():
         ("train.lr=abc", ["'train.lr'", "abc", "Float"]),
         ("seed=1.5", ["'seed'", "Integer"]),
         ("train.double_q=maybe", ["'train.double_q'"]),
+        ("heads.hidden=[a]", ["'heads.hidden'", "['a'] could not be converted to Integer"]),
         ("train.lr", ["key.sub=value"]),
         ("+train.new=1", ["key.sub=value"]),
     ],
