@@ -1,0 +1,37 @@
+"""The flat averaging controller (paper §3.1): greedy in ``Q_avg``."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import torch
+
+from taskvar_torch import keys
+from taskvar_torch.controllers.base import Controller, argmax_last
+
+Tensor = torch.Tensor
+
+
+def averaging_decide(q_avg: Tensor) -> Tensor:  # (B, A) -> (B,)
+    """``a_t = argmax_a Q_avg(s_t, a)`` (lowest index on ties)."""
+    return argmax_last(q_avg)
+
+
+class AveragingController(Controller):
+    """Greedy in the averaging head (paper §3.1): the flat baseline. It carries no state.
+
+    Examples:
+        >>> ctrl = AveragingController(WindyOracle().heads())
+        >>> td = ctrl(TensorDict({"cell": torch.tensor([0, 10])}, [2]))
+        >>> td["action"].shape
+        torch.Size([2])
+    """
+
+    name = "averaging"
+    required_heads = ("averaging",)
+    stateful = False
+
+    def decide(
+        self, values: Mapping[str, Tensor], running: Tensor | None, terminated: Tensor | None
+    ) -> dict[str, Tensor]:
+        return {"action": averaging_decide(values[keys.ACTION_VALUE])}
