@@ -149,6 +149,9 @@ class TrainConfig:
     option_behaviour_prob: float = 0.5
     """Share of training episodes whose behaviour runs mu_bar-picked options (epsilon-greedy in
     their option heads) instead of epsilon-greedy in the averaging head."""
+    first_visit: bool = True
+    """Replay only the first visit of each (observation, action) per episode, so every instance
+    weighs equally at a state-action as in the mean MDP (taskvar_torch/heads/first_visit.py)."""
     target_update: str = "soft"
     """Target-network update: soft (Polyak, target_tau) or hard (copy every target_period)."""
     target_tau: float = 0.01

@@ -1,0 +1,304 @@
+"""Command line: ``taskvar COMMAND ...`` (DESIGN.md layout: train | eval | experiment | plot).
+
+Each command is one entry of :data:`COMMANDS`: a help line, a function adding its arguments to an
+``argparse`` parser, and a function running it. Commands parse *intermixed* arguments, so
+Hydra-style ``key.sub=value`` overrides may come before or after the options::
+
+    taskvar train configs/windy.yaml --out runs/windy train.total_frames=100000
+    taskvar train --resume runs/windy/checkpoint_000050176.pt --out runs/windy
+    taskvar train --help
+
+Errors in the inputs (a misspelt config key, a foreign checkpoint, a diverged run) print one line
+``taskvar COMMAND: error: ...`` and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+from taskvar_torch.checkpoint import CheckpointError
+
+
+@dataclass(frozen=True)
+class Command:
+    """A subcommand: ``help`` line, ``add_arguments(parser)``, ``run(args) -> exit status``."""
+
+    help: str
+    description: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+    epilog: Callable[[], str] | None = None
+
+
+def _split_config_and_overrides(items: Sequence[str]) -> tuple[str | None, list[str]]:
+    """``CONFIG`` is the first item without ``=``; the rest are ``key.sub=value`` overrides."""
+    config, overrides = None, []
+    for item in items:
+        if "=" not in item and config is None:
+            config = item
+        elif "=" not in item:
+            raise ValueError(f"expected key.sub=value overrides after the config, got {item!r}")
+        else:
+            overrides.append(item)
+    return config, overrides
+
+
+# --------------------------------------------------------------------------------------------
+# taskvar train
+
+
+def _train_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="CONFIG [key.sub=value ...]",
+        help="YAML config (e.g. configs/windy.yaml; optional with --resume), then overrides",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="results folder (logs, checkpoints)")
+    p.add_argument(
+        "--resume",
+        metavar="PATH",
+        help="continue exactly from a checkpoint of a previous run (its config is used; only "
+        "runtime keys such as train.total_frames may be overridden)",
+    )
+    p.add_argument("--threads", type=int, metavar="N", help="torch CPU threads (default: torch's)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _train_epilog() -> str:
+    from taskvar_torch.config import config_help
+
+    return "config keys (override any with key.sub=value):\n" + config_help()
+
+
+def _train_run(args: argparse.Namespace) -> int:
+    import torch
+
+    from taskvar_torch.config import load_config
+    from taskvar_torch.train import train
+
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {args.threads}")
+        torch.set_num_threads(args.threads)
+    config_path, overrides = _split_config_and_overrides(args.items)
+    if config_path is None and args.resume is None:
+        raise ValueError("give a CONFIG file (e.g. configs/windy.yaml) or --resume PATH")
+    cfg = load_config(config_path, overrides) if config_path is not None else None
+    result = train(
+        cfg,
+        args.out,
+        resume=args.resume,
+        overrides=overrides if cfg is None else (),
+        progress=not args.no_progress,
+    )
+    print(
+        f"trained {result['updates']} updates on {result['frames']} frames in "
+        f"{result['seconds']:.1f} s; final bundle: {result['final']}"
+    )
+    _print_oracle_summary(result["final"])
+    return 0
+
+
+def _print_oracle_summary(path) -> None:
+    """For small windy layouts, print the learnt heads beside the exact oracle (SPEC §4)."""
+    from taskvar_torch.train import load_heads
+
+    heads, cfg = load_heads(path)
+    if cfg.family != "windy" or cfg.env.obs_encoding != "onehot":
+        return
+    from taskvar_torch.config import windy_layout
+    from taskvar_torch.heads.validate import compare_with_oracle
+    from taskvar_torch.oracle import WindyOracle
+
+    layout = windy_layout(cfg.env)
+    if layout.num_cells > 400:
+        return
+    oracle = WindyOracle(
+        layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon, train_instances=cfg.env.instances
+    )
+    r = compare_with_oracle(heads.cpu(), oracle)
+    print("learnt heads vs exact oracle (expected returns: training instances, uniform start):")
+    print(
+        f"  averaging policy  {r['averaging_return']:8.3f}   oracle {r['oracle_averaging_return']:8.3f}"
+    )
+    for name, a, b in zip(heads.option_names, r["option_returns"], r["oracle_option_returns"]):
+        print(f"  option {name:<10} {a:8.3f}   oracle {b:8.3f}")
+    print(f"  mu_bar agreement            {r['mu_bar_agreement']:.3f} on {r['mu_bar_cells']} cells")
+    print(f"  max |Q_hat - oracle|        {r['max_value_error']:.3f}")
+    print(
+        f"  interruption agreement      {r['interruption_agreement']:.3f} on "
+        f"{r['interruption_pairs']} (cell, option) pairs"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# taskvar eval | experiment | plot (thin wrappers over taskvar_torch.experiments)
+
+
+def _eval_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", required=True, metavar="PATH", help="bundle from taskvar train")
+    p.add_argument(
+        "--method",
+        default="interruption",
+        choices=("averaging", "options", "interruption", "hierarchy"),
+        help="controller (default: interruption)",
+    )
+    p.add_argument("--episodes", type=int, default=1000, help="test episodes (default 1000)")
+    p.add_argument("--test", default="test", help="test distribution: test, south, north, train")
+    p.add_argument("--seed", type=int, help="test seed (default: the experiment's run 0)")
+    p.add_argument("--out", metavar="DIR", help="write DIR/metrics.json")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _eval_run(args: argparse.Namespace) -> int:
+    import json
+
+    from taskvar_torch.experiments.windy_fig2 import eval_checkpoint
+
+    metrics = eval_checkpoint(
+        args.checkpoint,
+        args.method,
+        args.episodes,
+        args.test,
+        out_dir=args.out,
+        seed=args.seed,
+        progress=not args.no_progress,
+    )
+    print(json.dumps(metrics, indent=2))
+    return 0
+
+
+EXPERIMENTS = ("windy-fig2",)
+
+
+def _experiment_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", choices=EXPERIMENTS, help="experiment")
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="[CONFIG] [key.sub=value ...]",
+        help="YAML config (default: the experiment's), then overrides",
+    )
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="results folder (default: results/NAME, or results/NAME-quick with --quick)",
+    )
+    p.add_argument("--checkpoint", metavar="PATH", help="evaluate this bundle instead of training")
+    p.add_argument("--quick", action="store_true", help="apply experiment.quick_overrides")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+
+
+def _experiment_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.config import load_config
+    from taskvar_torch.experiments.windy_fig2 import default_config_path, windy_fig2
+
+    config_path, overrides = _split_config_and_overrides(args.items)
+    cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)
+    out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
+    windy_fig2(
+        cfg, out, checkpoint=args.checkpoint, progress=not args.no_progress, quick=args.quick
+    )
+    return 0
+
+
+def _plot_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("results", metavar="DIR", help="a results folder of taskvar experiment")
+
+
+def _plot_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.experiments.windy_fig2 import plot_results
+
+    for path in plot_results(args.results):
+        print(path)
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+# registry and entry point
+
+COMMANDS: dict[str, Command] = {
+    "train": Command(
+        help="train every head (averaging, options, mu_bar, max-value, robustness)",
+        description="Train every head of a family from one stream of experience (SPEC §2): "
+        "CSV logs in DIR/logs, periodic checkpoints, DIR/final.pt.",
+        add_arguments=_train_arguments,
+        run=_train_run,
+        epilog=_train_epilog,
+    ),
+    "eval": Command(
+        help="evaluate a trained bundle with a controller on a test distribution",
+        description="Evaluate any saved bundle without retraining (SPEC §5, checkpoint-based "
+        "evaluation).",
+        add_arguments=_eval_arguments,
+        run=_eval_run,
+    ),
+    "experiment": Command(
+        help="run one of the paper's experiments (windy-fig2)",
+        description="Train (or load --checkpoint), evaluate, write a results folder and print a "
+        "table (SPEC §5).",
+        add_arguments=_experiment_arguments,
+        run=_experiment_run,
+    ),
+    "plot": Command(
+        help="redraw the figures of an experiment's results folder",
+        description="(Re)draw the PNG figures of a results folder.",
+        add_arguments=_plot_arguments,
+        run=_plot_run,
+    ),
+}
+"""Subcommands by name; add an entry to add a command."""
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """``argparse`` whose input errors are one line ``PROG: error: ...`` (no usage block), status 2."""
+
+    def error(self, message: str):  # argparse API
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    """The ``taskvar`` parser and one parser per subcommand."""
+    parser = _OneLineParser(
+        prog="taskvar",
+        description="Offline learning across task variations for online performance "
+        "(averaging policy, offline options, offline interruption, composition hierarchies).",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parsers = {}
+    for name, cmd in COMMANDS.items():
+        parsers[name] = sub.add_parser(
+            name,
+            help=cmd.help,
+            description=cmd.description,
+            epilog=cmd.epilog() if cmd.epilog else None,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        cmd.add_arguments(parsers[name])
+    return parser, parsers
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``taskvar`` console script; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser, parsers = build_parser()
+    if not argv or argv[0] not in parsers:
+        parser.parse_args(argv)  # --help, or an error naming the valid commands
+        return 2
+    name = argv[0]
+    args = parsers[name].parse_intermixed_args(argv[1:])
+    try:
+        return COMMANDS[name].run(args)
+    except (ValueError, CheckpointError, RuntimeError) as e:
+        if isinstance(e, RuntimeError) and type(e).__name__ != "TrainingDiverged":
+            raise
+        print(f"taskvar {name}: error: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,112 @@
+"""The exploration behaviour that generates the one stream of experience (SPEC §2).
+
+Every head learns off-policy from the same transitions, so the behaviour must visit what each head
+needs: the averaging policy's own trajectories, and each option's trajectories from everywhere
+(for Q_o, and for the intra-option updates of Q_mu and Q_hat, which use the transitions where the
+action is pi^o's). At every reset a sub-environment draws its *behaviour mode* for the episode:
+
+* with probability ``1 - option_prob``: the epsilon-greedy averaging policy (``behaviour = -1``);
+* otherwise: options, as the options controller runs them (paper §3.2): an option picked
+  epsilon-greedily from mu_bar among those initiable, run until its termination beta_o, then
+  picked again (``behaviour = o``).
+
+Actions are the greedy actions of the chosen head, then TorchRL's ``EGreedyModule`` replaces them
+by uniform ones with probability epsilon (scheduled by the trainer). The mode is carried in the
+tensordict under ``"behaviour"`` like a recurrent state: the collector keeps the policy's outputs in
+its carrier from step to step, and ``is_init`` (TorchRL ``InitTracker``) marks new episodes. Random
+draws use the global torch generator, seeded and checkpointed by the trainer.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.data import Categorical
+from torchrl.modules import EGreedyModule
+
+from taskvar_torch import keys
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.networks import head_network
+from taskvar_torch.heads.switching import mu_bar_probs
+from taskvar_torch.subtasks.base import Subtasks
+
+BEHAVIOUR = "behaviour"
+"""Key of the carried behaviour mode: -1 averaging policy, o >= 0 running option o."""
+IS_INIT = "is_init"
+
+
+class BehaviourPolicy(TensorDictModuleBase):
+    """Epsilon-greedy mixture of the averaging policy and mu_bar-run options (a collector policy).
+
+    Args:
+        heads: bundle with at least the averaging head; options and switching heads enable the
+            option mode.
+        subtasks: initiation and termination of the options.
+        action_spec: the env's action spec (``Categorical``), for uniform exploratory actions.
+        option_prob: probability that an episode is run by options rather than the averaging policy.
+        eps: initial epsilon.
+    """
+
+    def __init__(
+        self,
+        heads: Heads,
+        subtasks: Subtasks,
+        action_spec: Categorical,
+        option_prob: float = 0.5,
+        eps: float = 1.0,
+    ):
+        super().__init__()
+        if not 0.0 <= option_prob <= 1.0:
+            raise ValueError(f"option_prob must be in [0, 1], got {option_prob}")
+        self.heads = heads
+        self.subtasks = subtasks
+        self.use_options = heads.has("options") and heads.has("switching") and option_prob > 0
+        self.option_prob = option_prob if self.use_options else 0.0
+        self.in_keys = [keys.OBSERVATION, IS_INIT]
+        self.out_keys = [keys.ACTION, BEHAVIOUR]
+        self.egreedy = EGreedyModule(action_spec, eps_init=float(eps), eps_end=0.0)
+
+    @property
+    def epsilon(self) -> float:
+        return float(self.egreedy.eps)
+
+    def set_epsilon(self, eps: float) -> None:
+        """Set the exploration rate (the trainer's schedule owns it)."""
+        self.egreedy.eps.fill_(float(eps))
+
+    @torch.no_grad()
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        obs = td.get(keys.OBSERVATION)  # (N, D)
+        N = obs.shape[0]
+        is_init = td.get(IS_INIT).reshape(N)  # (N,) bool
+        mode = td.get(BEHAVIOUR, None)  # (N,) int64, absent before the first step
+        if mode is None:
+            mode = torch.full((N,), -1, dtype=torch.int64, device=obs.device)
+        action = head_network(self.heads.heads["averaging"])(obs).argmax(-1)  # (N,)
+
+        if self.use_options:
+            init = self.subtasks.initiation(td)  # (N, O) bool
+            q_mu = head_network(self.heads.heads["switching"])(obs)  # (N, O)
+            greedy = mu_bar_probs(q_mu, init).argmax(-1)  # (N,)
+            allowed = (init | ~init.any(-1, keepdim=True)).to(torch.float32)  # (N, O)
+            uniform = torch.multinomial(allowed, 1).squeeze(-1)  # (N,)
+            explore = torch.rand(N, device=obs.device) < self.egreedy.eps
+            picked = torch.where(explore, uniform, greedy)  # (N,) eps-greedy mu_bar
+            run_options = torch.rand(N, device=obs.device) < self.option_prob
+            running = mode.clamp_min(0)
+            ended = self.subtasks.termination(td).gather(-1, running.unsqueeze(-1)).squeeze(-1)
+            mode = torch.where(
+                is_init,
+                torch.where(run_options, picked, torch.full_like(picked, -1)),
+                torch.where((mode >= 0) & ended, picked, mode),
+            )  # (N,)
+            q_opt = head_network(self.heads.heads["options"])(obs)  # (N, O, A)
+            opt_action = q_opt.argmax(-1).gather(
+                -1, mode.clamp(0, init.shape[-1] - 1).unsqueeze(-1)
+            )
+            action = torch.where(mode >= 0, opt_action.squeeze(-1), action)  # (N,)
+
+        td.set(keys.ACTION, action)
+        td.set(BEHAVIOUR, mode)
+        return self.egreedy(td)

@@ -1,0 +1,73 @@
+"""Instance-balanced replay: keep each (observation, action) once per episode (paper §3.1).
+
+The averaging values are those of the *mean MDP*: at (s, a) the next state is distributed as the
+instance average ``E_m T_m(s, a, .)``. Replaying every transition instead weights each instance by
+how often it *revisits* (s, a), and in the windy family the worst instances revisit the most: with
+a strong gust against the agent at a windy exit, an agent that tries the exit is pushed back and
+tries again until the horizon, so a single p ~ 1 episode contributes ~100 samples of "pushed back"
+to one (s, a), against one sample of "went through" per calm episode. Q-learning on that data
+learns values several steps too pessimistic near the exits (and wrong interruption decisions).
+
+:class:`FirstVisitFilter` keeps only the first visit of each (observation, action) within an
+episode, so every episode (instance) contributes at most one sample per pair: at (s, a) the replay
+then mixes instances by the prior (times the chance of reaching (s, a)), as the mean MDP does.
+Pairs are hashed into ``buckets`` flags per environment; a hash collision within one episode drops
+a transition (probability about ``episode_length / buckets``), which only thins the data.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torch import nn
+
+from taskvar_torch import keys
+
+_MULT = 0x9E3779B1  # odd 32-bit multipliers for the hash
+_MIX = 0x85EBCA77
+
+
+class FirstVisitFilter(nn.Module):
+    """Per-environment first-visit flags over hashed (observation, action) pairs.
+
+    Args:
+        num_envs: batch size N of the collector.
+        obs_dim: observation width D.
+        buckets: hash buckets per environment (memory ``N * buckets`` bools).
+        device: torch device.
+    """
+
+    def __init__(self, num_envs: int, obs_dim: int, buckets: int = 1 << 14, device=None):
+        super().__init__()
+        self.buckets = int(buckets)
+        gen = torch.Generator().manual_seed(12345)
+        coef = torch.randint(1, 1 << 30, (obs_dim + 1,), generator=gen, dtype=torch.int64) * 2 + 1
+        self.register_buffer("coef", coef.to(device), persistent=False)  # (D + 1,) odd
+        self.register_buffer(
+            "seen", torch.zeros(num_envs, self.buckets, dtype=torch.bool, device=device)
+        )
+
+    def _hash(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` bucket of each (observation (N, D), action (N,)) pair."""
+        bits = obs.contiguous().view(torch.int32).to(torch.int64) & 0xFFFFFFFF  # (N, D)
+        x = torch.cat([bits, action.reshape(-1, 1).to(torch.int64)], -1)  # (N, D + 1)
+        h = (x * self.coef).sum(-1) & 0xFFFFFFFF  # (N,)
+        h = ((h ^ (h >> 15)) * _MIX) & 0xFFFFFFFF
+        h = ((h ^ (h >> 13)) * _MULT) & 0xFFFFFFFF
+        return (h ^ (h >> 16)) % self.buckets
+
+    @torch.no_grad()
+    def forward(self, batch: TensorDictBase) -> torch.Tensor:
+        """``(N, T)`` bool mask of first visits in a collector batch ``(N, T)`` (updates the flags)."""
+        obs = batch.get(keys.OBSERVATION)  # (N, T, D)
+        action = batch.get(keys.ACTION)  # (N, T)
+        is_init = batch.get("is_init").reshape(action.shape)  # (N, T) new episode at step t
+        N, T = action.shape
+        rows = torch.arange(N, device=action.device)
+        keep = torch.empty(N, T, dtype=torch.bool, device=action.device)
+        for t in range(T):
+            self.seen[is_init[:, t]] = False
+            h = self._hash(obs[:, t], action[:, t])  # (N,)
+            keep[:, t] = ~self.seen[rows, h]
+            self.seen[rows, h] = True
+        return keep

@@ -1,0 +1,298 @@
+"""The shared replay/update loop of every head (SPEC §2): one sample, every head, one step.
+
+:class:`MultiHeadLoss` is a TorchRL ``LossModule``: from one sampled batch of raw transitions it
+relabels the targets of every head (:mod:`taskvar_torch.heads.relabel`), runs each online network
+once on ``[s; s']`` and each target network once on ``s'``, and returns every head's loss. It keeps
+one target network per head, registered the TorchRL way (``<head>_params`` /
+``target_<head>_params``), so TorchRL's ``SoftUpdate``/``HardUpdate`` update all of them.
+
+Why not one ``DQNLoss`` per head: ``DQNLoss`` assumes one ``(B, A)`` value network, one reward and
+one done flag; the option heads need per-option rewards, terminations and initiation masks, the
+switching and max-value heads intra-option masks and a mu_bar continuation, the max-value head an
+expectile loss. Each head's TD target is the double-DQN target with a target network, written out in
+its module; the averaging head's loss is checked equal to ``DQNLoss(double_dqn=True)`` in the tests.
+Fusing buys speed (``benchmarks/learner_throughput.py``): one buffer sample, one relabelling, two
+network calls per head instead of three, one backward and one optimiser step for all heads, and
+losses accumulated on the device (no host sync per step).
+
+:class:`MultiHeadLearner` adds the optimiser (fused Adam over every head, gradient norm clipped per head),
+the target updater (TorchRL ``SoftUpdate`` with a foreach step, or ``HardUpdate``), and
+device-side loss sums for logging (:meth:`MultiHeadLearner.pop_losses`).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torch import nn
+from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
+
+from taskvar_torch.heads.averaging import averaging_loss
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.max_value import max_value_loss
+from taskvar_torch.heads.networks import head_network
+from taskvar_torch.heads.options import options_loss
+from taskvar_torch.heads.relabel import relabel
+from taskvar_torch.heads.robustness import component_matrix, parent_closure, robustness_loss
+from taskvar_torch.heads.switching import consistent_with_option, mu_bar_probs, switching_loss
+from taskvar_torch.subtasks.base import Subtasks
+
+_NEEDS = {"switching": ("options",), "max_value": ("options", "switching")}
+
+
+@dataclass(frozen=True)
+class LossSettings:
+    """Hyper-parameters of the head losses (mirrors ``TrainConfig`` fields of the same names)."""
+
+    gamma: float = 0.99
+    robustness_gamma: float = 0.9
+    double_q: bool = True
+    max_value_expectile: float = 0.95
+    mu_bar_temperature: float | None = None  # None: greedy mu_bar
+
+
+class MultiHeadLoss(LossModule):
+    """Losses of every head in a :class:`Heads` bundle from one sample (paper §3.1-3.4).
+
+    Args:
+        heads: the online heads (trained in place).
+        subtasks: the family's options, used to relabel transitions.
+        settings: discounts, double-Q, expectile level, mu_bar temperature.
+
+    Returns (``forward``): a ``TensorDict`` of scalar losses ``loss_<head>`` for the heads present.
+
+    Examples:
+        >>> loss = MultiHeadLoss(heads, subtasks, LossSettings())  # doctest: +SKIP
+        >>> loss(buffer.sample())["loss_averaging"]  # doctest: +SKIP
+    """
+
+    def __init__(self, heads: Heads, subtasks: Subtasks, settings: LossSettings):
+        super().__init__()
+        for name, needs in _NEEDS.items():
+            missing = [n for n in needs if heads.has(name) and not heads.has(n)]
+            if missing:
+                raise ValueError(f"the {name} head needs the {missing} head(s) in the bundle")
+        if tuple(heads.option_names) != tuple(subtasks.names):
+            raise ValueError(
+                f"heads.option_names {heads.option_names} differ from subtasks.names {subtasks.names}"
+            )
+        self.heads = heads
+        self.subtasks = subtasks
+        self.settings = settings
+        self.head_names = tuple(heads.heads.keys())
+        self.target_heads = nn.ModuleDict(
+            {n: copy.deepcopy(m).requires_grad_(False) for n, m in heads.heads.items()}
+        )
+        for n in self.head_names:  # TorchRL naming, so SoftUpdate/HardUpdate find the targets
+            self._has_update_associated[n] = False
+            setattr(self, f"{n}_params", TensorDict.from_module(heads.heads[n], as_module=True))
+            setattr(
+                self,
+                f"target_{n}_params",
+                TensorDict.from_module(self.target_heads[n], as_module=True),
+            )
+        self.register_buffer(
+            "components", component_matrix(subtasks.names, subtasks.hierarchy), persistent=False
+        )
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:  # LossModule hook; no estimator
+        pass
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDict:
+        s = self.settings
+        batch = relabel(tensordict, self.subtasks, robustness=self.heads.has("robustness"))
+        B = batch.batch_size
+        both = torch.cat([batch.observation, batch.next_observation])  # (2B, D)
+        cur, nxt, nxt_target = {}, {}, {}
+        for n in self.head_names:
+            out = head_network(self.heads.heads[n])(both)  # (2B, ...)
+            cur[n], nxt[n] = out[:B], out[B:].detach()
+            with torch.no_grad():
+                nxt_target[n] = head_network(self.target_heads[n])(batch.next_observation)
+
+        losses: dict[str, torch.Tensor] = {}
+        if "averaging" in cur:
+            losses["loss_averaging"] = averaging_loss(
+                cur["averaging"],
+                nxt["averaging"],
+                nxt_target["averaging"],
+                batch,
+                s.gamma,
+                s.double_q,
+            )
+        if "options" in cur:
+            losses["loss_options"] = options_loss(
+                cur["options"], nxt["options"], nxt_target["options"], batch, s.gamma, s.double_q
+            )
+        if "switching" in cur:
+            consistent = consistent_with_option(
+                batch.action, cur["options"].detach(), batch.initiation
+            )  # (B, O)
+            mu_next = mu_bar_probs(
+                nxt["switching"], batch.initiation_next, s.mu_bar_temperature
+            )  # (B, O)
+            losses["loss_switching"] = switching_loss(
+                cur["switching"], nxt_target["switching"], mu_next, consistent, batch, s.gamma
+            )
+            if "max_value" in cur:
+                losses["loss_max_value"] = max_value_loss(
+                    cur["max_value"],
+                    nxt_target["max_value"],
+                    mu_next,
+                    consistent,
+                    batch,
+                    s.gamma,
+                    s.max_value_expectile,
+                )
+        if "robustness" in cur:
+            mask = parent_closure(batch.initiation, self.components)  # (B, O)
+            losses["loss_robustness"] = robustness_loss(
+                cur["robustness"],
+                nxt["robustness"],
+                nxt_target["robustness"],
+                mask,
+                batch,
+                s.robustness_gamma,
+                s.double_q,
+            )
+        return TensorDict(losses, batch_size=[])
+
+
+class ForeachSoftUpdate(SoftUpdate):
+    """TorchRL ``SoftUpdate`` (``target <- eps * target + (1 - eps) * source``) in one foreach call.
+
+    Same construction, checks and state as ``SoftUpdate``; ``step`` lerps every target tensor of
+    every head with one ``torch._foreach_lerp_`` instead of a tensordict walk per head.
+    """
+
+    def init_(self) -> None:
+        super().init_()
+        keys_ = list(self._sources.keys(True, True))
+        self._source_list = [self._sources.get(k) for k in keys_]
+        self._target_list = [self._targets.get(("target_" + k[0], *k[1:])) for k in keys_]
+
+    @torch.no_grad()
+    def step(self) -> None:
+        torch._foreach_lerp_(self._target_list, self._source_list, 1.0 - self.eps)
+
+
+def clip_grad_norm_per_group(groups: list[list[torch.Tensor]], max_norm: float) -> None:
+    """``clip_grad_norm_`` applied to each parameter group separately, in two foreach calls."""
+    params = [p for g in groups for p in g if p.grad is not None]
+    if not params:
+        return
+    grads = [p.grad for p in params]
+    norms = torch._foreach_norm(grads)  # one scalar per tensor
+    coefs, i = [], 0
+    for g in groups:
+        n = sum(p.grad is not None for p in g)
+        total = torch.linalg.vector_norm(torch.stack(norms[i : i + n]))
+        coef = (max_norm / (total + 1e-6)).clamp(max=1.0)
+        coefs.extend([coef] * n)
+        i += n
+    torch._foreach_mul_(grads, coefs)
+
+
+class MultiHeadLearner:
+    """Optimiser, target updates and loss bookkeeping around a :class:`MultiHeadLoss`.
+
+    Args:
+        loss: the fused loss (owns the heads and their targets).
+        lr: Adam learning rate.
+        max_grad_norm: per-head gradient-norm clip (``None``: no clipping).
+        target_update: ``"soft"`` (Polyak, ``target_tau``) or ``"hard"`` (copy every
+            ``target_period`` updates).
+
+    Examples:
+        >>> learner = MultiHeadLearner(loss, lr=1e-3)  # doctest: +SKIP
+        >>> for _ in range(4):  # doctest: +SKIP
+        ...     learner.update(buffer.sample())
+        >>> learner.pop_losses()  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        loss: MultiHeadLoss,
+        lr: float = 1e-3,
+        max_grad_norm: float | None = 10.0,
+        target_update: str = "soft",
+        target_tau: float = 0.01,
+        target_period: int = 500,
+    ):
+        self.loss = loss
+        self.heads = loss.heads
+        self.max_grad_norm = max_grad_norm
+        self._groups = [list(m.parameters()) for m in self.heads.heads.values()]
+        self.optimizer = torch.optim.Adam(self.heads.parameters(), lr=lr, fused=True)
+        if target_update == "soft":
+            self.target_updater = ForeachSoftUpdate(loss, tau=target_tau)
+        elif target_update == "hard":
+            self.target_updater = HardUpdate(loss, value_network_update_interval=target_period)
+        else:
+            raise ValueError(
+                f"target_update must be one of ['hard', 'soft'], got {target_update!r}"
+            )
+        self.num_updates = 0
+        self._loss_sum: TensorDict | None = None  # device-side sums since the last pop_losses
+        self._loss_count = 0
+
+    def update(self, sample: TensorDictBase) -> TensorDict:
+        """One gradient step of every head on one shared sample; returns the (detached) losses."""
+        losses = self.loss(sample)
+        total = sum(losses.values())
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        if self.max_grad_norm is not None:
+            clip_grad_norm_per_group(self._groups, self.max_grad_norm)
+        self.optimizer.step()
+        self.target_updater.step()
+        losses = losses.detach()
+        self._loss_sum = losses.clone() if self._loss_sum is None else self._loss_sum.add_(losses)
+        self._loss_count += 1
+        self.num_updates += 1
+        return losses
+
+    def pop_losses(self) -> dict[str, float]:
+        """Mean of each loss since the last call (one host sync), then reset the sums.
+
+        Raises:
+            FloatingPointError: a loss was NaN or infinite (names the heads).
+        """
+        if self._loss_sum is None:
+            return {}
+        names = list(self._loss_sum.keys())
+        values = torch.stack([self._loss_sum[k] for k in names]) / self._loss_count
+        values = values.tolist()  # the one host sync of the logging interval
+        self._loss_sum, self._loss_count = None, 0
+        bad = [k for k, v in zip(names, values) if not math.isfinite(v)]
+        if bad:
+            raise FloatingPointError(
+                f"non-finite loss in {bad} after {self.num_updates} updates: training diverged"
+            )
+        return dict(zip(names, values))
+
+    # ---- checkpointing -----------------------------------------------------------------------
+
+    def state_dict(self) -> dict:
+        """Target networks, optimiser, target-updater and loss-sum state (heads saved apart)."""
+        return {
+            "targets": self.loss.target_heads.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "target_updater": self.target_updater.state_dict(),
+            "num_updates": self.num_updates,
+            "loss_sum": None if self._loss_sum is None else self._loss_sum.to_dict(),
+            "loss_count": self._loss_count,
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        self.loss.target_heads.load_state_dict(state["targets"])
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.target_updater.load_state_dict(state["target_updater"])
+        self.num_updates = int(state["num_updates"])
+        ls = state["loss_sum"]
+        self._loss_sum = None if ls is None else TensorDict(ls, batch_size=[])
+        self._loss_count = int(state["loss_count"])

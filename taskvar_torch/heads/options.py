@@ -1,0 +1,60 @@
+"""Option heads Q_o(s, a) (paper §3.2, capabilities as offline options).
+
+One network outputs every option's action values ``(B, O, A)``; greedy in ``Q_o`` is the option
+policy pi^o. Each option learns by double DQN on its own subtask reward, with its own termination
+beta_o as episode end, from every sampled transition whose state lies in its initiation set I_o:
+
+    y_o = r_o + gamma * (1 - max(terminated, beta_o(s'))) * Q_o,target(s', argmax_a' Q_o(s', a'))
+
+The transitions come from any behaviour (off-policy), so all options learn from the same sample.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+from tensordict.nn import TensorDictModule
+
+from taskvar_torch import keys
+from taskvar_torch.heads.networks import make_head
+from taskvar_torch.heads.relabel import Transitions
+from taskvar_torch.heads.targets import bootstrap_value, masked_mean
+
+
+def make_options_head(
+    obs_dim: int,
+    num_options: int,
+    num_actions: int,
+    hidden: Sequence[int] = (64, 64),
+    activation: str = "relu",
+) -> TensorDictModule:
+    """``observation (B, D) -> option_action_value (B, O, A)``."""
+    return make_head(
+        keys.OPTION_ACTION_VALUE, obs_dim, (num_options, num_actions), hidden, activation
+    )
+
+
+def option_greedy_actions(q_options: torch.Tensor) -> torch.Tensor:
+    """pi^o(s) for every option: ``(B, O, A) -> (B, O)`` int64 (ties: lowest action)."""
+    return q_options.argmax(-1)
+
+
+def options_loss(
+    q: torch.Tensor,  # (B, O, A) online Q_o(s, .)
+    q_next: torch.Tensor,  # (B, O, A) online Q_o(s', .), no gradient
+    q_next_target: torch.Tensor,  # (B, O, A) target Q_o(s', .)
+    batch: Transitions,
+    gamma: float,
+    double_q: bool = True,
+) -> torch.Tensor:
+    """Sum over options of each option's mean squared TD error over its initiation set (scalar)."""
+    num_options = q.shape[1]
+    action = batch.action.view(-1, 1, 1).expand(-1, num_options, 1)  # (B, O, 1)
+    q_taken = q.gather(-1, action).squeeze(-1)  # (B, O)
+    with torch.no_grad():
+        done = torch.maximum(batch.terminated.unsqueeze(-1), batch.beta_next)  # (B, O)
+        target = batch.subtask_reward + gamma * (1.0 - done) * bootstrap_value(
+            q_next, q_next_target, double_q
+        )  # (B, O)
+    return masked_mean((q_taken - target).pow(2), batch.initiation)

@@ -1,0 +1,61 @@
+"""Per-head target relabelling of raw transitions (SPEC §2, "one stream of experience").
+
+The replay buffer holds raw transitions only (observation, action, next observation, env reward,
+done flags, and the integer state the subtasks read). :func:`relabel` turns one sampled batch into
+the quantities every head's target needs: the environment reward and termination for the averaging,
+switching and max-value heads; each option's initiation, termination and subtask reward (paper §3.2);
+each capability's robustness reward (paper §3.4.3). Computed once per sample, shared by all heads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from tensordict import TensorDictBase
+
+from taskvar_torch import keys
+from taskvar_torch.subtasks.base import Subtasks
+
+
+@dataclass
+class Transitions:
+    """One relabelled batch of B transitions for O options (all tensors on the learner's device)."""
+
+    observation: torch.Tensor  # (B, D)
+    next_observation: torch.Tensor  # (B, D)
+    action: torch.Tensor  # (B,) int64
+    reward: torch.Tensor  # (B,) env reward
+    terminated: torch.Tensor  # (B,) float, 1 where the episode ended for good (not truncation)
+    initiation: torch.Tensor  # (B, O) bool, s in I_o
+    initiation_next: torch.Tensor  # (B, O) bool, s' in I_o
+    beta_next: torch.Tensor  # (B, O) float, beta_o(s') (option o terminates at s')
+    subtask_reward: torch.Tensor  # (B, O)
+    robustness_reward: torch.Tensor | None  # (B, O) or None when the family has no robustness
+
+    @property
+    def batch_size(self) -> int:
+        return self.action.shape[0]
+
+
+def has_robustness(subtasks: Subtasks) -> bool:
+    """Whether the family defines robustness rewards (Wargus does, windy does not)."""
+    return type(subtasks).robustness_reward is not Subtasks.robustness_reward
+
+
+def relabel(td: TensorDictBase, subtasks: Subtasks, robustness: bool = False) -> Transitions:
+    """Relabel a sampled batch ``td`` (B,) of raw transitions for every head."""
+    nxt = td.get(keys.NEXT)
+    terminated = nxt.get(keys.TERMINATED).reshape(-1).to(torch.float32)  # (B,)
+    return Transitions(
+        observation=td.get(keys.OBSERVATION),
+        next_observation=nxt.get(keys.OBSERVATION),
+        action=td.get(keys.ACTION).reshape(-1),
+        reward=nxt.get(keys.REWARD).reshape(-1),
+        terminated=terminated,
+        initiation=subtasks.initiation(td),
+        initiation_next=subtasks.initiation(nxt),
+        beta_next=subtasks.termination(nxt).to(torch.float32),
+        subtask_reward=subtasks.reward(td).to(torch.float32),
+        robustness_reward=subtasks.robustness_reward(td).to(torch.float32) if robustness else None,
+    )

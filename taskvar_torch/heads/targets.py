@@ -1,0 +1,42 @@
+"""Small tensor helpers shared by the head losses: double-Q bootstraps, masked means, expectiles."""
+
+from __future__ import annotations
+
+import torch
+
+
+def bootstrap_value(
+    q_next_online: torch.Tensor,  # (..., A)
+    q_next_target: torch.Tensor,  # (..., A)
+    double_q: bool = True,
+) -> torch.Tensor:
+    """Value of the next state for a Q-learning target, ``(...)``.
+
+    Double Q-learning (van Hasselt et al., 2016): the online network picks ``a*``, the target network
+    evaluates it; otherwise ``max_a Q_target``. Matches TorchRL ``DQNLoss(double_dqn=...)``.
+    """
+    if double_q:
+        best = q_next_online.argmax(-1, keepdim=True)  # (..., 1)
+        return q_next_target.gather(-1, best).squeeze(-1)
+    return q_next_target.max(-1).values
+
+
+def masked_mean(loss: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Per-column mean of ``loss`` (B, K) over rows where ``mask`` (B, K), summed over columns.
+
+    Each column is one head's own loss (an option, a critic), averaged over its own transitions, so
+    the sum has the gradient of K separate learners. Columns without transitions contribute 0.
+    """
+    mask = mask.to(loss.dtype)
+    return ((loss * mask).sum(0) / mask.sum(0).clamp_min(1.0)).sum()
+
+
+def expectile_loss(pred: torch.Tensor, target: torch.Tensor, level: float) -> torch.Tensor:
+    """Elementwise expectile (asymmetric squared) loss ``|level - 1[target < pred]| (target - pred)^2``.
+
+    Its minimiser is the ``level``-expectile of ``target``; ``level = 0.5`` is half the squared error
+    (the mean), ``level -> 1`` tends to the maximum (Newey & Powell, 1987).
+    """
+    diff = target - pred
+    weight = torch.where(diff < 0, 1.0 - level, level)
+    return weight * diff.pow(2)

@@ -1,0 +1,520 @@
+"""Offline training of every head from one stream of experience (SPEC §2; paper §3.1-3.4).
+
+The loop, top to bottom (:func:`train`)::
+
+    env (batched family, instances redrawn at every reset) + InitTracker + RewardSum
+      --Collector(BehaviourPolicy)--> raw transitions --ReplayBuffer(LazyTensorStorage)-->
+      one shared sample --MultiHeadLearner--> every head (averaging, options, switching, max-value,
+      robustness) --> CSV logs, periodic checkpoints, DIR/final.pt
+
+Exact resume: a checkpoint holds the heads, targets, optimiser, target-updater counter, step
+counters, the replay buffer, the env's simulator state, the collector's carried tensordict and every
+RNG state, so ``train(..., resume=ckpt)`` continues bit for bit on CPU.
+
+Examples:
+    >>> cfg = load_config("configs/windy.yaml", ["train.total_frames=20000"])  # doctest: +SKIP
+    >>> result = train(cfg, "/tmp/run")  # doctest: +SKIP
+    >>> heads, cfg = load_heads("/tmp/run/final.pt")  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import RandomSampler
+from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, TransformedEnv
+from torchrl.record.loggers import CSVLogger
+from tqdm.auto import tqdm
+
+from taskvar_torch import keys
+from taskvar_torch.checkpoint import (
+    RUNTIME_KEYS,
+    CheckpointError,
+    config_differences,
+    load_checkpoint,
+    load_state_dicts,
+    make_bundle,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from taskvar_torch.config import (
+    Config,
+    TrainConfig,
+    apply_overrides,
+    config_from_dict,
+    save_config_yaml,
+    windy_env_kwargs,
+)
+from taskvar_torch.heads.averaging import make_averaging_head
+from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.first_visit import FirstVisitFilter
+from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
+from taskvar_torch.heads.max_value import make_max_value_head
+from taskvar_torch.heads.options import make_options_head
+from taskvar_torch.heads.relabel import has_robustness
+from taskvar_torch.heads.robustness import make_robustness_head
+from taskvar_torch.heads.switching import make_switching_head
+from taskvar_torch.subtasks.base import Subtasks
+
+EPISODE_REWARD = "episode_reward"  # RewardSum's running return
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss became NaN or infinite; the last good checkpoint is left as it was."""
+
+
+# --------------------------------------------------------------------------------------------
+# factories
+
+
+def make_env(cfg: Config, num_envs: int | None = None, seed: int | None = None) -> EnvBase:
+    """The family's batched env (no transforms) with ``cfg``'s training instances."""
+    n = cfg.env.num_envs if num_envs is None else int(num_envs)
+    s = cfg.seed if seed is None else int(seed)
+    if cfg.family == "windy":
+        from taskvar_torch.envs.windy_env import WindyGridEnv
+
+        return WindyGridEnv(**{**windy_env_kwargs(cfg), "num_envs": n, "seed": s})
+    if cfg.family == "wargus":
+        from taskvar_torch.envs.wargus_env import WargusEnv
+
+        return WargusEnv(
+            n,
+            config=dataclasses.asdict(cfg.env.wargus),
+            instances=cfg.env.instances,
+            seed=s,
+            device=cfg.device,
+        )
+    raise ValueError(f"family must be one of ['wargus', 'windy'], got {cfg.family!r}")
+
+
+def make_subtasks(cfg: Config, env: EnvBase) -> Subtasks:
+    """The family's options (windy: one exit option per exit; Wargus: TG, FE, TG+FE)."""
+    if cfg.family == "windy":
+        from taskvar_torch.subtasks.windy import WindySubtasks
+
+        return WindySubtasks(env.model)
+    from taskvar_torch.subtasks.wargus import WargusSubtasks
+
+    return WargusSubtasks()
+
+
+def make_training_env(cfg: Config) -> TransformedEnv:
+    """The family env with ``InitTracker`` (new-episode flags) and ``RewardSum`` (episode returns)."""
+    return TransformedEnv(make_env(cfg), Compose(InitTracker(), RewardSum()))
+
+
+def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
+    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (DESIGN.md)."""
+    obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
+    num_actions = env.action_spec.space.n
+    num_options = subtasks.num_options
+    h = dict(hidden=tuple(cfg.heads.hidden), activation=cfg.heads.activation)
+    robust = has_robustness(subtasks)
+    return Heads(
+        subtasks.names,
+        averaging=make_averaging_head(obs_dim, num_actions, **h),
+        options=make_options_head(obs_dim, num_options, num_actions, **h),
+        switching=make_switching_head(obs_dim, num_options, **h),
+        max_value=make_max_value_head(obs_dim, num_options, **h),
+        robustness=make_robustness_head(obs_dim, num_options, num_actions, **h) if robust else None,
+        softmax_temperature=mu_bar_temperature(cfg.train),
+    ).to(cfg.device)
+
+
+def mu_bar_temperature(t: TrainConfig) -> float | None:
+    """``None`` for a greedy mu_bar, else the softmax temperature."""
+    return t.mu_bar_temperature if t.mu_bar == "softmax" else None
+
+
+def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLearner:
+    """The fused multi-head learner of ``cfg.train``."""
+    t = cfg.train
+    if t.switching != "intra":
+        raise ValueError(
+            f"train.switching={t.switching!r} is not implemented; use 'intra' (intra-option "
+            "Q-learning, see taskvar_torch/heads/switching.py)"
+        )
+    settings = LossSettings(
+        gamma=t.gamma,
+        robustness_gamma=t.robustness_gamma,
+        double_q=t.double_q,
+        max_value_expectile=t.max_value_expectile,
+        mu_bar_temperature=mu_bar_temperature(t),
+    )
+    return MultiHeadLearner(
+        MultiHeadLoss(heads, subtasks, settings).to(cfg.device),
+        lr=t.lr,
+        max_grad_norm=t.max_grad_norm,
+        target_update=t.target_update,
+        target_tau=t.target_tau,
+        target_period=t.target_period,
+    )
+
+
+def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
+    """Uniform replay of raw transitions; sampling draws from ``generator`` only."""
+    t = cfg.train
+    return ReplayBuffer(
+        storage=LazyTensorStorage(t.buffer_size, device=cfg.device),
+        sampler=RandomSampler(),
+        batch_size=t.batch_size,
+        generator=generator,
+    )
+
+
+def epsilon_at(frames: int, t: TrainConfig) -> float:
+    """Exploration rate after ``frames`` steps: 1 during ``init_random_frames``, then linear decay."""
+    if frames < t.init_random_frames:
+        return 1.0
+    if t.eps_decay_frames <= 0:
+        return t.eps_end
+    frac = min(frames / t.eps_decay_frames, 1.0)
+    return t.eps_start + frac * (t.eps_end - t.eps_start)
+
+
+def raw_transitions(batch: TensorDictBase) -> TensorDictBase:
+    """Flatten a collector batch ``(N, T)`` to ``(N*T,)`` raw transitions, minus what no head may read.
+
+    Dropped: the hidden instance (``("instance", ...)``), RewardSum's running returns.
+    """
+    drop = [keys.INSTANCE, (keys.NEXT, keys.INSTANCE), EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD)]
+    return batch.exclude(*drop).reshape(-1)
+
+
+# --------------------------------------------------------------------------------------------
+# checkpoint pieces that checkpoint.py's conventional keys do not cover
+
+
+def _replay_state(buffer: ReplayBuffer) -> dict[str, Any]:
+    """The buffer's state with only the filled rows stored (padded back on load)."""
+    state = buffer.state_dict()
+    n = len(buffer)
+
+    def trim(d: Any) -> Any:
+        if isinstance(d, dict):
+            return {k: trim(v) for k, v in d.items()}
+        return d[:n].clone() if isinstance(d, torch.Tensor) else d
+
+    state["_storage"]["_storage"] = trim(state["_storage"]["_storage"])
+    return state
+
+
+def _load_replay_state(buffer: ReplayBuffer, state: dict[str, Any], capacity: int) -> None:
+    def pad(d: Any) -> Any:
+        if isinstance(d, dict):
+            return {k: pad(v) for k, v in d.items()}
+        if isinstance(d, torch.Tensor):
+            out = torch.zeros((capacity, *d.shape[1:]), dtype=d.dtype, device=d.device)
+            out[: d.shape[0]] = d
+            return out
+        return d
+
+    state = dict(state)
+    state["_storage"] = dict(state["_storage"])
+    state["_storage"]["_storage"] = pad(state["_storage"]["_storage"])
+    buffer.load_state_dict(state)
+
+
+def _check_runtime_only(bundle: dict[str, Any], cfg: Config, path: Any) -> None:
+    """Overrides on a resumed run may change only runtime keys (e.g. ``train.total_frames``)."""
+    diffs = config_differences(bundle["config"], cfg)
+    if diffs:
+        key, saved, wanted = diffs[0]
+        raise CheckpointError(
+            f"cannot resume {str(path)!r} with {key}={wanted!r}: it was trained with {saved!r}; "
+            f"only {list(RUNTIME_KEYS)} may change on resume"
+        )
+
+
+def _collector_carrier(collector: Collector) -> TensorDictBase:
+    # TorchRL's Collector keeps the current step's tensordict (observations, carried policy state
+    # such as the behaviour mode, RewardSum's returns) in ``_carrier``; its state_dict does not
+    # include it, so exact resume saves and restores it here.
+    return collector._carrier
+
+
+def _make_bundle(
+    cfg: Config,
+    learner: MultiHeadLearner,
+    buffer: ReplayBuffer,
+    env: TransformedEnv,
+    collector: Collector,
+    first_visit: FirstVisitFilter,
+    counters: dict[str, int],
+    stats: dict[str, torch.Tensor],
+    replay_generator: torch.Generator,
+) -> dict[str, Any]:
+    return make_bundle(
+        cfg,
+        models={"heads": learner.heads, "targets": learner.loss.target_heads},
+        optimizers={"adam": learner.optimizer},
+        counters=dict(counters),
+        rng=rng_state({"replay": replay_generator}),
+        replay=_replay_state(buffer),
+        learner={
+            k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
+        },
+        env=env.base_env.state_dict(),
+        carrier=_collector_carrier(collector).to_dict(),
+        first_visit=first_visit.state_dict(),
+        stats={k: v.clone() for k, v in stats.items()},
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# the training loop
+
+
+def train(
+    cfg: Config | None,
+    out_dir: str | os.PathLike,
+    resume: str | os.PathLike | None = None,
+    overrides: Sequence[str] = (),
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Train every head of ``cfg``'s family; write logs, checkpoints and ``out_dir/final.pt``.
+
+    Args:
+        cfg: the run's config; with ``resume`` it may be ``None`` (the checkpoint's config is used)
+            or must equal the checkpoint's up to runtime keys such as ``train.total_frames``.
+        out_dir: results folder (created).
+        resume: a checkpoint written by this function to continue from, exactly.
+        overrides: ``key.sub=value`` applied to the checkpoint's config when ``cfg`` is ``None``.
+        progress: show a tqdm progress bar.
+
+    Returns:
+        ``{"final": path, "frames": int, "updates": int, "seconds": float, "last_log": dict}``.
+
+    Raises:
+        TrainingDiverged: a loss became NaN or infinite (checked once per logging interval and
+            before every checkpoint); the last checkpoint written is intact.
+    """
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    bundle = None
+    if resume is not None:
+        bundle = load_checkpoint(resume, expected_config=cfg)
+        if cfg is None:
+            cfg = apply_overrides(
+                config_from_dict(bundle["config"], f"checkpoint {resume}"), overrides
+            )
+            _check_runtime_only(bundle, cfg, resume)
+    if cfg is None:
+        raise ValueError("train needs a config (or a checkpoint to resume)")
+    t = cfg.train
+    save_config_yaml(cfg, out / "config.yaml")
+
+    # ---- build everything from the config (seeded), then overwrite with the checkpoint -------
+    torch.manual_seed(cfg.seed)
+    replay_generator = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
+    env = make_training_env(cfg)
+    subtasks = make_subtasks(cfg, env.base_env)
+    heads = build_heads(cfg, env, subtasks)
+    learner = make_learner(cfg, heads, subtasks)
+    behaviour = BehaviourPolicy(
+        heads, subtasks, env.action_spec, option_prob=t.option_behaviour_prob
+    )
+    buffer = make_replay_buffer(cfg, replay_generator)
+    obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
+    first_visit = FirstVisitFilter(env.batch_size.numel(), obs_dim, device=cfg.device)
+    counters = {"frames": 0, "updates": 0, "batches": 0, "stored": 0}
+    stats = {  # device-side episode statistics since the last log row
+        "return_sum": torch.zeros((), device=cfg.device),
+        "episodes": torch.zeros((), device=cfg.device),
+        "return_sum_options": torch.zeros((), device=cfg.device),
+        "episodes_options": torch.zeros((), device=cfg.device),
+    }
+    if bundle is not None:
+        load_state_dicts(
+            bundle,
+            models={"heads": heads, "targets": learner.loss.target_heads},
+            optimizers={"adam": learner.optimizer},
+        )
+        learner.load_state_dict(
+            {
+                **bundle["learner"],
+                "targets": bundle["models"]["targets"],
+                "optimizer": bundle["optimizers"]["adam"],
+            }
+        )
+        _load_replay_state(buffer, bundle["replay"], t.buffer_size)
+        first_visit.load_state_dict(bundle["first_visit"])
+        counters.update(bundle["counters"])
+        stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}
+    behaviour.set_epsilon(epsilon_at(counters["frames"], t))
+
+    collector = Collector(
+        env,
+        behaviour,
+        frames_per_batch=t.frames_per_batch,
+        total_frames=max(t.total_frames - counters["frames"], 0),
+        track_traj_ids=False,
+    )
+    if bundle is not None:  # after the collector's own reset and policy probe
+        env.base_env.load_state_dict(bundle["env"])
+        _collector_carrier(collector).update(
+            TensorDict(bundle["carrier"], batch_size=env.batch_size)
+        )
+        set_rng_state(bundle["rng"], {"replay": replay_generator})
+
+    logger = CSVLogger(exp_name="logs", log_dir=str(out))
+    pbar = tqdm(
+        total=t.total_frames, initial=counters["frames"], disable=not progress, unit="frame"
+    )
+    start_time, last_log = time.perf_counter(), {}
+    last_checkpoint: Path | None = None
+
+    for batch in collector:
+        # ---- store the raw transitions ------------------------------------------------------
+        frames_before = counters["frames"]
+        counters["frames"] += batch.numel()
+        counters["batches"] += 1
+        raw = raw_transitions(batch)  # (N*T,)
+        if t.first_visit:
+            raw = raw[first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
+        buffer.extend(raw)
+        counters["stored"] += raw.numel()
+        done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
+        ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
+        by_options = done & (batch.get(BEHAVIOUR) >= 0)
+        stats["return_sum"] += (ret * done).sum()
+        stats["episodes"] += done.sum()
+        stats["return_sum_options"] += (ret * by_options).sum()
+        stats["episodes_options"] += by_options.sum()
+
+        # ---- learn: every head from one shared sample per update ----------------------------
+        if counters["frames"] >= t.init_random_frames and len(buffer) >= t.batch_size:
+            for _ in range(t.updates_per_batch):
+                learner.update(buffer.sample())
+                counters["updates"] += 1
+        behaviour.set_epsilon(epsilon_at(counters["frames"], t))
+        pbar.update(batch.numel())
+
+        # ---- log (one host sync), then checkpoint -----------------------------------------
+        log_now = _crossed(frames_before, counters["frames"], t.log_every)
+        checkpoint_now = _crossed(frames_before, counters["frames"], t.checkpoint_every)
+        is_last = counters["frames"] >= t.total_frames
+        if log_now or checkpoint_now or is_last:
+            last_log = _log_row(learner, stats, behaviour, counters, logger, start_time)
+            pbar.set_postfix({k: f"{v:.3g}" for k, v in last_log.items() if k.startswith("loss")})
+        if checkpoint_now and not is_last:
+            path = out / f"checkpoint_{counters['frames']:09d}.pt"
+            save_checkpoint(
+                path,
+                _make_bundle(
+                    cfg,
+                    learner,
+                    buffer,
+                    env,
+                    collector,
+                    first_visit,
+                    counters,
+                    stats,
+                    replay_generator,
+                ),
+            )
+            if last_checkpoint is not None and last_checkpoint != path:
+                last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic checkpoint
+            last_checkpoint = path
+
+    pbar.close()
+    final = out / "final.pt"
+    bundle = _make_bundle(
+        cfg, learner, buffer, env, collector, first_visit, counters, stats, replay_generator
+    )
+    save_checkpoint(final, bundle)
+    collector.shutdown()
+    return {
+        "final": final,
+        "frames": counters["frames"],
+        "updates": counters["updates"],
+        "seconds": time.perf_counter() - start_time,
+        "last_log": last_log,
+    }
+
+
+def _crossed(before: int, after: int, every: int) -> bool:
+    """Whether a multiple of ``every`` lies in ``(before, after]`` (``every = 0``: never)."""
+    return every > 0 and after // every > before // every
+
+
+def _log_row(
+    learner: MultiHeadLearner,
+    stats: dict[str, torch.Tensor],
+    behaviour: BehaviourPolicy,
+    counters: dict[str, int],
+    logger: CSVLogger,
+    start_time: float,
+) -> dict[str, float]:
+    """Write one CSV row per scalar; raise :class:`TrainingDiverged` on a non-finite loss."""
+    try:
+        row = learner.pop_losses()
+    except FloatingPointError as e:
+        raise TrainingDiverged(
+            f"{e}; stopped at frame {counters['frames']} (the last checkpoint is intact)"
+        ) from None
+    s = {k: float(v) for k, v in stats.items()}  # host sync, once per row
+    for v in stats.values():
+        v.zero_()
+    if s["episodes"] > 0:
+        row["episode_return"] = s["return_sum"] / s["episodes"]
+    if s["episodes_options"] > 0:
+        row["episode_return_options"] = s["return_sum_options"] / s["episodes_options"]
+    row["episodes"] = s["episodes"]
+    row["epsilon"] = behaviour.epsilon
+    row["updates"] = float(counters["updates"])
+    row["seconds"] = time.perf_counter() - start_time
+    for k, v in row.items():
+        logger.log_scalar(k, v, step=counters["frames"])
+    return row
+
+
+# --------------------------------------------------------------------------------------------
+# loading a trained bundle
+
+
+def load_heads(
+    path: str | os.PathLike, device: str | torch.device | None = None
+) -> tuple[Heads, Config]:
+    """The trained :class:`Heads` bundle and config of a checkpoint written by :func:`train`.
+
+    Raises:
+        CheckpointError: unreadable file, foreign content, or weights that do not fit the config.
+    """
+    bundle = load_checkpoint(path)
+    cfg = config_from_dict(bundle["config"], f"checkpoint {path}")
+    if device is not None:
+        cfg = dataclasses.replace(cfg, device=str(device))
+    env = make_env(cfg, num_envs=1)
+    subtasks = make_subtasks(cfg, env)
+    heads = build_heads(cfg, env, subtasks)
+    load_state_dicts(bundle, models={"heads": heads})
+    return heads.eval(), cfg
+
+
+__all__ = [
+    "CheckpointError",
+    "TrainingDiverged",
+    "build_heads",
+    "epsilon_at",
+    "load_heads",
+    "make_env",
+    "make_learner",
+    "make_replay_buffer",
+    "make_subtasks",
+    "make_training_env",
+    "raw_transitions",
+    "train",
+]
