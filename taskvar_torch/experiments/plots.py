@@ -33,11 +33,13 @@ def plot_sorted_differences(
     path: str | Path,
     title: str,
     label: str = "interruption - averaging",
+    exact_runs: Sequence[np.ndarray] = (),
 ) -> Path:
     """Paper Figure 2: per-episode return differences sorted ascending, one curve per run.
 
     ``null_runs`` (averaging against an independent rollout of itself, same instances and starts)
-    are drawn dashed in grey: the spread that chance alone produces.
+    are drawn dashed in grey: the spread that chance alone produces. ``exact_runs`` (the oracle's
+    exact expected-return differences of the same episodes) are drawn dotted in black.
     """
     plt = _pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
@@ -49,6 +51,10 @@ def plot_sorted_differences(
         d = np.sort(np.asarray(d, dtype=float))
         ax.plot(np.linspace(0, 1, d.size), d, ls="--", lw=1.0, color="0.45",
                 label="null: averaging - averaging (independent gusts)" if i == 0 else None)
+    for i, d in enumerate(exact_runs):
+        d = np.sort(np.asarray(d, dtype=float))
+        ax.plot(np.linspace(0, 1, d.size), d, ls=":", lw=1.3, color="black",
+                label="exact (oracle): expected-return difference" if i == 0 else None)
     ax.axhline(0.0, color="black", lw=0.8)
     all_d = np.concatenate([np.asarray(d, dtype=float) for d in runs])
     frac = (all_d >= 0).mean()
@@ -59,6 +65,45 @@ def plot_sorted_differences(
     ax.set_title(title)
     ax.legend(fontsize=8, loc="upper left")
     ax.grid(alpha=0.3)
+    out = save_figure(fig, path)
+    plt.close(fig)
+    return out
+
+
+def plot_interruption_heatmap(
+    layout,
+    counts: dict[str, Sequence[int] | None],
+    episodes: dict[str, int | None],
+    path: str | Path,
+) -> Path:
+    """Where offline interruption fired (paper §3.3, Algorithm 1 line 6): firings per episode per
+    cell, one panel per test distribution, on the grid (walls hatched, goals outlined)."""
+    plt = _pyplot()
+    panels = [(k, v) for k, v in counts.items() if v is not None]
+    fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(4.2 * max(len(panels), 1), 4.2),
+                             squeeze=False)
+    H, W = layout.height, layout.width
+    for ax, (name, cnt) in zip(axes[0], panels):
+        n = max(int(episodes.get(name) or 1), 1)
+        grid = np.asarray(cnt, dtype=float).reshape(H, W) / n
+        masked = np.ma.masked_where(np.array([[ch in "#G" for ch in row] for row in layout.rows]), grid)
+        im = ax.imshow(masked, cmap="magma_r", vmin=0)
+        for r in range(H):
+            for c in range(W):
+                ch = layout.rows[r][c]
+                if ch == "#":
+                    ax.add_patch(plt.Rectangle((c - 0.5, r - 0.5), 1, 1, color="0.3"))
+                elif ch == "G":
+                    ax.add_patch(plt.Rectangle((c - 0.5, r - 0.5), 1, 1, fill=False, hatch="//",
+                                               color="tab:green", lw=0.5))
+                elif H * W <= 100:
+                    ax.text(c, r, f"{ch}\n{grid[r, c]:.3f}" if ch != "." else f"{grid[r, c]:.3f}",
+                            ha="center", va="center", fontsize=7, color="tab:blue")
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(f"{name}\n(total {int(np.sum(cnt))} firings, {n} episodes)", fontsize=9)
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="firings per episode")
+    fig.suptitle("Where offline interruption fired (row 0 = north)", fontsize=10)
     out = save_figure(fig, path)
     plt.close(fig)
     return out
