@@ -172,7 +172,7 @@ def _eval_run(args: argparse.Namespace) -> int:
     return 0
 
 
-EXPERIMENTS = ("windy-fig2",)
+EXPERIMENTS = ("windy-fig2", "wargus-fig4")
 
 
 def _experiment_arguments(p: argparse.ArgumentParser) -> None:
@@ -190,11 +190,21 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--checkpoint", metavar="PATH", help="evaluate this bundle instead of training")
     p.add_argument("--quick", action="store_true", help="apply experiment.quick_overrides")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="wargus-fig4: run the repetitions in N processes (default 1: sequentially)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
 
 
 def _experiment_run(args: argparse.Namespace) -> int:
     from taskvar_torch.config import load_config
+
+    if args.name == "wargus-fig4":
+        return _wargus_fig4_run(args)
     from taskvar_torch.experiments.windy_fig2 import default_config_path, windy_fig2
 
     config_path, overrides = _split_config_and_overrides(args.items)
@@ -206,12 +216,32 @@ def _experiment_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _wargus_fig4_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.config import load_config
+    from taskvar_torch.experiments.wargus_fig4 import default_config_path, wargus_fig4
+
+    if args.checkpoint is not None:
+        raise ValueError(
+            "wargus-fig4 learns from scratch (lifelong protocol); --checkpoint is not used"
+        )
+    config_path, overrides = _split_config_and_overrides(args.items)
+    cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)
+    out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
+    wargus_fig4(cfg, out, workers=args.workers, progress=not args.no_progress)
+    return 0
+
+
 def _plot_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("results", metavar="DIR", help="a results folder of taskvar experiment")
 
 
 def _plot_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.experiments.windy_fig2 import plot_results
+    from taskvar_torch.experiments.wargus_fig4 import is_results_folder
+
+    if is_results_folder(args.results):
+        from taskvar_torch.experiments.wargus_fig4 import plot_results
+    else:
+        from taskvar_torch.experiments.windy_fig2 import plot_results
 
     for path in plot_results(args.results):
         print(path)
@@ -238,7 +268,7 @@ COMMANDS: dict[str, Command] = {
         run=_eval_run,
     ),
     "experiment": Command(
-        help="run one of the paper's experiments (windy-fig2)",
+        help="run one of the paper's experiments (windy-fig2, wargus-fig4)",
         description="Train (or load --checkpoint), evaluate, write a results folder and print a "
         "table (SPEC §5).",
         add_arguments=_experiment_arguments,

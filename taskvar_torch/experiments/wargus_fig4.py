@@ -1,0 +1,714 @@
+"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3, SPEC §5 "Wargus, Figure 4").
+
+The protocol, top to bottom (:func:`wargus_fig4`), for each of R repetitions (own seed
+``cfg.seed + rep``, own env streams, own replay generator, own torch RNG stream; never one RNG
+shared between repetitions):
+
+1. the agent starts with *no prior knowledge*: fresh networks for every head (averaging, options,
+   mu_bar, max-value, robustness), an empty replay buffer, epsilon = 1;
+2. for each of T trials:
+
+   a. **learning** (learning on): ``L = experiment.learning_episodes_per_trial`` (30) episodes of
+      the training instance distribution, played as L parallel sub-environments of one batched
+      ``WargusEnv`` by the behaviour policy (``heads/behaviour.py``); every transition of a live
+      episode goes to the replay buffer (first visits only with ``train.first_visit``), and every
+      ``train.frames_per_batch`` stored frames trigger ``train.updates_per_batch`` gradient steps of
+      the one multi-head learner, which trains *every* head from the same stream;
+   b. **test** (learning off): ``K = experiment.test_episodes_per_trial`` (5) nominal episodes
+      (fixed instance seeds :data:`~taskvar_torch.envs.wargus.NOMINAL_SEEDS`) with each method --
+      averaging (greedy Q_avg), options (mu_bar + option policies run to termination),
+      interruption (Algorithm 1, max-value heads) and hierarchy (Algorithm 2, robustness critics,
+      ``tau = train.robustness_tau``) -- all 4 x K episodes side by side in one batched env;
+      score = items collected per test episode.
+
+Definitions used in ``metrics.json``:
+
+- ``curve_mean`` / ``curve_std``: per trial, mean and standard deviation over repetitions of the
+  mean items per test episode (raw, unsmoothed);
+- ``curve_smoothed``: trailing moving average of ``curve_mean`` over ``smoothing_window`` trials
+  (``max(1, T // 20)``, 25 for 500 trials); trailing, so the value at trial t uses trials <= t;
+- ``final_score``: mean of ``curve_mean`` over the last 10% of trials (at least one);
+- ``trials_to_90pct``: first trial (1-based) at which ``curve_smoothed`` reaches 90% of
+  ``final_score`` (``T`` and ``reached_90pct = false`` if it never does);
+- ``hierarchy_trace``: fraction of the hierarchy's (alive) test steps at which each level / each
+  subtask held control (Algorithm 2's decision), over all trials and over the last 10%.
+
+Writes ``config.yaml``, ``rep{r}/final.pt`` (every head, loadable by ``taskvar eval``),
+``per_trial.csv`` (rep, trial, method, items, interruptions), ``metrics.json``, ``fig4.png``;
+prints a table.
+
+Examples:
+    >>> cfg = load_config(default_config_path(), quick=True)  # doctest: +SKIP
+    >>> metrics = wargus_fig4(cfg, "results/wargus-fig4-quick")  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import InitTracker, TransformedEnv
+from torchrl.envs.utils import step_mdp
+from tqdm.auto import tqdm
+
+from taskvar_torch import keys
+from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
+from taskvar_torch.config import Config, atomic_write, save_config_yaml
+from taskvar_torch.controllers import Controller, make_controller
+from taskvar_torch.envs.wargus import NOMINAL_SEEDS, WargusInstances
+from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.heads.behaviour import BehaviourPolicy
+from taskvar_torch.heads.first_visit import FirstVisitFilter
+from taskvar_torch.train import (
+    build_heads,
+    epsilon_at,
+    make_env,
+    make_learner,
+    make_replay_buffer,
+    make_subtasks,
+)
+
+METHODS = ("averaging", "options", "interruption", "hierarchy")
+EXPERIMENT = "wargus-fig4"
+CSV_FIELDS = ("rep", "trial", "method", "items", "interruptions")
+FINAL_FRACTION = 0.1  # "final" performance: the mean of the last 10% of trials
+
+
+def default_config_path() -> Path:
+    """``configs/wargus.yaml`` of the repository (or of the working directory)."""
+    here = Path(__file__).resolve().parents[2] / "configs" / "wargus.yaml"
+    return here if here.is_file() else Path("configs") / "wargus.yaml"
+
+
+def repetition_seed(cfg: Config, rep: int) -> int:
+    """Seed of repetition ``rep``: ``cfg.seed + rep`` (networks, envs, replay, exploration)."""
+    return int(cfg.seed) + int(rep)
+
+
+def nominal_seeds(k: int) -> tuple[int, ...]:
+    """The ``k`` fixed test instance seeds: :data:`NOMINAL_SEEDS`, extended by consecutive ints."""
+    extra = tuple(
+        range(max(NOMINAL_SEEDS) + 1, max(NOMINAL_SEEDS) + 1 + max(k - len(NOMINAL_SEEDS), 0))
+    )
+    return (NOMINAL_SEEDS + extra)[:k]
+
+
+# --------------------------------------------------------------------------------------------
+# the agent: every head, one learner, one replay buffer (paper §3.5.1: no prior knowledge)
+
+
+@dataclasses.dataclass
+class LifelongAgent:
+    """Everything one repetition learns, from scratch, plus its counters."""
+
+    cfg: Config
+    heads: Any
+    subtasks: Any
+    learner: Any
+    behaviour: BehaviourPolicy
+    buffer: Any
+    replay_generator: torch.Generator
+    first_visit: FirstVisitFilter
+    frames: int = 0
+    pending: int = 0  # frames stored since the last update phase
+    updates: int = 0
+
+
+def make_agent(cfg: Config, env: TransformedEnv, seed: int) -> LifelongAgent:
+    """Fresh heads, learner, behaviour policy and an empty replay buffer (seeded by ``seed``)."""
+    subtasks = make_subtasks(cfg, env.base_env)
+    heads = build_heads(cfg, env, subtasks)
+    learner = make_learner(cfg, heads, subtasks)
+    behaviour = BehaviourPolicy(
+        heads, subtasks, env.action_spec, option_prob=cfg.train.option_behaviour_prob
+    )
+    generator = torch.Generator(device="cpu").manual_seed(seed + 1)
+    obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
+    return LifelongAgent(
+        cfg=cfg,
+        heads=heads,
+        subtasks=subtasks,
+        learner=learner,
+        behaviour=behaviour,
+        buffer=make_replay_buffer(cfg, generator),
+        replay_generator=generator,
+        first_visit=FirstVisitFilter(env.batch_size.numel(), obs_dim, device=cfg.device),
+    )
+
+
+def make_test_controllers(agent: LifelongAgent) -> list[Controller]:
+    """The four methods on the agent's live heads (paper §3.5.2), in :data:`METHODS` order."""
+    cfg, sub = agent.cfg, agent.subtasks
+    return [
+        make_controller(
+            m,
+            agent.heads,
+            sub,
+            hierarchy=sub.hierarchy,
+            tau=cfg.train.robustness_tau,
+            seed=cfg.seed,
+        )
+        for m in METHODS
+    ]
+
+
+class SideBySide(TensorDictModuleBase):
+    """Several controllers on consecutive equal slices of one batch: one env step serves them all.
+
+    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``. Traces a controller
+    does not write are filled with -1 (``option``, ``hierarchy_level``) or False (``interrupted``);
+    stateless controllers carry ``running_option = -1``.
+    """
+
+    TRACES = ((keys.OPTION, -1), (keys.HIERARCHY_LEVEL, -1), (keys.INTERRUPTED, False))
+
+    def __init__(self, controllers: Sequence[Controller], slice_size: int):
+        super().__init__()
+        self.controllers = torch.nn.ModuleList(controllers)
+        self.k = int(slice_size)
+        self.in_keys = [keys.OBSERVATION, keys.RUNNING_OPTION]
+        self.out_keys = [
+            keys.ACTION,
+            (keys.NEXT, keys.RUNNING_OPTION),
+            *(k for k, _ in self.TRACES),
+        ]
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        k = self.k
+        outs = [c(td[i * k : (i + 1) * k]) for i, c in enumerate(self.controllers)]
+        td.set(keys.ACTION, torch.cat([o.get(keys.ACTION) for o in outs]))
+        running = [o.get((keys.NEXT, keys.RUNNING_OPTION), None) for o in outs]
+        td.set(
+            (keys.NEXT, keys.RUNNING_OPTION),
+            torch.cat([r if r is not None else _full(o, -1) for r, o in zip(running, outs)]),
+        )
+        for key, fill in self.TRACES:
+            vals = [o.get(key, None) for o in outs]
+            td.set(
+                key, torch.cat([v if v is not None else _full(o, fill) for v, o in zip(vals, outs)])
+            )
+        return td
+
+
+def _full(td: TensorDictBase, value: int | bool) -> torch.Tensor:
+    dtype = torch.bool if isinstance(value, bool) else torch.int64
+    return torch.full(td.batch_size, value, dtype=dtype, device=td.device)
+
+
+# --------------------------------------------------------------------------------------------
+# one trial: learning phase, then test phase
+
+
+def learning_phase(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float]:
+    """One episode per sub-environment (training instances) with learning on (paper §3.5.1).
+
+    Transitions of live episodes are replayed; every ``frames_per_batch`` stored frames the learner
+    takes ``updates_per_batch`` gradient steps on every head. Returns the mean items per episode
+    and the frames played.
+    """
+    t = agent.cfg.train
+    n = env.batch_size[0]
+    td = env.reset()  # every sub-env starts a new episode with a fresh training instance
+    alive = torch.ones(n, dtype=torch.bool, device=env.device)
+    items = torch.zeros(n, device=env.device)
+    frames = 0
+    drop = (keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
+    for _ in range(env.base_env.horizon):
+        agent.behaviour.set_epsilon(epsilon_at(agent.frames, t))
+        td = agent.behaviour(td)
+        td = env.step(td)
+        # ---- store this step's transitions of the live episodes ------------------------------
+        keep = alive
+        if t.first_visit:
+            keep = keep & agent.first_visit(td.unsqueeze(1)).squeeze(1)
+        if bool(keep.any()):
+            agent.buffer.extend(td.exclude(*drop)[keep])
+        n_alive = int(alive.sum())
+        agent.frames += n_alive
+        agent.pending += n_alive
+        frames += n_alive
+        items += torch.where(alive, td.get((keys.NEXT, keys.REWARD)).reshape(n), 0.0)
+        # ---- learn: every head from one shared sample per update ----------------------------
+        while agent.pending >= t.frames_per_batch:
+            agent.pending -= t.frames_per_batch
+            if agent.frames >= t.init_random_frames and len(agent.buffer) >= t.batch_size:
+                for _ in range(t.updates_per_batch):
+                    agent.learner.update(agent.buffer.sample())
+                    agent.updates += 1
+        alive = alive & ~td.get((keys.NEXT, keys.DONE)).reshape(n)
+        if not bool(alive.any()):
+            break
+        td = step_mdp(td, keep_other=True)
+    return {"learn_items": float(items.mean()), "frames": frames}
+
+
+def test_phase(policy: SideBySide, env: TransformedEnv, k: int) -> dict[str, np.ndarray]:
+    """The nominal test episodes of every method, side by side, learning off (paper §3.5.1).
+
+    Returns per method ``items`` (mean per test episode), ``interruptions`` (per episode) and,
+    over the hierarchy's live steps, the count of steps each subtask held control.
+    """
+    out = run_episodes(env, policy, trace_keys=(keys.OPTION,))
+    ret = out["return"].reshape(len(METHODS), k)  # (M, K)
+    inter = out["interruptions"].reshape(len(METHODS), k).double()  # (M, K)
+    h = METHODS.index("hierarchy")
+    option = out["trace", keys.OPTION][h * k : (h + 1) * k]  # (K, T)
+    alive = out["trace", "alive"][h * k : (h + 1) * k]  # (K, T)
+    num_options = len(policy.controllers[h].heads.option_names)
+    control = torch.stack([((option == o) & alive).sum() for o in range(num_options)])
+    return {
+        "items": ret.mean(-1).cpu().numpy(),  # (M,)
+        "interruptions": inter.mean(-1).cpu().numpy(),  # (M,)
+        "control_steps": control.cpu().numpy(),  # (O,)
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# one repetition
+
+
+def run_repetition(
+    cfg: Config,
+    rep: int,
+    out_dir: str | os.PathLike,
+    on_trial: Callable[[int, int], None] | None = None,
+) -> dict[str, Any]:
+    """Repetition ``rep`` of the lifelong protocol (module docstring); saves ``rep{rep}/final.pt``.
+
+    Runs inside :func:`torch.random.fork_rng` seeded with :func:`repetition_seed`, so its global
+    torch stream (network init, behaviour draws) is its own and leaves the caller's untouched.
+
+    Returns:
+        ``items`` and ``interruptions`` ``(T, M)``, ``control_steps`` ``(T, O)``, ``learn_items``,
+        ``frames``, ``updates`` ``(T,)``, ``option_names``, ``seconds``.
+    """
+    x = cfg.experiment
+    seed = repetition_seed(cfg, rep)
+    rep_cfg = dataclasses.replace(cfg, seed=seed)
+    k = x.test_episodes_per_trial
+    start = time.perf_counter()
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        learn_env = TransformedEnv(
+            make_env(rep_cfg, num_envs=x.learning_episodes_per_trial, seed=seed), InitTracker()
+        )
+        agent = make_agent(rep_cfg, learn_env, seed)
+        controllers = make_test_controllers(agent)
+        policy = SideBySide(controllers, k)
+        test_env = TransformedEnv(
+            WargusEnv(
+                len(METHODS) * k,  # sub-env i plays nominal seed i % k (cycled): K per method
+                config=dataclasses.asdict(cfg.env.wargus),
+                instances=WargusInstances(seeds=nominal_seeds(k)),
+                seed=seed,
+                validate_actions=False,
+                device=cfg.device,
+            ),
+            controllers[METHODS.index("hierarchy")].primer(),
+        )
+        rows: dict[str, list] = {
+            k_: []
+            for k_ in (
+                "items",
+                "interruptions",
+                "control_steps",
+                "learn_items",
+                "frames",
+                "updates",
+            )
+        }
+        for trial in range(x.trials):
+            learned = learning_phase(agent, learn_env)
+            tested = test_phase(policy, test_env, k)
+            for key, v in {**learned, **tested, "updates": agent.updates}.items():
+                rows[key].append(v)
+            if on_trial is not None:
+                on_trial(rep, trial)
+        rep_dir = Path(out_dir) / f"rep{rep}"
+        save_checkpoint(
+            rep_dir / "final.pt",
+            make_bundle(
+                rep_cfg,
+                models={"heads": agent.heads, "targets": agent.learner.loss.target_heads},
+                optimizers={"adam": agent.learner.optimizer},
+                counters={"frames": agent.frames, "updates": agent.updates, "trials": x.trials},
+                rng=rng_state({"replay": agent.replay_generator}),
+            ),
+        )
+    result = {key: np.asarray(v) for key, v in rows.items()}
+    result["option_names"] = list(agent.heads.option_names)
+    result["option_depths"] = hierarchy_depths(agent.subtasks.hierarchy, agent.heads.option_names)
+    result["seconds"] = time.perf_counter() - start
+    return result
+
+
+def hierarchy_depths(hierarchy: Any, option_names: Sequence[str]) -> list[int]:
+    """Depth of each option in the composition tree (0: the root; -1: outside the tree)."""
+    depth, stack = {hierarchy.root: 0}, [hierarchy.root]
+    while stack:
+        o = stack.pop()
+        for c in hierarchy.children.get(o, ()):
+            depth[c] = depth[o] + 1
+            stack.append(c)
+    return [depth.get(o, -1) for o in option_names]
+
+
+def _worker(cfg: Config, rep: int, out_dir: str, threads: int, queue: Any) -> None:
+    """Process entry: one repetition, progress and result through ``queue``."""
+    torch.set_num_threads(threads)
+    try:
+        result = run_repetition(cfg, rep, out_dir, lambda r, t: queue.put(("trial", r, None)))
+        queue.put(("done", rep, result))
+    except BaseException as e:  # report, so the parent does not wait forever
+        queue.put(("error", rep, f"{type(e).__name__}: {e}"))
+
+
+def run_repetitions(
+    cfg: Config, out_dir: str | os.PathLike, workers: int = 1, progress: bool = True
+) -> list[dict[str, Any]]:
+    """Every repetition, sequentially (``workers = 1``) or in ``workers`` spawned processes."""
+    reps = cfg.experiment.runs
+    bar = tqdm(
+        total=reps * cfg.experiment.trials, disable=not progress, desc=EXPERIMENT, unit="trial"
+    )
+    results: dict[int, dict[str, Any]] = {}
+    if workers <= 1:
+        for rep in range(reps):
+            results[rep] = run_repetition(cfg, rep, out_dir, lambda r, t: bar.update(1))
+    else:
+        import torch.multiprocessing as mp
+
+        ctx = mp.get_context("spawn")
+        queue = ctx.Queue()
+        pending = list(range(reps))
+        running: dict[int, Any] = {}
+        threads = max(1, torch.get_num_threads() // workers)
+        while pending or running:
+            while pending and len(running) < workers:
+                rep = pending.pop(0)
+                running[rep] = ctx.Process(
+                    target=_worker, args=(cfg, rep, str(out_dir), threads, queue)
+                )
+                running[rep].start()
+            kind, rep, payload = queue.get()
+            if kind == "trial":
+                bar.update(1)
+            elif kind == "error":
+                for p in running.values():
+                    p.terminate()
+                raise RuntimeError(f"repetition {rep} failed: {payload}")
+            else:
+                results[rep] = payload
+                running.pop(rep).join()
+    bar.close()
+    return [results[r] for r in range(reps)]
+
+
+# --------------------------------------------------------------------------------------------
+# the experiment
+
+
+def wargus_fig4(
+    cfg: Config, out_dir: str | os.PathLike, workers: int = 1, progress: bool = True
+) -> dict[str, Any]:
+    """Run the lifelong protocol (module docstring), write the results folder, print the table."""
+    if cfg.family != "wargus":
+        raise ValueError(f"wargus-fig4 needs a Wargus config (family='wargus'), got {cfg.family!r}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    save_config_yaml(cfg, out / "config.yaml")
+
+    start = time.perf_counter()
+    results = run_repetitions(cfg, out, workers=workers, progress=progress)
+    wall = time.perf_counter() - start
+
+    items = np.stack([r["items"] for r in results])  # (R, T, M)
+    inter = np.stack([r["interruptions"] for r in results])  # (R, T, M)
+    control = np.stack([r["control_steps"] for r in results])  # (R, T, O)
+    write_csv(out / "per_trial.csv", _csv_rows(items, inter))
+    metrics = summarise(
+        items, inter, control, results[0]["option_names"], results[0]["option_depths"]
+    )
+    metrics["protocol"] = {
+        "repetitions": cfg.experiment.runs,
+        "trials": cfg.experiment.trials,
+        "learning_episodes_per_trial": cfg.experiment.learning_episodes_per_trial,
+        "test_episodes_per_trial": cfg.experiment.test_episodes_per_trial,
+        "seeds": [repetition_seed(cfg, r) for r in range(cfg.experiment.runs)],
+        "tau": cfg.train.robustness_tau,
+        "grid": cfg.env.wargus.size,
+        "horizon": cfg.env.wargus.horizon,
+        "workers": workers,
+    }
+    metrics["timing"] = {
+        "wall_seconds": wall,
+        "seconds_per_trial": wall / max(cfg.experiment.runs * cfg.experiment.trials, 1),
+        "repetition_seconds": [r["seconds"] for r in results],
+        "frames_per_repetition": [int(r["frames"].sum()) for r in results],
+        "updates_per_repetition": [int(r["updates"][-1]) for r in results],
+    }
+    learn = np.stack([r["learn_items"] for r in results])  # (R, T)
+    metrics["learning_items"] = {
+        "curve_mean": learn.mean(0).tolist(),
+        "curve_per_rep": learn.tolist(),
+    }
+    write_json(out / "metrics.json", metrics)
+    plot_results(out)
+    print(format_table(metrics))
+    return metrics
+
+
+def _csv_rows(items: np.ndarray, inter: np.ndarray) -> list[dict[str, Any]]:
+    R, T, M = items.shape
+    return [
+        {
+            "rep": r,
+            "trial": t + 1,
+            "method": METHODS[m],
+            "items": float(items[r, t, m]),
+            "interruptions": float(inter[r, t, m]),
+        }
+        for r in range(R)
+        for t in range(T)
+        for m in range(M)
+    ]
+
+
+# --------------------------------------------------------------------------------------------
+# statistics
+
+
+def smoothing_window(trials: int) -> int:
+    """Moving-average window: ``max(1, trials // 20)`` (25 for the paper's 500 trials)."""
+    return max(1, int(trials) // 20)
+
+
+def moving_average(x: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average along the last axis (the first values average what exists)."""
+    x = np.asarray(x, dtype=float)
+    c = np.cumsum(x, axis=-1)
+    out = c.copy()
+    out[..., window:] = c[..., window:] - c[..., :-window]
+    n = np.minimum(np.arange(1, x.shape[-1] + 1), window)
+    return out / n
+
+
+def final_count(trials: int) -> int:
+    """Number of last trials whose mean is the "final" performance: 10%, at least one."""
+    return max(1, int(math.ceil(FINAL_FRACTION * trials)))
+
+
+def trials_to_fraction(curve: np.ndarray, fraction: float = 0.9) -> tuple[int, bool]:
+    """First trial (1-based) at which the smoothed ``curve`` reaches ``fraction`` of its final
+    value (mean of the last 10% of the raw curve); ``(len(curve), False)`` if it never does."""
+    curve = np.asarray(curve, dtype=float)
+    final = curve[-final_count(curve.size) :].mean()
+    smooth = moving_average(curve, smoothing_window(curve.size))
+    hit = np.nonzero(smooth >= fraction * final)[0]
+    return (int(hit[0]) + 1, True) if hit.size else (int(curve.size), False)
+
+
+def summarise(
+    items: np.ndarray,  # (R, T, M) mean items per test episode
+    inter: np.ndarray,  # (R, T, M) interruptions per test episode
+    control: np.ndarray,  # (R, T, O) hierarchy steps per controlling subtask
+    option_names: Sequence[str],
+    option_depths: Sequence[int],
+) -> dict[str, Any]:
+    """``metrics.json``'s content (definitions in the module docstring)."""
+    R, T, M = items.shape
+    nf = final_count(T)
+    w = smoothing_window(T)
+    methods = {}
+    for m, name in enumerate(METHODS):
+        mean, std = items[:, :, m].mean(0), items[:, :, m].std(0)
+        t90, reached = trials_to_fraction(mean)
+        per_rep = [trials_to_fraction(items[r, :, m])[0] for r in range(R)]
+        methods[name] = {
+            "final_score": float(mean[-nf:].mean()),
+            "final_score_std": float(items[:, -nf:, m].mean(1).std()),
+            "trials_to_90pct": t90,
+            "reached_90pct": reached,
+            "trials_to_90pct_per_rep": per_rep,
+            "trials_to_90pct_std": float(np.std(per_rep)),
+            "interruptions_per_episode": float(inter[:, :, m].mean()),
+            "curve_mean": mean.tolist(),
+            "curve_std": std.tolist(),
+            "curve_smoothed": moving_average(mean, w).tolist(),
+            "curve_per_rep": items[:, :, m].tolist(),
+        }
+
+    def fractions(c: np.ndarray) -> dict[str, Any]:
+        total = max(float(c.sum()), 1.0)
+        per_option = {o: float(c[..., i].sum()) / total for i, o in enumerate(option_names)}
+        per_level = {
+            f"level_{d}": sum(v for v, dd in zip(per_option.values(), option_depths) if dd == d)
+            for d in sorted(set(option_depths))
+        }
+        return {"per_subtask": per_option, "per_level": per_level, "steps": int(c.sum())}
+
+    return {
+        "experiment": EXPERIMENT,
+        "methods": methods,
+        "smoothing_window": w,
+        "final_trials": nf,
+        "definitions": {
+            "score": "items collected per nominal test episode",
+            "final_score": f"mean over repetitions of the last {nf} trials (10%)",
+            "trials_to_90pct": f"first trial where the trailing {w}-trial moving average of the "
+            "repetition-mean curve reaches 90% of final_score",
+            "hierarchy_trace": "fraction of the hierarchy's test steps each subtask (level 0: root "
+            "TG+FE, level 1: components TG, FE) held control",
+        },
+        "hierarchy_trace": {
+            "all_trials": fractions(control),
+            "last_10pct": fractions(control[:, -nf:]),
+        },
+    }
+
+
+# --------------------------------------------------------------------------------------------
+# files, table, plot
+
+
+def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
+    """Per-trial rows as CSV (atomic)."""
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=list(CSV_FIELDS))
+    w.writeheader()
+    w.writerows(rows)
+    data = buf.getvalue().encode()
+    atomic_write(path, lambda f: f.write(data))
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """JSON (non-finite floats written as null), atomically."""
+
+    def clean(x: Any) -> Any:
+        if isinstance(x, dict):
+            return {k: clean(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [clean(v) for v in x]
+        if isinstance(x, float) and not math.isfinite(x):
+            return None
+        return x
+
+    data = json.dumps(clean(obj), indent=1).encode()
+    atomic_write(path, lambda f: f.write(data))
+
+
+def format_table(metrics: dict[str, Any]) -> str:
+    """Final score and trials-to-90% per method, the hierarchy's control split, the wall time."""
+    p, tm = metrics.get("protocol", {}), metrics.get("timing", {})
+    lines = [
+        f"Wargus Figure 4: {p.get('repetitions')} repetitions x {p.get('trials')} trials "
+        f"({p.get('learning_episodes_per_trial')} learning + {p.get('test_episodes_per_trial')} "
+        f"nominal test episodes), grid {p.get('grid')}, horizon {p.get('horizon')}, tau {p.get('tau')}",
+        f"{'method':<14}{'final items':>12}{'+-std':>8}{'trials to 90%':>15}{'interr./ep':>12}",
+    ]
+    for name, m in metrics["methods"].items():
+        t90 = f"{m['trials_to_90pct']}{'' if m['reached_90pct'] else '*'}"
+        lines.append(
+            f"{name:<14}{m['final_score']:>12.3f}{m['final_score_std']:>8.3f}{t90:>15}"
+            f"{m['interruptions_per_episode']:>12.2f}"
+        )
+    h = metrics["hierarchy_trace"]["all_trials"]["per_subtask"]
+    lines.append("hierarchy control: " + ", ".join(f"{o} {v:.1%}" for o, v in h.items()))
+    if "wall_seconds" in tm:
+        lines.append(
+            f"wall time {tm['wall_seconds']:.1f} s ({tm['seconds_per_trial']:.2f} s per trial); "
+            "paper: hierarchy ~100 trials to 90%, averaging > 350"
+        )
+    return "\n".join(lines)
+
+
+STYLES = {
+    "hierarchy": dict(color="tab:blue", ls="-"),
+    "averaging": dict(color="tab:green", ls="--"),
+    "options": dict(color="tab:orange", ls=":"),
+    "interruption": dict(color="tab:red", ls="-."),
+}
+
+
+def is_results_folder(out_dir: str | os.PathLike) -> bool:
+    """Whether ``out_dir`` holds a ``metrics.json`` written by :func:`wargus_fig4`."""
+    path = Path(out_dir) / "metrics.json"
+    try:
+        return json.loads(path.read_text()).get("experiment") == EXPERIMENT
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def plot_results(out_dir: str | os.PathLike) -> list[Path]:
+    """(Re)draw ``fig4.png`` from ``metrics.json``: smoothed mean items per test episode per trial
+    with +-std bands over repetitions, and the trials-to-90% bars (paper Figure 4 layout)."""
+    from taskvar_torch.experiments.plots import _pyplot, save_figure
+
+    out = Path(out_dir)
+    metrics = json.loads((out / "metrics.json").read_text())
+    plt = _pyplot()
+    fig, (ax, bx) = plt.subplots(
+        2, 1, figsize=(8, 6), gridspec_kw={"height_ratios": [3, 1]}, sharex=True
+    )
+    w = metrics["smoothing_window"]
+    for name, m in metrics["methods"].items():
+        mean = np.asarray(m["curve_smoothed"], dtype=float)
+        std = moving_average(np.asarray(m["curve_std"], dtype=float), w)
+        x = np.arange(1, mean.size + 1)
+        ax.plot(x, mean, lw=1.6, label=name, **STYLES.get(name, {}))
+        ax.fill_between(
+            x, mean - std, mean + std, alpha=0.15, color=STYLES.get(name, {}).get("color")
+        )
+    ax.set_ylabel("items per test episode")
+    ax.set_title(
+        f"Wargus lifelong protocol: mean of {metrics['protocol']['repetitions']} repetitions "
+        f"(moving average of {w} trials, bands: std)"
+    )
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    names = list(metrics["methods"])
+    t90 = [metrics["methods"][n]["trials_to_90pct"] for n in names]
+    err = [metrics["methods"][n]["trials_to_90pct_std"] for n in names]
+    bx.barh(names, t90, xerr=err, color=[STYLES.get(n, {}).get("color") for n in names], alpha=0.7)
+    bx.set_xlabel("trial")
+    bx.set_title(
+        "trials to 90% of final performance (error bars: std over repetitions)", fontsize=9
+    )
+    bx.grid(alpha=0.3, axis="x")
+    path = save_figure(fig, out / "fig4.png")
+    plt.close(fig)
+    return [path]
+
+
+__all__ = [
+    "METHODS",
+    "LifelongAgent",
+    "SideBySide",
+    "default_config_path",
+    "learning_phase",
+    "make_agent",
+    "moving_average",
+    "plot_results",
+    "repetition_seed",
+    "run_repetition",
+    "run_repetitions",
+    "summarise",
+    "test_phase",
+    "trials_to_fraction",
+    "wargus_fig4",
+]
