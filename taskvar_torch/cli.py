@@ -217,6 +217,8 @@ def _experiment_run(args: argparse.Namespace) -> int:
 
 
 def _wargus_fig4_run(args: argparse.Namespace) -> int:
+    import torch
+
     from taskvar_torch.config import load_config
     from taskvar_torch.experiments.wargus_fig4 import default_config_path, wargus_fig4
 
@@ -227,6 +229,8 @@ def _wargus_fig4_run(args: argparse.Namespace) -> int:
     config_path, overrides = _split_config_and_overrides(args.items)
     cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
+    # small batches: one intra-op thread per process; 2 threads under contention ran 10x slower
+    torch.set_num_threads(1)
     wargus_fig4(cfg, out, workers=args.workers, progress=not args.no_progress)
     return 0
 

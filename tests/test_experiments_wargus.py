@@ -1,0 +1,170 @@
+"""Wargus Figure 4 (lifelong protocol): CLI smoke run, metrics, seeds, statistics, batching."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import InitTracker, TransformedEnv
+
+from taskvar_torch.cli import main
+from taskvar_torch.config import load_config
+from taskvar_torch.envs.wargus import WargusInstances
+from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.train import load_heads, make_env
+
+torch.set_num_threads(1)
+
+REPS, TRIALS = 2, 3
+TINY = [
+    "env.wargus.size=12",
+    "env.wargus.horizon=60",
+    f"experiment.runs={REPS}",
+    f"experiment.trials={TRIALS}",
+    "experiment.learning_episodes_per_trial=8",
+    "train.init_random_frames=100",
+    "train.batch_size=32",
+    "train.frames_per_batch=64",
+    "train.buffer_size=5000",
+    "heads.hidden=[32]",
+]
+FILES = (
+    "config.yaml",
+    "per_trial.csv",
+    "metrics.json",
+    "fig4.png",
+    "rep0/final.pt",
+    "rep1/final.pt",
+)
+METHOD_KEYS = (
+    "final_score",
+    "final_score_std",
+    "trials_to_90pct",
+    "reached_90pct",
+    "trials_to_90pct_per_rep",
+    "interruptions_per_episode",
+    "curve_mean",
+    "curve_std",
+    "curve_smoothed",
+    "curve_per_rep",
+)
+
+
+@pytest.fixture(scope="module")
+def results(tmp_path_factory):
+    out = tmp_path_factory.mktemp("fig4")
+    status = main(["experiment", "wargus-fig4", "--out", str(out), "--no-progress", *TINY])
+    assert status == 0
+    return out
+
+
+def test_cli_run_writes_every_file(results):
+    for name in FILES:
+        assert (results / name).is_file(), name
+    rows = list(csv.DictReader((results / "per_trial.csv").open()))
+    assert len(rows) == REPS * TRIALS * len(fig4.METHODS)
+    assert set(rows[0]) == set(fig4.CSV_FIELDS)
+    assert {r["method"] for r in rows} == set(fig4.METHODS)
+    heads, cfg = load_heads(results / "rep1" / "final.pt")  # a bundle `taskvar eval` can read
+    assert heads.has("robustness") and cfg.seed == 1  # repetition 1's own seed
+
+
+def test_metrics_have_every_method_and_key(results):
+    m = json.loads((results / "metrics.json").read_text())
+    assert m["experiment"] == fig4.EXPERIMENT
+    assert set(m["methods"]) == set(fig4.METHODS)
+    for name, s in m["methods"].items():
+        for key in METHOD_KEYS:
+            assert key in s, (name, key)
+        assert 1 <= s["trials_to_90pct"] <= TRIALS
+        assert math.isfinite(s["final_score"]) and s["final_score"] >= 0
+        assert len(s["curve_mean"]) == len(s["curve_std"]) == TRIALS
+        assert np.all(np.isfinite(s["curve_mean"])) and min(s["curve_mean"]) >= 0
+        assert np.asarray(s["curve_per_rep"]).shape == (REPS, TRIALS)
+    trace = m["hierarchy_trace"]["all_trials"]
+    assert set(trace["per_subtask"]) == {"TG", "FE", "TG+FE"}
+    assert set(trace["per_level"]) == {"level_0", "level_1"}
+    assert trace["steps"] > 0
+    assert sum(trace["per_subtask"].values()) == pytest.approx(1.0)
+    assert m["timing"]["wall_seconds"] > 0
+    assert m["protocol"]["seeds"] == [0, 1]
+
+
+def test_plot_command_redraws_the_figure(results, capsys):
+    (results / "fig4.png").unlink()
+    assert main(["plot", str(results)]) == 0
+    assert (results / "fig4.png").is_file()
+    assert "fig4.png" in capsys.readouterr().out
+
+
+def test_repetitions_differ_and_same_seed_reproduces(results, tmp_path):
+    m = json.loads((results / "metrics.json").read_text())
+    learn = m["learning_items"]["curve_per_rep"]
+    frames = m["timing"]["frames_per_repetition"]
+    assert learn[0] != learn[1] or frames[0] != frames[1]  # distinct seeds, distinct streams
+    w0 = torch.load(results / "rep0" / "final.pt", weights_only=True)["models"]["heads"]
+    w1 = torch.load(results / "rep1" / "final.pt", weights_only=True)["models"]["heads"]
+    assert any(not torch.equal(w0[k], w1[k]) for k in w0)
+
+    cfg = load_config(results / "config.yaml")
+    again = fig4.run_repetition(cfg, 1, tmp_path)  # repetition 1 alone, in a fresh process state
+    for i, name in enumerate(fig4.METHODS):
+        assert again["items"][:, i].tolist() == m["methods"][name]["curve_per_rep"][1]
+    assert again["learn_items"].tolist() == learn[1]
+    assert int(again["frames"].sum()) == frames[1]
+
+
+def test_side_by_side_equals_each_controller_alone():
+    cfg = load_config(fig4.default_config_path(), [*TINY, "env.wargus.size=16"])
+    env = TransformedEnv(make_env(cfg, num_envs=4, seed=3), InitTracker())
+    torch.manual_seed(3)
+    agent = fig4.make_agent(cfg, env, seed=3)
+    controllers = fig4.make_test_controllers(agent)
+    k = 3
+
+    def nominal_env(n: int, primer) -> TransformedEnv:
+        base = WargusEnv(
+            n,
+            config=dataclasses.asdict(cfg.env.wargus),
+            instances=WargusInstances(seeds=fig4.nominal_seeds(k)),
+            seed=0,
+        )
+        return TransformedEnv(base, primer)
+
+    primer = controllers[-1].primer
+    together = fig4.run_episodes(
+        nominal_env(len(controllers) * k, primer()), fig4.SideBySide(controllers, k)
+    )["return"]
+    for i, c in enumerate(controllers):
+        alone = fig4.run_episodes(nominal_env(k, primer()), c)["return"]
+        torch.testing.assert_close(together[i * k : (i + 1) * k], alone)
+
+
+def test_moving_average_matches_a_loop():
+    x = np.array([3.0, 1.0, 4.0, 1.0, 5.0, 9.0, 2.0])
+    w = 3
+    loop = [x[max(0, t - w + 1) : t + 1].mean() for t in range(x.size)]
+    np.testing.assert_allclose(fig4.moving_average(x, w), loop)
+
+
+def test_trials_to_90pct_on_known_curves():
+    ramp = np.minimum(np.arange(1, 201) / 50.0, 1.0)  # reaches 1.0 at trial 50, final = 1.0
+    t, reached = fig4.trials_to_fraction(ramp)
+    w = fig4.smoothing_window(200)  # trailing window delays the crossing by about w / 2
+    assert reached and 45 + w // 2 - 1 <= t <= 45 + w // 2 + 1
+    assert fig4.trials_to_fraction(np.zeros(10)) == (1, True)  # final 0: reached at once
+    down = np.concatenate([np.full(50, 10.0), np.zeros(5), np.full(5, -1.0)])  # final < 0
+    assert fig4.trials_to_fraction(down)[0] == 1
+    assert fig4.final_count(500) == 50 and fig4.smoothing_window(500) == 25
+
+
+def test_nominal_seeds_extend_the_fixed_list():
+    assert fig4.nominal_seeds(5) == (0, 1, 2, 3, 4)
+    assert fig4.nominal_seeds(3) == (0, 1, 2)
+    assert fig4.nominal_seeds(7) == (0, 1, 2, 3, 4, 5, 6)
