@@ -19,13 +19,14 @@ import taskvar_torch  # noqa: F401  (registers the gym ids)
 from taskvar_torch import keys
 from taskvar_torch.controllers import (
     AveragingController,
+    FusedHeads,
     HierarchyController,
     InterruptionController,
     OptionsController,
-    argmax_last,
+    argmax0,
     base,
     make_controller,
-    take_row,
+    select0,
 )
 from taskvar_torch.envs import WindyGridEnv, WindyInstances, windy
 from taskvar_torch.oracle import WindyOracle, table_heads
@@ -153,12 +154,14 @@ def random_tables(S: int, seed: int, num_options: int = 3):
     return dict(options=r(S, k, A), switching=r(S, k), max_value=r(S, k), robustness=r(S, k, A))
 
 
-def test_kernels_large_batch_loops_equal_reductions():
-    g = torch.Generator().manual_seed(0)
-    x = torch.randint(-2, 2, (1000, 3, 4), generator=g).to(torch.float32)  # many ties
-    assert torch.equal(argmax_last(x), x.argmax(-1))
-    idx = torch.randint(0, 3, (1000,), generator=g)
-    assert torch.equal(take_row(x, idx), x[torch.arange(1000), idx])
+@pytest.mark.parametrize("K", [2, 3, 4, 20])
+def test_option_first_kernels_equal_reductions(K):
+    g = torch.Generator().manual_seed(K)
+    x = torch.randint(-2, 2, (K, 4, 1000), generator=g).to(torch.float32)  # many ties
+    assert torch.equal(argmax0(x), x.movedim(0, -1).argmax(-1))
+    idx = torch.randint(0, K, (1000,), generator=g)
+    assert torch.equal(select0(x, idx), x[idx, :, torch.arange(1000)].T)
+    assert torch.equal(select0(x[:, 0], idx), x[idx, 0, torch.arange(1000)])
 
 
 @pytest.mark.parametrize("name", ["averaging", "options", "interruption", "hierarchy"])
@@ -178,10 +181,13 @@ def test_batched_decisions_equal_a_per_environment_loop(name):
         one = ctrl(td_of(cells[i : i + 1], running[i : i + 1]))
         for k in out_keys:
             assert one[k].item() == batched[k][i].item(), (k, i)
+        # the real-time scalar path decides the same
+        scalar = ctrl.act_one({keys.CELL: cells[i : i + 1]}, int(running[i]))
+        for k in out_keys:
+            assert scalar[k] == batched[k][i].item(), ("scalar", k, i)
 
 
-def test_batched_rollout_equals_single_environment_rollouts(monkeypatch):
-    monkeypatch.setattr(base, "LARGE_BATCH", 8)  # N=16 takes the loop kernels, N=1 reductions
+def test_batched_rollout_equals_single_environment_rollouts():
     oracle = WindyOracle("whole_column_windy", train_instances="south")
     ctrl = InterruptionController(oracle.heads(), oracle.subtasks)
     kw = dict(layout="whole_column_windy", instances="north", seed=5)
@@ -194,6 +200,45 @@ def test_batched_rollout_equals_single_environment_rollouts(monkeypatch):
         one = single.rollout(T, ctrl, break_when_any_done=False)
         for k in (keys.ACTION, keys.OPTION, keys.INTERRUPTED, keys.CELL, keys.RUNNING_OPTION):
             assert torch.equal(one[k][0], batched[k][i]), (k, i)
+
+
+def mlp_heads(num_options: int = 3, seed: int = 0):
+    from taskvar_torch.heads.bundle import Heads
+    from taskvar_torch.heads.networks import make_head
+
+    torch.manual_seed(seed)
+    k, d = num_options, 25
+    return Heads(
+        ("root", "a", "b")[:k],
+        averaging=make_head(keys.ACTION_VALUE, d, A),
+        options=make_head(keys.OPTION_ACTION_VALUE, d, (k, A)),
+        switching=make_head(keys.OPTION_VALUE, d, k),
+        max_value=make_head(keys.MAX_VALUE, d, k),
+        robustness=make_head(keys.ROBUSTNESS, d, (k, A)),
+    )
+
+
+@pytest.mark.parametrize("name", ["averaging", "options", "interruption", "hierarchy"])
+def test_fused_mlp_heads_scalar_path_matches_the_tensordict_path(name):
+    heads = mlp_heads()
+    tree = Hierarchy(root="root", children={"root": ("a", "b")})
+    ctrl = make_controller(name, heads, hierarchy=tree, tau=0.0)
+    fused = ctrl.fuse()
+    assert isinstance(fused, FusedHeads)
+    g = torch.Generator().manual_seed(0)
+    obs = torch.randn(200, 25, generator=g)
+    running = torch.randint(-1, 3, (200,), generator=g)
+    with torch.inference_mode():
+        parts = fused.split(fused(obs))
+        separate = ctrl.head_values({keys.OBSERVATION: obs})
+        for k, v in separate.items():
+            assert torch.allclose(parts[k], v, atol=1e-5)
+        td = TensorDict({keys.OBSERVATION: obs, keys.RUNNING_OPTION: running}, [200])
+        batched = ctrl(td)
+    for i in range(200):
+        one = ctrl.act_one({keys.OBSERVATION: obs[i : i + 1]}, int(running[i]))
+        for k in [keys.ACTION, *ctrl.trace_keys]:
+            assert one[k] == batched[k][i].item(), (k, i)
 
 
 # ---- Algorithm 2 on a hand-built three-level tree -----------------------------------------------
@@ -276,6 +321,35 @@ def test_hierarchy_running_subtask_persists_across_steps():
     rows = [{"B": {2: 1.0}, "A": {0: 9.0, 1: 9.0, 2: 9.0}}] * 3
     heads = tree_heads(rows)
     assert run_hierarchy(heads, [0, 1, 2], running=NAMES.index("B")) == [("B", 1, 2)] * 3
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_hierarchy_table_kernel_equals_the_level_walk_and_the_scalar_search(seed):
+    from taskvar_torch.controllers.hierarchy import (
+        TreeTables,
+        hierarchy_decide_table_of,
+        hierarchy_search_of,
+    )
+
+    g = torch.Generator().manual_seed(seed)
+    B = 2000
+    q = torch.randint(-2, 2, (5, A, B), generator=g).double()  # ties are frequent
+    rob = torch.randint(-2, 2, (5, A, B), generator=g).double()
+    running = torch.randint(-1, 5, (B,), generator=g)
+    tree = TreeTables.build(TREE, NAMES)
+    assert tree.table_option is not None
+    table = hierarchy_decide_table_of(q, rob, running, tree, 0.0)
+    walk = hierarchy_search_of(q, rob, running, tree, 0.0)
+    for k in table:
+        assert torch.equal(table[k], walk[k]), k
+    heads = table_heads(NAMES, options=q.permute(2, 0, 1), robustness=rob.permute(2, 0, 1))
+    ctrl = HierarchyController(heads, TREE, 0.0)
+    for i in range(0, B, 7):
+        one = ctrl.act_one({keys.CELL: torch.tensor([i])}, int(running[i]))
+        assert (
+            one["option"] == table["option"][i].item()
+            and one["action"] == table["action"][i].item()
+        )
 
 
 def test_hierarchy_matches_the_oracles_independent_recursive_search():
@@ -454,7 +528,7 @@ def test_gymnasium_env_runs_the_controller_like_the_torchrl_env():
         done = False
         while not done:
             a = pol(obs, info)
-            gym_options.append(int(pol.trace[keys.OPTION][0]))
+            gym_options.append(pol.trace[keys.OPTION])
             obs, r, term, trunc, info = env.step(a)
             gym_cells.append(info["cell"][0] * 5 + info["cell"][1])
             done = term or trunc
@@ -474,11 +548,10 @@ def test_gymnasium_env_runs_the_controller_like_the_torchrl_env():
 def test_controllers_run_on_cuda_and_match_cpu(name):
     oracle, ctrl = oracle_and_controller("whole_column", name)
     kw = dict(layout="whole_column_windy", instances="north", seed=4)
-    cpu = TransformedEnv(WindyGridEnv(256, **kw), ctrl.primer()).rollout(
-        50, ctrl, break_when_any_done=False
-    )
+    env = TransformedEnv(WindyGridEnv(256, **kw), ctrl.primer())
+    cpu = env.rollout(50, ctrl, break_when_any_done=False)
     ctrl_cuda = ctrl.to("cuda")
     env = TransformedEnv(WindyGridEnv(256, device="cuda", **kw), ctrl_cuda.primer())
     gpu = env.rollout(50, ctrl_cuda, break_when_any_done=False)
-    assert torch.equal(gpu[keys.ACTION].cpu(), cpu[keys.ACTION])
-    assert torch.equal(gpu[keys.OPTION].cpu(), cpu[keys.OPTION]) if name != "averaging" else True
+    for k in [keys.ACTION, *ctrl.trace_keys]:
+        assert torch.equal(gpu[k].cpu(), cpu[k]), k

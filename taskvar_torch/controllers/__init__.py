@@ -16,12 +16,23 @@ from __future__ import annotations
 from taskvar_torch.controllers.averaging import AveragingController, averaging_decide
 from taskvar_torch.controllers.base import (
     Controller,
+    FusedHeads,
     GymnasiumPolicy,
-    argmax_last,
-    take_row,
+    argmax0,
+    option_first,
+    select0,
 )
-from taskvar_torch.controllers.hierarchy import HierarchyController, TreeTables, hierarchy_decide
-from taskvar_torch.controllers.interruption import InterruptionController, interruption_decide
+from taskvar_torch.controllers.hierarchy import (
+    HierarchyController,
+    TreeTables,
+    hierarchy_decide,
+    hierarchy_decide_of,
+)
+from taskvar_torch.controllers.interruption import (
+    InterruptionController,
+    interruption_decide,
+    interruption_decide_of,
+)
 from taskvar_torch.controllers.options import OptionsController, options_decide
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
@@ -58,16 +69,20 @@ __all__ = [
     "CONTROLLERS",
     "AveragingController",
     "Controller",
+    "FusedHeads",
     "GymnasiumPolicy",
     "HierarchyController",
     "InterruptionController",
     "OptionsController",
     "TreeTables",
-    "argmax_last",
+    "argmax0",
     "averaging_decide",
     "hierarchy_decide",
+    "hierarchy_decide_of",
     "interruption_decide",
+    "interruption_decide_of",
     "make_controller",
+    "option_first",
     "options_decide",
-    "take_row",
+    "select0",
 ]

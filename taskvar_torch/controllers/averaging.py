@@ -3,18 +3,19 @@
 from __future__ import annotations
 
 from collections.abc import Mapping
+from typing import Any
 
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.controllers.base import Controller, argmax_last
+from taskvar_torch.controllers.base import Controller, argmax0, first_argmax, option_first
 
 Tensor = torch.Tensor
 
 
 def averaging_decide(q_avg: Tensor) -> Tensor:  # (B, A) -> (B,)
     """``a_t = argmax_a Q_avg(s_t, a)`` (lowest index on ties)."""
-    return argmax_last(q_avg)
+    return argmax0(option_first(q_avg))
 
 
 class AveragingController(Controller):
@@ -31,7 +32,12 @@ class AveragingController(Controller):
     required_heads = ("averaging",)
     stateful = False
 
-    def decide(
+    def decide_of(
         self, values: Mapping[str, Tensor], running: Tensor | None, terminated: Tensor | None
     ) -> dict[str, Tensor]:
-        return {"action": averaging_decide(values[keys.ACTION_VALUE])}
+        return {"action": argmax0(values[keys.ACTION_VALUE])}  # (A, B) -> (B,)
+
+    def decide_scalar(
+        self, values: Mapping[str, list], running: int, terminated: bool
+    ) -> dict[str, Any]:
+        return {"action": first_argmax(values[keys.ACTION_VALUE])}

@@ -1,4 +1,4 @@
-"""Shared machinery of the controllers (SPEC §3): carried state, primer, batched kernels, Gymnasium.
+"""Shared machinery of the controllers (SPEC §3): carried state, primer, kernels, fast paths.
 
 A controller is a ``TensorDictModuleBase`` that runs the heads it needs on the tensordict, reads
 its carried state ``running_option`` ``(B,)`` int64 (-1 = none), decides, and writes ``action``,
@@ -8,20 +8,28 @@ the decision traces (``option``, ``interrupted``, ``hierarchy_level``) and the n
 puts the state in the env's specs and resets it to -1 per sub-environment on (partial) resets, so
 ``env.rollout`` and TorchRL ``Collector``s carry it with no further code.
 
-The decision kernels are pure tensor functions over the batch. Reductions over a tiny last
-dimension (argmax over 2 options or 4 actions) are slow on CPU for large batches, so for
-``B >= LARGE_BATCH`` the kernels use elementwise loops over the option/action dimension instead
-(same result, lowest index on ties); below it they use ``argmax``/``gather`` (fewer kernel launches).
+Three implementations of each decision rule, tested against each other:
+
+- **batched kernels** (``decide_of``) work *option-first*: ``Q_mu (O, B)``, ``Q_o (O, A, B)``. A
+  reduction over a dimension of size 2-4 (``argmax(-1)`` on ``(B, O)``) is 10-100x slower on CPU
+  than elementwise ops over ``B``, so the kernels loop over the small option/action dimension with
+  elementwise ops (:func:`argmax0`, :func:`select0`). Head outputs in the bundle's ``(B, O, A)``
+  layout enter as permuted views (no copy); heads that emit option-first need no permute.
+- **scalar path** (:meth:`Controller.act_one`) for one environment in real time: one fused head
+  forward (:class:`FusedHeads`), one host transfer, then the rule on Python floats.
+- the oracle's tabular chain (``oracle.py``) is a third, independent implementation.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import math
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule, TensorDictModuleBase
+from torch import nn
 from torchrl.data import Bounded, Composite
 from torchrl.envs import TensorDictPrimer
 
@@ -31,66 +39,192 @@ from taskvar_torch.subtasks.base import Subtasks
 
 Tensor = torch.Tensor
 
-LARGE_BATCH = 256
-"""From this batch size on, the kernels use elementwise loops over the small dimensions."""
-_LOOP_MAX = 16  # loop over at most this many options/actions; beyond, reductions are fine
+_LOOP_MAX = 16  # loop elementwise over at most this many options/actions; beyond, reduce
 
 
-def argmax_last(x: Tensor) -> Tensor:
-    """``argmax`` over the last dim (lowest index on ties, as ``torch.argmax``), batched.
+# ---- option-first kernels ---------------------------------------------------------------------
 
-    Large batches loop elementwise over the (small) last dimension: ~10x faster on CPU than a
-    reduction over a dimension of size 2-4.
+
+def argmax0(x: Tensor) -> Tensor:
+    """``argmax`` over dim 0 of ``x (K, ...)``, the lowest index on ties (as ``torch.argmax``).
+
+    Elementwise over the trailing (batch) dims, as a tournament: pairs of blocks are compared and
+    the right block wins only if strictly greater, so the first maximum wins. ~2K elementwise
+    passes instead of a reduction over a tiny dimension (10-100x slower on CPU).
     """
-    n = x.shape[-1]
-    if n > _LOOP_MAX or x.numel() < LARGE_BATCH * n:
-        return x.argmax(-1)
-    best = x[..., 0]
-    idx = torch.zeros(best.shape, dtype=torch.int64, device=x.device)
-    for k in range(1, n):
-        xk = x[..., k]
-        better = xk > best  # strict: the first maximum wins
-        idx.masked_fill_(better, k)
-        if k + 1 < n:
-            best = torch.maximum(best, xk)
-    return idx
+    K = x.shape[0]
+    if K > _LOOP_MAX:
+        return x.movedim(0, -1).argmax(-1)
+    vals = [x[k] for k in range(K)]
+    idx: list[Tensor | int] = list(range(K))
+    while len(vals) > 1:
+        nv, ni = [], []
+        for j in range(0, len(vals) - 1, 2):
+            right = vals[j + 1] > vals[j]  # strict: ties keep the left (lower) index
+            nv.append(torch.maximum(vals[j], vals[j + 1]))
+            ni.append(_pick(right, idx[j + 1], idx[j]))
+        if len(vals) % 2:
+            nv.append(vals[-1])
+            ni.append(idx[-1])
+        vals, idx = nv, ni
+    out = idx[0]
+    if isinstance(out, int):  # K == 1
+        return torch.zeros(x.shape[1:], dtype=torch.int64, device=x.device)
+    return out
 
 
-def max_last(x: Tensor) -> Tensor:
-    """``max`` over the last dim (values only), batched like :func:`argmax_last`."""
-    n = x.shape[-1]
-    if n > _LOOP_MAX or x.numel() < LARGE_BATCH * n:
-        return x.amax(-1)
-    best = x[..., 0]
-    for k in range(1, n):
-        best = torch.maximum(best, x[..., k])
-    return best
+def _pick(cond: Tensor, a: Tensor | int, b: Tensor | int) -> Tensor:
+    """``where(cond, a, b)`` as int64, cheap when ``a``/``b`` are consecutive Python ints."""
+    if isinstance(a, int) and isinstance(b, int):
+        if a == b + 1:
+            return cond.to(torch.int64) + b if b else cond.to(torch.int64)
+        return torch.where(cond, a, b)
+    return torch.where(cond, a, b)
 
 
-def take_row(x: Tensor, index: Tensor) -> Tensor:
-    """``x[b, index[b], ...]`` for ``x (B, K, ...)`` and ``index (B,)`` in ``[0, K)``."""
-    B, K = x.shape[0], x.shape[1]
-    if K <= _LOOP_MAX and B >= LARGE_BATCH:
-        out = x[:, 0]
-        for k in range(1, K):
-            mask = (index == k).view(B, *([1] * (x.dim() - 2)))
-            out = torch.where(mask, x[:, k], out)
-        return out
-    idx = index.view(B, 1, *([1] * (x.dim() - 2))).expand(B, 1, *x.shape[2:])
-    return x.gather(1, idx).squeeze(1)
+def max0(x: Tensor) -> Tensor:
+    """``max`` over dim 0 of ``x (K, ...)`` (values)."""
+    return x.amax(0)
+
+
+def select0(x: Tensor, index: Tensor) -> Tensor:
+    """``out[..., b] = x[index[b], ..., b]`` for ``x (K, ..., B)`` and ``index (B,)`` in ``[0, K)``."""
+    K = x.shape[0]
+    if K > 2 and (x.dim() > 2 or K > 4):  # measured: one gather beats K-1 masked selects here
+        idx = index.view(1, *([1] * (x.dim() - 2)), -1).expand(1, *x.shape[1:])
+        return x.gather(0, idx).squeeze(0)
+    out = x[0]
+    for k in range(1, K):
+        out = torch.where(index == k, x[k], out)  # (B,) mask broadcasts over the middle dims
+    return out
+
+
+def lookup(table: Tensor, index: Tensor) -> Tensor:
+    """``table[index]`` for a small 1-d table."""
+    return table.index_select(0, index)
+
+
+def option_first(x: Tensor) -> Tensor:
+    """A ``(B, O[, A])`` head output as an option-first view ``(O[, A], B)`` (no copy)."""
+    return x.movedim(0, -1)
 
 
 def sample_categorical(probs: Tensor, u: Tensor) -> Tensor:
-    """Index ``k`` with ``cdf[k-1] <= u < cdf[k]`` for ``probs (B, K)`` and uniforms ``u (B,)``."""
-    cdf = probs.cumsum(-1)  # (B, K)
-    k = (cdf <= u.unsqueeze(-1).to(cdf.dtype)).sum(-1)
-    return k.clamp(max=probs.shape[-1] - 1)
+    """Index ``k`` with ``cdf[k-1] <= u < cdf[k]`` for ``probs (K, B)`` and uniforms ``u (B,)``."""
+    cdf = probs.cumsum(0)  # (K, B)
+    k = (cdf <= u.to(cdf.dtype)).sum(0)
+    return k.clamp(max=probs.shape[0] - 1)
+
+
+def first_argmax(values: Sequence[float]) -> int:
+    """Python-scalar argmax, the lowest index on ties."""
+    best, idx = values[0], 0
+    for k in range(1, len(values)):
+        if values[k] > best:
+            best, idx = values[k], k
+    return idx
+
+
+# ---- fused heads for one-environment latency -----------------------------------------------------
+
+_INPLACE_ACT: dict[type, Any] = {
+    nn.ReLU: torch.relu_,
+    nn.Tanh: torch.tanh_,
+    nn.ELU: nn.functional.elu_,
+    nn.SiLU: lambda x: nn.functional.silu(x, inplace=True),
+}
+
+
+class FusedHeads(nn.Module):
+    """Several MLP heads over one input as a single block-structured MLP (inference fast path).
+
+    Layer 1 stacks the heads' first layers; deeper layers are block-diagonal; the output is the
+    concatenation of the heads' flattened outputs. Same function as the separate heads (up to
+    float summation order), one third of the kernel launches for three heads.
+
+    Args:
+        heads: ``TensorDictModule`` heads wrapping ``nn.Sequential`` MLPs (``Linear`` and
+            parameter-free activations, the same structure in every head) with one common in-key.
+    """
+
+    def __init__(self, heads: Sequence[TensorDictModule]):
+        super().__init__()
+        mlps = [h.module for h in heads]
+        self.in_key = heads[0].in_keys[0]
+        self.out_keys = [h.out_keys[0] for h in heads]
+        kinds = [[type(m) for m in mlp] for mlp in mlps]
+        linears = [[m for m in mlp if isinstance(m, nn.Linear)] for mlp in mlps]
+        d_in = linears[0][0].in_features
+        self.out_shapes = [tuple(mlp(torch.zeros(1, d_in)).shape[1:]) for mlp in mlps]
+        layers: list[nn.Module] = []
+        n_lin = len(linears[0])
+        li = 0
+        for mod in mlps[0]:
+            if not isinstance(mod, nn.Linear):
+                layers.append(mod)
+                continue
+            ws = [lin[li] for lin in linears]
+            if li == 0:
+                weight = torch.cat([w.weight for w in ws], 0)
+            else:
+                weight = torch.block_diag(*[w.weight for w in ws])
+            bias = torch.cat([w.bias for w in ws])
+            fused = nn.Linear(weight.shape[1], weight.shape[0])
+            with torch.no_grad():
+                fused.weight.copy_(weight)
+                fused.bias.copy_(bias)
+            layers.append(fused)
+            li += 1
+        assert li == n_lin and all(k == kinds[0] for k in kinds)
+        self.net = nn.Sequential(*layers)
+        self.sizes = [math.prod(s) for s in self.out_shapes]
+        # the forward as a flat list of functional calls (no nn.Module dispatch per layer)
+        self._steps: list[tuple[str, Any]] = []
+        for layer in layers:
+            if isinstance(layer, nn.Linear):
+                self._steps.append(("linear", layer))
+            else:
+                self._steps.append(("act", _INPLACE_ACT.get(type(layer), layer)))
+
+    @staticmethod
+    def supports(heads: Sequence[nn.Module]) -> bool:
+        """Whether ``heads`` can be fused (same in-key, same MLP structure, plain layers)."""
+        if not heads or not all(isinstance(h, TensorDictModule) for h in heads):
+            return False
+        if len({tuple(h.in_keys) for h in heads}) != 1 or len(heads[0].in_keys) != 1:
+            return False
+        structures = []
+        for h in heads:
+            m = h.module
+            if not isinstance(m, nn.Sequential) or len(h.out_keys) != 1:
+                return False
+            for layer in m:
+                if not isinstance(layer, nn.Linear) and any(True for _ in layer.parameters()):
+                    return False
+            structures.append(tuple(type(x) for x in m))
+        return len(set(structures)) == 1
+
+    def forward(self, x: Tensor) -> Tensor:  # (B, D) -> (B, sum of head output sizes)
+        for kind, f in self._steps:
+            x = nn.functional.linear(x, f.weight, f.bias) if kind == "linear" else f(x)
+        return x
+
+    def split(self, y: Tensor) -> dict[str, Tensor]:
+        """The fused output ``(B, K)`` as ``{out_key: (B, *shape)}``."""
+        parts = y.split(self.sizes, dim=-1)
+        return {
+            k: p.reshape(y.shape[0], *s) for k, p, s in zip(self.out_keys, parts, self.out_shapes)
+        }
+
+
+# ---- the controller base class ------------------------------------------------------------------
 
 
 class Controller(TensorDictModuleBase):
     """Base class: a batched controller over a :class:`Heads` bundle (paper §3.3-3.4, SPEC §3).
 
-    Subclasses set ``name``, ``required_heads`` and implement :meth:`decide` (pure tensors).
+    Subclasses set ``name``, ``required_heads`` and implement :meth:`decide_of` (option-first
+    tensors) and :meth:`decide_scalar` (Python floats, one environment).
 
     Args:
         heads: the head bundle (networks or the oracle's tables).
@@ -130,6 +264,7 @@ class Controller(TensorDictModuleBase):
         if self.stateful:
             out.append((keys.NEXT, keys.RUNNING_OPTION))
         self.out_keys = [*(HEAD_OUT_KEYS[h] for h in self.required_heads), *out]
+        self._fused: FusedHeads | None = None
 
     # ---- state -------------------------------------------------------------------------------
 
@@ -164,23 +299,30 @@ class Controller(TensorDictModuleBase):
             self._generators[device] = g
         return g
 
-    # ---- decisions -----------------------------------------------------------------------------
+    # ---- batched decisions -------------------------------------------------------------------
 
-    def decide(
-        self, values: Mapping[str, Tensor], running: Tensor, terminated: Tensor | None
+    def decide_of(
+        self, values: Mapping[str, Tensor], running: Tensor | None, terminated: Tensor | None
     ) -> dict[str, Tensor]:
-        """Pure batched decision from head outputs ``values`` (by out key) and ``running (B,)``.
+        """Batched decision from *option-first* head outputs (``(O, B)``, ``(O, A, B)``, ``(A, B)``).
 
-        Returns ``{"action", "option", ...traces}``; ``option`` is the next ``running_option``.
+        Returns ``{"action", "option", ...traces}`` (each ``(B,)``); ``option`` is the next
+        ``running_option``.
         """
         raise NotImplementedError
+
+    def decide(
+        self, values: Mapping[str, Tensor], running: Tensor | None, terminated: Tensor | None
+    ) -> dict[str, Tensor]:
+        """Batched decision from head outputs in the bundle layout (``(B, O)``, ``(B, O, A)``)."""
+        return self.decide_of({k: option_first(v) for k, v in values.items()}, running, terminated)
 
     def _terminated(self, td: TensorDictBase, running: Tensor) -> Tensor | None:
         """``beta_{o_run}(s_t)`` ``(B,)`` bool from ``subtasks`` (None without subtasks)."""
         if self.subtasks is None:
             return None
         beta = self.subtasks.termination(td)  # (B, O)
-        return take_row(beta, running.clamp(min=0))
+        return select0(option_first(beta), running.clamp(min=0))
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         for h in self.required_heads:
@@ -203,10 +345,10 @@ class Controller(TensorDictModuleBase):
             td.set((keys.NEXT, keys.RUNNING_OPTION), out["option"])
         return td
 
-    # ---- fast path (no TensorDict) ------------------------------------------------------------
+    # ---- fast paths (no TensorDict) ------------------------------------------------------------
 
     def head_values(self, inputs: Mapping[Any, Tensor]) -> dict[str, Tensor]:
-        """Head outputs from plain input tensors, calling each head's inner module directly."""
+        """Head outputs ``{out_key: (B, ...)}`` from plain input tensors (each head's inner module)."""
         values = {}
         for h in self.required_heads:
             m = self.heads.heads[h]
@@ -219,24 +361,70 @@ class Controller(TensorDictModuleBase):
         return values
 
     def act(self, inputs: Mapping[Any, Tensor], running: Tensor | None = None) -> dict[str, Tensor]:
-        """One decision without TensorDicts: ``inputs`` maps head in-keys to ``(B, ...)`` tensors.
+        """One batched decision without TensorDicts: ``inputs`` maps head in-keys to tensors.
 
         Termination comes from ``subtasks`` only if given (then ``inputs`` needs ``cell``).
         """
         values = self.head_values(inputs)
         terminated = None
         if self.subtasks is not None and running is not None:
-            B = running.shape[0]
-            td = TensorDict(dict(inputs), batch_size=[B])
+            td = TensorDict(dict(inputs), batch_size=[running.shape[0]])
             terminated = self._terminated(td, running)
         return self.decide(values, running, terminated)
+
+    def fuse(self) -> FusedHeads | None:
+        """Fuse this controller's heads into one MLP for :meth:`act_one` (None if not fusable).
+
+        Call again after the heads' weights change (the fused copy does not follow them).
+        """
+        mods = [self.heads.heads[h] for h in self.required_heads]
+        self._fused = FusedHeads(mods) if FusedHeads.supports(mods) else None
+        return self._fused
+
+    def decide_scalar(
+        self, values: Mapping[str, list], running: int, terminated: bool
+    ) -> dict[str, Any]:
+        """One environment's decision on Python floats (``values[k]``: nested lists, no batch)."""
+        raise NotImplementedError
+
+    def act_one(
+        self, inputs: Mapping[Any, Tensor], running: int = -1, terminated: bool = False
+    ) -> dict[str, Any]:
+        """Real-time decision for one environment: ``inputs`` map in-keys to ``(1, ...)`` tensors.
+
+        Uses the fused heads when :meth:`fuse` succeeded, then one host transfer, then the rule on
+        Python floats. Returns Python ints/bools: ``action``, ``option``, traces.
+        """
+        with torch.inference_mode():
+            if self._fused is not None:
+                y = self._fused(inputs[self._fused.in_key])[0].tolist()  # one host transfer
+                values: dict[str, list] = {}
+                start = 0
+                for k, n, shape in zip(
+                    self._fused.out_keys, self._fused.sizes, self._fused.out_shapes
+                ):
+                    flat = y[start : start + n]
+                    start += n
+                    values[k] = _nest(flat, shape)
+            else:
+                values = {k: v[0].tolist() for k, v in self.head_values(inputs).items()}
+        return self.decide_scalar(values, running, terminated)
+
+
+def _nest(flat: list, shape: tuple[int, ...]) -> list:
+    """A flat list reshaped to nested lists of ``shape`` (1-d or 2-d)."""
+    if len(shape) <= 1:
+        return flat
+    n = shape[-1]
+    return [flat[i : i + n] for i in range(0, len(flat), n)]
 
 
 class GymnasiumPolicy:
     """Drive a controller on one Gymnasium env (``gymnasium.make("taskvar/WindyGrid-v0")``).
 
     ``reset()`` at each episode start, then ``action = policy(obs, info)``. The carried state and
-    the last decision traces are kept in ``self.state`` / ``self.trace``.
+    the last decision traces are kept in ``self.state`` / ``self.trace``. Uses the controller's
+    real-time scalar path (:meth:`Controller.act_one`).
 
     Args:
         controller: any :class:`Controller`.
@@ -247,20 +435,25 @@ class GymnasiumPolicy:
     def __init__(self, controller: Controller, width: int | None = None):
         self.controller = controller
         self.width = width
-        self.state = controller.initial_state(1)
-        self.trace: dict[str, Tensor] = {}
+        self.state = -1
+        self.trace: dict[str, Any] = {}
+        controller.fuse()
 
     def reset(self) -> None:
-        self.state = self.controller.initial_state(1)
+        self.state = -1
 
-    @torch.inference_mode()
     def __call__(self, obs: Any, info: Mapping[str, Any] | None = None) -> int:
         inputs: dict[Any, Tensor] = {keys.OBSERVATION: torch.as_tensor(obs).reshape(1, -1)}
         if self.width is not None and info is not None and "cell" in info:
             r, c = info["cell"]
             inputs[keys.CELL] = torch.tensor([int(r) * self.width + int(c)])
-        out = self.controller.act(inputs, self.state if self.controller.stateful else None)
-        if self.controller.stateful:
+        terminated = False
+        ctrl = self.controller
+        if ctrl.subtasks is not None and ctrl.stateful and self.state >= 0:
+            td = TensorDict(inputs, batch_size=[1])
+            terminated = bool(ctrl.subtasks.termination(td)[0, self.state])
+        out = ctrl.act_one(inputs, self.state, terminated)
+        if ctrl.stateful:
             self.state = out["option"]
         self.trace = out
-        return int(out["action"][0])
+        return int(out["action"])

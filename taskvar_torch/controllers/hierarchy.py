@@ -13,18 +13,32 @@ else is carried. Every step (Algorithm 2, with greedy option policies ``pi^o = a
    ``o_run``. In that recursive call line 2 re-checks ``R(o_run, s_t, pi^{o_run}(s_t)) > tau``, which
    has just failed (deterministic policies), so it is not re-evaluated.
 
-The recursion depth is bounded by the tree depth, so the batched version loops over levels.
+Batched kernels. With greedy option policies the search reads only, per state, the bits
+``ok_o = R(o, s_t, pi^o(s_t)) > tau`` of every node and, per composed node, the index of its most
+robust component under its own action. So for small trees (``(O + 1) x 2^nodes x prod(#components)
+<= 65536``, e.g. 64 for Wargus's 3-node tree) :class:`TreeTables` precomputes the decision for every
+(running subtask, bits, choices) code and the kernel is one table lookup
+(:func:`hierarchy_decide_table_of`); larger trees walk the levels (:func:`hierarchy_search_of`,
+bounded by the tree depth). Both are tested against the scalar search and the oracle's.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.controllers.base import Controller, argmax_last, take_row
+from taskvar_torch.controllers.base import (
+    Controller,
+    argmax0,
+    first_argmax,
+    lookup,
+    option_first,
+    select0,
+)
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.subtasks.base import Hierarchy
 
@@ -41,6 +55,14 @@ class TreeTables:
     child_mask: Tensor  # (O, O) bool: child_mask[o, q] = q is a component of o
     depth: Tensor  # (O,) int64: 0 at the root
     max_depth: int
+    # compiled decision table (None for trees too large to tabulate)
+    ok_weight: Tensor | None = None  # (O, 1) int64: 2^k for the k-th tree node, 0 elsewhere
+    internal: tuple[tuple[int, Tensor, int], ...] = ()  # (node, components (n,), radix)
+    num_codes: int = 0  # codes per running value
+    table_option: Tensor | None = None  # ((O + 1) * num_codes,) int64: the option that acts
+    table_level: Tensor | None = None  # ((O + 1) * num_codes,) int64: its depth
+
+    MAX_TABLE = 1 << 16
 
     @classmethod
     def build(
@@ -66,16 +88,20 @@ class TreeTables:
                 parent[names.index(k)] = i
                 child[i, names.index(k)] = True
         dev = torch.device(device)
+        root = names.index(hierarchy.root)
+        tables = _compile_table(hierarchy, names, root, parent.tolist(), depth.tolist())
         return cls(
-            root=names.index(hierarchy.root),
+            root=root,
             parent=parent.to(dev),
             is_leaf=is_leaf.to(dev),
             child_mask=child.to(dev),
             depth=depth.to(dev),
             max_depth=max(hierarchy.depth(o) for o in hierarchy.options),
-        )
+            **tables,
+        ).to(dev)
 
     def to(self, device: torch.device | str) -> TreeTables:
+        mv = lambda t: None if t is None else t.to(device)  # noqa: E731
         return TreeTables(
             self.root,
             self.parent.to(device),
@@ -83,48 +109,148 @@ class TreeTables:
             self.child_mask.to(device),
             self.depth.to(device),
             self.max_depth,
+            mv(self.ok_weight),
+            tuple((i, k.to(device), r) for i, k, r in self.internal),
+            self.num_codes,
+            mv(self.table_option),
+            mv(self.table_level),
         )
 
 
-def hierarchy_decide(
-    q_opt: Tensor,  # (B, O, A) Q_o(s_t, a): option policies pi^o (greedy)
-    robustness: Tensor,  # (B, O, A) R(o, s_t, a)
+def _compile_table(
+    hierarchy: Hierarchy, names: list[str], root: int, parent: list[int], depth: list[int]
+) -> dict[str, Any]:
+    """Algorithm 2's decision for every (running subtask, robustness bits, component choices)."""
+    O = len(names)  # noqa: E741
+    nodes = [names.index(o) for o in hierarchy.options]
+    kids = {i: sorted(names.index(k) for k in hierarchy.components(names[i])) for i in nodes}
+    internal = [i for i in nodes if kids[i]]
+    radices, r = [], 2 ** len(nodes)
+    for i in internal:
+        radices.append(r)
+        r *= len(kids[i])
+    num_codes = r
+    if (O + 1) * num_codes > TreeTables.MAX_TABLE:
+        return {}
+    opt = torch.empty((O + 1) * num_codes, dtype=torch.int64)
+    for code in range(num_codes):
+        ok = {n: bool(code >> k & 1) for k, n in enumerate(nodes)}
+        choice = {i: kids[i][(code // radices[j]) % len(kids[i])] for j, i in enumerate(internal)}
+        for running in range(-1, O):
+            o = root if running < 0 else running
+            p = parent[o]
+            if p >= 0 and ok.get(p, False):  # lines 1-3
+                node = p
+            else:
+                node = o
+                while kids.get(node) and not ok.get(node, False):  # lines 5-11
+                    node = choice[node]
+            opt[(running + 1) * num_codes + code] = node
+    weight = torch.zeros(O, 1, dtype=torch.int64)
+    for k, n in enumerate(nodes):
+        weight[n, 0] = 1 << k
+    return {
+        "ok_weight": weight,
+        "internal": tuple(
+            (i, torch.tensor(kids[i], dtype=torch.int64), rad) for i, rad in zip(internal, radices)
+        ),
+        "num_codes": num_codes,
+        "table_option": opt,
+        "table_level": torch.tensor(depth, dtype=torch.int64)[opt],
+    }
+
+
+def hierarchy_decide_of(
+    q_opt: Tensor,  # (O, A, B) Q_o(s_t, a), option-first: option policies pi^o (greedy)
+    robustness: Tensor,  # (O, A, B) R(o, s_t, a)
     running: Tensor,  # (B,) int64 running subtask, -1 = none (start at the root)
     tree: TreeTables,
     tau: float,
 ) -> dict[str, Tensor]:
-    """One step of Algorithm 2 for a batch.
+    """One step of Algorithm 2 for a batch (option-first inputs).
 
     Returns ``action``, ``option`` (the subtask that acts: the next running subtask),
     ``hierarchy_level`` (its depth, 0 = root) and ``interrupted`` (control left the running subtask:
-    the parent regained it or it descended; False at the episode start).
+    the parent regained it or it descended; False at the episode start), each ``(B,)``.
+    Uses the compiled table when the tree has one, else walks the levels.
     """
-    acts = argmax_last(q_opt)  # (B, O): pi^o(s_t) of every option
-    rob_t = robustness.transpose(1, 2)  # (B, A, O)
+    if tree.table_option is not None:
+        return hierarchy_decide_table_of(q_opt, robustness, running, tree, tau)
+    return hierarchy_search_of(q_opt, robustness, running, tree, tau)
+
+
+def hierarchy_decide_table_of(
+    q_opt: Tensor,  # (O, A, B)
+    robustness: Tensor,  # (O, A, B)
+    running: Tensor,  # (B,)
+    tree: TreeTables,
+    tau: float,
+) -> dict[str, Tensor]:
+    """Algorithm 2 by table lookup: encode each state's robustness bits and component choices."""
+    acts = argmax0(q_opt.transpose(0, 1))  # (O, B): pi^o(s_t) of every option (line 1, 5)
+    own = robustness.gather(1, acts.unsqueeze(1)).squeeze(1)  # (O, B): R(o, s_t, pi^o(s_t))
+    code = ((own > tau) * tree.ok_weight).sum(0)  # (B,) int64: bit k = node k robust (line 2, 6)
+    O = robustness.shape[0]  # noqa: E741
+    for node, kids, radix in tree.internal:  # line 10: most robust component under node's action
+        a = acts[node].view(1, 1, -1).expand(O, 1, -1)
+        r_kids = robustness.gather(1, a).squeeze(1).index_select(0, kids)  # (n, B)
+        code = code + argmax0(r_kids) * radix
+    code = code + (running + 1) * tree.num_codes
+    option = tree.table_option.index_select(0, code)  # (B,)
+    return {
+        "action": select0(acts, option),
+        "option": option,
+        keys.HIERARCHY_LEVEL: tree.table_level.index_select(0, code),
+        keys.INTERRUPTED: (running >= 0) & (option != running),
+    }
+
+
+def hierarchy_search_of(
+    q_opt: Tensor,  # (O, A, B)
+    robustness: Tensor,  # (O, A, B)
+    running: Tensor,  # (B,)
+    tree: TreeTables,
+    tau: float,
+) -> dict[str, Tensor]:
+    """Algorithm 2 by walking the levels (any tree size): the literal recursion, batched."""
+    acts = argmax0(q_opt.transpose(0, 1))  # (O, B): pi^o(s_t) of every option
+    rob_a = robustness.transpose(0, 1)  # (A, O, B)
     o = torch.where(running < 0, torch.full_like(running, tree.root), running)  # (B,)
-    p = tree.parent[o]  # (B,)
+    p = lookup(tree.parent, o)  # (B,)
     pc = p.clamp(min=0)
-    a_p = take_row(acts, pc)  # (B,) line 1
-    regain = (p >= 0) & (take_row(take_row(robustness, pc), a_p) > tau)  # (B,) line 2
+    a_p = select0(acts, pc)  # (B,) line 1
+    regain = (p >= 0) & (select0(select0(robustness, pc), a_p) > tau)  # (B,) line 2
     result = torch.where(regain, pc, o)
     done = regain
     node = o
     for _ in range(tree.max_depth + 1):
-        a = take_row(acts, node)  # (B,) line 5
-        ok = tree.is_leaf[node] | (take_row(take_row(robustness, node), a) > tau)  # line 6
+        a = select0(acts, node)  # (B,) line 5
+        ok = lookup(tree.is_leaf, node) | (select0(select0(robustness, node), a) > tau)  # line 6
         result = torch.where(ok & ~done, node, result)
         done = done | ok
-        r_a = take_row(rob_t, a)  # (B, O): R(q, s_t, a) with a the action of o_run (line 10)
-        r_a = r_a.masked_fill(~tree.child_mask[node], float("-inf"))
-        node = torch.where(done, node, argmax_last(r_a))  # line 11: recurse into q*
-    action = take_row(acts, result)
+        r_a = select0(rob_a, a)  # (O, B): R(q, s_t, a), a the action of o_run (line 10)
+        kids = tree.child_mask.t().index_select(1, node)  # (O, B): q is a component of o_run
+        r_a = r_a.masked_fill(~kids, float("-inf"))
+        node = torch.where(done, node, argmax0(r_a))  # line 11: recurse into q*
+    action = select0(acts, result)
     interrupted = (running >= 0) & (result != running)
     return {
         "action": action,
         "option": result,
-        keys.HIERARCHY_LEVEL: tree.depth[result],
+        keys.HIERARCHY_LEVEL: lookup(tree.depth, result),
         keys.INTERRUPTED: interrupted,
     }
+
+
+def hierarchy_decide(
+    q_opt: Tensor,  # (B, O, A)
+    robustness: Tensor,  # (B, O, A)
+    running: Tensor,  # (B,)
+    tree: TreeTables,
+    tau: float,
+) -> dict[str, Tensor]:
+    """:func:`hierarchy_decide_of` for head outputs in the bundle layout (batch first)."""
+    return hierarchy_decide_of(option_first(q_opt), option_first(robustness), running, tree, tau)
 
 
 class HierarchyController(Controller):
@@ -152,6 +278,14 @@ class HierarchyController(Controller):
         self.tau = float(tau)
         self._tree = TreeTables.build(hierarchy, heads.option_names)
         self._trees: dict[torch.device, TreeTables] = {}
+        tt = self._tree
+        self._tree_lists = {
+            "root": tt.root,
+            "parent": tt.parent.tolist(),
+            "is_leaf": tt.is_leaf.tolist(),
+            "depth": tt.depth.tolist(),
+            "children": [row.nonzero().flatten().tolist() for row in tt.child_mask],
+        }
 
     def tree(self, device: torch.device) -> TreeTables:
         """The tree's index tables on ``device`` (cached)."""
@@ -160,10 +294,34 @@ class HierarchyController(Controller):
             t = self._trees[device] = self._tree.to(device)
         return t
 
-    def decide(
+    def decide_of(
         self, values: Mapping[str, Tensor], running: Tensor, terminated: Tensor | None
     ) -> dict[str, Tensor]:
-        q_opt = values[keys.OPTION_ACTION_VALUE]
-        return hierarchy_decide(
+        q_opt = values[keys.OPTION_ACTION_VALUE]  # (O, A, B)
+        return hierarchy_decide_of(
             q_opt, values[keys.ROBUSTNESS], running, self.tree(q_opt.device), self.tau
         )
+
+    def decide_scalar(
+        self, values: Mapping[str, list], running: int, terminated: bool
+    ) -> dict[str, Any]:
+        q, rob, tau = values[keys.OPTION_ACTION_VALUE], values[keys.ROBUSTNESS], self.tau
+        t = self._tree_lists
+        o = t["root"] if running < 0 else running
+        p = t["parent"][o]
+        if p >= 0 and rob[p][first_argmax(q[p])] > tau:  # lines 1-3
+            node = p
+        else:
+            node = o
+            while True:
+                a = first_argmax(q[node])  # line 5
+                if t["is_leaf"][node] or rob[node][a] > tau:  # line 6
+                    break
+                kids = t["children"][node]  # lines 9-11
+                node = kids[first_argmax([rob[k][a] for k in kids])]
+        return {
+            "action": first_argmax(q[node]),
+            "option": node,
+            keys.HIERARCHY_LEVEL: t["depth"][node],
+            keys.INTERRUPTED: running >= 0 and node != running,
+        }
