@@ -59,11 +59,18 @@ def plot_sorted_differences(
     all_d = np.concatenate([np.asarray(d, dtype=float) for d in runs])
     frac = (all_d >= 0).mean()
     ax.axvline(1 - frac, color="tab:red", lw=0.8, ls=":")
-    ax.text(1 - frac, ax.get_ylim()[1] * 0.9, f"  no worse: {frac:.1%}", color="tab:red", fontsize=9)
+    note = f"no worse: {frac:.1%}"
+    if len(null_runs):
+        note += f"\nnull: {(np.concatenate([np.asarray(d, float) for d in null_runs]) >= 0).mean():.1%}"
+    if len(exact_runs):
+        ex = np.concatenate([np.asarray(d, float) for d in exact_runs])
+        note += f"\nexact: {(ex >= -1e-9).mean():.1%}"
+    ax.text(0.02, 0.97, note, transform=ax.transAxes, va="top", color="tab:red", fontsize=9,
+            bbox=dict(fc="white", ec="none", alpha=0.8))
     ax.set_xlabel("episodes, sorted by difference (fraction)")
     ax.set_ylabel(f"return difference ({label})")
     ax.set_title(title)
-    ax.legend(fontsize=8, loc="upper left")
+    ax.legend(fontsize=8, loc="lower right")
     ax.grid(alpha=0.3)
     out = save_figure(fig, path)
     plt.close(fig)
@@ -80,14 +87,17 @@ def plot_interruption_heatmap(
     cell, one panel per test distribution, on the grid (walls hatched, goals outlined)."""
     plt = _pyplot()
     panels = [(k, v) for k, v in counts.items() if v is not None]
-    fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(4.2 * max(len(panels), 1), 4.2),
-                             squeeze=False)
+    fig, axes = plt.subplots(1, max(len(panels), 1), figsize=(5.0 * max(len(panels), 1), 4.4),
+                             squeeze=False, layout="constrained")
     H, W = layout.height, layout.width
+    grids = {k: np.asarray(v, dtype=float).reshape(H, W) / max(int(episodes.get(k) or 1), 1)
+             for k, v in panels}
+    vmax = max([g.max() for g in grids.values()] + [1e-3])  # one colour scale for every panel
     for ax, (name, cnt) in zip(axes[0], panels):
         n = max(int(episodes.get(name) or 1), 1)
-        grid = np.asarray(cnt, dtype=float).reshape(H, W) / n
+        grid = grids[name]
         masked = np.ma.masked_where(np.array([[ch in "#G" for ch in row] for row in layout.rows]), grid)
-        im = ax.imshow(masked, cmap="magma_r", vmin=0)
+        im = ax.imshow(masked, cmap="Reds", vmin=0, vmax=vmax)
         for r in range(H):
             for c in range(W):
                 ch = layout.rows[r][c]
@@ -98,11 +108,12 @@ def plot_interruption_heatmap(
                                                color="tab:green", lw=0.5))
                 elif H * W <= 100:
                     ax.text(c, r, f"{ch}\n{grid[r, c]:.3f}" if ch != "." else f"{grid[r, c]:.3f}",
-                            ha="center", va="center", fontsize=7, color="tab:blue")
+                            ha="center", va="center", fontsize=7,
+                            bbox=dict(boxstyle="round,pad=0.15", fc="white", ec="none", alpha=0.7))
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_title(f"{name}\n(total {int(np.sum(cnt))} firings, {n} episodes)", fontsize=9)
-        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="firings per episode")
+        fig.colorbar(im, ax=ax, shrink=0.8, label="firings per episode")
     fig.suptitle("Where offline interruption fired (row 0 = north)", fontsize=10)
     out = save_figure(fig, path)
     plt.close(fig)
