@@ -28,6 +28,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModule
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
@@ -55,16 +56,13 @@ from taskvar_torch.config import (
     save_config_yaml,
     windy_env_kwargs,
 )
-from taskvar_torch.heads.averaging import make_averaging_head
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
-from taskvar_torch.heads.max_value import make_max_value_head
-from taskvar_torch.heads.options import make_options_head
+from taskvar_torch.heads.max_value import OptimismGapHead
+from taskvar_torch.heads.networks import make_stacked_heads
 from taskvar_torch.heads.relabel import has_robustness
-from taskvar_torch.heads.robustness import make_robustness_head
-from taskvar_torch.heads.switching import make_switching_head
 from taskvar_torch.subtasks.base import Subtasks
 
 EPISODE_REWARD = "episode_reward"  # RewardSum's running return
@@ -116,21 +114,33 @@ def make_training_env(cfg: Config) -> TransformedEnv:
 
 
 def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
-    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (DESIGN.md)."""
+    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (DESIGN.md).
+
+    The heads are independent MLPs stored as members of one ``StackedMLP``, so the learner runs
+    them in one batched pass (``heads/networks.py``).
+    """
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
-    num_actions = env.action_spec.space.n
-    num_options = subtasks.num_options
-    h = dict(hidden=tuple(cfg.heads.hidden), activation=cfg.heads.activation)
-    robust = has_robustness(subtasks)
-    return Heads(
-        subtasks.names,
-        averaging=make_averaging_head(obs_dim, num_actions, **h),
-        options=make_options_head(obs_dim, num_options, num_actions, **h),
-        switching=make_switching_head(obs_dim, num_options, **h),
-        max_value=make_max_value_head(obs_dim, num_options, **h),
-        robustness=make_robustness_head(obs_dim, num_options, num_actions, **h) if robust else None,
-        softmax_temperature=mu_bar_temperature(cfg.train),
-    ).to(cfg.device)
+    A = env.action_spec.space.n
+    O = subtasks.num_options  # noqa: E741
+    specs = {
+        "averaging": (keys.ACTION_VALUE, (A,)),
+        "options": (keys.OPTION_ACTION_VALUE, (O, A)),
+        "switching": (keys.OPTION_VALUE, (O,)),
+        "max_value": (keys.MAX_VALUE, (O,)),
+    }
+    if has_robustness(subtasks):
+        specs["robustness"] = (keys.ROBUSTNESS, (O, A))
+    heads = make_stacked_heads(
+        obs_dim, specs, hidden=tuple(cfg.heads.hidden), activation=cfg.heads.activation
+    )
+    heads["max_value"] = TensorDictModule(  # Q_hat = Q_mu + softplus(gap) >= Q_mu
+        OptimismGapHead(heads["switching"].module, heads["max_value"].module),
+        in_keys=[keys.OBSERVATION],
+        out_keys=[keys.MAX_VALUE],
+    )
+    return Heads(subtasks.names, **heads, softmax_temperature=mu_bar_temperature(cfg.train)).to(
+        cfg.device
+    )
 
 
 def mu_bar_temperature(t: TrainConfig) -> float | None:
@@ -198,33 +208,24 @@ def raw_transitions(batch: TensorDictBase) -> TensorDictBase:
 
 
 def _replay_state(buffer: ReplayBuffer) -> dict[str, Any]:
-    """The buffer's state with only the filled rows stored (padded back on load)."""
-    state = buffer.state_dict()
+    """The buffer's filled rows (in storage order) and its writer's cursor, as plain data.
+
+    Sampling draws from the trainer's own generator, whose state is saved with the other RNGs.
+    """
     n = len(buffer)
-
-    def trim(d: Any) -> Any:
-        if isinstance(d, dict):
-            return {k: trim(v) for k, v in d.items()}
-        return d[:n].clone() if isinstance(d, torch.Tensor) else d
-
-    state["_storage"]["_storage"] = trim(state["_storage"]["_storage"])
-    return state
+    return {
+        "data": buffer[:n].to_dict() if n else {},
+        "size": n,
+        "writer": buffer.writer.state_dict(),
+    }
 
 
-def _load_replay_state(buffer: ReplayBuffer, state: dict[str, Any], capacity: int) -> None:
-    def pad(d: Any) -> Any:
-        if isinstance(d, dict):
-            return {k: pad(v) for k, v in d.items()}
-        if isinstance(d, torch.Tensor):
-            out = torch.zeros((capacity, *d.shape[1:]), dtype=d.dtype, device=d.device)
-            out[: d.shape[0]] = d
-            return out
-        return d
-
-    state = dict(state)
-    state["_storage"] = dict(state["_storage"])
-    state["_storage"]["_storage"] = pad(state["_storage"]["_storage"])
-    buffer.load_state_dict(state)
+def _load_replay_state(buffer: ReplayBuffer, state: dict[str, Any]) -> None:
+    """Refill an empty buffer from :func:`_replay_state`: same rows, same cursor."""
+    n = int(state["size"])
+    if n:
+        buffer.extend(TensorDict(state["data"], batch_size=[n]))
+    buffer.writer.load_state_dict(state["writer"])
 
 
 def _check_runtime_only(bundle: dict[str, Any], cfg: Config, path: Any) -> None:
@@ -349,7 +350,7 @@ def train(
                 "optimizer": bundle["optimizers"]["adam"],
             }
         )
-        _load_replay_state(buffer, bundle["replay"], t.buffer_size)
+        _load_replay_state(buffer, bundle["replay"])
         first_visit.load_state_dict(bundle["first_visit"])
         counters.update(bundle["counters"])
         stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}

@@ -21,10 +21,7 @@ import torch
 from tensordict import TensorDictBase
 from torch import nn
 
-from taskvar_torch import keys
-
-_MULT = 0x9E3779B1  # odd 32-bit multipliers for the hash
-_MIX = 0x85EBCA77
+from taskvar_torch import keys, rng
 
 
 class FirstVisitFilter(nn.Module):
@@ -42,19 +39,20 @@ class FirstVisitFilter(nn.Module):
         self.buckets = int(buckets)
         gen = torch.Generator().manual_seed(12345)
         coef = torch.randint(1, 1 << 30, (obs_dim + 1,), generator=gen, dtype=torch.int64) * 2 + 1
+        salt = torch.randint(0, 1 << 31, (obs_dim + 1,), generator=gen, dtype=torch.int64)
         self.register_buffer("coef", coef.to(device), persistent=False)  # (D + 1,) odd
+        self.register_buffer("salt", salt.to(device), persistent=False)  # (D + 1,)
         self.register_buffer(
             "seen", torch.zeros(num_envs, self.buckets, dtype=torch.bool, device=device)
         )
 
     def _hash(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
         """``(N,)`` bucket of each (observation (N, D), action (N,)) pair."""
-        bits = obs.contiguous().view(torch.int32).to(torch.int64) & 0xFFFFFFFF  # (N, D)
+        bits = obs.contiguous().view(torch.int32).to(torch.int64) & rng.MASK32  # (N, D)
         x = torch.cat([bits, action.reshape(-1, 1).to(torch.int64)], -1)  # (N, D + 1)
-        h = (x * self.coef).sum(-1) & 0xFFFFFFFF  # (N,)
-        h = ((h ^ (h >> 15)) * _MIX) & 0xFFFFFFFF
-        h = ((h ^ (h >> 13)) * _MULT) & 0xFFFFFFFF
-        return (h ^ (h >> 16)) % self.buckets
+        y = rng.hash32((x + self.salt) & rng.MASK32)  # (N, D + 1) mixed per element and position
+        h = (y * self.coef).sum(-1) & rng.MASK32  # (N,)
+        return rng.hash32(h) % self.buckets
 
     @torch.no_grad()
     def forward(self, batch: TensorDictBase) -> torch.Tensor:

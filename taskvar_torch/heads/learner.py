@@ -28,13 +28,14 @@ from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictParams
 from torch import nn
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from taskvar_torch.heads.averaging import averaging_loss
 from taskvar_torch.heads.bundle import Heads
-from taskvar_torch.heads.max_value import max_value_loss
-from taskvar_torch.heads.networks import head_network
+from taskvar_torch.heads.max_value import OptimismGapHead, max_value_loss
+from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
 from taskvar_torch.heads.options import options_loss
 from taskvar_torch.heads.relabel import relabel
 from taskvar_torch.heads.robustness import component_matrix, parent_closure, robustness_loss
@@ -53,6 +54,28 @@ class LossSettings:
     double_q: bool = True
     max_value_expectile: float = 0.95
     mu_bar_temperature: float | None = None  # None: greedy mu_bar
+
+
+def _unique_params(module: nn.Module) -> TensorDictParams:
+    """A flat ``TensorDictParams`` of the module's parameters, each shared tensor once."""
+    params = {name.replace(".", "_"): p for name, p in module.named_parameters()}
+    return TensorDictParams(TensorDict(params, batch_size=[]), no_convert=True)
+
+
+def _stack_members(net: nn.Module) -> list[nn.Module]:
+    """The networks a head is made of (an optimism-gap head is its base and its gap)."""
+    if isinstance(net, OptimismGapHead):
+        return _stack_members(net.base) + _stack_members(net.gap)
+    return [net]
+
+
+def _shared_stack(heads: nn.ModuleDict) -> StackedMLP | None:
+    """The :class:`StackedMLP` every head is made of, if there is one (else ``None``)."""
+    nets = [m for h in heads.values() for m in _stack_members(head_network(h))]
+    if nets and all(isinstance(n, StackedHead) for n in nets):
+        if len({id(n.stack) for n in nets}) == 1:
+            return nets[0].stack
+    return None
 
 
 class MultiHeadLoss(LossModule):
@@ -84,20 +107,68 @@ class MultiHeadLoss(LossModule):
         self.subtasks = subtasks
         self.settings = settings
         self.head_names = tuple(heads.heads.keys())
-        self.target_heads = nn.ModuleDict(
-            {n: copy.deepcopy(m).requires_grad_(False) for n, m in heads.heads.items()}
-        )
-        for n in self.head_names:  # TorchRL naming, so SoftUpdate/HardUpdate find the targets
-            self._has_update_associated[n] = False
-            setattr(self, f"{n}_params", TensorDict.from_module(heads.heads[n], as_module=True))
-            setattr(
-                self,
-                f"target_{n}_params",
-                TensorDict.from_module(self.target_heads[n], as_module=True),
-            )
+        # one deepcopy, so heads that share a StackedMLP share it in the targets too
+        self.target_heads = copy.deepcopy(heads.heads).requires_grad_(False)
+        # TorchRL naming (<name>_params / target_<name>_params), so SoftUpdate/HardUpdate find the
+        # targets; unique parameters only, so a stacked network is updated once
+        self._has_update_associated["heads"] = False
+        self.heads_params = _unique_params(heads.heads)
+        self.target_heads_params = _unique_params(self.target_heads)
+        self.stack = _shared_stack(heads.heads)  # StackedMLP of every head, or None
+        self.target_stack = _shared_stack(self.target_heads)
         self.register_buffer(
             "components", component_matrix(subtasks.names, subtasks.hierarchy), persistent=False
         )
+
+    def _head_outputs(
+        self, obs: torch.Tensor, next_obs: torch.Tensor
+    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], dict[str, torch.Tensor]]:
+        """Every head at s (with gradient), at s' (online, detached) and at s' (target).
+
+        The max-value head (an :class:`OptimismGapHead`) is ``Q_mu + softplus(gap)`` with ``Q_mu``
+        detached, so its loss trains the gap only.
+        """
+        B = obs.shape[0]
+        both = torch.cat([obs, next_obs])  # (2B, D)
+        if self.stack is not None:  # fused: one batched pass for every head
+            out = self.stack(both)  # (K, 2B, max_out)
+            with torch.no_grad():
+                out_target = self.target_stack(next_obs)  # (K, B, max_out)
+
+            def run(net: nn.Module, which: str) -> torch.Tensor:
+                if isinstance(net, OptimismGapHead):
+                    return OptimismGapHead.combine(
+                        run(net.base, which).detach(), run(net.gap, which)
+                    )
+                k, size = net.index, self.stack.out_sizes[net.index]
+                y = (
+                    out_target[k]
+                    if which == "target"
+                    else out[k, :B]
+                    if which == "cur"
+                    else out[k, B:]
+                )
+                return y[:, :size].reshape(B, *net.out_shape)
+
+        else:  # independent networks
+
+            def run(net: nn.Module, which: str) -> torch.Tensor:
+                if isinstance(net, OptimismGapHead):
+                    return OptimismGapHead.combine(
+                        run(net.base, which).detach(), run(net.gap, which)
+                    )
+                x = both if which != "target" else next_obs
+                y = net(x)
+                return y if which == "target" else y[:B] if which == "cur" else y[B:]
+
+        cur, nxt, nxt_target = {}, {}, {}
+        for n in self.head_names:
+            online, target = head_network(self.heads.heads[n]), head_network(self.target_heads[n])
+            cur[n] = run(online, "cur")
+            nxt[n] = run(online, "next").detach()
+            with torch.no_grad():
+                nxt_target[n] = run(target, "target")
+        return cur, nxt, nxt_target
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:  # LossModule hook; no estimator
         pass
@@ -105,14 +176,7 @@ class MultiHeadLoss(LossModule):
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         s = self.settings
         batch = relabel(tensordict, self.subtasks, robustness=self.heads.has("robustness"))
-        B = batch.batch_size
-        both = torch.cat([batch.observation, batch.next_observation])  # (2B, D)
-        cur, nxt, nxt_target = {}, {}, {}
-        for n in self.head_names:
-            out = head_network(self.heads.heads[n])(both)  # (2B, ...)
-            cur[n], nxt[n] = out[:B], out[B:].detach()
-            with torch.no_grad():
-                nxt_target[n] = head_network(self.target_heads[n])(batch.next_observation)
+        cur, nxt, nxt_target = self._head_outputs(batch.observation, batch.next_observation)
 
         losses: dict[str, torch.Tensor] = {}
         if "averaging" in cur:
@@ -197,6 +261,17 @@ def clip_grad_norm_per_group(groups: list[list[torch.Tensor]], max_norm: float) 
     torch._foreach_mul_(grads, coefs)
 
 
+def clip_grad_norm_stacked(params: list[torch.Tensor], max_norm: float) -> None:
+    """``clip_grad_norm_`` per member of stacked parameters (leading dimension = member)."""
+    grads = [p.grad for p in params if p.grad is not None]
+    if not grads:
+        return
+    sq = torch.stack([g.pow(2).flatten(1).sum(1) for g in grads]).sum(0)  # (K,)
+    coef = (max_norm / (sq.sqrt() + 1e-6)).clamp(max=1.0)  # (K,)
+    for g in grads:
+        g.mul_(coef.view(-1, *([1] * (g.dim() - 1))))
+
+
 class MultiHeadLearner:
     """Optimiser, target updates and loss bookkeeping around a :class:`MultiHeadLoss`.
 
@@ -226,7 +301,12 @@ class MultiHeadLearner:
         self.loss = loss
         self.heads = loss.heads
         self.max_grad_norm = max_grad_norm
-        self._groups = [list(m.parameters()) for m in self.heads.heads.values()]
+        self._stacked = loss.stack is not None
+        self._groups = (
+            [list(loss.stack.parameters())]
+            if self._stacked
+            else [list(m.parameters()) for m in self.heads.heads.values()]
+        )
         self.optimizer = torch.optim.Adam(self.heads.parameters(), lr=lr, fused=True)
         if target_update == "soft":
             self.target_updater = ForeachSoftUpdate(loss, tau=target_tau)
@@ -247,7 +327,10 @@ class MultiHeadLearner:
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         if self.max_grad_norm is not None:
-            clip_grad_norm_per_group(self._groups, self.max_grad_norm)
+            if self._stacked:  # each member of the stack is one head
+                clip_grad_norm_stacked(self._groups[0], self.max_grad_norm)
+            else:
+                clip_grad_norm_per_group(self._groups, self.max_grad_norm)
         self.optimizer.step()
         self.target_updater.step()
         losses = losses.detach()

@@ -3,6 +3,9 @@
 Q_hat is the best value option o has shown from s in any training instance, running o and then
 continuing with mu_bar; offline interruption (Algorithm 1) fires where Q_hat(s, o_run) < V^{mu_bar}(s).
 
+Parametrisation: ``Q_hat = Q_mu + softplus(gap)`` (:class:`OptimismGapHead`), which builds in
+``Q_hat >= Q^{mu_bar}`` (a max over instances is at least their mean).
+
 Estimator: **expectile TD** with a high level tau (``train.max_value_expectile``, default 0.95), on
 the same intra-option transitions as the switching head (a = pi^o(s), s in I_o):
 
@@ -35,20 +38,60 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import torch
+import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
+from torch import nn
 
 from taskvar_torch import keys
-from taskvar_torch.heads.networks import make_head
+from taskvar_torch.heads.networks import head_network, make_mlp
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.switching import continuation_value
 from taskvar_torch.heads.targets import expectile_loss, masked_mean
 
 
+class OptimismGapHead(nn.Module):
+    """``Q_hat(s, .) = Q_mu(s, .) + softplus(gap(s, .))``: the max-value head as an optimism gap.
+
+    A max over training instances is at least their average, ``Q_hat(s, o) >= Q^{mu_bar}(s, o)``;
+    this parametrisation builds the inequality in. So offline interruption never fires against the
+    option mu_bar itself picks (there ``Q_hat >= Q_mu = V^{mu_bar}``), and where no uncertainty is
+    left (``Q_hat = Q_mu`` exactly, e.g. one step from the goal) the learnt condition is not a coin
+    flip between two noisy estimates of the same number. The learner trains only ``gap`` on the
+    max-value loss (``Q_mu`` is detached there) and ``base`` on the switching loss.
+
+    Args:
+        base: the switching head's network ``(..., D) -> (..., O)``.
+        gap: the gap network ``(..., D) -> (..., O)``.
+    """
+
+    def __init__(self, base: nn.Module, gap: nn.Module):
+        super().__init__()
+        self.base = base
+        self.gap = gap
+
+    @staticmethod
+    def combine(base_value: torch.Tensor, gap_raw: torch.Tensor) -> torch.Tensor:
+        """``base + softplus(gap)`` (the learner calls it with a detached base)."""
+        return base_value + F.softplus(gap_raw)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.combine(self.base(x), self.gap(x))
+
+
 def make_max_value_head(
-    obs_dim: int, num_options: int, hidden: Sequence[int] = (64, 64), activation: str = "relu"
+    switching: nn.Module,
+    obs_dim: int,
+    num_options: int,
+    hidden: Sequence[int] = (64, 64),
+    activation: str = "relu",
 ) -> TensorDictModule:
-    """``observation (B, D) -> max_value (B, O)``."""
-    return make_head(keys.MAX_VALUE, obs_dim, num_options, hidden, activation)
+    """``observation (B, D) -> max_value (B, O)``: the switching head plus a fresh gap MLP."""
+    gap = make_mlp(obs_dim, num_options, hidden, activation)
+    return TensorDictModule(
+        OptimismGapHead(head_network(switching), gap),
+        in_keys=[keys.OBSERVATION],
+        out_keys=[keys.MAX_VALUE],
+    )
 
 
 def max_value_loss(

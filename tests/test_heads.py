@@ -1,0 +1,284 @@
+"""Head learners (SPEC §2, issue 3): losses against TorchRL's DQNLoss, the fused pass against the
+heads run one by one, relabelling, first-visit replay, the behaviour policy, target updates."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.modules import QValueActor
+from torchrl.objectives import DQNLoss
+
+from taskvar_torch import keys
+from taskvar_torch.config import load_config
+from taskvar_torch.heads.averaging import averaging_loss, make_averaging_head
+from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
+from taskvar_torch.heads.first_visit import FirstVisitFilter
+from taskvar_torch.heads.learner import (
+    ForeachSoftUpdate,
+    LossSettings,
+    MultiHeadLearner,
+    MultiHeadLoss,
+)
+from taskvar_torch.heads.max_value import OptimismGapHead
+from taskvar_torch.heads.networks import StackedMLP, head_network
+from taskvar_torch.heads.relabel import relabel
+from taskvar_torch.heads.robustness import component_matrix, parent_closure
+from taskvar_torch.heads.targets import expectile_loss, masked_mean
+from taskvar_torch.subtasks import Hierarchy
+from taskvar_torch.train import build_heads, make_env, make_subtasks
+
+torch.set_num_threads(1)
+CONFIG = "configs/windy.yaml"
+
+
+@pytest.fixture(scope="module")
+def windy():
+    cfg = load_config(CONFIG, ["env.num_envs=4"])
+    env = make_env(cfg)
+    subtasks = make_subtasks(cfg, env)
+    return cfg, env, subtasks
+
+
+def random_batch(env, B: int = 64, seed: int = 0) -> TensorDict:
+    """B raw windy transitions from uniformly random actions (like the replay buffer's rows)."""
+    g = torch.Generator().manual_seed(seed)
+    td = env.rollout(B // env.num_envs + 30, break_when_any_done=False)  # (N, T)
+    td = td.reshape(-1)
+    idx = torch.randperm(td.shape[0], generator=g)[:B]
+    return td[idx].exclude(keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
+
+
+def test_averaging_loss_equals_torchrl_double_dqn_loss(windy):
+    cfg, env, subtasks = windy
+    head = make_averaging_head(env.observation_spec[keys.OBSERVATION].shape[-1], 4)
+    actor = QValueActor(head.module, in_keys=[keys.OBSERVATION], spec=env.action_spec[0])
+    ref = DQNLoss(actor, action_space="categorical", delay_value=True, double_dqn=True)
+    ref.make_value_estimator(gamma=0.99)
+    with torch.no_grad():  # make the target differ from the online network
+        for p in ref.target_value_network_params.values(True, True):
+            p.add_(0.1 * torch.randn_like(p))
+    batch = random_batch(env)
+    expected = ref(batch.clone())["loss"]
+
+    tr = relabel(batch, subtasks)
+    q = head.module(tr.observation)
+    q_next = head.module(tr.next_observation).detach()
+    target_net = copy.deepcopy(head.module)
+    with torch.no_grad():
+        src = ref.target_value_network_params
+        for (_, p), (_, t) in zip(
+            sorted(src.items(True, True)), sorted(dict(target_net.named_parameters()).items())
+        ):
+            t.copy_(p)
+    got = averaging_loss(q, q_next, target_net(tr.next_observation), tr, 0.99, double_q=True)
+    torch.testing.assert_close(got, expected)
+
+
+def test_stacked_mlp_members_are_independent_networks():
+    torch.manual_seed(0)
+    stack = StackedMLP(7, (3, 5, 2), hidden=(16, 8))
+    x = torch.randn(11, 7)
+    out = stack(x)  # (K, 11, 5)
+    for k, size in enumerate((3, 5, 2)):
+        torch.testing.assert_close(out[k, :, :size], stack.forward_one(x, k))
+    # a member's gradient never touches another member's slice
+    stack.forward_one(x, 1).sum().backward()
+    for w in stack.weights:
+        assert (
+            w.grad[0].abs().sum() == 0 and w.grad[2].abs().sum() == 0 and w.grad[1].abs().sum() > 0
+        )
+
+
+def test_fused_pass_equals_each_head_run_alone(windy):
+    cfg, env, subtasks = windy
+    torch.manual_seed(0)
+    heads = build_heads(cfg, env, subtasks)
+    loss = MultiHeadLoss(heads, subtasks, LossSettings())
+    assert loss.stack is not None  # every head is a member of one StackedMLP
+    batch = random_batch(env)
+    cur, nxt, nxt_target = loss._head_outputs(
+        batch[keys.OBSERVATION], batch[keys.NEXT, keys.OBSERVATION]
+    )
+    out = heads(batch.select(keys.OBSERVATION).clone())
+    out_next = heads(TensorDict({keys.OBSERVATION: batch[keys.NEXT, keys.OBSERVATION]}, [64]))
+    for name, key in (
+        ("averaging", keys.ACTION_VALUE),
+        ("options", keys.OPTION_ACTION_VALUE),
+        ("switching", keys.OPTION_VALUE),
+        ("max_value", keys.MAX_VALUE),
+    ):
+        torch.testing.assert_close(cur[name], out[key])
+        torch.testing.assert_close(nxt[name], out_next[key])
+        torch.testing.assert_close(nxt_target[name], out_next[key])  # targets start as copies
+    assert out[keys.OPTION_ACTION_VALUE].shape == (64, 2, 4)
+
+
+def test_max_value_head_is_never_below_switching_head(windy):
+    cfg, env, subtasks = windy
+    heads = build_heads(cfg, env, subtasks)
+    assert isinstance(head_network(heads.heads["max_value"]), OptimismGapHead)
+    with torch.no_grad():
+        for p in heads.parameters():
+            p.normal_(0, 3.0)
+    td = heads(TensorDict({keys.OBSERVATION: torch.rand(256, 25)}, [256]))
+    assert (td[keys.MAX_VALUE] >= td[keys.OPTION_VALUE]).all()
+
+
+def test_every_loss_trains_only_its_own_head(windy):
+    cfg, env, subtasks = windy
+    torch.manual_seed(0)
+    heads = build_heads(cfg, env, subtasks)
+    loss = MultiHeadLoss(heads, subtasks, LossSettings())
+    losses = loss(random_batch(env))
+    order = {n: head_network(heads.heads[n]).index for n in ("averaging", "options", "switching")}
+    order["max_value"] = head_network(heads.heads["max_value"]).gap.index
+    for name, k in order.items():
+        heads.zero_grad()
+        losses[f"loss_{name}"].backward(retain_graph=True)
+        g = head_network(heads.heads["averaging"]).stack.weights[0].grad  # (K, D, H)
+        touched = [j for j in range(g.shape[0]) if g[j].abs().sum() > 0]
+        assert touched == [k], (name, touched)
+
+
+def test_relabel_gives_each_option_its_subtask_reward(windy):
+    cfg, env, subtasks = windy
+    batch = random_batch(env, B=256)
+    tr = relabel(batch, subtasks)
+    assert tr.subtask_reward.shape == (256, 2) and tr.initiation.dtype == torch.bool
+    arrived = tr.terminated.bool()
+    exit_used = env.model.exit_id[batch[keys.CELL]]
+    for o in range(2):
+        wrong = arrived & (exit_used != o)
+        expected = torch.where(wrong, -101.0, -1.0)
+        torch.testing.assert_close(tr.subtask_reward[:, o], expected)
+
+
+def test_masked_mean_averages_each_column_over_its_own_rows():
+    loss = torch.tensor([[1.0, 10.0], [3.0, 20.0], [5.0, 30.0]])
+    mask = torch.tensor([[True, False], [True, False], [False, False]])
+    assert masked_mean(loss, mask) == pytest.approx(2.0)
+
+
+def test_expectile_loss_minimiser_is_the_expectile():
+    samples = torch.tensor([-5.0, -4.0, -4.0, -3.0, -1.0])
+    for level, expected in ((0.5, samples.mean().item()), (0.999, -1.0)):
+        x = torch.zeros((), requires_grad=True)
+        opt = torch.optim.LBFGS([x], lr=1.0, max_iter=200)
+
+        def closure(x=x, level=level, opt=opt):
+            opt.zero_grad()
+            loss = expectile_loss(x.expand(5), samples, level).mean()
+            loss.backward()
+            return loss
+
+        opt.step(closure)
+        assert x.item() == pytest.approx(expected, abs=0.02)
+
+
+def test_parent_closure_sends_component_updates_to_the_composed_parent():
+    h = Hierarchy(root="TG+FE", children={"TG+FE": ("TG", "FE")})
+    m = component_matrix(("TG", "FE", "TG+FE"), h)
+    mask = torch.tensor([[True, False, False], [False, True, False], [False, False, False]])
+    got = parent_closure(mask, m)
+    assert got.tolist() == [[True, False, True], [False, True, True], [False, False, False]]
+
+
+def _looped_first_visit(obs, action, is_init):
+    keep = torch.zeros_like(action, dtype=torch.bool)
+    for n in range(action.shape[0]):
+        seen: set = set()
+        for t in range(action.shape[1]):
+            if is_init[n, t]:
+                seen = set()
+            key = (tuple(obs[n, t].tolist()), int(action[n, t]))
+            keep[n, t] = key not in seen
+            seen.add(key)
+    return keep
+
+
+def test_first_visit_filter_matches_a_per_environment_loop():
+    g = torch.Generator().manual_seed(0)
+    N, T, D = 5, 40, 3
+    obs = torch.randint(0, 3, (N, T, D), generator=g).float()  # many repeats
+    action = torch.randint(0, 2, (N, T), generator=g)
+    is_init = torch.rand(N, T, generator=g) < 0.1
+    is_init[:, 0] = True
+    batch = TensorDict(
+        {keys.OBSERVATION: obs, keys.ACTION: action, "is_init": is_init.unsqueeze(-1)}, [N, T]
+    )
+    f = FirstVisitFilter(N, D, buckets=1 << 16)
+    first, second = f(batch[:, :17]), f(batch[:, 17:])  # the flags carry across batches
+    expected = _looped_first_visit(obs, action, is_init)
+    assert torch.equal(torch.cat([first, second], 1), expected)
+    assert 0 < expected.float().mean() < 1
+
+
+def test_behaviour_picks_a_mode_per_episode_and_keeps_it(windy):
+    cfg, env, subtasks = windy
+    heads = build_heads(cfg, env, subtasks)
+    torch.manual_seed(0)
+    td = TensorDict(
+        {
+            keys.OBSERVATION: torch.eye(25)[:8],
+            keys.CELL: torch.arange(8),
+            "is_init": torch.ones(8, 1, dtype=torch.bool),
+        },
+        [8],
+    )
+    for prob, check in ((0.0, lambda m: (m == -1).all()), (1.0, lambda m: (m >= 0).all())):
+        pol = BehaviourPolicy(heads, subtasks, _spec(8), prob, eps=0.0)
+        out = pol(td.clone())
+        assert check(out[BEHAVIOUR])
+    pol = BehaviourPolicy(heads, subtasks, _spec(8), 0.5, eps=0.0)
+    out = pol(td.clone())
+    modes = out[BEHAVIOUR].clone()
+    out.set("is_init", torch.zeros(8, 1, dtype=torch.bool))
+    again = pol(out)  # not a new episode: the mode is kept (windy options never terminate early)
+    assert torch.equal(again[BEHAVIOUR], modes)
+    q = head_network(heads.heads["options"])(td[keys.OBSERVATION]).argmax(-1)  # (8, O)
+    q_avg = head_network(heads.heads["averaging"])(td[keys.OBSERVATION]).argmax(-1)
+    expected = torch.where(modes >= 0, q.gather(-1, modes.clamp(min=0)[:, None])[:, 0], q_avg)
+    assert torch.equal(again[keys.ACTION], expected)  # eps = 0: the chosen head's greedy action
+
+
+def _spec(n: int):
+    from torchrl.data import Categorical
+
+    return Categorical(4, shape=(n,), dtype=torch.int64)
+
+
+def test_soft_update_moves_every_target_once_by_tau(windy):
+    cfg, env, subtasks = windy
+    heads = build_heads(cfg, env, subtasks)
+    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, LossSettings()), target_tau=0.25)
+    assert isinstance(learner.target_updater, ForeachSoftUpdate)
+    stack = learner.loss.stack
+    target = learner.loss.target_stack
+    before = [t.detach().clone() for t in target.parameters()]
+    with torch.no_grad():
+        for p in stack.parameters():
+            p.add_(1.0)
+    learner.target_updater.step()
+    for b, t in zip(before, target.parameters()):
+        torch.testing.assert_close(t, b + 0.25)  # each shared tensor lerped exactly once
+
+
+def test_learner_update_changes_weights_and_pops_mean_losses(windy):
+    cfg, env, subtasks = windy
+    torch.manual_seed(0)
+    heads = build_heads(cfg, env, subtasks)
+    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, LossSettings()))
+    batch = random_batch(env)
+    w0 = [p.detach().clone() for p in heads.parameters()]
+    l1 = learner.update(batch)
+    l2 = learner.update(batch)
+    assert any(not torch.equal(a, b) for a, b in zip(w0, heads.parameters()))
+    row = learner.pop_losses()
+    assert set(row) == {"loss_averaging", "loss_options", "loss_switching", "loss_max_value"}
+    assert row["loss_options"] == pytest.approx(
+        (l1["loss_options"] + l2["loss_options"]).item() / 2
+    )
+    assert learner.pop_losses() == {}

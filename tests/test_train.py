@@ -1,0 +1,154 @@
+"""Trainer and ``taskvar train`` (issue 3): exact resume in a new process, divergence handling,
+refusals, the final bundle, the CLI."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+from taskvar_torch import keys
+from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
+from taskvar_torch.cli import main
+from taskvar_torch.config import load_config
+from taskvar_torch.train import TrainingDiverged, load_heads, train
+
+torch.set_num_threads(1)
+CONFIG = "configs/windy.yaml"
+TINY = [
+    "env.num_envs=4",
+    "train.frames_per_batch=100",
+    "train.total_frames=2000",
+    "train.checkpoint_every=1000",
+    "train.log_every=500",
+    "train.init_random_frames=300",
+    "train.batch_size=32",
+    "train.updates_per_batch=2",
+    "train.buffer_size=5000",
+]
+
+
+def taskvar(*args: str) -> subprocess.CompletedProcess:
+    """``taskvar ...`` in a new single-threaded process."""
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "RL_WARNINGS": "False"}
+    cmd = [sys.executable, "-m", "taskvar_torch.cli", *args, "--threads", "1", "--no-progress"]
+    return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+
+
+def assert_same(a, b, path="bundle"):
+    """Bit-for-bit equality of two plain-data bundles."""
+    if isinstance(a, dict):
+        assert set(a) == set(b), f"{path}: keys differ: {set(a) ^ set(b)}"
+        for k in a:
+            assert_same(a[k], b[k], f"{path}[{k!r}]")
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b), f"{path}: lengths differ"
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_same(x, y, f"{path}[{i}]")
+    elif isinstance(a, torch.Tensor):
+        assert torch.equal(a, b), f"{path} differs"
+    else:
+        assert a == b, f"{path}: {a!r} != {b!r}"
+
+
+def read_scalars(folder: Path) -> dict[str, list[tuple[int, str]]]:
+    out = {}
+    for f in sorted((folder / "logs" / "scalars").glob("loss_*.csv")):
+        rows = [line.split(",") for line in f.read_text().splitlines()]
+        out[f.stem] = [(int(step), value) for step, value in rows]
+    return out
+
+
+def test_2k_frames_equal_1k_then_resume_in_a_new_process_for_1k(tmp_path):
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    r = taskvar("train", CONFIG, "--out", str(straight), *TINY)
+    assert r.returncode == 0, r.stderr[-2000:]
+    half = straight / "checkpoint_000001000.pt"
+    assert half.is_file() and (straight / "final.pt").is_file()
+    r = taskvar("train", "--resume", str(half), "--out", str(resumed))
+    assert r.returncode == 0, r.stderr[-2000:]
+
+    a = load_checkpoint(straight / "final.pt")
+    b = load_checkpoint(resumed / "final.pt")
+    assert a["counters"]["frames"] == 2000 and a["counters"]["updates"] > 20
+    for k in ("versions",):
+        a.pop(k), b.pop(k)
+    # heads, targets, optimiser, replay, env state, RNG states, step counters: bit for bit
+    assert_same(a, b)
+    # the losses logged after the resume point are the same numbers, to the last digit
+    la, lb = read_scalars(straight), read_scalars(resumed)
+    assert set(la) == {"loss_averaging", "loss_options", "loss_switching", "loss_max_value"}
+    for name, rows in la.items():
+        after = [row for row in rows if row[0] > 1000]
+        assert after and after == lb[name], name
+
+
+def test_resume_refuses_a_changed_config(tmp_path):
+    train(load_config(CONFIG, [*TINY, "train.total_frames=1000"]), tmp_path / "a", progress=False)
+    ckpt = tmp_path / "a" / "final.pt"
+    with pytest.raises(CheckpointError, match="train.lr"):
+        train(None, tmp_path / "b", resume=ckpt, overrides=["train.lr=0.5"], progress=False)
+    # runtime keys may change: continue the same run for longer
+    result = train(
+        None, tmp_path / "c", resume=ckpt, overrides=["train.total_frames=1200"], progress=False
+    )
+    assert result["frames"] == 1200
+
+
+def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
+    # lr = 1e30: the first Adam steps overflow the weights, the losses become inf/NaN
+    cfg = load_config(CONFIG, [*TINY, "train.init_random_frames=1100", "train.lr=1e30"])
+    with pytest.raises(TrainingDiverged, match="non-finite loss"):
+        train(cfg, tmp_path, progress=False)
+    assert not (tmp_path / "final.pt").exists()
+    good = load_checkpoint(tmp_path / "checkpoint_000001000.pt", expected_config=cfg)
+    assert good["counters"]["frames"] == 1000
+    for t in good["models"]["heads"].values():
+        assert torch.isfinite(t).all()
+    heads, _ = load_heads(tmp_path / "checkpoint_000001000.pt")  # still a usable bundle
+
+
+def test_cli_reports_divergence_in_one_line(tmp_path, capsys):
+    status = main(
+        ["train", CONFIG, "--out", str(tmp_path), *TINY, "train.lr=1e30", "--no-progress"]
+    )
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2
+    assert err[-1].startswith("taskvar train: error: non-finite loss")
+
+
+def test_cli_rejects_a_misspelt_key_in_one_line(tmp_path, capsys):
+    status = main(["train", CONFIG, "--out", str(tmp_path), "train.lrr=0.1", "--no-progress"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert status == 2 and len(err) == 1 and "train.lrr" in err[0]
+
+
+@pytest.mark.parametrize("command", ["train", "eval", "experiment", "plot"])
+def test_cli_help(command, capsys):
+    with pytest.raises(SystemExit) as e:
+        main([command, "--help"])
+    assert e.value.code == 0
+    text = capsys.readouterr().out
+    assert f"usage: taskvar {command}" in text
+    if command == "train":
+        assert "--resume" in text and "train.total_frames" in text
+
+
+def test_final_bundle_reloads_the_trained_heads(tmp_path):
+    cfg = load_config(CONFIG, [*TINY, "train.total_frames=600", "train.checkpoint_every=0"])
+    train(cfg, tmp_path, progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml", "final.pt", "logs"]
+    bundle = load_checkpoint(tmp_path / "final.pt")
+    assert bundle["replay"]["size"] > 0 and bundle["counters"]["updates"] > 0
+    heads, cfg2 = load_heads(tmp_path / "final.pt")
+    assert cfg2 == cfg
+    for name, t in heads.state_dict().items():
+        assert torch.equal(t, bundle["models"]["heads"][name]), name
+    td = heads(TensorDict({keys.OBSERVATION: torch.eye(25)}, [25]))
+    assert td[keys.OPTION_ACTION_VALUE].shape == (25, 2, 4) and td[keys.MAX_VALUE].shape == (25, 2)
+    assert (td[keys.MAX_VALUE] >= td[keys.OPTION_VALUE]).all()
