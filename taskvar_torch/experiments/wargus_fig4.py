@@ -10,10 +10,12 @@ shared between repetitions):
 
    a. **learning** (learning on): ``L = experiment.learning_episodes_per_trial`` (30) episodes of
       the training instance distribution, played as L parallel sub-environments of one batched
-      ``WargusEnv`` by the behaviour policy (``heads/behaviour.py``); every transition of a live
-      episode goes to the replay buffer (first visits only with ``train.first_visit``), and every
-      ``train.frames_per_batch`` stored frames trigger ``train.updates_per_batch`` gradient steps of
-      the one multi-head learner, which trains *every* head from the same stream;
+      ``WargusEnv`` by the behaviour policy (``heads/behaviour.py``, epsilon from the trainer's
+      schedule over the frames played so far); every transition of a live episode goes to the
+      replay buffer (first visits only with ``train.first_visit``), and every
+      ``train.frames_per_batch`` frames played trigger ``train.updates_per_batch`` gradient steps
+      of the one multi-head learner (after ``train.init_random_frames``), which trains *every* head
+      from the same stream;
    b. **test** (learning off): ``K = experiment.test_episodes_per_trial`` (5) nominal episodes
       (fixed instance seeds :data:`~taskvar_torch.envs.wargus.NOMINAL_SEEDS`) with each method --
       averaging (greedy Q_avg), options (mu_bar + option policies run to termination),
@@ -32,6 +34,9 @@ Definitions used in ``metrics.json``:
   ``final_score`` (``T`` and ``reached_90pct = false`` if it never does);
 - ``hierarchy_trace``: fraction of the hierarchy's (alive) test steps at which each level / each
   subtask held control (Algorithm 2's decision), over all trials and over the last 10%.
+
+Repetitions run sequentially or, with ``workers > 1``, in spawned processes (one torch thread
+each); both give the same numbers (each repetition depends on its own seed only).
 
 Writes ``config.yaml``, ``rep{r}/final.pt`` (every head, loadable by ``taskvar eval``),
 ``per_trial.csv`` (rep, trial, method, items, interruptions), ``metrics.json``, ``fig4.png``;
@@ -215,7 +220,7 @@ def _full(td: TensorDictBase, value: int | bool) -> torch.Tensor:
 def learning_phase(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float]:
     """One episode per sub-environment (training instances) with learning on (paper §3.5.1).
 
-    Transitions of live episodes are replayed; every ``frames_per_batch`` stored frames the learner
+    Transitions of live episodes are replayed; every ``frames_per_batch`` frames played the learner
     takes ``updates_per_batch`` gradient steps on every head. Returns the mean items per episode
     and the frames played.
     """
@@ -396,23 +401,25 @@ def run_repetitions(
         pending = list(range(reps))
         running: dict[int, Any] = {}
         threads = max(1, torch.get_num_threads() // workers)
-        while pending or running:
-            while pending and len(running) < workers:
-                rep = pending.pop(0)
-                running[rep] = ctx.Process(
-                    target=_worker, args=(cfg, rep, str(out_dir), threads, queue)
-                )
-                running[rep].start()
-            kind, rep, payload = queue.get()
-            if kind == "trial":
-                bar.update(1)
-            elif kind == "error":
-                for p in running.values():
-                    p.terminate()
-                raise RuntimeError(f"repetition {rep} failed: {payload}")
-            else:
-                results[rep] = payload
-                running.pop(rep).join()
+        try:
+            while pending or running:
+                while pending and len(running) < workers:
+                    rep = pending.pop(0)
+                    running[rep] = ctx.Process(
+                        target=_worker, args=(cfg, rep, str(out_dir), threads, queue), daemon=True
+                    )
+                    running[rep].start()
+                kind, rep, payload = queue.get()
+                if kind == "trial":
+                    bar.update(1)
+                elif kind == "error":
+                    raise RuntimeError(f"repetition {rep} failed: {payload}")
+                else:
+                    results[rep] = payload
+                    running.pop(rep).join()
+        finally:  # an error or Ctrl-C here stops the other repetitions too
+            for p in running.values():
+                p.terminate()
     bar.close()
     return [results[r] for r in range(reps)]
 
