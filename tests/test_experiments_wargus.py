@@ -138,12 +138,23 @@ def test_side_by_side_equals_each_controller_alone():
         return TransformedEnv(base, primer)
 
     primer = controllers[-1].primer
+    trace = ("action", ("next", "running_option"))
     together = fig4.run_episodes(
-        nominal_env(len(controllers) * k, primer()), fig4.SideBySide(controllers, k)
-    )["return"]
+        nominal_env(len(controllers) * k, primer()), fig4.SideBySide(controllers, k), 40, trace
+    )
     for i, c in enumerate(controllers):
-        alone = fig4.run_episodes(nominal_env(k, primer()), c)["return"]
-        torch.testing.assert_close(together[i * k : (i + 1) * k], alone)
+        alone = fig4.run_episodes(
+            nominal_env(k, primer()), c, 40, trace if c.stateful else trace[:1]
+        )
+        rows = together[i * k : (i + 1) * k]
+        T = alone["trace", "alive"].shape[-1]
+        for key in ("return", "length", ("trace", "action"), ("trace", "alive")):
+            got = rows[key] if key[0] != "trace" else rows[key][:, :T]
+            torch.testing.assert_close(got, alone[key], msg=f"{c.name}: {key}")
+        if c.stateful:
+            key = ("trace", "next", "running_option")
+            torch.testing.assert_close(rows[key][:, :T], alone[key], msg=c.name)
+    assert together["length"].sum() > len(controllers) * k  # episodes last several steps
 
 
 def test_moving_average_matches_a_loop():

@@ -71,11 +71,12 @@ from tqdm.auto import tqdm
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
 from taskvar_torch.config import Config, atomic_write, save_config_yaml
-from taskvar_torch.controllers import Controller, make_controller
+from taskvar_torch.controllers import Controller, make_controller, option_first, select0
 from taskvar_torch.envs.wargus import NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.heads.behaviour import BehaviourPolicy
+from taskvar_torch.heads.bundle import HEAD_OUT_KEYS
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.train import (
     build_heads,
@@ -173,18 +174,25 @@ def make_test_controllers(agent: LifelongAgent) -> list[Controller]:
 class SideBySide(TensorDictModuleBase):
     """Several controllers on consecutive equal slices of one batch: one env step serves them all.
 
-    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``. Traces a controller
-    does not write are filled with -1 (``option``, ``hierarchy_level``) or False (``interrupted``);
-    stateless controllers carry ``running_option = -1``.
+    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``. Every head of the
+    shared bundle runs once over the whole batch, then each controller's decision rule
+    (:meth:`Controller.decide`, the same rule its ``forward`` applies) reads its slice. Traces a
+    controller does not write are filled with -1 (``option``, ``hierarchy_level``) or False
+    (``interrupted``); stateless controllers carry ``running_option = -1``.
     """
 
     TRACES = ((keys.OPTION, -1), (keys.HIERARCHY_LEVEL, -1), (keys.INTERRUPTED, False))
 
     def __init__(self, controllers: Sequence[Controller], slice_size: int):
         super().__init__()
+        heads = {id(c.heads) for c in controllers}
+        if len(heads) != 1:
+            raise ValueError("SideBySide needs controllers over one shared Heads bundle")
         self.controllers = torch.nn.ModuleList(controllers)
+        self.heads = controllers[0].heads
+        self.subtasks = next((c.subtasks for c in controllers if c.subtasks is not None), None)
         self.k = int(slice_size)
-        self.in_keys = [keys.OBSERVATION, keys.RUNNING_OPTION]
+        self.in_keys = [*self.heads.in_keys, keys.RUNNING_OPTION]
         self.out_keys = [
             keys.ACTION,
             (keys.NEXT, keys.RUNNING_OPTION),
@@ -193,24 +201,37 @@ class SideBySide(TensorDictModuleBase):
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         k = self.k
-        outs = [c(td[i * k : (i + 1) * k]) for i, c in enumerate(self.controllers)]
-        td.set(keys.ACTION, torch.cat([o.get(keys.ACTION) for o in outs]))
-        running = [o.get((keys.NEXT, keys.RUNNING_OPTION), None) for o in outs]
-        td.set(
-            (keys.NEXT, keys.RUNNING_OPTION),
-            torch.cat([r if r is not None else _full(o, -1) for r, o in zip(running, outs)]),
-        )
+        td = self.heads(td)  # every head once, over all rows
+        running = td.get(keys.RUNNING_OPTION)  # (B,)
+        beta = None
+        if self.subtasks is not None:
+            beta = option_first(self.subtasks.termination(td))  # (O, B)
+        outs = []
+        for i, c in enumerate(self.controllers):
+            rows = slice(i * k, (i + 1) * k)
+            values = {HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h])[rows] for h in c.required_heads}
+            run = running[rows] if c.stateful else None
+            term = None
+            if run is not None and c.subtasks is not None:
+                term = select0(beta[:, rows], run.clamp(min=0))  # beta_{o_run}(s_t)
+            out = c.decide(values, run, term)
+            if not c.stateful:
+                out["option"] = torch.full_like(out["action"], -1)
+            outs.append(out)
+        td.set(keys.ACTION, torch.cat([o["action"] for o in outs]))
+        td.set((keys.NEXT, keys.RUNNING_OPTION), torch.cat([o["option"] for o in outs]))
         for key, fill in self.TRACES:
-            vals = [o.get(key, None) for o in outs]
-            td.set(
-                key, torch.cat([v if v is not None else _full(o, fill) for v, o in zip(vals, outs)])
-            )
+            parts = [
+                o[key] if key in c.trace_keys else _full(o["action"], fill)
+                for o, c in zip(outs, self.controllers)
+            ]
+            td.set(key, torch.cat(parts))
         return td
 
 
-def _full(td: TensorDictBase, value: int | bool) -> torch.Tensor:
+def _full(like: torch.Tensor, value: int | bool) -> torch.Tensor:
     dtype = torch.bool if isinstance(value, bool) else torch.int64
-    return torch.full(td.batch_size, value, dtype=dtype, device=td.device)
+    return torch.full(like.shape, value, dtype=dtype, device=like.device)
 
 
 # --------------------------------------------------------------------------------------------
