@@ -13,11 +13,12 @@ else is carried. Every step (Algorithm 2, with greedy option policies ``pi^o = a
    ``o_run``. In that recursive call line 2 re-checks ``R(o_run, s_t, pi^{o_run}(s_t)) > tau``, which
    has just failed (deterministic policies), so it is not re-evaluated.
 
-Batched kernels. With greedy option policies the search reads only, per state, the bits
-``ok_o = R(o, s_t, pi^o(s_t)) > tau`` of every node and, per composed node, the index of its most
-robust component under its own action. So for small trees (``(O + 1) x 2^nodes x prod(#components)
-<= 65536``, e.g. 64 for Wargus's 3-node tree) :class:`TreeTables` precomputes the decision for every
-(running subtask, bits, choices) code and the kernel is one table lookup
+Batched kernels. With greedy option policies the search reads only, per state and per *composed*
+node ``o``, the bit ``ok_o = R(o, s_t, pi^o(s_t)) > tau`` and the index of its most robust component
+under its own action (leaves always act, and only composed nodes are parents). So for small trees
+(``(O + 1) x prod over composed nodes of 2 x #components <= 65536``, e.g. 16 for Wargus's 3-node
+tree) :class:`TreeTables` precomputes the decision for every (running subtask, bits, choices) code
+and the kernel is one table lookup
 (:func:`hierarchy_decide_table_of`); larger trees walk the levels (:func:`hierarchy_search_of`,
 bounded by the tree depth). Both are tested against the scalar search and the oracle's.
 """
@@ -56,8 +57,7 @@ class TreeTables:
     depth: Tensor  # (O,) int64: 0 at the root
     max_depth: int
     # compiled decision table (None for trees too large to tabulate)
-    ok_weight: Tensor | None = None  # (O, 1) int64: 2^k for the k-th tree node, 0 elsewhere
-    internal: tuple[tuple[int, Tensor, int], ...] = ()  # (node, components (n,), radix)
+    internal: tuple[tuple[int, Tensor, int, int], ...] = ()  # (node, components, bit, radix)
     num_codes: int = 0  # codes per running value
     table_option: Tensor | None = None  # ((O + 1) * num_codes,) int64: the option that acts
     table_level: Tensor | None = None  # ((O + 1) * num_codes,) int64: its depth
@@ -109,8 +109,7 @@ class TreeTables:
             self.child_mask.to(device),
             self.depth.to(device),
             self.max_depth,
-            mv(self.ok_weight),
-            tuple((i, k.to(device), r) for i, k, r in self.internal),
+            tuple((i, k.to(device), b, r) for i, k, b, r in self.internal),
             self.num_codes,
             mv(self.table_option),
             mv(self.table_level),
@@ -120,22 +119,27 @@ class TreeTables:
 def _compile_table(
     hierarchy: Hierarchy, names: list[str], root: int, parent: list[int], depth: list[int]
 ) -> dict[str, Any]:
-    """Algorithm 2's decision for every (running subtask, robustness bits, component choices)."""
+    """Algorithm 2's decision for every (running subtask, robustness bits, component choices).
+
+    Code of a state: bit ``j`` = composed node ``j`` is robust under its own action; digit ``j`` (mixed
+    radix) = the index of its most robust component under that action.
+    """
     O = len(names)  # noqa: E741
     nodes = [names.index(o) for o in hierarchy.options]
     kids = {i: sorted(names.index(k) for k in hierarchy.components(names[i])) for i in nodes}
     internal = [i for i in nodes if kids[i]]
-    radices, r = [], 2 ** len(nodes)
+    bits = {i: 1 << j for j, i in enumerate(internal)}
+    radices, r = {}, 2 ** len(internal)
     for i in internal:
-        radices.append(r)
+        radices[i] = r
         r *= len(kids[i])
     num_codes = r
     if (O + 1) * num_codes > TreeTables.MAX_TABLE:
         return {}
     opt = torch.empty((O + 1) * num_codes, dtype=torch.int64)
     for code in range(num_codes):
-        ok = {n: bool(code >> k & 1) for k, n in enumerate(nodes)}
-        choice = {i: kids[i][(code // radices[j]) % len(kids[i])] for j, i in enumerate(internal)}
+        ok = {i: bool(code & bits[i]) for i in internal}
+        choice = {i: kids[i][(code // radices[i]) % len(kids[i])] for i in internal}
         for running in range(-1, O):
             o = root if running < 0 else running
             p = parent[o]
@@ -143,16 +147,12 @@ def _compile_table(
                 node = p
             else:
                 node = o
-                while kids.get(node) and not ok.get(node, False):  # lines 5-11
+                while kids.get(node) and not ok[node]:  # lines 5-11 (leaves always act)
                     node = choice[node]
             opt[(running + 1) * num_codes + code] = node
-    weight = torch.zeros(O, 1, dtype=torch.int64)
-    for k, n in enumerate(nodes):
-        weight[n, 0] = 1 << k
     return {
-        "ok_weight": weight,
         "internal": tuple(
-            (i, torch.tensor(kids[i], dtype=torch.int64), rad) for i, rad in zip(internal, radices)
+            (i, torch.tensor(kids[i], dtype=torch.int64), bits[i], radices[i]) for i in internal
         ),
         "num_codes": num_codes,
         "table_option": opt,
@@ -187,18 +187,17 @@ def hierarchy_decide_table_of(
     tau: float,
 ) -> dict[str, Tensor]:
     """Algorithm 2 by table lookup: encode each state's robustness bits and component choices."""
-    acts = argmax0(q_opt.transpose(0, 1))  # (O, B): pi^o(s_t) of every option (line 1, 5)
-    own = robustness.gather(1, acts.unsqueeze(1)).squeeze(1)  # (O, B): R(o, s_t, pi^o(s_t))
-    code = ((own > tau) * tree.ok_weight).sum(0)  # (B,) int64: bit k = node k robust (line 2, 6)
-    O = robustness.shape[0]  # noqa: E741
-    for node, kids, radix in tree.internal:  # line 10: most robust component under node's action
-        a = acts[node].view(1, 1, -1).expand(O, 1, -1)
-        r_kids = robustness.gather(1, a).squeeze(1).index_select(0, kids)  # (n, B)
-        code = code + argmax0(r_kids) * radix
+    code = torch.zeros(running.shape, dtype=torch.int64, device=running.device)
+    for node, kids, bit, radix in tree.internal:
+        a = argmax0(q_opt[node])  # (B,): pi^node(s_t) (lines 1, 5)
+        rob_a = robustness.gather(1, a.view(1, 1, -1).expand(robustness.shape[0], 1, -1))
+        rob_a = rob_a.squeeze(1)  # (O, B): R(q, s_t, pi^node(s_t)) for every q
+        code = code + (rob_a[node] > tau) * bit  # robust under its own action (lines 2, 6)
+        code = code + argmax0(rob_a.index_select(0, kids)) * radix  # q* of line 10
     code = code + (running + 1) * tree.num_codes
     option = tree.table_option.index_select(0, code)  # (B,)
     return {
-        "action": select0(acts, option),
+        "action": argmax0(select0(q_opt, option)),  # the acting option's greedy action
         "option": option,
         keys.HIERARCHY_LEVEL: tree.table_level.index_select(0, code),
         keys.INTERRUPTED: (running >= 0) & (option != running),
