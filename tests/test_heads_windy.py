@@ -1,0 +1,53 @@
+"""Learnt heads against the exact oracle on the default 5x5 windy family (issue 3 acceptance).
+
+One training run per session (module fixture): ``configs/windy.yaml`` with a smaller budget
+(40k frames, about 4.5k updates of every head), then four checks against
+:class:`~taskvar_torch.oracle.WindyOracle` on the same layout and training distribution.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from taskvar_torch.config import load_config
+from taskvar_torch.heads.validate import compare_with_oracle
+from taskvar_torch.oracle import WindyOracle
+from taskvar_torch.train import load_heads, train
+
+torch.set_num_threads(1)
+pytestmark = pytest.mark.slow
+
+BUDGET = ["train.total_frames=40000", "train.eps_decay_frames=20000", "train.checkpoint_every=0"]
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    cfg = load_config("configs/windy.yaml", BUDGET)
+    out = tmp_path_factory.mktemp("windy_heads")
+    result = train(cfg, out, progress=False)
+    heads, cfg = load_heads(result["final"])
+    oracle = WindyOracle(
+        "default", gamma=cfg.train.gamma, horizon=cfg.env.horizon, train_instances="train"
+    )
+    return compare_with_oracle(heads, oracle)
+
+
+def test_averaging_head_within_half_a_step_of_the_mean_mdp_optimum(report):
+    # exact expected return over training instances and start cells (undiscounted steps)
+    assert report["averaging_return"] >= report["oracle_averaging_return"] - 0.5, report
+
+
+def test_each_option_head_within_half_a_step_of_the_oracle_option(report):
+    for got, best in zip(report["option_returns"], report["oracle_option_returns"]):
+        assert got >= best - 0.5, report
+
+
+def test_mu_bar_agrees_with_the_oracle_where_option_values_differ(report):
+    assert report["mu_bar_cells"] >= 8  # all cells but the tied middle row
+    assert report["mu_bar_agreement"] == 1.0, report
+
+
+def test_max_value_head_near_oracle_and_interruption_condition_agrees(report):
+    assert report["max_value_error"] <= 1.0, report
+    assert report["interruption_agreement"] >= 0.9, report
