@@ -166,7 +166,7 @@ def test_option_first_kernels_equal_reductions(K):
 
 @pytest.mark.parametrize("name", ["averaging", "options", "interruption", "hierarchy"])
 def test_batched_decisions_equal_a_per_environment_loop(name):
-    S, B = 25, 600  # B >= LARGE_BATCH: the batched call takes the elementwise-loop kernels
+    S, B = 25, 600
     t = random_tables(S, seed=1)
     names = ("root", "a", "b")
     heads = table_heads(names, averaging=t["options"][:, 0], **t)

@@ -79,14 +79,11 @@ def argmax0(x: Tensor) -> Tensor:
 
 def _pick(cond: Tensor, a: Tensor | int, b: Tensor | int) -> Tensor:
     """``where(cond, a, b)`` as uint8 indices; cheap when ``a == b + 1`` are Python ints."""
-    if isinstance(a, int) and isinstance(b, int) and a == b + 1:
+    if isinstance(a, int) and isinstance(b, int):  # leaf pairs are consecutive: (b, b + 1)
         c = cond.to(torch.uint8)
+        c = c if a - b == 1 else c * (a - b)
         return c + b if b else c
-    if isinstance(a, int):
-        a = torch.tensor(a, dtype=torch.uint8, device=cond.device)
-    if isinstance(b, int):
-        b = torch.tensor(b, dtype=torch.uint8, device=cond.device)
-    return torch.where(cond, a, b)
+    return torch.where(cond, a, b)  # a Python int operand keeps the tensor's uint8 dtype
 
 
 def max0(x: Tensor) -> Tensor:
