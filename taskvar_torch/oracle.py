@@ -44,6 +44,18 @@ Design decisions (documented here once):
   ``argmax`` (lowest index on ties) and the strict ``<`` of Algorithm 1 line 6 give the same decisions
   in the controllers as in the oracle, regardless of floating-point noise. Heads default to
   float64 so that no two distinct values collapse in a cast.
+- **Controllers** (:meth:`WindyOracle.controller_return`) are evaluated exactly as Markov chains on
+  (cell, carried state): the state is the option/subtask that acted last step (or none), the
+  decision kernel is tabulated from the heads' outputs at every cell (any :class:`Heads`: the
+  oracle's tables or trained networks) by an implementation of Algorithms 1 and 2 independent of
+  ``controllers/``. :meth:`WindyOracle.controller_fire_count` gives the exact expected number of
+  interruptions (Algorithm 1) or control moves (Algorithm 2) per episode.
+- **Where interruption matters.** With the paper's training distribution the oracle's own tables
+  satisfy Definition 1's condition at 12 (cell, option) pairs on every shipped layout, but none is
+  reached while that option runs (from any start cell, in any instance): options and interruption
+  have identical exact returns. (Wall cells are states of the tables too; ignore them.) Trained
+  on south winds only, ``whole_column_windy`` makes interruption fire (up to 0.4 times per episode)
+  and changes returns by up to 38 steps in north-wind instances.
 
 Examples:
     >>> oracle = WindyOracle("default")
