@@ -3,7 +3,7 @@
 PYTHON ?= python3
 VENV ?= .venv
 BIN := $(VENV)/bin
-OUT ?= results/oracle
+OUT ?= results/windy-fig2-quick
 
 .PHONY: demo test install install-test lint clean
 
@@ -21,7 +21,7 @@ install-test: $(BIN)/python
 
 ## demo: install everything and run the main job (train, evaluate, print the table, write the plot)
 demo: install
-	$(BIN)/python -m taskvar_torch.experiments.oracle_table --out $(OUT)
+	$(BIN)/taskvar experiment windy-fig2 --quick --out $(OUT)
 
 ## test: install the test extras and run the whole suite (what .ci/run calls)
 test: install-test
