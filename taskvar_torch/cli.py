@@ -15,6 +15,7 @@ Errors in the inputs (a misspelt config key, a foreign checkpoint, a diverged ru
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -64,7 +65,14 @@ def _train_arguments(p: argparse.ArgumentParser) -> None:
         help="continue exactly from a checkpoint of a previous run (its config is used; only "
         "runtime keys such as train.total_frames may be overridden)",
     )
-    p.add_argument("--threads", type=int, metavar="N", help="torch CPU threads (default: torch's)")
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="torch CPU threads (default 1: the heads are small MLPs, and more threads only "
+        "contend on a shared CPU; raise it for large networks)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
@@ -80,10 +88,9 @@ def _train_run(args: argparse.Namespace) -> int:
     from taskvar_torch.config import load_config
     from taskvar_torch.train import train
 
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
     config_path, overrides = _split_config_and_overrides(args.items)
     if config_path is None and args.resume is None:
         raise ValueError("give a CONFIG file (e.g. configs/windy.yaml) or --resume PATH")
@@ -103,7 +110,7 @@ def _train_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_oracle_summary(path) -> None:
+def _print_oracle_summary(path: str | os.PathLike) -> None:
     """For small windy layouts, print the learnt heads beside the exact oracle (SPEC §4)."""
     from taskvar_torch.train import load_heads
 

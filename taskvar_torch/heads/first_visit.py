@@ -34,7 +34,13 @@ class FirstVisitFilter(nn.Module):
         device: torch device.
     """
 
-    def __init__(self, num_envs: int, obs_dim: int, buckets: int = 1 << 14, device=None):
+    def __init__(
+        self,
+        num_envs: int,
+        obs_dim: int,
+        buckets: int = 1 << 14,
+        device: torch.device | str | None = None,
+    ):
         super().__init__()
         self.buckets = int(buckets)
         gen = torch.Generator().manual_seed(12345)

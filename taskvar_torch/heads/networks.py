@@ -161,10 +161,3 @@ def make_head(
 def head_network(head: nn.Module) -> nn.Module:
     """The plain ``nn.Module`` inside a head (``TensorDictModule.module``), for fused learners."""
     return head.module if isinstance(head, TensorDictModule) else head
-
-
-@torch.no_grad()
-def init_output_bias(head: nn.Module, value: float) -> None:
-    """Set the output bias of a head's MLP to ``value`` (e.g. a pessimistic initial value)."""
-    last = [m for m in head_network(head).modules() if isinstance(m, nn.Linear)][-1]
-    last.bias.fill_(value)
