@@ -674,8 +674,11 @@ def eval_checkpoint(
     episodes and method (``test``: ``test`` for the training distribution, ``south`` for
     south-only). Writes ``out_dir/metrics.json`` when ``out_dir`` is given.
     """
+    from taskvar_torch.controllers import CONTROLLERS
     from taskvar_torch.train import load_heads
 
+    if method not in CONTROLLERS:  # fail before any work or progress bar, in one line
+        raise ValueError(f"method must be one of {list(CONTROLLERS)}, got {method!r}")
     WindyInstances.named(test)  # a one-line error naming the distribution
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
