@@ -65,14 +65,7 @@ def _train_arguments(p: argparse.ArgumentParser) -> None:
         help="continue exactly from a checkpoint of a previous run (its config is used; only "
         "runtime keys such as train.total_frames may be overridden)",
     )
-    p.add_argument(
-        "--threads",
-        type=int,
-        default=1,
-        metavar="N",
-        help="torch CPU threads (default 1: the heads are small MLPs, and more threads only "
-        "contend on a shared CPU; raise it for large networks)",
-    )
+    _threads_argument(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
@@ -83,14 +76,10 @@ def _train_epilog() -> str:
 
 
 def _train_run(args: argparse.Namespace) -> int:
-    import torch
-
     from taskvar_torch.config import load_config
     from taskvar_torch.train import train
 
-    if args.threads < 1:
-        raise ValueError(f"--threads must be >= 1, got {args.threads}")
-    torch.set_num_threads(args.threads)
+    _set_threads(args)
     config_path, overrides = _split_config_and_overrides(args.items)
     if config_path is None and args.resume is None:
         raise ValueError("give a CONFIG file (e.g. configs/windy.yaml) or --resume PATH")
@@ -146,26 +135,49 @@ def _print_oracle_summary(path: str | os.PathLike) -> None:
 # taskvar eval | experiment | plot (thin wrappers over taskvar_torch.experiments)
 
 
+def _threads_argument(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="torch CPU threads (default 1: the heads are small MLPs, and more threads only "
+        "contend on a shared CPU; raise it for large networks)",
+    )
+
+
+def _set_threads(args: argparse.Namespace) -> None:
+    import torch
+
+    if args.threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
+
+
 def _eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", required=True, metavar="PATH", help="bundle from taskvar train")
     p.add_argument(
         "--method",
         default="interruption",
-        choices=("averaging", "options", "interruption", "hierarchy"),
-        help="controller (default: interruption)",
+        help="controller: averaging, options, interruption or hierarchy (default: interruption)",
     )
     p.add_argument("--episodes", type=int, default=1000, help="test episodes (default 1000)")
     p.add_argument("--test", default="test", help="test distribution: test, south, north, train")
     p.add_argument("--seed", type=int, help="test seed (default: the experiment's run 0)")
     p.add_argument("--out", metavar="DIR", help="write DIR/metrics.json")
+    _threads_argument(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
 def _eval_run(args: argparse.Namespace) -> int:
     import json
 
+    from taskvar_torch.config import METHODS
     from taskvar_torch.experiments.windy_fig2 import eval_checkpoint
 
+    _set_threads(args)
+    if args.method not in METHODS:
+        raise ValueError(f"--method must be one of {sorted(METHODS)}, got {args.method!r}")
     metrics = eval_checkpoint(
         args.checkpoint,
         args.method,
