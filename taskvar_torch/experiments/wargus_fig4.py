@@ -49,9 +49,7 @@ Examples:
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import io
 import json
 import math
 import os
@@ -70,11 +68,12 @@ from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
-from taskvar_torch.config import Config, atomic_write, save_config_yaml
+from taskvar_torch.config import Config, save_config_yaml
 from taskvar_torch.controllers import Controller, make_controller, option_first, select0
 from taskvar_torch.envs.wargus import NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.experiments.results import write_csv, write_json
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.heads.bundle import HEAD_OUT_KEYS
 from taskvar_torch.heads.first_visit import FirstVisitFilter
@@ -468,7 +467,7 @@ def wargus_fig4(
     items = np.stack([r["items"] for r in results])  # (R, T, M)
     inter = np.stack([r["interruptions"] for r in results])  # (R, T, M)
     control = np.stack([r["control_steps"] for r in results])  # (R, T, O)
-    write_csv(out / "per_trial.csv", _csv_rows(items, inter))
+    write_csv(out / "per_trial.csv", _csv_rows(items, inter), CSV_FIELDS)
     metrics = summarise(
         items, inter, control, results[0]["option_names"], results[0]["option_depths"]
     )
@@ -614,30 +613,8 @@ def summarise(
 # files, table, plot
 
 
-def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
-    """Per-trial rows as CSV (atomic)."""
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(CSV_FIELDS))
-    w.writeheader()
-    w.writerows(rows)
-    data = buf.getvalue().encode()
-    atomic_write(path, lambda f: f.write(data))
 
 
-def write_json(path: Path, obj: Any) -> None:
-    """JSON (non-finite floats written as null), atomically."""
-
-    def clean(x: Any) -> Any:
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        return x
-
-    data = json.dumps(clean(obj), indent=1).encode()
-    atomic_write(path, lambda f: f.write(data))
 
 
 def format_table(metrics: dict[str, Any]) -> str:

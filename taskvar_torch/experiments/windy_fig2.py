@@ -29,10 +29,8 @@ from __future__ import annotations
 
 import csv
 import json
-import math
 import os
 import time
-from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -44,7 +42,6 @@ from tqdm.auto import tqdm
 from taskvar_torch import keys
 from taskvar_torch.config import (
     Config,
-    atomic_write,
     load_config,
     save_config_yaml,
     windy_env_kwargs,
@@ -55,6 +52,7 @@ from taskvar_torch.envs import windy
 from taskvar_torch.envs.instances import WindyInstances
 from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.evaluation import mean_ci95, paired_summary, run_episodes
+from taskvar_torch.experiments.results import write_csv, write_json
 from taskvar_torch.heads.bundle import Heads
 
 METHODS = ("averaging", "options", "interruption")
@@ -507,7 +505,7 @@ def windy_fig2(
     metrics["train_seconds"] = train_seconds
     metrics["eval_seconds"] = time.perf_counter() - eval_t0
     metrics["wall_seconds"] = time.perf_counter() - t0
-    write_csv(out / CSV_NAME, all_rows)
+    write_csv(out / CSV_NAME, all_rows, CSV_FIELDS)
     write_json(out / METRICS_NAME, metrics)
     plot_results(out)
     print(format_table(metrics))
@@ -523,31 +521,8 @@ def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
     return dataclasses.replace(ckpt_cfg, experiment=cfg.experiment, eval=cfg.eval)
 
 
-def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> None:
-    """Per-episode rows as CSV (atomic)."""
-    import io
-
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(CSV_FIELDS), extrasaction="ignore", restval="")
-    w.writeheader()
-    w.writerows(rows)
-    data = buf.getvalue().encode()
-    atomic_write(path, lambda f: f.write(data))
 
 
-def write_json(path: Path, obj: Any) -> None:
-    """JSON (NaN written as null), atomically."""
-    def clean(x: Any) -> Any:
-        if isinstance(x, dict):
-            return {k: clean(v) for k, v in x.items()}
-        if isinstance(x, (list, tuple)):
-            return [clean(v) for v in x]
-        if isinstance(x, float) and not math.isfinite(x):
-            return None
-        return x
-
-    data = json.dumps(clean(obj), indent=2).encode()
-    atomic_write(path, lambda f: f.write(data))
 
 
 # --------------------------------------------------------------------------------------------
