@@ -70,7 +70,7 @@ class FirstVisitFilter(nn.Module):
         rows = torch.arange(N, device=action.device)
         keep = torch.empty(N, T, dtype=torch.bool, device=action.device)
         for t in range(T):
-            self.seen[is_init[:, t]] = False
+            self.seen.masked_fill_(is_init[:, t].unsqueeze(-1), False)  # new episodes
             h = self._hash(obs[:, t], action[:, t])  # (N,)
             keep[:, t] = ~self.seen[rows, h]
             self.seen[rows, h] = True
