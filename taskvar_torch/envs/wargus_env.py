@@ -5,10 +5,10 @@ from __future__ import annotations
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
 
 from taskvar_torch import keys, rng
 from taskvar_torch.envs import wargus
+from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, WargusState
 
 
@@ -26,7 +26,7 @@ def check_start(config: WargusConfig, start: tuple[int, int] | None) -> tuple[in
     return r, c
 
 
-class WargusEnv(EnvBase):
+class WargusEnv(BatchedFamilyEnv):
     """Batched Wargus resource-gathering family (paper §3.5) as a TorchRL environment.
 
     ## Description
@@ -83,8 +83,6 @@ class WargusEnv(EnvBase):
         torch.Size([8, 10, 24])
     """
 
-    batch_locked = True
-
     def __init__(
         self,
         num_envs: int = 1,
@@ -130,12 +128,7 @@ class WargusEnv(EnvBase):
         self.validate_actions = validate_actions
         self._make_specs()
         self._index = torch.arange(self.num_envs, device=self.device) + self.index_offset  # (N,)
-        self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
         self._set_seed(seed)
-
-    @property
-    def num_envs(self) -> int:
-        return self.batch_size[0]
 
     def _make_specs(self) -> None:
         N, K, M = self.num_envs, self.config.num_patrols, self.config.num_items
@@ -175,18 +168,7 @@ class WargusEnv(EnvBase):
             self.config.num_actions, shape=(N,), dtype=torch.int64, device=dev
         )
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
-        done = Categorical(2, shape=(N, 1), dtype=torch.bool, device=dev)
-        self.done_spec = Composite(
-            {k: done.clone() for k in (keys.DONE, keys.TERMINATED, keys.TRUNCATED)},
-            shape=(N,),
-            device=dev,
-        )
-
-    def _set_seed(self, seed: int | None) -> None:
-        seed = 0 if seed is None else int(seed)
-        self._base_key = rng.sub_env_key(seed, self._index)  # (N,)
-        self._episode = torch.full_like(self._episode, -1)
-        self._seed = seed
+        self._make_done_spec()
 
     def _out(
         self,
@@ -213,30 +195,12 @@ class WargusEnv(EnvBase):
                 device=self.device,
             ),
         }
-        if terminated is None:
-            terminated = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
-            truncated = terminated
-        else:
-            td[keys.REWARD] = reward
-        td[keys.TERMINATED] = terminated
-        td[keys.TRUNCATED] = truncated
-        td[keys.DONE] = terminated | truncated
-        return TensorDict._new_unsafe(td, batch_size=self.batch_size, device=self.device)
+        return self._finish(td, reward, terminated, truncated)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        reset = None if tensordict is None else tensordict.get("_reset", None)
-        if reset is None or not hasattr(self, "_state"):
-            idx = None
-            episode = self._episode + 1
-        else:
-            idx = reset.reshape(-1).nonzero().squeeze(-1)  # indices of the sub-envs to reset
-            episode = self._episode.index_put((idx,), self._episode[idx] + 1)
-        self._episode = episode
-        if idx is None:
-            base, index, ep = self._base_key, self._index, episode
-        else:
-            base, index, ep = self._base_key[idx], self._index[idx], episode[idx]
-        ekey = rng.episode_key(base, ep)  # (n,) env episode keys
+        idx, ekey = self._next_episodes(tensordict, started=hasattr(self, "_state"))  # (n,) keys
+        index = self._index if idx is None else self._index[idx]
+        ep = self._episode if idx is None else self._episode[idx]
         iseed = self.instances.sample(ekey, index, ep)  # (n,) instance seeds
         ikey = wargus.instance_key(iseed)  # (n,)
         st = wargus.reset(self.model, ikey, self.start)
@@ -255,15 +219,6 @@ class WargusEnv(EnvBase):
             )
             self._picked = self._picked.index_put((idx,), torch.zeros_like(iseed))
         return self._out(self._picked)
-
-    def _reset_proc_data(self, tensordict, tensordict_reset):
-        # ``_reset`` returns every sub-environment's current data (unchanged where not reset), so a
-        # plain update is exact; it avoids TorchRL's whole-batch ``where`` merge on partial resets.
-        self._complete_done(self.full_done_spec, tensordict_reset)
-        if tensordict is None:
-            return tensordict_reset
-        tensordict.pop("_reset", None)
-        return tensordict.update(tensordict_reset)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(keys.ACTION).reshape(-1)  # (N,)

@@ -6,10 +6,10 @@ import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
-from torchrl.envs import EnvBase
 
 from taskvar_torch import keys, rng
 from taskvar_torch.envs import windy
+from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.envs.instances import WindyInstances, windy_instances
 
 OBS_ENCODINGS = ("onehot", "coords_patch")
@@ -65,7 +65,7 @@ def resolve_layout(layout: str | windy.WindyLayout) -> windy.WindyLayout:
     )
 
 
-class WindyGridEnv(EnvBase):
+class WindyGridEnv(BatchedFamilyEnv):
     """Batched windy gridworld family (paper §3.3.1) as a TorchRL environment.
 
     ## Description
@@ -118,8 +118,6 @@ class WindyGridEnv(EnvBase):
         torch.Size([8, 10, 1])
     """
 
-    batch_locked = True
-
     def __init__(
         self,
         num_envs: int = 1,
@@ -163,12 +161,7 @@ class WindyGridEnv(EnvBase):
         self._noise_salt = rng.hash32(rng.hash32(self.noise_seed & rng.MASK32) ^ 0x5BD1E995)
         self.validate_actions = validate_actions
         self._make_specs()
-        self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
         self._set_seed(seed)
-
-    @property
-    def num_envs(self) -> int:
-        return self.batch_size[0]
 
     def _make_specs(self) -> None:
         N, S = self.num_envs, self.model.num_cells
@@ -190,19 +183,7 @@ class WindyGridEnv(EnvBase):
         )
         self.action_spec = Categorical(4, shape=(N,), dtype=torch.int64, device=dev)
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
-        flag = Categorical(2, shape=(N, 1), dtype=torch.bool, device=dev)
-        self.done_spec = Composite(
-            {k: flag.clone() for k in (keys.DONE, keys.TERMINATED, keys.TRUNCATED)},
-            shape=(N,),
-            device=dev,
-        )
-
-    def _set_seed(self, seed: int | None) -> None:
-        seed = 0 if seed is None else int(seed)
-        idx = torch.arange(self.num_envs, device=self.device) + self.index_offset
-        self._base_key = rng.sub_env_key(seed, idx)
-        self._episode = torch.full_like(self._episode, -1)
-        self._seed = seed
+        self._make_done_spec()
 
     _RUNTIME_STATE = ("_base_key", "_episode", "_key32", "_threshold", "_t", "_p", "_dir", "_cell")
     """Simulator state that changes as the env runs (saved for exact resume)."""
@@ -233,7 +214,6 @@ class WindyGridEnv(EnvBase):
         self._seed = int(state["seed"])
 
     def _out(self, cell, p, direction, reward=None, terminated=None, truncated=None):
-        N = self.num_envs
         td = {
             keys.OBSERVATION: self._obs_table.index_select(0, cell),
             keys.CELL: cell,
@@ -241,27 +221,10 @@ class WindyGridEnv(EnvBase):
                 {"p": p, "direction": direction}, batch_size=self.batch_size, device=self.device
             ),
         }
-        if terminated is None:
-            terminated = torch.zeros(N, 1, dtype=torch.bool, device=self.device)
-            truncated = terminated
-        else:
-            td[keys.REWARD] = reward
-        td[keys.TERMINATED] = terminated
-        td[keys.TRUNCATED] = truncated
-        td[keys.DONE] = terminated | truncated
-        return TensorDict._new_unsafe(td, batch_size=self.batch_size, device=self.device)
+        return self._finish(td, reward, terminated, truncated)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        reset = None if tensordict is None else tensordict.get("_reset", None)
-        if reset is None or not hasattr(self, "_cell"):
-            idx = None
-            episode = self._episode + 1
-        else:
-            idx = reset.reshape(-1).nonzero().squeeze(-1)  # indices of the sub-envs to reset
-            episode = self._episode.index_put((idx,), self._episode[idx] + 1)
-        self._episode = episode
-        base = self._base_key if idx is None else self._base_key[idx]
-        key = rng.episode_key(base, episode if idx is None else episode[idx])
+        idx, key = self._next_episodes(tensordict, started=hasattr(self, "_cell"))
         p, direction = self.instances.sample(key)
         if self.start is None:
             starts = self.model.start_cells
@@ -282,15 +245,6 @@ class WindyGridEnv(EnvBase):
             self._dir = self._dir.index_put((idx,), direction)
             self._cell = self._cell.index_put((idx,), cell)
         return self._out(self._cell, self._p, self._dir)
-
-    def _reset_proc_data(self, tensordict, tensordict_reset):
-        # ``_reset`` returns every sub-environment's current data (unchanged where not reset), so a
-        # plain update is exact; it avoids TorchRL's whole-batch ``where`` merge on partial resets.
-        self._complete_done(self.full_done_spec, tensordict_reset)
-        if tensordict is None:
-            return tensordict_reset
-        tensordict.pop("_reset", None)
-        return tensordict.update(tensordict_reset)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(keys.ACTION).reshape(-1)

@@ -1,0 +1,86 @@
+"""What every batched family env shares (DESIGN "Env state and params"): the ``EnvBase`` only adds
+specs, seeding and reset around pure dynamics.
+
+Subclasses keep their simulator state in tensors that are replaced, never mutated (tensors handed
+out in a tensordict stay valid), and return *every* sub-environment's data from ``_reset``
+(unchanged where not reset), so a partial reset is merged with a plain update instead of TorchRL's
+whole-batch ``where``.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Categorical, Composite
+from torchrl.envs import EnvBase
+
+from taskvar_torch import keys, rng
+
+
+class BatchedFamilyEnv(EnvBase):
+    """Base of :class:`WindyGridEnv` and :class:`WargusEnv`: done specs, keys, episode counters."""
+
+    batch_locked = True
+
+    @property
+    def num_envs(self) -> int:
+        return self.batch_size[0]
+
+    def _make_done_spec(self) -> None:
+        N, dev = self.num_envs, self.device
+        flag = Categorical(2, shape=(N, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(
+            {k: flag.clone() for k in (keys.DONE, keys.TERMINATED, keys.TRUNCATED)},
+            shape=(N,),
+            device=dev,
+        )
+
+    def _set_seed(self, seed: int | None) -> None:
+        """Sub-environment ``i`` draws from key ``(seed, index_offset + i)``: any split of N agrees."""
+        seed = 0 if seed is None else int(seed)
+        index = torch.arange(self.num_envs, device=self.device) + self.index_offset
+        self._base_key = rng.sub_env_key(seed, index)  # (N,)
+        self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
+        self._seed = seed
+
+    def _next_episodes(
+        self, tensordict: TensorDictBase | None, started: bool
+    ) -> tuple[torch.Tensor | None, torch.Tensor]:
+        """Advance the episode counter of the sub-envs to reset; ``(indices or None, their keys)``.
+
+        ``indices`` is ``None`` for a full reset (no ``_reset`` mask, or the first reset).
+        """
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        if reset is None or not started:
+            self._episode = self._episode + 1
+            return None, rng.episode_key(self._base_key, self._episode)
+        idx = reset.reshape(-1).nonzero().squeeze(-1)  # (n,) sub-envs to reset
+        episode = self._episode[idx] + 1
+        self._episode = self._episode.index_put((idx,), episode)
+        return idx, rng.episode_key(self._base_key[idx], episode)
+
+    def _finish(
+        self,
+        td: dict,
+        reward: torch.Tensor | None = None,  # (N, 1) float32
+        terminated: torch.Tensor | None = None,  # (N, 1) bool
+        truncated: torch.Tensor | None = None,  # (N, 1) bool
+    ) -> TensorDictBase:
+        """Add reward (after a step) and done flags (all False after a reset); build the tensordict."""
+        if terminated is None:
+            terminated = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
+            truncated = terminated
+        else:
+            td[keys.REWARD] = reward
+        td[keys.TERMINATED] = terminated
+        td[keys.TRUNCATED] = truncated
+        td[keys.DONE] = terminated | truncated
+        return TensorDict._new_unsafe(td, batch_size=self.batch_size, device=self.device)
+
+    def _reset_proc_data(self, tensordict, tensordict_reset):
+        # ``_reset`` returns every sub-environment's current data, so a plain update is exact.
+        self._complete_done(self.full_done_spec, tensordict_reset)
+        if tensordict is None:
+            return tensordict_reset
+        tensordict.pop("_reset", None)
+        return tensordict.update(tensordict_reset)
