@@ -224,7 +224,11 @@ def _experiment_run(args: argparse.Namespace) -> int:
 
     if args.name == "wargus-fig4":
         return _wargus_fig4_run(args)
+    import torch
+
     from taskvar_torch.experiments.windy_fig2 import default_config_path, windy_fig2
+
+    torch.set_num_threads(1)  # small MLPs: more threads only contend on a shared CPU (see train)
 
     config_path, overrides = _split_config_and_overrides(args.items)
     cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)

@@ -44,7 +44,7 @@ from taskvar_torch.envs.windy_env import OBS_ENCODINGS
 FAMILIES = ("wargus", "windy")
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
 TARGET_UPDATES = ("hard", "soft")
-SWITCHING_MODES = ("intra", "smdp")
+SWITCHING_MODES = ("intra",)
 MU_BAR_MODES = ("greedy", "softmax")
 METHODS = ("averaging", "hierarchy", "interruption", "options")
 GENERATED = "generated"
@@ -163,7 +163,7 @@ class TrainConfig:
     max_value_expectile: float = 0.95
     """Expectile level of the max-value head's upper estimator, in (0, 1)."""
     switching: str = "intra"
-    """Option-switching learner: smdp (option-level transitions) or intra (intra-option)."""
+    """Option-switching learner: intra (intra-option Q-learning; SMDP learning is not built yet)."""
     mu_bar: str = "greedy"
     """mu_bar over Q_mu: greedy or softmax."""
     mu_bar_temperature: float = 1.0

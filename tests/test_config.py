@@ -255,7 +255,7 @@ def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
     "override, parts",
     [
         ("family=atari", ["family must be one of ['wargus', 'windy']", "'atari'"]),
-        ("train.switching=hybrid", ["train.switching must be one of ['intra', 'smdp']"]),
+        ("train.switching=hybrid", ["train.switching must be one of ['intra']"]),
         ("train.mu_bar=eps", ["train.mu_bar must be one of ['greedy', 'softmax']"]),
         ("train.target_update=polyak", ["train.target_update must be one of ['hard', 'soft']"]),
         ("env.obs_encoding=pixels", ["env.obs_encoding must be one of ['coords_patch', 'onehot']"]),
