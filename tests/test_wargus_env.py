@@ -435,3 +435,24 @@ def test_cuda_matches_cpu_bit_for_bit():
     cpu, croot = _run(WargusEnv(16, seed=8, **SMALL), actions)
     gpu, groot = _run(WargusEnv(16, seed=8, device="cuda", **SMALL), actions.cuda())
     assert (gpu.cpu() == cpu).all() and torch.equal(groot.cpu(), croot)
+
+
+def test_state_dict_continues_the_episodes_exactly():
+    """Exact resume: a fresh env loading another's state_dict continues its episodes bit for bit."""
+    gen = torch.Generator().manual_seed(0)
+    a = WargusEnv(6, seed=3)
+    td = a.reset()
+    for _ in range(40):
+        td["action"] = torch.randint(0, 8, (6,), generator=gen)
+        _, td = a.step_and_maybe_reset(td)
+    b = WargusEnv(6, seed=99)
+    b.reset()
+    b.load_state_dict(a.state_dict())
+    ta, tb = td.clone(), td.clone()
+    for _ in range(150):
+        act = torch.randint(0, 8, (6,), generator=gen)
+        ta["action"], tb["action"] = act, act.clone()
+        oa, ta = a.step_and_maybe_reset(ta)
+        ob, tb = b.step_and_maybe_reset(tb)
+        assert torch.equal(oa["next", "observation"], ob["next", "observation"])
+        assert torch.equal(oa["next", "done"], ob["next", "done"])

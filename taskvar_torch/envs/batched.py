@@ -21,6 +21,8 @@ class BatchedFamilyEnv(EnvBase):
     """Base of :class:`WindyGridEnv` and :class:`WargusEnv`: done specs, keys, episode counters."""
 
     batch_locked = True
+    _RUNTIME_STATE: tuple[str, ...] = ()
+    """Tensor attributes ``(N, ...)`` that change as the env runs (saved for exact resume)."""
 
     @property
     def num_envs(self) -> int:
@@ -58,6 +60,40 @@ class BatchedFamilyEnv(EnvBase):
         episode = self._episode[idx] + 1
         self._episode = self._episode.index_put((idx,), episode)
         return idx, rng.episode_key(self._base_key[idx], episode)
+
+    def _runtime_state(self) -> dict[str, torch.Tensor]:
+        return {name[1:]: getattr(self, name) for name in self._RUNTIME_STATE if hasattr(self, name)}
+
+    def _load_runtime_state(self, state: dict[str, torch.Tensor]) -> None:
+        for name in self._RUNTIME_STATE:
+            if name[1:] in state:
+                setattr(self, name, state[name[1:]])
+
+    def get_extra_state(self) -> dict:
+        """Runtime state for exact resume (``nn.Module`` extra state, so ``env.state_dict()`` has it).
+
+        Holds the seed and the per-sub-environment keys, episode counters, instances and simulator
+        state: ``env.load_state_dict(other.state_dict())`` continues ``other``'s episodes exactly.
+        """
+        state = {k: v.clone() for k, v in self._runtime_state().items()}
+        state["seed"] = self._seed
+        return state
+
+    def set_extra_state(self, state: dict) -> None:
+        """Restore :meth:`get_extra_state` (the env must have the same ``num_envs``)."""
+        tensors = {}
+        for k, v in state.items():
+            if k == "seed":
+                continue
+            value = torch.as_tensor(v, device=self.device)
+            if value.shape[:1] != (self.num_envs,):
+                raise ValueError(
+                    f"env state {k!r} has shape {tuple(value.shape)}, expected ({self.num_envs}, ...): "
+                    "num_envs must match the saved env"
+                )
+            tensors[k] = value.clone()
+        self._load_runtime_state(tensors)
+        self._seed = int(state["seed"])
 
     def _finish(
         self,

@@ -170,6 +170,20 @@ class WargusEnv(BatchedFamilyEnv):
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
         self._make_done_spec()
 
+    _RUNTIME_STATE = ("_base_key", "_episode", "_iseed", "_ikey", "_picked")
+
+    def _runtime_state(self) -> dict[str, torch.Tensor]:
+        state = super()._runtime_state()
+        if hasattr(self, "_state"):
+            state.update({f"state_{k}": v for k, v in self._state._asdict().items()})
+        return state
+
+    def _load_runtime_state(self, state: dict[str, torch.Tensor]) -> None:
+        super()._load_runtime_state(state)
+        fields = WargusState._fields
+        if all(f"state_{k}" in state for k in fields):
+            self._state = WargusState(*(state[f"state_{k}"] for k in fields))
+
     def _out(
         self,
         picked: torch.Tensor,  # (N,) int64

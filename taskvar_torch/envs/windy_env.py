@@ -188,31 +188,6 @@ class WindyGridEnv(BatchedFamilyEnv):
     _RUNTIME_STATE = ("_base_key", "_episode", "_key32", "_threshold", "_t", "_p", "_dir", "_cell")
     """Simulator state that changes as the env runs (saved for exact resume)."""
 
-    def get_extra_state(self) -> dict:
-        """Runtime state for exact resume (``nn.Module`` extra state, so ``env.state_dict()`` has it).
-
-        Holds the seed and the per-sub-environment keys, episode counters, instances, cells and step
-        counts: ``env.load_state_dict(other.state_dict())`` continues ``other``'s episodes exactly.
-        """
-        state = {"seed": self._seed}
-        for name in self._RUNTIME_STATE:
-            if hasattr(self, name):
-                state[name[1:]] = getattr(self, name).clone()
-        return state
-
-    def set_extra_state(self, state: dict) -> None:
-        """Restore :meth:`get_extra_state` (the env must have the same ``num_envs``)."""
-        for name in self._RUNTIME_STATE:
-            if name[1:] in state:
-                value = torch.as_tensor(state[name[1:]], device=self.device)
-                if value.shape != (self.num_envs,):
-                    raise ValueError(
-                        f"env state {name[1:]!r} has shape {tuple(value.shape)}, expected "
-                        f"({self.num_envs},): num_envs must match the saved env"
-                    )
-                setattr(self, name, value.clone())
-        self._seed = int(state["seed"])
-
     def _out(self, cell, p, direction, reward=None, terminated=None, truncated=None):
         td = {
             keys.OBSERVATION: self._obs_table.index_select(0, cell),
