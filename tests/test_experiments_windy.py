@@ -90,6 +90,10 @@ def test_metrics_have_every_key_and_fractions_in_unit_interval(results):
         assert sum(section["interruption_cells"]) == pytest.approx(
             section["interruptions_per_episode"] * RUNS * EPISODES)
     assert m["seeds"] == [wf.test_seed(load_config(results / "config.yaml"), r) for r in range(RUNS)]
+    starts = m["oracle_by_start"]  # learnt averaging policy beside the oracle's optimum
+    assert [tuple(r["start"]) for r in starts] == [(r, 0) for r in range(5)]
+    for r in starts:  # exact 100-step returns of stationary policies lie in [-100, -1]
+        assert -100.0 <= r["learnt"] <= -1.0 and -100.0 <= r["oracle_optimum"] <= -1.0
 
 
 @pytest.mark.parametrize("method,test,key", [("interruption", "test", None),
