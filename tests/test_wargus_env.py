@@ -51,7 +51,8 @@ def _keys(n: int, offset: int = 0) -> torch.Tensor:
 # TorchRL env, driven with fixed actions; record every step's outcome and the post-reset state
 _FIELDS = (
     keys.OBSERVATION, keys.REWARD, keys.TERMINATED, keys.TRUNCATED, wargus.AGENT_POS,
-    wargus.ITEM_SEEN, wargus.PATROL_SEEN, wargus.PICKED, (keys.INSTANCE, wargus.INSTANCE_SEED),
+    wargus.ITEM_SEEN, wargus.PATROL_SEEN, wargus.PICKED, wargus.ITEM_LOST,
+    (keys.INSTANCE, wargus.INSTANCE_SEED),
 )
 
 
@@ -178,10 +179,14 @@ def test_gym_and_torchrl_bit_identical():
         assert term == bool(tr[keys.TERMINATED][t, 0, 0]) and trunc == bool(tr[keys.TRUNCATED][t, 0, 0])
         assert info["instance"]["seed"] == int(tr[keys.INSTANCE, wargus.INSTANCE_SEED][t, 0])
         assert info[wargus.AGENT_POS] == tuple(tr[wargus.AGENT_POS][t, 0].tolist())
+        for k in (wargus.ITEM_SEEN, wargus.PATROL_SEEN, wargus.PICKED, wargus.ITEM_LOST):
+            assert info[k] == tr[k][t, 0].item() and type(info[k]) is type(tr[k][t, 0].item()), (k, t)
         if term or trunc:
             obs, info = g.reset()
             assert np.array_equal(obs, troot[t + 1, 0].numpy()), t
+            assert info[wargus.ITEM_LOST] is False and info[wargus.PICKED] == 0
     assert tr[keys.TERMINATED].any() and tr[keys.TRUNCATED].any()
+    assert tr[wargus.ITEM_LOST].any() and tr[wargus.PICKED].any()  # the events were exercised
 
 
 def test_pinned_instance_fixes_the_episode_whatever_the_env_seed():
@@ -299,6 +304,69 @@ def test_item_respawns_on_pickup():
     data, _ = _run(env, _actions(300, 16, seed=1))
     assert torch.equal(data[keys.REWARD][..., 0], data[wargus.PICKED].float())
     assert data[wargus.PICKED].sum() > 10
+
+
+def test_item_lost_is_the_event_seen_then_unseen_without_a_pickup():
+    # on a long batched rollout with auto-resets: item_lost(s') == seen(s) & ~seen(s') & no pickup,
+    # and False on every reset
+    env = WargusEnv(8, seed=2, **SMALL)
+    td = env.reset()
+    assert not td[wargus.ITEM_LOST].any() and td[wargus.ITEM_LOST].dtype == torch.bool
+    lost_total = 0
+    for a in _actions(600, 8, seed=4):
+        td[keys.ACTION] = a
+        out, td = env.step_and_maybe_reset(td)
+        nxt = out[keys.NEXT]
+        want = out[wargus.ITEM_SEEN] & ~nxt[wargus.ITEM_SEEN] & (nxt[wargus.PICKED] == 0)
+        assert torch.equal(nxt[wargus.ITEM_LOST], want)
+        done = nxt[keys.DONE].squeeze(-1)
+        assert not td[wargus.ITEM_LOST][done].any()  # the new episode starts without an event
+        assert torch.equal(td[wargus.ITEM_LOST][~done], nxt[wargus.ITEM_LOST][~done])
+        lost_total += int(nxt[wargus.ITEM_LOST].sum())
+    assert lost_total > 20
+    # a pickup whose new item appears out of sight is not losing sight of the item
+    cfg = WargusConfig(size=32, sight=2, shoot_range=0, hit_prob=0.0)
+    m = WargusModel(cfg)
+    s = _state([5, 5], [[30, 30]], [[5, 6]])
+    nxt, picked, _ = wargus.step(m, s, torch.tensor([2]), _keys(1))  # east onto the item
+    seen_after = wargus.observe(m, nxt)[1]
+    assert picked.item() == 1 and not seen_after.item()  # (this key's new item is far away)
+    assert not wargus.item_lost(torch.tensor([True]), seen_after, picked).item()
+    assert wargus.item_lost(torch.tensor([True]), seen_after, torch.zeros(1, dtype=torch.int64)).item()
+
+
+def test_item_lost_fires_on_the_step_that_leaves_sight_gym_and_torchrl():
+    # walk onto the item's area, then away from it: the event fires once, on leaving sight
+    cfg = dict(size=24, sight=3, shoot_range=0, hit_prob=0.0, patrol_speed=0.0, horizon=200)
+    g = WargusGymEnv(**cfg)
+    obs, info = g.reset(seed=0, options={"instance": {"seed": 3}, "start": (12, 12)})
+    assert info[wargus.ITEM_LOST] is False
+    item = np.array(info["instance"]["item_pos"][0])
+    dirs = {d: i for i, d in enumerate(wargus.DELTAS[:8])}
+    actions, events = [], []
+
+    def move(sign) -> dict:
+        diff = np.sign(item - np.array(info[wargus.AGENT_POS])) * sign
+        a = dirs[(int(diff[0]), int(diff[1]))]
+        actions.append(a)
+        out = g.step(a)
+        events.append(out[4][wargus.ITEM_LOST])
+        return out[4]
+
+    assert not info[wargus.ITEM_SEEN]  # (this instance's item starts out of sight)
+    while not info[wargus.ITEM_SEEN]:
+        info = move(+1)
+        assert info[wargus.PICKED] == 0
+    assert not any(events)  # coming into sight is no event
+    while info[wargus.ITEM_SEEN]:
+        info = move(-1)
+    assert events[-1] is True and sum(events) == 1  # exactly on the step that leaves sight
+    info = move(-1)
+    assert events[-1] is False  # staying out of sight is no event
+    # the TorchRL env emits the same events for the same actions
+    env = WargusEnv(1, seed=0, instances=WargusInstances.fixed(3), start=(12, 12), **cfg)
+    data, _ = _run(env, torch.tensor(actions).view(-1, 1))
+    assert data[wargus.ITEM_LOST][:, 0].tolist() == events
 
 
 def _expected_sector(dr: int, dc: int) -> int:
@@ -456,3 +524,4 @@ def test_state_dict_continues_the_episodes_exactly():
         ob, tb = b.step_and_maybe_reset(tb)
         assert torch.equal(oa["next", "observation"], ob["next", "observation"])
         assert torch.equal(oa["next", "done"], ob["next", "done"])
+        assert torch.equal(oa["next", wargus.ITEM_LOST], ob["next", wargus.ITEM_LOST])

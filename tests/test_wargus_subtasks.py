@@ -17,7 +17,10 @@ TG, FE, TGFE = 0, 1, 2
 
 
 def _td(rows: list[tuple]) -> TensorDict:
-    """Transitions from rows ``(item_seen, patrol_seen, item_seen', patrol_seen', picked', destroyed)``."""
+    """Transitions from rows ``(item_seen, patrol_seen, item_seen', patrol_seen', picked', destroyed)``.
+
+    The event ``item_lost'`` is derived as the env emits it (``wargus.item_lost``); no event at s.
+    """
     t = torch.tensor(rows, dtype=torch.int64)  # (B, 6)
     B = t.shape[0]
     return TensorDict(
@@ -25,10 +28,12 @@ def _td(rows: list[tuple]) -> TensorDict:
             wargus.ITEM_SEEN: t[:, 0].bool(),
             wargus.PATROL_SEEN: t[:, 1].bool(),
             wargus.PICKED: torch.zeros(B, dtype=torch.int64),
+            wargus.ITEM_LOST: torch.zeros(B, dtype=torch.bool),
             keys.NEXT: {
                 wargus.ITEM_SEEN: t[:, 2].bool(),
                 wargus.PATROL_SEEN: t[:, 3].bool(),
                 wargus.PICKED: t[:, 4],
+                wargus.ITEM_LOST: wargus.item_lost(t[:, 0].bool(), t[:, 2].bool(), t[:, 4]),
                 keys.TERMINATED: t[:, 5:6].bool(),
             },
         },
@@ -47,24 +52,62 @@ def test_names_hierarchy_and_initiation_anywhere():
     assert init.shape == (2, 3) and init.dtype == torch.bool and init.all()
 
 
-def test_termination_on_state_events():
+def test_termination_on_events():
     sub = WargusSubtasks()
-    # rows are next states: (item_seen, patrol_seen, picked)
     td = _td(
         [
-            (0, 0, 1, 0, 0, 0),  # item seen, no patrol: TG runs, FE ends
-            (0, 0, 1, 1, 0, 0),  # patrol seen: TG ends, FE runs
-            (0, 0, 0, 0, 0, 0),  # item lost: TG ends
+            (0, 0, 1, 0, 0, 0),  # comes into sight of the item, no patrol: TG runs, FE ends
+            (1, 0, 1, 1, 0, 0),  # patrol seen: TG ends, FE runs
+            (1, 0, 0, 0, 0, 0),  # loses sight of the item: TG ends
             (0, 0, 1, 0, 1, 0),  # just picked an item (new one in sight): TG ends
+            (1, 0, 0, 0, 1, 0),  # just picked an item (new one out of sight): TG ends
+            (0, 0, 0, 0, 0, 0),  # item out of sight, as before: no event, TG runs (seeks by bearing)
+            (1, 0, 1, 0, 0, 0),  # item still in sight: TG runs
+            (0, 1, 0, 1, 0, 0),  # patrol still in sight, item unseen: TG ends, FE runs
         ]
     )
+    assert td[keys.NEXT, wargus.ITEM_LOST].tolist() == [0, 0, 1, 0, 0, 0, 0, 0]
     beta = sub.termination(td[keys.NEXT])
-    assert beta.tolist() == [
-        [False, True, False],
-        [True, False, False],
-        [True, True, False],
-        [True, True, False],
-    ]
+    assert beta.dtype == torch.bool and beta.shape == (8, 3)
+    assert beta[:, TG].tolist() == [0, 1, 1, 1, 1, 0, 0, 1]
+    assert beta[:, FE].tolist() == [1, 0, 1, 1, 1, 1, 1, 0]
+    assert not beta[:, TGFE].any()  # the root is the whole task
+    # TG's termination reads the event, not the state: the same next state (item unseen, no
+    # patrol) ends TG only when sight of the item was just lost
+    assert beta[2, TG] and not beta[5, TG]
+    assert torch.equal(td[keys.NEXT, wargus.ITEM_SEEN][[2, 5]], torch.tensor([False, False]))
+
+
+def test_tg_started_where_the_item_is_unseen_runs_until_an_event():
+    # follow the item's bearing (TG's intended policy) from starts mostly out of the item's sight:
+    # TG must not terminate before the first event (patrol seen, item picked, item lost)
+    env = WargusEnv(64, seed=1, size=32, sight=4, shoot_range=1, hit_prob=0.0, horizon=100)
+    sub = WargusSubtasks()
+    td = env.reset()
+    start_unseen = ~td[wargus.ITEM_SEEN]
+    assert start_unseen.sum() > 40
+    running = torch.ones(64, dtype=torch.bool)  # TG started at every start state
+    steps_unseen = torch.zeros(64, dtype=torch.int64)
+    ended_by = torch.zeros(64, dtype=torch.int64)  # 1 pick, 2 patrol, 3 lost
+    for _ in range(60):
+        bearing = td[keys.OBSERVATION][:, wargus.OBS_ITEM_BEARING]
+        td[keys.ACTION] = bearing.argmax(-1)  # move towards the item's bearing
+        out, td = env.step_and_maybe_reset(td)
+        nxt = out[keys.NEXT]
+        beta_tg = sub.termination(nxt)[:, TG]
+        event = nxt[wargus.PATROL_SEEN] | nxt[wargus.ITEM_LOST] | (nxt[wargus.PICKED] > 0)
+        assert torch.equal(beta_tg, event)
+        steps_unseen += (running & ~nxt[wargus.ITEM_SEEN]).long()
+        kind = torch.where(
+            nxt[wargus.PICKED] > 0, 1, torch.where(nxt[wargus.PATROL_SEEN], 2, 3)
+        )
+        ended_by = torch.where(running & beta_tg, kind, ended_by)
+        running = running & ~beta_tg & ~nxt[keys.DONE].squeeze(-1)
+    assert not nxt[wargus.ITEM_LOST][ended_by == 0].any()
+    assert not (ended_by == 3).any()  # following the bearing never loses sight of the item
+    # TG ran for several steps where the item was unseen, and mostly reached the item
+    assert (steps_unseen[start_unseen] >= 3).float().mean() > 0.8
+    assert (ended_by[start_unseen] == 1).sum() > (ended_by[start_unseen] == 2).sum()
 
 
 def test_subtask_rewards_on_hand_built_transitions():
@@ -103,6 +146,7 @@ def test_robustness_rewards_on_hand_built_transitions():
     )
     rr = sub.robustness_reward(td)
     assert rr[:, TG].tolist() == [1, 1, -1, 0, 1, 0, 0, 1, 1]
+    assert torch.equal(rr[:, TG] == -1, td[keys.NEXT, wargus.ITEM_LOST])  # -1 exactly on the event
     assert rr[:, FE].tolist() == [0, 0, 0, 0, 0, -1, -1, 1, -1]
     assert torch.equal(rr[:, TGFE], rr[:, TG] + rr[:, FE])
     pen = WargusSubtasks(robustness_destruction_penalty=10.0).robustness_reward(td)
@@ -121,6 +165,9 @@ def test_robustness_ranks_item_seen_and_patrol_sight_as_intended():
     unseen = ~seen & (td[keys.NEXT, wargus.PICKED] == 0)  # a pickup counts as reaching the item
     assert (rr[..., TG][seen] == 1).all() and (rr[..., TG][unseen] <= 0).all()
     assert (rr[..., FE][in_sight] == -1).all() and (rr[..., FE][~in_sight] >= 0).all()
+    # SPEC: "-1 when it leaves the area where the item is seen" is the env's event item_lost
+    assert torch.equal(rr[..., TG] == -1, td[keys.NEXT, wargus.ITEM_LOST])
+    assert td[keys.NEXT, wargus.ITEM_LOST].any()
 
 
 def test_batched_equals_per_env_loop():

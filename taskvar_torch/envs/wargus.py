@@ -47,6 +47,12 @@ centred on the compass directions, decided in exact integer arithmetic (no ``ata
 device agrees); an object on the agent's own cell has an all-zero bearing. Bearings are always
 observed; offsets only when seen. Sight is symmetric: the agent sees a patrol exactly when the
 patrol sees the agent.
+
+**Events** beside the observation (integer state for subtask terminations, SPEC §1.2 "options
+terminate on events"): ``picked``, the items picked on the step that led here, and ``item_lost``
+(:func:`item_lost`), the agent *lost sight of the item* on that step: an item was seen before the
+step, none is seen after it, and none was picked (reaching an item is not losing it, even when the
+new one appears out of sight). Both are 0 / False after a reset.
 """
 
 from __future__ import annotations
@@ -90,6 +96,7 @@ AGENT_POS = "agent_pos"  # (N, 2) int64 (row, col)
 ITEM_SEEN = "item_seen"  # (N,) bool: the nearest item is within sight
 PATROL_SEEN = "patrol_seen"  # (N,) bool: some patrol is within sight
 PICKED = "picked"  # (N,) int64: items picked on the step that led here (0 after reset)
+ITEM_LOST = "item_lost"  # (N,) bool: the step that led here lost sight of the item (False after reset)
 # Hidden, under ("instance", ...): never read by a policy.
 INSTANCE_SEED = "seed"  # (N,) int64 in [0, 2^32): the instance
 PATROL_POS = "patrol_pos"  # (N, K, 2) int64
@@ -490,6 +497,20 @@ def observe(
         (agent.to(torch.float32) * (1.0 / (model.size - 1)), per_object.view(B, 22)), -1
     )  # (B, 24)
     return obs, seen[:, 0], seen[:, 1]
+
+
+def item_lost(
+    seen_before: torch.Tensor,  # (B,) bool: item_seen before the step
+    seen_after: torch.Tensor,  # (B,) bool: item_seen after it
+    picked: torch.Tensor,  # (B,) int64: items picked on the step
+) -> torch.Tensor:
+    """The event "lost sight of the item" (B,) bool: seen before, not after, nothing picked.
+
+    Items stay put until picked, so with nothing picked the item goes out of sight only because the
+    agent walked away from it; a pickup whose new item appears out of sight is reaching the goal,
+    not losing it (the same reading as TG's robustness reward, ``subtasks/wargus.py``).
+    """
+    return seen_before & ~seen_after & (picked == 0)
 
 
 def check_actions(model: WargusModel, action: torch.Tensor) -> None:

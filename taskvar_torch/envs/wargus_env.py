@@ -43,7 +43,9 @@ class WargusEnv(BatchedFamilyEnv):
     ``observation`` (N, 24) float32, laid out in ``envs/wargus.py`` (own position, nearest item and
     patrol bearings, seen flags, offsets when seen). Integer state for relabelling subtask rewards
     from raw transitions: ``agent_pos`` (N, 2) int64, ``item_seen`` (N,) bool, ``patrol_seen``
-    (N,) bool, ``picked`` (N,) int64 (items picked on the step that led here). Hidden, for
+    (N,) bool, ``picked`` (N,) int64 (items picked on the step that led here), ``item_lost`` (N,)
+    bool (the step that led here lost sight of the item: seen before, not after, nothing picked;
+    see ``envs/wargus.py``); ``picked`` and ``item_lost`` are 0 / False after a reset. Hidden, for
     analysis only: ``("instance", "seed")`` (N,) int64, ``("instance", "patrol_pos")`` (N, K, 2),
     ``("instance", "item_pos")`` (N, M, 2).
 
@@ -149,6 +151,7 @@ class WargusEnv(BatchedFamilyEnv):
                 wargus.ITEM_SEEN: flag.clone(),
                 wargus.PATROL_SEEN: flag.clone(),
                 wargus.PICKED: Bounded(0, M, shape=(N,), dtype=torch.int64, device=dev),
+                wargus.ITEM_LOST: flag.clone(),
                 keys.INSTANCE: Composite(
                     {
                         wargus.INSTANCE_SEED: Bounded(
@@ -170,7 +173,7 @@ class WargusEnv(BatchedFamilyEnv):
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
         self._make_done_spec()
 
-    _RUNTIME_STATE = ("_base_key", "_episode", "_iseed", "_ikey", "_picked")
+    _RUNTIME_STATE = ("_base_key", "_episode", "_iseed", "_ikey", "_picked", "_item_lost")
 
     def _runtime_state(self) -> dict[str, torch.Tensor]:
         state = super()._runtime_state()
@@ -183,22 +186,32 @@ class WargusEnv(BatchedFamilyEnv):
         fields = WargusState._fields
         if all(f"state_{k}" in state for k in fields):
             self._state = WargusState(*(state[f"state_{k}"] for k in fields))
+            self._item_seen = wargus.observe(self.model, self._state)[1]  # a function of the state
+            if "item_lost" not in state:  # saved before the event existed
+                self._item_lost = torch.zeros_like(self._item_seen)
 
     def _out(
         self,
         picked: torch.Tensor,  # (N,) int64
+        item_lost: torch.Tensor,  # (N,) bool
         reward: torch.Tensor | None = None,  # (N, 1) float32
         terminated: torch.Tensor | None = None,  # (N, 1) bool
         truncated: torch.Tensor | None = None,  # (N, 1) bool
+        observed: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None,
     ) -> TensorDictBase:
+        """The env's tensordict at the current state; ``observed``: ``wargus.observe`` of it, if known."""
         state = self._state
-        obs, item_seen, patrol_seen = wargus.observe(self.model, state)
+        if observed is None:
+            observed = wargus.observe(self.model, state)
+        obs, item_seen, patrol_seen = observed
+        self._item_seen = item_seen  # read by the next step's item_lost (never mutated)
         td = {
             keys.OBSERVATION: obs,
             wargus.AGENT_POS: state.agent,
             wargus.ITEM_SEEN: item_seen,
             wargus.PATROL_SEEN: patrol_seen,
             wargus.PICKED: picked,
+            wargus.ITEM_LOST: item_lost,
             keys.INSTANCE: TensorDict._new_unsafe(
                 {
                     wargus.INSTANCE_SEED: self._iseed,
@@ -221,6 +234,7 @@ class WargusEnv(BatchedFamilyEnv):
         if idx is None:
             self._iseed, self._ikey, self._state = iseed, ikey, st
             self._picked = torch.zeros_like(iseed)
+            self._item_lost = torch.zeros_like(iseed, dtype=torch.bool)
         else:  # out-of-place updates: tensors already handed out are never mutated
             self._iseed = self._iseed.index_put((idx,), iseed)
             self._ikey = self._ikey.index_put((idx,), ikey)
@@ -232,18 +246,23 @@ class WargusEnv(BatchedFamilyEnv):
                 old.t.index_put((idx,), st.t),
             )
             self._picked = self._picked.index_put((idx,), torch.zeros_like(iseed))
-        return self._out(self._picked)
+            self._item_lost = self._item_lost.index_put(
+                (idx,), torch.zeros_like(iseed, dtype=torch.bool)
+            )
+        return self._out(self._picked, self._item_lost)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(keys.ACTION).reshape(-1)  # (N,)
         if self.validate_actions:
             wargus.check_actions(self.model, action)
         state, picked, destroyed = wargus.step(self.model, self._state, action, self._ikey)
+        observed = wargus.observe(self.model, state)
         self._state, self._picked = state, picked
+        self._item_lost = wargus.item_lost(self._item_seen, observed[1], picked)  # (N,)
         terminated = destroyed.unsqueeze(-1)  # (N, 1)
         truncated = (state.t >= self.horizon).unsqueeze(-1) & ~terminated  # (N, 1)
         reward = picked.to(torch.float32).unsqueeze(-1)  # (N, 1)
-        return self._out(picked, reward, terminated, truncated)
+        return self._out(picked, self._item_lost, reward, terminated, truncated, observed)
 
     def render(self, index: int = 0, mode: str = "ansi"):
         """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""

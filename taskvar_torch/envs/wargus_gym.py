@@ -35,6 +35,9 @@ class WargusGymEnv(gym.Env):
     ## Observation Space
     ``Box(24,)`` float32: own position / (size - 1); nearest item bearing one-hot (8), seen flag,
     offset / sight when seen; the same for the nearest patrol (layout in ``envs/wargus.py``).
+    ``info`` carries the integer state the subtasks read, as :class:`WargusEnv` emits it:
+    ``agent_pos``, ``item_seen``, ``patrol_seen``, ``picked`` and the event ``item_lost`` (the step
+    lost sight of the item: seen before, not after, nothing picked; ``False`` after a reset).
 
     ## Starting State
     Agent at a uniform cell (or ``options["start"]``), items elsewhere, patrols out of sight.
@@ -109,10 +112,17 @@ class WargusGymEnv(gym.Env):
         self._base_key: torch.Tensor | None = None
         self._episode = -1
         self._state: wargus.WargusState | None = None
+        self._item_seen: torch.Tensor | None = None  # (1,) bool at the current state
 
-    def _obs_info(self, picked: int) -> tuple[np.ndarray, dict[str, Any]]:
+    def _obs_info(
+        self, picked: torch.Tensor, seen_before: torch.Tensor | None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        """Observation and info at the current state; ``seen_before``: ``item_seen`` before the
+        step that led here (``None`` after a reset: no event)."""
         s = self._state
         obs, item_seen, patrol_seen = wargus.observe(self.model, s)
+        lost = False if seen_before is None else bool(wargus.item_lost(seen_before, item_seen, picked)[0])
+        self._item_seen = item_seen
         info = {
             "instance": {
                 "seed": int(self._iseed[0]),
@@ -122,7 +132,8 @@ class WargusGymEnv(gym.Env):
             wargus.AGENT_POS: tuple(int(v) for v in s.agent[0]),
             wargus.ITEM_SEEN: bool(item_seen[0]),
             wargus.PATROL_SEEN: bool(patrol_seen[0]),
-            wargus.PICKED: picked,
+            wargus.PICKED: int(picked[0]),
+            wargus.ITEM_LOST: lost,
             "t": int(s.t[0]),
         }
         return obs[0].numpy().copy(), info
@@ -161,7 +172,7 @@ class WargusGymEnv(gym.Env):
         self._state = wargus.reset(
             self.model, self._ikey, None if start is None else torch.tensor(start, dtype=torch.int64)
         )
-        return self._obs_info(0)
+        return self._obs_info(torch.zeros(1, dtype=torch.int64), None)
 
     def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """One step; ``ValueError`` for an action outside ``[0, num_actions)``."""
@@ -177,9 +188,8 @@ class WargusGymEnv(gym.Env):
         self._state, picked, destroyed = wargus.step(self.model, self._state, act, self._ikey)
         terminated = bool(destroyed[0])
         truncated = (not terminated) and int(self._state.t[0]) >= self.config.horizon
-        n = int(picked[0])
-        obs, info = self._obs_info(n)
-        return obs, float(n), terminated, truncated, info
+        obs, info = self._obs_info(picked, self._item_seen)
+        return obs, float(info[wargus.PICKED]), terminated, truncated, info
 
     def render(self) -> str | np.ndarray | None:
         """Text (``ansi``) or a uint8 (H, W, 3) image (``rgb_array``) of the current state."""

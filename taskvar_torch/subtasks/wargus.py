@@ -1,7 +1,8 @@
 """Wargus capabilities (paper §3.5.2, SPEC §1.2): ToGoal, FromEnemy and their composition TG+FE.
 
 Everything is computed from raw transitions with the integer state keys the Wargus envs emit
-(``envs/wargus.py``): ``item_seen``, ``patrol_seen``, ``picked`` at the root of ``td`` (state s)
+(``envs/wargus.py``): ``item_seen``, ``patrol_seen`` and the events ``picked`` and ``item_lost``
+(of the step that led to the state) at the root of ``td`` (state s)
 and under ``("next", ...)`` (state s'), plus ``("next", "terminated")`` (destruction: the only
 way a Wargus episode terminates). Inputs have any batch shape ``(*B)``; outputs are ``(*B, 3)``
 in the order of :attr:`WargusSubtasks.names`.
@@ -11,8 +12,8 @@ Options (paper Figure 3: ``TG+FE`` is the root, ``TG`` and ``FE`` its components
 ============  =============  =========================================  ==============================
 option        initiation     termination beta(s')                       subtask reward
 ============  =============  =========================================  ==============================
-``TG``        anywhere       patrol seen, or item not seen, or an       +1 per item picked
-                             item was just picked
+``TG``        anywhere       patrol seen, or sight of the item just     +1 per item picked
+                             lost, or an item just picked
 ``FE``        anywhere       patrol not seen (escaped)                  -1 per step ending in the
                                                                         patrol's sight, +1 on escaping,
                                                                         -``destruction_penalty`` when
@@ -21,11 +22,17 @@ option        initiation     termination beta(s')                       subtask 
                              with the episode)
 ============  =============  =========================================  ==============================
 
-Termination is a function of the state s' only (the event "an item was just picked" is the state
-flag ``picked``). Options act for at least one step, so TG chosen where the item is not seen runs
-one step toward the item's bearing and ends. (An event-based reading of the paper's "losing sight
-of the goal item" would end TG only on a seen -> unseen transition, letting it navigate by
-bearing from afar; the state-based rule is the one used here.)
+Termination is a function of s' only, but TG's reads the *events* of the step that led to s'
+(SPEC §1.2: options "terminate on events: seeing the patrol, losing sight of the item, picking the
+item, escaping the patrol's sight"): ``item_lost`` (the item was seen at s, is not at s', and none
+was picked) and ``picked``; "seeing the patrol" is read as the state ``patrol_seen`` (TG stops
+whenever a patrol is in sight, so FE or the root can take over). TG therefore ends on *losing*
+sight of the item, not wherever the item is unseen: started (or continuing) where the item is out
+of sight, it runs - seeking the item by its always-observed bearing - until it sees a patrol, picks
+an item, or sees the item and then loses it again. (An earlier state-based rule, ``item not seen``,
+made TG a one-step option wherever the item was unseen, so it never learnt to seek by bearing.)
+FE ends when no patrol is in sight (escaped; it ends at once where started out of sight); TG+FE is
+the whole task.
 
 Why a destruction penalty in FE's subtask reward: without it, destruction ends FE's stream of -1s,
 so the FE policy would learn to be shot (one -1) rather than flee (several -1s then +1). The
@@ -59,7 +66,7 @@ import torch
 from tensordict import TensorDictBase
 
 from taskvar_torch import keys
-from taskvar_torch.envs.wargus import ITEM_SEEN, PATROL_SEEN, PICKED
+from taskvar_torch.envs.wargus import ITEM_LOST, ITEM_SEEN, PATROL_SEEN, PICKED
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
 TG, FE, TG_FE = "TG", "FE", "TG+FE"
@@ -102,9 +109,13 @@ class WargusSubtasks(Subtasks):
         return torch.ones(*seen.shape, 3, dtype=torch.bool, device=seen.device)
 
     def termination(self, td: TensorDictBase) -> torch.Tensor:
-        """``(*B, 3)`` bool beta at the state at the root of ``td`` (pass ``td["next"]``)."""
-        item_seen, patrol_seen = td.get(ITEM_SEEN), td.get(PATROL_SEEN)  # (*B,)
-        tg = patrol_seen | ~item_seen | (td.get(PICKED) > 0)
+        """``(*B, 3)`` bool beta at the state at the root of ``td`` (pass ``td["next"]``).
+
+        TG: patrol seen, or the step that led here lost sight of the item (``item_lost``) or picked
+        an item; FE: no patrol seen; TG+FE: never (module docstring).
+        """
+        patrol_seen = td.get(PATROL_SEEN)  # (*B,)
+        tg = patrol_seen | td.get(ITEM_LOST) | (td.get(PICKED) > 0)
         return torch.stack((tg, ~patrol_seen, torch.zeros_like(tg)), -1)
 
     def _destroyed(self, td: TensorDictBase) -> torch.Tensor:
@@ -130,6 +141,7 @@ class WargusSubtasks(Subtasks):
         """``(*B, 3)`` float32 robustness rewards (paper §3.5.2) for ``td -> td["next"]``."""
         seen, seen_next = td.get(ITEM_SEEN), _next(td, ITEM_SEEN)  # (*B,)
         reached = seen_next | (_next(td, PICKED) > 0)
+        # -1 exactly on the env's event item_lost (seen at s, not at s', nothing picked)
         tg = reached.to(torch.float32) - (seen & ~reached).to(torch.float32)
         fe = self._fe(td, self.robustness_destruction_penalty)
         return torch.stack((tg, fe, tg + fe), -1)
