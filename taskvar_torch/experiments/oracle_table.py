@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 from pathlib import Path
 
 import torch
 
 from taskvar_torch.envs import render, windy
+from taskvar_torch.experiments.plots import save_figure
 from taskvar_torch.oracle import WindyOracle
 
 _ARROW = {0: (0, -0.3), 1: (0, 0.3), 2: (0.3, 0), 3: (-0.3, 0)}  # (dx, dy) in image coordinates
@@ -78,11 +78,9 @@ def format_table(result: dict) -> str:
 
 def plot_grid(layout: str, result: dict, path: Path) -> None:
     """PNG of the grid with the averaging policy's actions and expected returns per cell."""
-    import matplotlib
+    from taskvar_torch.experiments.plots import _pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = _pyplot()
     lay = windy.WindyLayout.named(layout) if layout in windy.LAYOUTS else windy.WindyLayout.from_map(layout)
     px = render.CELL_PX
     fig, ax = plt.subplots(figsize=(1.2 * lay.width + 1, 1.2 * lay.height + 1))
@@ -99,10 +97,8 @@ def plot_grid(layout: str, result: dict, path: Path) -> None:
     ax.set_xticks([])
     ax.set_yticks([])
     ax.set_title(f"windy '{layout}': averaging policy and exact expected return\n(wind arrows show a north gust)")
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=120, bbox_inches="tight")
+    save_figure(fig, path)
     plt.close(fig)
-    os.replace(tmp, path)
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -10,9 +10,13 @@ import numpy as np
 
 
 def _pyplot():
+    """pyplot, headless (Agg) in scripts and the CLI; a notebook keeps its inline backend."""
+    import sys
+
     import matplotlib
 
-    matplotlib.use("Agg")
+    if "ipykernel" not in sys.modules:
+        matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     return plt
