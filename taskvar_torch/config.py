@@ -46,6 +46,7 @@ ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
 TARGET_UPDATES = ("hard", "soft")
 SWITCHING_MODES = ("intra",)
 MU_BAR_MODES = ("greedy", "softmax")
+ROBUSTNESS_TARGETS = ("greedy", "option")  # mirrors heads/robustness.py
 METHODS = ("averaging", "hierarchy", "interruption", "options")
 GENERATED = "generated"
 """``env.layout`` value that builds the grid from ``env.height``/``env.width``/... (make_layout)."""
@@ -172,6 +173,9 @@ class TrainConfig:
     """Discount of the robustness critics (Wargus)."""
     robustness_tau: float = 2.0
     """Robustness threshold tau of the hierarchy controller (Wargus)."""
+    robustness_target: str = "option"
+    """Next action of the robustness critics' TD target (Wargus): option (pi^o(s'), R of following
+    option o, paper §3.4.3) or greedy (argmax_a' R_o(s', a'), Q-learning on R)."""
     max_grad_norm: float | None = 10.0
     """Gradient-norm clipping; null disables it."""
     checkpoint_every: int = 50_000
@@ -292,6 +296,7 @@ def _validate(cfg: Config) -> None:
     t = cfg.train
     _within("train.gamma", t.gamma, 0.0, 1.0, open_low=True)
     _within("train.robustness_gamma", t.robustness_gamma, 0.0, 1.0, open_low=True)
+    _one_of("train.robustness_target", t.robustness_target, ROBUSTNESS_TARGETS)
     if not t.lr > 0:
         raise ValueError(f"train.lr must be > 0, got {t.lr}")
     _at_least("train.batch_size", t.batch_size, 1)

@@ -159,6 +159,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
     settings = LossSettings(
         gamma=t.gamma,
         robustness_gamma=t.robustness_gamma,
+        robustness_target=t.robustness_target,
         double_q=t.double_q,
         max_value_expectile=t.max_value_expectile,
         mu_bar_temperature=mu_bar_temperature(t),

@@ -51,6 +51,7 @@ WARGUS_ONLY = (
     "env.wargus",
     "train.robustness_gamma",
     "train.robustness_tau",
+    "train.robustness_target",
     "experiment.trials",
     "experiment.learning_episodes_per_trial",
     "experiment.test_episodes_per_trial",

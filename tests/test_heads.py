@@ -25,7 +25,7 @@ from taskvar_torch.heads.learner import (
 from taskvar_torch.heads.max_value import OptimismGapHead
 from taskvar_torch.heads.networks import StackedMLP, head_network
 from taskvar_torch.heads.relabel import relabel
-from taskvar_torch.heads.robustness import component_matrix, parent_closure
+from taskvar_torch.heads.robustness import component_matrix, parent_closure, robustness_loss
 from taskvar_torch.heads.targets import expectile_loss, masked_mean
 from taskvar_torch.subtasks import Hierarchy
 from taskvar_torch.train import build_heads, make_env, make_subtasks
@@ -184,6 +184,69 @@ def test_parent_closure_sends_component_updates_to_the_composed_parent():
     mask = torch.tensor([[True, False, False], [False, True, False], [False, False, False]])
     got = parent_closure(mask, m)
     assert got.tolist() == [[True, False, True], [False, True, True], [False, False, False]]
+
+
+def _robustness_batch(B: int, num_options: int):
+    """A hand-built relabelled batch: zero robustness rewards, nothing terminated."""
+    from taskvar_torch.heads.relabel import Transitions
+
+    z = torch.zeros(B, 1)
+    return Transitions(
+        observation=z,
+        next_observation=z,
+        action=torch.zeros(B, dtype=torch.int64),
+        reward=torch.zeros(B),
+        terminated=torch.zeros(B),
+        initiation=torch.ones(B, num_options, dtype=torch.bool),
+        initiation_next=torch.ones(B, num_options, dtype=torch.bool),
+        beta_next=torch.zeros(B, num_options),
+        subtask_reward=torch.zeros(B, num_options),
+        robustness_reward=torch.zeros(B, num_options),
+    )
+
+
+def test_robustness_target_follows_the_options_own_action_not_the_max():
+    # R(o, s, a) is the attainability of o's goal *when following o* (paper §3.4.3): at s' the
+    # option's own action (2) keeps the goal (R 1.0), the robustness-greedy action (0) would be
+    # worth 9.0 but the option never takes it. The "option" target must read 1.0, "greedy" 9.0.
+    batch = _robustness_batch(1, 1)
+    r = torch.zeros(1, 1, 3)  # online R(o, s, .): the loss is the squared target
+    r_next_target = torch.tensor([[[9.0, 5.0, 1.0]]])
+    pi_next = torch.tensor([[2]])  # pi^o(s')
+    mask = torch.ones(1, 1, dtype=torch.bool)
+    on_policy = robustness_loss(r, r_next_target, r_next_target, mask, batch, 0.5, True, pi_next)
+    greedy = robustness_loss(r, r_next_target, r_next_target, mask, batch, 0.5, True)
+    torch.testing.assert_close(on_policy, torch.tensor((0.5 * 1.0) ** 2))
+    torch.testing.assert_close(greedy, torch.tensor((0.5 * 9.0) ** 2))
+
+
+def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
+    cfg = load_config("configs/wargus.yaml", ["env.wargus.size=16", "env.num_envs=4"])
+    env = make_env(cfg)
+    subtasks = make_subtasks(cfg, env)
+    torch.manual_seed(0)
+    heads = build_heads(cfg, env, subtasks)
+    batch = env.rollout(20, break_when_any_done=False).reshape(-1)
+    batch = batch.exclude(keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
+    losses = {}
+    for target in ("option", "greedy"):
+        loss = MultiHeadLoss(heads, subtasks, LossSettings(robustness_target=target))
+        with torch.no_grad():  # make the target network differ from the online one
+            for p in loss.target_heads_params.values(True, True):
+                p.add_(0.1 * torch.randn_like(p))
+        got = loss(batch.clone())["loss_robustness"]
+        tr = relabel(batch, subtasks, robustness=True)
+        cur, nxt, nxt_t = loss._head_outputs(tr.observation, tr.next_observation)
+        mask = parent_closure(tr.initiation, loss.components)
+        pi_next = nxt["options"].argmax(-1) if target == "option" else None
+        want = robustness_loss(
+            cur["robustness"], nxt["robustness"], nxt_t["robustness"], mask, tr, 0.9, True, pi_next
+        )
+        torch.testing.assert_close(got, want)
+        losses[target] = got
+    assert not torch.isclose(losses["option"], losses["greedy"])  # the two targets differ here
+    with pytest.raises(ValueError, match="robustness_target must be one of"):
+        MultiHeadLoss(heads, subtasks, LossSettings(robustness_target="max"))
 
 
 def _looped_first_visit(obs, action, is_init):

@@ -36,9 +36,14 @@ from taskvar_torch.heads.averaging import averaging_loss
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.max_value import OptimismGapHead, max_value_loss
 from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
-from taskvar_torch.heads.options import options_loss
+from taskvar_torch.heads.options import option_greedy_actions, options_loss
 from taskvar_torch.heads.relabel import relabel
-from taskvar_torch.heads.robustness import component_matrix, parent_closure, robustness_loss
+from taskvar_torch.heads.robustness import (
+    ROBUSTNESS_TARGETS,
+    component_matrix,
+    parent_closure,
+    robustness_loss,
+)
 from taskvar_torch.heads.switching import consistent_with_option, mu_bar_probs, switching_loss
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -54,6 +59,7 @@ class LossSettings:
     double_q: bool = True
     max_value_expectile: float = 0.95
     mu_bar_temperature: float | None = None  # None: greedy mu_bar
+    robustness_target: str = "option"  # R's next action: pi^o(s') ("option") or argmax R ("greedy")
 
 
 def _unique_params(module: nn.Module) -> TensorDictParams:
@@ -99,6 +105,20 @@ class MultiHeadLoss(LossModule):
             missing = [n for n in needs if heads.has(name) and not heads.has(n)]
             if missing:
                 raise ValueError(f"the {name} head needs the {missing} head(s) in the bundle")
+        if settings.robustness_target not in ROBUSTNESS_TARGETS:
+            raise ValueError(
+                f"robustness_target must be one of {list(ROBUSTNESS_TARGETS)}, "
+                f"got {settings.robustness_target!r}"
+            )
+        if (
+            heads.has("robustness")
+            and settings.robustness_target == "option"
+            and not heads.has("options")
+        ):
+            raise ValueError(
+                "the robustness head with robustness_target='option' needs the ['options'] head(s) "
+                "in the bundle (its target follows pi^o)"
+            )
         if tuple(heads.option_names) != tuple(subtasks.names):
             raise ValueError(
                 f"heads.option_names {heads.option_names} differ from subtasks.names {subtasks.names}"
@@ -214,6 +234,9 @@ class MultiHeadLoss(LossModule):
                 )
         if "robustness" in cur:
             mask = parent_closure(batch.initiation, self.components)  # (B, O)
+            next_action = None  # "greedy": Q-learning on R
+            if s.robustness_target == "option":  # R of following o: its own action at s'
+                next_action = option_greedy_actions(nxt["options"])  # (B, O)
             losses["loss_robustness"] = robustness_loss(
                 cur["robustness"],
                 nxt["robustness"],
@@ -222,6 +245,7 @@ class MultiHeadLoss(LossModule):
                 batch,
                 s.robustness_gamma,
                 s.double_q,
+                next_action,
             )
         return TensorDict(losses, batch_size=[])
 

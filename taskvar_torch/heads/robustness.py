@@ -1,11 +1,21 @@
 """Robustness critics R(o, s, a) (paper §3.4.3, §3.5.2): subtask attainability by Q-learning.
 
-One network outputs every capability's critic ``(B, O, A)``. Each learns by double Q-learning on its
-robustness reward (Wargus: TG +1 on coming into sight of the item, -1 on losing it; FE -1 per step in
-the patrol's sight, +1 on escaping it; TG+FE their sum), discounted by ``train.robustness_gamma``,
-with the episode end as terminal:
+One network outputs every capability's critic ``(B, O, A)``. Each learns by TD on its robustness
+reward (Wargus: TG +1 per step ending where the item is seen, -1 on losing it; FE -1 per step in the
+patrol's sight, +1 on escaping it; TG+FE their sum), discounted by ``train.robustness_gamma``, with
+the episode end as terminal. ``R(o, s, a)`` "estimates the expectation that the option o will be
+able to achieve its goals from state s and action a" (§3.4.3): the option's attainability *when
+following o*, so the default target (``train.robustness_target = "option"``) bootstraps with the
+option's own next action, ``pi^o(s') = argmax_a' Q_o(s', a')`` (off-policy evaluation of pi^o from
+replay, like expected SARSA with a greedy target policy):
 
-    y_o = rr_o + gamma_R * (1 - terminated) * R_o,target(s', argmax_a' R_o(s', a'))
+    y_o = rr_o + gamma_R * (1 - terminated) * R_o,target(s', pi^o(s'))
+
+``"greedy"`` is plain (double) Q-learning, ``R_o,target(s', argmax_a' R_o(s', a'))``: the
+attainability under the *robustness-greedy* policy, which no controller runs. It overrates an
+option whose own policy loses its goal: in Wargus the root's policy walks out of the item's sight,
+yet the greedy target values that step as "one step back and the +1s resume" (~5.8 > tau = 2), so
+Algorithm 2 kept handing the root control at the sight boundary (README "Wargus Figure 4").
 
 "Every component update also updates its composed parent" (§3.4.1): a composed subtask's domain is
 the union of its components' domains, so the parent's update mask is its own initiation set or'ed
@@ -25,6 +35,8 @@ from taskvar_torch.heads.networks import make_head
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.targets import bootstrap_value, masked_mean
 from taskvar_torch.subtasks.base import Hierarchy
+
+ROBUSTNESS_TARGETS = ("greedy", "option")  # next action of the TD target: argmax R_o, or pi^o
 
 
 def make_robustness_head(
@@ -67,15 +79,22 @@ def robustness_loss(
     batch: Transitions,
     gamma: float,
     double_q: bool = True,
+    next_action: torch.Tensor | None = None,  # (B, O) int64 pi^o(s'), or None: greedy in R_o
 ) -> torch.Tensor:
-    """Sum over capabilities of each critic's mean squared TD error (scalar)."""
+    """Sum over capabilities of each critic's mean squared TD error (scalar).
+
+    With ``next_action`` the target evaluates the option's own policy at s' (module docstring);
+    without it, (double) Q-learning on R.
+    """
     if batch.robustness_reward is None:
         raise ValueError("robustness_loss needs robustness rewards (relabel(..., robustness=True))")
     num_options = r.shape[1]
     action = batch.action.view(-1, 1, 1).expand(-1, num_options, 1)  # (B, O, 1)
     r_taken = r.gather(-1, action).squeeze(-1)  # (B, O)
     with torch.no_grad():
-        target = batch.robustness_reward + gamma * (1.0 - batch.terminated).unsqueeze(-1) * (
-            bootstrap_value(r_next, r_next_target, double_q)
-        )  # (B, O)
+        if next_action is None:
+            v_next = bootstrap_value(r_next, r_next_target, double_q)  # (B, O)
+        else:
+            v_next = r_next_target.gather(-1, next_action.unsqueeze(-1)).squeeze(-1)  # (B, O)
+        target = batch.robustness_reward + gamma * (1.0 - batch.terminated).unsqueeze(-1) * v_next
     return masked_mean((r_taken - target).pow(2), mask)

@@ -1,0 +1,112 @@
+"""Why does the composition hierarchy score what it scores? (Wargus, paper §3.4-3.5, Algorithm 2.)
+
+Loads the heads of a ``wargus-fig4`` repetition (``DIR/rep0/final.pt``) and plays N fixed instances
+greedily with: the averaging policy, each option's policy alone (TG, FE, TG+FE), and the hierarchy
+(Algorithm 2, ``tau`` from the checkpoint's config unless ``--tau``). Prints items per episode,
+``item_lost`` events per episode, destruction rate, and for the hierarchy the control split, how
+often control moved, and R(root, s, a_root) on the steps where the root acted and lost sight of the
+item. Single-threaded; a few seconds per 32 episodes.
+
+    python scripts/hierarchy_diagnostics.py /tmp/h1/rep0/final.pt --episodes 32
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+
+import torch
+
+from taskvar_torch import keys
+from taskvar_torch.controllers.base import option_first
+from taskvar_torch.controllers.hierarchy import TreeTables, hierarchy_decide_of
+from taskvar_torch.envs import wargus
+from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.subtasks.wargus import WargusSubtasks
+from taskvar_torch.train import load_heads
+
+
+@torch.no_grad()
+def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
+    n = len(seeds)
+    env = WargusEnv(
+        n,
+        config=dataclasses.asdict(cfg.env.wargus),
+        instances=wargus.WargusInstances(seeds=tuple(seeds)),
+        seed=0,
+        validate_actions=False,
+    )
+    names = list(heads.option_names)
+    tree = TreeTables.build(WargusSubtasks.hierarchy, names)
+    root = tree.root
+    td = env.reset()
+    running = torch.full((n,), -1, dtype=torch.int64)
+    alive = torch.ones(n, dtype=torch.bool)
+    items = torch.zeros(n)
+    lost = torch.zeros(n)
+    control = torch.zeros(len(names))
+    moves = torch.zeros(n)
+    root_lost_r: list[torch.Tensor] = []
+    for _ in range(env.horizon):
+        td = heads(td)
+        q_opt = td.get(keys.OPTION_ACTION_VALUE)  # (B, O, A)
+        option = None
+        if method == "averaging":
+            action = td.get(keys.ACTION_VALUE).argmax(-1)
+        elif method in names:
+            action = q_opt[:, names.index(method)].argmax(-1)
+        else:  # hierarchy
+            rob = td.get(keys.ROBUSTNESS)
+            out = hierarchy_decide_of(option_first(q_opt), option_first(rob), running, tree, tau)
+            action, option = out["action"], out["option"]
+            control += torch.bincount(option[alive], minlength=len(names)).float()
+            moves += ((running >= 0) & (option != running) & alive).float()
+            r_root = rob[torch.arange(n), root, action]  # R(root, s, a) of the acted action
+        td.set(keys.ACTION, action)
+        td = env.step(td)
+        nxt = td.get(keys.NEXT)
+        lost_now = nxt.get(wargus.ITEM_LOST).reshape(n) & alive
+        lost += lost_now.float()
+        if option is not None:
+            sel = lost_now & (option == root)
+            root_lost_r.append(r_root[sel])
+            running = option
+        items += torch.where(alive, nxt.get(keys.REWARD).reshape(n), 0.0)
+        alive = alive & ~nxt.get(keys.DONE).reshape(n)
+        if not bool(alive.any()):
+            break
+        td = nxt.clone()
+    out = {
+        "items": float(items.mean()),
+        "item_lost": float(lost.mean()),
+        "destroyed": float((~alive).float().mean()),
+    }
+    if method == "hierarchy":
+        share = control / control.sum().clamp_min(1)
+        out["control"] = "/".join(f"{n_}:{v:.0%}" for n_, v in zip(names, share.tolist()))
+        out["moves"] = float(moves.mean())
+        r = torch.cat(root_lost_r) if root_lost_r else torch.zeros(0)
+        out["R_root_at_root_losses"] = (
+            f"mean {r.mean():.2f} min {r.min():.2f} (n={r.numel()})" if r.numel() else "n=0"
+        )
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("checkpoint")
+    ap.add_argument("--episodes", type=int, default=32)
+    ap.add_argument("--tau", type=float, default=None)
+    ap.add_argument("--first-seed", type=int, default=10_000)
+    a = ap.parse_args()
+    torch.set_num_threads(1)
+    heads, cfg = load_heads(a.checkpoint)
+    tau = cfg.train.robustness_tau if a.tau is None else a.tau
+    seeds = range(a.first_seed, a.first_seed + a.episodes)
+    print(f"{a.checkpoint}: {a.episodes} episodes, tau={tau}")
+    for method in ("averaging", *heads.option_names, "hierarchy"):
+        print(f"{method:>10}: {play(heads, cfg, method, seeds, tau)}")
+
+
+if __name__ == "__main__":
+    main()
