@@ -191,7 +191,7 @@ def _eval_run(args: argparse.Namespace) -> int:
     return 0
 
 
-EXPERIMENTS = ("windy-fig2", "wargus-fig4")
+EXPERIMENTS = ("windy-fig2", "wargus-fig4", "scale")
 
 
 def _experiment_arguments(p: argparse.ArgumentParser) -> None:
@@ -224,6 +224,8 @@ def _experiment_run(args: argparse.Namespace) -> int:
 
     if args.name == "wargus-fig4":
         return _wargus_fig4_run(args)
+    if args.name == "scale":
+        return _scale_run(args)
     import torch
 
     from taskvar_torch.experiments.windy_fig2 import default_config_path, windy_fig2
@@ -258,14 +260,66 @@ def _wargus_fig4_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sweep_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "config",
+        metavar="CONFIG",
+        help="YAML config of a family: windy runs windy-fig2, wargus runs wargus-fig4",
+    )
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="key.sub=v1,v2,...",
+        help="swept keys (comma-separated values; the points are their Cartesian product) and "
+        "fixed overrides (key.sub=value)",
+    )
+    p.add_argument("--backend", required=True, choices=("local", "ray"),
+                   help="local: the points one after the other in this process; ray: one Ray task "
+                   "(1 CPU) per point")
+    p.add_argument("--address", metavar="ADDR", help="ray: a Ray cluster (default: a local Ray)")
+    p.add_argument("--workers", type=int, metavar="N",
+                   help="ray: CPUs of the local Ray, i.e. points at once (default: all cores)")
+    p.add_argument("--quick", action="store_true", help="apply experiment.quick_overrides")
+    p.add_argument("--out", default="results/sweep", metavar="DIR",
+                   help="sweep folder: DIR/<point>/ per point, DIR/summary.csv, DIR/summary.json "
+                   "(default: results/sweep)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _sweep_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.sweep import sweep
+
+    sweep(args.config, args.items, args.out, backend=args.backend, quick=args.quick,
+          address=args.address, workers=args.workers, progress=not args.no_progress)
+    return 0
+
+
+def _scale_run(args: argparse.Namespace) -> int:
+    import torch
+
+    from taskvar_torch.experiments.scale import default_config_path, load_scale_config, scale
+
+    if args.checkpoint is not None:
+        raise ValueError("scale trains one bundle per (case, num_envs) cell; --checkpoint is not used")
+    config_path, overrides = _split_config_and_overrides(args.items)
+    cfg = load_scale_config(config_path or default_config_path(), overrides, quick=args.quick)
+    out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
+    torch.set_num_threads(1)  # timings are single-threaded (see README "Scaled-up grids")
+    scale(cfg, out, progress=not args.no_progress, quick=args.quick)
+    return 0
+
+
 def _plot_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("results", metavar="DIR", help="a results folder of taskvar experiment")
 
 
 def _plot_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.experiments import scale
     from taskvar_torch.experiments.wargus_fig4 import is_results_folder
 
-    if is_results_folder(args.results):
+    if scale.is_results_folder(args.results):
+        from taskvar_torch.experiments.scale import plot_results
+    elif is_results_folder(args.results):
         from taskvar_torch.experiments.wargus_fig4 import plot_results
     else:
         from taskvar_torch.experiments.windy_fig2 import plot_results
@@ -295,11 +349,20 @@ COMMANDS: dict[str, Command] = {
         run=_eval_run,
     ),
     "experiment": Command(
-        help="run one of the paper's experiments (windy-fig2, wargus-fig4)",
+        help="run one of the paper's experiments (windy-fig2, wargus-fig4, scale)",
         description="Train (or load --checkpoint), evaluate, write a results folder and print a "
         "table (SPEC §5).",
         add_arguments=_experiment_arguments,
         run=_experiment_run,
+    ),
+    "sweep": Command(
+        help="run an experiment over a grid of config overrides (local or Ray)",
+        description="Run the config family's experiment (windy-fig2 or wargus-fig4) once per "
+        "point of the Cartesian product of key=v1,v2 values, locally or as Ray tasks; print and "
+        "write a summary table (DIR/summary.csv, DIR/summary.json).\n\n"
+        "  taskvar sweep configs/windy.yaml --backend ray --quick --out results/sweep seed=0,1",
+        add_arguments=_sweep_arguments,
+        run=_sweep_run,
     ),
     "plot": Command(
         help="redraw the figures of an experiment's results folder",

@@ -1,0 +1,331 @@
+"""Sweeps: one experiment per point of a grid of config overrides, run locally or on Ray.
+
+``taskvar sweep CONFIG --backend local|ray [--quick] [--out DIR] key=v1,v2 ...``: the config names
+a family (``windy`` runs the windy Figure 2 experiment, ``wargus`` the Wargus Figure 4 one, paper
+§3.3.1 and §3.5); every ``key=v1,v2,...`` with a comma is a swept key, the points are the Cartesian
+product of their values (``seed=0,1`` gives two repetitions), and a plain ``key=value`` is a fixed
+override of every point. Each point runs the same function as ``taskvar experiment`` into its own
+folder ``OUT/<point name>/``; at the end a summary table (swept values and headline metrics) is
+printed and written to ``OUT/summary.csv`` and ``OUT/summary.json``.
+
+Backends (:data:`BACKENDS`):
+
+- ``local``: the points one after the other in this process;
+- ``ray``: each point is a Ray task with ``num_cpus=1`` (one torch thread), on a local Ray started
+  with ``workers`` CPUs (default: all cores) or on the cluster at ``address``.
+
+A point's numbers depend only on its config (every random stream is seeded from ``cfg.seed``), so
+both backends give the same metrics.
+
+Examples:
+    >>> points = expand_points(["seed=0,1", "train.lr=0.002"])
+    >>> [p.name for p in points]
+    ['seed=0', 'seed=1']
+    >>> points[1].overrides
+    ('train.lr=0.002', 'seed=1')
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tqdm.auto import tqdm
+
+from taskvar_torch.config import Config, load_config
+from taskvar_torch.experiments.results import write_csv, write_json
+
+BACKENDS = ("local", "ray")
+EXPERIMENT_OF_FAMILY = {"windy": "windy-fig2", "wargus": "wargus-fig4"}
+"""Config family -> the experiment each sweep point runs (as ``taskvar experiment NAME``)."""
+RAY_MISSING = 'taskvar sweep --backend ray needs Ray: pip install "taskvar-torch[distributed]"'
+SUMMARY_CSV, SUMMARY_JSON, POINT_LOG = "summary.csv", "summary.json", "output.txt"
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    """One point: its folder name, its swept values and every override it applies (in order)."""
+
+    name: str
+    values: dict[str, str]
+    overrides: tuple[str, ...]
+
+
+# --------------------------------------------------------------------------------------------
+# points
+
+
+def split_values(text: str) -> list[str]:
+    """``'0,1'`` -> ``['0', '1']``; commas inside ``[...]``, ``{...}`` or quotes do not split."""
+    parts, depth, quote, start = [], 0, "", 0
+    for i, c in enumerate(text):
+        if quote:
+            quote = "" if c == quote else quote
+        elif c in "'\"":
+            quote = c
+        elif c in "[{":
+            depth += 1
+        elif c in "]}":
+            depth -= 1
+        elif c == "," and depth == 0:
+            parts.append(text[start:i])
+            start = i + 1
+    parts.append(text[start:])
+    return [p.strip() for p in parts]
+
+
+def point_name(values: dict[str, str]) -> str:
+    """Folder name of a point: ``key=value`` pairs joined by ``,``, other characters as ``_``."""
+    if not values:
+        return "run"
+    text = ",".join(f"{k}={v}" for k, v in values.items())
+    return re.sub(r"[^A-Za-z0-9._=,+-]", "_", text)
+
+
+def expand_points(items: Sequence[str]) -> list[SweepPoint]:
+    """The Cartesian product of the swept keys (``key=v1,v2``), fixed overrides (``key=v``) first.
+
+    Raises:
+        ValueError: an item without ``=``, an empty value, or a key given twice.
+    """
+    fixed: list[str] = []
+    swept: dict[str, list[str]] = {}
+    seen: set[str] = set()
+    for item in items:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ValueError(f"sweep override {item!r} must look like key.sub=v1,v2,... ")
+        if key in seen:
+            raise ValueError(f"sweep key {key!r} is given twice; give its values once: {key}=v1,v2")
+        seen.add(key)
+        values = split_values(text)
+        if any(v == "" for v in values):
+            raise ValueError(
+                f"sweep key {key!r} has an empty value in {text!r}; give {key}=v1,v2,... "
+                "with non-empty values"
+            )
+        if len(values) == 1:
+            fixed.append(f"{key}={values[0]}")
+        else:
+            swept[key] = values
+    points, names = [], set()
+    for combo in itertools.product(*swept.values()):
+        values = dict(zip(swept, combo))
+        name = point_name(values)
+        if name in names:  # two values that differ only in unsafe characters
+            name = f"{name},{len(points)}"
+        names.add(name)
+        points.append(
+            SweepPoint(name, values, (*fixed, *(f"{k}={v}" for k, v in values.items())))
+        )
+    return points
+
+
+def load_point_configs(
+    config: str | os.PathLike, points: Sequence[SweepPoint], quick: bool = False
+) -> list[Config]:
+    """Every point's config, strictly loaded (the config loader's one-line errors, before any run)."""
+    cfgs = []
+    for p in points:
+        try:
+            cfgs.append(load_config(config, p.overrides, quick=quick))
+        except ValueError as e:
+            raise ValueError(f"{e} [sweep point {p.name}]" if p.values else str(e)) from None
+    return cfgs
+
+
+# --------------------------------------------------------------------------------------------
+# one point (the same function as ``taskvar experiment``)
+
+
+def run_point(cfg: Config, out_dir: str, quick: bool = False) -> dict[str, Any]:
+    """Run ``cfg``'s family experiment into ``out_dir``; its printed table goes to ``output.txt``.
+
+    Returns:
+        ``{"metrics": metrics.json's dict, "seconds": wall time}``; a diverged run returns
+        ``{"error": message, "seconds": ...}`` instead (the sweep goes on).
+    """
+    import torch
+
+    from taskvar_torch.train import TrainingDiverged
+
+    torch.set_num_threads(1)  # one core per point (the heads are small MLPs)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(out / POINT_LOG, "w") as log, contextlib.redirect_stdout(log):
+        try:
+            if cfg.family == "windy":
+                from taskvar_torch.experiments.windy_fig2 import windy_fig2
+
+                metrics = windy_fig2(cfg, out, progress=False, quick=quick)
+            else:
+                from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
+
+                metrics = wargus_fig4(cfg, out, workers=1, progress=False)
+        except TrainingDiverged as e:
+            print(f"error: {e}")
+            return {"error": f"TrainingDiverged: {e}", "seconds": time.perf_counter() - t0}
+    return {"metrics": metrics, "seconds": time.perf_counter() - t0}
+
+
+def headline(metrics: dict[str, Any]) -> dict[str, Any]:
+    """The summary-table numbers of one point's ``metrics.json``.
+
+    Windy Figure 2: fraction no worse and mean difference (interruption - averaging), the null's
+    and the exact (oracle) fraction no worse, for the training distribution and south-only winds. Wargus Figure 4: each method's final score and trials to 90%.
+    """
+    if metrics.get("experiment") == "windy-fig2":
+        keys = ("fraction_no_worse", "mean_difference", "fraction_no_worse_null",
+                "fraction_no_worse_exact")
+        row = {k: metrics.get(k) for k in keys}
+        south = metrics.get("south_only") or {}
+        row.update({f"south_only.{k}": south.get(k) for k in keys})
+        return row
+    row = {f"final_score.{n}": m["final_score"] for n, m in metrics["methods"].items()}
+    row.update({f"trials_to_90pct.{n}": m["trials_to_90pct"] for n, m in metrics["methods"].items()})
+    return row
+
+
+# --------------------------------------------------------------------------------------------
+# backends
+
+
+def _run_local(jobs: list[tuple[Config, str]], quick: bool, progress: bool) -> list[dict[str, Any]]:
+    return [
+        run_point(cfg, out, quick)
+        for cfg, out in tqdm(jobs, disable=not progress, desc="sweep", unit="point")
+    ]
+
+
+def _run_ray(
+    jobs: list[tuple[Config, str]],
+    quick: bool,
+    progress: bool,
+    address: str | None,
+    workers: int | None,
+) -> list[dict[str, Any]]:
+    try:
+        import ray
+    except ImportError:
+        raise ValueError(RAY_MISSING) from None
+    started = not ray.is_initialized()  # an already running Ray (a notebook, a test) is reused
+    if started:
+        kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
+        if address is None:  # "local": a new Ray, never a cluster found in RAY_ADDRESS
+            kw["num_cpus"] = workers or os.cpu_count() or 1
+        ray.init(address=address or "local", **kw)
+    try:
+        task = ray.remote(num_cpus=1)(run_point)
+        refs = [task.remote(cfg, out, quick) for cfg, out in jobs]
+        pending = list(refs)
+        with tqdm(total=len(refs), disable=not progress, desc="sweep", unit="point") as bar:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                bar.update(len(done))
+        return ray.get(refs)
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def sweep(
+    config: str | os.PathLike,
+    items: Sequence[str],
+    out_dir: str | os.PathLike,
+    backend: str = "local",
+    quick: bool = False,
+    address: str | None = None,
+    workers: int | None = None,
+    progress: bool = True,
+) -> list[dict[str, Any]]:
+    """Run every point of the sweep, write ``summary.csv`` / ``summary.json``, print the table.
+
+    Args:
+        config: YAML config of a family (windy or wargus).
+        items: ``key=v1,v2`` swept keys and ``key=v`` fixed overrides.
+        out_dir: sweep folder; point ``p`` writes ``out_dir/p.name/``.
+        backend: ``local`` (in-process, sequential) or ``ray`` (one Ray task per point).
+        quick: apply the config's ``experiment.quick_overrides`` (before the sweep's).
+        address: Ray cluster address (``ray`` only; default: start a local Ray).
+        workers: CPUs of the local Ray (``ray`` only; default: all cores).
+        progress: a progress bar over completed points.
+
+    Returns:
+        The summary rows (one per point).
+
+    Raises:
+        ValueError: one line, for an unknown backend or key, an empty value, a missing Ray.
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"--backend must be one of {list(BACKENDS)}, got {backend!r}")
+    if backend == "local" and (address is not None or workers is not None):
+        raise ValueError("--address and --workers are for --backend ray; local runs one point at a time")
+    if address is not None and workers is not None:
+        raise ValueError("--workers sets the CPUs of a local Ray; with --address the cluster's are used")
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {workers}")
+    points = expand_points(items)
+    cfgs = load_point_configs(config, points, quick=quick)
+    if backend == "ray":
+        try:
+            import ray  # noqa: F401  (fail before any work)
+        except ImportError:
+            raise ValueError(RAY_MISSING) from None
+    out = Path(out_dir).resolve()  # Ray workers need not share this process's working folder
+    out.mkdir(parents=True, exist_ok=True)
+    jobs = [(cfg, str(out / p.name)) for cfg, p in zip(cfgs, points)]
+    t0 = time.perf_counter()
+    if backend == "local":
+        results = _run_local(jobs, quick, progress)
+    else:
+        results = _run_ray(jobs, quick, progress, address, workers)
+    wall = time.perf_counter() - t0
+
+    rows = []
+    for p, r in zip(points, results):
+        row: dict[str, Any] = {"point": p.name, **p.values}
+        row.update(headline(r["metrics"]) if "metrics" in r else {})
+        row["seconds"] = r["seconds"]
+        if any("error" in x for x in results):
+            row["error"] = r.get("error", "")
+        rows.append(row)
+    fields = list(dict.fromkeys(k for row in rows for k in row))
+    write_csv(out / SUMMARY_CSV, rows, fields)
+    write_json(out / SUMMARY_JSON, {
+        "config": str(config),
+        "experiment": sorted({EXPERIMENT_OF_FAMILY[c.family] for c in cfgs}),
+        "backend": backend,
+        "quick": bool(quick),
+        "items": list(items),
+        "wall_seconds": wall,
+        "points": [
+            {"name": p.name, "folder": str(out / p.name), "values": p.values,
+             "overrides": list(p.overrides), "seconds": r["seconds"], "error": r.get("error")}
+            for p, r in zip(points, results)
+        ],
+        "rows": rows,
+    })
+    print(format_summary(rows, fields))
+    print(f"{len(rows)} points in {wall:.1f} s ({backend}); wrote {out / SUMMARY_CSV}, "
+          f"{out / SUMMARY_JSON}")
+    return rows
+
+
+def format_summary(rows: Sequence[dict[str, Any]], fields: Sequence[str]) -> str:
+    """Aligned text table of the summary rows (floats to 3 decimals)."""
+
+    def cell(v: Any) -> str:
+        return f"{v:.3f}" if isinstance(v, float) else ("" if v is None else str(v))
+
+    table = [list(fields)] + [[cell(r.get(f)) for f in fields] for r in rows]
+    widths = [max(len(line[i]) for line in table) for i in range(len(fields))]
+    return "\n".join("  ".join(c.rjust(w) for c, w in zip(line, widths)).rstrip() for line in table)
