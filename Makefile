@@ -17,7 +17,7 @@ install: $(BIN)/python
 
 install-test: $(BIN)/python
 	$(BIN)/python -m pip install torch==2.13.0
-	$(BIN)/python -m pip install -e ".[test]"
+	$(BIN)/python -m pip install -e ".[test,distributed]"
 
 ## demo: install everything and run the main job (train, evaluate, print the table, write the plot)
 demo: install
