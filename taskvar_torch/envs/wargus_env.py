@@ -252,7 +252,24 @@ class WargusEnv(BatchedFamilyEnv):
         return self._out(self._picked, self._item_lost)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get(keys.ACTION).reshape(-1)  # (N,)
+        return self.step_all(tensordict.get(keys.ACTION).reshape(-1))
+
+    def reset_all(self) -> TensorDictBase:
+        """Start a new episode in every sub-environment and return their data.
+
+        The same draws and keys as ``reset()`` (no ``_reset`` mask), without ``EnvBase``'s checks
+        and transforms: the experiments' fast loop (``experiments/wargus_fig4.py``) steps the
+        dynamics through :meth:`reset_all` / :meth:`step_all` on plain tensordicts.
+        """
+        return self._reset(None)
+
+    def step_all(self, action: torch.Tensor) -> TensorDictBase:
+        """One step of every sub-environment with ``action`` ``(N,)`` int64.
+
+        Returns the data ``step()`` writes under ``"next"`` (observation, events, reward, done
+        flags, instance), without ``EnvBase``'s checks and transforms; no automatic reset (a done
+        sub-environment keeps stepping, as with ``step()``).
+        """
         if self.validate_actions:
             wargus.check_actions(self.model, action)
         state, picked, destroyed = wargus.step(self.model, self._state, action, self._ikey)

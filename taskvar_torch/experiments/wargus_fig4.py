@@ -60,9 +60,9 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDictBase
+from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
-from torchrl.envs import InitTracker, TransformedEnv
+from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import step_mdp
 from tqdm.auto import tqdm
 
@@ -74,9 +74,11 @@ from taskvar_torch.envs.wargus import NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.experiments.results import write_csv, write_json
-from taskvar_torch.heads.behaviour import BehaviourPolicy
-from taskvar_torch.heads.bundle import HEAD_OUT_KEYS
+from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
+from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
+from taskvar_torch.heads.max_value import OptimismGapHead
+from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
 from taskvar_torch.train import (
     build_heads,
     epsilon_at,
@@ -90,6 +92,7 @@ METHODS = ("averaging", "options", "interruption", "hierarchy")
 EXPERIMENT = "wargus-fig4"
 CSV_FIELDS = ("rep", "trial", "method", "items", "interruptions")
 FINAL_FRACTION = 0.1  # "final" performance: the mean of the last 10% of trials
+TEST_GROUP = 25  # trials whose test phases run side by side (run_repetition)
 
 
 def default_config_path() -> Path:
@@ -132,9 +135,9 @@ class LifelongAgent:
     updates: int = 0
 
 
-def make_agent(cfg: Config, env: TransformedEnv, seed: int) -> LifelongAgent:
+def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> LifelongAgent:
     """Fresh heads, learner, behaviour policy and an empty replay buffer (seeded by ``seed``)."""
-    subtasks = make_subtasks(cfg, env.base_env)
+    subtasks = make_subtasks(cfg, getattr(env, "base_env", env))
     heads = build_heads(cfg, env, subtasks)
     learner = make_learner(cfg, heads, subtasks)
     behaviour = BehaviourPolicy(
@@ -154,6 +157,30 @@ def make_agent(cfg: Config, env: TransformedEnv, seed: int) -> LifelongAgent:
     )
 
 
+def make_test_env(
+    cfg: Config, k: int, seed: int, first_trial: int = 0, trials: int = 1
+) -> WargusEnv:
+    """The test env of ``trials`` trials from ``first_trial`` on: rows ``(g, method, j)``, where
+    episode ``j`` of trial ``t`` plays nominal seed ``(j + t) % k``, so every method plays all
+    ``k`` seeds every trial. With ``trials = 1`` the env can be reused: its next reset is the next
+    trial (the seeds cycle)."""
+    seeds = nominal_seeds(k)
+    rows = tuple(
+        seeds[(j + first_trial + g) % k]
+        for g in range(trials)
+        for _ in METHODS
+        for j in range(k)
+    )
+    return WargusEnv(
+        len(rows),
+        config=dataclasses.asdict(cfg.env.wargus),
+        instances=WargusInstances(seeds=rows),
+        seed=seed,
+        validate_actions=False,
+        device=cfg.device,
+    )
+
+
 def make_test_controllers(agent: LifelongAgent) -> list[Controller]:
     """The four methods on the agent's live heads (paper §3.5.2), in :data:`METHODS` order."""
     cfg, sub = agent.cfg, agent.subtasks
@@ -170,14 +197,107 @@ def make_test_controllers(agent: LifelongAgent) -> list[Controller]:
     ]
 
 
+class HeadValues:
+    """Head outputs ``{out_key: (B, ...)}`` from plain observations ``(B, D)`` (inference).
+
+    When the heads are members of one :class:`StackedMLP` (how the trainer builds them), every head
+    comes from *one* batched pass of the stack (the learner's fused pass), and the pass can run
+    ``G`` frozen copies of the weights (:meth:`snapshot`) at once, rows ``[g R, (g + 1) R)`` through
+    copy ``g``: the experiment tests many trials' heads in one batch. An optimism-gap head combines
+    its members' outputs. Equal to running each head on its own (each member's slice is computed
+    by the same matmul; checked in the tests).
+    """
+
+    def __init__(self, heads: Heads, names: Sequence[str]):
+        self.nets = {HEAD_OUT_KEYS[n]: head_network(heads.heads[n]) for n in names}
+        members = [m for net in self.nets.values() for m in _members(net)]
+        stacks = {id(m.stack): m.stack for m in members if isinstance(m, StackedHead)}
+        fused = len(stacks) == 1 and all(isinstance(m, StackedHead) for m in members)
+        self.stack: StackedMLP | None = next(iter(stacks.values())) if fused else None
+
+    @staticmethod
+    def supports(heads: Heads, names: Sequence[str]) -> bool:
+        """Whether every head reads the observation only (``TensorDictModule`` with one out-key)."""
+        return all(
+            list(getattr(heads.heads[n], "in_keys", ())) == [keys.OBSERVATION]
+            and len(getattr(heads.heads[n], "out_keys", ())) == 1
+            for n in names
+        )
+
+    def snapshot(self) -> list[torch.Tensor]:
+        """A frozen copy of the stack's weights and biases (for :meth:`__call__`'s ``params``)."""
+        if self.stack is None:
+            raise ValueError("snapshots need heads stored in one StackedMLP")
+        return [p.detach().clone() for p in (*self.stack.weights, *self.stack.biases)]
+
+    def __call__(
+        self, obs: torch.Tensor, params: Sequence[torch.Tensor] | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Every head on ``obs`` ``(B, D)``; ``params``: :meth:`snapshot` s stacked along a new
+        first dim ``G`` (rows split into ``G`` equal groups), ``None``: the live weights."""
+        if self.stack is None:  # independent networks: each head on its own
+            if params is not None:
+                raise ValueError("snapshots need heads stored in one StackedMLP")
+            return {k: net(obs) for k, net in self.nets.items()}
+        out = _stacked_forward(self.stack, obs, params)  # (G, K, B / G, max_out)
+
+        def run(net: torch.nn.Module) -> torch.Tensor:  # (G, B / G, flat output)
+            if isinstance(net, OptimismGapHead):
+                return net.combine(run(net.base), run(net.gap))
+            return out[:, net.index, :, : self.stack.out_sizes[net.index]]
+
+        # elementwise math (the optimism gap's softplus) runs on rows of the layout forward_one
+        # gives (same kernel path, same bits); only the final values are reshaped
+        return {
+            k: run(net).reshape(obs.shape[0], *_out_shape(net)) for k, net in self.nets.items()
+        }
+
+
+def _stacked_forward(
+    stack: StackedMLP, obs: torch.Tensor, params: Sequence[torch.Tensor] | None
+) -> torch.Tensor:
+    """:meth:`StackedMLP.forward` of ``G`` weight copies on ``G`` row groups: ``(G, K, B/G, out)``.
+
+    Member ``(g, k)`` is one ``baddbmm`` batch entry, the matmul ``forward_one`` does for it.
+    """
+    K, n = stack.num_members, len(stack.weights)
+    if params is None:
+        ws = [w.unsqueeze(0) for w in stack.weights]  # (1, K, d_in, d_out)
+        bs = [b.unsqueeze(0) for b in stack.biases]  # (1, K, 1, d_out)
+    else:
+        ws, bs = list(params[:n]), list(params[n:])  # (G, K, d_in, d_out), (G, K, 1, d_out)
+    G = ws[0].shape[0]
+    R = obs.shape[0] // G
+    h = obs.view(G, 1, R, -1).expand(G, K, R, obs.shape[-1]).reshape(G * K, R, -1)
+    for i, (w, b) in enumerate(zip(ws, bs)):
+        h = torch.baddbmm(b.reshape(G * K, 1, -1), h, w.reshape(G * K, *w.shape[2:]))
+        if i < n - 1:
+            h = stack.activation(h)
+    return h.view(G, K, R, -1)
+
+
+def _out_shape(net: torch.nn.Module) -> tuple[int, ...]:
+    """A stacked head's output shape per row (an optimism-gap head: its base's)."""
+    return _out_shape(net.base) if isinstance(net, OptimismGapHead) else net.out_shape
+
+
+def _members(net: torch.nn.Module) -> list[torch.nn.Module]:
+    if isinstance(net, OptimismGapHead):
+        return _members(net.base) + _members(net.gap)
+    return [net]
+
+
 class SideBySide(TensorDictModuleBase):
     """Several controllers on consecutive equal slices of one batch: one env step serves them all.
 
-    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``. Every head of the
-    shared bundle runs once over the whole batch, then each controller's decision rule
-    (:meth:`Controller.decide`, the same rule its ``forward`` applies) reads its slice. Traces a
-    controller does not write are filled with -1 (``option``, ``hierarchy_level``) or False
-    (``interrupted``); stateless controllers carry ``running_option = -1``.
+    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``. Every head the
+    controllers need runs once over the whole batch (one pass of the shared stacked network, see
+    :class:`HeadValues`), then each controller's decision rule (:meth:`Controller.decide`, the same
+    rule its ``forward`` applies) reads its slice. Traces a controller does not write are filled
+    with -1 (``option``, ``hierarchy_level``) or False (``interrupted``); stateless controllers
+    carry ``running_option = -1``. ``forward`` is the TorchRL module; :meth:`decide_batch` the
+    same decision on plain tensors, optionally for ``G`` groups of rows (``G`` trials' frozen heads
+    side by side, rows ``(g, i, j)``: group, controller, episode).
     """
 
     TRACES = ((keys.OPTION, -1), (keys.HIERARCHY_LEVEL, -1), (keys.INTERRUPTED, False))
@@ -191,6 +311,11 @@ class SideBySide(TensorDictModuleBase):
         self.heads = controllers[0].heads
         self.subtasks = next((c.subtasks for c in controllers if c.subtasks is not None), None)
         self.k = int(slice_size)
+        names = [h for h in self.heads.heads if any(h in c.required_heads for c in controllers)]
+        self.head_names = names
+        self.head_values = (
+            HeadValues(self.heads, names) if HeadValues.supports(self.heads, names) else None
+        )
         self.in_keys = [*self.heads.in_keys, keys.RUNNING_OPTION]
         self.out_keys = [
             keys.ACTION,
@@ -198,33 +323,72 @@ class SideBySide(TensorDictModuleBase):
             *(k for k, _ in self.TRACES),
         ]
 
-    def forward(self, td: TensorDictBase) -> TensorDictBase:
-        k = self.k
-        td = self.heads(td)  # every head once, over all rows
-        running = td.get(keys.RUNNING_OPTION)  # (B,)
+    @property
+    def batchable(self) -> bool:
+        """Whether groups of frozen heads can be decided side by side: stacked heads and no
+        random draws (a softmax mu_bar draws from the controllers' generators per row)."""
+        return (
+            self.head_values is not None
+            and self.head_values.stack is not None
+            and self.heads.softmax_temperature is None
+        )
+
+    def decide_batch(
+        self, td: Any, running: torch.Tensor, params: Sequence[torch.Tensor] | None = None
+    ) -> dict[str, torch.Tensor]:
+        """Decisions ``(B,)`` at the state ``td`` (a tensordict with the env's keys) with carried
+        ``running`` ``(B,)``: ``action``, ``next_running`` and the traces. ``params``:
+        :meth:`HeadValues.snapshot` s stacked over ``G`` groups of rows (``None``: live heads)."""
+        k, M = self.k, len(self.controllers)
+        G = 1 if params is None else params[0].shape[0]
+        if self.head_values is not None:
+            values_all = self.head_values(td.get(keys.OBSERVATION), params)
+        else:  # generic heads (e.g. tables reading other keys): the bundle's tensordict path
+            if params is not None:
+                raise ValueError("decide_batch with params needs stacked heads (see batchable)")
+            td = self.heads(td)
+            values_all = {HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h]) for h in self.head_names}
         beta = None
         if self.subtasks is not None:
-            beta = option_first(self.subtasks.termination(td))  # (O, B)
+            beta = self.subtasks.termination(td)  # (B, O)
+
+        def part(x: torch.Tensor, i: int) -> torch.Tensor:  # rows of controller i, all groups
+            return x.view(G, M, k, *x.shape[1:])[:, i].reshape(G * k, *x.shape[1:])
+
         outs = []
         for i, c in enumerate(self.controllers):
-            rows = slice(i * k, (i + 1) * k)
-            values = {HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h])[rows] for h in c.required_heads}
-            run = running[rows] if c.stateful else None
+            values = {HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads}
+            run = part(running, i) if c.stateful else None
             term = None
             if run is not None and c.subtasks is not None:
-                term = select0(beta[:, rows], run.clamp(min=0))  # beta_{o_run}(s_t)
+                term = select0(option_first(part(beta, i)), run.clamp(min=0))  # beta_{o_run}(s_t)
             out = c.decide(values, run, term)
             if not c.stateful:
                 out["option"] = torch.full_like(out["action"], -1)
             outs.append(out)
-        td.set(keys.ACTION, torch.cat([o["action"] for o in outs]))
-        td.set((keys.NEXT, keys.RUNNING_OPTION), torch.cat([o["option"] for o in outs]))
+
+        def whole(parts: list[torch.Tensor]) -> torch.Tensor:  # back to rows (g, i, j)
+            return torch.stack([p.view(G, k) for p in parts], 1).reshape(G * M * k)
+
+        result = {
+            keys.ACTION: whole([o["action"] for o in outs]),
+            "next_running": whole([o["option"] for o in outs]),
+        }
         for key, fill in self.TRACES:
-            parts = [
-                o[key] if key in c.trace_keys else _full(o["action"], fill)
-                for o, c in zip(outs, self.controllers)
-            ]
-            td.set(key, torch.cat(parts))
+            result[key] = whole(
+                [
+                    o[key] if key in c.trace_keys else _full(o["action"], fill)
+                    for o, c in zip(outs, self.controllers)
+                ]
+            )
+        return result
+
+    def forward(self, td: TensorDictBase) -> TensorDictBase:
+        out = self.decide_batch(td, td.get(keys.RUNNING_OPTION))
+        td.set(keys.ACTION, out[keys.ACTION])
+        td.set((keys.NEXT, keys.RUNNING_OPTION), out["next_running"])
+        for key, _ in self.TRACES:
+            td.set(key, out[key])
         return td
 
 
@@ -237,13 +401,175 @@ def _full(like: torch.Tensor, value: int | bool) -> torch.Tensor:
 # one trial: learning phase, then test phase
 
 
-def learning_phase(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float]:
+def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
     """One episode per sub-environment (training instances) with learning on (paper §3.5.1).
 
     Transitions of live episodes are replayed; every ``frames_per_batch`` frames played the learner
     takes ``updates_per_batch`` gradient steps on every head. Returns the mean items per episode
     and the frames played.
+
+    The fast loop: it steps ``env``'s dynamics directly (:meth:`WargusEnv.reset_all` /
+    :meth:`WargusEnv.step_all`, no ``EnvBase`` checks, transforms or ``step_mdp``), carries
+    ``is_init`` and the behaviour mode itself, and writes the kept transitions to the replay buffer
+    in one ``extend`` per update phase (before any sample, so the buffer holds the same rows in the
+    same order). Same draws, same transitions, same updates as the TorchRL loop
+    :func:`learning_phase_torchrl` (tested equal).
     """
+    t = agent.cfg.train
+    n = env.num_envs
+    dev = env.device
+    td = env.reset_all()  # every sub-env starts a new episode with a fresh training instance
+    td.set(IS_INIT, torch.ones(n, 1, dtype=torch.bool, device=dev))
+    not_init = torch.zeros(n, 1, dtype=torch.bool, device=dev)
+    if t.first_visit:
+        agent.first_visit.clear()
+    alive = torch.ones(n, dtype=torch.bool, device=dev)
+    items = torch.zeros(n, device=dev)
+    frames = 0
+    staged: list[TensorDictBase] = []  # transitions of this update phase, not yet in the buffer
+    masks: list[torch.Tensor] = []  # (n,) which of them to keep
+    for _ in range(env.horizon):
+        agent.behaviour.set_epsilon(epsilon_at(agent.frames, t))
+        td = agent.behaviour(td)
+        action = td.get(keys.ACTION)
+        nxt = env.step_all(action)
+        nxt.set(IS_INIT, not_init)
+        # ---- stage this step's transitions of the live episodes ------------------------------
+        keep = alive
+        if t.first_visit:
+            keep = keep & agent.first_visit.visit(td.get(keys.OBSERVATION), action)
+        staged.append(_transition(td, nxt))
+        masks.append(keep)
+        n_alive = int(alive.sum())
+        agent.frames += n_alive
+        agent.pending += n_alive
+        frames += n_alive
+        items += torch.where(alive, nxt.get(keys.REWARD).reshape(n), 0.0)
+        # ---- learn: every head from one shared sample per update ----------------------------
+        if agent.pending >= t.frames_per_batch:
+            _flush(agent, staged, masks)
+        while agent.pending >= t.frames_per_batch:
+            agent.pending -= t.frames_per_batch
+            if agent.frames >= t.init_random_frames and len(agent.buffer) >= t.batch_size:
+                for _ in range(t.updates_per_batch):
+                    agent.learner.update(agent.buffer.sample())
+                    agent.updates += 1
+        alive = alive & ~nxt.get(keys.DONE).reshape(n)
+        if not bool(alive.any()):
+            break
+        nxt.set(BEHAVIOUR, td.get(BEHAVIOUR))  # carried, like step_mdp(keep_other=True)
+        td = nxt
+    _flush(agent, staged, masks)
+    return {"learn_items": float(items.mean()), "frames": frames}
+
+
+_HIDDEN = (keys.INSTANCE, keys.REWARD)  # never replayed / not part of a state
+
+
+def _transition(td: TensorDictBase, nxt: TensorDictBase) -> TensorDictBase:
+    """The replayed transition: the state ``td`` (with action, behaviour, ``is_init``) and
+    ``"next"``, minus the hidden instance (the keys ``env.step`` + ``step_mdp`` give)."""
+    root = {k: v for k, v in td.items() if k not in _HIDDEN}
+    root[keys.NEXT] = nxt.exclude(keys.INSTANCE)
+    return TensorDict._new_unsafe(root, batch_size=td.batch_size, device=td.device)
+
+
+def _flush(agent: LifelongAgent, staged: list, masks: list) -> None:
+    """Write the staged transitions that are kept to the replay buffer (one ``extend``)."""
+    if not staged:
+        return
+    keep = torch.cat(masks)
+    if bool(keep.any()):
+        agent.buffer.extend(torch.cat(staged)[keep])
+    staged.clear()
+    masks.clear()
+
+
+def test_phase(policy: SideBySide, env: WargusEnv, k: int) -> dict[str, np.ndarray]:
+    """The nominal test episodes of every method, side by side, learning off (paper §3.5.1).
+
+    Returns per method ``items`` (mean per test episode), ``interruptions`` (per episode) and,
+    over the hierarchy's live steps, the count of steps each subtask held control. ``env``: the
+    test env (:func:`make_test_env`), at its next trial. The fast loop (:func:`test_trials` with
+    the live heads); the same episodes as :func:`test_phase_torchrl` (tested equal).
+    """
+    return test_trials(policy, env, k, None)[0]
+
+
+@torch.inference_mode()
+def test_trials(
+    policy: SideBySide,
+    env: WargusEnv,
+    k: int,
+    snapshots: Sequence[Sequence[torch.Tensor]] | None,
+) -> list[dict[str, np.ndarray]]:
+    """The test phases of ``G`` trials side by side: trial ``g`` with frozen heads
+    ``snapshots[g]`` (:meth:`HeadValues.snapshot`; ``None``: one trial, the live heads) on rows
+    ``(g, method, episode)`` of ``env`` (:func:`make_test_env` with ``trials=G``).
+
+    Steps ``env``'s dynamics directly (:meth:`WargusEnv.step_all`) with
+    :meth:`SideBySide.decide_batch`, carries ``running_option`` (-1 at the start) itself, and stops
+    when every episode is done. Test episodes read nothing learnt later and draw nothing from the
+    global stream, so testing a trial later, beside others, gives the episodes it gave right after
+    its learning phase (tested equal). Returns one :func:`test_phase` result per trial.
+    """
+    params = None
+    G = 1
+    if snapshots is not None:
+        params = [torch.stack(p) for p in zip(*snapshots)]
+        G = len(snapshots)
+    M = len(METHODS)
+    n = env.num_envs
+    if n != G * M * k:
+        raise ValueError(f"the test env has {n} sub-environments, expected {G} x {M} x {k}")
+    dev = env.device
+    td = env.reset_all()
+    running = torch.full((n,), -1, dtype=torch.int64, device=dev)
+    alive = torch.ones(n, dtype=torch.bool, device=dev)
+    ret = torch.zeros(n, device=dev)
+    inter = torch.zeros(n, dtype=torch.int64, device=dev)
+    h = METHODS.index("hierarchy")
+    options, alives = [], []
+    for _ in range(env.horizon):
+        out = policy.decide_batch(td, running, params)
+        inter += (out[keys.INTERRUPTED] & alive).long()
+        options.append(out[keys.OPTION])
+        alives.append(alive)
+        td = env.step_all(out[keys.ACTION])
+        running = out["next_running"]
+        ret += torch.where(alive, td.get(keys.REWARD).reshape(n), 0.0)
+        alive = alive & ~td.get(keys.DONE).reshape(n)
+        if not bool(alive.any()):
+            break
+    option = torch.stack(options, -1).view(G, M, k, -1)[:, h]  # (G, K, T)
+    live = torch.stack(alives, -1).view(G, M, k, -1)[:, h]  # (G, K, T)
+    ret, inter = ret.view(G, M * k), inter.view(G, M * k)
+    return [_test_summary(policy, ret[g], inter[g], option[g], live[g], k) for g in range(G)]
+
+
+def _test_summary(
+    policy: SideBySide,
+    ret: torch.Tensor,  # (M K,) items per test episode
+    inter: torch.Tensor,  # (M K,) interruptions per test episode
+    option: torch.Tensor,  # (K, T) the hierarchy's option per step
+    alive: torch.Tensor,  # (K, T) its live steps
+    k: int,
+) -> dict[str, np.ndarray]:
+    num_options = len(policy.controllers[METHODS.index("hierarchy")].heads.option_names)
+    control = torch.stack([((option == o) & alive).sum() for o in range(num_options)])
+    return {
+        "items": ret.reshape(len(METHODS), k).mean(-1).cpu().numpy(),  # (M,)
+        "interruptions": inter.reshape(len(METHODS), k).double().mean(-1).cpu().numpy(),  # (M,)
+        "control_steps": control.cpu().numpy(),  # (O,)
+    }
+
+
+# ---- the TorchRL loops: the reference the fast loops are tested against ---------------------
+
+
+def learning_phase_torchrl(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float]:
+    """:func:`learning_phase` through TorchRL's ``EnvBase.step`` (``env``: the learning env with
+    an ``InitTracker``), ``step_mdp`` and one ``extend`` per step: the reference implementation."""
     t = agent.cfg.train
     n = env.batch_size[0]
     td = env.reset()  # every sub-env starts a new episode with a fresh training instance
@@ -255,7 +581,6 @@ def learning_phase(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float
         agent.behaviour.set_epsilon(epsilon_at(agent.frames, t))
         td = agent.behaviour(td)
         td = env.step(td)
-        # ---- store this step's transitions of the live episodes ------------------------------
         keep = alive
         if t.first_visit:
             keep = keep & agent.first_visit(td.unsqueeze(1)).squeeze(1)
@@ -266,7 +591,6 @@ def learning_phase(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float
         agent.pending += n_alive
         frames += n_alive
         items += torch.where(alive, td.get((keys.NEXT, keys.REWARD)).reshape(n), 0.0)
-        # ---- learn: every head from one shared sample per update ----------------------------
         while agent.pending >= t.frames_per_batch:
             agent.pending -= t.frames_per_batch
             if agent.frames >= t.init_random_frames and len(agent.buffer) >= t.batch_size:
@@ -280,25 +604,14 @@ def learning_phase(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float
     return {"learn_items": float(items.mean()), "frames": frames}
 
 
-def test_phase(policy: SideBySide, env: TransformedEnv, k: int) -> dict[str, np.ndarray]:
-    """The nominal test episodes of every method, side by side, learning off (paper §3.5.1).
-
-    Returns per method ``items`` (mean per test episode), ``interruptions`` (per episode) and,
-    over the hierarchy's live steps, the count of steps each subtask held control.
-    """
+def test_phase_torchrl(policy: SideBySide, env: TransformedEnv, k: int) -> dict[str, np.ndarray]:
+    """:func:`test_phase` through :func:`run_episodes` (``env``: the test env with the
+    controllers' primer): the reference implementation."""
     out = run_episodes(env, policy, trace_keys=(keys.OPTION,))
-    ret = out["return"].reshape(len(METHODS), k)  # (M, K)
-    inter = out["interruptions"].reshape(len(METHODS), k).double()  # (M, K)
     h = METHODS.index("hierarchy")
     option = out["trace", keys.OPTION][h * k : (h + 1) * k]  # (K, T)
     alive = out["trace", "alive"][h * k : (h + 1) * k]  # (K, T)
-    num_options = len(policy.controllers[h].heads.option_names)
-    control = torch.stack([((option == o) & alive).sum() for o in range(num_options)])
-    return {
-        "items": ret.mean(-1).cpu().numpy(),  # (M,)
-        "interruptions": inter.mean(-1).cpu().numpy(),  # (M,)
-        "control_steps": control.cpu().numpy(),  # (O,)
-    }
+    return _test_summary(policy, out["return"], out["interruptions"], option, alive, k)
 
 
 # --------------------------------------------------------------------------------------------
@@ -310,8 +623,14 @@ def run_repetition(
     rep: int,
     out_dir: str | os.PathLike,
     on_trial: Callable[[int, int], None] | None = None,
+    test_group: int = TEST_GROUP,
 ) -> dict[str, Any]:
     """Repetition ``rep`` of the lifelong protocol (module docstring); saves ``rep{rep}/final.pt``.
+
+    The test phases of ``test_group`` consecutive trials run side by side after their learning
+    phases, each with a frozen copy of the heads taken at the end of its trial
+    (:func:`test_trials`): the same episodes as testing each trial at once, in a batch that
+    amortises the per-step work (``test_group = 1`` tests every trial at once).
 
     Runs inside :func:`torch.random.fork_rng` seeded with :func:`repetition_seed`, so its global
     torch stream (network init, behaviour draws) is its own and leaves the caller's untouched.
@@ -327,41 +646,38 @@ def run_repetition(
     start = time.perf_counter()
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        learn_env = TransformedEnv(
-            make_env(rep_cfg, num_envs=x.learning_episodes_per_trial, seed=seed), InitTracker()
-        )
+        learn_env = make_env(rep_cfg, num_envs=x.learning_episodes_per_trial, seed=seed)
+        learn_env.validate_actions = False  # the behaviour's actions are in range by construction
         agent = make_agent(rep_cfg, learn_env, seed)
         controllers = make_test_controllers(agent)
         policy = SideBySide(controllers, k)
-        test_env = TransformedEnv(
-            WargusEnv(
-                len(METHODS) * k,  # sub-env i plays nominal seed i % k (cycled): K per method
-                config=dataclasses.asdict(cfg.env.wargus),
-                instances=WargusInstances(seeds=nominal_seeds(k)),
-                seed=seed,
-                validate_actions=False,
-                device=cfg.device,
-            ),
-            controllers[METHODS.index("hierarchy")].primer(),
-        )
+        group = test_group if policy.batchable else 1
         rows: dict[str, list] = {
-            k_: []
-            for k_ in (
-                "items",
-                "interruptions",
-                "control_steps",
-                "learn_items",
-                "frames",
-                "updates",
-            )
+            k_: [] for k_ in ("items", "interruptions", "control_steps", "learn_items", "frames")
         }
+        updates: list[int] = []
+        snapshots: list[list[torch.Tensor]] = []  # frozen heads of trials not tested yet
+
+        def test_pending() -> None:
+            env = make_test_env(cfg, k, seed, first_trial=len(rows["items"]), trials=len(snapshots))
+            for tested in test_trials(policy, env, k, snapshots if group > 1 else None):
+                for key, v in tested.items():
+                    rows[key].append(v)
+            snapshots.clear()
+
         for trial in range(x.trials):
             learned = learning_phase(agent, learn_env)
-            tested = test_phase(policy, test_env, k)
-            for key, v in {**learned, **tested, "updates": agent.updates}.items():
+            for key, v in learned.items():
                 rows[key].append(v)
+            updates.append(agent.updates)
+            snapshots.append(policy.head_values.snapshot() if group > 1 else [])
+            if len(snapshots) >= group:
+                test_pending()
             if on_trial is not None:
                 on_trial(rep, trial)
+        if snapshots:
+            test_pending()
+        rows["updates"] = updates
         rep_dir = Path(out_dir) / f"rep{rep}"
         save_checkpoint(
             rep_dir / "final.pt",
@@ -706,6 +1022,7 @@ __all__ = [
     "SideBySide",
     "default_config_path",
     "learning_phase",
+    "learning_phase_torchrl",
     "make_agent",
     "moving_average",
     "plot_results",
@@ -714,6 +1031,7 @@ __all__ = [
     "run_repetitions",
     "summarise",
     "test_phase",
+    "test_phase_torchrl",
     "trials_to_fraction",
     "wargus_fig4",
 ]

@@ -67,11 +67,23 @@ class FirstVisitFilter(nn.Module):
         action = batch.get(keys.ACTION)  # (N, T)
         is_init = batch.get("is_init").reshape(action.shape)  # (N, T) new episode at step t
         N, T = action.shape
-        rows = torch.arange(N, device=action.device)
         keep = torch.empty(N, T, dtype=torch.bool, device=action.device)
         for t in range(T):
             self.seen.masked_fill_(is_init[:, t].unsqueeze(-1), False)  # new episodes
-            h = self._hash(obs[:, t], action[:, t])  # (N,)
-            keep[:, t] = ~self.seen[rows, h]
-            self.seen[rows, h] = True
+            keep[:, t] = self.visit(obs[:, t], action[:, t])
         return keep
+
+    @torch.no_grad()
+    def visit(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """``(N,)`` first-visit mask of one step (observation (N, D), action (N,)) of every
+        environment, within their current episodes (updates the flags; :meth:`clear` starts new
+        episodes everywhere)."""
+        rows = torch.arange(obs.shape[0], device=obs.device)
+        h = self._hash(obs, action)  # (N,)
+        keep = ~self.seen[rows, h]
+        self.seen[rows, h] = True
+        return keep
+
+    def clear(self) -> None:
+        """Forget every visit (every environment starts a new episode)."""
+        self.seen.zero_()

@@ -1,0 +1,114 @@
+"""Wargus Figure 4's fast loops equal the TorchRL ones: env, learning phase, batched test phases."""
+
+from __future__ import annotations
+
+import torch
+from torchrl.envs import InitTracker, TransformedEnv
+
+from taskvar_torch import keys
+from taskvar_torch.config import load_config
+from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.train import make_env
+
+torch.set_num_threads(1)
+
+# small, but long enough episodes that items are picked, patrols chase and options switch
+SMALL = [
+    "env.wargus.size=10",
+    "env.wargus.sight=3",
+    "env.wargus.shoot_range=1",
+    "env.wargus.horizon=40",
+    "experiment.learning_episodes_per_trial=8",
+    "train.init_random_frames=100",
+    "train.batch_size=32",
+    "train.frames_per_batch=64",
+    "train.buffer_size=5000",
+    "heads.hidden=[32]",
+]
+K, TRIALS, SEED = 3, 4, 5
+
+
+def test_step_all_equals_envbase_step():
+    """Same seed, same actions -> same observations, events, rewards, dones and instances."""
+    a, b = (
+        WargusEnv(6, seed=3, size=12, sight=4, shoot_range=2),
+        WargusEnv(6, seed=3, size=12, sight=4, shoot_range=2),
+    )
+    td = a.reset()
+    fast = b.reset_all()
+    assert (td == fast.select(*td.keys(True, True))).all()
+    g = torch.Generator().manual_seed(0)
+    for _ in range(30):
+        action = torch.randint(0, 8, (6,), generator=g)
+        td = a.step(td.set(keys.ACTION, action))["next"]
+        fast = b.step_all(action)
+        assert set(fast.keys(True, True)) == set(td.keys(True, True))
+        for key in td.keys(True, True):
+            assert torch.equal(td[key], fast[key]), key
+        td = td.exclude(keys.REWARD)
+
+
+def _agent(cfg, torchrl: bool):
+    torch.manual_seed(SEED)
+    env = make_env(cfg, num_envs=cfg.experiment.learning_episodes_per_trial, seed=SEED)
+    if torchrl:
+        env = TransformedEnv(env, InitTracker())
+    agent = fig4.make_agent(cfg, env, SEED)
+    return env, agent, fig4.SideBySide(fig4.make_test_controllers(agent), K)
+
+
+def _plain(tested: dict) -> dict:
+    return {k: v.tolist() for k, v in tested.items()}
+
+
+def test_fast_trials_equal_torchrl_trials():
+    """Learning phases (replay rows, updates, weights, global RNG) and test phases run later side
+    by side on frozen heads equal the TorchRL loops trial by trial."""
+    cfg = load_config(fig4.default_config_path(), SMALL)
+    env, agent, policy = _agent(cfg, torchrl=True)
+    test_env = TransformedEnv(fig4.make_test_env(cfg, K, SEED), policy.controllers[-1].primer())
+    torch.manual_seed(11)
+    ref = []
+    for _ in range(TRIALS):
+        learned = fig4.learning_phase_torchrl(agent, env)
+        ref.append((learned, agent.updates, _plain(fig4.test_phase_torchrl(policy, test_env, K))))
+    ref_agent, ref_rng = agent, torch.get_rng_state()
+
+    env, agent, policy = _agent(cfg, torchrl=False)
+    assert policy.batchable
+    torch.manual_seed(11)
+    learned, snapshots = [], []
+    for _ in range(TRIALS):
+        learned.append((fig4.learning_phase(agent, env), agent.updates))
+        snapshots.append(policy.head_values.snapshot())
+    tested = fig4.test_trials(policy, fig4.make_test_env(cfg, K, SEED, 0, TRIALS), K, snapshots)
+    fast = [(lrn, u, _plain(t)) for (lrn, u), t in zip(learned, tested)]
+    assert fast == ref
+    assert torch.equal(torch.get_rng_state(), ref_rng)
+    assert agent.updates > 0 and sum(r[0]["learn_items"] for r in ref) > 0  # it did learn and pick
+    n = len(ref_agent.buffer)
+    assert len(agent.buffer) == n
+    rows, ref_rows = agent.buffer[:n], ref_agent.buffer[:n]
+    assert set(rows.keys(True, True)) == set(ref_rows.keys(True, True))
+    for key in ref_rows.keys(True, True):
+        assert torch.equal(rows[key], ref_rows[key]), key
+    for p, q in zip(agent.heads.parameters(), ref_agent.heads.parameters()):
+        assert torch.equal(p, q)
+    # the last trial alone, on the live heads, as the batch gave it
+    alone = fig4.test_phase(policy, fig4.make_test_env(cfg, K, SEED, TRIALS - 1), K)
+    assert _plain(alone) == fast[-1][2]
+
+
+def test_head_values_equal_each_head_alone():
+    cfg = load_config(fig4.default_config_path(), SMALL)
+    _, agent, policy = _agent(cfg, torchrl=False)
+    obs = torch.rand(2 * 7, 24)
+    values = policy.head_values(obs)
+    snap = policy.head_values.snapshot()
+    twice = policy.head_values(obs, [torch.stack(p) for p in zip(snap, snap)])
+    for name in policy.head_names:
+        head = agent.heads.heads[name]
+        alone = head.module(obs)
+        assert torch.equal(values[head.out_keys[0]], alone), name
+        assert torch.equal(twice[head.out_keys[0]], alone), name
