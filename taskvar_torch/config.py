@@ -47,6 +47,7 @@ TARGET_UPDATES = ("hard", "soft")
 SWITCHING_MODES = ("intra",)
 MU_BAR_MODES = ("greedy", "softmax")
 ROBUSTNESS_TARGETS = ("greedy", "option")  # mirrors heads/robustness.py
+ROOT_POLICIES = ("averaging", "option")  # mirrors controllers/hierarchy.py
 METHODS = ("averaging", "hierarchy", "interruption", "options")
 GENERATED = "generated"
 """``env.layout`` value that builds the grid from ``env.height``/``env.width``/... (make_layout)."""
@@ -176,6 +177,10 @@ class TrainConfig:
     robustness_target: str = "option"
     """Next action of the robustness critics' TD target (Wargus): option (pi^o(s'), R of following
     option o, paper §3.4.3) or greedy (argmax_a' R_o(s', a'), Q-learning on R)."""
+    hierarchy_root_policy: str = "option"
+    """Policy of the hierarchy's root (Wargus), in the controller and in its robustness target:
+    option (its own option head) or averaging (the averaging head: paper §3.4.2, "the policy of
+    this subtask is the full task averaging policy")."""
     max_grad_norm: float | None = 10.0
     """Gradient-norm clipping; null disables it."""
     checkpoint_every: int = 50_000
@@ -297,6 +302,7 @@ def _validate(cfg: Config) -> None:
     _within("train.gamma", t.gamma, 0.0, 1.0, open_low=True)
     _within("train.robustness_gamma", t.robustness_gamma, 0.0, 1.0, open_low=True)
     _one_of("train.robustness_target", t.robustness_target, ROBUSTNESS_TARGETS)
+    _one_of("train.hierarchy_root_policy", t.hierarchy_root_policy, ROOT_POLICIES)
     if not t.lr > 0:
         raise ValueError(f"train.lr must be > 0, got {t.lr}")
     _at_least("train.batch_size", t.batch_size, 1)

@@ -160,6 +160,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         gamma=t.gamma,
         robustness_gamma=t.robustness_gamma,
         robustness_target=t.robustness_target,
+        root_policy=t.hierarchy_root_policy,
         double_q=t.double_q,
         max_value_expectile=t.max_value_expectile,
         mu_bar_temperature=mu_bar_temperature(t),

@@ -52,6 +52,7 @@ WARGUS_ONLY = (
     "train.robustness_gamma",
     "train.robustness_tau",
     "train.robustness_target",
+    "train.hierarchy_root_policy",
     "experiment.trials",
     "experiment.learning_episodes_per_trial",
     "experiment.test_episodes_per_trial",

@@ -251,7 +251,7 @@ TAU = 0.0
 OWN_ACTION = [0, 1, 2, 3, 0]
 
 
-def tree_heads(robust_rows: list[dict[str, dict[int, float]]]) -> object:
+def tree_heads(robust_rows: list[dict[str, dict[int, float]]], averaging=None) -> object:
     """Robustness R(o, s, a) per situation s: default -1 (below tau), overridden by rows[s][o][a]."""
     S = len(robust_rows)
     q = torch.zeros(S, 5, A, dtype=torch.float64)
@@ -262,7 +262,7 @@ def tree_heads(robust_rows: list[dict[str, dict[int, float]]]) -> object:
         for name, acts in row.items():
             for a, v in acts.items():
                 rob[s, NAMES.index(name), a] = v
-    return table_heads(NAMES, options=q, robustness=rob)
+    return table_heads(NAMES, options=q, robustness=rob, averaging=averaging)
 
 
 def run_hierarchy(heads, situations, running=-1):
@@ -321,6 +321,29 @@ def test_hierarchy_running_subtask_persists_across_steps():
     rows = [{"B": {2: 1.0}, "A": {0: 9.0, 1: 9.0, 2: 9.0}}] * 3
     heads = tree_heads(rows)
     assert run_hierarchy(heads, [0, 1, 2], running=NAMES.index("B")) == [("B", 1, 2)] * 3
+
+
+def test_hierarchy_root_can_follow_the_averaging_policy():
+    # paper §3.4.2: "the policy of this subtask is the full task averaging policy". Q_avg prefers
+    # action 3, the root's option head action 0; the root is robust only under action 3.
+    q_avg = torch.zeros(1, A, dtype=torch.float64)
+    q_avg[0, 3] = 1.0
+    heads = tree_heads([{"root": {3: 1.0}, "A": {0: 5.0}, "A1": {1: 2.0}}], averaging=q_avg)
+    own = HierarchyController(heads, TREE, TAU)  # root's own action 0 is not robust: descend
+    avg = HierarchyController(heads, TREE, TAU, root_policy="averaging")
+    assert "averaging" in avg.required_heads and "averaging" not in own.required_heads
+    for ctrl, want in ((own, ("A1", 2, 3)), (avg, ("root", 0, 3))):
+        td = ctrl(td_of([0], torch.tensor([-1])))
+        got = (
+            NAMES[td[keys.OPTION].item()],
+            td[keys.HIERARCHY_LEVEL].item(),
+            td[keys.ACTION].item(),
+        )
+        assert got == want
+        scalar = ctrl.act_one({keys.CELL: torch.tensor([0])}, -1)
+        assert (NAMES[scalar["option"]], scalar[keys.HIERARCHY_LEVEL], scalar["action"]) == want
+    with pytest.raises(ValueError, match="root_policy must be one of"):
+        HierarchyController(heads, TREE, TAU, root_policy="flat")
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

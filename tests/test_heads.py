@@ -229,8 +229,9 @@ def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
     batch = env.rollout(20, break_when_any_done=False).reshape(-1)
     batch = batch.exclude(keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
     losses = {}
-    for target in ("option", "greedy"):
-        loss = MultiHeadLoss(heads, subtasks, LossSettings(robustness_target=target))
+    for target, root in (("option", "option"), ("greedy", "option"), ("option", "averaging")):
+        settings = LossSettings(robustness_target=target, root_policy=root)
+        loss = MultiHeadLoss(heads, subtasks, settings)
         with torch.no_grad():  # make the target network differ from the online one
             for p in loss.target_heads_params.values(True, True):
                 p.add_(0.1 * torch.randn_like(p))
@@ -239,12 +240,15 @@ def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
         cur, nxt, nxt_t = loss._head_outputs(tr.observation, tr.next_observation)
         mask = parent_closure(tr.initiation, loss.components)
         pi_next = nxt["options"].argmax(-1) if target == "option" else None
+        if root == "averaging":  # the root (TG+FE, index 2) follows pi^avg (paper §3.4.2)
+            pi_next[:, 2] = nxt["averaging"].argmax(-1)
         want = robustness_loss(
             cur["robustness"], nxt["robustness"], nxt_t["robustness"], mask, tr, 0.9, True, pi_next
         )
         torch.testing.assert_close(got, want)
-        losses[target] = got
-    assert not torch.isclose(losses["option"], losses["greedy"])  # the two targets differ here
+        losses[target, root] = got
+    # the targets differ here, so the checks above tell them apart
+    assert len({round(v.item(), 6) for v in losses.values()}) == 3
     with pytest.raises(ValueError, match="robustness_target must be one of"):
         MultiHeadLoss(heads, subtasks, LossSettings(robustness_target="max"))
 

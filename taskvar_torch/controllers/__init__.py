@@ -52,14 +52,19 @@ def make_controller(
     hierarchy: Hierarchy | None = None,
     tau: float | None = None,
     seed: int = 0,
+    root_policy: str = "option",
 ) -> Controller:
-    """A controller by name: ``averaging``, ``options``, ``interruption`` or ``hierarchy``."""
+    """A controller by name: ``averaging``, ``options``, ``interruption`` or ``hierarchy``.
+
+    ``hierarchy`` needs ``hierarchy`` and ``tau``; ``root_policy`` is its root's policy
+    (:class:`HierarchyController`).
+    """
     if name not in CONTROLLERS:
         raise ValueError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")
     if name == "hierarchy":
         if hierarchy is None or tau is None:
             raise ValueError("controller 'hierarchy' needs a hierarchy and a threshold tau")
-        return HierarchyController(heads, hierarchy, tau, seed=seed)
+        return HierarchyController(heads, hierarchy, tau, seed=seed, root_policy=root_policy)
     if name == "averaging":
         return AveragingController(heads, seed=seed)
     return CONTROLLERS[name](heads, subtasks, seed=seed)

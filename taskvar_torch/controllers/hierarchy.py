@@ -252,16 +252,28 @@ def hierarchy_decide(
     return hierarchy_decide_of(option_first(q_opt), option_first(robustness), running, tree, tau)
 
 
+ROOT_POLICIES = ("averaging", "option")  # the root's pi: greedy in Q_avg, or in its option head
+
+
+def with_root_policy(q_opt: Tensor, q_avg: Tensor, root: int) -> Tensor:
+    """``q_opt`` ``(O, A, B)`` with the root's row replaced by ``Q_avg`` ``(A, B)``: pi^root = pi^avg."""
+    return torch.cat([q_opt[:root], q_avg.unsqueeze(0), q_opt[root + 1 :]])
+
+
 class HierarchyController(Controller):
     """HierarchicalSearch (Algorithm 2) over a composition hierarchy; reads Q_o and R heads only.
 
-    Every node of ``hierarchy`` must be an option of the bundle (the root's option head is the
-    full-task policy: paper §3.4.2, "the policy of this subtask is the full task averaging policy").
+    Every node of ``hierarchy`` must be an option of the bundle. The root's policy pi^root is its
+    option head (``root_policy="option"``) or the averaging head (``"averaging"``: paper §3.4.2,
+    "the policy of this subtask is the full task averaging policy"); the robustness critic of the
+    root must have been learnt for that same policy (``train.root_policy``).
 
     Args:
-        heads: a bundle with ``options`` and ``robustness`` heads.
+        heads: a bundle with ``options`` and ``robustness`` heads (and ``averaging`` for
+            ``root_policy="averaging"``).
         hierarchy: the tree (config data).
         tau: robustness threshold (paper §3.4.3).
+        root_policy: ``"option"`` or ``"averaging"``.
 
     Writes ``action``, ``option``, ``hierarchy_level``, ``interrupted`` and
     ``("next", "running_option")``.
@@ -271,10 +283,24 @@ class HierarchyController(Controller):
     required_heads = ("options", "robustness")
     trace_keys = (keys.OPTION, keys.INTERRUPTED, keys.HIERARCHY_LEVEL)
 
-    def __init__(self, heads: Heads, hierarchy: Hierarchy, tau: float, seed: int = 0):
+    def __init__(
+        self,
+        heads: Heads,
+        hierarchy: Hierarchy,
+        tau: float,
+        seed: int = 0,
+        root_policy: str = "option",
+    ):
+        if root_policy not in ROOT_POLICIES:
+            raise ValueError(
+                f"root_policy must be one of {list(ROOT_POLICIES)}, got {root_policy!r}"
+            )
+        if root_policy == "averaging":  # the instance's own heads (read by the base class)
+            self.required_heads = ("averaging", *type(self).required_heads)
         super().__init__(heads, None, seed)
         self.hierarchy = hierarchy
         self.tau = float(tau)
+        self.root_policy = root_policy
         self._tree = TreeTables.build(hierarchy, heads.option_names)
         self._trees: dict[torch.device, TreeTables] = {}
         tt = self._tree
@@ -297,6 +323,8 @@ class HierarchyController(Controller):
         self, values: Mapping[str, Tensor], running: Tensor, terminated: Tensor | None
     ) -> dict[str, Tensor]:
         q_opt = values[keys.OPTION_ACTION_VALUE]  # (O, A, B)
+        if self.root_policy == "averaging":
+            q_opt = with_root_policy(q_opt, values[keys.ACTION_VALUE], self._tree.root)
         return hierarchy_decide_of(
             q_opt, values[keys.ROBUSTNESS], running, self.tree(q_opt.device), self.tau
         )
@@ -306,6 +334,8 @@ class HierarchyController(Controller):
     ) -> dict[str, Any]:
         q, rob, tau = values[keys.OPTION_ACTION_VALUE], values[keys.ROBUSTNESS], self.tau
         t = self._tree_lists
+        if self.root_policy == "averaging":
+            q = [values[keys.ACTION_VALUE] if i == t["root"] else row for i, row in enumerate(q)]
         o = t["root"] if running < 0 else running
         p = t["parent"][o]
         if p >= 0 and rob[p][first_argmax(q[p])] > tau:  # lines 1-3

@@ -192,6 +192,7 @@ def make_test_controllers(agent: LifelongAgent) -> list[Controller]:
             hierarchy=sub.hierarchy,
             tau=cfg.train.robustness_tau,
             seed=cfg.seed,
+            root_policy=cfg.train.hierarchy_root_policy,
         )
         for m in METHODS
     ]

@@ -60,6 +60,7 @@ class LossSettings:
     max_value_expectile: float = 0.95
     mu_bar_temperature: float | None = None  # None: greedy mu_bar
     robustness_target: str = "option"  # R's next action: pi^o(s') ("option") or argmax R ("greedy")
+    root_policy: str = "option"  # the hierarchy root's pi: its option head, or "averaging"
 
 
 def _unique_params(module: nn.Module) -> TensorDictParams:
@@ -119,6 +120,18 @@ class MultiHeadLoss(LossModule):
                 "the robustness head with robustness_target='option' needs the ['options'] head(s) "
                 "in the bundle (its target follows pi^o)"
             )
+        if settings.root_policy not in ("averaging", "option"):
+            raise ValueError(
+                f"root_policy must be one of ['averaging', 'option'], got {settings.root_policy!r}"
+            )
+        # the option whose robustness follows pi^avg (paper §3.4.2), or None
+        self.avg_root = None
+        if settings.root_policy == "averaging" and heads.has("robustness"):
+            if subtasks.hierarchy is None or not heads.has("averaging"):
+                raise ValueError(
+                    "root_policy='averaging' needs a hierarchy and the ['averaging'] head"
+                )
+            self.avg_root = list(subtasks.names).index(subtasks.hierarchy.root)
         if tuple(heads.option_names) != tuple(subtasks.names):
             raise ValueError(
                 f"heads.option_names {heads.option_names} differ from subtasks.names {subtasks.names}"
@@ -237,6 +250,9 @@ class MultiHeadLoss(LossModule):
             next_action = None  # "greedy": Q-learning on R
             if s.robustness_target == "option":  # R of following o: its own action at s'
                 next_action = option_greedy_actions(nxt["options"])  # (B, O)
+                if self.avg_root is not None:  # the root follows pi^avg (paper §3.4.2)
+                    next_action = next_action.clone()
+                    next_action[:, self.avg_root] = nxt["averaging"].argmax(-1)
             losses["loss_robustness"] = robustness_loss(
                 cur["robustness"],
                 nxt["robustness"],
