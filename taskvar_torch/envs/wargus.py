@@ -333,6 +333,7 @@ class WargusModel:
         self.move_offsets = torch.arange(K, **i64) + _C_PATROL_MOVE  # (K,)
         self.walk_offsets = torch.arange(K, **i64) + _C_PATROL_WALK  # (K,)
         self.hit_offsets = torch.arange(K, **i64) + _C_HIT  # (K,)
+        self._step_offsets: dict[tuple[bool, bool], torch.Tensor] = {}
         self.item_reset_offsets = torch.arange(M, **i64) + _R_ITEM  # (M,)
         self.patrol_reset_offsets = (
             _R_PATROL
@@ -346,6 +347,20 @@ class WargusModel:
         low[OBS_ITEM_OFFSET] = -1.0
         low[OBS_PATROL_OFFSET] = -1.0
         self.obs_low, self.obs_high = low, torch.ones_like(low)  # (D,)
+
+
+    def step_offsets(self, move: bool, hit: bool) -> torch.Tensor:
+        """Counter offsets of one step's draws, ``[items | walks | moves if move | hits if hit]``."""
+        offsets = self._step_offsets.get((move, hit))
+        if offsets is None:
+            parts = [self.item_offsets, self.walk_offsets]
+            parts += [self.move_offsets] if move else []
+            parts += [self.hit_offsets] if hit else []
+            offsets = self._step_offsets[move, hit] = torch.cat(parts)
+        return offsets
+
+
+_INV24 = 1.0 / (1 << 24)
 
 
 def chebyshev(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -412,32 +427,40 @@ def step(
     cfg = model.config
     hit_prob = cfg.hit_prob if hit_prob is None else hit_prob
     patrol_speed = cfg.patrol_speed if patrol_speed is None else patrol_speed
-    B, K = action.shape[0], model.num_patrols
-    hi = model.size - 1
+    B, K, M = action.shape[0], model.num_patrols, model.num_items
+    hi, size = model.size - 1, model.size
     k1 = key.unsqueeze(-1)  # (B, 1)
     base = (state.t * STRIDE).unsqueeze(-1)  # (B, 1)
+    # every draw of the step in one hash: columns [items | walks | moves? | hits?] (static flags:
+    # at speed / hit probability 1 the draw u < 1 always holds and is skipped)
+    move, hit = patrol_speed < 1.0, hit_prob < 1.0
+    u24 = rng.draw_bits(k1, base + model.step_offsets(move, hit)) >> 8  # (B, C) in [0, 2^24)
     # 1. agent move
     agent = (state.agent + model.deltas.index_select(0, action)).clamp_(0, hi)  # (B, 2)
     a1 = agent.unsqueeze(1)  # (B, 1, 2)
-    # 2. pickup and respawn (masks applied arithmetically: cheaper than where on CPU)
+    # 2. pickup and respawn at a uniform cell other than the agent's (as _random_cell_except)
     got = (state.items == a1).all(-1)  # (B, M)
     picked = got.sum(-1)  # (B,)
-    fresh = _random_cell_except(model, k1, base + model.item_offsets, agent)  # (B, M, 2)
+    flat = (u24[:, :M] * (size * size - 1)) >> 24  # (B, M) = rng.draw_index
+    flat = flat + (flat >= (agent[:, :1] * size + agent[:, 1:])).to(torch.int64)
+    fresh = torch.stack((flat // size, flat % size), dim=-1)  # (B, M, 2)
     items = state.items + (fresh - state.items) * got.unsqueeze(-1)  # (B, M, 2)
     # 3. patrols: chase what they see, else random walk; each moves with prob patrol_speed
     diff = a1 - state.patrols  # (B, K, 2)
     sees = (diff.abs().amax(-1) < model.sight).unsqueeze(-1)  # (B, K, 1)
-    walk_dir = rng.draw_index(k1, base + model.walk_offsets, 8)  # (B, K)
-    walk = model.walk_deltas.index_select(0, walk_dir.view(-1)).view(B, K, 2)  # (B, K, 2)
+    walk_dir = (u24[:, M : M + K] * 8) >> 24  # (B, K) = rng.draw_index(., ., 8)
+    walk = model.walk_deltas.index_select(0, walk_dir.reshape(-1)).view(B, K, 2)  # (B, K, 2)
     delta = walk + (diff.sign() - walk) * sees  # (B, K, 2)
-    if patrol_speed < 1.0:  # static: u < 1 always holds, so the draw is skipped at speed 1
-        moves = rng.draw_uniform(k1, base + model.move_offsets) < patrol_speed  # (B, K)
+    c = M + K
+    if move:
+        moves = u24[:, c : c + K].to(torch.float32) * _INV24 < patrol_speed  # rng.draw_uniform
         delta = delta * moves.unsqueeze(-1)
+        c += K
     patrols = (state.patrols + delta).clamp_(0, hi)  # (B, K, 2)
     # 4. shots
     in_range = chebyshev(a1, patrols) <= model.shoot_range  # (B, K)
-    if hit_prob < 1.0:  # static, as above
-        in_range = in_range & (rng.draw_uniform(k1, base + model.hit_offsets) < hit_prob)
+    if hit:
+        in_range = in_range & (u24[:, c : c + K].to(torch.float32) * _INV24 < hit_prob)
     destroyed = in_range.any(-1)  # (B,)
     return WargusState(agent, patrols, items, state.t + 1), picked, destroyed
 
