@@ -219,10 +219,15 @@ def _run_ray(
         raise ValueError(RAY_MISSING) from None
     started = not ray.is_initialized()  # an already running Ray (a notebook, a test) is reused
     if started:
-        kw: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False}
         if address is None:  # "local": a new Ray, never a cluster found in RAY_ADDRESS
-            kw["num_cpus"] = workers or os.cpu_count() or 1
-        ray.init(address=address or "local", **kw)
+            ray.init(address="local", num_cpus=workers or os.cpu_count() or 1,
+                     include_dashboard=False, log_to_driver=False)
+        else:  # a cluster: "auto", "HOST:6379", or "ray://HOST:10001" (Ray Client)
+            try:
+                ray.init(address=address, log_to_driver=False)
+            except ConnectionError as e:
+                first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                raise ValueError(f"--address {address!r}: {first}") from None
     try:
         task = ray.remote(num_cpus=1)(run_point)
         refs = [task.remote(cfg, out, quick) for cfg, out in jobs]

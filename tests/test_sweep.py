@@ -139,21 +139,33 @@ def _point_metrics(folder: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def local_sweep(tmp_path_factory):
+def ray_session():
+    """A local Ray with 2 CPUs for the module, or None without Ray (sweep reuses a running Ray).
+
+    Started before the local sweep, with one task per CPU importing torch and TorchRL, so the
+    workers' start-up overlaps the local run instead of adding to it.
+    """
+    try:
+        import ray
+    except ImportError:
+        yield None
+        return
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    # a lambda travels by value (this test module is not importable in the workers)
+    warm = ray.remote(num_cpus=1)(lambda: __import__("taskvar_torch.experiments.windy_fig2") and None)
+    refs = [warm.remote() for _ in range(2)]
+    yield ray
+    ray.get(refs)
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def local_sweep(ray_session, tmp_path_factory):
     out = tmp_path_factory.mktemp("local")
     status = cli.main(["sweep", str(CONFIG), "--backend", "local", "--quick", "--out", str(out),
                        "--no-progress", "seed=0,1", *TINY])
     assert status == 0
     return out
-
-
-@pytest.fixture(scope="module")
-def ray_cpus():
-    """A local Ray with 2 CPUs for the module (sweep reuses a running Ray and leaves it up)."""
-    ray = pytest.importorskip("ray")
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield 2
-    ray.shutdown()
 
 
 def test_local_sweep_writes_each_point_folder_and_the_summary(local_sweep):
@@ -178,7 +190,8 @@ def test_local_sweep_writes_each_point_folder_and_the_summary(local_sweep):
     assert _point_metrics(out / "seed=0") != _point_metrics(out / "seed=1")
 
 
-def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_cpus, tmp_path, capsys):
+def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_path, capsys):
+    pytest.importorskip("ray")
     rows = sweep(CONFIG, ["seed=0,1", *TINY], tmp_path, backend="ray", quick=True, progress=False)
     assert "2 points" in capsys.readouterr().out
     assert (tmp_path / "summary.csv").is_file() and (tmp_path / "summary.json").is_file()
