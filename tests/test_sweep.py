@@ -209,3 +209,19 @@ def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_
     assert [{k: v for k, v in r.items() if k not in drop} for r in rows] == [
         {k: v for k, v in r.items() if k not in drop} for r in local_rows
     ]
+
+
+def test_a_wargus_config_sweeps_the_wargus_figure_4_experiment(tmp_path):
+    tiny = ["experiment.runs=1", "experiment.trials=2", "experiment.learning_episodes_per_trial=2",
+            "experiment.test_episodes_per_trial=1", "env.wargus.size=8", "env.wargus.sight=4",
+            "env.wargus.shoot_range=2", "env.wargus.horizon=20", "train.init_random_frames=64",
+            "train.frames_per_batch=32", "train.batch_size=32"]
+    config = CONFIG.parent / "wargus.yaml"
+    rows = sweep(config, ["seed=0,1", *tiny], tmp_path, quick=True, progress=False)
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["experiment"] == ["wargus-fig4"] and [r["seed"] for r in rows] == ["0", "1"]
+    for r in rows:
+        m = json.loads((tmp_path / r["point"] / "metrics.json").read_text())
+        assert m["protocol"]["seeds"] == [int(r["seed"])]
+        for method, v in m["methods"].items():
+            assert r[f"final_score.{method}"] == v["final_score"]
