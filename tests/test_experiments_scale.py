@@ -91,8 +91,10 @@ def test_evaluation_is_paired_and_deterministic():
 
 
 def test_case_config_keeps_updates_per_frame():
-    cfg = scale.load_scale_config(scale.default_config_path(), ["total_frames=100000"])
-    case = next(c for c in cfg.cases if c.name == "windy-25x25")  # 8 updates per 1024 frames
+    cfg = scale.load_scale_config(
+        scale.default_config_path(), ["total_frames=100000", "updates_per_frame=null"]
+    )
+    case = next(c for c in cfg.cases if c.name == "windy-25x25")  # its own: 8 per 1024 frames
     for n in (16, 48, 2048):
         c = scale.case_config(cfg, case, n)
         t = c.train
@@ -100,6 +102,10 @@ def test_case_config_keeps_updates_per_frame():
         assert t.total_frames == 100000 and t.eps_decay_frames == 50000
         assert t.init_random_frames == 10000 and t.checkpoint_every == 0
         assert t.updates_per_batch / t.frames_per_batch == pytest.approx(8 / 1024, rel=0.1)
+    cfg = scale.load_scale_config(scale.default_config_path(), ["updates_per_frame=0.0625"])
+    for n in (16, 48):
+        t = scale.case_config(cfg, case, n).train
+        assert t.updates_per_batch / t.frames_per_batch == pytest.approx(1 / 16, rel=0.1)
 
 
 @pytest.mark.parametrize(
@@ -109,6 +115,7 @@ def test_case_config_keeps_updates_per_frame():
         ("num_envs=[a]", "num_envs"),
         ("only=[nope]", "only must name cases"),
         ("eps_decay_fraction=2", "eps_decay_fraction"),
+        ("updates_per_frame=0", "updates_per_frame"),
         ("overrides=[train.lrr=1]", "train.lrr"),
     ],
 )

@@ -101,6 +101,9 @@ class ScaleConfig:
     """train.init_random_frames = this x total_frames."""
     eps_decay_fraction: float = 0.5
     """train.eps_decay_frames = this x total_frames."""
+    updates_per_frame: float | None = None
+    """Gradient updates per training frame in every cell (train.updates_per_batch =
+    round(this x frames_per_batch)); null keeps each family config's own ratio."""
     num_envs: tuple[int, ...] = (16, 64, 256)
     """Parallel training environments (env.num_envs) of each cell."""
     eval_episodes: int = 500
@@ -125,6 +128,8 @@ class ScaleConfig:
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
+        if self.updates_per_frame is not None and not 0 < self.updates_per_frame <= 64:
+            raise ValueError(f"updates_per_frame must be in (0, 64] or null, got {self.updates_per_frame}")
         if not self.num_envs or min(self.num_envs) < 1:
             raise ValueError(f"num_envs must be a non-empty list of ints >= 1, got {list(self.num_envs)}")
         for name in ("eval_episodes", "eval_batch_size"):
@@ -233,14 +238,16 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
     """The family config of one cell: the case's YAML, the budget, ``num_envs`` and the overrides.
 
     ``frames_per_batch`` becomes a multiple of ``num_envs`` (at least one step of every env) and
-    ``updates_per_batch`` is scaled with it, keeping the config's updates per frame.
+    ``updates_per_batch`` is scaled with it, keeping the config's updates per frame (or
+    ``cfg.updates_per_frame`` when set).
     """
     base = load_config(case.config, [*cfg.overrides, *case.overrides])
     t = base.train
     n = int(num_envs)
     fpb = max(n, round(t.frames_per_batch / n) * n)
     fpb = min(fpb, max(n, (cfg.total_frames // n) * n))  # at least two batches when the budget allows
-    upb = max(1, round(t.updates_per_batch * fpb / t.frames_per_batch)) if t.updates_per_batch else 0
+    ratio = t.updates_per_batch / t.frames_per_batch if cfg.updates_per_frame is None else cfg.updates_per_frame
+    upb = max(1, round(ratio * fpb)) if ratio > 0 else 0
     return apply_overrides(
         base,
         [
@@ -500,9 +507,10 @@ def format_table(metrics: dict[str, Any]) -> str:
     lines = [
         f"Scaled-up grids: {metrics['total_frames']} training frames per cell, "
         f"{metrics['eval_episodes']} test episodes per method "
-        "(windy: return = -steps, gap = (R - random)/(oracle - random); Wargus: items/episode)",
-        f"{'case':<14} {'N':>5} {'train s':>8} {'frames/s':>9} "
-        + " ".join(f"{m:>15}" for m in METHODS) + f" {'random':>8} {'oracle':>8}",
+        "per cell: mean return +- 95% CI (windy: -steps, and in brackets the gap closed, "
+        "(R - random) / (oracle - random); Wargus: items per episode)",
+        f"{'case':<14} {'N':>5} {'updates':>7} {'train s':>8} {'frames/s':>9} "
+        + " ".join(f"{m:>21}" for m in METHODS) + f" {'random':>8} {'oracle':>8}",
     ]
     for c in metrics["cells"]:
         ref = metrics["references"][c["case"]]
@@ -510,15 +518,15 @@ def format_table(metrics: dict[str, Any]) -> str:
         for m in METHODS:
             r = c["methods"].get(m)
             if r is None:
-                cols.append(f"{'n/a':>15}")
+                cols.append(f"{'n/a':>21}")
                 continue
             gap = r.get("gap_closed")
             txt = f"{r['mean_return']:.2f}+-{_ci(r['ci95'])}"
-            txt += f" {gap:.2f}" if gap is not None else ""
-            cols.append(f"{txt:>15}")
+            txt += f" ({gap:.2f})" if gap is not None else ""
+            cols.append(f"{txt:>21}")
         orc = ref["oracle_averaging"]
         lines.append(
-            f"{c['case']:<14} {c['num_envs']:>5} {c['train_seconds']:8.1f} "
+            f"{c['case']:<14} {c['num_envs']:>5} {c['updates']:>7} {c['train_seconds']:8.1f} "
             f"{c['frames_per_second'] or 0:9.0f} " + " ".join(cols)
             + f" {ref['random']['mean_return']:8.2f} "
             + (f"{orc['mean_return']:8.2f}" if orc else f"{'n/a':>8}")
@@ -582,6 +590,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
                     label=case, **FAMILY_STYLE[sel[0]["family"]])
     ax.set(xlabel="parallel environments N", ylabel="training frames/s", xscale="log",
            yscale="log", title="(d) training throughput (collection + learning)")
+    _num_envs_ticks(ax, ns)
 
     n_max = ns[-1]
     for j, fam in enumerate(families, start=1):
@@ -617,6 +626,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
                             label=f"{case}: {m}")
         ax.set(xlabel="parallel environments N", ylabel=unit, xscale="log",
                title=f"({'ef'[j - 1]}) {fam}: final performance vs N")
+        _num_envs_ticks(ax, ns)
     for ax in axes.flat:
         ax.grid(alpha=0.3)
         if ax.has_data():
@@ -625,6 +635,12 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     path = save_figure(fig, out / FIGURE)
     plt.close(fig)
     return [path]
+
+
+def _num_envs_ticks(ax, ns: list[int]) -> None:
+    """Tick the log-scaled num_envs axis at the values run, as plain integers."""
+    ax.set_xticks(ns, [str(n) for n in ns])
+    ax.minorticks_off()
 
 
 __all__ = [
