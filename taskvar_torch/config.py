@@ -190,6 +190,15 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class CollectorConfig:
+    """Experience collection: one process, or TorchRL's MultiSyncCollector (README "Many processes")."""
+
+    num_workers: int = 1
+    """Collector processes; > 1 gives each a slice of env.num_envs (spawned workers, behaviour
+    weights and epsilon synced after every update phase, no exact resume)."""
+
+
+@dataclass(frozen=True)
 class EvalConfig:
     """Evaluation of a trained bundle on an instance distribution (SPEC §5)."""
 
@@ -237,6 +246,8 @@ class Config:
     """Network shapes."""
     train: TrainConfig = field(default_factory=TrainConfig)
     """Training."""
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    """Experience collection processes."""
     eval: EvalConfig = field(default_factory=EvalConfig)
     """Evaluation."""
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
@@ -330,6 +341,14 @@ def _validate(cfg: Config) -> None:
         raise ValueError(f"train.max_grad_norm must be > 0 or null, got {t.max_grad_norm}")
     _at_least("train.checkpoint_every", t.checkpoint_every, 0)
     _at_least("train.log_every", t.log_every, 1)
+
+    w = cfg.collector.num_workers
+    _at_least("collector.num_workers", w, 1)
+    if env.num_envs % w or t.frames_per_batch % w:
+        raise ValueError(
+            f"collector.num_workers={w} must divide env.num_envs ({env.num_envs}) and "
+            f"train.frames_per_batch ({t.frames_per_batch})"
+        )
 
     _one_of("eval.method", cfg.eval.method, METHODS)
     _at_least("eval.episodes", cfg.eval.episodes, 1)

@@ -7,9 +7,16 @@ The loop, top to bottom (:func:`train`)::
       one shared sample --MultiHeadLearner--> every head (averaging, options, switching, max-value,
       robustness) --> CSV logs, periodic checkpoints, DIR/final.pt
 
+With ``collector.num_workers = W > 1`` the collector is TorchRL's ``MultiSyncCollector``: W spawned
+processes, each stepping its own slice of the N environments (:func:`make_worker_env`), their
+batches concatenated in worker order into the same ``(N, T)`` batch; after every update phase the
+learner's behaviour weights (epsilon included) reach the workers through TorchRL's
+``SharedMemWeightSyncScheme`` (``collector.update_policy_weights_``).
+
 Exact resume: a checkpoint holds the heads, targets, optimiser, target-updater counter, step
 counters, the replay buffer, the env's simulator state, the collector's carried tensordict and every
-RNG state, so ``train(..., resume=ckpt)`` continues bit for bit on CPU.
+RNG state, so ``train(..., resume=ckpt)`` continues bit for bit on CPU (one collector process only:
+the workers' env and RNG states are not saved, so resuming a multi-process run is refused).
 
 Examples:
     >>> cfg = load_config("configs/windy.yaml", ["train.total_frames=20000"])  # doctest: +SKIP
@@ -19,7 +26,9 @@ Examples:
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 import os
 import time
 from collections.abc import Sequence
@@ -29,14 +38,15 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
-from torchrl.collectors import Collector
+from torchrl.collectors import Collector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, TransformedEnv
 from torchrl.record.loggers import CSVLogger
+from torchrl.weight_update import SharedMemWeightSyncScheme
 from tqdm.auto import tqdm
 
-from taskvar_torch import keys
+from taskvar_torch import keys, rng
 from taskvar_torch.checkpoint import (
     RUNTIME_KEYS,
     CheckpointError,
@@ -76,14 +86,22 @@ class TrainingDiverged(RuntimeError):
 # factories
 
 
-def make_env(cfg: Config, num_envs: int | None = None, seed: int | None = None) -> EnvBase:
-    """The family's batched env (no transforms) with ``cfg``'s training instances."""
+def make_env(
+    cfg: Config, num_envs: int | None = None, seed: int | None = None, index_offset: int = 0
+) -> EnvBase:
+    """The family's batched env (no transforms) with ``cfg``'s training instances.
+
+    ``index_offset``: global index of sub-environment 0 in the keyed streams, so envs with
+    offsets 0, n, 2n... are disjoint slices of one env of the summed size.
+    """
     n = cfg.env.num_envs if num_envs is None else int(num_envs)
     s = cfg.seed if seed is None else int(seed)
     if cfg.family == "windy":
         from taskvar_torch.envs.windy_env import WindyGridEnv
 
-        return WindyGridEnv(**{**windy_env_kwargs(cfg), "num_envs": n, "seed": s})
+        return WindyGridEnv(
+            **{**windy_env_kwargs(cfg), "num_envs": n, "seed": s, "index_offset": index_offset}
+        )
     if cfg.family == "wargus":
         from taskvar_torch.envs.wargus_env import WargusEnv
 
@@ -92,6 +110,7 @@ def make_env(cfg: Config, num_envs: int | None = None, seed: int | None = None) 
             config=dataclasses.asdict(cfg.env.wargus),
             instances=cfg.env.instances,
             seed=s,
+            index_offset=index_offset,
             device=cfg.device,
         )
     raise ValueError(f"family must be one of ['wargus', 'windy'], got {cfg.family!r}")
@@ -108,9 +127,58 @@ def make_subtasks(cfg: Config, env: EnvBase) -> Subtasks:
     return WargusSubtasks()
 
 
-def make_training_env(cfg: Config) -> TransformedEnv:
+def make_training_env(
+    cfg: Config, num_envs: int | None = None, index_offset: int = 0
+) -> TransformedEnv:
     """The family env with ``InitTracker`` (new-episode flags) and ``RewardSum`` (episode returns)."""
-    return TransformedEnv(make_env(cfg), Compose(InitTracker(), RewardSum()))
+    env = make_env(cfg, num_envs=num_envs, index_offset=index_offset)
+    return TransformedEnv(env, Compose(InitTracker(), RewardSum()))
+
+
+def make_worker_env(cfg: Config, worker: int) -> TransformedEnv:
+    """Collector process ``worker``'s training env: sub-envs ``[worker * n, (worker + 1) * n)``.
+
+    Runs inside the worker (a picklable ``functools.partial`` of this function): it also seeds
+    the worker's global torch RNG, which the behaviour policy's exploration draws from.
+    """
+    n = cfg.env.num_envs // cfg.collector.num_workers
+    torch.manual_seed(rng.hash32(rng.hash32(cfg.seed & rng.MASK32) + worker + 1))
+    return make_training_env(cfg, num_envs=n, index_offset=worker * n)
+
+
+def make_collector(
+    cfg: Config, env: EnvBase, behaviour: BehaviourPolicy, total_frames: int
+) -> Collector | MultiSyncCollector:
+    """The experience collector of ``cfg.collector``.
+
+    One process: TorchRL's ``Collector`` on ``env`` with ``behaviour`` itself. Several: a
+    ``MultiSyncCollector`` over :func:`make_worker_env` slices, acting with a copy of
+    ``behaviour`` whose weights live in shared memory; the trainer refreshes them with
+    ``collector.update_policy_weights_(behaviour)``. Worker processes use as many threads as
+    this one.
+    """
+    t = cfg.train
+    workers = cfg.collector.num_workers
+    if workers == 1:
+        return Collector(
+            env,
+            behaviour,
+            frames_per_batch=t.frames_per_batch,
+            total_frames=total_frames,
+            track_traj_ids=False,
+        )
+    return MultiSyncCollector(
+        [functools.partial(make_worker_env, cfg, w) for w in range(workers)],
+        copy.deepcopy(behaviour),  # the acting copy: the learner's weights stay private
+        frames_per_batch=t.frames_per_batch,
+        total_frames=total_frames,
+        device=cfg.device,
+        cat_results=0,  # (N, T): worker w's rows are sub-envs [w * n, (w + 1) * n)
+        use_buffers=True,
+        weight_sync_schemes={"policy": SharedMemWeightSyncScheme()},
+        num_threads=torch.get_num_threads(),
+        num_sub_threads=torch.get_num_threads(),
+    )
 
 
 def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
@@ -259,6 +327,7 @@ def _make_bundle(
     stats: dict[str, torch.Tensor],
     replay_generator: torch.Generator,
 ) -> dict[str, Any]:
+    single = cfg.collector.num_workers == 1  # else the env states live in the workers
     return make_bundle(
         cfg,
         models={"heads": learner.heads, "targets": learner.loss.target_heads},
@@ -269,8 +338,8 @@ def _make_bundle(
         learner={
             k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
         },
-        env=env.base_env.state_dict(),
-        carrier=_collector_carrier(collector).to_dict(),
+        env=env.base_env.state_dict() if single else None,
+        carrier=_collector_carrier(collector).to_dict() if single else None,
         first_visit=first_visit.state_dict(),
         stats={k: v.clone() for k, v in stats.items()},
     )
@@ -316,13 +385,19 @@ def train(
             _check_runtime_only(bundle, cfg, resume)
     if cfg is None:
         raise ValueError("train needs a config (or a checkpoint to resume)")
+    workers = cfg.collector.num_workers
+    if bundle is not None and workers > 1:
+        raise CheckpointError(
+            f"cannot resume {str(resume)!r}: exact resume needs collector.num_workers=1, got "
+            f"{workers} (the workers' env and RNG states are not checkpointed)"
+        )
     t = cfg.train
     save_config_yaml(cfg, out / "config.yaml")
 
     # ---- build everything from the config (seeded), then overwrite with the checkpoint -------
     torch.manual_seed(cfg.seed)
     replay_generator = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
-    env = make_training_env(cfg)
+    env = make_training_env(cfg, num_envs=cfg.env.num_envs // workers)  # workers > 1: specs only
     subtasks = make_subtasks(cfg, env.base_env)
     heads = build_heads(cfg, env, subtasks)
     learner = make_learner(cfg, heads, subtasks)
@@ -331,7 +406,7 @@ def train(
     )
     buffer = make_replay_buffer(cfg, replay_generator)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
-    first_visit = FirstVisitFilter(env.batch_size.numel(), obs_dim, device=cfg.device)
+    first_visit = FirstVisitFilter(cfg.env.num_envs, obs_dim, device=cfg.device)
     counters = {"frames": 0, "updates": 0, "batches": 0, "stored": 0}
     stats = {  # device-side episode statistics since the last log row
         "return_sum": torch.zeros((), device=cfg.device),
@@ -358,13 +433,7 @@ def train(
         stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}
     behaviour.set_epsilon(epsilon_at(counters["frames"], t))
 
-    collector = Collector(
-        env,
-        behaviour,
-        frames_per_batch=t.frames_per_batch,
-        total_frames=max(t.total_frames - counters["frames"], 0),
-        track_traj_ids=False,
-    )
+    collector = make_collector(cfg, env, behaviour, max(t.total_frames - counters["frames"], 0))
     if bundle is not None:  # after the collector's own reset and policy probe
         env.base_env.load_state_dict(bundle["env"])
         _collector_carrier(collector).update(
@@ -379,66 +448,74 @@ def train(
     start_time, last_log = time.perf_counter(), {}
     last_checkpoint: Path | None = None
 
-    for batch in collector:
-        # ---- store the raw transitions ------------------------------------------------------
-        frames_before = counters["frames"]
-        counters["frames"] += batch.numel()
-        counters["batches"] += 1
-        raw = raw_transitions(batch)  # (N*T,)
-        if t.first_visit:
-            raw = raw[first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
-        buffer.extend(raw)
-        counters["stored"] += raw.numel()
-        done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
-        ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
-        by_options = done & (batch.get(BEHAVIOUR) >= 0)
-        stats["return_sum"] += (ret * done).sum()
-        stats["episodes"] += done.sum()
-        stats["return_sum_options"] += (ret * by_options).sum()
-        stats["episodes_options"] += by_options.sum()
+    try:  # shut the worker processes down on any exit
+        for batch in collector:
+            if workers > 1:
+                batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
+            # ---- store the raw transitions --------------------------------------------------
+            frames_before = counters["frames"]
+            counters["frames"] += batch.numel()
+            counters["batches"] += 1
+            raw = raw_transitions(batch)  # (N*T,)
+            if t.first_visit:
+                raw = raw[first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
+            buffer.extend(raw)
+            counters["stored"] += raw.numel()
+            done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
+            ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
+            by_options = done & (batch.get(BEHAVIOUR) >= 0)
+            stats["return_sum"] += (ret * done).sum()
+            stats["episodes"] += done.sum()
+            stats["return_sum_options"] += (ret * by_options).sum()
+            stats["episodes_options"] += by_options.sum()
 
-        # ---- learn: every head from one shared sample per update ----------------------------
-        if counters["frames"] >= t.init_random_frames and len(buffer) >= t.batch_size:
-            for _ in range(t.updates_per_batch):
-                learner.update(buffer.sample())
-                counters["updates"] += 1
-        behaviour.set_epsilon(epsilon_at(counters["frames"], t))
-        pbar.update(batch.numel())
+            # ---- learn: every head from one shared sample per update ------------------------
+            if counters["frames"] >= t.init_random_frames and len(buffer) >= t.batch_size:
+                for _ in range(t.updates_per_batch):
+                    learner.update(buffer.sample())
+                    counters["updates"] += 1
+            behaviour.set_epsilon(epsilon_at(counters["frames"], t))
+            if workers > 1:  # new weights and epsilon to the workers, before their next batch
+                collector.update_policy_weights_(behaviour)
+            pbar.update(batch.numel())
 
-        # ---- log (one host sync), then checkpoint -----------------------------------------
-        log_now = _crossed(frames_before, counters["frames"], t.log_every)
-        checkpoint_now = _crossed(frames_before, counters["frames"], t.checkpoint_every)
-        is_last = counters["frames"] >= t.total_frames
-        if log_now or checkpoint_now or is_last:
-            last_log = _log_row(learner, stats, behaviour, counters, logger, start_time)
-            pbar.set_postfix({k: f"{v:.3g}" for k, v in last_log.items() if k.startswith("loss")})
-        if checkpoint_now and not is_last:
-            path = out / f"checkpoint_{counters['frames']:09d}.pt"
-            save_checkpoint(
-                path,
-                _make_bundle(
-                    cfg,
-                    learner,
-                    buffer,
-                    env,
-                    collector,
-                    first_visit,
-                    counters,
-                    stats,
-                    replay_generator,
-                ),
-            )
-            if last_checkpoint is not None and last_checkpoint != path:
-                last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic checkpoint
-            last_checkpoint = path
+            # ---- log (one host sync), then checkpoint -------------------------------------
+            log_now = _crossed(frames_before, counters["frames"], t.log_every)
+            checkpoint_now = _crossed(frames_before, counters["frames"], t.checkpoint_every)
+            is_last = counters["frames"] >= t.total_frames
+            if log_now or checkpoint_now or is_last:
+                last_log = _log_row(learner, stats, behaviour, counters, logger, start_time)
+                pbar.set_postfix(
+                    {k: f"{v:.3g}" for k, v in last_log.items() if k.startswith("loss")}
+                )
+            if checkpoint_now and not is_last:
+                path = out / f"checkpoint_{counters['frames']:09d}.pt"
+                save_checkpoint(
+                    path,
+                    _make_bundle(
+                        cfg,
+                        learner,
+                        buffer,
+                        env,
+                        collector,
+                        first_visit,
+                        counters,
+                        stats,
+                        replay_generator,
+                    ),
+                )
+                if last_checkpoint is not None and last_checkpoint != path:
+                    last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic checkpoint
+                last_checkpoint = path
 
-    pbar.close()
-    final = out / "final.pt"
-    bundle = _make_bundle(
-        cfg, learner, buffer, env, collector, first_visit, counters, stats, replay_generator
-    )
-    save_checkpoint(final, bundle)
-    collector.shutdown()
+        pbar.close()
+        final = out / "final.pt"
+        bundle = _make_bundle(
+            cfg, learner, buffer, env, collector, first_visit, counters, stats, replay_generator
+        )
+        save_checkpoint(final, bundle)
+    finally:
+        collector.shutdown()
     return {
         "final": final,
         "frames": counters["frames"],
@@ -513,11 +590,13 @@ __all__ = [
     "build_heads",
     "epsilon_at",
     "load_heads",
+    "make_collector",
     "make_env",
     "make_learner",
     "make_replay_buffer",
     "make_subtasks",
     "make_training_env",
+    "make_worker_env",
     "raw_transitions",
     "train",
 ]
