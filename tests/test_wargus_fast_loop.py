@@ -112,3 +112,13 @@ def test_head_values_equal_each_head_alone():
         alone = head.module(obs)
         assert torch.equal(values[head.out_keys[0]], alone), name
         assert torch.equal(twice[head.out_keys[0]], alone), name
+
+
+def test_run_repetition_same_for_any_test_group(tmp_path):
+    """Testing 2 trials side by side (then 1 left over) gives every trial's own episodes."""
+    cfg = load_config(fig4.default_config_path(), [*SMALL, "experiment.trials=3"])
+    one = fig4.run_repetition(cfg, 0, tmp_path / "one", test_group=1)
+    two = fig4.run_repetition(cfg, 0, tmp_path / "two", test_group=2)
+    for key in ("items", "interruptions", "control_steps", "learn_items", "frames", "updates"):
+        assert one[key].tolist() == two[key].tolist(), key
+    assert one["control_steps"].sum() > 0
