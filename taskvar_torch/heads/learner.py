@@ -162,10 +162,10 @@ class MultiHeadLoss(LossModule):
         detached, so its loss trains the gap only.
         """
         B = obs.shape[0]
-        both = torch.cat([obs, next_obs])  # (2B, D)
         if self.stack is not None:  # fused: one batched pass for every head
-            out = self.stack(both)  # (K, 2B, max_out)
-            with torch.no_grad():
+            out = self.stack(obs)  # (K, B, max_out), with gradient
+            with torch.no_grad():  # s' values are only read detached: no backward through them
+                out_next = self.stack(next_obs)  # (K, B, max_out)
                 out_target = self.target_stack(next_obs)  # (K, B, max_out)
 
             def run(net: nn.Module, which: str) -> torch.Tensor:
@@ -177,13 +177,14 @@ class MultiHeadLoss(LossModule):
                 y = (
                     out_target[k]
                     if which == "target"
-                    else out[k, :B]
+                    else out[k]
                     if which == "cur"
-                    else out[k, B:]
+                    else out_next[k]
                 )
                 return y[:, :size].reshape(B, *net.out_shape)
 
         else:  # independent networks
+            both = torch.cat([obs, next_obs])  # (2B, D)
 
             def run(net: nn.Module, which: str) -> torch.Tensor:
                 if isinstance(net, OptimismGapHead):
