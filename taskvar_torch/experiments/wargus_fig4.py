@@ -38,6 +38,13 @@ Definitions used in ``metrics.json``:
 Repetitions run sequentially or, with ``workers > 1``, in spawned processes (one torch thread
 each); both give the same numbers (each repetition depends on its own seed only).
 
+Speed (README "Wargus Figure 4", ``benchmarks/wargus_trial.py``): the loops step the pure
+dynamics through :meth:`WargusEnv.reset_all` / :meth:`WargusEnv.step_all` (no ``EnvBase``
+checks, transforms or ``step_mdp``), write replay once per update phase, run every head in one
+stacked pass (:class:`HeadValues`), and test :data:`TEST_GROUP` trials side by side on frozen
+copies of their heads (:func:`test_trials`). The TorchRL loops :func:`learning_phase_torchrl` /
+:func:`test_phase_torchrl` are kept as the reference the tests check them bit-equal to.
+
 Writes ``config.yaml``, ``rep{r}/final.pt`` (every head, loadable by ``taskvar eval``),
 ``per_trial.csv`` (rep, trial, method, items, interruptions), ``metrics.json``, ``fig4.png``;
 prints a table.
