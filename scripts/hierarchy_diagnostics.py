@@ -19,7 +19,7 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.controllers.base import option_first
-from taskvar_torch.controllers.hierarchy import TreeTables, hierarchy_decide_of
+from taskvar_torch.controllers.hierarchy import TreeTables, hierarchy_decide_of, with_root_policy
 from taskvar_torch.envs import wargus
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.subtasks.wargus import WargusSubtasks
@@ -57,7 +57,10 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
             action = q_opt[:, names.index(method)].argmax(-1)
         else:  # hierarchy
             rob = td.get(keys.ROBUSTNESS)
-            out = hierarchy_decide_of(option_first(q_opt), option_first(rob), running, tree, tau)
+            q_of = option_first(q_opt)
+            if cfg.train.hierarchy_root_policy == "averaging":  # pi^root = pi^avg (§3.4.2)
+                q_of = with_root_policy(q_of, option_first(td.get(keys.ACTION_VALUE)), root)
+            out = hierarchy_decide_of(q_of, option_first(rob), running, tree, tau)
             action, option = out["action"], out["option"]
             control += torch.bincount(option[alive], minlength=len(names)).float()
             moves += ((running >= 0) & (option != running) & alive).float()
@@ -103,7 +106,11 @@ def main() -> None:
     heads, cfg = load_heads(a.checkpoint)
     tau = cfg.train.robustness_tau if a.tau is None else a.tau
     seeds = range(a.first_seed, a.first_seed + a.episodes)
-    print(f"{a.checkpoint}: {a.episodes} episodes, tau={tau}")
+    t = cfg.train
+    print(
+        f"{a.checkpoint}: {a.episodes} episodes, tau={tau}, robustness_target="
+        f"{getattr(t, 'robustness_target', 'greedy')}, root policy {t.hierarchy_root_policy}"
+    )
     for method in ("averaging", *heads.option_names, "hierarchy"):
         print(f"{method:>10}: {play(heads, cfg, method, seeds, tau)}")
 

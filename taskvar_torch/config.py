@@ -177,10 +177,10 @@ class TrainConfig:
     robustness_target: str = "option"
     """Next action of the robustness critics' TD target (Wargus): option (pi^o(s'), R of following
     option o, paper §3.4.3) or greedy (argmax_a' R_o(s', a'), Q-learning on R)."""
-    hierarchy_root_policy: str = "option"
+    hierarchy_root_policy: str = "averaging"
     """Policy of the hierarchy's root (Wargus), in the controller and in its robustness target:
-    option (its own option head) or averaging (the averaging head: paper §3.4.2, "the policy of
-    this subtask is the full task averaging policy")."""
+    averaging (the averaging head: paper §3.4.2, "the policy of this subtask is the full task
+    averaging policy") or option (the root's own option head)."""
     max_grad_norm: float | None = 10.0
     """Gradient-norm clipping; null disables it."""
     checkpoint_every: int = 50_000

@@ -1,5 +1,9 @@
 """Hierarchical search in a composition hierarchy (paper §3.4, Algorithm 2) as a batched controller.
 
+The root acts by its option head or, with ``root_policy="averaging"``, by the averaging head
+(§3.4.2: "the policy of this subtask is the full task averaging policy"); ``pi^root`` below is
+that policy.
+
 Carried state: ``running_option`` = the subtask that acted last step (-1 at the episode start:
 control starts at the root). Its parent is a function of it (the hierarchy is a tree), so nothing
 else is carried. Every step (Algorithm 2, with greedy option policies ``pi^o = argmax Q_o``):

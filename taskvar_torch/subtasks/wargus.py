@@ -53,7 +53,10 @@ Robustness rewards (paper §3.5.2, SPEC §1.2) for the transition s -> s':
 Scale of the threshold tau = 2 (SPEC §1.2): robustness critics are Q-functions of these rewards
 under the learner's discount gamma. With gamma = 0.9 a sustained +1 is worth 1 / (1 - 0.9) = 10
 and a sustained -1 is -10, so R(TG) ranges over about [-1, 10]: R(TG) > 2 means "the item is seen
-and will stay seen for at least about 2-3 more steps". R(FE) lies in about [-10, 1] (it only
+and, following the option's own policy (``train.robustness_target = "option"``), will stay seen
+for at least about 2-3 more steps". Out of sight the +1s start k steps later, discounted by
+0.9^k, and stop soon after the item is picked, so R > 2 rarely holds there: at tau = 2 control
+mostly falls to TG wherever the item is unseen (README "Wargus Figure 4"). R(FE) lies in about [-10, 1] (it only
 exceeds 0 just before an escape), so it never exceeds tau = 2: FE is a leaf and leaves act without
 the threshold test in Algorithm 2. R(TG+FE) > 2 where the item is seen and the patrol is not.
 With gamma = 0.99 the same rewards are worth 100 and tau should scale with ``1 / (1 - gamma)``
