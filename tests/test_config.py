@@ -30,7 +30,10 @@ from taskvar_torch.config import (
 from taskvar_torch.envs import WindyGridEnv
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
-CONFIG_FILES = sorted(CONFIG_DIR.glob("*.yaml"))
+# Training/experiment configs (the `Config` schema); `scale.yaml` is the scale experiment's own
+# schema (`experiments.scale.ScaleConfig`), checked in tests/test_experiments_scale.py.
+CONFIG_FILES = sorted(p for p in CONFIG_DIR.glob("*.yaml") if p.name != "scale.yaml")
+SCALE_CONFIG = CONFIG_DIR / "scale.yaml"
 WINDY = CONFIG_DIR / "windy.yaml"
 
 # Keys only one family reads: a config file of the other family must not set them (DESIGN.md:
@@ -403,3 +406,10 @@ def test_failed_config_write_keeps_previous_file(tmp_path: Path, monkeypatch):
     monkeypatch.undo()
     assert out.read_bytes() == before
     assert [p.name for p in tmp_path.iterdir()] == ["config.yaml"]
+
+
+def test_scale_config_file_loads_strictly():
+    from taskvar_torch.experiments.scale import ScaleConfig, load_scale_config
+
+    assert isinstance(load_scale_config(SCALE_CONFIG), ScaleConfig)
+    assert isinstance(load_scale_config(SCALE_CONFIG, quick=True), ScaleConfig)

@@ -319,7 +319,8 @@ def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None,
                              train_instances=cfg.env.instances, device=cfg.device)
         return TensorDictModule(TablePolicy(oracle.averaging_policy()), [keys.CELL], [keys.ACTION])
     return make_controller(name, heads, subtasks, hierarchy=subtasks.hierarchy,
-                           tau=cfg.train.robustness_tau, seed=cfg.seed)
+                           tau=cfg.train.robustness_tau, seed=cfg.seed,
+                           root_policy=cfg.train.hierarchy_root_policy)
 
 
 def evaluate(
