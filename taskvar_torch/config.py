@@ -43,6 +43,7 @@ from taskvar_torch.envs.windy_env import OBS_ENCODINGS
 
 FAMILIES = ("wargus", "windy")
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
+HEAD_NETWORKS = ("mlp", "conv")  # taskvar_torch/heads/networks.py NETWORKS
 TARGET_UPDATES = ("hard", "soft")
 SWITCHING_MODES = ("intra",)
 MU_BAR_MODES = ("greedy", "softmax")
@@ -120,6 +121,11 @@ class HeadsConfig:
     """MLP hidden layer widths; [] gives a linear head."""
     activation: str = "relu"
     """Hidden-layer activation: elu, gelu, relu, silu or tanh."""
+    network: str = "mlp"
+    """mlp (over the whole observation) or conv (windy coords_patch only: 3x3 convs over the local
+    patch, flattened, plus the coordinates, then the MLP; one conv trunk per head)."""
+    conv_channels: tuple[int, ...] = (16, 32)
+    """heads.network=conv: output channels of each 3x3 conv layer (same padding)."""
 
 
 @dataclass(frozen=True)
@@ -308,6 +314,17 @@ def _validate(cfg: Config) -> None:
     for i, h in enumerate(cfg.heads.hidden):
         _at_least(f"heads.hidden[{i}]", h, 1)
     _one_of("heads.activation", cfg.heads.activation, ACTIVATIONS)
+    _one_of("heads.network", cfg.heads.network, HEAD_NETWORKS)
+    if cfg.heads.network == "conv":
+        if not cfg.heads.conv_channels:
+            raise ValueError("heads.conv_channels must name at least one layer, got []")
+        for i, c in enumerate(cfg.heads.conv_channels):
+            _at_least(f"heads.conv_channels[{i}]", c, 1)
+        if cfg.family != "windy" or cfg.env.obs_encoding != "coords_patch":
+            raise ValueError(
+                "heads.network='conv' needs family='windy' and env.obs_encoding='coords_patch', "
+                f"got family={cfg.family!r}, env.obs_encoding={cfg.env.obs_encoding!r}"
+            )
 
     t = cfg.train
     _within("train.gamma", t.gamma, 0.0, 1.0, open_low=True)

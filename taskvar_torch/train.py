@@ -71,7 +71,7 @@ from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead
-from taskvar_torch.heads.networks import make_stacked_heads
+from taskvar_torch.heads.networks import PatchLayout, make_stacked_heads
 from taskvar_torch.heads.relabel import has_robustness
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -185,7 +185,8 @@ def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
     """Fresh networks for every head the family needs, in a :class:`Heads` bundle (DESIGN.md).
 
     The heads are independent MLPs stored as members of one ``StackedMLP``, so the learner runs
-    them in one batched pass (``heads/networks.py``).
+    them in one batched pass (``heads/networks.py``); ``heads.network=conv`` gives each a conv
+    trunk over the windy ``coords_patch`` patch (``StackedConvMLP``).
     """
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
     A = env.action_spec.space.n
@@ -198,8 +199,18 @@ def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
     }
     if has_robustness(subtasks):
         specs["robustness"] = (keys.ROBUSTNESS, (O, A))
+    patch = None
+    if cfg.heads.network == "conv":  # windy coords_patch: (row, col), then 3 (2r+1)^2 channels
+        size = 2 * cfg.env.patch_radius + 1
+        patch = PatchLayout(coords_dim=2, channels=3, size=size)
     heads = make_stacked_heads(
-        obs_dim, specs, hidden=tuple(cfg.heads.hidden), activation=cfg.heads.activation
+        obs_dim,
+        specs,
+        hidden=tuple(cfg.heads.hidden),
+        activation=cfg.heads.activation,
+        network=cfg.heads.network,
+        patch=patch,
+        conv_channels=tuple(cfg.heads.conv_channels),
     )
     heads["max_value"] = TensorDictModule(  # Q_hat = Q_mu + softplus(gap) >= Q_mu
         OptimismGapHead(heads["switching"].module, heads["max_value"].module),
@@ -433,6 +444,7 @@ def train(
         stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}
     behaviour.set_epsilon(epsilon_at(counters["frames"], t))
 
+    threads = torch.get_num_threads()
     collector = make_collector(cfg, env, behaviour, max(t.total_frames - counters["frames"], 0))
     if bundle is not None:  # after the collector's own reset and policy probe
         env.base_env.load_state_dict(bundle["env"])
@@ -516,6 +528,7 @@ def train(
         save_checkpoint(final, bundle)
     finally:
         collector.shutdown()
+        torch.set_num_threads(threads)  # MultiSyncCollector.shutdown adds num_workers threads
     return {
         "final": final,
         "frames": counters["frames"],

@@ -5,6 +5,8 @@ and output shape of DESIGN.md. Sizes come from :class:`taskvar_torch.config.Head
 widths and ``activation``). The trainer builds the heads as members of one :class:`StackedMLP`
 (independent weights, batched matmuls), so the learner runs every head in one pass;
 :func:`make_head` builds a stand-alone TorchRL :class:`~torchrl.modules.MLP` head.
+``heads.network=conv`` (windy ``coords_patch`` observations of large grids) puts a per-head conv
+trunk over the local patch in front of each member (:class:`StackedConvMLP`, grouped convs).
 
 Examples:
     >>> net = make_mlp(25, (2, 4), hidden=(64, 64))
@@ -15,8 +17,10 @@ Examples:
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import MLP
@@ -30,6 +34,7 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {
     "silu": nn.SiLU,
     "tanh": nn.Tanh,
 }
+NETWORKS = ("mlp", "conv")
 
 
 def make_mlp(
@@ -90,7 +95,10 @@ class StackedMLP(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """All members: ``(M, in_dim) -> (K, M, max_out)``."""
-        h = x.unsqueeze(0).expand(self.num_members, *x.shape)  # (K, M, in_dim)
+        return self._layers(x.unsqueeze(0).expand(self.num_members, *x.shape))
+
+    def _layers(self, h: torch.Tensor) -> torch.Tensor:
+        """The stacked layers on per-member inputs: ``(K, M, in_dim) -> (K, M, max_out)``."""
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             h = torch.baddbmm(b, h, w)  # (K, M, d_out)
@@ -101,13 +109,108 @@ class StackedMLP(nn.Module):
     def forward_one(self, x: torch.Tensor, k: int) -> torch.Tensor:
         """Member ``k``: ``(..., in_dim) -> (..., out_sizes[k])``."""
         batch = x.shape[:-1]
-        h = x.reshape(-1, x.shape[-1])  # (M, in_dim)
+        out = self._layers_one(x.reshape(-1, x.shape[-1]), k)  # (M, max_out)
+        return out[:, : self.out_sizes[k]].reshape(*batch, self.out_sizes[k])
+
+    def _layers_one(self, h: torch.Tensor, k: int) -> torch.Tensor:
+        """Member ``k``'s layers: ``(M, in_dim) -> (M, max_out)``."""
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             h = torch.addmm(b[k], h, w[k])  # (M, d_out)
             if i < last:
                 h = self.activation(h)
-        return h[:, : self.out_sizes[k]].reshape(*batch, self.out_sizes[k])
+        return h
+
+
+@dataclass(frozen=True)
+class PatchLayout:
+    """Where the local patch sits in an observation: ``coords_dim`` values, then a
+    ``(channels, size, size)`` patch, channel-major then row-major (``windy_env.observation_table``
+    with ``coords_patch``: 2 coordinates, 3 channels wall/wind/goal, ``size = 2r + 1``)."""
+
+    coords_dim: int
+    channels: int
+    size: int
+
+    @property
+    def obs_dim(self) -> int:
+        return self.coords_dim + self.channels * self.size * self.size
+
+
+class StackedConvMLP(StackedMLP):
+    """K independent conv + MLP networks over a coordinates-plus-patch observation, run together.
+
+    Member ``k`` runs 3x3 convolutions (``conv_channels``, same padding, ``activation``) on the
+    observation's patch (:class:`PatchLayout`), flattens them, appends the coordinates and runs its
+    :class:`StackedMLP` member on that. Conv weights are stacked like the MLP's,
+    ``conv_weight_i (K, c_out, c_in, 3, 3)``, ``conv_bias_i (K, c_out)`` (``nn.Conv2d`` init), and
+    :meth:`forward` runs a layer of every member as one grouped convolution (``groups=K``) over the
+    patch replicated K times (group ``k`` is member ``k``: one kernel launch per layer);
+    :meth:`forward_one` runs member ``k``'s slice alone.
+    """
+
+    def __init__(
+        self,
+        in_dim: int,
+        out_sizes: Sequence[int],
+        patch: PatchLayout,
+        conv_channels: Sequence[int] = (16, 32),
+        hidden: Sequence[int] = (64, 64),
+        activation: str = "relu",
+    ):
+        if int(in_dim) != patch.obs_dim:
+            raise ValueError(
+                f"observation has {in_dim} values but the patch layout {patch} needs {patch.obs_dim}"
+            )
+        if not conv_channels or min(conv_channels) < 1:
+            raise ValueError(f"conv_channels must be >= 1 channels per layer, got {conv_channels}")
+        P = patch.size
+        super().__init__(
+            patch.coords_dim + conv_channels[-1] * P * P, out_sizes, hidden, activation
+        )
+        self.patch = patch
+        K = self.num_members
+        self.conv_weights = nn.ParameterList()
+        self.conv_biases = nn.ParameterList()
+        c_in = patch.channels
+        for c_out in (int(c) for c in conv_channels):
+            bound = 1.0 / (c_in * 9) ** 0.5  # nn.Conv2d's default init
+            w = torch.empty(K, c_out, c_in, 3, 3).uniform_(-bound, bound)
+            self.conv_weights.append(nn.Parameter(w))
+            self.conv_biases.append(nn.Parameter(torch.empty(K, c_out).uniform_(-bound, bound)))
+            c_in = c_out
+
+    def _split(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(M, in_dim)`` -> coordinates ``(M, coords_dim)``, patch ``(M, C * P * P)``."""
+        return x[:, : self.patch.coords_dim], x[:, self.patch.coords_dim :]
+
+    def _trunk(self, x: torch.Tensor) -> torch.Tensor:
+        """Every member's features: ``(M, in_dim) -> (K, M, coords_dim + c_last * P * P)``."""
+        K, M, (C, P) = self.num_members, x.shape[0], (self.patch.channels, self.patch.size)
+        coords, patch = self._split(x)
+        h = patch.unsqueeze(1).expand(M, K, C * P * P).reshape(M, K * C, P, P)
+        for w, b in zip(self.conv_weights, self.conv_biases):  # (K, c_out, c_in, 3, 3), (K, c_out)
+            h = self.activation(F.conv2d(h, w.flatten(0, 1), b.flatten(), padding=1, groups=K))
+        h = h.reshape(M, K, -1).transpose(0, 1)  # (K, M, c_last * P * P)
+        return torch.cat([coords.unsqueeze(0).expand(K, M, coords.shape[-1]), h], dim=-1)
+
+    def _trunk_one(self, x: torch.Tensor, k: int) -> torch.Tensor:
+        """Member ``k``'s features: ``(M, in_dim) -> (M, coords_dim + c_last * P * P)``."""
+        coords, patch = self._split(x)
+        h = patch.reshape(x.shape[0], self.patch.channels, self.patch.size, self.patch.size)
+        for w, b in zip(self.conv_weights, self.conv_biases):
+            h = self.activation(F.conv2d(h, w[k], b[k], padding=1))  # (M, c_out, P, P)
+        return torch.cat([coords, h.flatten(1)], dim=-1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """All members: ``(M, in_dim) -> (K, M, max_out)``."""
+        return self._layers(self._trunk(x))
+
+    def forward_one(self, x: torch.Tensor, k: int) -> torch.Tensor:
+        """Member ``k``: ``(..., in_dim) -> (..., out_sizes[k])``."""
+        batch = x.shape[:-1]
+        out = self._layers_one(self._trunk_one(x.reshape(-1, x.shape[-1]), k), k)
+        return out[:, : self.out_sizes[k]].reshape(*batch, self.out_sizes[k])
 
 
 class StackedHead(nn.Module):
@@ -130,14 +233,26 @@ def make_stacked_heads(
     hidden: Sequence[int] = (64, 64),
     activation: str = "relu",
     in_key: str = keys.OBSERVATION,
+    network: str = "mlp",
+    patch: PatchLayout | None = None,
+    conv_channels: Sequence[int] = (16, 32),
 ) -> dict[str, TensorDictModule]:
     """One head per ``name: (out_key, out_shape)``, all members of one :class:`StackedMLP`.
 
     Each head is a ``TensorDictModule`` with its own key and shape (DESIGN.md), the networks are
     independent (no shared weights), and a learner can run all of them in one pass.
+    ``network="conv"`` makes them :class:`StackedConvMLP` members (needs the observation's
+    ``patch`` layout).
     """
+    if network not in NETWORKS:
+        raise ValueError(f"network must be one of {list(NETWORKS)}, got {network!r}")
     sizes = [int(torch.Size(shape).numel()) for _, shape in specs.values()]
-    stack = StackedMLP(in_dim, sizes, hidden, activation)
+    if network == "conv":
+        if patch is None:
+            raise ValueError("network='conv' needs the observation's patch layout (patch=...)")
+        stack = StackedConvMLP(in_dim, sizes, patch, conv_channels, hidden, activation)
+    else:
+        stack = StackedMLP(in_dim, sizes, hidden, activation)
     return {
         name: TensorDictModule(StackedHead(stack, k, shape), in_keys=[in_key], out_keys=[out_key])
         for k, (name, (out_key, shape)) in enumerate(specs.items())
