@@ -62,8 +62,10 @@ def test_worker_envs_are_disjoint_slices_of_the_one_process_env():
 
 def test_two_collector_processes_act_with_the_learners_latest_weights(tmp_path):
     cfg = load_config(CONFIG, TINY)
+    threads = torch.get_num_threads()
     result = train(cfg, tmp_path / "run", progress=False)
     assert result["frames"] == SYNCED + BATCH and result["updates"] > 0
+    assert torch.get_num_threads() == threads  # the collector's shutdown does not leak threads
     final = load_checkpoint(result["final"])
     assert final["env"] is None and final["carrier"] is None  # they live in the workers
 
