@@ -64,3 +64,17 @@ def test_wargus_reset_step_observe_have_no_host_sync(hit_prob, patrol_speed):
     lost = wargus.item_lost(item_seen, item_seen2, picked)
     assert obs2.shape == (B, wargus.OBS_DIM) and destroyed.shape == (B,) and lost.shape == (B,)
     assert state.agent.device.type == "meta"
+
+
+def test_action_validation_defaults_to_cpu_only():
+    """The env wrappers' range check syncs, so by default it runs on CPU only (issue 6: no host
+    round trip in an accelerator step); it can be forced either way."""
+    from taskvar_torch.envs import WargusEnv, WindyGridEnv
+
+    for cls in (WindyGridEnv, WargusEnv):
+        assert cls(num_envs=2, seed=0).validate_actions
+        assert not cls(num_envs=2, seed=0, validate_actions=False).validate_actions
+        td = cls(num_envs=2, seed=0).reset()
+        td["action"] = torch.tensor([0, 99])
+        with pytest.raises(ValueError, match="action"):
+            cls(num_envs=2, seed=0).step(td)

@@ -75,7 +75,9 @@ class WargusEnv(BatchedFamilyEnv):
         seed: sub-environment ``i`` draws its episode keys from ``(seed, index_offset + i)``, so
             any split of N environments reproduces the same trajectories.
         index_offset: global index of sub-environment 0.
-        validate_actions: check actions are in range (one host sync per step).
+        validate_actions: check actions are in range, raising a one-line error (one host sync
+            per step). ``None`` (default): on CPU only, so that on an accelerator the step has no
+            host round trip.
         device: torch device.
 
     Examples:
@@ -103,7 +105,7 @@ class WargusEnv(BatchedFamilyEnv):
         start: tuple[int, int] | None = None,
         seed: int = 0,
         index_offset: int = 0,
-        validate_actions: bool = True,
+        validate_actions: bool | None = None,
         device: torch.device | str = "cpu",
     ):
         if int(num_envs) < 1:
@@ -127,7 +129,9 @@ class WargusEnv(BatchedFamilyEnv):
         st = check_start(self.config, start)
         self.start = None if st is None else torch.tensor(st, dtype=torch.int64, device=self.device)
         self.index_offset = int(index_offset)
-        self.validate_actions = validate_actions
+        self.validate_actions = (
+            self.device.type == "cpu" if validate_actions is None else bool(validate_actions)
+        )
         self._make_specs()
         self._index = torch.arange(self.num_envs, device=self.device) + self.index_offset  # (N,)
         self._set_seed(seed)

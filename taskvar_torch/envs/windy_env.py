@@ -108,7 +108,9 @@ class WindyGridEnv(BatchedFamilyEnv):
             instances and start cells; with the same ``noise_seed`` they also see the same gusts
             (common random numbers), with different ones independent gusts (the null comparison
             of SPEC §5).
-        validate_actions: check actions are in range (one host sync per step).
+        validate_actions: check actions are in range, raising a one-line error (one host sync
+            per step). ``None`` (default): on CPU only, so that on an accelerator the step has no
+            host round trip.
         device: torch device.
 
     Examples:
@@ -130,7 +132,7 @@ class WindyGridEnv(BatchedFamilyEnv):
         seed: int = 0,
         index_offset: int = 0,
         noise_seed: int = 0,
-        validate_actions: bool = True,
+        validate_actions: bool | None = None,
         device: torch.device | str = "cpu",
     ):
         if int(num_envs) < 1:
@@ -159,7 +161,9 @@ class WindyGridEnv(BatchedFamilyEnv):
         self.index_offset = int(index_offset)
         self.noise_seed = int(noise_seed)
         self._noise_salt = rng.hash32(rng.hash32(self.noise_seed & rng.MASK32) ^ 0x5BD1E995)
-        self.validate_actions = validate_actions
+        self.validate_actions = (
+            self.device.type == "cpu" if validate_actions is None else bool(validate_actions)
+        )
         self._make_specs()
         self._set_seed(seed)
 
