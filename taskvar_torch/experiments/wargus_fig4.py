@@ -142,6 +142,17 @@ class LifelongAgent:
     updates: int = 0
 
 
+
+def learn_due(agent: LifelongAgent, t: Any) -> None:
+    """``train.updates_per_batch`` updates for every ``train.frames_per_batch`` frames played (after
+    ``train.init_random_frames``), each on one shared sample for every head."""
+    while agent.pending >= t.frames_per_batch:
+        agent.pending -= t.frames_per_batch
+        if agent.frames >= t.init_random_frames and len(agent.buffer) >= t.batch_size:
+            for _ in range(t.updates_per_batch):
+                agent.learner.update(agent.buffer.sample())
+                agent.updates += 1
+
 def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> LifelongAgent:
     """Fresh heads, learner, behaviour policy and an empty replay buffer (seeded by ``seed``)."""
     subtasks = make_subtasks(cfg, getattr(env, "base_env", env))
@@ -456,12 +467,7 @@ def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
         # ---- learn: every head from one shared sample per update ----------------------------
         if agent.pending >= t.frames_per_batch:
             _flush(agent, staged, masks)
-        while agent.pending >= t.frames_per_batch:
-            agent.pending -= t.frames_per_batch
-            if agent.frames >= t.init_random_frames and len(agent.buffer) >= t.batch_size:
-                for _ in range(t.updates_per_batch):
-                    agent.learner.update(agent.buffer.sample())
-                    agent.updates += 1
+        learn_due(agent, t)
         alive = alive & ~nxt.get(keys.DONE).reshape(n)
         if not bool(alive.any()):
             break
@@ -599,12 +605,7 @@ def learning_phase_torchrl(agent: LifelongAgent, env: TransformedEnv) -> dict[st
         agent.pending += n_alive
         frames += n_alive
         items += torch.where(alive, td.get((keys.NEXT, keys.REWARD)).reshape(n), 0.0)
-        while agent.pending >= t.frames_per_batch:
-            agent.pending -= t.frames_per_batch
-            if agent.frames >= t.init_random_frames and len(agent.buffer) >= t.batch_size:
-                for _ in range(t.updates_per_batch):
-                    agent.learner.update(agent.buffer.sample())
-                    agent.updates += 1
+        learn_due(agent, t)
         alive = alive & ~td.get((keys.NEXT, keys.DONE)).reshape(n)
         if not bool(alive.any()):
             break
