@@ -5,7 +5,12 @@ greedily with: the averaging policy, each option's policy alone (TG, FE, TG+FE),
 (Algorithm 2, ``tau`` from the checkpoint's config unless ``--tau``). Prints items per episode,
 ``item_lost`` events per episode, destruction rate, and for the hierarchy the control split, how
 often control moved, and R(root, s, a_root) on the steps where the root acted and lost sight of the
-item. Single-threaded; a few seconds per 32 episodes.
+item. For the averaging policy it also checks the root's robustness critic against Monte Carlo:
+R(root, s, a) predicted at each step vs the discounted return-to-go of the root's robustness rewards
+(gamma = ``train.robustness_gamma``) actually received along the same greedy rollout, over the
+steps where the item is seen and the patrol is not (where the root should take control), and the
+fraction of those steps with R > tau (predicted, and by the rollout). Single-threaded; a few
+seconds per 32 episodes.
 
     python scripts/hierarchy_diagnostics.py /tmp/h1/rep0/final.pt --episodes 32
 """
@@ -47,6 +52,12 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
     control = torch.zeros(len(names))
     moves = torch.zeros(n)
     root_lost_r: list[torch.Tensor] = []
+    subtasks = WargusSubtasks()
+    root_id = names.index(WargusSubtasks.hierarchy.root)
+    r_pred: list[torch.Tensor] = []  # (n,) R(root, s, a) of the acted action, per step
+    r_rew: list[torch.Tensor] = []  # (n,) root robustness reward of the step
+    masks: list[torch.Tensor] = []  # (n,) alive, item seen, patrol unseen at s
+    unseen: list[torch.Tensor] = []  # (n,) alive, item unseen at s
     for _ in range(env.horizon):
         td = heads(td)
         q_opt = td.get(keys.OPTION_ACTION_VALUE)  # (B, O, A)
@@ -68,6 +79,13 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
         td.set(keys.ACTION, action)
         td = env.step(td)
         nxt = td.get(keys.NEXT)
+        if method == "averaging":
+            rob = td.get(keys.ROBUSTNESS)  # (n, O, A)
+            r_pred.append(rob[torch.arange(n), root_id, action])
+            r_rew.append(subtasks.robustness_reward(td)[:, root_id] * alive)
+            seen = td.get(wargus.ITEM_SEEN).reshape(n) & ~td.get(wargus.PATROL_SEEN).reshape(n)
+            masks.append(seen & alive)
+            unseen.append(~td.get(wargus.ITEM_SEEN).reshape(n) & alive)
         lost_now = nxt.get(wargus.ITEM_LOST).reshape(n) & alive
         lost += lost_now.float()
         if option is not None:
@@ -84,6 +102,20 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
         "item_lost": float(lost.mean()),
         "destroyed": float((~alive).float().mean()),
     }
+    if method == "averaging" and r_pred:
+        g = cfg.train.robustness_gamma
+        rtg, acc = [], torch.zeros(n)
+        for r in reversed(r_rew):  # discounted return-to-go (0 after the episode ends)
+            acc = r + g * acc
+            rtg.append(acc)
+        rtg.reverse()
+        for key, ms in (("R_root_item_seen", masks), ("R_root_item_unseen", unseen)):
+            m = torch.stack(ms)
+            pred, mc = torch.stack(r_pred)[m], torch.stack(rtg)[m]
+            out[key] = (
+                f"critic {pred.mean():.2f} vs MC {mc.mean():.2f} (n={m.sum()}); R>tau: "
+                f"critic {(pred > tau).float().mean():.0%}, MC {(mc > tau).float().mean():.0%}"
+            )
     if method == "hierarchy":
         share = control / control.sum().clamp_min(1)
         out["control"] = "/".join(f"{n_}:{v:.0%}" for n_, v in zip(names, share.tolist()))
