@@ -217,6 +217,8 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
         help="wargus-fig4: run the repetitions in N processes (default 1: sequentially)",
     )
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    p.add_argument("--no-plots", action="store_true",
+                   help="write no PNGs (taskvar plot DIR draws them later)")
 
 
 def _experiment_run(args: argparse.Namespace) -> int:
@@ -236,7 +238,12 @@ def _experiment_run(args: argparse.Namespace) -> int:
     cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     windy_fig2(
-        cfg, out, checkpoint=args.checkpoint, progress=not args.no_progress, quick=args.quick
+        cfg,
+        out,
+        checkpoint=args.checkpoint,
+        progress=not args.no_progress,
+        quick=args.quick,
+        plots=not args.no_plots,
     )
     return 0
 
@@ -256,7 +263,9 @@ def _wargus_fig4_run(args: argparse.Namespace) -> int:
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     # small batches: one intra-op thread per process; 2 threads under contention ran 10x slower
     torch.set_num_threads(1)
-    wargus_fig4(cfg, out, workers=args.workers, progress=not args.no_progress)
+    wargus_fig4(
+        cfg, out, workers=args.workers, progress=not args.no_progress, plots=not args.no_plots
+    )
     return 0
 
 
@@ -284,13 +293,16 @@ def _sweep_arguments(p: argparse.ArgumentParser) -> None:
                    help="sweep folder: DIR/<point>/ per point, DIR/summary.csv, DIR/summary.json "
                    "(default: results/sweep)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument("--no-plots", action="store_true",
+                   help="points write no PNGs (faster; taskvar plot DIR/<point> draws them later)")
 
 
 def _sweep_run(args: argparse.Namespace) -> int:
     from taskvar_torch.sweep import sweep
 
     sweep(args.config, args.items, args.out, backend=args.backend, quick=args.quick,
-          address=args.address, workers=args.workers, progress=not args.no_progress)
+          address=args.address, workers=args.workers, progress=not args.no_progress,
+          plots=not args.no_plots)
     return 0
 
 
@@ -305,7 +317,7 @@ def _scale_run(args: argparse.Namespace) -> int:
     cfg = load_scale_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     torch.set_num_threads(1)  # timings are single-threaded (see README "Scaled-up grids")
-    scale(cfg, out, progress=not args.no_progress, quick=args.quick)
+    scale(cfg, out, progress=not args.no_progress, quick=args.quick, plots=not args.no_plots)
     return 0
 
 

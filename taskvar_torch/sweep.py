@@ -146,8 +146,10 @@ def load_point_configs(
 # one point (the same function as ``taskvar experiment``)
 
 
-def run_point(cfg: Config, out_dir: str, quick: bool = False) -> dict[str, Any]:
+def run_point(cfg: Config, out_dir: str, quick: bool = False, plots: bool = True) -> dict[str, Any]:
     """Run ``cfg``'s family experiment into ``out_dir``; its printed table goes to ``output.txt``.
+
+    ``plots=False`` skips the experiment's PNGs (``taskvar plot out_dir`` draws them later).
 
     Returns:
         ``{"metrics": metrics.json's dict, "seconds": wall time}``; a diverged run returns
@@ -166,11 +168,11 @@ def run_point(cfg: Config, out_dir: str, quick: bool = False) -> dict[str, Any]:
             if cfg.family == "windy":
                 from taskvar_torch.experiments.windy_fig2 import windy_fig2
 
-                metrics = windy_fig2(cfg, out, progress=False, quick=quick)
+                metrics = windy_fig2(cfg, out, progress=False, quick=quick, plots=plots)
             else:
                 from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
 
-                metrics = wargus_fig4(cfg, out, workers=1, progress=False)
+                metrics = wargus_fig4(cfg, out, workers=1, progress=False, plots=plots)
         except TrainingDiverged as e:
             print(f"error: {e}")
             return {"error": f"TrainingDiverged: {e}", "seconds": time.perf_counter() - t0}
@@ -199,9 +201,11 @@ def headline(metrics: dict[str, Any]) -> dict[str, Any]:
 # backends
 
 
-def _run_local(jobs: list[tuple[Config, str]], quick: bool, progress: bool) -> list[dict[str, Any]]:
+def _run_local(
+    jobs: list[tuple[Config, str]], quick: bool, progress: bool, plots: bool
+) -> list[dict[str, Any]]:
     return [
-        run_point(cfg, out, quick)
+        run_point(cfg, out, quick, plots)
         for cfg, out in tqdm(jobs, disable=not progress, desc="sweep", unit="point")
     ]
 
@@ -212,6 +216,7 @@ def _run_ray(
     progress: bool,
     address: str | None,
     workers: int | None,
+    plots: bool,
 ) -> list[dict[str, Any]]:
     try:
         import ray
@@ -230,7 +235,7 @@ def _run_ray(
                 raise ValueError(f"--address {address!r}: {first}") from None
     try:
         task = ray.remote(num_cpus=1)(run_point)
-        refs = [task.remote(cfg, out, quick) for cfg, out in jobs]
+        refs = [task.remote(cfg, out, quick, plots) for cfg, out in jobs]
         pending = list(refs)
         with tqdm(total=len(refs), disable=not progress, desc="sweep", unit="point") as bar:
             while pending:
@@ -251,6 +256,7 @@ def sweep(
     address: str | None = None,
     workers: int | None = None,
     progress: bool = True,
+    plots: bool = True,
 ) -> list[dict[str, Any]]:
     """Run every point of the sweep, write ``summary.csv`` / ``summary.json``, print the table.
 
@@ -263,6 +269,8 @@ def sweep(
         address: Ray cluster address (``ray`` only; default: start a local Ray).
         workers: CPUs of the local Ray (``ray`` only; default: all cores).
         progress: a progress bar over completed points.
+        plots: each point draws its PNGs (``False``: skipped, about half of a small windy point's
+            time; ``taskvar plot out_dir/<point>`` draws them later).
 
     Returns:
         The summary rows (one per point).
@@ -290,9 +298,9 @@ def sweep(
     jobs = [(cfg, str(out / p.name)) for cfg, p in zip(cfgs, points)]
     t0 = time.perf_counter()
     if backend == "local":
-        results = _run_local(jobs, quick, progress)
+        results = _run_local(jobs, quick, progress, plots)
     else:
-        results = _run_ray(jobs, quick, progress, address, workers)
+        results = _run_ray(jobs, quick, progress, address, workers, plots)
     wall = time.perf_counter() - t0
 
     rows = []
@@ -310,6 +318,7 @@ def sweep(
         "experiment": sorted({EXPERIMENT_OF_FAMILY[c.family] for c in cfgs}),
         "backend": backend,
         "quick": bool(quick),
+        "plots": bool(plots),
         "items": list(items),
         "wall_seconds": wall,
         "points": [

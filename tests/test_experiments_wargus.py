@@ -179,3 +179,11 @@ def test_nominal_seeds_extend_the_fixed_list():
     assert fig4.nominal_seeds(5) == (0, 1, 2, 3, 4)
     assert fig4.nominal_seeds(3) == (0, 1, 2)
     assert fig4.nominal_seeds(7) == (0, 1, 2, 3, 4, 5, 6)
+
+
+def test_no_plots_writes_everything_but_the_png(tmp_path):
+    tiny = [*TINY[:2], "experiment.runs=1", "experiment.trials=2", *TINY[4:]]
+    argv = ["experiment", "wargus-fig4", "--out", str(tmp_path), "--no-progress", "--no-plots"]
+    assert main([*argv, *tiny]) == 0
+    assert (tmp_path / "metrics.json").is_file() and (tmp_path / "per_trial.csv").is_file()
+    assert not (tmp_path / "fig4.png").exists()

@@ -192,7 +192,8 @@ def test_local_sweep_writes_each_point_folder_and_the_summary(local_sweep):
 
 def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_path, capsys):
     pytest.importorskip("ray")
-    rows = sweep(CONFIG, ["seed=0,1", *TINY], tmp_path, backend="ray", quick=True, progress=False)
+    rows = sweep(CONFIG, ["seed=0,1", *TINY], tmp_path, backend="ray", quick=True, progress=False,
+                 plots=False)  # plots change no number: the local sweep drew them
     assert "2 points" in capsys.readouterr().out
     assert (tmp_path / "summary.csv").is_file() and (tmp_path / "summary.json").is_file()
     for name in ("seed=0", "seed=1"):
@@ -204,6 +205,12 @@ def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_
         assert (tmp_path / name / "episodes.csv").read_bytes() == (
             local_sweep / name / "episodes.csv"
         ).read_bytes()
+    # without plots the points hold no PNG; taskvar plot draws the local point's set from the folder
+    local_pngs = sorted(p.name for p in (local_sweep / "seed=0").glob("*.png"))
+    assert local_pngs and not list((tmp_path / "seed=0").glob("*.png"))
+    assert json.loads((tmp_path / "summary.json").read_text())["plots"] is False
+    assert cli.main(["plot", str(tmp_path / "seed=0")]) == 0
+    assert sorted(p.name for p in (tmp_path / "seed=0").glob("*.png")) == local_pngs
     local_rows = json.loads((local_sweep / "summary.json").read_text())["rows"]
     drop = ("seconds",)
     assert [{k: v for k, v in r.items() if k not in drop} for r in rows] == [
@@ -217,7 +224,10 @@ def test_a_wargus_config_sweeps_the_wargus_figure_4_experiment(tmp_path):
             "env.wargus.shoot_range=2", "env.wargus.horizon=20", "train.init_random_frames=64",
             "train.frames_per_batch=32", "train.batch_size=32"]
     config = CONFIG.parent / "wargus.yaml"
-    rows = sweep(config, ["seed=0,1", *tiny], tmp_path, quick=True, progress=False)
+    rows = sweep(config, ["seed=0,1", *tiny], tmp_path, quick=True, progress=False, plots=False)
+    assert not list(tmp_path.glob("*/fig4.png"))
+    assert cli.main(["plot", str(tmp_path / "seed=0")]) == 0
+    assert (tmp_path / "seed=0" / "fig4.png").is_file()
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["experiment"] == ["wargus-fig4"] and [r["seed"] for r in rows] == ["0", "1"]
     for r in rows:

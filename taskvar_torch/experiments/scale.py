@@ -427,7 +427,11 @@ def run_cell(
 
 
 def scale(
-    cfg: ScaleConfig, out_dir: str | os.PathLike, progress: bool = True, quick: bool = False
+    cfg: ScaleConfig,
+    out_dir: str | os.PathLike,
+    progress: bool = True,
+    quick: bool = False,
+    plots: bool = True,
 ) -> dict[str, Any]:
     """Run every (case, num_envs) cell, write the results folder, print the table.
 
@@ -472,9 +476,10 @@ def scale(
     }
     write_csv(out / CSV_NAME, csv_rows(metrics), CSV_FIELDS)
     write_json(out / METRICS_NAME, metrics)
-    plot_results(out)
+    if plots:  # else ``taskvar plot DIR`` draws it from the folder
+        plot_results(out)
     print(format_table(metrics))
-    print(f"wrote {out / METRICS_NAME}, {out / CSV_NAME}, {out / FIGURE}")
+    print(f"wrote {out / METRICS_NAME}, {out / CSV_NAME}" + (f", {out / FIGURE}" if plots else ""))
     return metrics
 
 

@@ -774,9 +774,17 @@ def run_repetitions(
 
 
 def wargus_fig4(
-    cfg: Config, out_dir: str | os.PathLike, workers: int = 1, progress: bool = True
+    cfg: Config,
+    out_dir: str | os.PathLike,
+    workers: int = 1,
+    progress: bool = True,
+    plots: bool = True,
 ) -> dict[str, Any]:
-    """Run the lifelong protocol (module docstring), write the results folder, print the table."""
+    """Run the lifelong protocol (module docstring), write the results folder, print the table.
+
+    ``workers`` processes run the repetitions; ``plots=False`` skips ``fig4.png`` (``taskvar plot
+    DIR`` draws it later from the folder).
+    """
     if cfg.family != "wargus":
         raise ValueError(f"wargus-fig4 needs a Wargus config (family='wargus'), got {cfg.family!r}")
     if workers < 1:
@@ -820,7 +828,8 @@ def wargus_fig4(
         "curve_per_rep": learn.tolist(),
     }
     write_json(out / "metrics.json", metrics)
-    plot_results(out)
+    if plots:  # else ``taskvar plot DIR`` draws them from the folder
+        plot_results(out)
     print(format_table(metrics))
     return metrics
 

@@ -448,6 +448,7 @@ def windy_fig2(
     checkpoint: str | os.PathLike | None = None,
     progress: bool = True,
     quick: bool = False,
+    plots: bool = True,
 ) -> dict[str, Any]:
     """Train (or load ``checkpoint``), evaluate Figure 2's protocol, write the results folder.
 
@@ -459,6 +460,8 @@ def windy_fig2(
             heads are used, ``cfg``'s experiment and eval sizes).
         progress: tqdm progress bars.
         quick: recorded in ``metrics.json`` (the config already holds the quick overrides).
+        plots: draw the PNGs (``False``: skip them, e.g. in sweeps; ``taskvar plot DIR`` draws
+            them later from the folder).
 
     Returns:
         The metrics dict written to ``metrics.json``.
@@ -508,11 +511,12 @@ def windy_fig2(
     metrics["wall_seconds"] = time.perf_counter() - t0
     write_csv(out / CSV_NAME, all_rows, CSV_FIELDS)
     write_json(out / METRICS_NAME, metrics)
-    plot_results(out)
+    figures = [str(p) for p in plot_results(out)] if plots else []
     print(format_table(metrics))
     print(format_start_table(metrics["oracle_by_start"]))
-    print(f"wrote {out / METRICS_NAME}, {out / CSV_NAME}, "
-          + ", ".join(str(out / f) for f in (*FIGURES.values(), HEATMAP)))
+    print(f"wrote {out / METRICS_NAME}, {out / CSV_NAME}"
+          + "".join(f", {f}" for f in figures)
+          + ("" if plots else f" (no plots: taskvar plot {out})"))
     return metrics
 
 
