@@ -10,9 +10,12 @@
 Both against the number of collector processes W (``collector.num_workers``) and the number of
 environments N (``env.num_envs``, split evenly between the W processes), with the ratio of each W
 to one process at the same N. Every process runs ``--threads`` torch threads (default 1).
+``--backend ray`` runs the W workers as Ray actors on a local Ray (``collector.backend=ray``; W = 1
+is then one actor, not the trainer's own process); ``--backend process,ray`` measures both, one
+after the other, and adds the ratio ray / process for each (N, W).
 
 Usage: ``python benchmarks/scale.py [--workers 1,2] [--sizes 256,4096,16384] [--threads 1]
-[--device cpu] [--quick]``.
+[--device cpu] [--backend process|ray|process,ray] [--quick]``.
 """
 
 from __future__ import annotations
@@ -42,7 +45,7 @@ def sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
-def bench_collect(n_envs: int, workers: int, steps: int, batches: int, device: str):
+def bench_collect(n_envs: int, workers: int, steps: int, batches: int, device: str, backend: str):
     """(env steps/s, start-up seconds) of the trainer's collector."""
     cfg = load_config(
         CONFIG,
@@ -50,6 +53,7 @@ def bench_collect(n_envs: int, workers: int, steps: int, batches: int, device: s
             f"env.num_envs={n_envs}",
             f"train.frames_per_batch={n_envs * steps}",
             f"collector.num_workers={workers}",
+            f"collector.backend={backend}",
             f"device={device}",
         ],
     )
@@ -68,7 +72,7 @@ def bench_collect(n_envs: int, workers: int, steps: int, batches: int, device: s
     frames, t0 = 0, time.perf_counter()
     for _ in range(batches):
         frames += next(it).numel()
-        if workers > 1:
+        if workers > 1 or backend == "ray":
             collector.update_policy_weights_(behaviour)
     sync(device)
     rate = frames / (time.perf_counter() - t0)
@@ -78,7 +82,7 @@ def bench_collect(n_envs: int, workers: int, steps: int, batches: int, device: s
     return rate, startup
 
 
-def bench_train(n_envs: int, workers: int, batches: int, updates: int, device: str):
+def bench_train(n_envs: int, workers: int, batches: int, updates: int, device: str, backend: str):
     """(training frames/s, start-up seconds) of :func:`train` on a small budget.
 
     The rate runs from the end of the first batch to the end of the last (``train`` logs a row
@@ -98,6 +102,7 @@ def bench_train(n_envs: int, workers: int, batches: int, updates: int, device: s
             "train.checkpoint_every=0",
             f"train.log_every={fpb}",
             f"collector.num_workers={workers}",
+            f"collector.backend={backend}",
             f"device={device}",
         ],
     )
@@ -133,6 +138,8 @@ def main() -> None:
     ap.add_argument("--sizes", default="256,4096,16384", help="env.num_envs values N")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per process")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--backend", default="process",
+                    help="collector.backend: process, ray (local Ray actors) or process,ray (both)")
     ap.add_argument("--steps", type=int, default=16, help="(a) steps per sub-env per batch")
     ap.add_argument("--batches", type=int, default=5, help="timed batches, (a) and (b)")
     ap.add_argument("--updates", type=int, default=8, help="(b) gradient steps per batch")
@@ -147,18 +154,36 @@ def main() -> None:
         f"torch {torch.__version__}, {torch.get_num_threads()} thread(s) per process, "
         f"device={args.device}, windy default layout"
     )
+    backends = args.backend.split(",")
+    for b in backends:
+        if b not in ("process", "ray"):
+            raise SystemExit(f"--backend: each of {backends} must be process or ray")
     collect, learn = {}, {}
-    for n in sizes:
-        for w in workers:
-            collect[(n, w)] = bench_collect(n, w, args.steps, args.batches, args.device)
-            learn[(n, w)] = bench_train(n, w, args.batches, args.updates, args.device)
-            print(
-                f"  N={n} W={w}: {collect[(n, w)][0] / 1e3:.1f}k env steps/s, "
-                f"{learn[(n, w)][0] / 1e3:.1f}k training frames/s",
-                flush=True,
-            )
-    table(f"(a) env steps/s through the collector ({args.steps} steps per batch)", collect)
-    table(f"(b) training frames/s, train() ({args.updates} updates per batch of 4N frames)", learn)
+    for b in backends:
+        collect[b], learn[b] = {}, {}
+        for n in sizes:
+            for w in workers:
+                collect[b][(n, w)] = bench_collect(
+                    n, w, args.steps, args.batches, args.device, b
+                )
+                learn[b][(n, w)] = bench_train(n, w, args.batches, args.updates, args.device, b)
+                print(
+                    f"  {b} N={n} W={w}: {collect[b][(n, w)][0] / 1e3:.1f}k env steps/s, "
+                    f"{learn[b][(n, w)][0] / 1e3:.1f}k training frames/s",
+                    flush=True,
+                )
+    for b in backends:
+        table(f"[{b}] (a) env steps/s through the collector ({args.steps} steps per batch)",
+              collect[b])
+        table(f"[{b}] (b) training frames/s, train() ({args.updates} updates per batch of 4N "
+              "frames)", learn[b])
+    if len(backends) == 2:
+        print("\nray / process, same N and W: (a) env steps/s, (b) training frames/s")
+        for n in sizes:
+            for w in workers:
+                ra = collect["ray"][(n, w)][0] / collect["process"][(n, w)][0]
+                rb = learn["ray"][(n, w)][0] / learn["process"][(n, w)][0]
+                print(f"  N={n:>6} W={w}: (a) {ra:4.2f}x  (b) {rb:4.2f}x")
 
 
 if __name__ == "__main__":

@@ -50,6 +50,7 @@ MU_BAR_MODES = ("greedy", "softmax")
 ROBUSTNESS_TARGETS = ("greedy", "option")  # mirrors heads/robustness.py
 ROOT_POLICIES = ("averaging", "option")  # mirrors controllers/hierarchy.py
 METHODS = ("averaging", "hierarchy", "interruption", "options")
+COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector
 GENERATED = "generated"
 """``env.layout`` value that builds the grid from ``env.height``/``env.width``/... (make_layout)."""
 
@@ -197,11 +198,20 @@ class TrainConfig:
 
 @dataclass(frozen=True)
 class CollectorConfig:
-    """Experience collection: one process, or TorchRL's MultiSyncCollector (README "Many processes")."""
+    """Experience collection: one process, TorchRL's MultiSyncCollector, or Ray collector actors
+    (README "Many processes")."""
 
     num_workers: int = 1
-    """Collector processes; > 1 gives each a slice of env.num_envs (spawned workers, behaviour
-    weights and epsilon synced after every update phase, no exact resume)."""
+    """Collector workers; > 1 gives each a slice of env.num_envs (behaviour weights and epsilon
+    synced after every update phase, no exact resume)."""
+    backend: str = "process"
+    """process: the workers are spawned processes on this machine (MultiSyncCollector; with
+    num_workers = 1 collection runs in the trainer's own process); ray: each worker is a Ray actor
+    (TorchRL Collector(backend="ray"), even with num_workers = 1), on a new local Ray or the
+    cluster at ray_address."""
+    ray_address: str | None = None
+    """backend=ray: the Ray cluster to join ("auto", "HOST:6379"); null starts a local Ray (an
+    already running Ray in the process is reused)."""
 
 
 @dataclass(frozen=True)
@@ -361,6 +371,12 @@ def _validate(cfg: Config) -> None:
 
     w = cfg.collector.num_workers
     _at_least("collector.num_workers", w, 1)
+    _one_of("collector.backend", cfg.collector.backend, COLLECTOR_BACKENDS)
+    if cfg.collector.ray_address is not None and cfg.collector.backend != "ray":
+        raise ValueError(
+            f"collector.ray_address is for collector.backend=ray, got backend "
+            f"{cfg.collector.backend!r}"
+        )
     if env.num_envs % w or t.frames_per_batch % w:
         raise ValueError(
             f"collector.num_workers={w} must divide env.num_envs ({env.num_envs}) and "

@@ -11,7 +11,10 @@ With ``collector.num_workers = W > 1`` the collector is TorchRL's ``MultiSyncCol
 processes, each stepping its own slice of the N environments (:func:`make_worker_env`), their
 batches concatenated in worker order into the same ``(N, T)`` batch; after every update phase the
 learner's behaviour weights (epsilon included) reach the workers through TorchRL's
-``SharedMemWeightSyncScheme`` (``collector.update_policy_weights_``).
+``SharedMemWeightSyncScheme`` (``collector.update_policy_weights_``). With ``collector.backend =
+ray`` the W workers are Ray actors instead (TorchRL ``Collector(backend="ray")``, weights through
+its ``RayWeightSyncScheme``), on a local Ray or a cluster (``collector.ray_address``): the same
+slices, the same ``(N, T)`` batch.
 
 Exact resume: a checkpoint holds the heads, targets, optimiser, target-updater counter, step
 counters, the replay buffer, the env's simulator state, the collector's carried tensordict and every
@@ -38,7 +41,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModule
-from torchrl.collectors import Collector, MultiSyncCollector
+from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, TransformedEnv
@@ -148,7 +151,7 @@ def make_worker_env(cfg: Config, worker: int) -> TransformedEnv:
 
 def make_collector(
     cfg: Config, env: EnvBase, behaviour: BehaviourPolicy, total_frames: int
-) -> Collector | MultiSyncCollector:
+) -> BaseCollector:
     """The experience collector of ``cfg.collector``.
 
     One process: TorchRL's ``Collector`` on ``env`` with ``behaviour`` itself. Several: a
@@ -159,6 +162,8 @@ def make_collector(
     """
     t = cfg.train
     workers = cfg.collector.num_workers
+    if cfg.collector.backend == "ray":
+        return make_ray_collector(cfg, behaviour, total_frames)
     if workers == 1:
         return Collector(
             env,
@@ -179,6 +184,50 @@ def make_collector(
         num_threads=torch.get_num_threads(),
         num_sub_threads=torch.get_num_threads(),
     )
+
+
+def make_ray_collector(cfg: Config, behaviour: BehaviourPolicy, total_frames: int) -> BaseCollector:
+    """``collector.backend = ray``: TorchRL's ``Collector(backend="ray")`` (a ``RayCollector``).
+
+    Worker w is a Ray actor (1 CPU; a share of a GPU when ``device`` is CUDA) running a TorchRL
+    ``Collector`` over :func:`make_worker_env` slice w with a copy of ``behaviour``; ``sync=True``
+    gathers one ``(n, T)`` batch per actor each iteration (the trainer flattens them to ``(N, T)``,
+    worker order) and ``collector.update_policy_weights_(behaviour)`` sends the learner's weights
+    and epsilon (``RayWeightSyncScheme``). Ray starts locally (``address="local"``, never a
+    cluster found in ``RAY_ADDRESS``) unless ``collector.ray_address`` names one; a Ray already
+    running in the process is reused. On a cluster every node needs this package installed.
+    """
+    try:
+        import ray  # noqa: F401
+    except ImportError:
+        raise ValueError(
+            'collector.backend=ray needs Ray: pip install "taskvar-torch[distributed]"'
+        ) from None
+    workers = cfg.collector.num_workers
+    address = cfg.collector.ray_address
+    init = {"address": "local", "num_cpus": max(workers, os.cpu_count() or 1)}
+    if address is not None:
+        init = {"address": address}
+    remote = {"num_cpus": 1}
+    if torch.device(cfg.device).type == "cuda":
+        remote["num_gpus"] = 1.0 / workers
+    collector = Collector(
+        [functools.partial(make_worker_env, cfg, w) for w in range(workers)],
+        copy.deepcopy(behaviour),  # the acting copy, sent to the actors
+        backend="ray",
+        num_collectors=workers,
+        sync=True,
+        frames_per_batch=cfg.train.frames_per_batch,
+        total_frames=total_frames if total_frames >= 0 else 2**62,  # RayCollector: no -1 (endless)
+        device=cfg.device,
+        backend_options={
+            "ray_init_config": {**init, "include_dashboard": False, "log_to_driver": False},
+            "remote_configs": remote,
+            "collector_kwargs": {"track_traj_ids": False},
+        },
+    )
+    collector.update_policy_weights_(behaviour)  # the actors start from the learner's weights
+    return collector
 
 
 def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
@@ -338,7 +387,8 @@ def _make_bundle(
     stats: dict[str, torch.Tensor],
     replay_generator: torch.Generator,
 ) -> dict[str, Any]:
-    single = cfg.collector.num_workers == 1  # else the env states live in the workers
+    single = cfg.collector.num_workers == 1 and cfg.collector.backend == "process"  # else the
+    # env states live in the workers
     return make_bundle(
         cfg,
         models={"heads": learner.heads, "targets": learner.loss.target_heads},
@@ -397,10 +447,12 @@ def train(
     if cfg is None:
         raise ValueError("train needs a config (or a checkpoint to resume)")
     workers = cfg.collector.num_workers
-    if bundle is not None and workers > 1:
+    ray_backend = cfg.collector.backend == "ray"
+    if bundle is not None and (workers > 1 or ray_backend):
         raise CheckpointError(
-            f"cannot resume {str(resume)!r}: exact resume needs collector.num_workers=1, got "
-            f"{workers} (the workers' env and RNG states are not checkpointed)"
+            f"cannot resume {str(resume)!r}: exact resume needs collector.num_workers=1 and "
+            f"collector.backend=process, got {workers} and {cfg.collector.backend!r} (the "
+            "workers' env and RNG states are not checkpointed)"
         )
     t = cfg.train
     save_config_yaml(cfg, out / "config.yaml")
@@ -462,7 +514,9 @@ def train(
 
     try:  # shut the worker processes down on any exit
         for batch in collector:
-            if workers > 1:
+            if ray_backend:  # (W, n, T) from W actors -> (N, T), worker w's rows [w n, (w+1) n)
+                batch = batch.reshape(-1, batch.shape[-1])
+            if workers > 1 or ray_backend:
                 batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
             # ---- store the raw transitions --------------------------------------------------
             frames_before = counters["frames"]
@@ -487,8 +541,8 @@ def train(
                     learner.update(buffer.sample())
                     counters["updates"] += 1
             behaviour.set_epsilon(epsilon_at(counters["frames"], t))
-            if workers > 1:  # new weights and epsilon to the workers, before their next batch
-                collector.update_policy_weights_(behaviour)
+            if workers > 1 or ray_backend:  # new weights and epsilon to the workers, before
+                collector.update_policy_weights_(behaviour)  # their next batch
             pbar.update(batch.numel())
 
             # ---- log (one host sync), then checkpoint -------------------------------------

@@ -1,11 +1,16 @@
-"""Training with several collector processes (issue 6; ``collector.num_workers``): the workers'
-envs are disjoint slices of the one-process env, and the learner's weights and epsilon reach the
-workers after every update phase (TorchRL ``MultiSyncCollector`` + ``SharedMemWeightSyncScheme``)."""
+"""Training with several collector workers (issue 6; ``collector.num_workers``, ``collector.backend``):
+the workers' envs are disjoint slices of the one-process env, and the learner's weights and epsilon
+reach the workers after every update phase (TorchRL ``MultiSyncCollector`` +
+``SharedMemWeightSyncScheme``; ``Collector(backend="ray")`` + ``RayWeightSyncScheme`` on a local Ray
+with the test suite's 2 CPUs)."""
 
 from __future__ import annotations
 
+import sys
+
 import pytest
 import torch
+from tensordict import TensorDict
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
@@ -60,18 +65,43 @@ def test_worker_envs_are_disjoint_slices_of_the_one_process_env():
         assert torch.equal(sliced.get(key), whole.get(key)), key
 
 
-def test_two_collector_processes_act_with_the_learners_latest_weights(tmp_path):
-    cfg = load_config(CONFIG, TINY)
-    threads = torch.get_num_threads()
-    result = train(cfg, tmp_path / "run", progress=False)
+try:
+    import ray  # noqa: F401
+
+    HAS_RAY = True
+except ImportError:
+    HAS_RAY = False
+BACKENDS = ["process", pytest.param("ray", marks=pytest.mark.skipif(not HAS_RAY, reason="no Ray"))]
+
+
+@pytest.fixture(scope="module")
+def run_with(tmp_path_factory):
+    """``run_with(backend)``: the TINY 2-worker training run on that collector backend (cached)."""
+    runs: dict[str, tuple] = {}
+
+    def run(backend: str):
+        if backend not in runs:
+            cfg = load_config(CONFIG, [*TINY, f"collector.backend={backend}"])
+            threads = torch.get_num_threads()
+            out = tmp_path_factory.mktemp(backend)
+            result = train(cfg, out, progress=False)
+            assert torch.get_num_threads() == threads  # shutdown does not leak threads
+            runs[backend] = (cfg, out, result)
+        return runs[backend]
+
+    return run
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_two_collector_workers_act_with_the_learners_latest_weights(backend, run_with):
+    cfg, out, result = run_with(backend)
     assert result["frames"] == SYNCED + BATCH and result["updates"] > 0
-    assert torch.get_num_threads() == threads  # the collector's shutdown does not leak threads
     final = load_checkpoint(result["final"])
     assert final["env"] is None and final["carrier"] is None  # they live in the workers
 
     # The last batch was collected after the update phase that ended at frame SYNCED, whose
     # heads the checkpoint holds; epsilon was 0 then, so its actions are greedy in them.
-    synced, _ = load_heads(tmp_path / "run" / f"checkpoint_{SYNCED:09d}.pt")
+    synced, _ = load_heads(out / f"checkpoint_{SYNCED:09d}.pt")
     replay = final["replay"]
     assert replay["size"] == SYNCED + BATCH
     obs = replay["data"][keys.OBSERVATION][-BATCH:]
@@ -90,5 +120,26 @@ def test_two_collector_processes_act_with_the_learners_latest_weights(tmp_path):
     fresh = build_heads(cfg, env, make_subtasks(cfg, env.base_env))
     assert not explained(fresh).all()
 
-    with pytest.raises(CheckpointError, match="collector.num_workers=1"):
-        train(None, tmp_path / "resumed", resume=result["final"], progress=False)
+    with pytest.raises(CheckpointError, match="collector.num_workers=1 and collector.backend"):
+        train(None, out.parent / f"resumed-{backend}", resume=result["final"], progress=False)
+
+
+@pytest.mark.skipif(not HAS_RAY, reason="no Ray")
+def test_ray_actors_collect_exactly_what_the_worker_processes_collect(run_with):
+    """Same slices, seeds and synced weights: Collector(backend="ray") on a local Ray gives the
+    MultiSyncCollector run's transitions bit for bit, in the same (worker, env, time) order."""
+    def replay(backend: str) -> TensorDict:
+        state = load_checkpoint(run_with(backend)[2]["final"])["replay"]
+        return TensorDict(state["data"], batch_size=[state["size"]])
+
+    process, ray_ = replay("process"), replay("ray")
+    assert process.shape == ray_.shape == (SYNCED + BATCH,)
+    for key in (keys.OBSERVATION, keys.ACTION, (keys.NEXT, keys.OBSERVATION), (keys.NEXT, keys.DONE)):
+        assert torch.equal(process.get(key), ray_.get(key)), key
+
+
+def test_ray_backend_without_ray_says_how_to_install_it(monkeypatch, tmp_path):
+    monkeypatch.setitem(sys.modules, "ray", None)  # `import ray` raises ImportError
+    cfg = load_config(CONFIG, [*TINY, "collector.backend=ray"])
+    with pytest.raises(ValueError, match=r'pip install "taskvar-torch\[distributed\]"'):
+        train(cfg, tmp_path, progress=False)
