@@ -5,7 +5,7 @@ greedily with: the averaging policy, each option's policy alone (TG, FE, TG+FE),
 (Algorithm 2, ``tau`` from the checkpoint's config unless ``--tau``). Prints items per episode,
 ``item_lost`` events per episode, destruction rate, and for the hierarchy the control split, how
 often control moved, and R(root, s, a_root) on the steps where the root acted and lost sight of the
-item. For the averaging policy it also checks the root's robustness critic against Monte Carlo:
+item; and the options controller (items, share of steps per option). For the averaging policy it also checks the root's robustness critic against Monte Carlo:
 R(root, s, a) predicted at each step vs the discounted return-to-go of the root's robustness rewards
 (gamma = ``train.robustness_gamma``) actually received along the same greedy rollout, over the
 steps where the item is seen and the patrol is not (where the root should take control), and the
@@ -127,6 +127,34 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
     return out
 
 
+@torch.no_grad()
+def play_options(heads, cfg, seeds) -> dict[str, object]:
+    """The options controller (mu_bar over Q_mu, options run to termination): items per episode
+    and the share of live steps each option ran."""
+    from torchrl.envs import TransformedEnv
+
+    from taskvar_torch.controllers import make_controller
+
+    n = len(seeds)
+    env = WargusEnv(
+        n,
+        config=dataclasses.asdict(cfg.env.wargus),
+        instances=wargus.WargusInstances(seeds=tuple(seeds)),
+        seed=0,
+        validate_actions=False,
+    )
+    ctrl = make_controller("options", heads, subtasks=WargusSubtasks())
+    td = TransformedEnv(env, ctrl.primer()).rollout(env.horizon, ctrl, break_when_any_done=False)
+    done = td.get((keys.NEXT, keys.DONE)).reshape(n, -1)
+    alive = (done.long().cumsum(-1) - done.long()) == 0  # steps up to the first episode end
+    items = (td.get((keys.NEXT, keys.REWARD)).reshape(n, -1) * alive).sum(-1)
+    option = td.get(keys.OPTION).reshape(n, -1)[alive]
+    share = torch.bincount(option, minlength=len(heads.option_names)).float()
+    share = share / share.sum().clamp_min(1)
+    split = "/".join(f"{o}:{v:.0%}" for o, v in zip(heads.option_names, share.tolist()))
+    return {"items": float(items.mean()), "option_steps": split}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("checkpoint")
@@ -145,6 +173,7 @@ def main() -> None:
     )
     for method in ("averaging", *heads.option_names, "hierarchy"):
         print(f"{method:>10}: {play(heads, cfg, method, seeds, tau)}")
+    print(f"{'options':>10}: {play_options(heads, cfg, list(seeds))}")
 
 
 if __name__ == "__main__":
