@@ -263,7 +263,7 @@ class Config:
     train: TrainConfig = field(default_factory=TrainConfig)
     """Training."""
     collector: CollectorConfig = field(default_factory=CollectorConfig)
-    """Experience collection processes."""
+    """Experience collection workers (processes or Ray actors)."""
     eval: EvalConfig = field(default_factory=EvalConfig)
     """Evaluation."""
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
