@@ -31,16 +31,21 @@ from taskvar_torch.subtasks.wargus import WargusSubtasks
 from taskvar_torch.train import load_heads
 
 
-@torch.no_grad()
-def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
-    n = len(seeds)
-    env = WargusEnv(
-        n,
+def fixed_instances_env(cfg, seeds) -> WargusEnv:
+    """One sub-env per instance seed in ``seeds`` (the checkpoint's Wargus config)."""
+    return WargusEnv(
+        len(seeds),
         config=dataclasses.asdict(cfg.env.wargus),
         instances=wargus.WargusInstances(seeds=tuple(seeds)),
         seed=0,
         validate_actions=False,
     )
+
+
+@torch.no_grad()
+def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
+    n = len(seeds)
+    env = fixed_instances_env(cfg, seeds)
     names = list(heads.option_names)
     tree = TreeTables.build(WargusSubtasks.hierarchy, names)
     root = tree.root
@@ -136,13 +141,7 @@ def play_options(heads, cfg, seeds) -> dict[str, object]:
     from taskvar_torch.controllers import make_controller
 
     n = len(seeds)
-    env = WargusEnv(
-        n,
-        config=dataclasses.asdict(cfg.env.wargus),
-        instances=wargus.WargusInstances(seeds=tuple(seeds)),
-        seed=0,
-        validate_actions=False,
-    )
+    env = fixed_instances_env(cfg, seeds)
     ctrl = make_controller("options", heads, subtasks=WargusSubtasks())
     td = TransformedEnv(env, ctrl.primer()).rollout(env.horizon, ctrl, break_when_any_done=False)
     done = td.get((keys.NEXT, keys.DONE)).reshape(n, -1)
