@@ -31,6 +31,7 @@ from taskvar_torch.config import load_config
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.train import (
     build_heads,
+    collects_in_workers,
     make_collector,
     make_subtasks,
     make_training_env,
@@ -72,7 +73,7 @@ def bench_collect(n_envs: int, workers: int, steps: int, batches: int, device: s
     frames, t0 = 0, time.perf_counter()
     for _ in range(batches):
         frames += next(it).numel()
-        if workers > 1 or backend == "ray":
+        if collects_in_workers(cfg):
             collector.update_policy_weights_(behaviour)
     sync(device)
     rate = frames / (time.perf_counter() - t0)

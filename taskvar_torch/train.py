@@ -149,6 +149,13 @@ def make_worker_env(cfg: Config, worker: int) -> TransformedEnv:
     return make_training_env(cfg, num_envs=n, index_offset=worker * n)
 
 
+def collects_in_workers(cfg: Config) -> bool:
+    """Whether the envs run outside the trainer's process (worker processes or Ray actors): then
+    the trainer syncs weights to them after every update phase, and their env and RNG states are
+    not in the checkpoint (no exact resume)."""
+    return cfg.collector.num_workers > 1 or cfg.collector.backend == "ray"
+
+
 def make_collector(
     cfg: Config, env: EnvBase, behaviour: BehaviourPolicy, total_frames: int
 ) -> BaseCollector:
@@ -387,8 +394,7 @@ def _make_bundle(
     stats: dict[str, torch.Tensor],
     replay_generator: torch.Generator,
 ) -> dict[str, Any]:
-    single = cfg.collector.num_workers == 1 and cfg.collector.backend == "process"  # else the
-    # env states live in the workers
+    single = not collects_in_workers(cfg)  # else the env states live in the workers
     return make_bundle(
         cfg,
         models={"heads": learner.heads, "targets": learner.loss.target_heads},
@@ -448,7 +454,8 @@ def train(
         raise ValueError("train needs a config (or a checkpoint to resume)")
     workers = cfg.collector.num_workers
     ray_backend = cfg.collector.backend == "ray"
-    if bundle is not None and (workers > 1 or ray_backend):
+    remote = collects_in_workers(cfg)
+    if bundle is not None and remote:
         raise CheckpointError(
             f"cannot resume {str(resume)!r}: exact resume needs collector.num_workers=1 and "
             f"collector.backend=process, got {workers} and {cfg.collector.backend!r} (the "
@@ -516,7 +523,7 @@ def train(
         for batch in collector:
             if ray_backend:  # (W, n, T) from W actors -> (N, T), worker w's rows [w n, (w+1) n)
                 batch = batch.reshape(-1, batch.shape[-1])
-            if workers > 1 or ray_backend:
+            if remote:
                 batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
             # ---- store the raw transitions --------------------------------------------------
             frames_before = counters["frames"]
@@ -541,8 +548,8 @@ def train(
                     learner.update(buffer.sample())
                     counters["updates"] += 1
             behaviour.set_epsilon(epsilon_at(counters["frames"], t))
-            if workers > 1 or ray_backend:  # new weights and epsilon to the workers, before
-                collector.update_policy_weights_(behaviour)  # their next batch
+            if remote:  # new weights and epsilon to the workers, before their next batch
+                collector.update_policy_weights_(behaviour)
             pbar.update(batch.numel())
 
             # ---- log (one host sync), then checkpoint -------------------------------------
