@@ -23,8 +23,8 @@ import dataclasses
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.controllers.base import option_first
-from taskvar_torch.controllers.hierarchy import TreeTables, hierarchy_decide_of, with_root_policy
+from taskvar_torch.controllers.base import option_first, with_root_policy
+from taskvar_torch.controllers.hierarchy import TreeTables, hierarchy_decide_of
 from taskvar_torch.envs import wargus
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.subtasks.wargus import WargusSubtasks

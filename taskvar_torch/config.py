@@ -48,7 +48,11 @@ TARGET_UPDATES = ("hard", "soft")
 SWITCHING_MODES = ("intra",)
 MU_BAR_MODES = ("greedy", "softmax")
 ROBUSTNESS_TARGETS = ("greedy", "option")  # mirrors heads/robustness.py
-ROOT_POLICIES = ("averaging", "option")  # mirrors controllers/hierarchy.py
+ROOT_POLICIES = ("averaging", "option")  # mirrors controllers/base.py
+ROBUSTNESS_THRESHOLDS = ("calibrated", "fixed")
+ROBUSTNESS_UNTIL = ("episode", "termination")  # mirrors heads/robustness.py
+HIERARCHY_DESCENTS = ("normalised", "raw")  # mirrors controllers/hierarchy.py
+COMPOSED_REWARDS = ("env", "sum")  # mirrors subtasks/wargus.py
 METHODS = ("averaging", "hierarchy", "interruption", "options")
 COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector
 GENERATED = "generated"
@@ -180,14 +184,38 @@ class TrainConfig:
     robustness_gamma: float = 0.9
     """Discount of the robustness critics (Wargus)."""
     robustness_tau: float = 2.0
-    """Robustness threshold tau of the hierarchy controller (Wargus)."""
+    """Robustness threshold tau of the hierarchy controller (Wargus) when
+    robustness_threshold='fixed' (the paper's 2), and the fallback of a calibration with no
+    qualifying state."""
+    robustness_threshold: str = "calibrated"
+    """How the hierarchy's thresholds are set (Wargus): fixed (robustness_tau for every
+    capability) or calibrated (per capability, on training states: a composed subtask keeps
+    control on robustness_keep_share of the training states where its subgoals do not conflict;
+    heads/robustness.py RobustnessCalibration). Never set on the nominal test seeds."""
+    robustness_keep_share: float = 0.9
+    """robustness_threshold='calibrated': share of no-conflict training states on which a composed
+    subtask keeps control, in (0, 1)."""
+    robustness_until: str = "termination"
+    """Horizon of the robustness critics (Wargus): termination (no bootstrap past the option's own
+    termination beta_o or the episode's end) or episode (bootstrap through beta_o)."""
     robustness_target: str = "option"
     """Next action of the robustness critics' TD target (Wargus): option (pi^o(s'), R of following
     option o, paper §3.4.3) or greedy (argmax_a' R_o(s', a'), Q-learning on R)."""
     hierarchy_root_policy: str = "averaging"
     """Policy of the hierarchy's root (Wargus), in the controller and in its robustness target:
     averaging (the averaging head: paper §3.4.2, "the policy of this subtask is the full task
-    averaging policy") or option (the root's own option head)."""
+    averaging policy") or option (the root's own option head). The same root policy is used by
+    the options and interruption controllers and by the behaviour's option episodes."""
+    hierarchy_termination: bool = True
+    """Hierarchy controller (Wargus): honour the options' termination (a component whose beta
+    holds hands control back up; the descent only picks components that can take control there).
+    false: the paper's literal Algorithm 2."""
+    hierarchy_descent: str = "normalised"
+    """Hierarchy controller (Wargus): metric of the descent to a component, raw (argmax R, the
+    paper) or normalised ((R - tau) / scale per component, a common scale)."""
+    composed_reward: str = "env"
+    """Subtask reward of the composed option TG+FE (Wargus): env (the environment reward: it is
+    the full task, paper §3.4.2) or sum (TG's plus FE's subtask rewards)."""
     max_grad_norm: float | None = 10.0
     """Gradient-norm clipping; null disables it."""
     checkpoint_every: int = 50_000
@@ -341,6 +369,14 @@ def _validate(cfg: Config) -> None:
     _within("train.robustness_gamma", t.robustness_gamma, 0.0, 1.0, open_low=True)
     _one_of("train.robustness_target", t.robustness_target, ROBUSTNESS_TARGETS)
     _one_of("train.hierarchy_root_policy", t.hierarchy_root_policy, ROOT_POLICIES)
+    _one_of("train.robustness_threshold", t.robustness_threshold, ROBUSTNESS_THRESHOLDS)
+    if not 0.0 < t.robustness_keep_share < 1.0:
+        raise ValueError(
+            f"train.robustness_keep_share must be in (0, 1), got {t.robustness_keep_share}"
+        )
+    _one_of("train.robustness_until", t.robustness_until, ROBUSTNESS_UNTIL)
+    _one_of("train.hierarchy_descent", t.hierarchy_descent, HIERARCHY_DESCENTS)
+    _one_of("train.composed_reward", t.composed_reward, COMPOSED_REWARDS)
     if not t.lr > 0:
         raise ValueError(f"train.lr must be > 0, got {t.lr}")
     _at_least("train.batch_size", t.batch_size, 1)

@@ -35,3 +35,9 @@ OPTION = "option"
 RUNNING_OPTION = "running_option"
 HIERARCHY_LEVEL = "hierarchy_level"
 INTERRUPTED = "interrupted"
+
+# Hierarchy inputs besides the heads (option-first inside the kernels): where each option can take
+# control (Subtasks.startable), and per-row calibrated thresholds / scales of the robustness critics.
+STARTABLE = "startable"
+ROBUSTNESS_TAU = "robustness_tau"
+ROBUSTNESS_SCALE = "robustness_scale"

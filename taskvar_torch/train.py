@@ -127,7 +127,7 @@ def make_subtasks(cfg: Config, env: EnvBase) -> Subtasks:
         return WindySubtasks(env.model)
     from taskvar_torch.subtasks.wargus import WargusSubtasks
 
-    return WargusSubtasks()
+    return WargusSubtasks(composed_reward=cfg.train.composed_reward)
 
 
 def make_training_env(
@@ -295,6 +295,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         gamma=t.gamma,
         robustness_gamma=t.robustness_gamma,
         robustness_target=t.robustness_target,
+        robustness_until=t.robustness_until,
         root_policy=t.hierarchy_root_policy,
         double_q=t.double_q,
         max_value_expectile=t.max_value_expectile,
@@ -472,7 +473,11 @@ def train(
     heads = build_heads(cfg, env, subtasks)
     learner = make_learner(cfg, heads, subtasks)
     behaviour = BehaviourPolicy(
-        heads, subtasks, env.action_spec, option_prob=t.option_behaviour_prob
+        heads,
+        subtasks,
+        env.action_spec,
+        option_prob=t.option_behaviour_prob,
+        root_policy=t.hierarchy_root_policy,
     )
     buffer = make_replay_buffer(cfg, replay_generator)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]

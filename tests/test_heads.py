@@ -229,8 +229,14 @@ def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
     batch = env.rollout(20, break_when_any_done=False).reshape(-1)
     batch = batch.exclude(keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
     losses = {}
-    for target, root in (("option", "option"), ("greedy", "option"), ("option", "averaging")):
-        settings = LossSettings(robustness_target=target, root_policy=root)
+    cases = (
+        ("option", "option", "termination"),
+        ("greedy", "option", "termination"),
+        ("option", "averaging", "termination"),
+        ("option", "averaging", "episode"),
+    )
+    for target, root, until in cases:
+        settings = LossSettings(robustness_target=target, root_policy=root, robustness_until=until)
         loss = MultiHeadLoss(heads, subtasks, settings)
         with torch.no_grad():  # make the target network differ from the online one
             for p in loss.target_heads_params.values(True, True):
@@ -243,12 +249,20 @@ def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
         if root == "averaging":  # the root (TG+FE, index 2) follows pi^avg (paper §3.4.2)
             pi_next[:, 2] = nxt["averaging"].argmax(-1)
         want = robustness_loss(
-            cur["robustness"], nxt["robustness"], nxt_t["robustness"], mask, tr, 0.9, True, pi_next
+            cur["robustness"],
+            nxt["robustness"],
+            nxt_t["robustness"],
+            mask,
+            tr,
+            0.9,
+            True,
+            pi_next,
+            until_termination=until == "termination",
         )
         torch.testing.assert_close(got, want)
-        losses[target, root] = got
+        losses[target, root, until] = got
     # the targets differ here, so the checks above tell them apart
-    assert len({round(v.item(), 6) for v in losses.values()}) == 3
+    assert len({round(v.item(), 6) for v in losses.values()}) == 4
     with pytest.raises(ValueError, match="robustness_target must be one of"):
         MultiHeadLoss(heads, subtasks, LossSettings(robustness_target="max"))
 

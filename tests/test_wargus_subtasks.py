@@ -126,7 +126,23 @@ def test_subtask_rewards_on_hand_built_transitions():
     assert r.dtype == torch.float32 and r.shape == (6, 3)
     assert r[:, TG].tolist() == [1, 0, 0, 0, 0, 1]
     assert r[:, FE].tolist() == [0, -1, -1, 1, 0, -11]
-    assert torch.equal(r[:, TGFE], r[:, TG] + r[:, FE])
+    # TG+FE is the full task: its subtask reward is the environment reward (items picked)
+    assert r[:, TGFE].tolist() == [1, 0, 0, 0, 0, 1]
+    summed = WargusSubtasks(destruction_penalty=10.0, composed_reward="sum").reward(td)
+    assert torch.equal(summed[:, TGFE], r[:, TG] + r[:, FE])
+    with pytest.raises(ValueError, match="composed_reward must be one of"):
+        WargusSubtasks(composed_reward="mean")
+
+
+def test_startable_and_no_conflict_read_the_patrols_sight():
+    sub = WargusSubtasks()
+    td = _td([(0, 0, 0, 0, 0, 0), (0, 1, 0, 1, 0, 0), (1, 0, 1, 0, 0, 0)])
+    st = sub.startable(td)
+    # TG can take control where no patrol is seen, FE only where one is, the root anywhere
+    assert st[:, TG].tolist() == [True, False, True]
+    assert st[:, FE].tolist() == [False, True, False]
+    assert st[:, TGFE].all()
+    assert sub.no_conflict(td).tolist() == [True, False, True]
 
 
 def test_robustness_rewards_on_hand_built_transitions():

@@ -35,6 +35,7 @@ from taskvar_torch.controllers.interruption import (
 )
 from taskvar_torch.controllers.options import OptionsController, options_decide
 from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
 CONTROLLERS: dict[str, type[Controller]] = {
@@ -53,10 +54,16 @@ def make_controller(
     tau: float | None = None,
     seed: int = 0,
     root_policy: str = "option",
+    terminate: bool = False,
+    descent: str = "raw",
+    calibration: RobustnessCalibration | None = None,
 ) -> Controller:
     """A controller by name: ``averaging``, ``options``, ``interruption`` or ``hierarchy``.
 
-    ``hierarchy`` needs ``hierarchy`` and ``tau``; ``root_policy`` is its root's policy
+    ``root_policy`` is the composed root's policy for every option-level controller (its option
+    head, or the averaging head: paper §3.4.2; no effect without a hierarchy). ``hierarchy`` needs
+    ``hierarchy`` and ``tau``; with ``terminate`` it honours the ``subtasks``' termination, and
+    ``descent`` / ``calibration`` set its descent metric and per-capability thresholds
     (:class:`HierarchyController`).
     """
     if name not in CONTROLLERS:
@@ -64,10 +71,21 @@ def make_controller(
     if name == "hierarchy":
         if hierarchy is None or tau is None:
             raise ValueError("controller 'hierarchy' needs a hierarchy and a threshold tau")
-        return HierarchyController(heads, hierarchy, tau, seed=seed, root_policy=root_policy)
+        return HierarchyController(
+            heads,
+            hierarchy,
+            tau,
+            seed=seed,
+            root_policy=root_policy,
+            subtasks=subtasks if terminate else None,
+            descent=descent,
+            calibration=calibration,
+        )
     if name == "averaging":
         return AveragingController(heads, seed=seed)
-    return CONTROLLERS[name](heads, subtasks, seed=seed)
+    return CONTROLLERS[name](
+        heads, subtasks, seed=seed, root_policy=root_policy, hierarchy=hierarchy
+    )
 
 
 __all__ = [

@@ -35,7 +35,7 @@ from torchrl.envs import TensorDictPrimer
 
 from taskvar_torch import keys
 from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
-from taskvar_torch.subtasks.base import Subtasks
+from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
 Tensor = torch.Tensor
 
@@ -118,6 +118,14 @@ def sample_categorical(probs: Tensor, u: Tensor) -> Tensor:
     cdf = probs.cumsum(0)  # (K, B)
     k = (cdf <= u.to(cdf.dtype)).sum(0)
     return k.clamp(max=probs.shape[0] - 1)
+
+
+ROOT_POLICIES = ("averaging", "option")  # the composed root's pi: greedy in Q_avg, or its own head
+
+
+def with_root_policy(q_opt: Tensor, q_avg: Tensor, root: int) -> Tensor:
+    """``q_opt`` ``(O, A, B)`` with the root's row replaced by ``Q_avg`` ``(A, B)``: pi^root = pi^avg."""
+    return torch.cat([q_opt[:root], q_avg.unsqueeze(0), q_opt[root + 1 :]])
 
 
 def first_argmax(values: Sequence[float]) -> int:
@@ -235,6 +243,11 @@ class Controller(TensorDictModuleBase):
         subtasks: options' termination ``beta(s)`` (``Subtasks.termination``); ``None``: options
             run until the episode ends (the windy exits terminate only there).
         seed: seed of the controller's own ``torch.Generator`` (softmax mu_bar draws only).
+        root_policy: the policy of the composition hierarchy's root option (``hierarchy`` or
+            ``subtasks.hierarchy``): ``"option"`` (its own option head) or ``"averaging"`` (the
+            averaging head: "the policy of this subtask is the full task averaging policy", paper
+            §3.4.2). Without a hierarchy there is no composed root and it has no effect.
+        hierarchy: the composition tree whose root ``root_policy`` names (default: the subtasks').
     """
 
     name: str = "controller"
@@ -242,8 +255,26 @@ class Controller(TensorDictModuleBase):
     trace_keys: tuple[str, ...] = ()
     stateful: bool = True
 
-    def __init__(self, heads: Heads, subtasks: Subtasks | None = None, seed: int = 0):
+    def __init__(
+        self,
+        heads: Heads,
+        subtasks: Subtasks | None = None,
+        seed: int = 0,
+        root_policy: str = "option",
+        hierarchy: Hierarchy | None = None,
+    ):
         super().__init__()
+        if root_policy not in ROOT_POLICIES:
+            raise ValueError(
+                f"root_policy must be one of {list(ROOT_POLICIES)}, got {root_policy!r}"
+            )
+        self.root_policy = root_policy
+        tree = hierarchy if hierarchy is not None else getattr(subtasks, "hierarchy", None)
+        self.root_index: int | None = None  # the option that acts by the averaging head
+        if root_policy == "averaging" and tree is not None and "options" in self.required_heads:
+            self.root_index = list(heads.option_names).index(tree.root)
+            if "averaging" not in self.required_heads:
+                self.required_heads = ("averaging", *self.required_heads)
         missing = [h for h in self.required_heads if not heads.has(h)]
         if missing:
             raise ValueError(
@@ -319,7 +350,17 @@ class Controller(TensorDictModuleBase):
         self, values: Mapping[str, Tensor], running: Tensor | None, terminated: Tensor | None
     ) -> dict[str, Tensor]:
         """Batched decision from head outputs in the bundle layout (``(B, O)``, ``(B, O, A)``)."""
-        return self.decide_of({k: option_first(v) for k, v in values.items()}, running, terminated)
+        of = {k: option_first(v) for k, v in values.items()}
+        if self.root_index is not None:  # pi^root = pi^avg (paper §3.4.2)
+            of[keys.OPTION_ACTION_VALUE] = with_root_policy(
+                of[keys.OPTION_ACTION_VALUE], of[keys.ACTION_VALUE], self.root_index
+            )
+        return self.decide_of(of, running, terminated)
+
+    def extra_inputs(self, td: TensorDictBase) -> dict[str, Tensor]:
+        """Decision inputs besides the heads, batch first, read from the state ``td`` (none here;
+        the hierarchy adds where each option can take control)."""
+        return {}
 
     def _terminated(self, td: TensorDictBase, running: Tensor) -> Tensor | None:
         """``beta_{o_run}(s_t)`` ``(B,)`` bool from ``subtasks`` (None without subtasks)."""
@@ -341,6 +382,7 @@ class Controller(TensorDictModuleBase):
                     "the controller's primer to the env: TransformedEnv(env, controller.primer())"
                 )
         terminated = self._terminated(td, running) if running is not None else None
+        values.update(self.extra_inputs(td))
         out = self.decide(values, running, terminated)
         td.set(keys.ACTION, out["action"])
         for k in self.trace_keys:
@@ -374,6 +416,7 @@ class Controller(TensorDictModuleBase):
         if self.subtasks is not None and running is not None:
             td = TensorDict(dict(inputs), batch_size=[running.shape[0]])
             terminated = self._terminated(td, running)
+            values.update(self.extra_inputs(td))
         return self.decide(values, running, terminated)
 
     def fuse(self) -> FusedHeads | None:
@@ -412,6 +455,13 @@ class Controller(TensorDictModuleBase):
                     values[k] = _nest(flat, shape)
             else:
                 values = {k: v[0].tolist() for k, v in self.head_values(inputs).items()}
+            if self.subtasks is not None:
+                td = TensorDict(dict(inputs), batch_size=[1])
+                values.update({k: v[0].tolist() for k, v in self.extra_inputs(td).items()})
+        if self.root_index is not None:  # pi^root = pi^avg (paper §3.4.2)
+            q = list(values[keys.OPTION_ACTION_VALUE])
+            q[self.root_index] = values[keys.ACTION_VALUE]
+            values[keys.OPTION_ACTION_VALUE] = q
         return self.decide_scalar(values, running, terminated)
 
 

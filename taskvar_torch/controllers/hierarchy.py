@@ -34,6 +34,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 
 from taskvar_torch import keys
 from taskvar_torch.controllers.base import (
@@ -45,7 +46,8 @@ from taskvar_torch.controllers.base import (
     select0,
 )
 from taskvar_torch.heads.bundle import Heads
-from taskvar_torch.subtasks.base import Hierarchy
+from taskvar_torch.heads.robustness import RobustnessCalibration
+from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
 Tensor = torch.Tensor
 
@@ -164,23 +166,65 @@ def _compile_table(
     }
 
 
+def _at(x: float | Tensor, node: int) -> float | Tensor:
+    """Per-option value ``x[node]`` (``(1,)`` or ``(B,)``) of ``x`` ``(O, 1|B)``, or the scalar ``x``."""
+    return x[node] if isinstance(x, Tensor) else x
+
+
+def _scores(
+    rob: Tensor,  # (K, B) R(q, s_t, a) of the candidate components
+    kids: Tensor,  # (K,) their option indices
+    loc: Tensor | None,  # (O, 1|B) or None: raw R
+    scale: Tensor | None,  # (O, 1|B)
+    startable: Tensor | None,  # (O, B) bool or None
+) -> tuple[Tensor, Tensor | None]:
+    """Descent scores of line 10 (raw or ``(R - loc) / scale``), -inf where a component cannot take
+    control; and ``(B,)`` bool "no component can" (None without ``startable``)."""
+    if loc is not None:
+        rob = (rob - loc.index_select(0, kids)) / scale.index_select(0, kids)
+    if startable is None:
+        return rob, None
+    st = startable.index_select(0, kids)  # (K, B)
+    return rob.masked_fill(~st, float("-inf")), ~st.any(0)
+
+
 def hierarchy_decide_of(
     q_opt: Tensor,  # (O, A, B) Q_o(s_t, a), option-first: option policies pi^o (greedy)
     robustness: Tensor,  # (O, A, B) R(o, s_t, a)
     running: Tensor,  # (B,) int64 running subtask, -1 = none (start at the root)
     tree: TreeTables,
-    tau: float,
+    tau: float | Tensor,  # threshold, or per option (O, 1|B)
+    terminated: Tensor | None = None,  # (B,) bool beta_{o_run}(s_t): control returns up
+    startable: Tensor | None = None,  # (O, B) bool: where a component can take control
+    loc: Tensor | None = None,  # (O, 1|B) descent by (R - loc) / scale; None: raw R
+    scale: Tensor | None = None,  # (O, 1|B)
 ) -> dict[str, Tensor]:
-    """One step of Algorithm 2 for a batch (option-first inputs).
+    """One step of Algorithm 2 for a batch (option-first inputs), honouring termination.
+
+    A running subtask whose termination holds at s_t (``terminated``) hands control to its parent
+    first, so the search starts one level up (line 3 there, or a new descent). The descent (line
+    10) only considers components that can take control at s_t (``startable``; a composed node
+    none of whose components can keeps control itself) and compares them by raw R (the paper) or by
+    the normalised margin ``(R - loc) / scale`` (``loc`` / ``scale``: common scale across
+    components).
 
     Returns ``action``, ``option`` (the subtask that acts: the next running subtask),
-    ``hierarchy_level`` (its depth, 0 = root) and ``interrupted`` (control left the running subtask:
-    the parent regained it or it descended; False at the episode start), each ``(B,)``.
-    Uses the compiled table when the tree has one, else walks the levels.
+    ``hierarchy_level`` (its depth, 0 = root) and ``interrupted`` (control left a running subtask
+    that had not terminated: the parent regained it or it descended; False at the episode start),
+    each ``(B,)``. Uses the compiled table when the tree has one, else walks the levels.
     """
-    if tree.table_option is not None:
-        return hierarchy_decide_table_of(q_opt, robustness, running, tree, tau)
-    return hierarchy_search_of(q_opt, robustness, running, tree, tau)
+    start = running
+    if terminated is not None:  # beta_{o_run}(s_t) = 1: control returns up the tree
+        up = terminated & (running >= 0)
+        parent = lookup(tree.parent, running.clamp(min=0))  # (B,)
+        start = torch.where(up & (parent >= 0), parent, running)
+    kernel = hierarchy_decide_table_of if tree.table_option is not None else hierarchy_search_of
+    out = kernel(q_opt, robustness, start, tree, tau, startable, loc, scale)
+    changed = (running >= 0) & (out["option"] != running)
+    if terminated is not None:
+        changed = changed & ~terminated
+    out[keys.INTERRUPTED] = changed
+    return out
 
 
 def hierarchy_decide_table_of(
@@ -188,7 +232,10 @@ def hierarchy_decide_table_of(
     robustness: Tensor,  # (O, A, B)
     running: Tensor,  # (B,)
     tree: TreeTables,
-    tau: float,
+    tau: float | Tensor,
+    startable: Tensor | None = None,  # (O, B)
+    loc: Tensor | None = None,  # (O, 1|B)
+    scale: Tensor | None = None,  # (O, 1|B)
 ) -> dict[str, Tensor]:
     """Algorithm 2 by table lookup: encode each state's robustness bits and component choices."""
     code = torch.zeros(running.shape, dtype=torch.int64, device=running.device)
@@ -196,8 +243,12 @@ def hierarchy_decide_table_of(
         a = argmax0(q_opt[node])  # (B,): pi^node(s_t) (lines 1, 5)
         rob_a = robustness.gather(1, a.view(1, 1, -1).expand(robustness.shape[0], 1, -1))
         rob_a = rob_a.squeeze(1)  # (O, B): R(q, s_t, pi^node(s_t)) for every q
-        code = code + (rob_a[node] > tau) * bit  # robust under its own action (lines 2, 6)
-        code = code + argmax0(rob_a.index_select(0, kids)) * radix  # q* of line 10
+        ok = rob_a[node] > _at(tau, node)  # robust under its own action (lines 2, 6)
+        score, none_can = _scores(rob_a.index_select(0, kids), kids, loc, scale, startable)
+        if none_can is not None:
+            ok = ok | none_can  # no component can take control: the node keeps it
+        code = code + ok * bit
+        code = code + argmax0(score) * radix  # q* of line 10
     code = code + (running + 1) * tree.num_codes
     option = tree.table_option.index_select(0, code)  # (B,)
     return {
@@ -213,28 +264,41 @@ def hierarchy_search_of(
     robustness: Tensor,  # (O, A, B)
     running: Tensor,  # (B,)
     tree: TreeTables,
-    tau: float,
+    tau: float | Tensor,
+    startable: Tensor | None = None,  # (O, B)
+    loc: Tensor | None = None,  # (O, 1|B)
+    scale: Tensor | None = None,  # (O, 1|B)
 ) -> dict[str, Tensor]:
     """Algorithm 2 by walking the levels (any tree size): the literal recursion, batched."""
+    O = q_opt.shape[0]  # noqa: E741
     acts = argmax0(q_opt.transpose(0, 1))  # (O, B): pi^o(s_t) of every option
     rob_a = robustness.transpose(0, 1)  # (A, O, B)
+    if isinstance(tau, Tensor):
+        tau = tau.expand(O, running.shape[0])  # (O, B)
     o = torch.where(running < 0, torch.full_like(running, tree.root), running)  # (B,)
     p = lookup(tree.parent, o)  # (B,)
     pc = p.clamp(min=0)
     a_p = select0(acts, pc)  # (B,) line 1
-    regain = (p >= 0) & (select0(select0(robustness, pc), a_p) > tau)  # (B,) line 2
+    tau_p = select0(tau, pc) if isinstance(tau, Tensor) else tau
+    regain = (p >= 0) & (select0(select0(robustness, pc), a_p) > tau_p)  # (B,) line 2
     result = torch.where(regain, pc, o)
     done = regain
     node = o
+    all_opts = torch.arange(O, device=running.device)
     for _ in range(tree.max_depth + 1):
         a = select0(acts, node)  # (B,) line 5
-        ok = lookup(tree.is_leaf, node) | (select0(select0(robustness, node), a) > tau)  # line 6
-        result = torch.where(ok & ~done, node, result)
-        done = done | ok
+        tau_n = select0(tau, node) if isinstance(tau, Tensor) else tau
         r_a = select0(rob_a, a)  # (O, B): R(q, s_t, a), a the action of o_run (line 10)
         kids = tree.child_mask.t().index_select(1, node)  # (O, B): q is a component of o_run
-        r_a = r_a.masked_fill(~kids, float("-inf"))
-        node = torch.where(done, node, argmax0(r_a))  # line 11: recurse into q*
+        score, _ = _scores(r_a, all_opts, loc, scale, None)
+        if startable is not None:
+            kids = kids & startable
+        score = score.masked_fill(~kids, float("-inf"))
+        none_can = ~kids.any(0)  # a leaf, or no component can take control
+        ok = none_can | (select0(r_a, node) > tau_n)  # line 6
+        result = torch.where(ok & ~done, node, result)
+        done = done | ok
+        node = torch.where(done, node, argmax0(score))  # line 11: recurse into q*
     action = select0(acts, result)
     interrupted = (running >= 0) & (result != running)
     return {
@@ -256,12 +320,7 @@ def hierarchy_decide(
     return hierarchy_decide_of(option_first(q_opt), option_first(robustness), running, tree, tau)
 
 
-ROOT_POLICIES = ("averaging", "option")  # the root's pi: greedy in Q_avg, or in its option head
-
-
-def with_root_policy(q_opt: Tensor, q_avg: Tensor, root: int) -> Tensor:
-    """``q_opt`` ``(O, A, B)`` with the root's row replaced by ``Q_avg`` ``(A, B)``: pi^root = pi^avg."""
-    return torch.cat([q_opt[:root], q_avg.unsqueeze(0), q_opt[root + 1 :]])
+DESCENTS = ("raw", "normalised")  # line 10's metric: raw R, or (R - tau) / scale per component
 
 
 class HierarchyController(Controller):
@@ -270,14 +329,23 @@ class HierarchyController(Controller):
     Every node of ``hierarchy`` must be an option of the bundle. The root's policy pi^root is its
     option head (``root_policy="option"``) or the averaging head (``"averaging"``: paper §3.4.2,
     "the policy of this subtask is the full task averaging policy"); the robustness critic of the
-    root must have been learnt for that same policy (``train.root_policy``).
+    root must have been learnt for that same policy (``train.hierarchy_root_policy``).
 
     Args:
         heads: a bundle with ``options`` and ``robustness`` heads (and ``averaging`` for
             ``root_policy="averaging"``).
         hierarchy: the tree (config data).
-        tau: robustness threshold (paper §3.4.3).
+        tau: robustness threshold of every capability (paper §3.4.3), unless ``calibration``.
         root_policy: ``"option"`` or ``"averaging"``.
+        subtasks: with them, Algorithm 2 honours the options' termination: a running component
+            whose beta holds hands control back up, and the descent only picks a component that
+            can take control there (``Subtasks.startable``). ``None``: the paper's literal search.
+        descent: line 10's metric, ``"raw"`` (argmax R, the paper) or ``"normalised"`` (argmax
+            ``(R - tau_q) / scale_q``, each component's margin over its own threshold in units of
+            its spread: a common scale; unit scales without ``calibration``).
+        calibration: per-capability thresholds and scales set on training states
+            (:class:`~taskvar_torch.heads.robustness.RobustnessCalibration`); replaces ``tau``.
+            May be set later (``controller.calibration = ...``), e.g. once per trial.
 
     Writes ``action``, ``option``, ``hierarchy_level``, ``interrupted`` and
     ``("next", "running_option")``.
@@ -294,17 +362,17 @@ class HierarchyController(Controller):
         tau: float,
         seed: int = 0,
         root_policy: str = "option",
+        subtasks: Subtasks | None = None,
+        descent: str = "raw",
+        calibration: RobustnessCalibration | None = None,
     ):
-        if root_policy not in ROOT_POLICIES:
-            raise ValueError(
-                f"root_policy must be one of {list(ROOT_POLICIES)}, got {root_policy!r}"
-            )
-        if root_policy == "averaging":  # the instance's own heads (read by the base class)
-            self.required_heads = ("averaging", *type(self).required_heads)
-        super().__init__(heads, None, seed)
+        if descent not in DESCENTS:
+            raise ValueError(f"descent must be one of {list(DESCENTS)}, got {descent!r}")
+        super().__init__(heads, subtasks, seed, root_policy=root_policy, hierarchy=hierarchy)
         self.hierarchy = hierarchy
         self.tau = float(tau)
-        self.root_policy = root_policy
+        self.descent = descent
+        self.calibration = calibration
         self._tree = TreeTables.build(hierarchy, heads.option_names)
         self._trees: dict[torch.device, TreeTables] = {}
         tt = self._tree
@@ -323,38 +391,79 @@ class HierarchyController(Controller):
             t = self._trees[device] = self._tree.to(device)
         return t
 
+    def extra_inputs(self, td: TensorDictBase) -> dict[str, Tensor]:
+        """``startable`` ``(B, O)`` when the controller honours termination."""
+        if self.subtasks is None:
+            return {}
+        return {keys.STARTABLE: self.subtasks.startable(td)}
+
+    def thresholds(self, device: torch.device) -> tuple[float | Tensor, Tensor | None]:
+        """``(tau, scale)``: per-option ``(O, 1)`` tensors from the calibration, else ``(tau, None)``."""
+        if self.calibration is None:
+            return self.tau, None
+        return (
+            self.calibration.tau.to(device).unsqueeze(-1),
+            self.calibration.scale.to(device).unsqueeze(-1),
+        )
+
     def decide_of(
         self, values: Mapping[str, Tensor], running: Tensor, terminated: Tensor | None
     ) -> dict[str, Tensor]:
         q_opt = values[keys.OPTION_ACTION_VALUE]  # (O, A, B)
-        if self.root_policy == "averaging":
-            q_opt = with_root_policy(q_opt, values[keys.ACTION_VALUE], self._tree.root)
+        tau, scale = self.thresholds(q_opt.device)
+        if keys.ROBUSTNESS_TAU in values:  # per-row calibration (O, B)
+            tau, scale = values[keys.ROBUSTNESS_TAU], values[keys.ROBUSTNESS_SCALE]
+        loc = None
+        if self.descent == "normalised":
+            loc = tau if isinstance(tau, Tensor) else torch.full_like(q_opt[:, 0, :1], tau)
+            scale = scale if scale is not None else torch.ones_like(loc)
         return hierarchy_decide_of(
-            q_opt, values[keys.ROBUSTNESS], running, self.tree(q_opt.device), self.tau
+            q_opt,
+            values[keys.ROBUSTNESS],
+            running,
+            self.tree(q_opt.device),
+            tau,
+            terminated,
+            values.get(keys.STARTABLE),
+            loc,
+            scale,
         )
 
     def decide_scalar(
         self, values: Mapping[str, list], running: int, terminated: bool
     ) -> dict[str, Any]:
-        q, rob, tau = values[keys.OPTION_ACTION_VALUE], values[keys.ROBUSTNESS], self.tau
+        q, rob = values[keys.OPTION_ACTION_VALUE], values[keys.ROBUSTNESS]
         t = self._tree_lists
-        if self.root_policy == "averaging":
-            q = [values[keys.ACTION_VALUE] if i == t["root"] else row for i, row in enumerate(q)]
+        O = len(q)  # noqa: E741
+        if self.calibration is None:
+            tau, scale = [self.tau] * O, [1.0] * O
+        else:
+            tau, scale = self.calibration.tau.tolist(), self.calibration.scale.tolist()
+        can = values.get(keys.STARTABLE, [True] * O)
+        normalised = self.descent == "normalised"
+
+        def score(k: int, a: int) -> float:
+            if not can[k]:
+                return float("-inf")
+            return (rob[k][a] - tau[k]) / scale[k] if normalised else rob[k][a]
+
         o = t["root"] if running < 0 else running
+        if terminated and running >= 0 and t["parent"][o] >= 0:  # control returns up
+            o = t["parent"][o]
         p = t["parent"][o]
-        if p >= 0 and rob[p][first_argmax(q[p])] > tau:  # lines 1-3
+        if p >= 0 and rob[p][first_argmax(q[p])] > tau[p]:  # lines 1-3
             node = p
         else:
             node = o
             while True:
                 a = first_argmax(q[node])  # line 5
-                if t["is_leaf"][node] or rob[node][a] > tau:  # line 6
+                kids = [k for k in t["children"][node] if can[k]]
+                if not kids or rob[node][a] > tau[node]:  # line 6 (leaves always act)
                     break
-                kids = t["children"][node]  # lines 9-11
-                node = kids[first_argmax([rob[k][a] for k in kids])]
+                node = kids[first_argmax([score(k, a) for k in kids])]  # lines 9-11
         return {
             "action": first_argmax(q[node]),
             "option": node,
             keys.HIERARCHY_LEVEL: t["depth"][node],
-            keys.INTERRUPTED: running >= 0 and node != running,
+            keys.INTERRUPTED: running >= 0 and node != running and not terminated,
         }

@@ -76,16 +76,18 @@ from tqdm.auto import tqdm
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
 from taskvar_torch.config import Config, save_config_yaml
-from taskvar_torch.controllers import Controller, make_controller, option_first, select0
+from taskvar_torch.controllers import Controller, HierarchyController, option_first, select0
 from taskvar_torch.envs.wargus import NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.factory import calibrate, make_method_controller, replay_states
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
 from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.max_value import OptimismGapHead
 from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
+from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.train import (
     build_heads,
     epsilon_at,
@@ -159,7 +161,11 @@ def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> Lifel
     heads = build_heads(cfg, env, subtasks)
     learner = make_learner(cfg, heads, subtasks)
     behaviour = BehaviourPolicy(
-        heads, subtasks, env.action_spec, option_prob=cfg.train.option_behaviour_prob
+        heads,
+        subtasks,
+        env.action_spec,
+        option_prob=cfg.train.option_behaviour_prob,
+        root_policy=cfg.train.hierarchy_root_policy,
     )
     generator = torch.Generator(device="cpu").manual_seed(seed + 1)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
@@ -200,20 +206,27 @@ def make_test_env(
 
 
 def make_test_controllers(agent: LifelongAgent) -> list[Controller]:
-    """The four methods on the agent's live heads (paper §3.5.2), in :data:`METHODS` order."""
-    cfg, sub = agent.cfg, agent.subtasks
+    """The four methods on the agent's live heads (paper §3.5.2), in :data:`METHODS` order. The
+    hierarchy's calibration (``train.robustness_threshold = "calibrated"``) is set per trial from
+    the replay (:func:`trial_calibration`)."""
+    cal = None
+    if agent.cfg.train.robustness_threshold == "calibrated":  # placeholder until the first trial
+        O = agent.subtasks.num_options  # noqa: E741
+        cal = RobustnessCalibration(
+            torch.full((O,), agent.cfg.train.robustness_tau), torch.ones(O)
+        ).to(agent.cfg.device)
     return [
-        make_controller(
-            m,
-            agent.heads,
-            sub,
-            hierarchy=sub.hierarchy,
-            tau=cfg.train.robustness_tau,
-            seed=cfg.seed,
-            root_policy=cfg.train.hierarchy_root_policy,
-        )
+        make_method_controller(agent.cfg, m, agent.heads, agent.subtasks, calibration=cal)
         for m in METHODS
     ]
+
+
+def trial_calibration(agent: LifelongAgent) -> RobustnessCalibration | None:
+    """The hierarchy's thresholds after a trial, on training states of the replay (never the
+    nominal test seeds); ``None`` with ``train.robustness_threshold = "fixed"``."""
+    if agent.cfg.train.robustness_threshold != "calibrated" or len(agent.buffer) == 0:
+        return None
+    return calibrate(agent.cfg, agent.heads, agent.subtasks, replay_states(agent.buffer))
 
 
 class HeadValues:
@@ -353,11 +366,16 @@ class SideBySide(TensorDictModuleBase):
         )
 
     def decide_batch(
-        self, td: Any, running: torch.Tensor, params: Sequence[torch.Tensor] | None = None
+        self,
+        td: Any,
+        running: torch.Tensor,
+        params: Sequence[torch.Tensor] | None = None,
+        calibrations: Sequence[RobustnessCalibration | None] | None = None,
     ) -> dict[str, torch.Tensor]:
         """Decisions ``(B,)`` at the state ``td`` (a tensordict with the env's keys) with carried
         ``running`` ``(B,)``: ``action``, ``next_running`` and the traces. ``params``:
-        :meth:`HeadValues.snapshot` s stacked over ``G`` groups of rows (``None``: live heads)."""
+        :meth:`HeadValues.snapshot` s stacked over ``G`` groups of rows (``None``: live heads);
+        ``calibrations``: the hierarchy's thresholds of each group (``None``: the controller's)."""
         k, M = self.k, len(self.controllers)
         G = 1 if params is None else params[0].shape[0]
         if self.head_values is not None:
@@ -377,6 +395,12 @@ class SideBySide(TensorDictModuleBase):
         outs = []
         for i, c in enumerate(self.controllers):
             values = {HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads}
+            values.update({key: part(v, i) for key, v in c.extra_inputs(td).items()})
+            if calibrations is not None and isinstance(c, HierarchyController):
+                cals = [cal or c.calibration for cal in calibrations]
+                if all(cal is not None for cal in cals):  # per-row thresholds (G k, O)
+                    values[keys.ROBUSTNESS_TAU] = _rows([cal.tau for cal in cals], k)
+                    values[keys.ROBUSTNESS_SCALE] = _rows([cal.scale for cal in cals], k)
             run = part(running, i) if c.stateful else None
             term = None
             if run is not None and c.subtasks is not None:
@@ -409,6 +433,11 @@ class SideBySide(TensorDictModuleBase):
         for key, _ in self.TRACES:
             td.set(key, out[key])
         return td
+
+
+def _rows(per_group: Sequence[torch.Tensor], k: int) -> torch.Tensor:
+    """``(G k, O)``: each group's ``(O,)`` vector repeated for its ``k`` rows."""
+    return torch.stack(per_group).repeat_interleave(k, 0)
 
 
 def _full(like: torch.Tensor, value: int | bool) -> torch.Tensor:
@@ -516,6 +545,7 @@ def test_trials(
     env: WargusEnv,
     k: int,
     snapshots: Sequence[Sequence[torch.Tensor]] | None,
+    calibrations: Sequence[RobustnessCalibration | None] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """The test phases of ``G`` trials side by side: trial ``g`` with frozen heads
     ``snapshots[g]`` (:meth:`HeadValues.snapshot`; ``None``: one trial, the live heads) on rows
@@ -545,7 +575,7 @@ def test_trials(
     h = METHODS.index("hierarchy")
     options, alives = [], []
     for _ in range(env.horizon):
-        out = policy.decide_batch(td, running, params)
+        out = policy.decide_batch(td, running, params, calibrations)
         inter += (out[keys.INTERRUPTED] & alive).long()
         options.append(out[keys.OPTION])
         alives.append(alive)
@@ -666,13 +696,21 @@ def run_repetition(
         }
         updates: list[int] = []
         snapshots: list[list[torch.Tensor]] = []  # frozen heads of trials not tested yet
+        calibrations: list[RobustnessCalibration | None] = []  # and their hierarchy thresholds
+        hier = controllers[METHODS.index("hierarchy")]
 
         def test_pending() -> None:
             env = make_test_env(cfg, k, seed, first_trial=len(rows["items"]), trials=len(snapshots))
-            for tested in test_trials(policy, env, k, snapshots if group > 1 else None):
+            if group == 1 and calibrations[0] is not None:
+                hier.calibration = calibrations[0]
+            tested_all = test_trials(
+                policy, env, k, snapshots if group > 1 else None, calibrations
+            )
+            for tested in tested_all:
                 for key, v in tested.items():
                     rows[key].append(v)
             snapshots.clear()
+            calibrations.clear()
 
         for trial in range(x.trials):
             learned = learning_phase(agent, learn_env)
@@ -680,6 +718,7 @@ def run_repetition(
                 rows[key].append(v)
             updates.append(agent.updates)
             snapshots.append(policy.head_values.snapshot() if group > 1 else [])
+            calibrations.append(trial_calibration(agent))
             if len(snapshots) >= group:
                 test_pending()
             if on_trial is not None:

@@ -26,7 +26,7 @@ from torchrl.data import Categorical
 from torchrl.modules import EGreedyModule
 
 from taskvar_torch import keys
-from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.heads.networks import head_network
 from taskvar_torch.heads.switching import mu_bar_probs
 from taskvar_torch.subtasks.base import Subtasks
@@ -46,6 +46,9 @@ class BehaviourPolicy(TensorDictModuleBase):
         action_spec: the env's action spec (``Categorical``), for uniform exploratory actions.
         option_prob: probability that an episode is run by options rather than the averaging policy.
         eps: initial epsilon.
+        root_policy: ``"averaging"``: the composition hierarchy's root option acts by the averaging
+            head (its policy is the full-task averaging policy, paper §3.4.2); ``"option"``: by its
+            own option head.
     """
 
     def __init__(
@@ -55,6 +58,7 @@ class BehaviourPolicy(TensorDictModuleBase):
         action_spec: Categorical,
         option_prob: float = 0.5,
         eps: float = 1.0,
+        root_policy: str = "option",
     ):
         super().__init__()
         if not 0.0 <= option_prob <= 1.0:
@@ -63,6 +67,12 @@ class BehaviourPolicy(TensorDictModuleBase):
         self.subtasks = subtasks
         self.use_options = heads.has("options") and heads.has("switching") and option_prob > 0
         self.option_prob = option_prob if self.use_options else 0.0
+        tree = subtasks.hierarchy
+        self.root = (
+            list(heads.option_names).index(tree.root)
+            if root_policy == "averaging" and tree is not None and self.use_options
+            else None
+        )
         self.in_keys = [keys.OBSERVATION, IS_INIT]
         self.out_keys = [keys.ACTION, BEHAVIOUR]
         self.egreedy = EGreedyModule(action_spec, eps_init=float(eps), eps_end=0.0)
@@ -83,7 +93,8 @@ class BehaviourPolicy(TensorDictModuleBase):
         mode = td.get(BEHAVIOUR, None)  # (N,) int64, absent before the first step
         if mode is None:
             mode = torch.full((N,), -1, dtype=torch.int64, device=obs.device)
-        action = head_network(self.heads.heads["averaging"])(obs).argmax(-1)  # (N,)
+        q_avg = head_network(self.heads.heads["averaging"])(obs)  # (N, A)
+        action = q_avg.argmax(-1)  # (N,)
 
         if self.use_options:
             init = self.subtasks.initiation(td)  # (N, O) bool
@@ -102,6 +113,8 @@ class BehaviourPolicy(TensorDictModuleBase):
                 torch.where((mode >= 0) & ended, picked, mode),
             )  # (N,)
             q_opt = head_network(self.heads.heads["options"])(obs)  # (N, O, A)
+            if self.root is not None:  # pi^root = pi^avg
+                q_opt = with_root_row(q_opt, q_avg, self.root)
             opt_action = q_opt.argmax(-1).gather(
                 -1, mode.clamp(0, init.shape[-1] - 1).unsqueeze(-1)
             )

@@ -37,6 +37,12 @@ HEAD_OUT_KEYS = {
 }
 
 
+def with_root_row(q_options: torch.Tensor, q_avg: torch.Tensor, root: int) -> torch.Tensor:
+    """``Q_o`` ``(B, O, A)`` with the composed root's row replaced by ``Q_avg`` ``(B, A)``: the
+    root's policy is the full-task averaging policy (paper §3.4.2)."""
+    return torch.cat([q_options[:, :root], q_avg.unsqueeze(1), q_options[:, root + 1 :]], 1)
+
+
 class Heads(TensorDictModuleBase):
     """A bundle of heads; calling it writes every present head's output into the tensordict.
 

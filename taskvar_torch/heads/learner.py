@@ -33,13 +33,14 @@ from torch import nn
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from taskvar_torch.heads.averaging import averaging_loss
-from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.heads.max_value import OptimismGapHead, max_value_loss
 from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
 from taskvar_torch.heads.options import option_greedy_actions, options_loss
 from taskvar_torch.heads.relabel import relabel
 from taskvar_torch.heads.robustness import (
     ROBUSTNESS_TARGETS,
+    ROBUSTNESS_UNTIL,
     component_matrix,
     parent_closure,
     robustness_loss,
@@ -60,6 +61,7 @@ class LossSettings:
     max_value_expectile: float = 0.95
     mu_bar_temperature: float | None = None  # None: greedy mu_bar
     robustness_target: str = "option"  # R's next action: pi^o(s') ("option") or argmax R ("greedy")
+    robustness_until: str = "termination"  # R's horizon: the option's termination, or the episode
     root_policy: str = "option"  # the hierarchy root's pi: its option head, or "averaging"
 
 
@@ -120,17 +122,25 @@ class MultiHeadLoss(LossModule):
                 "the robustness head with robustness_target='option' needs the ['options'] head(s) "
                 "in the bundle (its target follows pi^o)"
             )
+        if settings.robustness_until not in ROBUSTNESS_UNTIL:
+            raise ValueError(
+                f"robustness_until must be one of {list(ROBUSTNESS_UNTIL)}, "
+                f"got {settings.robustness_until!r}"
+            )
         if settings.root_policy not in ("averaging", "option"):
             raise ValueError(
                 f"root_policy must be one of ['averaging', 'option'], got {settings.root_policy!r}"
             )
-        # the option whose robustness follows pi^avg (paper §3.4.2), or None
+        # the composed root whose policy is pi^avg (paper §3.4.2), or None: its intra-option
+        # transitions (switching, max-value) and its robustness target follow the averaging head
         self.avg_root = None
-        if settings.root_policy == "averaging" and heads.has("robustness"):
-            if subtasks.hierarchy is None or not heads.has("averaging"):
-                raise ValueError(
-                    "root_policy='averaging' needs a hierarchy and the ['averaging'] head"
-                )
+        if (
+            settings.root_policy == "averaging"
+            and subtasks.hierarchy is not None
+            and heads.has("options")
+        ):
+            if not heads.has("averaging"):
+                raise ValueError("root_policy='averaging' needs the ['averaging'] head")
             self.avg_root = list(subtasks.names).index(subtasks.hierarchy.root)
         if tuple(heads.option_names) != tuple(subtasks.names):
             raise ValueError(
@@ -227,9 +237,10 @@ class MultiHeadLoss(LossModule):
                 cur["options"], nxt["options"], nxt_target["options"], batch, s.gamma, s.double_q
             )
         if "switching" in cur:
-            consistent = consistent_with_option(
-                batch.action, cur["options"].detach(), batch.initiation
-            )  # (B, O)
+            q_options = cur["options"].detach()  # (B, O, A)
+            if self.avg_root is not None:  # pi^root = pi^avg
+                q_options = with_root_row(q_options, cur["averaging"].detach(), self.avg_root)
+            consistent = consistent_with_option(batch.action, q_options, batch.initiation)  # (B, O)
             mu_next = mu_bar_probs(
                 nxt["switching"], batch.initiation_next, s.mu_bar_temperature
             )  # (B, O)
@@ -263,6 +274,7 @@ class MultiHeadLoss(LossModule):
                 s.robustness_gamma,
                 s.double_q,
                 next_action,
+                until_termination=s.robustness_until == "termination",
             )
         return TensorDict(losses, batch_size=[])
 

@@ -9,7 +9,12 @@ following o*, so the default target (``train.robustness_target = "option"``) boo
 option's own next action, ``pi^o(s') = argmax_a' Q_o(s', a')`` (off-policy evaluation of pi^o from
 replay, like expected SARSA with a greedy target policy):
 
-    y_o = rr_o + gamma_R * (1 - terminated) * R_o,target(s', pi^o(s'))
+    y_o = rr_o + gamma_R * (1 - terminated) * (1 - beta_o(s')) * R_o,target(s', pi^o(s'))
+
+and only up to the option's own termination (``train.robustness_until = "termination"``): where
+beta_o(s') = 1 the option has ended, its subtask is achieved (TG picked the item, FE escaped) or
+failed (TG lost sight of the item), and nothing past it is o's to attain. (``"episode"`` bootstraps
+through beta_o, as if o kept running after its own end.)
 
 ``"greedy"`` is plain (double) Q-learning, ``R_o,target(s', argmax_a' R_o(s', a'))``: the
 attainability under the *robustness-greedy* policy, which no controller runs. It overrates an
@@ -26,6 +31,7 @@ update of a component is, in the same gradient step, an update of its parent.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import torch
 from tensordict.nn import TensorDictModule
@@ -37,6 +43,7 @@ from taskvar_torch.heads.targets import bootstrap_value, masked_mean
 from taskvar_torch.subtasks.base import Hierarchy
 
 ROBUSTNESS_TARGETS = ("greedy", "option")  # next action of the TD target: argmax R_o, or pi^o
+ROBUSTNESS_UNTIL = ("episode", "termination")  # the critic's horizon: the episode, or beta_o
 
 
 def make_robustness_head(
@@ -80,11 +87,13 @@ def robustness_loss(
     gamma: float,
     double_q: bool = True,
     next_action: torch.Tensor | None = None,  # (B, O) int64 pi^o(s'), or None: greedy in R_o
+    until_termination: bool = False,
 ) -> torch.Tensor:
     """Sum over capabilities of each critic's mean squared TD error (scalar).
 
     With ``next_action`` the target evaluates the option's own policy at s' (module docstring);
-    without it, (double) Q-learning on R.
+    without it, (double) Q-learning on R. With ``until_termination`` the target does not bootstrap
+    where the option terminates at s' (beta_o(s') = 1).
     """
     if batch.robustness_reward is None:
         raise ValueError("robustness_loss needs robustness rewards (relabel(..., robustness=True))")
@@ -96,5 +105,61 @@ def robustness_loss(
             v_next = bootstrap_value(r_next, r_next_target, double_q)  # (B, O)
         else:
             v_next = r_next_target.gather(-1, next_action.unsqueeze(-1)).squeeze(-1)  # (B, O)
-        target = batch.robustness_reward + gamma * (1.0 - batch.terminated).unsqueeze(-1) * v_next
+        cont = (1.0 - batch.terminated).unsqueeze(-1)  # (B, 1)
+        if until_termination:
+            cont = cont * (1.0 - batch.beta_next)  # (B, O)
+        target = batch.robustness_reward + gamma * cont * v_next
     return masked_mean((r_taken - target).pow(2), mask)
+
+
+@dataclass(frozen=True)
+class RobustnessCalibration:
+    """Per-capability thresholds and scales of the robustness critics, set on training states.
+
+    ``tau[o]``: R(o, s, pi^o(s)) > tau[o] reads "o can still achieve its goals from s" (paper
+    §3.4.3). For a composed subtask it is the ``1 - keep_share`` quantile of its robustness over
+    training states where its subgoals do not conflict, so it keeps control on ``keep_share`` of
+    them (§3.5.3: the composed capability runs "in every state where the subgoals are not in
+    conflict"); for a leaf, the same quantile over the states where it can take control.
+    ``scale[o]``: the standard deviation of R(o, s, pi^o(s)) over the states where o can take
+    control; the hierarchy's descent compares components by ``(R - tau) / scale``, a margin in
+    units of each critic's own spread (:meth:`normalise`).
+    """
+
+    tau: torch.Tensor  # (O,)
+    scale: torch.Tensor  # (O,)
+
+    def normalise(self, r: torch.Tensor) -> torch.Tensor:
+        """``(R - tau) / scale`` for ``r`` ``(..., O)`` (batch first)."""
+        return (r - self.tau) / self.scale
+
+    def to(self, device: torch.device | str) -> RobustnessCalibration:
+        return RobustnessCalibration(self.tau.to(device), self.scale.to(device))
+
+
+def calibrate_robustness(
+    robustness: torch.Tensor,  # (B, O) R(o, s, pi^o(s)) under each option's own action
+    startable: torch.Tensor,  # (B, O) bool: o can take control at s
+    no_conflict: torch.Tensor,  # (B,) bool: the subgoals do not conflict at s
+    composed: torch.Tensor,  # (O,) bool: o has components
+    keep_share: float,
+    default_tau: float,
+) -> RobustnessCalibration:
+    """:class:`RobustnessCalibration` from a sample of training states (see its docstring).
+
+    A capability with no qualifying state keeps ``default_tau`` and a unit scale.
+    """
+    if not 0.0 < keep_share < 1.0:
+        raise ValueError(f"keep_share must be in (0, 1), got {keep_share}")
+    r = robustness.detach().to(torch.float32)
+    O = r.shape[1]  # noqa: E741
+    tau = torch.full((O,), float(default_tau), dtype=torch.float32, device=r.device)
+    scale = torch.ones(O, dtype=torch.float32, device=r.device)
+    for o in range(O):
+        own = startable[:, o]
+        pool = own & no_conflict if bool(composed[o]) else own
+        if bool(pool.any()):
+            tau[o] = torch.quantile(r[pool, o], 1.0 - keep_share)
+        if int(own.sum()) > 1:
+            scale[o] = r[own, o].std().clamp(min=1e-3)
+    return RobustnessCalibration(tau, scale)

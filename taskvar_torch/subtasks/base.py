@@ -108,3 +108,15 @@ class Subtasks:
     def robustness_reward(self, td: TensorDictBase) -> torch.Tensor:
         """``(B, O)`` float: robustness reward (paper §3.4.3, §3.5.2) for the transition."""
         raise NotImplementedError(f"{type(self).__name__} defines no robustness reward")
+
+    def startable(self, td: TensorDictBase) -> torch.Tensor:
+        """``(B, O)`` bool: option o can take control at the state at the root of ``td``: s is in
+        I_o and o's termination condition does not already hold there (the hierarchy's descent,
+        Algorithm 2 line 10, only hands control to such a component). Default: I_o."""
+        return self.initiation(td)
+
+    def no_conflict(self, td: TensorDictBase) -> torch.Tensor:
+        """``(B,)`` bool: the subgoals of the composed subtasks do not conflict at s (paper
+        §3.5.3); the states on which a calibrated threshold keeps the composed node in control.
+        Default: every state."""
+        return torch.ones(td.batch_size, dtype=torch.bool, device=td.device)

@@ -1,4 +1,4 @@
-"""Wargus capabilities (paper §3.5.2, SPEC §1.2): ToGoal, FromEnemy and their composition TG+FE.
+"""Wargus capabilities (paper §3.5.2): ToGoal, FromEnemy and their composition TG+FE.
 
 Everything is computed from raw transitions with the integer state keys the Wargus envs emit
 (``envs/wargus.py``): ``item_seen``, ``patrol_seen`` and the events ``picked`` and ``item_lost``
@@ -18,49 +18,49 @@ option        initiation     termination beta(s')                       subtask 
                                                                         patrol's sight, +1 on escaping,
                                                                         -``destruction_penalty`` when
                                                                         destroyed
-``TG+FE``     anywhere       never (it is the full task; it ends only   TG + FE
-                             with the episode)
+``TG+FE``     anywhere       never (it is the full task; it ends only   the environment reward (+1 per
+                             with the episode)                          item picked); ``composed_reward
+                                                                        = "sum"``: TG + FE
 ============  =============  =========================================  ==============================
 
 Termination is a function of s' only, but TG's reads the *events* of the step that led to s'
-(SPEC §1.2: options "terminate on events: seeing the patrol, losing sight of the item, picking the
-item, escaping the patrol's sight"): ``item_lost`` (the item was seen at s, is not at s', and none
+(options "terminate upon the occurrence of an event such as seeing the adversary or losing sight
+of the goal item", paper §3.5.2): ``item_lost`` (the item was seen at s, is not at s', and none
 was picked) and ``picked``; "seeing the patrol" is read as the state ``patrol_seen`` (TG stops
 whenever a patrol is in sight, so FE or the root can take over). TG therefore ends on *losing*
 sight of the item, not wherever the item is unseen: started (or continuing) where the item is out
 of sight, it runs - seeking the item by its always-observed bearing - until it sees a patrol, picks
-an item, or sees the item and then loses it again. (An earlier state-based rule, ``item not seen``,
-made TG a one-step option wherever the item was unseen, so it never learnt to seek by bearing.)
-FE ends when no patrol is in sight (escaped; it ends at once where started out of sight); TG+FE is
-the whole task.
+an item, or sees the item and then loses it again. FE ends when no patrol is in sight (escaped; it
+ends at once where started out of sight); TG+FE is the whole task, and its policy is the full-task
+averaging policy on the environment reward alone (paper §3.4.2), so its default subtask reward is
+the environment's.
+
+Where a component can take control (:meth:`WargusSubtasks.startable`): TG where no patrol is in
+sight, FE where one is (each elsewhere would end at once), the root anywhere. The subgoals
+*conflict* where a patrol is in sight (:meth:`WargusSubtasks.no_conflict`: no patrol seen).
 
 Why a destruction penalty in FE's subtask reward: without it, destruction ends FE's stream of -1s,
 so the FE policy would learn to be shot (one -1) rather than flee (several -1s then +1). The
 default ``destruction_penalty = 10`` charges destruction like staying in sight forever at
 gamma = 0.9 (``1 / (1 - gamma)``).
 
-Robustness rewards (paper §3.5.2, SPEC §1.2) for the transition s -> s':
+Robustness rewards (paper §3.5.2) for the transition s -> s':
 
 - ``TG``: +1 when the step ends where the item is seen, -1 when it leaves the area where the item
   is seen, 0 otherwise. Picking an item counts as ending where the item is seen (+1), even if the
   new item appears out of sight: reaching the goal is not losing it.
 - ``FE``: -1 for every step that ends within a patrol's sight, +1 once when escaping it (seen at s,
   not at s'), 0 otherwise; optionally ``-robustness_destruction_penalty`` on destruction (default
-  0, the SPEC's literal reward; destruction then ends the -1s, which ranks being shot above a long
-  escape - set it to ``1 / (1 - gamma)`` to rank destruction as never escaping).
+  0, the paper's literal reward).
 - ``TG+FE``: the sum.
 
-Scale of the threshold tau = 2 (SPEC §1.2): robustness critics are Q-functions of these rewards
-under the learner's discount gamma. With gamma = 0.9 a sustained +1 is worth 1 / (1 - 0.9) = 10
-and a sustained -1 is -10, so R(TG) ranges over about [-1, 10]: R(TG) > 2 means "the item is seen
-and, following the option's own policy (``train.robustness_target = "option"``), will stay seen
-for at least about 2-3 more steps". Out of sight the +1s start k steps later, discounted by
-0.9^k, and stop soon after the item is picked, so R > 2 rarely holds there: at tau = 2 control
-mostly falls to TG wherever the item is unseen (README "Wargus Figure 4"). R(FE) lies in about [-10, 1] (it only
-exceeds 0 just before an escape), so it never exceeds tau = 2: FE is a leaf and leaves act without
-the threshold test in Algorithm 2. R(TG+FE) > 2 where the item is seen and the patrol is not.
-With gamma = 0.99 the same rewards are worth 100 and tau should scale with ``1 / (1 - gamma)``
-(e.g. tau = 20); we recommend gamma = 0.9 for the robustness critics.
+Scale of the threshold (``heads/robustness.py``): the critics are Q-functions of these rewards
+under pi^o, discounted by gamma_R and cut at the option's own termination. So R(TG) lies in about
+[-1, 5] (+1s while the item is in sight, ending at the pick; -1 and the end when sight is lost),
+R(FE) in about [-1 / (1 - gamma_R), 1] (it is positive only just before an escape), and R(TG+FE),
+which never terminates, sums both along the averaging policy. A fixed tau (the paper's 2) means
+different things on these scales; the calibrated threshold sets tau(TG+FE) on training replay so
+that the root keeps control on a stated share of no-conflict states.
 """
 
 from __future__ import annotations
@@ -73,6 +73,7 @@ from taskvar_torch.envs.wargus import ITEM_LOST, ITEM_SEEN, PATROL_SEEN, PICKED
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
 TG, FE, TG_FE = "TG", "FE", "TG+FE"
+COMPOSED_REWARDS = ("env", "sum")  # TG+FE's subtask reward: the environment's, or TG + FE
 
 
 def _next(td: TensorDictBase, key: str) -> torch.Tensor:
@@ -83,9 +84,12 @@ class WargusSubtasks(Subtasks):
     """ToGoal, FromEnemy and TG+FE, vectorised over transitions (paper §3.5.2).
 
     Args:
-        destruction_penalty: subtask-reward cost of being destroyed for FE (and TG+FE).
+        destruction_penalty: subtask-reward cost of being destroyed for FE (and TG+FE with
+            ``composed_reward="sum"``).
         robustness_destruction_penalty: robustness-reward cost of being destroyed for FE (and
-            TG+FE); 0 is the SPEC's literal reward.
+            TG+FE); 0 is the paper's literal reward.
+        composed_reward: TG+FE's subtask reward: ``"env"`` (the environment reward: TG+FE is the
+            full task, paper §3.4.2) or ``"sum"`` (TG's plus FE's subtask rewards).
 
     Examples:
         >>> sub = WargusSubtasks()
@@ -96,7 +100,17 @@ class WargusSubtasks(Subtasks):
     names = (TG, FE, TG_FE)
     hierarchy = Hierarchy(root=TG_FE, children={TG_FE: (TG, FE)})
 
-    def __init__(self, destruction_penalty: float = 10.0, robustness_destruction_penalty: float = 0.0):
+    def __init__(
+        self,
+        destruction_penalty: float = 10.0,
+        robustness_destruction_penalty: float = 0.0,
+        composed_reward: str = "env",
+    ):
+        if composed_reward not in COMPOSED_REWARDS:
+            raise ValueError(
+                f"composed_reward must be one of {list(COMPOSED_REWARDS)}, got {composed_reward!r}"
+            )
+        self.composed_reward = composed_reward
         for name, v in (
             ("destruction_penalty", destruction_penalty),
             ("robustness_destruction_penalty", robustness_destruction_penalty),
@@ -121,6 +135,15 @@ class WargusSubtasks(Subtasks):
         tg = patrol_seen | td.get(ITEM_LOST) | (td.get(PICKED) > 0)
         return torch.stack((tg, ~patrol_seen, torch.zeros_like(tg)), -1)
 
+    def startable(self, td: TensorDictBase) -> torch.Tensor:
+        """``(*B, 3)`` bool: TG where no patrol is seen, FE where one is, TG+FE anywhere."""
+        patrol_seen = td.get(PATROL_SEEN)  # (*B,)
+        return torch.stack((~patrol_seen, patrol_seen, torch.ones_like(patrol_seen)), -1)
+
+    def no_conflict(self, td: TensorDictBase) -> torch.Tensor:
+        """``(*B,)`` bool: no patrol in sight, so seeking the item conflicts with nothing."""
+        return ~td.get(PATROL_SEEN)
+
     def _destroyed(self, td: TensorDictBase) -> torch.Tensor:
         term = td.get((keys.NEXT, keys.TERMINATED), None)
         if term is None:
@@ -136,9 +159,10 @@ class WargusSubtasks(Subtasks):
 
     def reward(self, td: TensorDictBase) -> torch.Tensor:
         """``(*B, 3)`` float32 subtask rewards for ``td -> td["next"]`` (module docstring)."""
-        tg = _next(td, PICKED).to(torch.float32)  # (*B,)
+        tg = _next(td, PICKED).to(torch.float32)  # (*B,) the env reward: +1 per item picked
         fe = self._fe(td, self.destruction_penalty)
-        return torch.stack((tg, fe, tg + fe), -1)
+        root = tg if self.composed_reward == "env" else tg + fe
+        return torch.stack((tg, fe, root), -1)
 
     def robustness_reward(self, td: TensorDictBase) -> torch.Tensor:
         """``(*B, 3)`` float32 robustness rewards (paper §3.5.2) for ``td -> td["next"]``."""
