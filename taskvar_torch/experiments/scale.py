@@ -308,7 +308,7 @@ def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None,
     """A TorchRL policy: a method's controller on ``heads``, ``random`` or ``oracle_averaging``."""
     from tensordict.nn import TensorDictModule
 
-    from taskvar_torch.controllers import make_controller
+    from taskvar_torch.factory import make_method_controller
 
     if name == "random":
         return RandomPolicy(env.action_spec)
@@ -318,9 +318,7 @@ def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None,
         oracle = WindyOracle(windy_layout(cfg.env), gamma=cfg.train.gamma, horizon=cfg.env.horizon,
                              train_instances=cfg.env.instances, device=cfg.device)
         return TensorDictModule(TablePolicy(oracle.averaging_policy()), [keys.CELL], [keys.ACTION])
-    return make_controller(name, heads, subtasks, hierarchy=subtasks.hierarchy,
-                           tau=cfg.train.robustness_tau, seed=cfg.seed,
-                           root_policy=cfg.train.hierarchy_root_policy)
+    return make_method_controller(cfg, name, heads, subtasks)
 
 
 def evaluate(

@@ -77,7 +77,7 @@ from taskvar_torch import keys
 from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
 from taskvar_torch.config import Config, save_config_yaml
 from taskvar_torch.controllers import Controller, HierarchyController, option_first, select0
-from taskvar_torch.envs.wargus import NOMINAL_SEEDS, WargusInstances
+from taskvar_torch.envs.wargus import ITEM_LOST, NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.experiments.results import write_csv, write_json
@@ -572,9 +572,11 @@ def test_trials(
     alive = torch.ones(n, dtype=torch.bool, device=dev)
     ret = torch.zeros(n, device=dev)
     inter = torch.zeros(n, dtype=torch.int64, device=dev)
+    lost = torch.zeros(n, dtype=torch.int64, device=dev)
     h = METHODS.index("hierarchy")
     options, alives = [], []
     for _ in range(env.horizon):
+        lost += (td.get(ITEM_LOST).reshape(n) & alive).long()  # the step that led here lost the item
         out = policy.decide_batch(td, running, params, calibrations)
         inter += (out[keys.INTERRUPTED] & alive).long()
         options.append(out[keys.OPTION])
@@ -587,8 +589,10 @@ def test_trials(
             break
     option = torch.stack(options, -1).view(G, M, k, -1)[:, h]  # (G, K, T)
     live = torch.stack(alives, -1).view(G, M, k, -1)[:, h]  # (G, K, T)
-    ret, inter = ret.view(G, M * k), inter.view(G, M * k)
-    return [_test_summary(policy, ret[g], inter[g], option[g], live[g], k) for g in range(G)]
+    ret, inter, lost = ret.view(G, M * k), inter.view(G, M * k), lost.view(G, M * k)
+    return [
+        _test_summary(policy, ret[g], inter[g], option[g], live[g], k, lost[g]) for g in range(G)
+    ]
 
 
 def _test_summary(
@@ -598,6 +602,7 @@ def _test_summary(
     option: torch.Tensor,  # (K, T) the hierarchy's option per step
     alive: torch.Tensor,  # (K, T) its live steps
     k: int,
+    lost: torch.Tensor,  # (M K,) item_lost events per test episode
 ) -> dict[str, np.ndarray]:
     num_options = len(policy.controllers[METHODS.index("hierarchy")].heads.option_names)
     control = torch.stack([((option == o) & alive).sum() for o in range(num_options)])
@@ -605,6 +610,7 @@ def _test_summary(
         "items": ret.reshape(len(METHODS), k).mean(-1).cpu().numpy(),  # (M,)
         "interruptions": inter.reshape(len(METHODS), k).double().mean(-1).cpu().numpy(),  # (M,)
         "control_steps": control.cpu().numpy(),  # (O,)
+        "item_lost": lost.reshape(len(METHODS), k).double().mean(-1).cpu().numpy(),  # (M,)
     }
 
 
@@ -646,11 +652,12 @@ def learning_phase_torchrl(agent: LifelongAgent, env: TransformedEnv) -> dict[st
 def test_phase_torchrl(policy: SideBySide, env: TransformedEnv, k: int) -> dict[str, np.ndarray]:
     """:func:`test_phase` through :func:`run_episodes` (``env``: the test env with the
     controllers' primer): the reference implementation."""
-    out = run_episodes(env, policy, trace_keys=(keys.OPTION,))
+    out = run_episodes(env, policy, trace_keys=(keys.OPTION, ITEM_LOST))
     h = METHODS.index("hierarchy")
     option = out["trace", keys.OPTION][h * k : (h + 1) * k]  # (K, T)
     alive = out["trace", "alive"][h * k : (h + 1) * k]  # (K, T)
-    return _test_summary(policy, out["return"], out["interruptions"], option, alive, k)
+    lost = (out["trace", ITEM_LOST] & out["trace", "alive"]).sum(-1)  # (M K,)
+    return _test_summary(policy, out["return"], out["interruptions"], option, alive, k, lost)
 
 
 # --------------------------------------------------------------------------------------------
@@ -675,7 +682,8 @@ def run_repetition(
     torch stream (network init, behaviour draws) is its own and leaves the caller's untouched.
 
     Returns:
-        ``items`` and ``interruptions`` ``(T, M)``, ``control_steps`` ``(T, O)``, ``learn_items``,
+        ``items``, ``interruptions`` and ``item_lost`` ``(T, M)``, ``control_steps`` ``(T, O)``,
+        ``learn_items``,
         ``frames``, ``updates`` ``(T,)``, ``option_names``, ``seconds``.
     """
     x = cfg.experiment
@@ -692,7 +700,15 @@ def run_repetition(
         policy = SideBySide(controllers, k)
         group = test_group if policy.batchable else 1
         rows: dict[str, list] = {
-            k_: [] for k_ in ("items", "interruptions", "control_steps", "learn_items", "frames")
+            k_: []
+            for k_ in (
+                "items",
+                "interruptions",
+                "control_steps",
+                "item_lost",
+                "learn_items",
+                "frames",
+            )
         }
         updates: list[int] = []
         snapshots: list[list[torch.Tensor]] = []  # frozen heads of trials not tested yet
@@ -839,9 +855,10 @@ def wargus_fig4(
     items = np.stack([r["items"] for r in results])  # (R, T, M)
     inter = np.stack([r["interruptions"] for r in results])  # (R, T, M)
     control = np.stack([r["control_steps"] for r in results])  # (R, T, O)
+    lost = np.stack([r["item_lost"] for r in results])  # (R, T, M)
     write_csv(out / "per_trial.csv", _csv_rows(items, inter), CSV_FIELDS)
     metrics = summarise(
-        items, inter, control, results[0]["option_names"], results[0]["option_depths"]
+        items, inter, control, results[0]["option_names"], results[0]["option_depths"], lost
     )
     metrics["protocol"] = {
         "repetitions": cfg.experiment.runs,
@@ -850,6 +867,8 @@ def wargus_fig4(
         "test_episodes_per_trial": cfg.experiment.test_episodes_per_trial,
         "seeds": [repetition_seed(cfg, r) for r in range(cfg.experiment.runs)],
         "tau": cfg.train.robustness_tau,
+        "threshold": cfg.train.robustness_threshold,
+        "keep_share": cfg.train.robustness_keep_share,
         "grid": cfg.env.wargus.size,
         "horizon": cfg.env.wargus.horizon,
         "workers": workers,
@@ -913,6 +932,28 @@ def final_count(trials: int) -> int:
     return max(1, int(math.ceil(FINAL_FRACTION * trials)))
 
 
+def trials_to_fraction_of_max(curve: np.ndarray, fraction: float = 0.9) -> int:
+    """First trial (1-based) at which the smoothed ``curve`` reaches ``fraction`` of its own
+    maximum (the paper's Figure 4 bars: "90% to their maximum performance")."""
+    smooth = moving_average(np.asarray(curve, dtype=float), smoothing_window(np.size(curve)))
+    return int(np.nonzero(smooth >= fraction * smooth.max())[0][0]) + 1
+
+
+def mean_over_trials(items: np.ndarray, first: int | None = None) -> dict[str, float]:
+    """Mean items per test episode over trials ``1..first`` (all: ``None``) of ``items`` ``(R,
+    T)``: the mean, the standard deviation across repetitions and a 95% CI half-width
+    (normal approximation over repetitions)."""
+    per_rep = np.asarray(items, dtype=float)[:, :first].mean(1)  # (R,)
+    R = per_rep.size
+    std = float(per_rep.std(ddof=1)) if R > 1 else float("nan")
+    return {
+        "mean": float(per_rep.mean()),
+        "std": std,
+        "ci95": 1.959964 * std / math.sqrt(R) if R > 1 else float("nan"),
+        "trials": int(np.asarray(items)[:, :first].shape[1]),
+    }
+
+
 def trials_to_fraction(curve: np.ndarray, fraction: float = 0.9) -> tuple[int, bool]:
     """First trial (1-based) at which the smoothed ``curve`` reaches ``fraction`` of its final
     value (mean of the last 10% of the raw curve); ``(len(curve), False)`` if it never does."""
@@ -929,6 +970,7 @@ def summarise(
     control: np.ndarray,  # (R, T, O) hierarchy steps per controlling subtask
     option_names: Sequence[str],
     option_depths: Sequence[int],
+    item_lost: np.ndarray | None = None,  # (R, T, M) item_lost events per test episode
 ) -> dict[str, Any]:
     """``metrics.json``'s content (definitions in the module docstring)."""
     R, T, M = items.shape
@@ -946,12 +988,17 @@ def summarise(
             "reached_90pct": reached,
             "trials_to_90pct_per_rep": per_rep,
             "trials_to_90pct_std": float(np.std(per_rep)),
+            "trials_to_90pct_of_max": trials_to_fraction_of_max(mean),
+            "mean_over_trials": mean_over_trials(items[:, :, m]),
+            "mean_first_250_trials": mean_over_trials(items[:, :, m], 250),
             "interruptions_per_episode": float(inter[:, :, m].mean()),
             "curve_mean": mean.tolist(),
             "curve_std": std.tolist(),
             "curve_smoothed": moving_average(mean, w).tolist(),
             "curve_per_rep": items[:, :, m].tolist(),
         }
+        if item_lost is not None:
+            methods[name]["item_lost_per_episode"] = float(item_lost[:, :, m].mean())
 
     def fractions(c: np.ndarray) -> dict[str, Any]:
         total = max(float(c.sum()), 1.0)
@@ -972,6 +1019,10 @@ def summarise(
             "final_score": f"mean over repetitions of the last {nf} trials (10%)",
             "trials_to_90pct": f"first trial where the trailing {w}-trial moving average of the "
             "repetition-mean curve reaches 90% of final_score",
+            "trials_to_90pct_of_max": f"first trial where the trailing {w}-trial moving average "
+            "of the repetition-mean curve reaches 90% of its own maximum (the paper's bars)",
+            "mean_over_trials": "mean items per test episode over all trials (std and 95% CI "
+            "across repetitions); mean_first_250_trials: the same over trials 1-250",
             "hierarchy_trace": "fraction of the hierarchy's test steps each subtask (level 0: root "
             "TG+FE, level 1: components TG, FE) held control",
         },
@@ -996,13 +1047,21 @@ def format_table(metrics: dict[str, Any]) -> str:
     lines = [
         f"Wargus Figure 4: {p.get('repetitions')} repetitions x {p.get('trials')} trials "
         f"({p.get('learning_episodes_per_trial')} learning + {p.get('test_episodes_per_trial')} "
-        f"nominal test episodes), grid {p.get('grid')}, horizon {p.get('horizon')}, tau {p.get('tau')}",
-        f"{'method':<14}{'final items':>12}{'+-std':>8}{'trials to 90%':>15}{'interr./ep':>12}",
+        f"nominal test episodes), grid {p.get('grid')}, horizon {p.get('horizon')}, "
+        + (
+            f"tau calibrated (root keeps {p.get('keep_share'):.0%} of no-conflict states)"
+            if p.get("threshold") == "calibrated"
+            else f"tau {p.get('tau')}"
+        ),
+        f"{'method':<14}{'final items':>12}{'+-std':>8}{'mean (all)':>12}{'90% final':>11}"
+        f"{'90% max':>9}{'interr./ep':>12}",
     ]
     for name, m in metrics["methods"].items():
         t90 = f"{m['trials_to_90pct']}{'' if m['reached_90pct'] else '*'}"
+        mean_all = m.get("mean_over_trials", {}).get("mean", float("nan"))
         lines.append(
-            f"{name:<14}{m['final_score']:>12.3f}{m['final_score_std']:>8.3f}{t90:>15}"
+            f"{name:<14}{m['final_score']:>12.3f}{m['final_score_std']:>8.3f}{mean_all:>12.3f}"
+            f"{t90:>11}{m.get('trials_to_90pct_of_max', '-'):>9}"
             f"{m['interruptions_per_episode']:>12.2f}"
         )
     h = metrics["hierarchy_trace"]["all_trials"]["per_subtask"]
