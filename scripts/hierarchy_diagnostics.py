@@ -2,7 +2,8 @@
 
 Loads the heads of a ``wargus-fig4`` repetition (``DIR/rep0/final.pt``) and plays N fixed instances
 greedily with: the averaging policy, each option's policy alone (TG, FE, TG+FE), and the hierarchy
-(Algorithm 2, ``tau`` from the checkpoint's config unless ``--tau``). Prints items per episode,
+(Algorithm 2 as the experiments build it, ``taskvar_torch.factory.make_method_controller``: the
+checkpoint config's thresholds, calibrated on training states, unless ``--tau`` fixes one). Prints items per episode,
 ``item_lost`` events per episode, destruction rate, and for the hierarchy the control split, how
 often control moved, and R(root, s, a_root) on the steps where the root acted and lost sight of the
 item; and the options controller (items, share of steps per option). For the averaging policy it also checks the root's robustness critic against Monte Carlo:
@@ -23,12 +24,10 @@ import dataclasses
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.controllers.base import option_first, with_root_policy
-from taskvar_torch.controllers.hierarchy import TreeTables, hierarchy_decide_of
 from taskvar_torch.envs import wargus
 from taskvar_torch.envs.wargus_env import WargusEnv
-from taskvar_torch.subtasks.wargus import WargusSubtasks
-from taskvar_torch.train import load_heads
+from taskvar_torch.factory import make_method_controller
+from taskvar_torch.train import load_heads, make_subtasks
 
 
 def fixed_instances_env(cfg, seeds) -> WargusEnv:
@@ -47,8 +46,10 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
     n = len(seeds)
     env = fixed_instances_env(cfg, seeds)
     names = list(heads.option_names)
-    tree = TreeTables.build(WargusSubtasks.hierarchy, names)
-    root = tree.root
+    subtasks = make_subtasks(cfg, env)
+    ctrl = (
+        make_method_controller(cfg, "hierarchy", heads, subtasks) if method == "hierarchy" else None
+    )
     td = env.reset()
     running = torch.full((n,), -1, dtype=torch.int64)
     alive = torch.ones(n, dtype=torch.bool)
@@ -57,8 +58,7 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
     control = torch.zeros(len(names))
     moves = torch.zeros(n)
     root_lost_r: list[torch.Tensor] = []
-    subtasks = WargusSubtasks()
-    root_id = names.index(WargusSubtasks.hierarchy.root)
+    root = root_id = names.index(subtasks.hierarchy.root)
     r_pred: list[torch.Tensor] = []  # (n,) R(root, s, a) of the acted action, per step
     r_rew: list[torch.Tensor] = []  # (n,) root robustness reward of the step
     masks: list[torch.Tensor] = []  # (n,) alive, item seen, patrol unseen at s
@@ -71,13 +71,11 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
             action = td.get(keys.ACTION_VALUE).argmax(-1)
         elif method in names:
             action = q_opt[:, names.index(method)].argmax(-1)
-        else:  # hierarchy
+        else:  # hierarchy: the experiments' controller (calibrated on training states)
             rob = td.get(keys.ROBUSTNESS)
-            q_of = option_first(q_opt)
-            if cfg.train.hierarchy_root_policy == "averaging":  # pi^root = pi^avg (§3.4.2)
-                q_of = with_root_policy(q_of, option_first(td.get(keys.ACTION_VALUE)), root)
-            out = hierarchy_decide_of(q_of, option_first(rob), running, tree, tau)
-            action, option = out["action"], out["option"]
+            td.set(keys.RUNNING_OPTION, running)
+            td = ctrl(td)
+            action, option = td.get(keys.ACTION), td.get(keys.OPTION)
             control += torch.bincount(option[alive], minlength=len(names)).float()
             moves += ((running >= 0) & (option != running) & alive).float()
             r_root = rob[torch.arange(n), root, action]  # R(root, s, a) of the acted action
@@ -138,11 +136,9 @@ def play_options(heads, cfg, seeds) -> dict[str, object]:
     and the share of live steps each option ran."""
     from torchrl.envs import TransformedEnv
 
-    from taskvar_torch.controllers import make_controller
-
     n = len(seeds)
     env = fixed_instances_env(cfg, seeds)
-    ctrl = make_controller("options", heads, subtasks=WargusSubtasks())
+    ctrl = make_method_controller(cfg, "options", heads, make_subtasks(cfg, env))
     td = TransformedEnv(env, ctrl.primer()).rollout(env.horizon, ctrl, break_when_any_done=False)
     done = td.get((keys.NEXT, keys.DONE)).reshape(n, -1)
     alive = (done.long().cumsum(-1) - done.long()) == 0  # steps up to the first episode end
@@ -160,19 +156,37 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=32)
     ap.add_argument("--tau", type=float, default=None)
     ap.add_argument("--first-seed", type=int, default=10_000)
+    ap.add_argument(
+        "--keep-share", type=float, default=None, help="calibrated threshold's keep share"
+    )
+    ap.add_argument("--only", default=None, help="comma list of methods to play")
     a = ap.parse_args()
     torch.set_num_threads(1)
     heads, cfg = load_heads(a.checkpoint)
-    tau = cfg.train.robustness_tau if a.tau is None else a.tau
+    if a.tau is not None:  # a fixed threshold instead of the configured one
+        cfg = dataclasses.replace(
+            cfg,
+            train=dataclasses.replace(
+                cfg.train, robustness_threshold="fixed", robustness_tau=a.tau
+            ),
+        )
+    if a.keep_share is not None:
+        cfg = dataclasses.replace(
+            cfg, train=dataclasses.replace(cfg.train, robustness_keep_share=a.keep_share)
+        )
+    tau = cfg.train.robustness_tau
     seeds = range(a.first_seed, a.first_seed + a.episodes)
     t = cfg.train
     print(
         f"{a.checkpoint}: {a.episodes} episodes, tau={tau}, robustness_target="
         f"{getattr(t, 'robustness_target', 'greedy')}, root policy {t.hierarchy_root_policy}"
     )
+    only = a.only.split(",") if a.only else None
     for method in ("averaging", *heads.option_names, "hierarchy"):
-        print(f"{method:>10}: {play(heads, cfg, method, seeds, tau)}")
-    print(f"{'options':>10}: {play_options(heads, cfg, list(seeds))}")
+        if only is None or method in only:
+            print(f"{method:>10}: {play(heads, cfg, method, seeds, tau)}")
+    if only is None or "options" in only:
+        print(f"{'options':>10}: {play_options(heads, cfg, list(seeds))}")
 
 
 if __name__ == "__main__":

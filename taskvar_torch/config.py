@@ -181,8 +181,10 @@ class TrainConfig:
     """mu_bar over Q_mu: greedy or softmax."""
     mu_bar_temperature: float = 1.0
     """Softmax temperature of mu_bar (mu_bar='softmax')."""
-    robustness_gamma: float = 0.9
-    """Discount of the robustness critics (Wargus)."""
+    robustness_gamma: float = 0.99
+    """Discount of the robustness critics (Wargus): 0.99 looks ~100 steps ahead, so the root's
+    R(TG+FE) reads survival and future sightings, not only whether the item is in sight now
+    (heads/robustness.py "Scale")."""
     robustness_tau: float = 2.0
     """Robustness threshold tau of the hierarchy controller (Wargus) when
     robustness_threshold='fixed' (the paper's 2), and the fallback of a calibration with no

@@ -105,11 +105,12 @@ def training_states(
 
     env = make_env(cfg, num_envs=episodes, seed=seed)
     td = env.reset()
+    state_keys = list(td.exclude(keys.INSTANCE).keys(True, True))
     alive = torch.ones(episodes, dtype=torch.bool, device=td.device)
     seen = []
     net = head_network(heads.heads["averaging"])
     while bool(alive.any()):
-        seen.append(td.exclude(keys.INSTANCE)[alive])
+        seen.append(td.select(*state_keys)[alive])
         td.set(keys.ACTION, net(td.get(keys.OBSERVATION)).argmax(-1))
         td = env.step(td).get(keys.NEXT)
         alive = alive & ~td.get(keys.DONE).reshape(episodes)

@@ -22,6 +22,18 @@ option whose own policy loses its goal: in Wargus the root's policy walks out of
 yet the greedy target values that step as "one step back and the +1s resume" (~5.8 > tau = 2), so
 Algorithm 2 kept handing the root control at the sight boundary (README "Wargus Figure 4").
 
+**Scale** (Wargus, ``subtasks/wargus.py``). With the root never terminating, R(TG+FE, s, a) is the
+discounted count of future steps with the item in sight, minus the steps in a patrol's sight, along
+the averaging policy until destruction. At gamma_R = 0.9 it looks ~10 steps ahead, so it is high
+only where the item is in sight now, and any threshold suspends the root wherever the item is out of
+sight: exactly the no-conflict states the paper keeps under the composed capability (§3.5.3). At
+gamma_R = 0.99 (~100 steps) it reads what the subtask is about, the agent staying alive and finding
+items: it drops where a patrol threatens (the -1s, and destruction ending every future +1). The
+threshold is then set per capability on training states (:class:`RobustnessCalibration`,
+``train.robustness_threshold = "calibrated"``); ``"fixed"`` keeps one tau for all (the paper's 2).
+gamma_R = 0.99 and the keep share 0.9 were chosen on fresh training-distribution instances
+(``scripts/hierarchy_diagnostics.py``, seeds 10000+), never on the nominal test seeds.
+
 "Every component update also updates its composed parent" (§3.4.1): a composed subtask's domain is
 the union of its components' domains, so the parent's update mask is its own initiation set or'ed
 with its components' (:func:`parent_closure`). All critics read the same sample, off-policy, so an

@@ -55,12 +55,13 @@ Robustness rewards (paper §3.5.2) for the transition s -> s':
 - ``TG+FE``: the sum.
 
 Scale of the threshold (``heads/robustness.py``): the critics are Q-functions of these rewards
-under pi^o, discounted by gamma_R and cut at the option's own termination. So R(TG) lies in about
-[-1, 5] (+1s while the item is in sight, ending at the pick; -1 and the end when sight is lost),
-R(FE) in about [-1 / (1 - gamma_R), 1] (it is positive only just before an escape), and R(TG+FE),
-which never terminates, sums both along the averaging policy. A fixed tau (the paper's 2) means
-different things on these scales; the calibrated threshold sets tau(TG+FE) on training replay so
-that the root keeps control on a stated share of no-conflict states.
+under pi^o, discounted by gamma_R and cut at the option's own termination. So R(TG) counts the
+steps with the item in sight until the pick (-1 and the end where sight is lost), R(FE) is at most
+1 (positive only just before an escape) and about -1 per step still to spend in sight, and
+R(TG+FE), which never terminates, sums both along the averaging policy until destruction. A fixed
+tau (the paper's 2) means different things on these scales; the calibrated threshold sets
+tau(TG+FE) on training states so that the root keeps control on a stated share of the no-conflict
+states.
 """
 
 from __future__ import annotations
