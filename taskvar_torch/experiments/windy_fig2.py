@@ -469,6 +469,7 @@ def windy_fig2(
     Returns:
         The metrics dict written to ``metrics.json``.
     """
+    from taskvar_torch.checkpoint import load_checkpoint
     from taskvar_torch.train import check_device, check_output_folder, load_heads, run_files, train
 
     if cfg.family != "windy":
@@ -478,12 +479,13 @@ def windy_fig2(
     check_device(cfg.device)
     heads = tcfg = None
     if checkpoint is not None:
-        heads, tcfg = load_heads(checkpoint, device=cfg.device)
-        if tcfg.family != "windy":
+        family = load_checkpoint(checkpoint)["config"].get("family")
+        if family != "windy":
             raise ValueError(
-                f"--checkpoint {str(checkpoint)!r} is a {tcfg.family!r} bundle; windy-fig2 "
+                f"--checkpoint {str(checkpoint)!r} is a {family!r} bundle; windy-fig2 "
                 "evaluates windy bundles (wargus-fig4 trains its own)"
             )
+        heads, tcfg = load_heads(checkpoint, device=cfg.device)
     elif run_files(out / "train") and not overwrite:
         raise ValueError(
             f"{str(out / 'train')!r} already holds a training run; replace it with --overwrite, "
