@@ -5,7 +5,7 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 OUT ?= results/windy-fig2-quick
 
-.PHONY: demo test install install-test lint clean
+.PHONY: demo test notebooks install install-test lint clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -19,14 +19,20 @@ install-test: $(BIN)/python
 	$(BIN)/python -m pip install torch==2.13.0
 	$(BIN)/python -m pip install -e ".[test,distributed]"
 
-## demo: install everything and run the main job (train, evaluate, print the table, write the plot)
+## demo: install everything and run the main job (train, evaluate, print the table, write the plot);
+## --overwrite: a rerun replaces the previous demo's results in $(OUT)
 demo: install
-	$(BIN)/taskvar experiment windy-fig2 --quick --out $(OUT)
+	$(BIN)/taskvar experiment windy-fig2 --quick --overwrite --out $(OUT)
 
 ## test: install the test extras and run the whole suite (what .ci/run calls)
 test: install-test
 	$(BIN)/ruff check taskvar_torch tests benchmarks
 	$(BIN)/python -m pytest -q
+
+## notebooks: install the test extras (nbclient, ipykernel) and execute the three notebooks with
+## small settings (tests/test_notebooks.py; each notebook's table lists its TASKVAR_NB_* knobs)
+notebooks: install-test
+	$(BIN)/python -m pytest -q tests/test_notebooks.py
 
 lint:
 	$(BIN)/ruff check taskvar_torch tests benchmarks

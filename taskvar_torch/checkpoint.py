@@ -291,9 +291,20 @@ def _first_line(e: BaseException, limit: int = 160) -> str:
     return line if len(line) <= limit else line[: limit - 3] + "..."
 
 
+_GARBAGE = ("Unsupported operand", "String is too long")
+"""Unpickler errors that mean the bytes are not a pickle stream (random or foreign data), as
+opposed to a well-formed pickle that names code or objects."""
+
+
+def _is_garbage(e: BaseException) -> bool:
+    return any(marker in str(e) for marker in _GARBAGE)
+
+
 def _refusal_detail(e: BaseException) -> str:
     for line in str(e).splitlines():
         line = line.replace("WeightsUnpickler error:", "").strip()
+        if _is_garbage(Exception(line)):
+            return line.rstrip(".")[:120]
         if "unsupported global" in line.lower() or line.startswith("Unsupported"):
             line = line.split(" was not an allowed global")[0].split(" whose module")[0]
             return line.rstrip(".")[:120]
@@ -372,6 +383,11 @@ def load_checkpoint(
             warnings.simplefilter("ignore")
             data = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as e:
+        if _is_garbage(e):  # not a pickle stream at all: random bytes, another kind of file
+            raise CheckpointError(
+                f"checkpoint {where} is truncated or corrupt (not a torch checkpoint file: "
+                f"{_refusal_detail(e)})"
+            ) from None
         raise CheckpointError(
             f"refusing to load {where}: not a plain-data checkpoint (it contains code or objects: "
             f"{_refusal_detail(e)})"

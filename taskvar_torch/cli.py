@@ -8,14 +8,19 @@ Hydra-style ``key.sub=value`` overrides may come before or after the options::
     taskvar train --resume runs/windy/checkpoint_000050176.pt --out runs/windy
     taskvar train --help
 
-Errors in the inputs (a misspelt config key, a foreign checkpoint, a diverged run) print one line
-``taskvar COMMAND: error: ...`` and exit with status 2.
+Errors in the inputs (a misspelt config key, a foreign checkpoint, a diverged run, an ``--out``
+that cannot be used) print one line ``taskvar COMMAND: error: ...`` and exit with status 2. Ctrl-C
+(SIGINT) or SIGTERM during ``taskvar train`` stops after the current batch, writes a checkpoint
+and prints one line with the ``--resume`` command (status 130, or 143 for SIGTERM); a second
+Ctrl-C aborts at once.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import os
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -65,6 +70,7 @@ def _train_arguments(p: argparse.ArgumentParser) -> None:
         help="continue exactly from a checkpoint of a previous run (its config is used; only "
         "runtime keys such as train.total_frames may be overridden)",
     )
+    _overwrite_argument(p, "DIR")
     _threads_argument(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
@@ -90,6 +96,7 @@ def _train_run(args: argparse.Namespace) -> int:
         resume=args.resume,
         overrides=overrides if cfg is None else (),
         progress=not args.no_progress,
+        overwrite=args.overwrite,
     )
     print(
         f"trained {result['updates']} updates on {result['frames']} frames in "
@@ -135,6 +142,15 @@ def _print_oracle_summary(path: str | os.PathLike) -> None:
 # taskvar eval | experiment | plot (thin wrappers over taskvar_torch.experiments)
 
 
+def _overwrite_argument(p: argparse.ArgumentParser, where: str) -> None:
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help=f"replace the run already in {where} (its config, checkpoints and logs are removed "
+        "first); without it a folder holding a run is refused",
+    )
+
+
 def _threads_argument(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--threads",
@@ -162,7 +178,12 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
         help="controller: averaging, options, interruption or hierarchy (default: interruption)",
     )
     p.add_argument("--episodes", type=int, default=1000, help="test episodes (default 1000)")
-    p.add_argument("--test", default="test", help="test distribution: test, south, north, train")
+    p.add_argument(
+        "--test",
+        default="train",
+        help="test distribution: train (the training distribution), south (south-only winds) or "
+        "north (default: train)",
+    )
     p.add_argument("--seed", type=int, help="test seed (default: the experiment's run 0)")
     p.add_argument("--out", metavar="DIR", help="write DIR/metrics.json")
     _threads_argument(p)
@@ -178,17 +199,40 @@ def _eval_run(args: argparse.Namespace) -> int:
     _set_threads(args)
     if args.method not in METHODS:
         raise ValueError(f"--method must be one of {sorted(METHODS)}, got {args.method!r}")
+    test = _test_name(args.test)
+    if args.out is not None:
+        from taskvar_torch.train import check_output_folder
+
+        check_output_folder(args.out)
     metrics = eval_checkpoint(
         args.checkpoint,
         args.method,
         args.episodes,
-        args.test,
+        test,
         out_dir=args.out,
         seed=args.seed,
         progress=not args.no_progress,
     )
     print(json.dumps(metrics, indent=2))
     return 0
+
+
+TEST_NAMES = ("train", "south", "north")
+"""``taskvar eval --test`` names; ``test`` (the training distribution) is a deprecated alias."""
+
+
+def _test_name(name: str) -> str:
+    """The ``--test`` distribution, ``test`` mapped to ``train`` with a deprecation line."""
+    if name == "test":
+        print(
+            "taskvar eval: --test test is deprecated: it is the training distribution; use "
+            "--test train",
+            file=sys.stderr,
+        )
+        return "train"
+    if name not in TEST_NAMES:
+        raise ValueError(f"--test must be one of {list(TEST_NAMES)}, got {name!r}")
+    return name
 
 
 EXPERIMENTS = ("windy-fig2", "wargus-fig4", "scale")
@@ -208,6 +252,7 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
         help="results folder (default: results/NAME, or results/NAME-quick with --quick)",
     )
     p.add_argument("--checkpoint", metavar="PATH", help="evaluate this bundle instead of training")
+    _overwrite_argument(p, "DIR/train (windy-fig2)")
     p.add_argument("--quick", action="store_true", help="apply experiment.quick_overrides")
     p.add_argument(
         "--workers",
@@ -235,6 +280,8 @@ def _experiment_run(args: argparse.Namespace) -> int:
     torch.set_num_threads(1)  # small MLPs: more threads only contend on a shared CPU (see train)
 
     config_path, overrides = _split_config_and_overrides(args.items)
+    if args.checkpoint is not None:
+        _check_checkpoint_overrides(overrides)
     cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     windy_fig2(
@@ -244,8 +291,26 @@ def _experiment_run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         quick=args.quick,
         plots=not args.no_plots,
+        overwrite=args.overwrite,
     )
     return 0
+
+
+CHECKPOINT_OVERRIDABLE = ("experiment", "eval", "device")
+"""Config sections an override may change when ``experiment --checkpoint`` evaluates a bundle
+(the rest comes from the bundle's own config)."""
+
+
+def _check_checkpoint_overrides(overrides: Sequence[str]) -> None:
+    """Refuse overrides that a ``--checkpoint`` run would ignore (e.g. ``env.layout=...``)."""
+    for item in overrides:
+        key = item.split("=", 1)[0].strip()
+        if not any(key == k or key.startswith(k + ".") for k in CHECKPOINT_OVERRIDABLE):
+            raise ValueError(
+                f"override {item!r} cannot apply with --checkpoint: the bundle's own config is "
+                f"used; only {', '.join(k + ('.*' if k != 'device' else '') for k in CHECKPOINT_OVERRIDABLE)} "
+                "may be overridden (train a new bundle to change it)"
+            )
 
 
 def _wargus_fig4_run(args: argparse.Namespace) -> int:
@@ -423,13 +488,32 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     name = argv[0]
     args = parsers[name].parse_intermixed_args(argv[1:])
+    _quiet_third_party()
     try:
         return COMMANDS[name].run(args)
     except (ValueError, CheckpointError, RuntimeError) as e:
+        if type(e).__name__ == "TrainingInterrupted":
+            print(f"taskvar {name}: {e}", file=sys.stderr)
+            return 128 + int(e.signum)
         if isinstance(e, RuntimeError) and type(e).__name__ != "TrainingDiverged":
             raise
         print(f"taskvar {name}: error: {e}", file=sys.stderr)
         return 2
+    except OSError as e:  # a folder or file the command cannot write or read
+        where = f" {e.filename!r}" if e.filename else ""
+        print(f"taskvar {name}: error: cannot use{where}: {e.strerror or e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as e:
+        print(f"taskvar {name}: interrupted{f': {e}' if str(e) else ''}", file=sys.stderr)
+        return 128 + signal.SIGINT
+
+
+def _quiet_third_party() -> None:
+    """TorchRL's INFO lines (e.g. "Initialized LazyTensorStorage") are not for this CLI's users;
+    ``RL_LOGGING_LEVEL`` set in the environment still wins."""
+    if "RL_LOGGING_LEVEL" not in os.environ:
+        os.environ["RL_LOGGING_LEVEL"] = "WARNING"  # read when torchrl is first imported
+        logging.getLogger("torchrl").setLevel(logging.WARNING)  # in case it already was
 
 
 if __name__ == "__main__":

@@ -669,8 +669,9 @@ def load_config(
     try:
         data = OmegaConf.load(path)
     except Exception as e:  # yaml.YAMLError and friends
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise ValueError(f"config file {str(path)!r} is not valid YAML: {first}") from None
+        raise ValueError(
+            f"config file {str(path)!r} is not valid YAML: {_yaml_problem(e)}"
+        ) from None
     if not isinstance(data, DictConfig):
         raise ValueError(f"config file {str(path)!r} must hold a mapping, got a list")
     node = _merge(_schema(), data, f"in {path}")
@@ -681,6 +682,16 @@ def load_config(
         _to_config(_apply_overrides(node.copy(), cfg.experiment.quick_overrides), "quick_overrides")
     node = _apply_overrides(node, overrides)
     return _to_config(node, f"in {path} with overrides")
+
+
+def _yaml_problem(e: BaseException) -> str:
+    """``line L, column C: problem`` of a YAML syntax error (1-based), else its first line."""
+    mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+    problem = getattr(e, "problem", None) or getattr(e, "context", None)
+    if mark is not None and problem:
+        return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
 
 
 def apply_overrides(cfg: Config, overrides: Sequence[str]) -> Config:

@@ -31,9 +31,16 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import fcntl
 import functools
 import os
+import re
+import shlex
+import shutil
+import signal
+import threading
 import time
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -65,6 +72,7 @@ from taskvar_torch.config import (
     Config,
     TrainConfig,
     apply_overrides,
+    atomic_write,
     config_from_dict,
     save_config_yaml,
     windy_env_kwargs,
@@ -82,7 +90,21 @@ EPISODE_REWARD = "episode_reward"  # RewardSum's running return
 
 
 class TrainingDiverged(RuntimeError):
-    """A loss became NaN or infinite; the last good checkpoint is left as it was."""
+    """A loss or a weight became NaN or infinite; no checkpoint holding it is ever written, so the
+    last checkpoint on disk is intact."""
+
+
+class TrainingInterrupted(RuntimeError):
+    """SIGINT or SIGTERM stopped the run after its current batch; ``checkpoint`` holds the state
+    (``None`` when the weights were not finite), ``resume_command`` continues it."""
+
+    def __init__(
+        self, message: str, checkpoint: Path | None, resume_command: str | None, signum: int
+    ):
+        super().__init__(message)
+        self.checkpoint = checkpoint
+        self.resume_command = resume_command
+        self.signum = signum
 
 
 # --------------------------------------------------------------------------------------------
@@ -414,6 +436,285 @@ def _make_bundle(
 
 
 # --------------------------------------------------------------------------------------------
+# the run folder: one run per folder, locked, never silently reused
+
+
+LOCK_NAME = ".taskvar.lock"
+"""Lock file of a run folder: ``flock``-ed by the run writing there (released by the kernel when
+the process dies, even by SIGKILL), holding its pid; removed when the run ends."""
+_RUN_NAMES = ("config.yaml", "final.pt", "logs")
+_STALE_TMP = re.compile(r"^\..+\.[0-9a-f]{12}\.tmp$")  # config.atomic_write's temporary files
+
+
+def run_files(out: str | os.PathLike) -> list[Path]:
+    """What a training run left in ``out``: ``config.yaml``, ``final.pt``, ``checkpoint_*.pt``,
+    ``logs/`` (empty when ``out`` is not a folder)."""
+    out = Path(out)
+    if not out.is_dir():
+        return []
+    found = [out / n for n in _RUN_NAMES if (out / n).exists()]
+    return found + sorted(out.glob("checkpoint_*.pt"))
+
+
+def check_output_folder(path: str | os.PathLike, flag: str = "--out") -> None:
+    """A one-line ``ValueError`` unless ``path`` is a writable folder or can be created as one."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{flag} {str(path)!r} is a file, not a folder; choose another {flag}")
+    existing = path
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise ValueError(
+            f"{flag} {str(path)!r} cannot be created: {str(existing)!r} is a file; choose another "
+            f"{flag}"
+        )
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise ValueError(
+            f"{flag} {str(path)!r} is not writable (no write access to {str(existing)!r}); "
+            f"choose another {flag}"
+        )
+
+
+def check_device(device: str | torch.device) -> None:
+    """A one-line ``ValueError`` when ``device`` cannot be used by this torch build on this
+    machine (e.g. ``device=cuda`` with a CPU-only torch)."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(
+                f"device={str(device)!r} needs CUDA, which this torch {torch.__version__} cannot "
+                "use here (CPU build or no GPU); use device=cpu"
+            )
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(
+                f"device={str(device)!r}: this machine has {torch.cuda.device_count()} CUDA "
+                "device(s); use device=cuda:0 or device=cpu"
+            )
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device={str(device)!r} is not available here; use device=cpu")
+
+
+def _latest_checkpoint(out: Path) -> Path | None:
+    """``final.pt`` if present, else the newest ``checkpoint_*.pt`` of ``out``, else ``None``."""
+    if (out / "final.pt").is_file():
+        return out / "final.pt"
+    periodic = sorted(out.glob("checkpoint_*.pt"))
+    return periodic[-1] if periodic else None
+
+
+class RunFolder:
+    """The results folder of one run (:func:`train`), held from :meth:`acquire` to :meth:`release`.
+
+    ``acquire`` creates the folder if needed, locks it (a second run on it is refused), removes
+    temporary files a killed write left behind, and refuses a folder that already holds a run
+    unless ``resume`` names a checkpoint inside it (continue the run) or ``overwrite`` is set (the
+    old run's files are removed first). :meth:`abandon` undoes what a run that failed before
+    training started wrote: the folder if it created it, else the files of a fresh run.
+    """
+
+    def __init__(
+        self, out: str | os.PathLike, resume: str | os.PathLike | None, overwrite: bool
+    ) -> None:
+        self.out = Path(out)
+        self.resume = None if resume is None else Path(resume)
+        self.overwrite = bool(overwrite)
+        self.created = False
+        self.fresh = True  # holds no earlier run's files (none, or removed by --overwrite)
+        self._fd: int | None = None
+
+    def acquire(self) -> RunFolder:
+        out = self.out
+        check_output_folder(out)
+        self.created = not out.exists()
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            self._lock()
+        except OSError as e:
+            self._remove_if_created()
+            raise ValueError(
+                f"cannot write in --out {str(out)!r} ({e.strerror or e}); choose another --out"
+            ) from None
+        try:
+            for p in out.iterdir():  # a write killed between its temp file and the rename
+                if _STALE_TMP.match(p.name) and p.is_file():
+                    p.unlink()
+            existing = run_files(out)
+            continuing = self.resume is not None and self.resume.resolve().parent == out.resolve()
+            if existing and self.overwrite:
+                for p in existing:
+                    shutil.rmtree(p) if p.is_dir() else p.unlink()
+            elif existing and not continuing:
+                names = ", ".join(p.name for p in existing[:4]) + (
+                    ", ..." if len(existing) > 4 else ""
+                )
+                latest = _latest_checkpoint(out)
+                hint = f"continue it with --resume {shlex.quote(str(latest))}, " if latest else ""
+                raise ValueError(
+                    f"--out {str(out)!r} already holds a run ({names}); {hint}replace it with "
+                    "--overwrite, or choose another --out"
+                )
+            self.fresh = not existing or self.overwrite
+        except BaseException:
+            self.release()
+            raise
+        return self
+
+    def _lock(self) -> None:
+        path = self.out / LOCK_NAME
+        for _ in range(10):  # the file may be unlinked by the run that held it: take the new one
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+                os.close(fd)
+                raise ValueError(
+                    f"--out {str(self.out)!r} is in use by another taskvar run (pid {pid}); wait "
+                    "for it to end or choose another --out"
+                ) from None
+            try:
+                same = os.stat(path).st_ino == os.fstat(fd).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                os.ftruncate(fd, 0)
+                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+                self._fd = fd
+                return
+            os.close(fd)
+        raise ValueError(f"--out {str(self.out)!r}: could not lock {LOCK_NAME}; try again")
+
+    def release(self) -> None:
+        """Remove the lock file and unlock (the lock is held until its file is gone)."""
+        if self._fd is None:
+            return
+        try:
+            (self.out / LOCK_NAME).unlink(missing_ok=True)
+        finally:
+            os.close(self._fd)
+            self._fd = None
+
+    def abandon(self) -> None:
+        """After a failure before training started: leave nothing of this run behind."""
+        self.release()
+        if self.created:
+            self._remove_if_created()
+        elif self.fresh:
+            for p in run_files(self.out):
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
+
+    def _remove_if_created(self) -> None:
+        if self.created and self.out.is_dir():
+            shutil.rmtree(self.out, ignore_errors=True)
+
+
+def _restore_logs(src: Path, out: Path, frame: int) -> None:
+    """Write ``out/logs`` as the rows of run folder ``src``'s logs up to ``frame`` (the checkpoint
+    a run resumes from): rows a killed or interrupted run logged after it are dropped, so the
+    logs of a resumed run equal those of an uninterrupted one. ``src`` may be ``out``."""
+    scalars = src / "logs" / "scalars"
+    if not scalars.is_dir():
+        return
+    for f in sorted(scalars.glob("*.csv")):
+        kept = []
+        for line in f.read_text().splitlines(keepends=True):
+            step = line.split(",", 1)[0]
+            if line.endswith("\n") and step.isdigit() and int(step) <= frame:
+                kept.append(line)
+        text = "".join(kept).encode()
+        atomic_write(out / "logs" / "scalars" / f.name, lambda h, text=text: h.write(text))
+
+
+# --------------------------------------------------------------------------------------------
+# faults: non-finite weights, SIGINT / SIGTERM
+
+
+def _non_finite(learner: MultiHeadLearner) -> list[str]:
+    """Which of heads, target heads and optimiser state hold a NaN or infinite value (one sync)."""
+    groups = {
+        "heads": list(learner.heads.state_dict().values()),
+        "targets": list(learner.loss.target_heads.state_dict().values()),
+        "optimizer": [
+            v
+            for st in learner.optimizer.state.values()
+            for v in st.values()
+            if isinstance(v, torch.Tensor)
+        ],
+    }
+    names, flags = [], []
+    for name, tensors in groups.items():
+        finite = [torch.isfinite(t).all() for t in tensors if t.is_floating_point()]
+        if finite:
+            names.append(name)
+            flags.append(torch.stack(finite).all())
+    ok = torch.stack(flags).tolist() if flags else []
+    return [n for n, good in zip(names, ok) if not good]
+
+
+def _last_checkpoint_note(path: Path | None) -> str:
+    return f"the last checkpoint {str(path)!r} is intact" if path else "no checkpoint was written"
+
+
+def _require_finite(learner: MultiHeadLearner, frames: int, last: Path | None) -> None:
+    """:class:`TrainingDiverged` when a weight or optimiser value is not finite: such a model is
+    never written."""
+    bad = _non_finite(learner)
+    if bad:
+        raise TrainingDiverged(
+            f"non-finite values in the {' and '.join(bad)} at frame {frames}: training diverged "
+            f"(lower train.lr?); nothing written, {_last_checkpoint_note(last)}"
+        )
+
+
+def require_finite_heads(bundle: dict[str, Any], path: str | os.PathLike) -> None:
+    """:class:`CheckpointError` when a checkpoint's heads hold a NaN or infinite value."""
+    heads = bundle.get("models", {}).get("heads", {})
+    bad = [
+        k
+        for k, v in heads.items()
+        if isinstance(v, torch.Tensor)
+        and v.is_floating_point()
+        and not bool(torch.isfinite(v).all())
+    ]
+    if bad:
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} has non-finite heads ({bad[0]}"
+            f"{', ...' if len(bad) > 1 else ''}): its run diverged; use an earlier checkpoint"
+        )
+
+
+class _StopSignals:
+    """While active (main thread only): the first SIGINT or SIGTERM is recorded in ``signum`` for
+    the loop to stop after its current batch; a second one raises ``KeyboardInterrupt`` at once."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+        self._old: dict[int, Any] = {}
+
+    def __enter__(self) -> _StopSignals:
+        if threading.current_thread() is threading.main_thread():
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.signum is not None:
+            raise KeyboardInterrupt
+        self.signum = signum
+
+    def __exit__(self, *exc: Any) -> None:
+        for sig, handler in self._old.items():
+            signal.signal(sig, handler)
+        self._old.clear()
+
+
+def resume_command(checkpoint: Path, out: Path) -> str:
+    """The ``taskvar train`` command line continuing a run from ``checkpoint`` in ``out``."""
+    return f"taskvar train --resume {shlex.quote(str(checkpoint))} --out {shlex.quote(str(out))}"
+
+
+# --------------------------------------------------------------------------------------------
 # the training loop
 
 
@@ -423,29 +724,38 @@ def train(
     resume: str | os.PathLike | None = None,
     overrides: Sequence[str] = (),
     progress: bool = True,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Train every head of ``cfg``'s family; write logs, checkpoints and ``out_dir/final.pt``.
 
     Args:
         cfg: the run's config; with ``resume`` it may be ``None`` (the checkpoint's config is used)
             or must equal the checkpoint's up to runtime keys such as ``train.total_frames``.
-        out_dir: results folder (created).
+        out_dir: results folder (created). A folder already holding a run is refused unless
+            ``resume`` is a checkpoint inside it (the run continues; its logs are cut back to the
+            checkpoint's frame) or ``overwrite`` is set; a second run on the same folder is refused.
         resume: a checkpoint written by this function to continue from, exactly.
         overrides: ``key.sub=value`` applied to the checkpoint's config when ``cfg`` is ``None``.
         progress: show a tqdm progress bar.
+        overwrite: remove the run already in ``out_dir`` (config, checkpoints, logs) first.
 
     Returns:
         ``{"final": path, "frames": int, "updates": int, "seconds": float, "last_log": dict}``.
 
     Raises:
-        TrainingDiverged: a loss became NaN or infinite (checked once per logging interval and
-            before every checkpoint); the last checkpoint written is intact.
+        ValueError: an unusable ``out_dir`` or device, or a run already there; nothing is written.
+        CheckpointError: an unreadable, foreign or non-finite ``resume`` checkpoint.
+        TrainingDiverged: a loss (checked once per logging interval) or a weight (checked before
+            every checkpoint write) became NaN or infinite; the last checkpoint written is intact.
+        TrainingInterrupted: SIGINT or SIGTERM; the run stopped after its current batch and wrote
+            a checkpoint (a second signal aborts at once: ``KeyboardInterrupt``).
     """
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_output_folder(out)  # inputs first: a refused run writes nothing
     bundle = None
     if resume is not None:
         bundle = load_checkpoint(resume, expected_config=cfg)
+        require_finite_heads(bundle, resume)
         if cfg is None:
             cfg = apply_overrides(
                 config_from_dict(bundle["config"], f"checkpoint {resume}"), overrides
@@ -453,8 +763,8 @@ def train(
             _check_runtime_only(bundle, cfg, resume)
     if cfg is None:
         raise ValueError("train needs a config (or a checkpoint to resume)")
+    check_device(cfg.device)
     workers = cfg.collector.num_workers
-    ray_backend = cfg.collector.backend == "ray"
     remote = collects_in_workers(cfg)
     if bundle is not None and remote:
         raise CheckpointError(
@@ -462,7 +772,41 @@ def train(
             f"collector.backend=process, got {workers} and {cfg.collector.backend!r} (the "
             "workers' env and RNG states are not checkpointed)"
         )
+    if resume is not None and overwrite and Path(resume).resolve().parent == out.resolve():
+        raise ValueError(
+            f"--overwrite would delete {str(resume)!r}, the checkpoint being resumed; drop "
+            "--overwrite to continue the run in its folder"
+        )
+    folder = RunFolder(out, resume, overwrite).acquire()
+    started = False
+
+    def on_start() -> None:
+        nonlocal started
+        started = True
+
+    try:
+        return _train_loop(cfg, out, bundle, resume, progress, on_start)
+    except BaseException:
+        if not started:
+            folder.abandon()  # a run that never started leaves nothing behind
+        raise
+    finally:
+        folder.release()
+
+
+def _train_loop(
+    cfg: Config,
+    out: Path,
+    bundle: dict[str, Any] | None,
+    resume: str | os.PathLike | None,
+    progress: bool,
+    on_start: Any,
+) -> dict[str, Any]:
+    """:func:`train` once its inputs are checked and ``out`` is held."""
     t = cfg.train
+    workers = cfg.collector.num_workers
+    ray_backend = cfg.collector.backend == "ray"
+    remote = collects_in_workers(cfg)
     save_config_yaml(cfg, out / "config.yaml")
 
     # ---- build everything from the config (seeded), then overwrite with the checkpoint -------
@@ -509,90 +853,122 @@ def train(
     behaviour.set_epsilon(epsilon_at(counters["frames"], t))
 
     threads = torch.get_num_threads()
-    collector = make_collector(cfg, env, behaviour, max(t.total_frames - counters["frames"], 0))
-    if bundle is not None:  # after the collector's own reset and policy probe
-        env.base_env.load_state_dict(bundle["env"])
-        _collector_carrier(collector).update(
-            TensorDict(bundle["carrier"], batch_size=env.batch_size)
-        )
-        set_rng_state(bundle["rng"], {"replay": replay_generator})
-
-    logger = CSVLogger(exp_name="logs", log_dir=str(out))
-    pbar = tqdm(
-        total=t.total_frames, initial=counters["frames"], disable=not progress, unit="frame"
-    )
-    start_time, last_log = time.perf_counter(), {}
+    with warnings.catch_warnings():  # TorchRL's note that the last batch may pass total_frames
+        warnings.filterwarnings("ignore", message=r"total_frames \(\d+\) is not exactly divisible")
+        collector = make_collector(cfg, env, behaviour, max(t.total_frames - counters["frames"], 0))
     last_checkpoint: Path | None = None
-
+    pbar = None
     try:  # shut the worker processes down on any exit
-        for batch in collector:
-            if ray_backend:  # (W, n, T) from W actors -> (N, T), worker w's rows [w n, (w+1) n)
-                batch = batch.reshape(-1, batch.shape[-1])
-            if remote:
-                batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
-            # ---- store the raw transitions --------------------------------------------------
-            frames_before = counters["frames"]
-            counters["frames"] += batch.numel()
-            counters["batches"] += 1
-            raw = raw_transitions(batch)  # (N*T,)
-            if t.first_visit:
-                raw = raw[first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
-            buffer.extend(raw)
-            counters["stored"] += raw.numel()
-            done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
-            ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
-            by_options = done & (batch.get(BEHAVIOUR) >= 0)
-            stats["return_sum"] += (ret * done).sum()
-            stats["episodes"] += done.sum()
-            stats["return_sum_options"] += (ret * by_options).sum()
-            stats["episodes_options"] += by_options.sum()
+        if bundle is not None:  # after the collector's own reset and policy probe
+            env.base_env.load_state_dict(bundle["env"])
+            _collector_carrier(collector).update(
+                TensorDict(bundle["carrier"], batch_size=env.batch_size)
+            )
+            set_rng_state(bundle["rng"], {"replay": replay_generator})
+            # the logs up to the checkpoint, without the rows a stopped run wrote after it
+            _restore_logs(Path(resume).parent, out, counters["frames"])
+            if Path(resume).parent.resolve() == out.resolve() and Path(resume).name.startswith(
+                "checkpoint_"
+            ):
+                last_checkpoint = Path(resume)  # replaced by the next periodic checkpoint
 
-            # ---- learn: every head from one shared sample per update ------------------------
-            if counters["frames"] >= t.init_random_frames and len(buffer) >= t.batch_size:
-                for _ in range(t.updates_per_batch):
-                    learner.update(buffer.sample())
-                    counters["updates"] += 1
-            behaviour.set_epsilon(epsilon_at(counters["frames"], t))
-            if remote:  # new weights and epsilon to the workers, before their next batch
-                collector.update_policy_weights_(behaviour)
-            pbar.update(batch.numel())
-
-            # ---- log (one host sync), then checkpoint -------------------------------------
-            log_now = _crossed(frames_before, counters["frames"], t.log_every)
-            checkpoint_now = _crossed(frames_before, counters["frames"], t.checkpoint_every)
-            is_last = counters["frames"] >= t.total_frames
-            if log_now or checkpoint_now or is_last:
-                last_log = _log_row(learner, stats, behaviour, counters, logger, start_time)
-                pbar.set_postfix(
-                    {k: f"{v:.3g}" for k, v in last_log.items() if k.startswith("loss")}
-                )
-            if checkpoint_now and not is_last:
-                path = out / f"checkpoint_{counters['frames']:09d}.pt"
-                save_checkpoint(
-                    path,
-                    _make_bundle(
-                        cfg,
-                        learner,
-                        buffer,
-                        env,
-                        collector,
-                        first_visit,
-                        counters,
-                        stats,
-                        replay_generator,
-                    ),
-                )
-                if last_checkpoint is not None and last_checkpoint != path:
-                    last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic checkpoint
-                last_checkpoint = path
-
-        pbar.close()
-        final = out / "final.pt"
-        bundle = _make_bundle(
-            cfg, learner, buffer, env, collector, first_visit, counters, stats, replay_generator
+        logger = CSVLogger(exp_name="logs", log_dir=str(out))
+        pbar = tqdm(
+            total=t.total_frames, initial=counters["frames"], disable=not progress, unit="frame"
         )
-        save_checkpoint(final, bundle)
+        start_time, last_log = time.perf_counter(), {}
+        on_start()
+
+        def bundle_now() -> dict[str, Any]:
+            return _make_bundle(
+                cfg,
+                learner,
+                buffer,
+                env,
+                collector,
+                first_visit,
+                counters,
+                stats,
+                replay_generator,
+            )
+
+        with _StopSignals() as stop:
+            try:
+                for batch in collector:
+                    if (
+                        ray_backend
+                    ):  # (W, n, T) from W actors -> (N, T): worker w's rows [w n, (w+1) n)
+                        batch = batch.reshape(-1, batch.shape[-1])
+                    if remote:
+                        batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
+                    # ---- store the raw transitions ----------------------------------------------
+                    frames_before = counters["frames"]
+                    counters["frames"] += batch.numel()
+                    counters["batches"] += 1
+                    raw = raw_transitions(batch)  # (N*T,)
+                    if t.first_visit:
+                        raw = raw[
+                            first_visit(batch).reshape(-1)
+                        ]  # one sample per (s, a) per episode
+                    buffer.extend(raw)
+                    counters["stored"] += raw.numel()
+                    done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
+                    ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
+                    by_options = done & (batch.get(BEHAVIOUR) >= 0)
+                    stats["return_sum"] += (ret * done).sum()
+                    stats["episodes"] += done.sum()
+                    stats["return_sum_options"] += (ret * by_options).sum()
+                    stats["episodes_options"] += by_options.sum()
+
+                    # ---- learn: every head from one shared sample per update --------------------
+                    if counters["frames"] >= t.init_random_frames and len(buffer) >= t.batch_size:
+                        for _ in range(t.updates_per_batch):
+                            learner.update(buffer.sample())
+                            counters["updates"] += 1
+                    behaviour.set_epsilon(epsilon_at(counters["frames"], t))
+                    if remote:  # new weights and epsilon to the workers, before their next batch
+                        collector.update_policy_weights_(behaviour)
+                    pbar.update(min(batch.numel(), max(pbar.total - pbar.n, 0)))  # ends at total
+
+                    # ---- log (one host sync), then checkpoint ---------------------------------
+                    log_now = _crossed(frames_before, counters["frames"], t.log_every)
+                    checkpoint_now = _crossed(frames_before, counters["frames"], t.checkpoint_every)
+                    is_last = counters["frames"] >= t.total_frames
+                    stop_now = stop.signum is not None and not is_last
+                    if log_now or checkpoint_now or is_last:
+                        last_log = _log_row(
+                            learner,
+                            stats,
+                            behaviour,
+                            counters,
+                            logger,
+                            start_time,
+                            last_checkpoint,
+                        )
+                        pbar.set_postfix(
+                            {k: f"{v:.3g}" for k, v in last_log.items() if k.startswith("loss")}
+                        )
+                    if (checkpoint_now or stop_now) and not is_last:
+                        path = out / f"checkpoint_{counters['frames']:09d}.pt"
+                        _require_finite(learner, counters["frames"], last_checkpoint)
+                        save_checkpoint(path, bundle_now())
+                        if last_checkpoint is not None and last_checkpoint != path:
+                            last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic one
+                        last_checkpoint = path
+                    if stop_now:
+                        raise _interrupted(stop.signum, last_checkpoint, out, counters, remote)
+                pbar.close()
+                final = out / "final.pt"  # a first signal from here on: the run ends normally
+                _require_finite(learner, counters["frames"], last_checkpoint)
+                save_checkpoint(final, bundle_now())
+            except KeyboardInterrupt:
+                raise KeyboardInterrupt(
+                    f"aborted by a second signal; nothing written, "
+                    f"{_last_checkpoint_note(last_checkpoint)}"
+                ) from None
     finally:
+        if pbar is not None:
+            pbar.close()  # before any message: the bar's last line does not run into it
         collector.shutdown()
         torch.set_num_threads(threads)  # MultiSyncCollector.shutdown adds num_workers threads
     return {
@@ -602,6 +978,24 @@ def train(
         "seconds": time.perf_counter() - start_time,
         "last_log": last_log,
     }
+
+
+def _interrupted(
+    signum: int, checkpoint: Path, out: Path, counters: dict[str, int], remote: bool
+) -> TrainingInterrupted:
+    """The one-line report of a run stopped by ``signum`` after writing ``checkpoint``."""
+    name = signal.Signals(signum).name
+    head = f"interrupted by {name} at frame {counters['frames']}; saved {str(checkpoint)!r}"
+    if remote:
+        return TrainingInterrupted(
+            f"{head} (a run with collector workers cannot be resumed; evaluate it with taskvar "
+            f"eval --checkpoint {shlex.quote(str(checkpoint))})",
+            checkpoint,
+            None,
+            signum,
+        )
+    command = resume_command(checkpoint, out)
+    return TrainingInterrupted(f"{head}; continue with: {command}", checkpoint, command, signum)
 
 
 def _crossed(before: int, after: int, every: int) -> bool:
@@ -616,13 +1010,14 @@ def _log_row(
     counters: dict[str, int],
     logger: CSVLogger,
     start_time: float,
+    last_checkpoint: Path | None = None,
 ) -> dict[str, float]:
     """Write one CSV row per scalar; raise :class:`TrainingDiverged` on a non-finite loss."""
     try:
         row = learner.pop_losses()
     except FloatingPointError as e:
         raise TrainingDiverged(
-            f"{e}; stopped at frame {counters['frames']} (the last checkpoint is intact)"
+            f"{e}; stopped at frame {counters['frames']}, {_last_checkpoint_note(last_checkpoint)}"
         ) from None
     s = {k: float(v) for k, v in stats.items()}  # host sync, once per row
     for v in stats.values():
@@ -650,12 +1045,16 @@ def load_heads(
     """The trained :class:`Heads` bundle and config of a checkpoint written by :func:`train`.
 
     Raises:
-        CheckpointError: unreadable file, foreign content, or weights that do not fit the config.
+        CheckpointError: unreadable file, foreign content, non-finite heads, or weights that do
+            not fit the config.
+        ValueError: the bundle's device is not available here.
     """
     bundle = load_checkpoint(path)
+    require_finite_heads(bundle, path)
     cfg = config_from_dict(bundle["config"], f"checkpoint {path}")
     if device is not None:
         cfg = dataclasses.replace(cfg, device=str(device))
+    check_device(cfg.device)
     env = make_env(cfg, num_envs=1)
     subtasks = make_subtasks(cfg, env)
     heads = build_heads(cfg, env, subtasks)
@@ -665,8 +1064,12 @@ def load_heads(
 
 __all__ = [
     "CheckpointError",
+    "RunFolder",
     "TrainingDiverged",
+    "TrainingInterrupted",
     "build_heads",
+    "check_device",
+    "check_output_folder",
     "epsilon_at",
     "load_heads",
     "make_collector",

@@ -14,9 +14,8 @@ import numpy as np
 import torch
 
 from taskvar_torch import rng
-from taskvar_torch.envs import wargus, wargus_render
+from taskvar_torch.envs import gym_checks, wargus, wargus_render
 from taskvar_torch.envs.wargus import WargusConfig, WargusInstances
-from taskvar_torch.envs.wargus_env import check_start
 
 _OPTION_KEYS = ("instance", "start")
 
@@ -121,7 +120,11 @@ class WargusGymEnv(gym.Env):
         step that led here (``None`` after a reset: no event)."""
         s = self._state
         obs, item_seen, patrol_seen = wargus.observe(self.model, s)
-        lost = False if seen_before is None else bool(wargus.item_lost(seen_before, item_seen, picked)[0])
+        lost = (
+            False
+            if seen_before is None
+            else bool(wargus.item_lost(seen_before, item_seen, picked)[0])
+        )
         self._item_seen = item_seen
         info = {
             "instance": {
@@ -141,12 +144,25 @@ class WargusGymEnv(gym.Env):
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Start an episode: the next one of this env's seed stream, or pin it with ``options``."""
+        """Start an episode: the next one of this env's seed stream, or pin it with ``options``.
+
+        Every option is checked before anything changes: a refused reset leaves the env as it was.
+        """
+        options = gym_checks.check_reset_options(options, _OPTION_KEYS)
+        iseed = None
+        if options.get("instance") is not None:
+            inst = gym_checks.check_fields(options["instance"], "instance", ("seed",))
+            s = gym_checks.as_int(inst.get("seed"))
+            if s is None or not 0 <= s <= rng.MASK32:
+                raise ValueError(
+                    f"instance seed must be an integer in [0, {rng.MASK32}], got {inst.get('seed')!r}"
+                )
+            iseed = torch.tensor([s], dtype=torch.int64)
+        start = None
+        if options.get("start") is not None:
+            start = gym_checks.check_cell(options["start"], self.config.size, self.config.size)
+        # every input is valid: only now change the env's state
         super().reset(seed=seed)
-        options = dict(options or {})
-        unknown = sorted(set(options) - set(_OPTION_KEYS))
-        if unknown:
-            raise ValueError(f"unknown reset option(s) {unknown}; allowed: {list(_OPTION_KEYS)}")
         if seed is None and self._base_key is None:
             seed = int(self.np_random.integers(0, 2**31 - 1))
         if seed is not None:
@@ -156,21 +172,14 @@ class WargusGymEnv(gym.Env):
             self._episode += 1
         episode = torch.full((1,), self._episode, dtype=torch.int64)
         ekey = rng.episode_key(self._base_key, episode)  # (1,)
-        inst = options.get("instance")
-        if inst is None:
+        if iseed is None:
             iseed = self.instances.sample(ekey, self._index, episode)
-        else:
-            if not isinstance(inst, dict) or set(inst) != {"seed"}:
-                raise ValueError(f'options["instance"] must be {{"seed": int}}, got {inst!r}')
-            s = inst["seed"]
-            if isinstance(s, bool) or not isinstance(s, (int, np.integer)) or not 0 <= s <= rng.MASK32:
-                raise ValueError(f"instance seed must be an integer in [0, {rng.MASK32}], got {s!r}")
-            iseed = torch.tensor([int(s)], dtype=torch.int64)
-        start = check_start(self.config, options.get("start"))
         self._iseed = iseed
         self._ikey = wargus.instance_key(iseed)
         self._state = wargus.reset(
-            self.model, self._ikey, None if start is None else torch.tensor(start, dtype=torch.int64)
+            self.model,
+            self._ikey,
+            None if start is None else torch.tensor(start, dtype=torch.int64),
         )
         return self._obs_info(torch.zeros(1, dtype=torch.int64), None)
 
@@ -178,12 +187,7 @@ class WargusGymEnv(gym.Env):
         """One step; ``ValueError`` for an action outside ``[0, num_actions)``."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        try:
-            a = int(action)
-        except (TypeError, ValueError):
-            raise ValueError(f"action must be an integer in [0, {self.config.num_actions - 1}], got {action!r}") from None
-        if a != action or not 0 <= a < self.config.num_actions:
-            raise ValueError(f"action must be an integer in [0, {self.config.num_actions - 1}], got {action!r}")
+        a = gym_checks.check_action(action, self.config.num_actions)
         act = torch.tensor([a], dtype=torch.int64)
         self._state, picked, destroyed = wargus.step(self.model, self._state, act, self._ikey)
         terminated = bool(destroyed[0])
@@ -194,7 +198,9 @@ class WargusGymEnv(gym.Env):
     def render(self) -> str | np.ndarray | None:
         """Text (``ansi``) or a uint8 (H, W, 3) image (``rgb_array``) of the current state."""
         if self.render_mode is None:
-            gym.logger.warn("render() called with render_mode=None; pass render_mode to the constructor")
+            gym.logger.warn(
+                "render() called with render_mode=None; pass render_mode to the constructor"
+            )
             return None
         if self._state is None:
             raise RuntimeError("call reset() before render()")

@@ -13,9 +13,11 @@ import numpy as np
 import torch
 
 from taskvar_torch import rng
-from taskvar_torch.envs import render, windy
+from taskvar_torch.envs import gym_checks, render, windy
 from taskvar_torch.envs.instances import WindyInstances, windy_instances
 from taskvar_torch.envs.windy_env import _C_START, observation_table, resolve_layout
+
+_OPTION_KEYS = ("instance", "start")
 
 
 class WindyGridGymEnv(gym.Env):
@@ -81,6 +83,7 @@ class WindyGridGymEnv(gym.Env):
         self._cell = int(self.model.np_start_cells[0])
         self._t, self._p, self._dir = 0, np.float32(0.0), 0
         self._key = 0
+        self._started = False  # step() before the first reset() is an error
 
     def _info(self) -> dict[str, Any]:
         return {
@@ -89,47 +92,52 @@ class WindyGridGymEnv(gym.Env):
         }
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        """Start an episode; ``options`` may hold ``instance`` (``p``, ``direction``) and ``start``."""
+        """Start an episode; ``options`` may hold ``instance`` (``p``, ``direction``) and ``start``.
+
+        Every option is checked before anything changes: a refused reset leaves the env (episode
+        counter, instance, position, seed) exactly as it was.
+        """
+        options = gym_checks.check_reset_options(options, _OPTION_KEYS)
+        pinned: dict[str, Any] = {}
+        if options.get("instance") is not None:
+            inst = gym_checks.check_fields(options["instance"], "instance", ("p", "direction"))
+            if "p" in inst:
+                pinned["p"] = np.float32(gym_checks.check_probability(inst["p"], "instance p"))
+            if "direction" in inst:
+                pinned["direction"] = windy.direction_index(inst["direction"])
+        start = None
+        if options.get("start") is not None:
+            H, W = self.layout.height, self.layout.width
+            r, c = gym_checks.check_cell(options["start"], H, W)
+            if self.layout.rows[r][c] in "#G":
+                raise ValueError(
+                    f"start must be a free (row, col) cell (not a wall or goal), got {options['start']!r}"
+                )
+            start = r * W + c
         super().reset(seed=seed)
         if seed is not None:
             self._base_key = np.asarray(rng.sub_env_key(int(seed), np.zeros(1, dtype=np.int64)))
             self._episode = -1
-        options = dict(options or {})
-        unknown = sorted(set(options) - {"instance", "start"})
-        if unknown:
-            raise ValueError(f"unknown reset option(s) {unknown}; allowed: ['instance', 'start']")
         self._episode += 1
         key = torch.as_tensor(rng.episode_key(self._base_key, self._episode))  # (1,)
         p, d = self.instances.sample(key)
         self._p, self._dir = np.float32(p[0].item()), int(d[0])
-        if "instance" in options:
-            inst = dict(options["instance"])
-            bad = sorted(set(inst) - {"p", "direction"})
-            if bad:
-                raise ValueError(f"unknown instance field(s) {bad}; allowed: ['direction', 'p']")
-            if "p" in inst:
-                if not 0.0 <= float(inst["p"]) <= 1.0:
-                    raise ValueError(f"p must be in [0, 1], got {inst['p']}")
-                self._p = np.float32(inst["p"])
-            if "direction" in inst:
-                self._dir = windy.direction_index(inst["direction"])
+        self._p = pinned.get("p", self._p)
+        self._dir = pinned.get("direction", self._dir)
         starts = self.model.np_start_cells
         self._cell = int(starts[int(rng.draw_index(key.numpy(), _C_START, len(starts))[0])])
-        if "start" in options:
-            r, c = options["start"]
-            H, W = self.layout.height, self.layout.width
-            if not (0 <= r < H and 0 <= c < W) or self.layout.rows[r][c] in "#G":
-                raise ValueError(f"start must be a free (row, col) cell inside {H}x{W}, got {options['start']}")
-            self._cell = r * W + c
+        if start is not None:
+            self._cell = start
         self._key = int(key[0])  # python-int hashing is the fastest for a single env
         self._t = 0
+        self._started = True
         return self._obs[self._cell].copy(), self._info()
 
     def step(self, action):
         """Move, then at most one gust (SPEC §1.1); reward -1."""
-        a = int(action)
-        if not 0 <= a < 4 or a != action:
-            raise ValueError(f"action must be in [0, 3], got {action!r}")
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        a = gym_checks.check_action(action, 4)
         moved = int(self._move[self._cell][a])
         if rng.draw_uniform(self._key, self._t) < self._p:
             moved = int(self._push[moved][self._dir])

@@ -57,8 +57,8 @@ from taskvar_torch.heads.bundle import Heads
 
 METHODS = ("averaging", "options", "interruption")
 """Methods of Figure 2: the flat baseline, options without interruption, Algorithm 1."""
-DISTRIBUTIONS = {"train": "test", "south_only": "south"}
-"""metrics.json key -> test instance distribution (``test`` = the training distribution)."""
+DISTRIBUTIONS = {"train": "train", "south_only": "south"}
+"""metrics.json key -> test instance distribution (``train``: the training distribution)."""
 NULL_NOISE_SEED = 1
 """Gust-stream salt of the null comparison's second averaging rollout (same instances, starts)."""
 EXACT_MAX_CELLS = 400
@@ -449,6 +449,7 @@ def windy_fig2(
     progress: bool = True,
     quick: bool = False,
     plots: bool = True,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Train (or load ``checkpoint``), evaluate Figure 2's protocol, write the results folder.
 
@@ -462,25 +463,43 @@ def windy_fig2(
         quick: recorded in ``metrics.json`` (the config already holds the quick overrides).
         plots: draw the PNGs (``False``: skip them, e.g. in sweeps; ``taskvar plot DIR`` draws
             them later from the folder).
+        overwrite: replace a training run already in ``out_dir/train`` (without it such a folder
+            is refused, see :func:`~taskvar_torch.train.train`).
 
     Returns:
         The metrics dict written to ``metrics.json``.
     """
-    from taskvar_torch.train import load_heads, train
+    from taskvar_torch.checkpoint import load_checkpoint
+    from taskvar_torch.train import check_device, check_output_folder, load_heads, run_files, train
 
     if cfg.family != "windy":
         raise ValueError(f"windy-fig2 needs family='windy', got family={cfg.family!r}")
     out = Path(out_dir)
+    check_output_folder(out)  # every check before any work or any file written
+    check_device(cfg.device)
+    heads = tcfg = None
+    if checkpoint is not None:
+        family = load_checkpoint(checkpoint)["config"].get("family")
+        if family != "windy":
+            raise ValueError(
+                f"--checkpoint {str(checkpoint)!r} is a {family!r} bundle; windy-fig2 "
+                "evaluates windy bundles (wargus-fig4 trains its own)"
+            )
+        heads, tcfg = load_heads(checkpoint, device=cfg.device)
+    elif run_files(out / "train") and not overwrite:
+        raise ValueError(
+            f"{str(out / 'train')!r} already holds a training run; replace it with --overwrite, "
+            f"evaluate it with --checkpoint {out / 'train' / 'final.pt'}, or choose another --out"
+        )
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     train_seconds = 0.0
     if checkpoint is None:
         save_config_yaml(cfg, out / "config.yaml")
-        result = train(cfg, out / "train", progress=progress)
+        result = train(cfg, out / "train", progress=progress, overwrite=overwrite)
         checkpoint, train_seconds = result["final"], float(result["seconds"])
         heads, tcfg = load_heads(checkpoint, device=cfg.device)
     else:
-        heads, tcfg = load_heads(checkpoint, device=cfg.device)
         tcfg = _with_sizes(tcfg, cfg)
         save_config_yaml(tcfg, out / "config.yaml")
     cfg = tcfg
@@ -595,6 +614,15 @@ def format_table(metrics: dict[str, Any]) -> str:
             f"{'':<12} interruptions/episode {m['interruptions_per_episode']:.3f} "
             f"(in {m['episodes_with_interruption']:.1%} of episodes); {prem}"
         )
+    never = [d for d, m in (("train", metrics), ("south_only", metrics.get("south_only")))
+             if m and not (m.get("theorem1") or {}).get("firings", 0)
+             and not m.get("interruptions_per_episode")]
+    if never:
+        lines.append(
+            f"Note ({', '.join(never)}): interruption never fired, so the interruption and options "
+            "policies are identical there and a 0.000 difference with 100% no worse is a tie, not "
+            "a gain; see README.md#what-the-numbers-say"
+        )
     return "\n".join(lines)
 
 
@@ -675,17 +703,19 @@ def eval_checkpoint(
 
     ``seed`` defaults to :func:`test_seed` of run 0, so ``windy_fig2``'s run ``r`` (seed
     ``cfg.seed + 1 + r``, ``episodes_per_run`` episodes) is reproduced exactly by the same seed,
-    episodes and method (``test``: ``test`` for the training distribution, ``south`` for
+    episodes and method (``test``: ``train`` for the training distribution, ``south`` for
     south-only). Writes ``out_dir/metrics.json`` when ``out_dir`` is given.
     """
     from taskvar_torch.controllers import CONTROLLERS
-    from taskvar_torch.train import load_heads
+    from taskvar_torch.train import check_output_folder, load_heads
 
     if method not in CONTROLLERS:  # fail before any work or progress bar, in one line
         raise ValueError(f"method must be one of {list(CONTROLLERS)}, got {method!r}")
     WindyInstances.named(test)  # a one-line error naming the distribution
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
+    if out_dir is not None:
+        check_output_folder(out_dir)
     heads, cfg = load_heads(checkpoint)
     if cfg.family != "windy":
         raise ValueError(
