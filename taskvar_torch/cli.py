@@ -252,7 +252,7 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
         help="results folder (default: results/NAME, or results/NAME-quick with --quick)",
     )
     p.add_argument("--checkpoint", metavar="PATH", help="evaluate this bundle instead of training")
-    _overwrite_argument(p, "DIR/train (windy-fig2)")
+    _overwrite_argument(p, "DIR (windy-fig2: DIR/train)")
     p.add_argument("--quick", action="store_true", help="apply experiment.quick_overrides")
     p.add_argument(
         "--workers",
@@ -329,7 +329,12 @@ def _wargus_fig4_run(args: argparse.Namespace) -> int:
     # small batches: one intra-op thread per process; 2 threads under contention ran 10x slower
     torch.set_num_threads(1)
     wargus_fig4(
-        cfg, out, workers=args.workers, progress=not args.no_progress, plots=not args.no_plots
+        cfg,
+        out,
+        workers=args.workers,
+        progress=not args.no_progress,
+        plots=not args.no_plots,
+        overwrite=args.overwrite,
     )
     return 0
 
@@ -360,6 +365,7 @@ def _sweep_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.add_argument("--no-plots", action="store_true",
                    help="points write no PNGs (faster; taskvar plot DIR/<point> draws them later)")
+    _overwrite_argument(p, "DIR (the sweep and its points)")
 
 
 def _sweep_run(args: argparse.Namespace) -> int:
@@ -367,7 +373,7 @@ def _sweep_run(args: argparse.Namespace) -> int:
 
     sweep(args.config, args.items, args.out, backend=args.backend, quick=args.quick,
           address=args.address, workers=args.workers, progress=not args.no_progress,
-          plots=not args.no_plots)
+          plots=not args.no_plots, overwrite=args.overwrite)
     return 0
 
 
@@ -382,7 +388,8 @@ def _scale_run(args: argparse.Namespace) -> int:
     cfg = load_scale_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     torch.set_num_threads(1)  # timings are single-threaded (see README "Scaled-up grids")
-    scale(cfg, out, progress=not args.no_progress, quick=args.quick, plots=not args.no_plots)
+    scale(cfg, out, progress=not args.no_progress, quick=args.quick, plots=not args.no_plots,
+          overwrite=args.overwrite)
     return 0
 
 

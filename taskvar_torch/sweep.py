@@ -40,7 +40,7 @@ from typing import Any
 from tqdm.auto import tqdm
 
 from taskvar_torch.config import Config, load_config
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 
 BACKENDS = ("local", "ray")
 EXPERIMENT_OF_FAMILY = {"windy": "windy-fig2", "wargus": "wargus-fig4"}
@@ -146,7 +146,9 @@ def load_point_configs(
 # one point (the same function as ``taskvar experiment``)
 
 
-def run_point(cfg: Config, out_dir: str, quick: bool = False, plots: bool = True) -> dict[str, Any]:
+def run_point(
+    cfg: Config, out_dir: str, quick: bool = False, plots: bool = True, overwrite: bool = False
+) -> dict[str, Any]:
     """Run ``cfg``'s family experiment into ``out_dir``; its printed table goes to ``output.txt``.
 
     ``plots=False`` skips the experiment's PNGs (``taskvar plot out_dir`` draws them later).
@@ -168,11 +170,15 @@ def run_point(cfg: Config, out_dir: str, quick: bool = False, plots: bool = True
             if cfg.family == "windy":
                 from taskvar_torch.experiments.windy_fig2 import windy_fig2
 
-                metrics = windy_fig2(cfg, out, progress=False, quick=quick, plots=plots)
+                metrics = windy_fig2(
+                    cfg, out, progress=False, quick=quick, plots=plots, overwrite=overwrite
+                )
             else:
                 from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
 
-                metrics = wargus_fig4(cfg, out, workers=1, progress=False, plots=plots)
+                metrics = wargus_fig4(
+                    cfg, out, workers=1, progress=False, plots=plots, overwrite=overwrite
+                )
         except TrainingDiverged as e:
             print(f"error: {e}")
             return {"error": f"TrainingDiverged: {e}", "seconds": time.perf_counter() - t0}
@@ -202,10 +208,10 @@ def headline(metrics: dict[str, Any]) -> dict[str, Any]:
 
 
 def _run_local(
-    jobs: list[tuple[Config, str]], quick: bool, progress: bool, plots: bool
+    jobs: list[tuple[Config, str]], quick: bool, progress: bool, plots: bool, overwrite: bool
 ) -> list[dict[str, Any]]:
     return [
-        run_point(cfg, out, quick, plots)
+        run_point(cfg, out, quick, plots, overwrite)
         for cfg, out in tqdm(jobs, disable=not progress, desc="sweep", unit="point")
     ]
 
@@ -217,6 +223,7 @@ def _run_ray(
     address: str | None,
     workers: int | None,
     plots: bool,
+    overwrite: bool,
 ) -> list[dict[str, Any]]:
     try:
         import ray
@@ -235,7 +242,7 @@ def _run_ray(
                 raise ValueError(f"--address {address!r}: {first}") from None
     try:
         task = ray.remote(num_cpus=1)(run_point)
-        refs = [task.remote(cfg, out, quick, plots) for cfg, out in jobs]
+        refs = [task.remote(cfg, out, quick, plots, overwrite) for cfg, out in jobs]
         pending = list(refs)
         with tqdm(total=len(refs), disable=not progress, desc="sweep", unit="point") as bar:
             while pending:
@@ -257,6 +264,7 @@ def sweep(
     workers: int | None = None,
     progress: bool = True,
     plots: bool = True,
+    overwrite: bool = False,
 ) -> list[dict[str, Any]]:
     """Run every point of the sweep, write ``summary.csv`` / ``summary.json``, print the table.
 
@@ -271,6 +279,8 @@ def sweep(
         progress: a progress bar over completed points.
         plots: each point draws its PNGs (``False``: skipped, about half of a small windy point's
             time; ``taskvar plot out_dir/<point>`` draws them later).
+        overwrite: replace a sweep (and its points) already in ``out_dir``; without it such a
+            folder is refused.
 
     Returns:
         The summary rows (one per point).
@@ -294,13 +304,14 @@ def sweep(
         except ImportError:
             raise ValueError(RAY_MISSING) from None
     out = Path(out_dir).resolve()  # Ray workers need not share this process's working folder
+    refuse_existing_results(out, overwrite, "taskvar sweep")
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(cfg, str(out / p.name)) for cfg, p in zip(cfgs, points)]
     t0 = time.perf_counter()
     if backend == "local":
-        results = _run_local(jobs, quick, progress, plots)
+        results = _run_local(jobs, quick, progress, plots, overwrite)
     else:
-        results = _run_ray(jobs, quick, progress, address, workers, plots)
+        results = _run_ray(jobs, quick, progress, address, workers, plots, overwrite)
     wall = time.perf_counter() - t0
 
     rows = []

@@ -156,7 +156,7 @@ def test_termination_aware_kernels_agree_with_the_scalar_search():
 
 
 def test_robustness_target_stops_at_the_options_termination():
-    B, O = 4, 3
+    B, O = 4, 3  # noqa: E741
     batch = Transitions(
         observation=torch.zeros(B, 2),
         next_observation=torch.zeros(B, 2),

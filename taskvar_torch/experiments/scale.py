@@ -59,7 +59,7 @@ from taskvar_torch.config import (
     windy_layout,
 )
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 
 EXPERIMENT = "scale"
 METHODS = ("averaging", "options", "interruption", "hierarchy")
@@ -385,14 +385,19 @@ def gap_closed(ret: float, random_ret: float, oracle_ret: float | None) -> float
 
 
 def run_cell(
-    cfg: ScaleConfig, case: ScaleCase, num_envs: int, out: Path, refs: dict[str, Any]
+    cfg: ScaleConfig,
+    case: ScaleCase,
+    num_envs: int,
+    out: Path,
+    refs: dict[str, Any],
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Train one (case, num_envs) cell with the real trainer, time it, evaluate every method."""
     from taskvar_torch.train import load_heads, train
 
     ccfg = case_config(cfg, case, num_envs)
     cell_dir = out / "cells" / f"{case.name}-n{num_envs}"
-    result = train(ccfg, cell_dir, progress=False)
+    result = train(ccfg, cell_dir, progress=False, overwrite=overwrite)
     heads, _ = load_heads(result["final"], device=ccfg.device)
     if not cfg.keep_checkpoints:
         Path(result["final"]).unlink(missing_ok=True)
@@ -430,13 +435,18 @@ def scale(
     progress: bool = True,
     quick: bool = False,
     plots: bool = True,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Run every (case, num_envs) cell, write the results folder, print the table.
+
+    ``overwrite``: replace the results (and cell runs) already in ``out_dir``; without it such a
+    folder is refused.
 
     Returns:
         The metrics dict written to ``metrics.json``.
     """
     out = Path(out_dir)
+    refuse_existing_results(out, overwrite, "taskvar experiment scale")
     out.mkdir(parents=True, exist_ok=True)
     data = OmegaConf.to_yaml(OmegaConf.create(scale_config_to_dict(cfg))).encode()
     atomic_write(out / "config.yaml", lambda f: f.write(data))
@@ -450,7 +460,7 @@ def scale(
                                      cfg.eval_batch_size)
         for n in cfg.num_envs:
             bar.set_postfix_str(f"{case.name} N={n}")
-            cells.append(run_cell(cfg, case, n, out, refs[case.name]))
+            cells.append(run_cell(cfg, case, n, out, refs[case.name], overwrite))
             bar.update(1)
     bar.close()
     metrics = {

@@ -80,7 +80,7 @@ from taskvar_torch.controllers import Controller, HierarchyController, option_fi
 from taskvar_torch.envs.wargus import ITEM_LOST, NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.factory import calibrate, make_method_controller, replay_states
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
 from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
@@ -834,17 +834,20 @@ def wargus_fig4(
     workers: int = 1,
     progress: bool = True,
     plots: bool = True,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Run the lifelong protocol (module docstring), write the results folder, print the table.
 
     ``workers`` processes run the repetitions; ``plots=False`` skips ``fig4.png`` (``taskvar plot
-    DIR`` draws it later from the folder).
+    DIR`` draws it later from the folder); ``overwrite`` replaces results already in ``out_dir``
+    (without it such a folder is refused).
     """
     if cfg.family != "wargus":
         raise ValueError(f"wargus-fig4 needs a Wargus config (family='wargus'), got {cfg.family!r}")
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     out = Path(out_dir)
+    refuse_existing_results(out, overwrite, "taskvar experiment wargus-fig4")
     out.mkdir(parents=True, exist_ok=True)
     save_config_yaml(cfg, out / "config.yaml")
 

@@ -52,7 +52,7 @@ from taskvar_torch.envs import windy
 from taskvar_torch.envs.instances import WindyInstances
 from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.evaluation import mean_ci95, paired_summary, run_episodes
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.heads.bundle import Heads
 
 METHODS = ("averaging", "options", "interruption")
@@ -491,6 +491,7 @@ def windy_fig2(
             f"{str(out / 'train')!r} already holds a training run; replace it with --overwrite, "
             f"evaluate it with --checkpoint {out / 'train' / 'final.pt'}, or choose another --out"
         )
+    refuse_existing_results(out, overwrite, "taskvar experiment windy-fig2")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     train_seconds = 0.0
