@@ -682,8 +682,10 @@ class WindyOracle:
     @torch.no_grad()
     def tabulate(self, heads: Heads, obs_encoding: str = "onehot") -> dict[str, Tensor]:
         """Every head's output at every cell, ``{out_key: (S, ...)}`` (heads may read cell or observation)."""
-        td = heads(self.observation_td(obs_encoding).to(self.device))
-        return {HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h]) for h in heads.heads}
+        param = next(iter(heads.parameters()), None)  # heads may live on another device
+        device = self.device if param is None else param.device
+        td = heads(self.observation_td(obs_encoding).to(device))
+        return {HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h]).to(self.device) for h in heads.heads}
 
     def controller_chain(
         self,

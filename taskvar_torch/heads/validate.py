@@ -13,7 +13,13 @@
   oracle's instances of ``Q^{m, mu_bar}`` for the *learnt* option policies and mu_bar, which
   checks the estimator itself where a learnt option breaks a near-tie differently from the oracle;
 * ``interruption_agreement``: share of (visited cell, option) pairs where the learnt condition
-  ``Q_hat(s, o) < V^{mu_bar}(s)`` equals the oracle's (Algorithm 1, line 6).
+  ``Q_hat(s, o) < V^{mu_bar}(s)`` equals the oracle's (Algorithm 1, line 6);
+* ``firing_pairs`` / ``oracle_firing_pairs``: visited (cell, option) pairs where that condition
+  holds, learnt / exact;
+* ``interruptions_per_episode`` / ``oracle_interruptions_per_episode``: the exact expected number
+  of interruptions per episode (training instances, uniform start) of Algorithm 1 run on the learnt
+  heads / on the oracle's tables: a pair only matters if an episode reaches it with that option
+  running (:meth:`~taskvar_torch.oracle.WindyOracle.controller_fire_count`).
 
 Visited cells are the cells an episode can be in before it ends: neither wall nor goal.
 """
@@ -87,4 +93,21 @@ def compare_with_oracle(
     fire_oracle = q_hat_oracle < oracle.v_mu_bar().cpu().unsqueeze(-1)
     res["interruption_agreement"] = float((fire == fire_oracle)[visited].double().mean())
     res["interruption_pairs"] = int(visited.sum()) * q_hat.shape[-1]
+    res["firing_pairs"] = int(fire[visited].sum())
+    res["oracle_firing_pairs"] = int(fire_oracle[visited].sum())
+    pt, d, w = oracle.quadrature()
+    for name, h in (
+        ("interruptions_per_episode", heads),
+        ("oracle_interruptions_per_episode", None),
+    ):
+        fires = oracle.controller_fire_count(
+            "interruption",
+            pt,
+            d,
+            start="uniform",
+            heads=h,
+            subtasks=oracle.subtasks,
+            obs_encoding=obs_encoding,
+        )  # (K,)
+        res[name] = float((w * fires).sum())
     return res
