@@ -255,7 +255,7 @@ class MultiHeadLoss(LossModule):
                 cur["switching"], nxt_target["switching"], mu_next, consistent, batch, s.gamma
             )
             if "max_value" in cur and s.max_value_estimator == "instance":
-                losses["loss_max_value_critic"], losses["loss_max_value"] = instance_max_value_loss(
+                loss_critic, loss_hat = instance_max_value_loss(
                     cur["max_value"],
                     head_network(self.heads.heads["max_value"]).critic,
                     head_network(self.target_heads["max_value"]).critic,
@@ -264,7 +264,8 @@ class MultiHeadLoss(LossModule):
                     batch,
                     s.gamma,
                     s.max_value_instances,
-                )
+                )  # both train parts of the max-value head (its critic, its gap): one entry
+                losses["loss_max_value"] = loss_critic + loss_hat
             elif "max_value" in cur:
                 losses["loss_max_value"] = max_value_loss(
                     cur["max_value"],

@@ -6,6 +6,11 @@
 * ``averaging_return`` / ``oracle_averaging_return``: exact expected return (training instances,
   uniform start cell) of the averaging head's greedy policy and of the mean-MDP optimum (§3.1);
 * ``option_returns`` / ``oracle_option_returns``: the same for each option head's greedy policy (§3.2);
+* ``replay_averaging_return`` / ``replay_option_returns``: the same for the reference the heads are
+  trained towards, the fixed point of Q-learning on its own first-visit replay of fixed-instance
+  episodes (:meth:`~taskvar_torch.oracle.WindyOracle.replay_policy`; the mean MDP redraws the
+  instance every step, the training episodes do not: on ``whole_column_windy`` the exit options'
+  replay fixed point is 1.5 steps better than the mean-MDP options);
 * ``mu_bar_agreement``: share of cells where the oracle's option values differ by more than
   ``mu_margin`` on which the learnt mu_bar picks the oracle's option;
 * ``max_value_error``: the largest ``|Q_hat - Q_hat_oracle|`` over visited cells and options
@@ -72,6 +77,10 @@ def compare_with_oracle(
     oracle_policies = oracle.option_policies()  # (O, S)
     res["option_returns"] = [float(oracle.expected_return(p)) for p in option_policies]
     res["oracle_option_returns"] = [float(oracle.expected_return(p)) for p in oracle_policies]
+    res["replay_averaging_return"] = float(oracle.expected_return(oracle.replay_policy()))
+    res["replay_option_returns"] = [
+        float(oracle.expected_return(oracle.replay_policy(o))) for o in oracle.option_names
+    ]
 
     q_mu, q_mu_oracle = tab["switching"], oracle.switching_q().cpu()  # (S, O)
     gap = (q_mu_oracle.max(-1).values - q_mu_oracle.min(-1).values) > mu_margin  # (S,)
