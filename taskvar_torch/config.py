@@ -47,6 +47,7 @@ HEAD_NETWORKS = ("mlp", "conv")  # taskvar_torch/heads/networks.py NETWORKS
 TARGET_UPDATES = ("hard", "soft")
 SWITCHING_MODES = ("intra",)
 MU_BAR_MODES = ("greedy", "softmax")
+MAX_VALUE_ESTIMATORS = ("expectile", "instance")
 ROBUSTNESS_TARGETS = ("greedy", "option")  # mirrors heads/robustness.py
 ROOT_POLICIES = ("averaging", "option")  # mirrors controllers/base.py
 ROBUSTNESS_THRESHOLDS = ("calibrated", "fixed")
@@ -224,6 +225,15 @@ class TrainConfig:
     """Save a checkpoint every this many frames; 0: only the final one."""
     log_every: int = 5_000
     """Write a log row every this many frames."""
+    max_value_estimator: str = "expectile"
+    """Estimator of the max-value head Q_hat (Definition 1; taskvar_torch/heads/max_value.py):
+    expectile (expectile-TD upper estimator, max_value_expectile: optimistic over all randomness,
+    any family) or instance (an instance-conditioned critic Q(s, o | z) learnt by intra-option TD
+    under mu_bar, its max over the training instances in the sample distilled into Q_hat: optimism
+    over instances only; windy only, the instance z = (p, direction) is read from the replay)."""
+    max_value_instances: int = 64
+    """max_value_estimator=instance: training instances (from the sampled batch) the max of
+    Definition 1 is taken over at each update."""
 
 
 @dataclass(frozen=True)
@@ -399,6 +409,13 @@ def _validate(cfg: Config) -> None:
             f"train.max_value_expectile must be in (0, 1), got {t.max_value_expectile}"
         )
     _one_of("train.switching", t.switching, SWITCHING_MODES)
+    _one_of("train.max_value_estimator", t.max_value_estimator, MAX_VALUE_ESTIMATORS)
+    _at_least("train.max_value_instances", t.max_value_instances, 1)
+    if t.max_value_estimator == "instance" and cfg.family != "windy":
+        raise ValueError(
+            "train.max_value_estimator='instance' needs instance features (family='windy'), got "
+            f"family={cfg.family!r}: use 'expectile' (taskvar_torch/heads/max_value.py)"
+        )
     _one_of("train.mu_bar", t.mu_bar, MU_BAR_MODES)
     if not t.mu_bar_temperature > 0:
         raise ValueError(f"train.mu_bar_temperature must be > 0, got {t.mu_bar_temperature}")

@@ -81,9 +81,9 @@ from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
-from taskvar_torch.heads.max_value import OptimismGapHead
+from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
 from taskvar_torch.heads.networks import PatchLayout, make_stacked_heads
-from taskvar_torch.heads.relabel import has_robustness
+from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, has_robustness
 from taskvar_torch.subtasks.base import Subtasks
 
 EPISODE_REWARD = "episode_reward"  # RewardSum's running return
@@ -290,8 +290,13 @@ def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
         patch=patch,
         conv_channels=tuple(cfg.heads.conv_channels),
     )
+    critic = None  # the instance estimator's C(s, o | z) (heads/max_value.py)
+    if cfg.train.max_value_estimator == "instance":
+        critic = make_instance_critic(
+            obs_dim, WINDY_INSTANCE_DIM, O, tuple(cfg.heads.hidden), cfg.heads.activation
+        )
     heads["max_value"] = TensorDictModule(  # Q_hat = Q_mu + softplus(gap) >= Q_mu
-        OptimismGapHead(heads["switching"].module, heads["max_value"].module),
+        OptimismGapHead(heads["switching"].module, heads["max_value"].module, critic),
         in_keys=[keys.OBSERVATION],
         out_keys=[keys.MAX_VALUE],
     )
@@ -322,6 +327,8 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         double_q=t.double_q,
         max_value_expectile=t.max_value_expectile,
         mu_bar_temperature=mu_bar_temperature(t),
+        max_value_estimator=t.max_value_estimator,
+        max_value_instances=t.max_value_instances,
     )
     return MultiHeadLearner(
         MultiHeadLoss(heads, subtasks, settings).to(cfg.device),
@@ -354,12 +361,16 @@ def epsilon_at(frames: int, t: TrainConfig) -> float:
     return t.eps_start + frac * (t.eps_end - t.eps_start)
 
 
-def raw_transitions(batch: TensorDictBase) -> TensorDictBase:
+def raw_transitions(batch: TensorDictBase, keep_instance: bool = False) -> TensorDictBase:
     """Flatten a collector batch ``(N, T)`` to ``(N*T,)`` raw transitions, minus what no head may read.
 
-    Dropped: the hidden instance (``("instance", ...)``), RewardSum's running returns.
+    Dropped: RewardSum's running returns, and the hidden instance (``("instance", ...)``) unless
+    ``keep_instance`` (the ``instance`` max-value estimator's critic reads the episode's instance,
+    offline only; ``next``'s copy is dropped either way: the instance is fixed along an episode).
     """
-    drop = [keys.INSTANCE, (keys.NEXT, keys.INSTANCE), EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD)]
+    drop = [(keys.NEXT, keys.INSTANCE), EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD)]
+    if not keep_instance:
+        drop.append(keys.INSTANCE)
     return batch.exclude(*drop).reshape(-1)
 
 
@@ -905,7 +916,9 @@ def _train_loop(
                     frames_before = counters["frames"]
                     counters["frames"] += batch.numel()
                     counters["batches"] += 1
-                    raw = raw_transitions(batch)  # (N*T,)
+                    raw = raw_transitions(
+                        batch, keep_instance=t.max_value_estimator == "instance"
+                    )  # (N*T,)
                     if t.first_visit:
                         raw = raw[
                             first_visit(batch).reshape(-1)

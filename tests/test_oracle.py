@@ -251,3 +251,67 @@ def test_invalid_arguments_raise_value_error(oracle):
         oracle.evaluate(oracle.averaging_policy(), 0.5, "up")
     with pytest.raises(ValueError, match="gamma"):
         WindyOracle("default", gamma=1.0)
+
+
+# ---- the reference the learnt heads converge to (issue 11 item 5) ---------------------------
+
+
+@pytest.fixture(scope="module")
+def wcw() -> WindyOracle:
+    return WindyOracle("whole_column_windy")
+
+
+def test_visit_probability_matches_monte_carlo_in_a_fixed_instance(wcw):
+    torch.manual_seed(0)
+    behaviour = torch.softmax(torch.randn(wcw.S, wcw.A) * 2.0, -1)  # (S, A) stochastic
+    want = wcw.visit_probability(behaviour, 0.7, "north")[0]  # (S, A)
+    N = 4000
+    env = WindyGridEnv(
+        layout="whole_column_windy",
+        num_envs=N,
+        instances=WindyInstances(points=((0.7, "north"),)),
+        seed=3,
+    )
+    td = env.reset()
+    alive = torch.ones(N, dtype=torch.bool)
+    seen = torch.zeros(N, wcw.S, wcw.A, dtype=torch.bool)
+    for _ in range(env.horizon):
+        cell = td[keys.CELL]
+        action = torch.multinomial(behaviour[cell].float(), 1).squeeze(-1)
+        seen[torch.arange(N)[alive], cell[alive], action[alive]] = True
+        td.set(keys.ACTION, action)
+        out, td = env.step_and_maybe_reset(td)
+        alive &= ~out["next", "done"].squeeze(-1)
+    got = seen.double().mean(0)
+    assert (got - want).abs().max() < 0.03, (got - want).abs().max()
+
+
+def test_learnt_fixed_points_beat_the_mean_mdp_options_on_whole_column_windy(wcw):
+    """Fixed-instance episodes, not the mean MDP: the exit options a first-visit Q-learner reaches
+    (and the best Markov options for E_m[V^{m, pi}]) avoid the windy column, 1.5 steps better."""
+    for option in wcw.option_names:
+        mean_mdp = wcw.option_policies()[wcw.subtasks.index(option)]
+        ref_mean = float(wcw.expected_return(mean_mdp))
+        for pol in (wcw.replay_policy(option), wcw.fixed_instance_policy(option)):
+            assert float(wcw.expected_return(pol)) > ref_mean + 1.0, option
+    # the averaging head's replay fixed point is the mean-MDP optimum; the fixed-instance
+    # optimum of a memoryless policy is better still (what Q-learning cannot represent)
+    pi_bar = wcw.averaging_policy()
+    ret = float(wcw.expected_return(pi_bar))
+    assert float(wcw.expected_return(wcw.replay_policy())) == pytest.approx(ret, abs=1e-6)
+    best = wcw.fixed_instance_policy()
+    assert float(wcw.expected_return(best)) > ret + 0.2
+    v_best, v_bar = wcw.fixed_instance_value(best), wcw.fixed_instance_value(pi_bar)
+    assert float(v_best[wcw.start_cells].mean()) > float(v_bar[wcw.start_cells].mean())
+
+
+def test_replay_mdp_is_the_mean_mdp_under_a_behaviour_every_instance_visits_alike():
+    """With p in {0} only the instances do not differ: the replay MDP is the mean MDP."""
+    o = WindyOracle(
+        "default", train_instances=WindyInstances(points=((0.0, "north"), (0.0, "south")))
+    )
+    b = torch.full((o.S, o.A), 1.0 / o.A, dtype=torch.float64)
+    P, R = o.replay_mdp(b)
+    Pm, Rm = o.mean_mdp()
+    assert torch.allclose(P, Pm) and torch.allclose(R, Rm)
+    assert torch.allclose(P.sum(-1), torch.ones(o.S, o.A, dtype=torch.float64))

@@ -34,7 +34,12 @@ from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from taskvar_torch.heads.averaging import averaging_loss
 from taskvar_torch.heads.bundle import Heads, with_root_row
-from taskvar_torch.heads.max_value import OptimismGapHead, max_value_loss
+from taskvar_torch.heads.max_value import (
+    MAX_VALUE_ESTIMATORS,
+    OptimismGapHead,
+    instance_max_value_loss,
+    max_value_loss,
+)
 from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
 from taskvar_torch.heads.options import option_greedy_actions, options_loss
 from taskvar_torch.heads.relabel import relabel
@@ -63,6 +68,8 @@ class LossSettings:
     robustness_target: str = "option"  # R's next action: pi^o(s') ("option") or argmax R ("greedy")
     robustness_until: str = "termination"  # R's horizon: the option's termination, or the episode
     root_policy: str = "option"  # the hierarchy root's pi: its option head, or "averaging"
+    max_value_estimator: str = "expectile"  # or "instance" (heads/max_value.py)
+    max_value_instances: int = 64  # |Z| of the instance estimator's max
 
 
 def _unique_params(module: nn.Module) -> TensorDictParams:
@@ -142,6 +149,17 @@ class MultiHeadLoss(LossModule):
             if not heads.has("averaging"):
                 raise ValueError("root_policy='averaging' needs the ['averaging'] head")
             self.avg_root = list(subtasks.names).index(subtasks.hierarchy.root)
+        if settings.max_value_estimator not in MAX_VALUE_ESTIMATORS:
+            raise ValueError(
+                f"max_value_estimator must be one of {list(MAX_VALUE_ESTIMATORS)}, "
+                f"got {settings.max_value_estimator!r}"
+            )
+        if settings.max_value_estimator == "instance" and heads.has("max_value"):
+            if getattr(head_network(heads.heads["max_value"]), "critic", None) is None:
+                raise ValueError(
+                    "max_value_estimator='instance' needs a max-value head with an instance "
+                    "critic (heads/max_value.py make_max_value_head(..., instance_dim=F))"
+                )
         if tuple(heads.option_names) != tuple(subtasks.names):
             raise ValueError(
                 f"heads.option_names {heads.option_names} differ from subtasks.names {subtasks.names}"
@@ -247,7 +265,19 @@ class MultiHeadLoss(LossModule):
             losses["loss_switching"] = switching_loss(
                 cur["switching"], nxt_target["switching"], mu_next, consistent, batch, s.gamma
             )
-            if "max_value" in cur:
+            if "max_value" in cur and s.max_value_estimator == "instance":
+                loss_critic, loss_hat = instance_max_value_loss(
+                    cur["max_value"],
+                    head_network(self.heads.heads["max_value"]).critic,
+                    head_network(self.target_heads["max_value"]).critic,
+                    mu_next,
+                    consistent,
+                    batch,
+                    s.gamma,
+                    s.max_value_instances,
+                )  # both train parts of the max-value head (its critic, its gap): one entry
+                losses["loss_max_value"] = loss_critic + loss_hat
+            elif "max_value" in cur:
                 losses["loss_max_value"] = max_value_loss(
                     cur["max_value"],
                     nxt_target["max_value"],

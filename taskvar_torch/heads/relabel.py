@@ -32,6 +32,7 @@ class Transitions:
     beta_next: torch.Tensor  # (B, O) float, beta_o(s') (option o terminates at s')
     subtask_reward: torch.Tensor  # (B, O)
     robustness_reward: torch.Tensor | None  # (B, O) or None when the family has no robustness
+    instance: torch.Tensor | None = None  # (B, F) hidden instance features, or None (see below)
 
     @property
     def batch_size(self) -> int:
@@ -41,6 +42,26 @@ class Transitions:
 def has_robustness(subtasks: Subtasks) -> bool:
     """Whether the family defines robustness rewards (Wargus does, windy does not)."""
     return type(subtasks).robustness_reward is not Subtasks.robustness_reward
+
+
+WINDY_DIRECTIONS = 4  # north, south, east, west (envs/windy.py DIRECTIONS)
+WINDY_INSTANCE_DIM = 1 + WINDY_DIRECTIONS  # (p, one_hot(direction))
+
+
+def instance_features(td: TensorDictBase) -> torch.Tensor | None:
+    """``(B, F)`` features of each transition's hidden instance, or ``None`` if the batch has none.
+
+    Only the instance-conditioned max-value critic reads them (offline, privileged: Definition 1's
+    max is over *instances*; ``taskvar_torch/heads/max_value.py``); no controller ever does. Windy:
+    ``(p, one_hot(direction))``, F = 5, from ``("instance", "p")`` and ``("instance", "direction")``,
+    which the trainer keeps in the replay only for that estimator.
+    """
+    if (keys.INSTANCE, "p") not in td.keys(True, True):
+        return None
+    p = td.get((keys.INSTANCE, "p")).reshape(-1, 1).to(torch.float32)  # (B, 1)
+    direction = td.get((keys.INSTANCE, "direction")).reshape(-1).to(torch.int64)  # (B,)
+    one_hot = torch.nn.functional.one_hot(direction, WINDY_DIRECTIONS).to(torch.float32)  # (B, 4)
+    return torch.cat([p, one_hot], dim=-1)
 
 
 def relabel(td: TensorDictBase, subtasks: Subtasks, robustness: bool = False) -> Transitions:
@@ -58,4 +79,5 @@ def relabel(td: TensorDictBase, subtasks: Subtasks, robustness: bool = False) ->
         beta_next=subtasks.termination(nxt).to(torch.float32),
         subtask_reward=subtasks.reward(td).to(torch.float32),
         robustness_reward=subtasks.robustness_reward(td).to(torch.float32) if robustness else None,
+        instance=instance_features(td),
     )

@@ -6,6 +6,11 @@
 * ``averaging_return`` / ``oracle_averaging_return``: exact expected return (training instances,
   uniform start cell) of the averaging head's greedy policy and of the mean-MDP optimum (§3.1);
 * ``option_returns`` / ``oracle_option_returns``: the same for each option head's greedy policy (§3.2);
+* ``replay_averaging_return`` / ``replay_option_returns``: the same for the reference the heads are
+  trained towards, the fixed point of Q-learning on its own first-visit replay of fixed-instance
+  episodes (:meth:`~taskvar_torch.oracle.WindyOracle.replay_policy`; the mean MDP redraws the
+  instance every step, the training episodes do not: on ``whole_column_windy`` the exit options'
+  replay fixed point is 1.5 steps better than the mean-MDP options);
 * ``mu_bar_agreement``: share of cells where the oracle's option values differ by more than
   ``mu_margin`` on which the learnt mu_bar picks the oracle's option;
 * ``max_value_error``: the largest ``|Q_hat - Q_hat_oracle|`` over visited cells and options
@@ -13,7 +18,13 @@
   oracle's instances of ``Q^{m, mu_bar}`` for the *learnt* option policies and mu_bar, which
   checks the estimator itself where a learnt option breaks a near-tie differently from the oracle;
 * ``interruption_agreement``: share of (visited cell, option) pairs where the learnt condition
-  ``Q_hat(s, o) < V^{mu_bar}(s)`` equals the oracle's (Algorithm 1, line 6).
+  ``Q_hat(s, o) < V^{mu_bar}(s)`` equals the oracle's (Algorithm 1, line 6);
+* ``firing_pairs`` / ``oracle_firing_pairs``: visited (cell, option) pairs where that condition
+  holds, learnt / exact;
+* ``interruptions_per_episode`` / ``oracle_interruptions_per_episode``: the exact expected number
+  of interruptions per episode (training instances, uniform start) of Algorithm 1 run on the learnt
+  heads / on the oracle's tables: a pair only matters if an episode reaches it with that option
+  running (:meth:`~taskvar_torch.oracle.WindyOracle.controller_fire_count`).
 
 Visited cells are the cells an episode can be in before it ends: neither wall nor goal.
 """
@@ -66,6 +77,10 @@ def compare_with_oracle(
     oracle_policies = oracle.option_policies()  # (O, S)
     res["option_returns"] = [float(oracle.expected_return(p)) for p in option_policies]
     res["oracle_option_returns"] = [float(oracle.expected_return(p)) for p in oracle_policies]
+    res["replay_averaging_return"] = float(oracle.expected_return(oracle.replay_policy()))
+    res["replay_option_returns"] = [
+        float(oracle.expected_return(oracle.replay_policy(o))) for o in oracle.option_names
+    ]
 
     q_mu, q_mu_oracle = tab["switching"], oracle.switching_q().cpu()  # (S, O)
     gap = (q_mu_oracle.max(-1).values - q_mu_oracle.min(-1).values) > mu_margin  # (S,)
@@ -87,4 +102,21 @@ def compare_with_oracle(
     fire_oracle = q_hat_oracle < oracle.v_mu_bar().cpu().unsqueeze(-1)
     res["interruption_agreement"] = float((fire == fire_oracle)[visited].double().mean())
     res["interruption_pairs"] = int(visited.sum()) * q_hat.shape[-1]
+    res["firing_pairs"] = int(fire[visited].sum())
+    res["oracle_firing_pairs"] = int(fire_oracle[visited].sum())
+    pt, d, w = oracle.quadrature()
+    for name, h in (
+        ("interruptions_per_episode", heads),
+        ("oracle_interruptions_per_episode", None),
+    ):
+        fires = oracle.controller_fire_count(
+            "interruption",
+            pt,
+            d,
+            start="uniform",
+            heads=h,
+            subtasks=oracle.subtasks,
+            obs_encoding=obs_encoding,
+        )  # (K,)
+        res[name] = float((w * fires).sum())
     return res
