@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from test_train import assert_same  # tests/ is on sys.path (rootdir import mode)
 
 from taskvar_torch.checkpoint import load_checkpoint, make_bundle, save_checkpoint
 from taskvar_torch.cli import main
@@ -92,22 +93,6 @@ def read_logs(folder: Path) -> dict[str, list[str]]:
         for f in sorted(scalars.glob("*.csv"))
         if f.stem != "seconds"
     }
-
-
-def assert_same(a, b, path="bundle"):
-    """Bit-for-bit equality of two plain-data bundles."""
-    if isinstance(a, dict):
-        assert set(a) == set(b), f"{path}: keys differ: {set(a) ^ set(b)}"
-        for k in a:
-            assert_same(a[k], b[k], f"{path}[{k!r}]")
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b), f"{path}: lengths differ"
-        for i, (x, y) in enumerate(zip(a, b)):
-            assert_same(x, y, f"{path}[{i}]")
-    elif isinstance(a, torch.Tensor):
-        assert torch.equal(a, b), f"{path} differs"
-    else:
-        assert a == b, f"{path}: {a!r} != {b!r}"
 
 
 def assert_equals_reference(folder: Path, reference: Path) -> None:
