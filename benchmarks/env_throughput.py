@@ -1,4 +1,4 @@
-"""Env throughput, measured side by side in one run (issue 2, item 5).
+"""Env throughput, measured side by side in one run (docs/benchmarks.md).
 
 (a) a Gymnasium loop over ``taskvar/WindyGrid-v0``;
 (b) the raw batched windy step (keyed wind draw + dynamics + step counter) at several N;

@@ -1,4 +1,4 @@
-"""Scaling with collector processes and batch size (issue 6, item 4; README "Many processes").
+"""Scaling with collector processes and batch size (docs/benchmarks.md, Collector workers).
 
 (a) env steps/s: ``WindyGridEnv`` stepped by the trainer's collector (:func:`make_collector`,
     the real behaviour policy, epsilon 0.1), ``--steps`` steps per sub-env per batch, the weight

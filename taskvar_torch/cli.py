@@ -1,4 +1,4 @@
-"""Command line: ``taskvar COMMAND ...`` (DESIGN.md layout: train | eval | experiment | plot).
+"""Command line: ``taskvar COMMAND ...`` (train | eval | experiment | plot | sweep).
 
 Each command is one entry of :data:`COMMANDS`: a help line, a function adding its arguments to an
 ``argparse`` parser, and a function running it. Commands parse *intermixed* arguments, so
@@ -107,7 +107,7 @@ def _train_run(args: argparse.Namespace) -> int:
 
 
 def _print_oracle_summary(path: str | os.PathLike) -> None:
-    """For small windy layouts, print the learnt heads beside the exact oracle (SPEC §4)."""
+    """For small windy layouts, print the learnt heads beside the exact oracle (docs/oracle.md)."""
     from taskvar_torch.train import load_heads
 
     heads, cfg = load_heads(path)
@@ -387,7 +387,7 @@ def _scale_run(args: argparse.Namespace) -> int:
     config_path, overrides = _split_config_and_overrides(args.items)
     cfg = load_scale_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
-    torch.set_num_threads(1)  # timings are single-threaded (see README "Scaled-up grids")
+    torch.set_num_threads(1)  # timings are single-threaded (see docs/scale.md)
     scale(cfg, out, progress=not args.no_progress, quick=args.quick, plots=not args.no_plots,
           overwrite=args.overwrite)
     return 0
@@ -419,7 +419,7 @@ def _plot_run(args: argparse.Namespace) -> int:
 COMMANDS: dict[str, Command] = {
     "train": Command(
         help="train every head (averaging, options, mu_bar, max-value, robustness)",
-        description="Train every head of a family from one stream of experience (SPEC §2): "
+        description="Train every head of a family from one stream of experience: "
         "CSV logs in DIR/logs, periodic checkpoints, DIR/final.pt.",
         add_arguments=_train_arguments,
         run=_train_run,
@@ -427,7 +427,7 @@ COMMANDS: dict[str, Command] = {
     ),
     "eval": Command(
         help="evaluate a trained bundle with a controller on a test distribution",
-        description="Evaluate any saved bundle without retraining (SPEC §5, checkpoint-based "
+        description="Evaluate any saved bundle without retraining (checkpoint-based "
         "evaluation).",
         add_arguments=_eval_arguments,
         run=_eval_run,
@@ -435,7 +435,7 @@ COMMANDS: dict[str, Command] = {
     "experiment": Command(
         help="run one of the paper's experiments (windy-fig2, wargus-fig4, scale)",
         description="Train (or load --checkpoint), evaluate, write a results folder and print a "
-        "table (SPEC §5).",
+        "table.",
         add_arguments=_experiment_arguments,
         run=_experiment_run,
     ),

@@ -1,4 +1,4 @@
-"""Offline training of every head from one stream of experience (SPEC §2; paper §3.1-3.4).
+"""Offline training of every head from one stream of experience (paper §3.1-3.4; docs/design.md).
 
 The loop, top to bottom (:func:`train`)::
 
@@ -260,7 +260,7 @@ def make_ray_collector(cfg: Config, behaviour: BehaviourPolicy, total_frames: in
 
 
 def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
-    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (DESIGN.md).
+    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (docs/design.md).
 
     The heads are independent MLPs stored as members of one ``StackedMLP``, so the learner runs
     them in one batched pass (``heads/networks.py``); ``heads.network=conv`` gives each a conv

@@ -36,7 +36,7 @@ CONFIG_FILES = sorted(p for p in CONFIG_DIR.glob("*.yaml") if p.name != "scale.y
 SCALE_CONFIG = CONFIG_DIR / "scale.yaml"
 WINDY = CONFIG_DIR / "windy.yaml"
 
-# Keys only one family reads: a config file of the other family must not set them (DESIGN.md:
+# Keys only one family reads: a config file of the other family must not set them (
 # no config key that nothing reads).
 WINDY_ONLY = (
     "env.layout",

@@ -1,4 +1,4 @@
-"""Controllers (SPEC §3, issue 4): Algorithms 1 and 2 on hand-built heads, batched vs looped,
+"""Controllers: the paper's Algorithms 1 and 2 on hand-built heads, batched vs looped,
 sampled returns against the oracle's exact ones, TorchRL rollout/Collector and Gymnasium."""
 
 from __future__ import annotations

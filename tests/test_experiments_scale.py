@@ -1,4 +1,4 @@
-"""Scaled-up grids experiment (SPEC §5): CLI --quick run on tiny budgets, metrics, config, plot."""
+"""Scaled-up grids experiment: CLI --quick run on tiny budgets, metrics, config, plot."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Windy Figure 2 experiment and the ``taskvar`` experiment/eval/plot commands (SPEC §5, issue 5).
+"""Windy Figure 2 experiment and the ``taskvar`` experiment/eval/plot commands (docs/windy-fig2.md).
 
 The end-to-end run trains a tiny bundle (a few thousand frames) through the CLI entry function;
 the statistics themselves are checked on the exact oracle's tables, where the answers are known.

@@ -1,4 +1,4 @@
-"""Fault injection (issue 14): SIGKILL at several points of a short run then ``--resume``; SIGINT
+"""Fault injection: SIGKILL at several points of a short run then ``--resume``; SIGINT
 and SIGTERM; a second SIGINT during the checkpoint write; NaN weights; run-folder refusals.
 
 A run is ``taskvar train`` in a new process on the 5x5 windy family (3000 frames, checkpoints

@@ -1,4 +1,4 @@
-"""Head learners (SPEC §2, issue 3): losses against TorchRL's DQNLoss, the fused pass against the
+"""Head learners: losses against TorchRL's DQNLoss, the fused pass against the
 heads run one by one, relabelling, first-visit replay, the behaviour policy, target updates."""
 
 from __future__ import annotations

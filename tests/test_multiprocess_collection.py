@@ -1,4 +1,4 @@
-"""Training with several collector workers (issue 6; ``collector.num_workers``, ``collector.backend``):
+"""Training with several collector workers (``collector.num_workers``, ``collector.backend``):
 the workers' envs are disjoint slices of the one-process env, and the learner's weights and epsilon
 reach the workers after every update phase (TorchRL ``MultiSyncCollector`` +
 ``SharedMemWeightSyncScheme``; ``Collector(backend="ray")`` + ``RayWeightSyncScheme`` on a local Ray

@@ -1,4 +1,4 @@
-"""No host round trips in the batched step (issue 6, "no host round trips in the step").
+"""No host round trips in the batched step (docs/design.md, Randomness).
 
 Without a GPU, the pure step functions are run on the ``meta`` device: meta tensors have shapes
 and dtypes but no data, so any host synchronisation hidden in a step (``.item()``, ``bool(t)``,
@@ -67,7 +67,7 @@ def test_wargus_reset_step_observe_have_no_host_sync(hit_prob, patrol_speed):
 
 
 def test_action_validation_defaults_to_cpu_only():
-    """The env wrappers' range check syncs, so by default it runs on CPU only (issue 6: no host
+    """The env wrappers' range check syncs, so by default it runs on CPU only (no host
     round trip in an accelerator step); it can be forced either way."""
     from taskvar_torch.envs import WargusEnv, WindyGridEnv
 

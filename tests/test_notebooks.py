@@ -1,4 +1,4 @@
-"""The notebooks execute (SPEC §5): small settings through environment variables."""
+"""The notebooks execute: small settings through environment variables."""
 
 from __future__ import annotations
 

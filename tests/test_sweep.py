@@ -1,4 +1,4 @@
-"""``taskvar sweep`` (issue 6): point expansion, one-line errors, and local vs Ray backends.
+"""``taskvar sweep`` (docs/sweeps.md): point expansion, one-line errors, and local vs Ray backends.
 
 A 2-repetition sweep (``seed=0,1``) of a tiny windy Figure 2 config runs once on the local backend
 and once on a local Ray with 2 CPUs; every point's metrics must be equal (same seeds, same numbers).

@@ -1,4 +1,4 @@
-"""Wargus family (paper §3.5, SPEC §1.2): specs, Gymnasium API, determinism, behaviours, errors."""
+"""Wargus family (paper §3.5): specs, Gymnasium API, determinism, behaviours, errors."""
 
 from __future__ import annotations
 

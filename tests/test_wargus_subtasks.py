@@ -1,4 +1,4 @@
-"""Wargus capabilities (paper §3.5.2, SPEC §1.2): termination, subtask and robustness rewards."""
+"""Wargus capabilities (paper §3.5.2): termination, subtask and robustness rewards."""
 
 from __future__ import annotations
 
@@ -157,7 +157,7 @@ def test_robustness_rewards_on_hand_built_transitions():
             (0, 1, 0, 1, 0, 0),  # within the patrol's sight: FE -1
             (0, 0, 0, 1, 0, 0),  # enters the patrol's sight: FE -1
             (1, 1, 1, 0, 0, 0),  # escapes it: FE +1 once
-            (1, 1, 1, 1, 0, 1),  # destroyed in sight: FE -1 (SPEC literal), TG +1
+            (1, 1, 1, 1, 0, 1),  # destroyed in sight: FE -1, TG +1
         ]
     )
     rr = sub.robustness_reward(td)
@@ -181,7 +181,7 @@ def test_robustness_ranks_item_seen_and_patrol_sight_as_intended():
     unseen = ~seen & (td[keys.NEXT, wargus.PICKED] == 0)  # a pickup counts as reaching the item
     assert (rr[..., TG][seen] == 1).all() and (rr[..., TG][unseen] <= 0).all()
     assert (rr[..., FE][in_sight] == -1).all() and (rr[..., FE][~in_sight] >= 0).all()
-    # SPEC: "-1 when it leaves the area where the item is seen" is the env's event item_lost
+    # "-1 when it leaves the area where the item is seen" is the env's event item_lost
     assert torch.equal(rr[..., TG] == -1, td[keys.NEXT, wargus.ITEM_LOST])
     assert td[keys.NEXT, wargus.ITEM_LOST].any()
 

@@ -1,4 +1,4 @@
-"""What every batched family env shares (DESIGN "Env state and params"): the ``EnvBase`` only adds
+"""What every batched family env shares: the ``EnvBase`` only adds
 specs, seeding and reset around pure dynamics.
 
 Subclasses keep their simulator state in tensors that are replaced, never mutated (tensors handed

@@ -1,4 +1,5 @@
-"""Instance distributions: which member of a family each sub-environment gets at reset (SPEC §1).
+"""Instance distributions: which member of a family (paper §2.2) each sub-environment gets
+at reset.
 
 A distribution is data (a frozen dataclass), sampled from per-episode keys (see ``rng.py``), so an
 instance depends only on (seed, sub-environment, episode).

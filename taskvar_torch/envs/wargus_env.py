@@ -1,4 +1,4 @@
-"""TorchRL ``EnvBase`` over the batched Wargus dynamics (paper §3.5, SPEC §1.2, DESIGN "Env state")."""
+"""TorchRL ``EnvBase`` over the batched Wargus dynamics (paper §3.5)."""
 
 from __future__ import annotations
 

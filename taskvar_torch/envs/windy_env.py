@@ -1,4 +1,4 @@
-"""TorchRL ``EnvBase`` over the batched windy dynamics (SPEC §1, DESIGN "Env state and params")."""
+"""TorchRL ``EnvBase`` over the batched windy dynamics (paper §3.3.1)."""
 
 from __future__ import annotations
 
@@ -107,7 +107,7 @@ class WindyGridEnv(BatchedFamilyEnv):
         noise_seed: salt of the per-step wind stream. Two envs with the same ``seed`` draw the same
             instances and start cells; with the same ``noise_seed`` they also see the same gusts
             (common random numbers), with different ones independent gusts (the null comparison
-            of SPEC §5).
+            of docs/windy-fig2.md).
         validate_actions: check actions are in range, raising a one-line error (one host sync
             per step). ``None`` (default): on CPU only, so that on an accelerator the step has no
             host round trip.

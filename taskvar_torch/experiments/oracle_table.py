@@ -1,4 +1,4 @@
-"""The exact oracle's table for a windy family, and a picture of the grid (SPEC §4).
+"""The exact oracle's table for a windy family, and a picture of the grid (docs/oracle.md).
 
 For every start cell: the exact expected 100-step return (over the training distribution, instance
 held fixed per episode) of the mean-MDP optimal averaging policy (paper §3.1), the same under

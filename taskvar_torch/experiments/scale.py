@@ -1,4 +1,4 @@
-"""Scaled-up grids (SPEC §5 "Scaled-up grids"): training time and final performance of the four
+"""Scaled-up grids (docs/scale.md): training time and final performance of the four
 methods against grid size and against the number of parallel environments.
 
 The protocol, top to bottom (:func:`scale`), for each *case* (a family config: windy 5x5, 25x25,
@@ -91,7 +91,7 @@ class ScaleCase:
 
 @dataclass(frozen=True)
 class ScaleConfig:
-    """The scaled-up grids experiment (SPEC §5): which cases, num_envs values, budgets."""
+    """The scaled-up grids experiment: which cases, num_envs values, budgets."""
 
     seed: int = 0
     """Seed of every cell's training (cfg.seed); test episodes use seed + 1000."""
@@ -645,7 +645,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
         ax.grid(alpha=0.3)
         if ax.has_data():
             ax.legend(fontsize=7)
-    fig.suptitle("Scaled-up grids (SPEC §5): training cost and final performance", fontsize=11)
+    fig.suptitle("Scaled-up grids: training cost and final performance", fontsize=11)
     path = save_figure(fig, out / FIGURE)
     plt.close(fig)
     return [path]

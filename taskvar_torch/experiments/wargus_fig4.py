@@ -1,4 +1,4 @@
-"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3, SPEC §5 "Wargus, Figure 4").
+"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md).
 
 The protocol, top to bottom (:func:`wargus_fig4`), for each of R repetitions (own seed
 ``cfg.seed + rep``, own env streams, own replay generator, own torch RNG stream; never one RNG
@@ -38,7 +38,7 @@ Definitions used in ``metrics.json``:
 Repetitions run sequentially or, with ``workers > 1``, in spawned processes (one torch thread
 each); both give the same numbers (each repetition depends on its own seed only).
 
-Speed (README "Wargus Figure 4", ``benchmarks/wargus_trial.py``): the loops step the pure
+Speed (docs/benchmarks.md, ``benchmarks/wargus_trial.py``): the loops step the pure
 dynamics through :meth:`WargusEnv.reset_all` / :meth:`WargusEnv.step_all` (no ``EnvBase``
 checks, transforms or ``step_mdp``), write replay once per update phase, run every head in one
 stacked pass (:class:`HeadValues`), and test :data:`TEST_GROUP` trials side by side on frozen

@@ -1,4 +1,4 @@
-"""Windy Figure 2 with the learnt networks (paper §3.3.1, SPEC §5 "Windy, Figure 2").
+"""Windy Figure 2 with the learnt networks (paper §3.3.1; docs/windy-fig2.md).
 
 The protocol, top to bottom (:func:`windy_fig2`):
 
@@ -112,7 +112,7 @@ def make_eval_env(
 
 
 def build_controller(method: str, heads: Heads, cfg: Config) -> Controller:
-    """A controller of ``method`` on ``heads`` with the family's option terminations (SPEC §3)."""
+    """A controller of ``method`` on ``heads`` with the family's option terminations."""
     from taskvar_torch.train import make_env, make_subtasks
 
     if method == "hierarchy":
@@ -139,7 +139,7 @@ def evaluate(
     """Play ``episodes`` one-episode sub-envs (global indices ``0..episodes-1``) with ``method``.
 
     The same ``(seed, instances)`` gives every method the same instance and start per episode, and
-    the same gusts when ``noise_seed`` matches: this is the pairing of SPEC §5. The env is seeded
+    the same gusts when ``noise_seed`` matches: the pairing of docs/windy-fig2.md. The env is seeded
     per sub-env, so the result does not depend on ``batch_size``.
 
     Returns per-episode arrays ``return``, ``length``, ``interruptions``, ``p``, ``direction``,
@@ -557,7 +557,7 @@ def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
 
 def learnt_vs_oracle_by_start(heads: Any, oracle: Any) -> list[dict[str, Any]]:
     """Per start cell: exact expected return (training distribution) of the mean-MDP optimal
-    averaging policy (paper §3.1) and of the learnt averaging head's greedy policy (SPEC §4)."""
+    averaging policy (paper §3.1) and of the learnt averaging head's greedy policy."""
     with torch.no_grad():
         q = heads(oracle.observation_td().to(oracle.device))[keys.ACTION_VALUE]  # (S, A)
     learnt = oracle.expected_return(q.argmax(-1), None, starts=None)  # (S,)
@@ -622,7 +622,7 @@ def format_table(metrics: dict[str, Any]) -> str:
         lines.append(
             f"Note ({', '.join(never)}): interruption never fired, so the interruption and options "
             "policies are identical there and a 0.000 difference with 100% no worse is a tie, not "
-            "a gain; see README.md#what-the-numbers-say"
+            "a gain; see docs/windy-fig2.md#what-the-numbers-say"
         )
     return "\n".join(lines)
 
@@ -687,7 +687,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
 
 
 # --------------------------------------------------------------------------------------------
-# checkpoint-based evaluation (SPEC §5 "Checkpoint-based evaluation")
+# checkpoint-based evaluation
 
 
 def eval_checkpoint(

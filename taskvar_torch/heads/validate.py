@@ -1,4 +1,4 @@
-"""Trained heads against the exact windy oracle (SPEC §4; the acceptance figures of issue 3).
+"""Trained heads against the exact windy oracle (docs/oracle.md; figures in docs/design.md).
 
 :func:`compare_with_oracle` tabulates every head over the cells and measures, against
 :class:`~taskvar_torch.oracle.WindyOracle` built for the same layout and training distribution:
