@@ -85,6 +85,8 @@ def draw_bits_i32(key: torch.Tensor, counter: torch.Tensor | int) -> torch.Tenso
     return x ^ ((x >> 16) & 0xFFFF)
 
 
-def bernoulli_i32(key: torch.Tensor, counter: torch.Tensor | int, threshold: torch.Tensor) -> torch.Tensor:
+def bernoulli_i32(
+    key: torch.Tensor, counter: torch.Tensor | int, threshold: torch.Tensor
+) -> torch.Tensor:
     """``u(key, counter) < p`` with ``threshold = probability_threshold(p)``: bool, hot path."""
     return ((draw_bits_i32(key, counter) >> 8) & 0xFFFFFF) < threshold

@@ -123,9 +123,7 @@ def expand_points(items: Sequence[str]) -> list[SweepPoint]:
         if name in names:  # two values that differ only in unsafe characters
             name = f"{name},{len(points)}"
         names.add(name)
-        points.append(
-            SweepPoint(name, values, (*fixed, *(f"{k}={v}" for k, v in values.items())))
-        )
+        points.append(SweepPoint(name, values, (*fixed, *(f"{k}={v}" for k, v in values.items()))))
     return points
 
 
@@ -192,14 +190,20 @@ def headline(metrics: dict[str, Any]) -> dict[str, Any]:
     and the exact (oracle) fraction no worse, for the training distribution and south-only winds. Wargus Figure 4: each method's final score and trials to 90%.
     """
     if metrics.get("experiment") == "windy-fig2":
-        keys = ("fraction_no_worse", "mean_difference", "fraction_no_worse_null",
-                "fraction_no_worse_exact")
+        keys = (
+            "fraction_no_worse",
+            "mean_difference",
+            "fraction_no_worse_null",
+            "fraction_no_worse_exact",
+        )
         row = {k: metrics.get(k) for k in keys}
         south = metrics.get("south_only") or {}
         row.update({f"south_only.{k}": south.get(k) for k in keys})
         return row
     row = {f"final_score.{n}": m["final_score"] for n, m in metrics["methods"].items()}
-    row.update({f"trials_to_90pct.{n}": m["trials_to_90pct"] for n, m in metrics["methods"].items()})
+    row.update(
+        {f"trials_to_90pct.{n}": m["trials_to_90pct"] for n, m in metrics["methods"].items()}
+    )
     return row
 
 
@@ -232,8 +236,12 @@ def _run_ray(
     started = not ray.is_initialized()  # an already running Ray (a notebook, a test) is reused
     if started:
         if address is None:  # "local": a new Ray, never a cluster found in RAY_ADDRESS
-            ray.init(address="local", num_cpus=workers or os.cpu_count() or 1,
-                     include_dashboard=False, log_to_driver=False)
+            ray.init(
+                address="local",
+                num_cpus=workers or os.cpu_count() or 1,
+                include_dashboard=False,
+                log_to_driver=False,
+            )
         else:  # a cluster: "auto", "HOST:6379", or "ray://HOST:10001" (Ray Client)
             try:
                 ray.init(address=address, log_to_driver=False)
@@ -291,9 +299,13 @@ def sweep(
     if backend not in BACKENDS:
         raise ValueError(f"--backend must be one of {list(BACKENDS)}, got {backend!r}")
     if backend == "local" and (address is not None or workers is not None):
-        raise ValueError("--address and --workers are for --backend ray; local runs one point at a time")
+        raise ValueError(
+            "--address and --workers are for --backend ray; local runs one point at a time"
+        )
     if address is not None and workers is not None:
-        raise ValueError("--workers sets the CPUs of a local Ray; with --address the cluster's are used")
+        raise ValueError(
+            "--workers sets the CPUs of a local Ray; with --address the cluster's are used"
+        )
     if workers is not None and workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
     points = expand_points(items)
@@ -324,24 +336,35 @@ def sweep(
         rows.append(row)
     fields = list(dict.fromkeys(k for row in rows for k in row))
     write_csv(out / SUMMARY_CSV, rows, fields)
-    write_json(out / SUMMARY_JSON, {
-        "config": str(config),
-        "experiment": sorted({EXPERIMENT_OF_FAMILY[c.family] for c in cfgs}),
-        "backend": backend,
-        "quick": bool(quick),
-        "plots": bool(plots),
-        "items": list(items),
-        "wall_seconds": wall,
-        "points": [
-            {"name": p.name, "folder": str(out / p.name), "values": p.values,
-             "overrides": list(p.overrides), "seconds": r["seconds"], "error": r.get("error")}
-            for p, r in zip(points, results)
-        ],
-        "rows": rows,
-    })
+    write_json(
+        out / SUMMARY_JSON,
+        {
+            "config": str(config),
+            "experiment": sorted({EXPERIMENT_OF_FAMILY[c.family] for c in cfgs}),
+            "backend": backend,
+            "quick": bool(quick),
+            "plots": bool(plots),
+            "items": list(items),
+            "wall_seconds": wall,
+            "points": [
+                {
+                    "name": p.name,
+                    "folder": str(out / p.name),
+                    "values": p.values,
+                    "overrides": list(p.overrides),
+                    "seconds": r["seconds"],
+                    "error": r.get("error"),
+                }
+                for p, r in zip(points, results)
+            ],
+            "rows": rows,
+        },
+    )
     print(format_summary(rows, fields))
-    print(f"{len(rows)} points in {wall:.1f} s ({backend}); wrote {out / SUMMARY_CSV}, "
-          f"{out / SUMMARY_JSON}")
+    print(
+        f"{len(rows)} points in {wall:.1f} s ({backend}); wrote {out / SUMMARY_CSV}, "
+        f"{out / SUMMARY_JSON}"
+    )
     return rows
 
 

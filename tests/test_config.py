@@ -271,7 +271,10 @@ def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
         ("heads.activation=sigmoid", ["heads.activation must be one of", "'relu'"]),
         ("env.layout=tiny", ["env.layout must be one of", "'middle_exits'", "'generated'"]),
         ("device=gpu", ["device must be a torch device"]),
-        ("collector.backend=dask", ["collector.backend must be one of ['process', 'ray']", "'dask'"]),
+        (
+            "collector.backend=dask",
+            ["collector.backend must be one of ['process', 'ray']", "'dask'"],
+        ),
         ("collector.ray_address=auto", ["collector.ray_address is for collector.backend=ray"]),
     ],
 )

@@ -68,7 +68,9 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
     with open(out / "scale.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == len(m["cells"]) * len(scale.METHODS)
-    assert {r["mean_return"] for r in rows if r["case"] == "windy-5x5" and r["method"] == "hierarchy"} == {"n/a"}
+    assert {
+        r["mean_return"] for r in rows if r["case"] == "windy-5x5" and r["method"] == "hierarchy"
+    } == {"n/a"}
 
 
 def test_plot_regenerates_figure(quick_run, capsys):

@@ -51,8 +51,9 @@ def test_windy_step_and_gusts_have_no_host_sync(layout):
 
 @pytest.mark.parametrize("hit_prob,patrol_speed", [(1.0, 0.8), (0.5, 1.0)])
 def test_wargus_reset_step_observe_have_no_host_sync(hit_prob, patrol_speed):
-    cfg = wargus.WargusConfig(size=16, num_patrols=3, num_items=2, hit_prob=hit_prob,
-                              patrol_speed=patrol_speed)
+    cfg = wargus.WargusConfig(
+        size=16, num_patrols=3, num_items=2, hit_prob=hit_prob, patrol_speed=patrol_speed
+    )
     model = on_meta(wargus.WargusModel(cfg))
     B = 32
     key = torch.empty(B, device="meta", dtype=torch.int64)

@@ -62,7 +62,9 @@ class BatchedFamilyEnv(EnvBase):
         return idx, rng.episode_key(self._base_key[idx], episode)
 
     def _runtime_state(self) -> dict[str, torch.Tensor]:
-        return {name[1:]: getattr(self, name) for name in self._RUNTIME_STATE if hasattr(self, name)}
+        return {
+            name[1:]: getattr(self, name) for name in self._RUNTIME_STATE if hasattr(self, name)
+        }
 
     def _load_runtime_state(self, state: dict[str, torch.Tensor]) -> None:
         for name in self._RUNTIME_STATE:

@@ -100,4 +100,6 @@ def windy_instances(spec: str | WindyInstances | dict) -> WindyInstances:
         if unknown:
             raise ValueError(f"unknown instance field(s) {unknown}; allowed: {sorted(allowed)}")
         return WindyInstances(**spec)
-    raise ValueError(f"instances must be a name {list(WindyInstances.NAMES)}, a dict or WindyInstances")
+    raise ValueError(
+        f"instances must be a name {list(WindyInstances.NAMES)}, a dict or WindyInstances"
+    )

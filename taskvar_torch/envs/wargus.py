@@ -96,7 +96,9 @@ AGENT_POS = "agent_pos"  # (N, 2) int64 (row, col)
 ITEM_SEEN = "item_seen"  # (N,) bool: the nearest item is within sight
 PATROL_SEEN = "patrol_seen"  # (N,) bool: some patrol is within sight
 PICKED = "picked"  # (N,) int64: items picked on the step that led here (0 after reset)
-ITEM_LOST = "item_lost"  # (N,) bool: the step that led here lost sight of the item (False after reset)
+ITEM_LOST = (
+    "item_lost"  # (N,) bool: the step that led here lost sight of the item (False after reset)
+)
 # Hidden, under ("instance", ...): never read by a policy.
 INSTANCE_SEED = "seed"  # (N,) int64 in [0, 2^32): the instance
 PATROL_POS = "patrol_pos"  # (N, K, 2) int64
@@ -199,11 +201,15 @@ class WargusConfig:
         elif isinstance(config, dict):
             base = dict(config)
         else:
-            raise ValueError(f"config must be a WargusConfig, a dict or None, got {type(config).__name__}")
+            raise ValueError(
+                f"config must be a WargusConfig, a dict or None, got {type(config).__name__}"
+            )
         base.update({k: v for k, v in overrides.items() if v is not None})
         unknown = sorted(set(base) - allowed)
         if unknown:
-            raise ValueError(f"unknown Wargus config field(s) {unknown}; allowed: {sorted(allowed)}")
+            raise ValueError(
+                f"unknown Wargus config field(s) {unknown}; allowed: {sorted(allowed)}"
+            )
         return cls(**base)
 
 
@@ -348,7 +354,6 @@ class WargusModel:
         low[OBS_PATROL_OFFSET] = -1.0
         self.obs_low, self.obs_high = low, torch.ones_like(low)  # (D,)
 
-
     def step_offsets(self, move: bool, hit: bool) -> torch.Tensor:
         """Counter offsets of one step's draws, ``[items | walks | moves if move | hits if hit]``."""
         offsets = self._step_offsets.get((move, hit))
@@ -492,7 +497,9 @@ def bearing_index(diff: torch.Tensor) -> torch.Tensor:
     a = diff.abs()  # (..., 2)
     s = (a[..., 0] + a[..., 1]).unsqueeze(-1)  # (..., 1)
     sq2 = 2 * a * a  # (..., 2)
-    keep = (s * s >= sq2.flip(-1)).to(diff.dtype)  # (..., 2): row kept unless east/west, col unless N/S
+    keep = (s * s >= sq2.flip(-1)).to(
+        diff.dtype
+    )  # (..., 2): row kept unless east/west, col unless N/S
     q = diff.sign() * keep + 1  # (..., 2) in {0, 1, 2}
     return q[..., 0] * 3 + q[..., 1]
 

@@ -113,7 +113,9 @@ class WindyLayout:
     def named(cls, name: str) -> WindyLayout:
         """One of the shipped layouts: ``default``, ``middle_exits``, ``whole_column_windy``."""
         if name not in LAYOUTS:
-            raise ValueError(f"layout must be one of {sorted(LAYOUTS)} or a map string, got {name!r}")
+            raise ValueError(
+                f"layout must be one of {sorted(LAYOUTS)} or a map string, got {name!r}"
+            )
         return cls.from_map(LAYOUTS[name])
 
     @property

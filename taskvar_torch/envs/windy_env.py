@@ -29,7 +29,9 @@ def observation_table(
     if encoding == "onehot":
         return np.eye(S, dtype=np.float32)
     if encoding != "coords_patch":
-        raise ValueError(f"observation encoding must be one of {list(OBS_ENCODINGS)}, got {encoding!r}")
+        raise ValueError(
+            f"observation encoding must be one of {list(OBS_ENCODINGS)}, got {encoding!r}"
+        )
     if patch_radius < 0:
         raise ValueError(f"patch_radius must be >= 0, got {patch_radius}")
     H, W, r = layout.height, layout.width, patch_radius

@@ -144,7 +144,6 @@ class LifelongAgent:
     updates: int = 0
 
 
-
 def learn_due(agent: LifelongAgent, t: Any) -> None:
     """``train.updates_per_batch`` updates for every ``train.frames_per_batch`` frames played (after
     ``train.init_random_frames``), each on one shared sample for every head."""
@@ -154,6 +153,7 @@ def learn_due(agent: LifelongAgent, t: Any) -> None:
             for _ in range(t.updates_per_batch):
                 agent.learner.update(agent.buffer.sample())
                 agent.updates += 1
+
 
 def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> LifelongAgent:
     """Fresh heads, learner, behaviour policy and an empty replay buffer (seeded by ``seed``)."""
@@ -190,10 +190,7 @@ def make_test_env(
     trial (the seeds cycle)."""
     seeds = nominal_seeds(k)
     rows = tuple(
-        seeds[(j + first_trial + g) % k]
-        for g in range(trials)
-        for _ in METHODS
-        for j in range(k)
+        seeds[(j + first_trial + g) % k] for g in range(trials) for _ in METHODS for j in range(k)
     )
     return WargusEnv(
         len(rows),
@@ -280,9 +277,7 @@ class HeadValues:
 
         # elementwise math (the optimism gap's softplus) runs on rows of the layout forward_one
         # gives (same kernel path, same bits); only the final values are reshaped
-        return {
-            k: run(net).reshape(obs.shape[0], *_out_shape(net)) for k, net in self.nets.items()
-        }
+        return {k: run(net).reshape(obs.shape[0], *_out_shape(net)) for k, net in self.nets.items()}
 
 
 def _stacked_forward(
@@ -394,7 +389,9 @@ class SideBySide(TensorDictModuleBase):
 
         outs = []
         for i, c in enumerate(self.controllers):
-            values = {HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads}
+            values = {
+                HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads
+            }
             values.update({key: part(v, i) for key, v in c.extra_inputs(td).items()})
             if calibrations is not None and isinstance(c, HierarchyController):
                 cals = [cal or c.calibration for cal in calibrations]
@@ -576,7 +573,9 @@ def test_trials(
     h = METHODS.index("hierarchy")
     options, alives = [], []
     for _ in range(env.horizon):
-        lost += (td.get(ITEM_LOST).reshape(n) & alive).long()  # the step that led here lost the item
+        lost += (
+            td.get(ITEM_LOST).reshape(n) & alive
+        ).long()  # the step that led here lost the item
         out = policy.decide_batch(td, running, params, calibrations)
         inter += (out[keys.INTERRUPTED] & alive).long()
         options.append(out[keys.OPTION])
@@ -719,9 +718,7 @@ def run_repetition(
             env = make_test_env(cfg, k, seed, first_trial=len(rows["items"]), trials=len(snapshots))
             if group == 1 and calibrations[0] is not None:
                 hier.calibration = calibrations[0]
-            tested_all = test_trials(
-                policy, env, k, snapshots if group > 1 else None, calibrations
-            )
+            tested_all = test_trials(policy, env, k, snapshots if group > 1 else None, calibrations)
             for tested in tested_all:
                 for key, v in tested.items():
                     rows[key].append(v)
@@ -1038,10 +1035,6 @@ def summarise(
 
 # --------------------------------------------------------------------------------------------
 # files, table, plot
-
-
-
-
 
 
 def format_table(metrics: dict[str, Any]) -> str:

@@ -191,7 +191,12 @@ def make_oracle(cfg: Config):
 
 
 def exact_returns(
-    oracle, ctrl: Controller, cfg: Config, p: np.ndarray, direction: np.ndarray, start: np.ndarray,
+    oracle,
+    ctrl: Controller,
+    cfg: Config,
+    p: np.ndarray,
+    direction: np.ndarray,
+    start: np.ndarray,
     chunk: int = 2000,
 ) -> np.ndarray:
     """Exact expected horizon-step return of ``ctrl`` (learnt heads) per (instance, start) episode."""
@@ -284,7 +289,9 @@ def theorem1_check(
     def outcome(mask: np.ndarray) -> dict[str, Any]:
         o: dict[str, Any] = {"episodes": int(mask.sum())}
         if mask.any():
-            o["vs_averaging_sampled"] = _short(paired_summary(torch.as_tensor(diff_vs_averaging[mask])))
+            o["vs_averaging_sampled"] = _short(
+                paired_summary(torch.as_tensor(diff_vs_averaging[mask]))
+            )
             if exact_diff_vs_options is not None:
                 o["vs_options_exact"] = _short(_exact_summary(exact_diff_vs_options[mask]))
         return o
@@ -304,8 +311,16 @@ def theorem1_check(
 
 
 def _short(summary: dict[str, float]) -> dict[str, float]:
-    return {k: summary[k] for k in ("fraction_no_worse", "fraction_better", "fraction_worse",
-                                    "mean_difference", "mean_difference_ci95")}
+    return {
+        k: summary[k]
+        for k in (
+            "fraction_no_worse",
+            "fraction_better",
+            "fraction_worse",
+            "mean_difference",
+            "mean_difference_ci95",
+        )
+    }
 
 
 def _exact_summary(diff: np.ndarray) -> dict[str, float]:
@@ -335,21 +350,45 @@ def run_distribution(
     fire_parts: dict[str, list[np.ndarray]] = {}
     width = windy_layout(cfg.env).width
     ctrls = {m: build_controller(m, heads, cfg) for m in METHODS} if oracle is not None else {}
-    bar = tqdm(total=runs * episodes * (len(METHODS) + 1), disable=not progress, desc=desc,
-               unit="ep")
+    bar = tqdm(
+        total=runs * episodes * (len(METHODS) + 1), disable=not progress, desc=desc, unit="ep"
+    )
     for run in range(runs):
         seed = test_seed(cfg, run)
-        r = {m: evaluate(heads, cfg, m, instances, seed, episodes, record_firings=m == "interruption",
-                         progress=bar) for m in METHODS}
-        null = evaluate(heads, cfg, "averaging", instances, seed, episodes,
-                        noise_seed=NULL_NOISE_SEED, progress=bar)
+        r = {
+            m: evaluate(
+                heads,
+                cfg,
+                m,
+                instances,
+                seed,
+                episodes,
+                record_firings=m == "interruption",
+                progress=bar,
+            )
+            for m in METHODS
+        }
+        null = evaluate(
+            heads,
+            cfg,
+            "averaging",
+            instances,
+            seed,
+            episodes,
+            noise_seed=NULL_NOISE_SEED,
+            progress=bar,
+        )
         base = r["averaging"]
         for m in METHODS:  # the pairing: same instances and starts for every method
-            assert np.array_equal(r[m]["p"], base["p"]) and np.array_equal(r[m]["start"], base["start"])
+            assert np.array_equal(r[m]["p"], base["p"]) and np.array_equal(
+                r[m]["start"], base["start"]
+            )
         ex = {}
         if oracle is not None:
             for m in METHODS:
-                ex[m] = exact_returns(oracle, ctrls[m], cfg, base["p"], base["direction"], base["start"])
+                ex[m] = exact_returns(
+                    oracle, ctrls[m], cfg, base["p"], base["direction"], base["start"]
+                )
         cols = {
             "return_averaging": base["return"],
             "return_options": r["options"]["return"],
@@ -362,23 +401,38 @@ def run_distribution(
             pooled.setdefault(k, []).append(v)
         roll = r["interruption"]
         for k in ("fire_episode", "fire_cell", "fire_option"):
-            fire_parts.setdefault(k, []).append(roll[k] + (run * episodes if k == "fire_episode" else 0))
+            fire_parts.setdefault(k, []).append(
+                roll[k] + (run * episodes if k == "fire_episode" else 0)
+            )
         for k in ("p", "direction", "start"):
             pooled.setdefault(k, []).append(base[k])
         diff = torch.as_tensor(cols["return_interruption"] - cols["return_averaging"])
-        per_run.append({
-            "run": run,
-            "seed": seed,
-            **_short(paired_summary(diff)),
-            "fraction_no_worse_null": float(np.mean(cols["return_averaging"] >= cols["return_averaging_null"])),
-            "mean_return": {m: float(np.mean(r[m]["return"], dtype=np.float64)) for m in METHODS},
-            "interruptions_per_episode": float(np.mean(cols["interruptions"])),
-        })
+        per_run.append(
+            {
+                "run": run,
+                "seed": seed,
+                **_short(paired_summary(diff)),
+                "fraction_no_worse_null": float(
+                    np.mean(cols["return_averaging"] >= cols["return_averaging_null"])
+                ),
+                "mean_return": {
+                    m: float(np.mean(r[m]["return"], dtype=np.float64)) for m in METHODS
+                },
+                "interruptions_per_episode": float(np.mean(cols["interruptions"])),
+            }
+        )
         start_row, start_col = np.divmod(base["start"], width)
         for i in range(episodes):
-            row = {"distribution": desc, "run": run, "seed": seed, "episode": i,
-                   "p": float(base["p"][i]), "direction": windy.DIRECTIONS[int(base["direction"][i])],
-                   "start_row": int(start_row[i]), "start_col": int(start_col[i])}
+            row = {
+                "distribution": desc,
+                "run": run,
+                "seed": seed,
+                "episode": i,
+                "p": float(base["p"][i]),
+                "direction": windy.DIRECTIONS[int(base["direction"][i])],
+                "start_row": int(start_row[i]),
+                "start_col": int(start_col[i]),
+            }
             for k, v in cols.items():
                 row[k] = v[i].item()
             rows.append(row)
@@ -388,9 +442,17 @@ def run_distribution(
     metrics = summarise(data, fires, cfg, runs, episodes)
     metrics["per_run"] = per_run
     if oracle is not None:
-        rolls = {"return": data["return_averaging"], "p": data["p"], "direction": data["direction"], **fires}
+        rolls = {
+            "return": data["return_averaging"],
+            "p": data["p"],
+            "direction": data["direction"],
+            **fires,
+        }
         metrics["theorem1"] = theorem1_check(
-            oracle, ctrls["options"], cfg, rolls,
+            oracle,
+            ctrls["options"],
+            cfg,
+            rolls,
             data["exact_interruption"] - data["exact_options"],
             data["return_interruption"] - data["return_averaging"],
         )
@@ -410,7 +472,9 @@ def summarise(
     m["fraction_no_worse_null"] = null["fraction_no_worse"]
     m["null"] = _short(null)
     m["options_vs_averaging"] = _short(paired_summary(t["return_options"] - t["return_averaging"]))
-    m["interruption_vs_options"] = _short(paired_summary(t["return_interruption"] - t["return_options"]))
+    m["interruption_vs_options"] = _short(
+        paired_summary(t["return_interruption"] - t["return_options"])
+    )
     m["mean_return"] = {}
     for name in (*METHODS, "averaging_null"):
         mean, ci = mean_ci95(t[f"return_{name}"])
@@ -420,8 +484,12 @@ def summarise(
         m["fraction_no_worse_exact"] = ex["fraction_no_worse"]
         m["exact"] = {
             **_short(ex),
-            "options_vs_averaging": _short(_exact_summary(data["exact_options"] - data["exact_averaging"])),
-            "interruption_vs_options": _short(_exact_summary(data["exact_interruption"] - data["exact_options"])),
+            "options_vs_averaging": _short(
+                _exact_summary(data["exact_options"] - data["exact_averaging"])
+            ),
+            "interruption_vs_options": _short(
+                _exact_summary(data["exact_interruption"] - data["exact_options"])
+            ),
             "mean_return": {n: float(data[f"exact_{n}"].mean()) for n in METHODS},
             "note": "exact expected returns of the learnt controllers in each episode's (instance, start)",
         }
@@ -519,7 +587,9 @@ def windy_fig2(
     all_rows: list[dict[str, Any]] = []
     eval_t0 = time.perf_counter()
     for key, instances in DISTRIBUTIONS.items():
-        m, rows = run_distribution(heads, cfg, instances, runs, episodes, oracle, progress, desc=key)
+        m, rows = run_distribution(
+            heads, cfg, instances, runs, episodes, oracle, progress, desc=key
+        )
         all_rows += rows
         if key == "train":
             metrics.update(m)
@@ -534,9 +604,11 @@ def windy_fig2(
     figures = [str(p) for p in plot_results(out)] if plots else []
     print(format_table(metrics))
     print(format_start_table(metrics["oracle_by_start"]))
-    print(f"wrote {out / METRICS_NAME}, {out / CSV_NAME}"
-          + "".join(f", {f}" for f in figures)
-          + ("" if plots else f" (no plots: taskvar plot {out})"))
+    print(
+        f"wrote {out / METRICS_NAME}, {out / CSV_NAME}"
+        + "".join(f", {f}" for f in figures)
+        + ("" if plots else f" (no plots: taskvar plot {out})")
+    )
     return metrics
 
 
@@ -545,10 +617,6 @@ def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
     import dataclasses
 
     return dataclasses.replace(ckpt_cfg, experiment=cfg.experiment, eval=cfg.eval)
-
-
-
-
 
 
 # --------------------------------------------------------------------------------------------
@@ -564,15 +632,21 @@ def learnt_vs_oracle_by_start(heads: Any, oracle: Any) -> list[dict[str, Any]]:
     optimum = oracle.expected_return(oracle.averaging_policy(), None, starts=None)  # (S,)
     width = oracle.layout.width
     return [
-        {"start": list(divmod(c, width)), "oracle_optimum": float(optimum[c]), "learnt": float(learnt[c])}
+        {
+            "start": list(divmod(c, width)),
+            "oracle_optimum": float(optimum[c]),
+            "learnt": float(learnt[c]),
+        }
         for c in oracle.start_cells.tolist()
     ]
 
 
 def format_start_table(rows: list[dict[str, Any]]) -> str:
     """The learnt averaging policy beside the oracle's optimum, per start cell."""
-    lines = ["Averaging policy, exact expected 100-step return over the training distribution:",
-             f"{'start':>8} {'oracle optimum':>15} {'learnt head':>12}"]
+    lines = [
+        "Averaging policy, exact expected 100-step return over the training distribution:",
+        f"{'start':>8} {'oracle optimum':>15} {'learnt head':>12}",
+    ]
     for r in rows:
         lines.append(f"{str(tuple(r['start'])):>8} {r['oracle_optimum']:15.3f} {r['learnt']:12.3f}")
     return "\n".join(lines)
@@ -609,15 +683,22 @@ def format_table(metrics: dict[str, Any]) -> str:
         line(dist, "interruption - options (sampled, paired)", m["interruption_vs_options"])
         th = m.get("theorem1") or {}
         fired = th.get("firings", 0)
-        prem = (f"Theorem 1 premise held at {th['premise_held_fraction']:.1%} of {fired} firings"
-                if fired else "interruption never fired")
+        prem = (
+            f"Theorem 1 premise held at {th['premise_held_fraction']:.1%} of {fired} firings"
+            if fired
+            else "interruption never fired"
+        )
         lines.append(
             f"{'':<12} interruptions/episode {m['interruptions_per_episode']:.3f} "
             f"(in {m['episodes_with_interruption']:.1%} of episodes); {prem}"
         )
-    never = [d for d, m in (("train", metrics), ("south_only", metrics.get("south_only")))
-             if m and not (m.get("theorem1") or {}).get("firings", 0)
-             and not m.get("interruptions_per_episode")]
+    never = [
+        d
+        for d, m in (("train", metrics), ("south_only", metrics.get("south_only")))
+        if m
+        and not (m.get("theorem1") or {}).get("firings", 0)
+        and not m.get("interruptions_per_episode")
+    ]
     if never:
         lines.append(
             f"Note ({', '.join(never)}): interruption never fired, so the interruption and options "
@@ -670,19 +751,30 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
         if not np.isnan(c["exact_interruption"]).any():
             exact = [c["exact_interruption"][s] - c["exact_averaging"][s] for s in sel]
         label = "south-only test winds" if dist == "south_only" else "training distribution"
-        paths.append(plot_sorted_differences(
-            diffs, nulls, out / fname,
-            title=f"Windy Figure 2 ({label}): interruption - averaging, {len(runs)} runs",
-            exact_runs=exact,
-        ))
+        paths.append(
+            plot_sorted_differences(
+                diffs,
+                nulls,
+                out / fname,
+                title=f"Windy Figure 2 ({label}): interruption - averaging, {len(runs)} runs",
+                exact_runs=exact,
+            )
+        )
     m_south = metrics.get("south_only") or {}
-    paths.append(plot_interruption_heatmap(
-        windy_layout(cfg.env),
-        {"training distribution": metrics.get("interruption_cells"),
-         "south-only": m_south.get("interruption_cells")},
-        episodes={"training distribution": metrics.get("episodes"), "south-only": m_south.get("episodes")},
-        path=out / HEATMAP,
-    ))
+    paths.append(
+        plot_interruption_heatmap(
+            windy_layout(cfg.env),
+            {
+                "training distribution": metrics.get("interruption_cells"),
+                "south-only": m_south.get("interruption_cells"),
+            },
+            episodes={
+                "training distribution": metrics.get("episodes"),
+                "south-only": m_south.get("episodes"),
+            },
+            path=out / HEATMAP,
+        )
+    )
     return paths
 
 
