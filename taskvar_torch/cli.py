@@ -27,6 +27,10 @@ from dataclasses import dataclass
 
 from taskvar_torch.checkpoint import CheckpointError
 
+# Each subcommand imports the machinery it runs inside its own function: the experiment modules
+# share function names (default_config_path, plot_results, scale), and `taskvar --help` or a
+# one-line error does not load every experiment.
+
 
 @dataclass(frozen=True)
 class Command:

@@ -37,10 +37,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
 from tqdm.auto import tqdm
 
 from taskvar_torch.config import Config, load_config
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
+from taskvar_torch.experiments.windy_fig2 import windy_fig2
+from taskvar_torch.train import TrainingDiverged
 
 BACKENDS = ("local", "ray")
 EXPERIMENT_OF_FAMILY = {"windy": "windy-fig2", "wargus": "wargus-fig4"}
@@ -155,9 +159,6 @@ def run_point(
         ``{"metrics": metrics.json's dict, "seconds": wall time}``; a diverged run returns
         ``{"error": message, "seconds": ...}`` instead (the sweep goes on).
     """
-    import torch
-
-    from taskvar_torch.train import TrainingDiverged
 
     torch.set_num_threads(1)  # one core per point (the heads are small MLPs)
     out = Path(out_dir)
@@ -166,14 +167,10 @@ def run_point(
     with open(out / POINT_LOG, "w") as log, contextlib.redirect_stdout(log):
         try:
             if cfg.family == "windy":
-                from taskvar_torch.experiments.windy_fig2 import windy_fig2
-
                 metrics = windy_fig2(
                     cfg, out, progress=False, quick=quick, plots=plots, overwrite=overwrite
                 )
             else:
-                from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
-
                 metrics = wargus_fig4(
                     cfg, out, workers=1, progress=False, plots=plots, overwrite=overwrite
                 )
@@ -230,7 +227,7 @@ def _run_ray(
     overwrite: bool,
 ) -> list[dict[str, Any]]:
     try:
-        import ray
+        import ray  # optional dependency (the distributed extra): imported only on the ray backend
     except ImportError:
         raise ValueError(RAY_MISSING) from None
     started = not ray.is_initialized()  # an already running Ray (a notebook, a test) is reused

@@ -28,6 +28,7 @@ from taskvar_torch.config import (
     windy_layout,
 )
 from taskvar_torch.envs import WindyGridEnv
+from taskvar_torch.experiments.scale import ScaleConfig, load_scale_config
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 # Training/experiment configs (the `Config` schema); `scale.yaml` is the scale experiment's own
@@ -415,7 +416,6 @@ def test_failed_config_write_keeps_previous_file(tmp_path: Path, monkeypatch):
 
 
 def test_scale_config_file_loads_strictly():
-    from taskvar_torch.experiments.scale import ScaleConfig, load_scale_config
 
     assert isinstance(load_scale_config(SCALE_CONFIG), ScaleConfig)
     assert isinstance(load_scale_config(SCALE_CONFIG, quick=True), ScaleConfig)

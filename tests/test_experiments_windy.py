@@ -16,6 +16,7 @@ import torch
 
 from taskvar_torch import cli, keys
 from taskvar_torch.config import load_config
+from taskvar_torch.envs import windy
 from taskvar_torch.experiments import windy_fig2 as wf
 from taskvar_torch.oracle import table_heads
 
@@ -245,7 +246,6 @@ def test_discounted_chain_values_match_policy_evaluation():
     cfg, oracle, heads = _oracle_setup()
     ctrl = wf.build_controller("averaging", heads, cfg)
     chain = oracle.controller_chain(ctrl)
-    from taskvar_torch.envs import windy
 
     p, d = torch.tensor([0.3, 0.8], dtype=torch.float64), torch.tensor([0, 1])
     P, R = windy.transition_tensors(oracle.model, p, d, dtype=torch.float64)

@@ -10,6 +10,7 @@ batch's updates and before its log row and checkpoint, and every file goes throu
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,9 +18,11 @@ import textwrap
 import warnings
 from pathlib import Path
 
+import gymnasium as gym
 import pytest
 import torch
 
+import taskvar_torch.train as T
 from taskvar_torch.checkpoint import load_checkpoint, make_bundle, save_checkpoint
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
@@ -202,7 +205,6 @@ def test_second_sigint_during_the_write_aborts_without_a_partial_file(tmp_path):
 
 @pytest.mark.parametrize("frame, group", [(2000, "heads"), (3000, "optimizer")])
 def test_nan_weights_are_never_written(tmp_path, monkeypatch, frame, group):
-    import taskvar_torch.train as T
 
     learners = []
     make_learner = T.make_learner
@@ -262,7 +264,6 @@ def _one_line_error(capsys, *needles: str) -> str:
 
 
 def _copy_run(src: Path, dst: Path) -> Path:
-    import shutil
 
     shutil.copytree(src, dst)
     return dst
@@ -382,7 +383,6 @@ def test_progress_bar_ends_at_its_total(tmp_path, capsys):
 
 
 def _gym_envs():
-    import gymnasium as gym
 
     import taskvar_torch  # noqa: F401  (registers the ids)
 

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from taskvar_torch import rng
-from taskvar_torch.envs import wargus, windy
+from taskvar_torch.envs import WargusEnv, WindyGridEnv, wargus, windy
 
 
 def on_meta(model):
@@ -70,7 +70,6 @@ def test_wargus_reset_step_observe_have_no_host_sync(hit_prob, patrol_speed):
 def test_action_validation_defaults_to_cpu_only():
     """The env wrappers' range check syncs, so by default it runs on CPU only (no host
     round trip in an accelerator step); it can be forced either way."""
-    from taskvar_torch.envs import WargusEnv, WindyGridEnv
 
     for cls in (WindyGridEnv, WargusEnv):
         assert cls(num_envs=2, seed=0).validate_actions

@@ -8,7 +8,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
 from taskvar_torch import keys, rng
-from taskvar_torch.envs import windy
+from taskvar_torch.envs import render, windy
 from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.envs.instances import WindyInstances, windy_instances
 
@@ -245,7 +245,6 @@ class WindyGridEnv(BatchedFamilyEnv):
 
     def render(self, index: int = 0, mode: str = "ansi"):
         """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""
-        from taskvar_torch.envs import render
 
         cell = int(self._cell[index])
         p, d = float(self._p[index]), windy.DIRECTIONS[int(self._dir[index])]

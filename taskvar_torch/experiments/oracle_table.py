@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from taskvar_torch.envs import render, windy
-from taskvar_torch.experiments.plots import save_figure
+from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.oracle import WindyOracle
 
 _ARROW = {0: (0, -0.3), 1: (0, 0.3), 2: (0.3, 0), 3: (-0.3, 0)}  # (dx, dy) in image coordinates
@@ -80,7 +80,6 @@ def format_table(result: dict) -> str:
 
 def plot_grid(layout: str, result: dict, path: Path) -> None:
     """PNG of the grid with the averaging policy's actions and expected returns per cell."""
-    from taskvar_torch.experiments.plots import _pyplot
 
     plt = _pyplot()
     lay = (

@@ -11,6 +11,7 @@ import numpy as np
 
 def _pyplot():
     """pyplot, headless (Agg) in scripts and the CLI; a notebook keeps its inline backend."""
+    # imported here: the backend must be chosen before pyplot is first imported
     import sys
 
     import matplotlib

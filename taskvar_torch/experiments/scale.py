@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
+from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules import RandomPolicy
@@ -58,8 +59,14 @@ from taskvar_torch.config import (
     windy_env_kwargs,
     windy_layout,
 )
+from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
+from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.factory import make_method_controller
+from taskvar_torch.oracle import WindyOracle
+from taskvar_torch.train import load_heads, make_subtasks, train
 
 EXPERIMENT = "scale"
 METHODS = ("averaging", "options", "interruption", "hierarchy")
@@ -292,8 +299,6 @@ def grid_side(cfg: Config) -> int:
 def make_test_env(cfg: Config, num_envs: int, seed: int, index_offset: int = 0) -> EnvBase:
     """The family env on fresh test instances; the same ``seed`` gives the same episodes."""
     if cfg.family == "windy":
-        from taskvar_torch.envs.windy_env import WindyGridEnv
-
         kw = windy_env_kwargs(cfg)
         kw.update(
             num_envs=int(num_envs),
@@ -303,7 +308,6 @@ def make_test_env(cfg: Config, num_envs: int, seed: int, index_offset: int = 0) 
             validate_actions=False,
         )
         return WindyGridEnv(**kw)
-    from taskvar_torch.envs.wargus_env import WargusEnv
 
     return WargusEnv(
         int(num_envs),
@@ -329,15 +333,10 @@ class TablePolicy(nn.Module):
 
 def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None, env: Any = None):
     """A TorchRL policy: a method's controller on ``heads``, ``random`` or ``oracle_averaging``."""
-    from tensordict.nn import TensorDictModule
-
-    from taskvar_torch.factory import make_method_controller
 
     if name == "random":
         return RandomPolicy(env.action_spec)
     if name == "oracle_averaging":
-        from taskvar_torch.oracle import WindyOracle
-
         oracle = WindyOracle(
             windy_layout(cfg.env),
             gamma=cfg.train.gamma,
@@ -356,7 +355,6 @@ def evaluate(
     episodes (global indices ``0..episodes-1`` at the test seed: the same for every policy).
 
     ``None`` where the method does not apply (hierarchy without a composition hierarchy)."""
-    from taskvar_torch.train import make_subtasks
 
     seed = cfg.seed + TEST_SEED_OFFSET
     probe = make_test_env(cfg, 1, seed)
@@ -427,7 +425,6 @@ def run_cell(
     overwrite: bool = False,
 ) -> dict[str, Any]:
     """Train one (case, num_envs) cell with the real trainer, time it, evaluate every method."""
-    from taskvar_torch.train import load_heads, train
 
     ccfg = case_config(cfg, case, num_envs)
     cell_dir = out / "cells" / f"{case.name}-n{num_envs}"
@@ -624,7 +621,6 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     """(Re)draw ``scale.png`` from ``metrics.json``: (a) training time vs grid side per num_envs,
     (b, c) final return per method vs grid side (windy, Wargus; at the largest num_envs, references
     dashed), (d) frames/s vs num_envs per case, (e, f) final return per method vs num_envs."""
-    from taskvar_torch.experiments.plots import _pyplot, save_figure
 
     out = Path(out_dir)
     if not is_results_folder(out):

@@ -67,6 +67,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.multiprocessing as mp
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import TransformedEnv
@@ -80,6 +81,7 @@ from taskvar_torch.controllers import Controller, HierarchyController, option_fi
 from taskvar_torch.envs.wargus import ITEM_LOST, NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.factory import calibrate, make_method_controller, replay_states
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
@@ -791,8 +793,6 @@ def run_repetitions(
         for rep in range(reps):
             results[rep] = run_repetition(cfg, rep, out_dir, lambda r, t: bar.update(1))
     else:
-        import torch.multiprocessing as mp
-
         ctx = mp.get_context("spawn")
         queue = ctx.Queue()
         pending = list(range(reps))
@@ -1090,7 +1090,6 @@ def is_results_folder(out_dir: str | os.PathLike) -> bool:
 def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     """(Re)draw ``fig4.png`` from ``metrics.json``: smoothed mean items per test episode per trial
     with +-std bands over repetitions, and the trials-to-90% bars (paper Figure 4 layout)."""
-    from taskvar_torch.experiments.plots import _pyplot, save_figure
 
     out = Path(out_dir)
     metrics = json.loads((out / "metrics.json").read_text())

@@ -28,6 +28,7 @@ Examples:
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import time
@@ -40,6 +41,7 @@ from torchrl.envs import TransformedEnv
 from tqdm.auto import tqdm
 
 from taskvar_torch import keys
+from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import (
     Config,
     load_config,
@@ -47,13 +49,24 @@ from taskvar_torch.config import (
     windy_env_kwargs,
     windy_layout,
 )
-from taskvar_torch.controllers import Controller, make_controller
+from taskvar_torch.controllers import CONTROLLERS, Controller, make_controller
 from taskvar_torch.envs import windy
 from taskvar_torch.envs.instances import WindyInstances
 from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.evaluation import mean_ci95, paired_summary, run_episodes
+from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sorted_differences
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.oracle import WindyOracle
+from taskvar_torch.train import (
+    check_device,
+    check_output_folder,
+    load_heads,
+    make_env,
+    make_subtasks,
+    run_files,
+    train,
+)
 
 METHODS = ("averaging", "options", "interruption")
 """Methods of Figure 2: the flat baseline, options without interruption, Algorithm 1."""
@@ -113,7 +126,6 @@ def make_eval_env(
 
 def build_controller(method: str, heads: Heads, cfg: Config) -> Controller:
     """A controller of ``method`` on ``heads`` with the family's option terminations."""
-    from taskvar_torch.train import make_env, make_subtasks
 
     if method == "hierarchy":
         raise ValueError(
@@ -182,7 +194,6 @@ def evaluate(
 
 def make_oracle(cfg: Config):
     """The exact oracle of ``cfg``'s layout, or ``None`` when the layout is too large."""
-    from taskvar_torch.oracle import WindyOracle
 
     layout = windy_layout(cfg.env)
     if layout.num_cells > EXACT_MAX_CELLS:
@@ -537,8 +548,6 @@ def windy_fig2(
     Returns:
         The metrics dict written to ``metrics.json``.
     """
-    from taskvar_torch.checkpoint import load_checkpoint
-    from taskvar_torch.train import check_device, check_output_folder, load_heads, run_files, train
 
     if cfg.family != "windy":
         raise ValueError(f"windy-fig2 needs family='windy', got family={cfg.family!r}")
@@ -614,7 +623,6 @@ def windy_fig2(
 
 def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
     """The checkpoint's config with ``cfg``'s experiment and eval sections (sizes of this run)."""
-    import dataclasses
 
     return dataclasses.replace(ckpt_cfg, experiment=cfg.experiment, eval=cfg.eval)
 
@@ -729,7 +737,6 @@ def read_csv_columns(path: Path) -> dict[str, dict[str, np.ndarray]]:
 
 def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     """(Re)draw Figure 2 per distribution and the interruption heat-map from a results folder."""
-    from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sorted_differences
 
     out = Path(out_dir)
     for name in (CSV_NAME, METRICS_NAME, "config.yaml"):
@@ -799,8 +806,6 @@ def eval_checkpoint(
     episodes and method (``test``: ``train`` for the training distribution, ``south`` for
     south-only). Writes ``out_dir/metrics.json`` when ``out_dir`` is given.
     """
-    from taskvar_torch.controllers import CONTROLLERS
-    from taskvar_torch.train import check_output_folder, load_heads
 
     if method not in CONTROLLERS:  # fail before any work or progress bar, in one line
         raise ValueError(f"method must be one of {list(CONTROLLERS)}, got {method!r}")
