@@ -24,9 +24,10 @@ install-test: $(BIN)/python
 demo: install
 	$(BIN)/taskvar experiment windy-fig2 --quick --overwrite --out $(OUT)
 
-## test: install the test extras and run the whole suite (what .ci/run calls)
+## test: install the test extras, check lint and formatting, run the whole suite (what .ci/run calls)
 test: install-test
-	$(BIN)/ruff check taskvar_torch tests benchmarks
+	$(BIN)/ruff check taskvar_torch tests benchmarks scripts
+	$(BIN)/ruff format --check taskvar_torch tests benchmarks scripts
 	$(BIN)/python -m pytest -q
 
 ## notebooks: install the test extras (nbclient, ipykernel) and execute the three notebooks with
@@ -34,8 +35,10 @@ test: install-test
 notebooks: install-test
 	$(BIN)/python -m pytest -q tests/test_notebooks.py
 
+## lint: the lint and format checks of make test, without installing or testing
 lint:
-	$(BIN)/ruff check taskvar_torch tests benchmarks
+	$(BIN)/ruff check taskvar_torch tests benchmarks scripts
+	$(BIN)/ruff format --check taskvar_torch tests benchmarks scripts
 
 clean:
 	rm -rf $(VENV) results .pytest_cache

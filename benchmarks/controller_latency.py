@@ -1,4 +1,4 @@
-"""Controller latency and throughput (issue 4 item 5), single-threaded CPU.
+"""Controller latency and throughput (docs/benchmarks.md), single-threaded CPU.
 
 Per controller (averaging, options, interruption, hierarchy):
 
@@ -14,7 +14,7 @@ Heads: a realistic small bundle, one MLP per head with 2 x 64 hidden units over 
 one-hot observation of the default windy grid (2 exit options; the hierarchy adds a root node).
 Timing: best of ``--repeats`` runs of ``--iters`` calls, wall clock and this thread's CPU time
 (``time.thread_time``: robust to other processes on a loaded machine), under
-``torch.inference_mode``. Targets (issue 4): <= 50 us at B=1 incl. forward, >= 50M decisions/s at
+``torch.inference_mode``. Targets: <= 50 us at B=1 incl. forward, >= 50M decisions/s at
 B=16384.
 
 Usage::

@@ -1,4 +1,4 @@
-"""Env throughput, measured side by side in one run (issue 2, item 5).
+"""Env throughput, measured side by side in one run (docs/benchmarks.md).
 
 (a) a Gymnasium loop over ``taskvar/WindyGrid-v0``;
 (b) the raw batched windy step (keyed wind draw + dynamics + step counter) at several N;
@@ -78,7 +78,9 @@ class _RandomAction(nn.Module):
     def __init__(self, n_envs: int, device: torch.device):
         super().__init__()
         gen = torch.Generator(device=device).manual_seed(0)
-        self.register_buffer("table", torch.randint(0, 4, (64, n_envs), device=device, generator=gen))
+        self.register_buffer(
+            "table", torch.randint(0, 4, (64, n_envs), device=device, generator=gen)
+        )
         self.t = 0
 
     def forward(self, cell: torch.Tensor) -> torch.Tensor:
@@ -112,7 +114,9 @@ def bench_collector(n_envs: int, seconds: float, device: torch.device) -> float:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--threads", type=int, default=1, help="torch threads (1 = single-threaded)")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--quick", action="store_true", help="short timings (smoke run)")

@@ -1,4 +1,4 @@
-"""Learner throughput, measured side by side in one run (issue 3, item 5).
+"""Learner throughput, measured side by side in one run (docs/benchmarks.md).
 
 (a) the multi-head learner (``MultiHeadLearner``): one buffer sample, one relabelling, one fused
     pass of every head (averaging, options, switching, max-value) stacked in one ``StackedMLP``,
@@ -11,7 +11,7 @@
 Both train the same head networks (MLP width 64, two hidden layers) on the same windy replay data,
 batch 256, single-threaded by default. One *update* trains every head once; samples/s counts the
 transitions read. Runs alternate (a, b, a, b, ...) and the medians are compared, so a loaded
-machine slows both alike. Target (issue 3): (a) >= 1.5x (b).
+machine slows both alike. Target: (a) >= 1.5x (b).
 
 Usage: ``python benchmarks/learner_throughput.py [--threads 1] [--seconds 3] [--repeats 3]``.
 """

@@ -1,4 +1,4 @@
-"""Scaling with collector processes and batch size (issue 6, item 4; README "Many processes").
+"""Scaling with collector processes and batch size (docs/benchmarks.md, Collector workers).
 
 (a) env steps/s: ``WindyGridEnv`` stepped by the trainer's collector (:func:`make_collector`,
     the real behaviour policy, epsilon 0.1), ``--steps`` steps per sub-env per batch, the weight
@@ -139,8 +139,11 @@ def main() -> None:
     ap.add_argument("--sizes", default="256,4096,16384", help="env.num_envs values N")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per process")
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--backend", default="process",
-                    help="collector.backend: process, ray (local Ray actors) or process,ray (both)")
+    ap.add_argument(
+        "--backend",
+        default="process",
+        help="collector.backend: process, ray (local Ray actors) or process,ray (both)",
+    )
     ap.add_argument("--steps", type=int, default=16, help="(a) steps per sub-env per batch")
     ap.add_argument("--batches", type=int, default=5, help="timed batches, (a) and (b)")
     ap.add_argument("--updates", type=int, default=8, help="(b) gradient steps per batch")
@@ -164,9 +167,7 @@ def main() -> None:
         collect[b], learn[b] = {}, {}
         for n in sizes:
             for w in workers:
-                collect[b][(n, w)] = bench_collect(
-                    n, w, args.steps, args.batches, args.device, b
-                )
+                collect[b][(n, w)] = bench_collect(n, w, args.steps, args.batches, args.device, b)
                 learn[b][(n, w)] = bench_train(n, w, args.batches, args.updates, args.device, b)
                 print(
                     f"  {b} N={n} W={w}: {collect[b][(n, w)][0] / 1e3:.1f}k env steps/s, "
@@ -174,10 +175,14 @@ def main() -> None:
                     flush=True,
                 )
     for b in backends:
-        table(f"[{b}] (a) env steps/s through the collector ({args.steps} steps per batch)",
-              collect[b])
-        table(f"[{b}] (b) training frames/s, train() ({args.updates} updates per batch of 4N "
-              "frames)", learn[b])
+        table(
+            f"[{b}] (a) env steps/s through the collector ({args.steps} steps per batch)",
+            collect[b],
+        )
+        table(
+            f"[{b}] (b) training frames/s, train() ({args.updates} updates per batch of 4N frames)",
+            learn[b],
+        )
     if len(backends) == 2:
         print("\nray / process, same N and W: (a) env steps/s, (b) training frames/s")
         for n in sizes:

@@ -22,6 +22,7 @@ import argparse
 import dataclasses
 
 import torch
+from torchrl.envs import TransformedEnv
 
 from taskvar_torch import keys
 from taskvar_torch.envs import wargus
@@ -134,7 +135,6 @@ def play(heads, cfg, method: str, seeds, tau: float) -> dict[str, float]:
 def play_options(heads, cfg, seeds) -> dict[str, object]:
     """The options controller (mu_bar over Q_mu, options run to termination): items per episode
     and the share of live steps each option ran."""
-    from torchrl.envs import TransformedEnv
 
     n = len(seeds)
     env = fixed_instances_env(cfg, seeds)

@@ -1,4 +1,4 @@
-"""Checkpoint bundles (SPEC §6): plain data only, atomic writes, clear refusals.
+"""Checkpoint bundles: plain data only, atomic writes, clear refusals.
 
 A bundle is a dict of plain data: tensors, dicts, lists, tuples, str, int, float, bool and None
 (``torch.load(..., weights_only=True)`` accepts nothing else, so loading never executes code from

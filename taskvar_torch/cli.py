@@ -1,4 +1,4 @@
-"""Command line: ``taskvar COMMAND ...`` (DESIGN.md layout: train | eval | experiment | plot).
+"""Command line: ``taskvar COMMAND ...`` (train | eval | experiment | plot | sweep).
 
 Each command is one entry of :data:`COMMANDS`: a help line, a function adding its arguments to an
 ``argparse`` parser, and a function running it. Commands parse *intermixed* arguments, so
@@ -26,6 +26,10 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from taskvar_torch.checkpoint import CheckpointError
+
+# Each subcommand imports the machinery it runs inside its own function: the experiment modules
+# share function names (default_config_path, plot_results, scale), and `taskvar --help` or a
+# one-line error does not load every experiment.
 
 
 @dataclass(frozen=True)
@@ -107,7 +111,7 @@ def _train_run(args: argparse.Namespace) -> int:
 
 
 def _print_oracle_summary(path: str | os.PathLike) -> None:
-    """For small windy layouts, print the learnt heads beside the exact oracle (SPEC §4)."""
+    """For small windy layouts, print the learnt heads beside the exact oracle (docs/oracle.md)."""
     from taskvar_torch.train import load_heads
 
     heads, cfg = load_heads(path)
@@ -262,8 +266,9 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
         help="wargus-fig4: run the repetitions in N processes (default 1: sequentially)",
     )
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
-    p.add_argument("--no-plots", action="store_true",
-                   help="write no PNGs (taskvar plot DIR draws them later)")
+    p.add_argument(
+        "--no-plots", action="store_true", help="write no PNGs (taskvar plot DIR draws them later)"
+    )
 
 
 def _experiment_run(args: argparse.Namespace) -> int:
@@ -352,28 +357,52 @@ def _sweep_arguments(p: argparse.ArgumentParser) -> None:
         help="swept keys (comma-separated values; the points are their Cartesian product) and "
         "fixed overrides (key.sub=value)",
     )
-    p.add_argument("--backend", required=True, choices=("local", "ray"),
-                   help="local: the points one after the other in this process; ray: one Ray task "
-                   "(1 CPU) per point")
+    p.add_argument(
+        "--backend",
+        required=True,
+        choices=("local", "ray"),
+        help="local: the points one after the other in this process; ray: one Ray task "
+        "(1 CPU) per point",
+    )
     p.add_argument("--address", metavar="ADDR", help="ray: a Ray cluster (default: a local Ray)")
-    p.add_argument("--workers", type=int, metavar="N",
-                   help="ray: CPUs of the local Ray, i.e. points at once (default: all cores)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="ray: CPUs of the local Ray, i.e. points at once (default: all cores)",
+    )
     p.add_argument("--quick", action="store_true", help="apply experiment.quick_overrides")
-    p.add_argument("--out", default="results/sweep", metavar="DIR",
-                   help="sweep folder: DIR/<point>/ per point, DIR/summary.csv, DIR/summary.json "
-                   "(default: results/sweep)")
+    p.add_argument(
+        "--out",
+        default="results/sweep",
+        metavar="DIR",
+        help="sweep folder: DIR/<point>/ per point, DIR/summary.csv, DIR/summary.json "
+        "(default: results/sweep)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
-    p.add_argument("--no-plots", action="store_true",
-                   help="points write no PNGs (faster; taskvar plot DIR/<point> draws them later)")
+    p.add_argument(
+        "--no-plots",
+        action="store_true",
+        help="points write no PNGs (faster; taskvar plot DIR/<point> draws them later)",
+    )
     _overwrite_argument(p, "DIR (the sweep and its points)")
 
 
 def _sweep_run(args: argparse.Namespace) -> int:
     from taskvar_torch.sweep import sweep
 
-    sweep(args.config, args.items, args.out, backend=args.backend, quick=args.quick,
-          address=args.address, workers=args.workers, progress=not args.no_progress,
-          plots=not args.no_plots, overwrite=args.overwrite)
+    sweep(
+        args.config,
+        args.items,
+        args.out,
+        backend=args.backend,
+        quick=args.quick,
+        address=args.address,
+        workers=args.workers,
+        progress=not args.no_progress,
+        plots=not args.no_plots,
+        overwrite=args.overwrite,
+    )
     return 0
 
 
@@ -383,13 +412,21 @@ def _scale_run(args: argparse.Namespace) -> int:
     from taskvar_torch.experiments.scale import default_config_path, load_scale_config, scale
 
     if args.checkpoint is not None:
-        raise ValueError("scale trains one bundle per (case, num_envs) cell; --checkpoint is not used")
+        raise ValueError(
+            "scale trains one bundle per (case, num_envs) cell; --checkpoint is not used"
+        )
     config_path, overrides = _split_config_and_overrides(args.items)
     cfg = load_scale_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
-    torch.set_num_threads(1)  # timings are single-threaded (see README "Scaled-up grids")
-    scale(cfg, out, progress=not args.no_progress, quick=args.quick, plots=not args.no_plots,
-          overwrite=args.overwrite)
+    torch.set_num_threads(1)  # timings are single-threaded (see docs/scale.md)
+    scale(
+        cfg,
+        out,
+        progress=not args.no_progress,
+        quick=args.quick,
+        plots=not args.no_plots,
+        overwrite=args.overwrite,
+    )
     return 0
 
 
@@ -419,7 +456,7 @@ def _plot_run(args: argparse.Namespace) -> int:
 COMMANDS: dict[str, Command] = {
     "train": Command(
         help="train every head (averaging, options, mu_bar, max-value, robustness)",
-        description="Train every head of a family from one stream of experience (SPEC §2): "
+        description="Train every head of a family from one stream of experience: "
         "CSV logs in DIR/logs, periodic checkpoints, DIR/final.pt.",
         add_arguments=_train_arguments,
         run=_train_run,
@@ -427,15 +464,14 @@ COMMANDS: dict[str, Command] = {
     ),
     "eval": Command(
         help="evaluate a trained bundle with a controller on a test distribution",
-        description="Evaluate any saved bundle without retraining (SPEC §5, checkpoint-based "
-        "evaluation).",
+        description="Evaluate any saved bundle without retraining (checkpoint-based evaluation).",
         add_arguments=_eval_arguments,
         run=_eval_run,
     ),
     "experiment": Command(
         help="run one of the paper's experiments (windy-fig2, wargus-fig4, scale)",
         description="Train (or load --checkpoint), evaluate, write a results folder and print a "
-        "table (SPEC §5).",
+        "table.",
         add_arguments=_experiment_arguments,
         run=_experiment_run,
     ),

@@ -1,4 +1,4 @@
-"""Strict experiment configs (DESIGN.md "Config"): frozen dataclasses mirrored by ``configs/*.yaml``.
+"""Strict experiment configs: frozen dataclasses mirrored by ``configs/*.yaml``.
 
 Loading goes through OmegaConf structured configs: the YAML file is merged into the schema built
 from :class:`Config`, then Hydra-style ``key.sub=value`` overrides are merged on top, and the result
@@ -62,7 +62,7 @@ GENERATED = "generated"
 
 @dataclass(frozen=True)
 class WargusConfig:
-    """Wargus resource-gathering family (SPEC §1.2); read only when ``family='wargus'``."""
+    """Wargus resource-gathering family (paper §3.5); read only when ``family='wargus'``."""
 
     size: int = 32
     """Grid side length (size x size cells, no obstacles)."""
@@ -136,7 +136,7 @@ class HeadsConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Offline training of every head from one stream of experience (SPEC §2)."""
+    """Offline training of every head from one stream of experience (docs/design.md, Training)."""
 
     gamma: float = 0.99
     """Discount of the environment and subtask rewards."""
@@ -239,7 +239,7 @@ class TrainConfig:
 @dataclass(frozen=True)
 class CollectorConfig:
     """Experience collection: one process, TorchRL's MultiSyncCollector, or Ray collector actors
-    (README "Many processes")."""
+    (docs/design.md, Many processes and Ray actors)."""
 
     num_workers: int = 1
     """Collector workers; > 1 gives each a slice of env.num_envs (behaviour weights and epsilon
@@ -256,7 +256,7 @@ class CollectorConfig:
 
 @dataclass(frozen=True)
 class EvalConfig:
-    """Evaluation of a trained bundle on an instance distribution (SPEC §5)."""
+    """Evaluation of a trained bundle on an instance distribution."""
 
     method: str = "interruption"
     """Controller: averaging, options, interruption or hierarchy."""
@@ -270,7 +270,7 @@ class EvalConfig:
 
 @dataclass(frozen=True)
 class ExperimentConfig:
-    """The paper's experiments (SPEC §5): windy Figure 2, Wargus Figure 4."""
+    """The paper's experiments: windy Figure 2, Wargus Figure 4."""
 
     runs: int = 5
     """Independent repetitions (windy: test runs; Wargus: repetitions)."""

@@ -1,4 +1,4 @@
-"""The tensordict key vocabulary, declared once (DESIGN.md "Key interfaces").
+"""The tensordict key vocabulary, declared once (docs/design.md, Vocabulary).
 
 Envs, heads, controllers, learners and experiments import these names rather than spelling strings.
 Everything under ``INSTANCE`` is hidden task information: no policy, head or controller reads it;
@@ -16,21 +16,21 @@ TRUNCATED = "truncated"
 NEXT = "next"
 
 # Integer position / event state, kept beside the observation so subtask rewards can be computed
-# from raw transitions (SPEC §2). Windy: ``cell`` (flat row*W+col). Wargus: see envs/wargus.py.
+# from raw transitions. Windy: ``cell`` (flat row*W+col). Wargus: see envs/wargus.py.
 CELL = "cell"
 STEP_COUNT = "step_count"
 
 INSTANCE = "instance"  # ("instance", name): hidden instance parameters (never in the observation)
 
-# Head outputs (DESIGN.md): averaging (B, A), options (B, O, A), switching (B, O),
-# max-value (B, O), robustness (B, O, A).
+# Head outputs (docs/design.md, The ``Heads`` interface): averaging (B, A), options (B, O, A),
+# switching (B, O), max-value (B, O), robustness (B, O, A).
 ACTION_VALUE = "action_value"
 OPTION_ACTION_VALUE = "option_action_value"
 OPTION_VALUE = "option_value"
 MAX_VALUE = "max_value"
 ROBUSTNESS = "robustness"
 
-# Controller carried state and decision traces (SPEC §3).
+# Controller carried state and decision traces (paper §3.3-3.4).
 OPTION = "option"
 RUNNING_OPTION = "running_option"
 HIERARCHY_LEVEL = "hierarchy_level"

@@ -1,4 +1,4 @@
-"""Exact tabular oracle for the windy family (SPEC §4; paper §3.1-3.4, Definition 1, Algorithms 1-2).
+"""Exact tabular oracle for the windy family (paper §3.1-3.4, Definition 1, Algorithms 1-2).
 
 Small windy instances are solved exactly in torch (float64, batched over instances). The oracle
 computes the mean-MDP averaging optimum (paper §3.1), each exit option's averaging policy (§3.2),
@@ -244,7 +244,7 @@ def solve_mdp(
 
 
 class WindyOracle:
-    """Exact solver of a windy layout's family (SPEC §4).
+    """Exact solver of a windy layout's family (docs/oracle.md).
 
     Args:
         model_or_layout: a :class:`~taskvar_torch.envs.windy.WindyModel`, a layout, a layout name
@@ -570,7 +570,7 @@ class WindyOracle:
     def _max_value_default(self) -> Tensor:
         return self._max_value(*self.instance_set(None))
 
-    # ---- what the learnt heads converge to (issue 11 item 5) -------------------------------------
+    # ---- what the learnt heads converge to (docs/oracle.md) -------------------------------------
 
     def _objective_tables(self, option: str | int | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``(P (K, S, A, S), R (K, S, A), cont (S,), weight (K,))`` over the training quadrature:
@@ -813,7 +813,7 @@ class WindyOracle:
             {keys.CELL: cells, keys.OBSERVATION: obs}, batch_size=[self.S], device=self.device
         )
 
-    # ---- exact evaluation of controllers (issue 4 item 4) ----------------------------------------
+    # ---- exact evaluation of controllers ---------------------------------------------------------
 
     @torch.no_grad()
     def tabulate(self, heads: Heads, obs_encoding: str = "onehot") -> dict[str, Tensor]:

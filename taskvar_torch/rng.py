@@ -5,7 +5,7 @@ with the number of environments it is batched with. Like Gymnax/JAX keys, we ins
 sub-environment episode an integer key and draw ``bits = hash(key, counter)``: the draw depends
 only on (seed, sub-environment index, episode, step), never on N, the device or the order of calls.
 That gives bit-identical trajectories whatever N is split into, and common random numbers for
-paired evaluation (SPEC §5) for free.
+paired evaluation (docs/windy-fig2.md) for free.
 
 Keys are uint32 values. The generic functions work on Python ints, numpy ``int64`` arrays and torch
 ``int64`` tensors; the ``*_i32`` functions are the hot-path versions on torch ``int32`` tensors
@@ -85,6 +85,8 @@ def draw_bits_i32(key: torch.Tensor, counter: torch.Tensor | int) -> torch.Tenso
     return x ^ ((x >> 16) & 0xFFFF)
 
 
-def bernoulli_i32(key: torch.Tensor, counter: torch.Tensor | int, threshold: torch.Tensor) -> torch.Tensor:
+def bernoulli_i32(
+    key: torch.Tensor, counter: torch.Tensor | int, threshold: torch.Tensor
+) -> torch.Tensor:
     """``u(key, counter) < p`` with ``threshold = probability_threshold(p)``: bool, hot path."""
     return ((draw_bits_i32(key, counter) >> 8) & 0xFFFFFF) < threshold

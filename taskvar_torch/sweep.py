@@ -37,10 +37,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import torch
 from tqdm.auto import tqdm
 
 from taskvar_torch.config import Config, load_config
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
+from taskvar_torch.experiments.windy_fig2 import windy_fig2
+from taskvar_torch.train import TrainingDiverged
 
 BACKENDS = ("local", "ray")
 EXPERIMENT_OF_FAMILY = {"windy": "windy-fig2", "wargus": "wargus-fig4"}
@@ -123,9 +127,7 @@ def expand_points(items: Sequence[str]) -> list[SweepPoint]:
         if name in names:  # two values that differ only in unsafe characters
             name = f"{name},{len(points)}"
         names.add(name)
-        points.append(
-            SweepPoint(name, values, (*fixed, *(f"{k}={v}" for k, v in values.items())))
-        )
+        points.append(SweepPoint(name, values, (*fixed, *(f"{k}={v}" for k, v in values.items()))))
     return points
 
 
@@ -157,9 +159,6 @@ def run_point(
         ``{"metrics": metrics.json's dict, "seconds": wall time}``; a diverged run returns
         ``{"error": message, "seconds": ...}`` instead (the sweep goes on).
     """
-    import torch
-
-    from taskvar_torch.train import TrainingDiverged
 
     torch.set_num_threads(1)  # one core per point (the heads are small MLPs)
     out = Path(out_dir)
@@ -168,14 +167,10 @@ def run_point(
     with open(out / POINT_LOG, "w") as log, contextlib.redirect_stdout(log):
         try:
             if cfg.family == "windy":
-                from taskvar_torch.experiments.windy_fig2 import windy_fig2
-
                 metrics = windy_fig2(
                     cfg, out, progress=False, quick=quick, plots=plots, overwrite=overwrite
                 )
             else:
-                from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
-
                 metrics = wargus_fig4(
                     cfg, out, workers=1, progress=False, plots=plots, overwrite=overwrite
                 )
@@ -192,14 +187,20 @@ def headline(metrics: dict[str, Any]) -> dict[str, Any]:
     and the exact (oracle) fraction no worse, for the training distribution and south-only winds. Wargus Figure 4: each method's final score and trials to 90%.
     """
     if metrics.get("experiment") == "windy-fig2":
-        keys = ("fraction_no_worse", "mean_difference", "fraction_no_worse_null",
-                "fraction_no_worse_exact")
+        keys = (
+            "fraction_no_worse",
+            "mean_difference",
+            "fraction_no_worse_null",
+            "fraction_no_worse_exact",
+        )
         row = {k: metrics.get(k) for k in keys}
         south = metrics.get("south_only") or {}
         row.update({f"south_only.{k}": south.get(k) for k in keys})
         return row
     row = {f"final_score.{n}": m["final_score"] for n, m in metrics["methods"].items()}
-    row.update({f"trials_to_90pct.{n}": m["trials_to_90pct"] for n, m in metrics["methods"].items()})
+    row.update(
+        {f"trials_to_90pct.{n}": m["trials_to_90pct"] for n, m in metrics["methods"].items()}
+    )
     return row
 
 
@@ -226,14 +227,18 @@ def _run_ray(
     overwrite: bool,
 ) -> list[dict[str, Any]]:
     try:
-        import ray
+        import ray  # optional dependency (the distributed extra): imported only on the ray backend
     except ImportError:
         raise ValueError(RAY_MISSING) from None
     started = not ray.is_initialized()  # an already running Ray (a notebook, a test) is reused
     if started:
         if address is None:  # "local": a new Ray, never a cluster found in RAY_ADDRESS
-            ray.init(address="local", num_cpus=workers or os.cpu_count() or 1,
-                     include_dashboard=False, log_to_driver=False)
+            ray.init(
+                address="local",
+                num_cpus=workers or os.cpu_count() or 1,
+                include_dashboard=False,
+                log_to_driver=False,
+            )
         else:  # a cluster: "auto", "HOST:6379", or "ray://HOST:10001" (Ray Client)
             try:
                 ray.init(address=address, log_to_driver=False)
@@ -291,9 +296,13 @@ def sweep(
     if backend not in BACKENDS:
         raise ValueError(f"--backend must be one of {list(BACKENDS)}, got {backend!r}")
     if backend == "local" and (address is not None or workers is not None):
-        raise ValueError("--address and --workers are for --backend ray; local runs one point at a time")
+        raise ValueError(
+            "--address and --workers are for --backend ray; local runs one point at a time"
+        )
     if address is not None and workers is not None:
-        raise ValueError("--workers sets the CPUs of a local Ray; with --address the cluster's are used")
+        raise ValueError(
+            "--workers sets the CPUs of a local Ray; with --address the cluster's are used"
+        )
     if workers is not None and workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
     points = expand_points(items)
@@ -324,24 +333,35 @@ def sweep(
         rows.append(row)
     fields = list(dict.fromkeys(k for row in rows for k in row))
     write_csv(out / SUMMARY_CSV, rows, fields)
-    write_json(out / SUMMARY_JSON, {
-        "config": str(config),
-        "experiment": sorted({EXPERIMENT_OF_FAMILY[c.family] for c in cfgs}),
-        "backend": backend,
-        "quick": bool(quick),
-        "plots": bool(plots),
-        "items": list(items),
-        "wall_seconds": wall,
-        "points": [
-            {"name": p.name, "folder": str(out / p.name), "values": p.values,
-             "overrides": list(p.overrides), "seconds": r["seconds"], "error": r.get("error")}
-            for p, r in zip(points, results)
-        ],
-        "rows": rows,
-    })
+    write_json(
+        out / SUMMARY_JSON,
+        {
+            "config": str(config),
+            "experiment": sorted({EXPERIMENT_OF_FAMILY[c.family] for c in cfgs}),
+            "backend": backend,
+            "quick": bool(quick),
+            "plots": bool(plots),
+            "items": list(items),
+            "wall_seconds": wall,
+            "points": [
+                {
+                    "name": p.name,
+                    "folder": str(out / p.name),
+                    "values": p.values,
+                    "overrides": list(p.overrides),
+                    "seconds": r["seconds"],
+                    "error": r.get("error"),
+                }
+                for p, r in zip(points, results)
+            ],
+            "rows": rows,
+        },
+    )
     print(format_summary(rows, fields))
-    print(f"{len(rows)} points in {wall:.1f} s ({backend}); wrote {out / SUMMARY_CSV}, "
-          f"{out / SUMMARY_JSON}")
+    print(
+        f"{len(rows)} points in {wall:.1f} s ({backend}); wrote {out / SUMMARY_CSV}, "
+        f"{out / SUMMARY_JSON}"
+    )
     return rows
 
 

@@ -1,4 +1,4 @@
-"""Offline training of every head from one stream of experience (SPEC §2; paper §3.1-3.4).
+"""Offline training of every head from one stream of experience (paper §3.1-3.4; docs/design.md).
 
 The loop, top to bottom (:func:`train`)::
 
@@ -77,6 +77,8 @@ from taskvar_torch.config import (
     save_config_yaml,
     windy_env_kwargs,
 )
+from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
@@ -85,6 +87,8 @@ from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
 from taskvar_torch.heads.networks import PatchLayout, make_stacked_heads
 from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, has_robustness
 from taskvar_torch.subtasks.base import Subtasks
+from taskvar_torch.subtasks.wargus import WargusSubtasks
+from taskvar_torch.subtasks.windy import WindySubtasks
 
 EPISODE_REWARD = "episode_reward"  # RewardSum's running return
 
@@ -122,14 +126,10 @@ def make_env(
     n = cfg.env.num_envs if num_envs is None else int(num_envs)
     s = cfg.seed if seed is None else int(seed)
     if cfg.family == "windy":
-        from taskvar_torch.envs.windy_env import WindyGridEnv
-
         return WindyGridEnv(
             **{**windy_env_kwargs(cfg), "num_envs": n, "seed": s, "index_offset": index_offset}
         )
     if cfg.family == "wargus":
-        from taskvar_torch.envs.wargus_env import WargusEnv
-
         return WargusEnv(
             n,
             config=dataclasses.asdict(cfg.env.wargus),
@@ -144,10 +144,7 @@ def make_env(
 def make_subtasks(cfg: Config, env: EnvBase) -> Subtasks:
     """The family's options (windy: one exit option per exit; Wargus: TG, FE, TG+FE)."""
     if cfg.family == "windy":
-        from taskvar_torch.subtasks.windy import WindySubtasks
-
         return WindySubtasks(env.model)
-    from taskvar_torch.subtasks.wargus import WargusSubtasks
 
     return WargusSubtasks(composed_reward=cfg.train.composed_reward)
 
@@ -260,7 +257,7 @@ def make_ray_collector(cfg: Config, behaviour: BehaviourPolicy, total_frames: in
 
 
 def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
-    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (DESIGN.md).
+    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (docs/design.md).
 
     The heads are independent MLPs stored as members of one ``StackedMLP``, so the learner runs
     them in one batched pass (``heads/networks.py``); ``heads.network=conv`` gives each a conv

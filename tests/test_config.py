@@ -28,6 +28,7 @@ from taskvar_torch.config import (
     windy_layout,
 )
 from taskvar_torch.envs import WindyGridEnv
+from taskvar_torch.experiments.scale import ScaleConfig, load_scale_config
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 # Training/experiment configs (the `Config` schema); `scale.yaml` is the scale experiment's own
@@ -36,7 +37,7 @@ CONFIG_FILES = sorted(p for p in CONFIG_DIR.glob("*.yaml") if p.name != "scale.y
 SCALE_CONFIG = CONFIG_DIR / "scale.yaml"
 WINDY = CONFIG_DIR / "windy.yaml"
 
-# Keys only one family reads: a config file of the other family must not set them (DESIGN.md:
+# Keys only one family reads: a config file of the other family must not set them (
 # no config key that nothing reads).
 WINDY_ONLY = (
     "env.layout",
@@ -271,7 +272,10 @@ def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
         ("heads.activation=sigmoid", ["heads.activation must be one of", "'relu'"]),
         ("env.layout=tiny", ["env.layout must be one of", "'middle_exits'", "'generated'"]),
         ("device=gpu", ["device must be a torch device"]),
-        ("collector.backend=dask", ["collector.backend must be one of ['process', 'ray']", "'dask'"]),
+        (
+            "collector.backend=dask",
+            ["collector.backend must be one of ['process', 'ray']", "'dask'"],
+        ),
         ("collector.ray_address=auto", ["collector.ray_address is for collector.backend=ray"]),
     ],
 )
@@ -412,7 +416,6 @@ def test_failed_config_write_keeps_previous_file(tmp_path: Path, monkeypatch):
 
 
 def test_scale_config_file_loads_strictly():
-    from taskvar_torch.experiments.scale import ScaleConfig, load_scale_config
 
     assert isinstance(load_scale_config(SCALE_CONFIG), ScaleConfig)
     assert isinstance(load_scale_config(SCALE_CONFIG, quick=True), ScaleConfig)

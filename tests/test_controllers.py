@@ -1,4 +1,4 @@
-"""Controllers (SPEC §3, issue 4): Algorithms 1 and 2 on hand-built heads, batched vs looped,
+"""Controllers: the paper's Algorithms 1 and 2 on hand-built heads, batched vs looped,
 sampled returns against the oracle's exact ones, TorchRL rollout/Collector and Gymnasium."""
 
 from __future__ import annotations
@@ -28,7 +28,14 @@ from taskvar_torch.controllers import (
     make_controller,
     select0,
 )
+from taskvar_torch.controllers.hierarchy import (
+    TreeTables,
+    hierarchy_decide_table_of,
+    hierarchy_search_of,
+)
 from taskvar_torch.envs import WindyGridEnv, WindyInstances, windy
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.networks import make_head
 from taskvar_torch.oracle import WindyOracle, table_heads
 from taskvar_torch.subtasks import Hierarchy, Subtasks
 
@@ -203,8 +210,6 @@ def test_batched_rollout_equals_single_environment_rollouts():
 
 
 def mlp_heads(num_options: int = 3, seed: int = 0):
-    from taskvar_torch.heads.bundle import Heads
-    from taskvar_torch.heads.networks import make_head
 
     torch.manual_seed(seed)
     k, d = num_options, 25
@@ -348,11 +353,6 @@ def test_hierarchy_root_can_follow_the_averaging_policy():
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_hierarchy_table_kernel_equals_the_level_walk_and_the_scalar_search(seed):
-    from taskvar_torch.controllers.hierarchy import (
-        TreeTables,
-        hierarchy_decide_table_of,
-        hierarchy_search_of,
-    )
 
     g = torch.Generator().manual_seed(seed)
     B = 2000

@@ -1,4 +1,4 @@
-"""Conv heads (``heads.network=conv``, SPEC §2 "conv for large grids"): the grouped conv trunk of
+"""Conv heads (``heads.network=conv``, for large grids): the grouped conv trunk of
 :class:`StackedConvMLP` equals K separate convs, the patch layout matches the windy observation,
 config errors, a tiny training run and its checkpoint round trip."""
 

@@ -15,7 +15,9 @@ torch.set_num_threads(1)
 
 def table_policy(policy_table: torch.Tensor) -> TensorDictModule:
     """Deterministic policy reading ``cell`` from an (S,) action table."""
-    return TensorDictModule(lambda cell: policy_table[cell], in_keys=[keys.CELL], out_keys=[keys.ACTION])
+    return TensorDictModule(
+        lambda cell: policy_table[cell], in_keys=[keys.CELL], out_keys=[keys.ACTION]
+    )
 
 
 def test_run_episodes_mean_matches_oracle_expected_return():
@@ -35,7 +37,9 @@ def test_same_seed_is_paired_and_noise_seed_is_not():
     b = run_episodes(WindyGridEnv(num_envs=4000, seed=1), pol)
     c = run_episodes(WindyGridEnv(num_envs=4000, seed=1, noise_seed=7), pol)
     assert torch.equal(a["return"], b["return"])
-    assert torch.equal(a["start"], c["start"]) and torch.equal(a["instance", "p"], c["instance", "p"])
+    assert torch.equal(a["start"], c["start"]) and torch.equal(
+        a["instance", "p"], c["instance", "p"]
+    )
     s = paired_summary(c["return"] - a["return"])
     assert 0.0 < s["fraction_better"] < 1.0 and 0.0 < s["fraction_worse"] < 1.0
     assert abs(s["fraction_no_worse"] - (1 - s["fraction_worse"])) < 1e-12

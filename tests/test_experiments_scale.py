@@ -1,4 +1,4 @@
-"""Scaled-up grids experiment (SPEC §5): CLI --quick run on tiny budgets, metrics, config, plot."""
+"""Scaled-up grids experiment: CLI --quick run on tiny budgets, metrics, config, plot."""
 
 from __future__ import annotations
 
@@ -68,7 +68,9 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
     with open(out / "scale.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == len(m["cells"]) * len(scale.METHODS)
-    assert {r["mean_return"] for r in rows if r["case"] == "windy-5x5" and r["method"] == "hierarchy"} == {"n/a"}
+    assert {
+        r["mean_return"] for r in rows if r["case"] == "windy-5x5" and r["method"] == "hierarchy"
+    } == {"n/a"}
 
 
 def test_plot_regenerates_figure(quick_run, capsys):

@@ -1,4 +1,4 @@
-"""Windy Figure 2 experiment and the ``taskvar`` experiment/eval/plot commands (SPEC §5, issue 5).
+"""Windy Figure 2 experiment and the ``taskvar`` experiment/eval/plot commands (docs/windy-fig2.md).
 
 The end-to-end run trains a tiny bundle (a few thousand frames) through the CLI entry function;
 the statistics themselves are checked on the exact oracle's tables, where the answers are known.
@@ -16,6 +16,7 @@ import torch
 
 from taskvar_torch import cli, keys
 from taskvar_torch.config import load_config
+from taskvar_torch.envs import windy
 from taskvar_torch.experiments import windy_fig2 as wf
 from taskvar_torch.oracle import table_heads
 
@@ -32,11 +33,27 @@ TINY = [
     f"experiment.episodes_per_run={EPISODES}",
     "eval.batch_size=16",
 ]
-FRACTIONS = ("fraction_no_worse", "fraction_better", "fraction_worse", "fraction_no_worse_null",
-             "fraction_no_worse_exact")
-REQUIRED = (*FRACTIONS, "mean_difference", "mean_difference_ci95", "interruptions_per_episode",
-            "options_vs_averaging", "interruption_vs_options", "theorem1", "null", "exact",
-            "per_run", "interruption_cells", "mean_return")
+FRACTIONS = (
+    "fraction_no_worse",
+    "fraction_better",
+    "fraction_worse",
+    "fraction_no_worse_null",
+    "fraction_no_worse_exact",
+)
+REQUIRED = (
+    *FRACTIONS,
+    "mean_difference",
+    "mean_difference_ci95",
+    "interruptions_per_episode",
+    "options_vs_averaging",
+    "interruption_vs_options",
+    "theorem1",
+    "null",
+    "exact",
+    "per_run",
+    "interruption_cells",
+    "mean_return",
+)
 
 
 @pytest.fixture(scope="module")
@@ -60,8 +77,14 @@ def _cli(argv: list[str], capsys) -> tuple[int, str, str]:
 
 
 def test_quick_experiment_writes_every_file(results):
-    for name in ("config.yaml", "train/final.pt", "episodes.csv", "metrics.json",
-                 *wf.FIGURES.values(), wf.HEATMAP):
+    for name in (
+        "config.yaml",
+        "train/final.pt",
+        "episodes.csv",
+        "metrics.json",
+        *wf.FIGURES.values(),
+        wf.HEATMAP,
+    ):
         path = results / name
         assert path.is_file() and path.stat().st_size > 0, name
     assert load_config(results / "config.yaml").experiment.runs == RUNS
@@ -88,23 +111,43 @@ def test_metrics_have_every_key_and_fractions_in_unit_interval(results):
         assert section["episodes"] == RUNS * EPISODES
         assert section["interruptions_per_episode"] >= 0
         assert sum(section["interruption_cells"]) == pytest.approx(
-            section["interruptions_per_episode"] * RUNS * EPISODES)
-    assert m["seeds"] == [wf.test_seed(load_config(results / "config.yaml"), r) for r in range(RUNS)]
+            section["interruptions_per_episode"] * RUNS * EPISODES
+        )
+    assert m["seeds"] == [
+        wf.test_seed(load_config(results / "config.yaml"), r) for r in range(RUNS)
+    ]
     starts = m["oracle_by_start"]  # learnt averaging policy beside the oracle's optimum
     assert [tuple(r["start"]) for r in starts] == [(r, 0) for r in range(5)]
     for r in starts:  # exact 100-step returns of stationary policies lie in [-100, -1]
         assert -100.0 <= r["learnt"] <= -1.0 and -100.0 <= r["oracle_optimum"] <= -1.0
 
 
-@pytest.mark.parametrize("method,test,key", [("interruption", "test", None),
-                                             ("averaging", "south", "south_only")])
+@pytest.mark.parametrize(
+    "method,test,key", [("interruption", "test", None), ("averaging", "south", "south_only")]
+)
 def test_eval_reproduces_the_experiment(results, tmp_path, capsys, method, test, key):
     m = json.loads((results / "metrics.json").read_text())
     section = m if key is None else m[key]
     run = section["per_run"][1]
-    rc, out, err = _cli(["eval", "--checkpoint", str(results / "train" / "final.pt"), "--method",
-                         method, "--episodes", str(EPISODES), "--test", test, "--seed",
-                         str(run["seed"]), "--out", str(tmp_path), "--no-progress"], capsys)
+    rc, out, err = _cli(
+        [
+            "eval",
+            "--checkpoint",
+            str(results / "train" / "final.pt"),
+            "--method",
+            method,
+            "--episodes",
+            str(EPISODES),
+            "--test",
+            test,
+            "--seed",
+            str(run["seed"]),
+            "--out",
+            str(tmp_path),
+            "--no-progress",
+        ],
+        capsys,
+    )
     assert rc == 0, err
     ev = json.loads((tmp_path / "metrics.json").read_text())
     assert ev["episodes"] == EPISODES and ev["seed"] == run["seed"]
@@ -128,13 +171,22 @@ def test_plot_regenerates_the_figures(results, capsys):
 # ---- bad input: one line, non-zero exit ---------------------------------------------------------
 
 
-@pytest.mark.parametrize("argv,needle", [
-    (["eval", "--checkpoint", "/nonexistent/final.pt", "--method", "averaging"], "does not exist"),
-    (["eval", "--checkpoint", "CKPT", "--method", "teleport"], "teleport"),
-    (["eval", "--checkpoint", "CKPT", "--method", "averaging", "--test", "east"], "east"),
-    (["experiment", "windy-fig2", "--quick", "--out", "OUT", "train.no_such_key=1"], "no_such_key"),
-    (["plot", "/nonexistent/results"], "nonexistent"),
-])
+@pytest.mark.parametrize(
+    "argv,needle",
+    [
+        (
+            ["eval", "--checkpoint", "/nonexistent/final.pt", "--method", "averaging"],
+            "does not exist",
+        ),
+        (["eval", "--checkpoint", "CKPT", "--method", "teleport"], "teleport"),
+        (["eval", "--checkpoint", "CKPT", "--method", "averaging", "--test", "east"], "east"),
+        (
+            ["experiment", "windy-fig2", "--quick", "--out", "OUT", "train.no_such_key=1"],
+            "no_such_key",
+        ),
+        (["plot", "/nonexistent/results"], "nonexistent"),
+    ],
+)
 def test_bad_input_is_one_line_error(results, tmp_path, capsys, argv, needle):
     ckpt = str(results / "train" / "final.pt")
     argv = [ckpt if a == "CKPT" else str(tmp_path / "o") if a == "OUT" else a for a in argv]
@@ -183,8 +235,10 @@ def test_exact_returns_match_the_oracle_for_the_averaging_policy():
     start = oracle.start_cells[:3].numpy()
     got = wf.exact_returns(oracle, ctrl, cfg, p, d, start)
     pi = oracle.averaging_policy()
-    want = [oracle.episode_return(pi, float(p[i]), int(d[i]), start=int(start[i])).item()
-            for i in range(3)]
+    want = [
+        oracle.episode_return(pi, float(p[i]), int(d[i]), start=int(start[i])).item()
+        for i in range(3)
+    ]
     np.testing.assert_allclose(got, want, atol=1e-9)
 
 
@@ -192,7 +246,6 @@ def test_discounted_chain_values_match_policy_evaluation():
     cfg, oracle, heads = _oracle_setup()
     ctrl = wf.build_controller("averaging", heads, cfg)
     chain = oracle.controller_chain(ctrl)
-    from taskvar_torch.envs import windy
 
     p, d = torch.tensor([0.3, 0.8], dtype=torch.float64), torch.tensor([0, 1])
     P, R = windy.transition_tensors(oracle.model, p, d, dtype=torch.float64)
@@ -204,15 +257,19 @@ def test_discounted_chain_values_match_policy_evaluation():
 def test_distribution_metrics_count_firings_and_check_theorem1():
     # A max-value head lowered by 3 makes Algorithm 1 fire; every firing is checked.
     cfg, oracle, heads = _oracle_setup(max_value_shift=3.0)
-    m, rows = wf.run_distribution(heads, cfg, "test", runs=1, episodes=128, oracle=oracle,
-                                  progress=False, desc="train")
+    m, rows = wf.run_distribution(
+        heads, cfg, "test", runs=1, episodes=128, oracle=oracle, progress=False, desc="train"
+    )
     assert len(rows) == 128
     assert m["interruptions_per_episode"] > 0
     assert sum(m["interruption_cells"]) == round(m["interruptions_per_episode"] * 128)
     th = m["theorem1"]
     assert th["firings"] == sum(m["interruption_cells"])
-    for k in ("premise_held_fraction", "proof_condition_held_fraction",
-              "max_value_assumption_held_fraction"):
+    for k in (
+        "premise_held_fraction",
+        "proof_condition_held_fraction",
+        "max_value_assumption_held_fraction",
+    ):
         assert 0.0 <= th[k] <= 1.0
     held = th["outcome_premise_held_at_every_firing"]["episodes"]
     failed = th["outcome_premise_failed_somewhere"]["episodes"]

@@ -1,4 +1,4 @@
-"""Fault injection (issue 14): SIGKILL at several points of a short run then ``--resume``; SIGINT
+"""Fault injection: SIGKILL at several points of a short run then ``--resume``; SIGINT
 and SIGTERM; a second SIGINT during the checkpoint write; NaN weights; run-folder refusals.
 
 A run is ``taskvar train`` in a new process on the 5x5 windy family (3000 frames, checkpoints
@@ -10,6 +10,7 @@ batch's updates and before its log row and checkpoint, and every file goes throu
 from __future__ import annotations
 
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -17,10 +18,12 @@ import textwrap
 import warnings
 from pathlib import Path
 
+import gymnasium as gym
 import pytest
 import torch
 from test_train import assert_same  # tests/ is on sys.path (rootdir import mode)
 
+import taskvar_torch.train as T
 from taskvar_torch.checkpoint import load_checkpoint, make_bundle, save_checkpoint
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
@@ -187,7 +190,6 @@ def test_second_sigint_during_the_write_aborts_without_a_partial_file(tmp_path):
 
 @pytest.mark.parametrize("frame, group", [(2000, "heads"), (3000, "optimizer")])
 def test_nan_weights_are_never_written(tmp_path, monkeypatch, frame, group):
-    import taskvar_torch.train as T
 
     learners = []
     make_learner = T.make_learner
@@ -247,7 +249,6 @@ def _one_line_error(capsys, *needles: str) -> str:
 
 
 def _copy_run(src: Path, dst: Path) -> Path:
-    import shutil
 
     shutil.copytree(src, dst)
     return dst
@@ -367,7 +368,6 @@ def test_progress_bar_ends_at_its_total(tmp_path, capsys):
 
 
 def _gym_envs():
-    import gymnasium as gym
 
     import taskvar_torch  # noqa: F401  (registers the ids)
 

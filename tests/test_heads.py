@@ -1,4 +1,4 @@
-"""Head learners (SPEC §2, issue 3): losses against TorchRL's DQNLoss, the fused pass against the
+"""Head learners: losses against TorchRL's DQNLoss, the fused pass against the
 heads run one by one, relabelling, first-visit replay, the behaviour policy, target updates."""
 
 from __future__ import annotations
@@ -8,6 +8,7 @@ import copy
 import pytest
 import torch
 from tensordict import TensorDict
+from torchrl.data import Categorical
 from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss
 
@@ -24,7 +25,7 @@ from taskvar_torch.heads.learner import (
 )
 from taskvar_torch.heads.max_value import OptimismGapHead
 from taskvar_torch.heads.networks import StackedMLP, head_network
-from taskvar_torch.heads.relabel import relabel
+from taskvar_torch.heads.relabel import Transitions, relabel
 from taskvar_torch.heads.robustness import component_matrix, parent_closure, robustness_loss
 from taskvar_torch.heads.targets import expectile_loss, masked_mean
 from taskvar_torch.subtasks import Hierarchy
@@ -188,7 +189,6 @@ def test_parent_closure_sends_component_updates_to_the_composed_parent():
 
 def _robustness_batch(B: int, num_options: int):
     """A hand-built relabelled batch: zero robustness rewards, nothing terminated."""
-    from taskvar_torch.heads.relabel import Transitions
 
     z = torch.zeros(B, 1)
     return Transitions(
@@ -326,7 +326,6 @@ def test_behaviour_picks_a_mode_per_episode_and_keeps_it(windy):
 
 
 def _spec(n: int):
-    from torchrl.data import Categorical
 
     return Categorical(4, shape=(n,), dtype=torch.int64)
 

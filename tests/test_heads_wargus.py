@@ -1,5 +1,5 @@
 """Wargus robustness critics after a short training run rank states as the paper intends
-(§3.4.3, §3.5.2; issue 3 acceptance): R(TG) is higher where the item is seen, R(FE) is lower inside
+(paper §3.4.3, §3.5.2): R(TG) is higher where the item is seen, R(FE) is lower inside
 the patrol's sight. States come from fresh random-policy episodes (not the training data)."""
 
 from __future__ import annotations

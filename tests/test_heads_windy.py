@@ -1,10 +1,11 @@
-"""Learnt heads against the exact oracle on the 5x5 windy families (issues 3 and 11 acceptance).
+"""Learnt heads against the exact oracle on the 5x5 windy families (the oracle bounds in
+docs/design.md, Training the heads).
 
 One training run per layout and session (module fixtures): ``configs/windy.yaml`` (max-value
 estimator ``instance``, Definition 1) with a smaller budget (40k frames, about 4.5k updates of
 every head), then checks against :class:`~taskvar_torch.oracle.WindyOracle` on the same layout and
-training distribution: all four on ``default``, the max-value / interruption check (issue 11:
->= 95% agreement of the interruption condition on visited (cell, option) pairs) on all three.
+training distribution: all four on ``default``, the max-value / interruption check (>= 95%
+agreement of the interruption condition on visited (cell, option) pairs) on all three.
 """
 
 from __future__ import annotations

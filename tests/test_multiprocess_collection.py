@@ -1,4 +1,4 @@
-"""Training with several collector workers (issue 6; ``collector.num_workers``, ``collector.backend``):
+"""Training with several collector workers (``collector.num_workers``, ``collector.backend``):
 the workers' envs are disjoint slices of the one-process env, and the learner's weights and epsilon
 reach the workers after every update phase (TorchRL ``MultiSyncCollector`` +
 ``SharedMemWeightSyncScheme``; ``Collector(backend="ray")`` + ``RayWeightSyncScheme`` on a local Ray
@@ -128,13 +128,19 @@ def test_two_collector_workers_act_with_the_learners_latest_weights(backend, run
 def test_ray_actors_collect_exactly_what_the_worker_processes_collect(run_with):
     """Same slices, seeds and synced weights: Collector(backend="ray") on a local Ray gives the
     MultiSyncCollector run's transitions bit for bit, in the same (worker, env, time) order."""
+
     def replay(backend: str) -> TensorDict:
         state = load_checkpoint(run_with(backend)[2]["final"])["replay"]
         return TensorDict(state["data"], batch_size=[state["size"]])
 
     process, ray_ = replay("process"), replay("ray")
     assert process.shape == ray_.shape == (SYNCED + BATCH,)
-    for key in (keys.OBSERVATION, keys.ACTION, (keys.NEXT, keys.OBSERVATION), (keys.NEXT, keys.DONE)):
+    for key in (
+        keys.OBSERVATION,
+        keys.ACTION,
+        (keys.NEXT, keys.OBSERVATION),
+        (keys.NEXT, keys.DONE),
+    ):
         assert torch.equal(process.get(key), ray_.get(key)), key
 
 

@@ -1,4 +1,4 @@
-"""No host round trips in the batched step (issue 6, "no host round trips in the step").
+"""No host round trips in the batched step (docs/design.md, Randomness).
 
 Without a GPU, the pure step functions are run on the ``meta`` device: meta tensors have shapes
 and dtypes but no data, so any host synchronisation hidden in a step (``.item()``, ``bool(t)``,
@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from taskvar_torch import rng
-from taskvar_torch.envs import wargus, windy
+from taskvar_torch.envs import WargusEnv, WindyGridEnv, wargus, windy
 
 
 def on_meta(model):
@@ -51,8 +51,9 @@ def test_windy_step_and_gusts_have_no_host_sync(layout):
 
 @pytest.mark.parametrize("hit_prob,patrol_speed", [(1.0, 0.8), (0.5, 1.0)])
 def test_wargus_reset_step_observe_have_no_host_sync(hit_prob, patrol_speed):
-    cfg = wargus.WargusConfig(size=16, num_patrols=3, num_items=2, hit_prob=hit_prob,
-                              patrol_speed=patrol_speed)
+    cfg = wargus.WargusConfig(
+        size=16, num_patrols=3, num_items=2, hit_prob=hit_prob, patrol_speed=patrol_speed
+    )
     model = on_meta(wargus.WargusModel(cfg))
     B = 32
     key = torch.empty(B, device="meta", dtype=torch.int64)
@@ -67,9 +68,8 @@ def test_wargus_reset_step_observe_have_no_host_sync(hit_prob, patrol_speed):
 
 
 def test_action_validation_defaults_to_cpu_only():
-    """The env wrappers' range check syncs, so by default it runs on CPU only (issue 6: no host
+    """The env wrappers' range check syncs, so by default it runs on CPU only (no host
     round trip in an accelerator step); it can be forced either way."""
-    from taskvar_torch.envs import WargusEnv, WindyGridEnv
 
     for cls in (WindyGridEnv, WargusEnv):
         assert cls(num_envs=2, seed=0).validate_actions

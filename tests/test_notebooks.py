@@ -1,4 +1,4 @@
-"""The notebooks execute (SPEC §5): small settings through environment variables."""
+"""The notebooks execute: small settings through environment variables."""
 
 from __future__ import annotations
 
@@ -17,7 +17,9 @@ def run_notebook(name: str, tmp_path: Path, env: dict[str, str]) -> nbformat.Not
     old = {k: os.environ.get(k) for k in env}
     os.environ.update(env)
     try:
-        NotebookClient(nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}).execute()
+        NotebookClient(
+            nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(NOTEBOOKS)}}
+        ).execute()
     finally:
         for k, v in old.items():
             if v is None:
@@ -29,38 +31,77 @@ def run_notebook(name: str, tmp_path: Path, env: dict[str, str]) -> nbformat.Not
 
 @pytest.mark.slow
 def test_quickstart_notebook_executes(tmp_path):
-    nb = run_notebook("01_quickstart.ipynb", tmp_path, {"TASKVAR_NB_FRAMES": "3000", "TASKVAR_NB_OUT": str(tmp_path / "run"), "OMP_NUM_THREADS": "1"})
-    text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
+    nb = run_notebook(
+        "01_quickstart.ipynb",
+        tmp_path,
+        {
+            "TASKVAR_NB_FRAMES": "3000",
+            "TASKVAR_NB_OUT": str(tmp_path / "run"),
+            "OMP_NUM_THREADS": "1",
+        },
+    )
+    text = "".join(
+        o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+    )
     assert "interruption" in text and "exact expected return" in text
 
 
 def _code_text(nb: nbformat.NotebookNode) -> str:
-    return "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
+    return "".join(
+        o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", [])
+    )
 
 
 def _images(nb: nbformat.NotebookNode) -> int:
-    return sum("image/png" in o.get("data", {}) for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
+    return sum(
+        "image/png" in o.get("data", {})
+        for c in nb.cells
+        if c.cell_type == "code"
+        for o in c.get("outputs", [])
+    )
 
 
 @pytest.mark.slow
 def test_windy_interruption_notebook_executes(tmp_path):
-    env = {"TASKVAR_NB_FRAMES": "3000", "TASKVAR_NB_RUNS": "2", "TASKVAR_NB_EPISODES": "100",
-           "TASKVAR_NB_OUT": str(tmp_path / "run"), "OMP_NUM_THREADS": "1"}
+    env = {
+        "TASKVAR_NB_FRAMES": "3000",
+        "TASKVAR_NB_RUNS": "2",
+        "TASKVAR_NB_EPISODES": "100",
+        "TASKVAR_NB_OUT": str(tmp_path / "run"),
+        "OMP_NUM_THREADS": "1",
+    }
     nb = run_notebook("02_windy_interruption.ipynb", tmp_path, env)
     text = _code_text(nb)
     assert "twin identical in every episode: True" in text
-    assert "null: averaging - averaging" in text and "Theorem 1" in text and "null rollouts tie" in text
+    assert (
+        "null: averaging - averaging" in text
+        and "Theorem 1" in text
+        and "null rollouts tie" in text
+    )
     assert (tmp_path / "run" / "fig2" / "metrics.json").is_file()
     assert _images(nb) >= 2  # Figure 2 and the heat-map, inline
 
 
 @pytest.mark.slow
 def test_wargus_composition_notebook_executes(tmp_path):
-    tiny = ["env.wargus.size=16", "env.wargus.horizon=60", "experiment.runs=2", "experiment.trials=3",
-            "experiment.learning_episodes_per_trial=8", "train.init_random_frames=100",
-            "train.batch_size=32", "train.frames_per_batch=64", "train.buffer_size=5000", "heads.hidden=[32]"]
-    env = {"TASKVAR_NB_OVERRIDES": " ".join(tiny), "TASKVAR_NB_OUT": str(tmp_path / "run"),
-           "TASKVAR_NB_RESULTS": "", "OMP_NUM_THREADS": "1"}
+    tiny = [
+        "env.wargus.size=16",
+        "env.wargus.horizon=60",
+        "experiment.runs=2",
+        "experiment.trials=3",
+        "experiment.learning_episodes_per_trial=8",
+        "train.init_random_frames=100",
+        "train.batch_size=32",
+        "train.frames_per_batch=64",
+        "train.buffer_size=5000",
+        "heads.hidden=[32]",
+    ]
+    env = {
+        "TASKVAR_NB_OVERRIDES": " ".join(tiny),
+        "TASKVAR_NB_OUT": str(tmp_path / "run"),
+        "TASKVAR_NB_RESULTS": "",
+        "OMP_NUM_THREADS": "1",
+    }
     nb = run_notebook("03_wargus_composition.ipynb", tmp_path, env)
     text = _code_text(nb)
     assert "hierarchy control" in text and "instance seed 0:" in text and "root TG+FE ->" in text

@@ -1,4 +1,4 @@
-"""Exact oracle (SPEC §4): mean MDP, value iteration, option/switching/max values, returns, heads."""
+"""Exact oracle: mean MDP, value iteration, option/switching/max values, returns, heads."""
 
 from __future__ import annotations
 
@@ -194,7 +194,7 @@ def test_episode_return_of_a_policy_that_never_arrives_is_minus_horizon(oracle):
 
 
 def test_mean_mdp_optimal_value_from_each_start_cell_matches_monte_carlo(oracle):
-    """Acceptance (issue 2): exact expected return of pi_bar over p~U[0,1], dir in {N,S}, per start
+    """Acceptance: exact expected return of pi_bar over p~U[0,1], dir in {N,S}, per start
     cell, against 20000 independent WindyGridEnv episodes per cell, within 4 standard errors."""
     pi = oracle.averaging_policy()
     exact = oracle.expected_return(pi, "train", starts=None)  # (S,)
@@ -253,7 +253,7 @@ def test_invalid_arguments_raise_value_error(oracle):
         WindyOracle("default", gamma=1.0)
 
 
-# ---- the reference the learnt heads converge to (issue 11 item 5) ---------------------------
+# ---- the reference the learnt heads converge to (docs/oracle.md) ---------------------------
 
 
 @pytest.fixture(scope="module")

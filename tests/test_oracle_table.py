@@ -20,6 +20,10 @@ def test_oracle_table_writes_json_and_png(tmp_path, capsys):
     rows = {tuple(r["start"]): r for r in result["rows"]}
     # the default layout is north/south symmetric; the centre start is the farthest from an exit
     assert abs(rows[(0, 0)]["averaging_train"] - rows[(4, 0)]["averaging_train"]) < 1e-9
-    assert rows[(2, 0)]["averaging_train"] < rows[(1, 0)]["averaging_train"] < rows[(0, 0)]["averaging_train"]
+    assert (
+        rows[(2, 0)]["averaging_train"]
+        < rows[(1, 0)]["averaging_train"]
+        < rows[(0, 0)]["averaging_train"]
+    )
     png = (tmp_path / "grid.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 5000

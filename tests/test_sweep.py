@@ -1,4 +1,4 @@
-"""``taskvar sweep`` (issue 6): point expansion, one-line errors, and local vs Ray backends.
+"""``taskvar sweep`` (docs/sweeps.md): point expansion, one-line errors, and local vs Ray backends.
 
 A 2-repetition sweep (``seed=0,1``) of a tiny windy Figure 2 config runs once on the local backend
 and once on a local Ray with 2 CPUs; every point's metrics must be equal (same seeds, same numbers).
@@ -152,7 +152,9 @@ def ray_session():
         return
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     # a lambda travels by value (this test module is not importable in the workers)
-    warm = ray.remote(num_cpus=1)(lambda: __import__("taskvar_torch.experiments.windy_fig2") and None)
+    warm = ray.remote(num_cpus=1)(
+        lambda: __import__("taskvar_torch.experiments.windy_fig2") and None
+    )
     refs = [warm.remote() for _ in range(2)]
     yield ray
     ray.get(refs)
@@ -162,8 +164,20 @@ def ray_session():
 @pytest.fixture(scope="module")
 def local_sweep(ray_session, tmp_path_factory):
     out = tmp_path_factory.mktemp("local")
-    status = cli.main(["sweep", str(CONFIG), "--backend", "local", "--quick", "--out", str(out),
-                       "--no-progress", "seed=0,1", *TINY])
+    status = cli.main(
+        [
+            "sweep",
+            str(CONFIG),
+            "--backend",
+            "local",
+            "--quick",
+            "--out",
+            str(out),
+            "--no-progress",
+            "seed=0,1",
+            *TINY,
+        ]
+    )
     assert status == 0
     return out
 
@@ -192,8 +206,15 @@ def test_local_sweep_writes_each_point_folder_and_the_summary(local_sweep):
 
 def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_path, capsys):
     pytest.importorskip("ray")
-    rows = sweep(CONFIG, ["seed=0,1", *TINY], tmp_path, backend="ray", quick=True, progress=False,
-                 plots=False)  # plots change no number: the local sweep drew them
+    rows = sweep(
+        CONFIG,
+        ["seed=0,1", *TINY],
+        tmp_path,
+        backend="ray",
+        quick=True,
+        progress=False,
+        plots=False,
+    )  # plots change no number: the local sweep drew them
     assert "2 points" in capsys.readouterr().out
     assert (tmp_path / "summary.csv").is_file() and (tmp_path / "summary.json").is_file()
     for name in ("seed=0", "seed=1"):
@@ -219,10 +240,19 @@ def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_
 
 
 def test_a_wargus_config_sweeps_the_wargus_figure_4_experiment(tmp_path):
-    tiny = ["experiment.runs=1", "experiment.trials=2", "experiment.learning_episodes_per_trial=2",
-            "experiment.test_episodes_per_trial=1", "env.wargus.size=8", "env.wargus.sight=4",
-            "env.wargus.shoot_range=2", "env.wargus.horizon=20", "train.init_random_frames=64",
-            "train.frames_per_batch=32", "train.batch_size=32"]
+    tiny = [
+        "experiment.runs=1",
+        "experiment.trials=2",
+        "experiment.learning_episodes_per_trial=2",
+        "experiment.test_episodes_per_trial=1",
+        "env.wargus.size=8",
+        "env.wargus.sight=4",
+        "env.wargus.shoot_range=2",
+        "env.wargus.horizon=20",
+        "train.init_random_frames=64",
+        "train.frames_per_batch=32",
+        "train.batch_size=32",
+    ]
     config = CONFIG.parent / "wargus.yaml"
     rows = sweep(config, ["seed=0,1", *tiny], tmp_path, quick=True, progress=False, plots=False)
     assert not list(tmp_path.glob("*/fig4.png"))

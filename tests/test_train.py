@@ -1,4 +1,4 @@
-"""Trainer and ``taskvar train`` (issue 3): exact resume in a new process, divergence handling,
+"""Trainer and ``taskvar train``: exact resume in a new process, divergence handling,
 refusals, the final bundle, the CLI."""
 
 from __future__ import annotations

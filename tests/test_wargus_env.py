@@ -1,4 +1,4 @@
-"""Wargus family (paper §3.5, SPEC §1.2): specs, Gymnasium API, determinism, behaviours, errors."""
+"""Wargus family (paper §3.5): specs, Gymnasium API, determinism, behaviours, errors."""
 
 from __future__ import annotations
 
@@ -24,7 +24,13 @@ torch.set_num_threads(1)
 
 # a small, eventful family: several patrols and items, resets every few dozen steps
 SMALL = dict(
-    size=10, num_patrols=2, num_items=2, sight=4, shoot_range=2, hit_prob=0.5, patrol_speed=0.8,
+    size=10,
+    num_patrols=2,
+    num_items=2,
+    sight=4,
+    shoot_range=2,
+    hit_prob=0.5,
+    patrol_speed=0.8,
     horizon=40,
 )
 NOOP = 8
@@ -50,8 +56,15 @@ def _keys(n: int, offset: int = 0) -> torch.Tensor:
 
 # TorchRL env, driven with fixed actions; record every step's outcome and the post-reset state
 _FIELDS = (
-    keys.OBSERVATION, keys.REWARD, keys.TERMINATED, keys.TRUNCATED, wargus.AGENT_POS,
-    wargus.ITEM_SEEN, wargus.PATROL_SEEN, wargus.PICKED, wargus.ITEM_LOST,
+    keys.OBSERVATION,
+    keys.REWARD,
+    keys.TERMINATED,
+    keys.TRUNCATED,
+    wargus.AGENT_POS,
+    wargus.ITEM_SEEN,
+    wargus.PATROL_SEEN,
+    wargus.PICKED,
+    wargus.ITEM_LOST,
     (keys.INSTANCE, wargus.INSTANCE_SEED),
 )
 
@@ -86,11 +99,17 @@ def test_observation_never_contains_the_instance():
     env = WargusEnv(4, seed=0)
     td = env.reset()
     assert td[keys.OBSERVATION].shape == (4, wargus.OBS_DIM)
-    assert set(td[keys.INSTANCE].keys()) == {wargus.INSTANCE_SEED, wargus.PATROL_POS, wargus.ITEM_POS}
+    assert set(td[keys.INSTANCE].keys()) == {
+        wargus.INSTANCE_SEED,
+        wargus.PATROL_POS,
+        wargus.ITEM_POS,
+    }
     # two instances whose visible state agrees give the same observation
     m = env.model
     a = WargusState(
-        td[wargus.AGENT_POS], td[keys.INSTANCE, wargus.PATROL_POS], td[keys.INSTANCE, wargus.ITEM_POS],
+        td[wargus.AGENT_POS],
+        td[keys.INSTANCE, wargus.PATROL_POS],
+        td[keys.INSTANCE, wargus.ITEM_POS],
         torch.zeros(4, dtype=torch.int64),
     )
     assert torch.equal(wargus.observe(m, a)[0], td[keys.OBSERVATION])
@@ -161,7 +180,9 @@ def test_same_seed_same_trajectory_different_seeds_differ():
     c, _ = _run(WargusEnv(8, seed=5, **SMALL), actions)
     assert (a == b).all()
     assert not torch.equal(a[keys.OBSERVATION], c[keys.OBSERVATION])
-    assert not torch.equal(a[keys.INSTANCE, wargus.INSTANCE_SEED], c[keys.INSTANCE, wargus.INSTANCE_SEED])
+    assert not torch.equal(
+        a[keys.INSTANCE, wargus.INSTANCE_SEED], c[keys.INSTANCE, wargus.INSTANCE_SEED]
+    )
 
 
 def test_gym_and_torchrl_bit_identical():
@@ -176,11 +197,16 @@ def test_gym_and_torchrl_bit_identical():
         obs, r, term, trunc, info = g.step(int(actions[t, 0]))
         assert np.array_equal(obs, tr[keys.OBSERVATION][t, 0].numpy()), t
         assert r == float(tr[keys.REWARD][t, 0, 0])
-        assert term == bool(tr[keys.TERMINATED][t, 0, 0]) and trunc == bool(tr[keys.TRUNCATED][t, 0, 0])
+        assert term == bool(tr[keys.TERMINATED][t, 0, 0]) and trunc == bool(
+            tr[keys.TRUNCATED][t, 0, 0]
+        )
         assert info["instance"]["seed"] == int(tr[keys.INSTANCE, wargus.INSTANCE_SEED][t, 0])
         assert info[wargus.AGENT_POS] == tuple(tr[wargus.AGENT_POS][t, 0].tolist())
         for k in (wargus.ITEM_SEEN, wargus.PATROL_SEEN, wargus.PICKED, wargus.ITEM_LOST):
-            assert info[k] == tr[k][t, 0].item() and type(info[k]) is type(tr[k][t, 0].item()), (k, t)
+            assert info[k] == tr[k][t, 0].item() and type(info[k]) is type(tr[k][t, 0].item()), (
+                k,
+                t,
+            )
         if term or trunc:
             obs, info = g.reset()
             assert np.array_equal(obs, troot[t + 1, 0].numpy()), t
@@ -211,7 +237,9 @@ def test_nominal_instances_cycle_through_fixed_seeds():
     # a different env seed plays the same nominal episodes (same agent start, same observation)
     td2 = WargusEnv(5, seed=999, instances="nominal").reset()
     assert torch.equal(td[keys.OBSERVATION], td2[keys.OBSERVATION])
-    one = WargusEnv(1, seed=0, instances=WargusInstances(seeds=(10, 20, 30)), horizon=2, hit_prob=0.0)
+    one = WargusEnv(
+        1, seed=0, instances=WargusInstances(seeds=(10, 20, 30)), horizon=2, hit_prob=0.0
+    )
     seen = []
     td = one.reset()
     for _ in range(6):
@@ -222,7 +250,9 @@ def test_nominal_instances_cycle_through_fixed_seeds():
         _, td = one.step_and_maybe_reset(td)
     assert seen == [10, 20, 30, 10, 20, 30]
     u = WargusInstances(seeds=(10, 20, 30), order="uniform")
-    drawn = u.sample(_keys(300), torch.zeros(300, dtype=torch.int64), torch.zeros(300, dtype=torch.int64))
+    drawn = u.sample(
+        _keys(300), torch.zeros(300, dtype=torch.int64), torch.zeros(300, dtype=torch.int64)
+    )
     assert set(drawn.tolist()) == {10, 20, 30}
 
 
@@ -263,11 +293,17 @@ def test_patrol_moves_with_probability_patrol_speed():
 def test_patrol_shoots_only_within_range():
     cfg = WargusConfig(size=20, sight=8, shoot_range=5, hit_prob=1.0, patrol_speed=0.0, noop=True)
     m = WargusModel(cfg)
-    offsets = [(d, 0) for d in range(1, 11)] + [(d, d) for d in range(1, 11)] + [(-3, d) for d in range(4, 9)]
+    offsets = (
+        [(d, 0) for d in range(1, 11)]
+        + [(d, d) for d in range(1, 11)]
+        + [(-3, d) for d in range(4, 9)]
+    )
     n = len(offsets)
     agent = torch.tensor([[9, 9]] * n)
     patrols = (agent + torch.tensor(offsets)).clamp(0, 19).unsqueeze(1)
-    s = WargusState(agent, patrols, torch.zeros(n, 1, 2, dtype=torch.int64), torch.zeros(n, dtype=torch.int64))
+    s = WargusState(
+        agent, patrols, torch.zeros(n, 1, 2, dtype=torch.int64), torch.zeros(n, dtype=torch.int64)
+    )
     _, _, destroyed = wargus.step(m, s, torch.full((n,), NOOP), _keys(n))
     dist = wargus.chebyshev(agent.unsqueeze(1), patrols)[:, 0]
     assert torch.equal(destroyed, dist <= 5)
@@ -279,7 +315,9 @@ def test_patrol_shoots_only_within_range():
     half = wargus.step(m, near, torch.full((4000,), NOOP), _keys(4000), hit_prob=0.5)[2]
     assert abs(half.float().mean().item() - 0.5) < 4 * math.sqrt(0.25 / 4000)
     # several patrols in range: each shoots once, any hit destroys
-    two = WargusConfig(size=20, sight=8, shoot_range=5, hit_prob=0.5, patrol_speed=0.0, num_patrols=2, noop=True)
+    two = WargusConfig(
+        size=20, sight=8, shoot_range=5, hit_prob=0.5, patrol_speed=0.0, num_patrols=2, noop=True
+    )
     both = _batch(_state([9, 9], [[9, 12], [12, 9]], [[0, 0]]), 4000)
     d2 = wargus.step(WargusModel(two), both, torch.full((4000,), NOOP), _keys(4000))[2]
     assert abs(d2.float().mean().item() - 0.75) < 4 * math.sqrt(0.75 * 0.25 / 4000)
@@ -332,7 +370,9 @@ def test_item_lost_is_the_event_seen_then_unseen_without_a_pickup():
     seen_after = wargus.observe(m, nxt)[1]
     assert picked.item() == 1 and not seen_after.item()  # (this key's new item is far away)
     assert not wargus.item_lost(torch.tensor([True]), seen_after, picked).item()
-    assert wargus.item_lost(torch.tensor([True]), seen_after, torch.zeros(1, dtype=torch.int64)).item()
+    assert wargus.item_lost(
+        torch.tensor([True]), seen_after, torch.zeros(1, dtype=torch.int64)
+    ).item()
 
 
 def test_item_lost_fires_on_the_step_that_leaves_sight_gym_and_torchrl():
@@ -383,7 +423,9 @@ def test_agent_sees_item_only_within_sight_radius_bearing_always_observed():
     n = len(offsets)
     items = (torch.tensor([agent]) + torch.tensor(offsets)).unsqueeze(1)  # (n, 1, 2)
     patrols = torch.tensor([[[31, 31]]]).expand(n, 1, 2)
-    s = WargusState(torch.tensor([agent]).expand(n, 2), patrols, items, torch.zeros(n, dtype=torch.int64))
+    s = WargusState(
+        torch.tensor([agent]).expand(n, 2), patrols, items, torch.zeros(n, dtype=torch.int64)
+    )
     obs, item_seen, _ = wargus.observe(m, s)
     dist = torch.tensor([max(abs(a), abs(b)) for a, b in offsets])
     assert torch.equal(item_seen, dist < 8)
@@ -397,7 +439,9 @@ def test_agent_sees_item_only_within_sight_radius_bearing_always_observed():
     # the patrol: same rule, distance 16 here, unseen but its bearing (SE) is observed
     assert not obs[:, wargus.OBS_PATROL_SEEN].any()
     assert (obs[:, wargus.OBS_PATROL_OFFSET] == 0).all()
-    assert (obs[:, wargus.OBS_PATROL_BEARING].argmax(-1) == wargus.BEARINGS.index("southeast")).all()
+    assert (
+        obs[:, wargus.OBS_PATROL_BEARING].argmax(-1) == wargus.BEARINGS.index("southeast")
+    ).all()
     assert torch.allclose(obs[:, wargus.OBS_AGENT], torch.tensor([15 / 31, 15 / 31]))
     assert (obs >= m.obs_low).all() and (obs <= m.obs_high).all()
 

@@ -1,4 +1,4 @@
-"""Wargus capabilities (paper §3.5.2, SPEC §1.2): termination, subtask and robustness rewards."""
+"""Wargus capabilities (paper §3.5.2): termination, subtask and robustness rewards."""
 
 from __future__ import annotations
 
@@ -61,7 +61,14 @@ def test_termination_on_events():
             (1, 0, 0, 0, 0, 0),  # loses sight of the item: TG ends
             (0, 0, 1, 0, 1, 0),  # just picked an item (new one in sight): TG ends
             (1, 0, 0, 0, 1, 0),  # just picked an item (new one out of sight): TG ends
-            (0, 0, 0, 0, 0, 0),  # item out of sight, as before: no event, TG runs (seeks by bearing)
+            (
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            ),  # item out of sight, as before: no event, TG runs (seeks by bearing)
             (1, 0, 1, 0, 0, 0),  # item still in sight: TG runs
             (0, 1, 0, 1, 0, 0),  # patrol still in sight, item unseen: TG ends, FE runs
         ]
@@ -98,9 +105,7 @@ def test_tg_started_where_the_item_is_unseen_runs_until_an_event():
         event = nxt[wargus.PATROL_SEEN] | nxt[wargus.ITEM_LOST] | (nxt[wargus.PICKED] > 0)
         assert torch.equal(beta_tg, event)
         steps_unseen += (running & ~nxt[wargus.ITEM_SEEN]).long()
-        kind = torch.where(
-            nxt[wargus.PICKED] > 0, 1, torch.where(nxt[wargus.PATROL_SEEN], 2, 3)
-        )
+        kind = torch.where(nxt[wargus.PICKED] > 0, 1, torch.where(nxt[wargus.PATROL_SEEN], 2, 3))
         ended_by = torch.where(running & beta_tg, kind, ended_by)
         running = running & ~beta_tg & ~nxt[keys.DONE].squeeze(-1)
     assert not nxt[wargus.ITEM_LOST][ended_by == 0].any()
@@ -157,7 +162,7 @@ def test_robustness_rewards_on_hand_built_transitions():
             (0, 1, 0, 1, 0, 0),  # within the patrol's sight: FE -1
             (0, 0, 0, 1, 0, 0),  # enters the patrol's sight: FE -1
             (1, 1, 1, 0, 0, 0),  # escapes it: FE +1 once
-            (1, 1, 1, 1, 0, 1),  # destroyed in sight: FE -1 (SPEC literal), TG +1
+            (1, 1, 1, 1, 0, 1),  # destroyed in sight: FE -1, TG +1
         ]
     )
     rr = sub.robustness_reward(td)
@@ -181,13 +186,23 @@ def test_robustness_ranks_item_seen_and_patrol_sight_as_intended():
     unseen = ~seen & (td[keys.NEXT, wargus.PICKED] == 0)  # a pickup counts as reaching the item
     assert (rr[..., TG][seen] == 1).all() and (rr[..., TG][unseen] <= 0).all()
     assert (rr[..., FE][in_sight] == -1).all() and (rr[..., FE][~in_sight] >= 0).all()
-    # SPEC: "-1 when it leaves the area where the item is seen" is the env's event item_lost
+    # "-1 when it leaves the area where the item is seen" is the env's event item_lost
     assert torch.equal(rr[..., TG] == -1, td[keys.NEXT, wargus.ITEM_LOST])
     assert td[keys.NEXT, wargus.ITEM_LOST].any()
 
 
 def test_batched_equals_per_env_loop():
-    env = WargusEnv(8, seed=3, size=10, num_patrols=2, num_items=2, sight=4, shoot_range=2, hit_prob=0.4, horizon=30)
+    env = WargusEnv(
+        8,
+        seed=3,
+        size=10,
+        num_patrols=2,
+        num_items=2,
+        sight=4,
+        shoot_range=2,
+        hit_prob=0.4,
+        horizon=30,
+    )
     td = env.rollout(80, break_when_any_done=False)  # (8, 80)
     assert td[keys.NEXT, keys.TERMINATED].any()
     sub = WargusSubtasks()

@@ -70,8 +70,12 @@ def test_gymnasium_check_env_and_render_modes(env_id):
 
 def test_observation_never_contains_the_instance():
     env = gym.make("taskvar/WindyGrid-v0").unwrapped
-    a, _ = env.reset(seed=1, options={"instance": {"p": 0.1, "direction": "north"}, "start": (2, 0)})
-    b, _ = env.reset(seed=1, options={"instance": {"p": 0.9, "direction": "south"}, "start": (2, 0)})
+    a, _ = env.reset(
+        seed=1, options={"instance": {"p": 0.1, "direction": "north"}, "start": (2, 0)}
+    )
+    b, _ = env.reset(
+        seed=1, options={"instance": {"p": 0.9, "direction": "south"}, "start": (2, 0)}
+    )
     np.testing.assert_array_equal(a, b)
 
 
@@ -81,7 +85,9 @@ def test_batched_equals_looped_1000_steps():
     actions = torch.randint(0, 4, (steps, n), generator=gen)
     batched = rollout_cells(WindyGridEnv(num_envs=n, seed=11), actions)
     for i in range(n):
-        single = rollout_cells(WindyGridEnv(num_envs=1, seed=11, index_offset=i), actions[:, i : i + 1])
+        single = rollout_cells(
+            WindyGridEnv(num_envs=1, seed=11, index_offset=i), actions[:, i : i + 1]
+        )
         for k in batched:
             torch.testing.assert_close(batched[k][:, i], single[k][:, 0], rtol=0, atol=0)
     assert batched["done"].sum() > 50  # many episodes, so partial resets were exercised
@@ -157,7 +163,9 @@ def test_wind_pushes_agent_north_with_probability_p():
 
 def test_north_wind_at_north_exit_is_harmless():
     model = WindyModel(WindyLayout.named("default"))
-    nxt, _ = windy.step(model, torch.tensor([0]), torch.tensor([2]), torch.tensor([0]), torch.tensor([True]))
+    nxt, _ = windy.step(
+        model, torch.tensor([0]), torch.tensor([2]), torch.tensor([0]), torch.tensor([True])
+    )
     assert nxt.item() == 1  # pushed north into the edge: stays in the windy cell (0, 1)
 
 
@@ -174,7 +182,9 @@ def test_dynamics_match_transition_tensors(layout):
         u = rng.draw_uniform(keys, 5)
         nxt, _ = windy.step(model, cells, actions, torch.full_like(cells, d), u < p)
         counts = torch.zeros(S * A, S, dtype=torch.float64)
-        counts.index_put_((cells * A + actions, nxt), torch.ones_like(u, dtype=torch.float64), accumulate=True)
+        counts.index_put_(
+            (cells * A + actions, nxt), torch.ones_like(u, dtype=torch.float64), accumulate=True
+        )
         freq = (counts / n).view(S, A, S)
         expected = P[0].clone()
         goal = model.is_goal
@@ -187,7 +197,9 @@ def test_dynamics_match_transition_tensors(layout):
 
 
 def test_reward_and_episode_end():
-    env = WindyGridEnv(num_envs=1, seed=0, start=(0, 0), instances=WindyInstances.fixed(0.0, "north"))
+    env = WindyGridEnv(
+        num_envs=1, seed=0, start=(0, 0), instances=WindyInstances.fixed(0.0, "north")
+    )
     td = env.reset()
     total = 0.0
     for _ in range(3):  # east x3: (0,1) -> (0,2) -> (0,3) goal
@@ -275,7 +287,10 @@ def test_scaled_layout_generator():
     assert lay.num_exits == 4 and lay.exit_names == ("exit_0", "exit_1", "exit_2", "exit_3")
     assert [g[0] // 51 for g in lay.exit_cells] == [0, 17, 33, 50]
     assert sum(r.count("W") for r in lay.rows) == 8
-    assert windy.default_horizon(lay) == 408 and windy.default_horizon(WindyLayout.named("default")) == 100
+    assert (
+        windy.default_horizon(lay) == 408
+        and windy.default_horizon(WindyLayout.named("default")) == 100
+    )
 
 
 def test_noise_seed_keeps_instances_and_starts_but_changes_gusts():
@@ -284,5 +299,8 @@ def test_noise_seed_keeps_instances_and_starts_but_changes_gusts():
     a = rollout_cells(WindyGridEnv(num_envs=64, seed=5), actions)
     b = rollout_cells(WindyGridEnv(num_envs=64, seed=5, noise_seed=1), actions)
     assert torch.equal(a["p"][0], b["p"][0])  # same first instances
-    assert torch.equal(WindyGridEnv(num_envs=64, seed=5).reset()["cell"], WindyGridEnv(num_envs=64, seed=5, noise_seed=1).reset()["cell"])
+    assert torch.equal(
+        WindyGridEnv(num_envs=64, seed=5).reset()["cell"],
+        WindyGridEnv(num_envs=64, seed=5, noise_seed=1).reset()["cell"],
+    )
     assert not torch.equal(a["cell"], b["cell"])

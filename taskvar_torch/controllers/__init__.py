@@ -1,4 +1,4 @@
-"""Controllers (SPEC §3): batched TorchRL policies that read head outputs only.
+"""Controllers (paper §3.1-3.4): batched TorchRL policies that read head outputs only.
 
 ``averaging`` (paper §3.1), ``options`` (§3.2), ``interruption`` (§3.3, Algorithm 1) and
 ``hierarchy`` (§3.4, Algorithm 2). Each is a ``TensorDictModuleBase`` carrying ``running_option``

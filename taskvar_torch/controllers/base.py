@@ -1,4 +1,5 @@
-"""Shared machinery of the controllers (SPEC §3): carried state, primer, kernels, fast paths.
+"""Shared machinery of the controllers (paper §3.3-3.4): carried state, primer, kernels, fast
+paths.
 
 A controller is a ``TensorDictModuleBase`` that runs the heads it needs on the tensordict, reads
 its carried state ``running_option`` ``(B,)`` int64 (-1 = none), decides, and writes ``action``,
@@ -233,7 +234,7 @@ class FusedHeads(nn.Module):
 
 
 class Controller(TensorDictModuleBase):
-    """Base class: a batched controller over a :class:`Heads` bundle (paper §3.3-3.4, SPEC §3).
+    """Base class: a batched controller over a :class:`Heads` bundle (paper §3.3-3.4).
 
     Subclasses set ``name``, ``required_heads`` and implement :meth:`decide_of` (option-first
     tensors) and :meth:`decide_scalar` (Python floats, one environment).

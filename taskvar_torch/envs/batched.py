@@ -1,4 +1,4 @@
-"""What every batched family env shares (DESIGN "Env state and params"): the ``EnvBase`` only adds
+"""What every batched family env shares: the ``EnvBase`` only adds
 specs, seeding and reset around pure dynamics.
 
 Subclasses keep their simulator state in tensors that are replaced, never mutated (tensors handed
@@ -62,7 +62,9 @@ class BatchedFamilyEnv(EnvBase):
         return idx, rng.episode_key(self._base_key[idx], episode)
 
     def _runtime_state(self) -> dict[str, torch.Tensor]:
-        return {name[1:]: getattr(self, name) for name in self._RUNTIME_STATE if hasattr(self, name)}
+        return {
+            name[1:]: getattr(self, name) for name in self._RUNTIME_STATE if hasattr(self, name)
+        }
 
     def _load_runtime_state(self, state: dict[str, torch.Tensor]) -> None:
         for name in self._RUNTIME_STATE:

@@ -1,4 +1,5 @@
-"""Instance distributions: which member of a family each sub-environment gets at reset (SPEC §1).
+"""Instance distributions: which member of a family (paper §2.2) each sub-environment gets
+at reset.
 
 A distribution is data (a frozen dataclass), sampled from per-episode keys (see ``rng.py``), so an
 instance depends only on (seed, sub-environment, episode).
@@ -99,4 +100,6 @@ def windy_instances(spec: str | WindyInstances | dict) -> WindyInstances:
         if unknown:
             raise ValueError(f"unknown instance field(s) {unknown}; allowed: {sorted(allowed)}")
         return WindyInstances(**spec)
-    raise ValueError(f"instances must be a name {list(WindyInstances.NAMES)}, a dict or WindyInstances")
+    raise ValueError(
+        f"instances must be a name {list(WindyInstances.NAMES)}, a dict or WindyInstances"
+    )

@@ -35,4 +35,6 @@ def register_envs() -> None:
     """Register every ``taskvar/`` id (idempotent)."""
     for env_id, (entry_point, kwargs) in ENV_IDS.items():
         if env_id not in gym.registry:
-            gym.register(id=env_id, entry_point=entry_point, kwargs=kwargs, disable_env_checker=False)
+            gym.register(
+                id=env_id, entry_point=entry_point, kwargs=kwargs, disable_env_checker=False
+            )

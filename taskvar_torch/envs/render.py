@@ -17,7 +17,9 @@ _COLOURS = {
 CELL_PX = 32
 
 
-def windy_ansi(layout: WindyLayout, cell: int | None, p: float | None, direction: str | None) -> str:
+def windy_ansi(
+    layout: WindyLayout, cell: int | None, p: float | None, direction: str | None
+) -> str:
     """Text grid: ``A`` agent, ``#`` wall, ``G`` goal, ``S`` start, windy cells as the wind arrow."""
     arrow = _ARROWS.get(direction or "", "W")
     lines = []

@@ -1,4 +1,4 @@
-"""Wargus resource-gathering family (paper §3.5, SPEC §1.2): config, instances, pure batched dynamics.
+"""Wargus resource-gathering family (paper §3.5): config, instances, pure batched dynamics.
 
 A square grid (row 0 is north) without obstacles holds one agent, ``K`` patrols and ``M`` items.
 Everything is a batch of ``B`` episodes; positions are ``(row, col)`` int64.
@@ -7,8 +7,8 @@ Everything is a batch of ``B`` episodes; positions are ``(row, col)`` int64.
 ``t`` (B,). Shape constants live in :class:`WargusConfig` and are never batched.
 
 **Instance** (paper §3.5: "a specific assignment of these two parameters produces one MDP"): the
-item-location process and the patrol's start and walk are random processes, so, as SPEC §1.2 puts
-it, an episode's random seed for those *is* the instance. An instance is an integer seed
+item-location process and the patrol's start and walk are random processes, so an episode's
+random seed for those *is* the instance. An instance is an integer seed
 ``s in [0, 2^32)``; :func:`instance_key` hashes it into the key of the episode's counter-based
 random stream (``rng.py``), and every draw of the episode - agent start, patrol start, item
 locations, patrol walk and speed, hits - is ``rng.draw_*(key, counter)`` with one counter per
@@ -48,8 +48,8 @@ device agrees); an object on the agent's own cell has an all-zero bearing. Beari
 observed; offsets only when seen. Sight is symmetric: the agent sees a patrol exactly when the
 patrol sees the agent.
 
-**Events** beside the observation (integer state for subtask terminations, SPEC §1.2 "options
-terminate on events"): ``picked``, the items picked on the step that led here, and ``item_lost``
+**Events** beside the observation (integer state for subtask terminations: options
+terminate on events): ``picked``, the items picked on the step that led here, and ``item_lost``
 (:func:`item_lost`), the agent *lost sight of the item* on that step: an item was seen before the
 step, none is seen after it, and none was picked (reaching an item is not losing it, even when the
 new one appears out of sight). Both are 0 / False after a reset.
@@ -96,7 +96,9 @@ AGENT_POS = "agent_pos"  # (N, 2) int64 (row, col)
 ITEM_SEEN = "item_seen"  # (N,) bool: the nearest item is within sight
 PATROL_SEEN = "patrol_seen"  # (N,) bool: some patrol is within sight
 PICKED = "picked"  # (N,) int64: items picked on the step that led here (0 after reset)
-ITEM_LOST = "item_lost"  # (N,) bool: the step that led here lost sight of the item (False after reset)
+ITEM_LOST = (
+    "item_lost"  # (N,) bool: the step that led here lost sight of the item (False after reset)
+)
 # Hidden, under ("instance", ...): never read by a policy.
 INSTANCE_SEED = "seed"  # (N,) int64 in [0, 2^32): the instance
 PATROL_POS = "patrol_pos"  # (N, K, 2) int64
@@ -124,12 +126,12 @@ _R_PICK = rng.RESET_COUNTER + 4096  # uniform choice among fixed seeds (on the e
 _INSTANCE_SALT = 0x5851F42D
 
 NOMINAL_SEEDS = (0, 1, 2, 3, 4)
-"""The paper's "5 nominal test episodes" with fixed parameters (SPEC §5, Wargus Figure 4)."""
+"""The paper's "5 nominal test episodes" with fixed parameters (paper §3.5.1, Wargus Figure 4)."""
 
 
 @dataclass(frozen=True)
 class WargusConfig:
-    """Shape constants of a Wargus family (SPEC §1.2); validated on construction.
+    """Shape constants of a Wargus family; validated on construction.
 
     Args:
         size: grid side, in ``[4, 4096]``.
@@ -199,11 +201,15 @@ class WargusConfig:
         elif isinstance(config, dict):
             base = dict(config)
         else:
-            raise ValueError(f"config must be a WargusConfig, a dict or None, got {type(config).__name__}")
+            raise ValueError(
+                f"config must be a WargusConfig, a dict or None, got {type(config).__name__}"
+            )
         base.update({k: v for k, v in overrides.items() if v is not None})
         unknown = sorted(set(base) - allowed)
         if unknown:
-            raise ValueError(f"unknown Wargus config field(s) {unknown}; allowed: {sorted(allowed)}")
+            raise ValueError(
+                f"unknown Wargus config field(s) {unknown}; allowed: {sorted(allowed)}"
+            )
         return cls(**base)
 
 
@@ -211,12 +217,12 @@ CONFIGS = {
     "default": WargusConfig(),
     "large": WargusConfig(size=64, num_patrols=3, horizon=1000),
 }
-"""Named variants (SPEC §1.2 "scaled-up variants"); ``large`` matches ``taskvar/Wargus-Large-v0``."""
+"""Named scaled-up variants (docs/scale.md); ``large`` matches ``taskvar/Wargus-Large-v0``."""
 
 
 @dataclass(frozen=True)
 class WargusInstances:
-    """Distribution of Wargus instances, i.e. of instance seeds (SPEC §1.2).
+    """Distribution of Wargus instances, i.e. of instance seeds (paper §3.5).
 
     ``seeds=None`` (training): every episode gets a fresh seed, the sub-environment's episode key
     (a function of the env seed, the global sub-environment index and the episode number, see
@@ -347,7 +353,6 @@ class WargusModel:
         low[OBS_ITEM_OFFSET] = -1.0
         low[OBS_PATROL_OFFSET] = -1.0
         self.obs_low, self.obs_high = low, torch.ones_like(low)  # (D,)
-
 
     def step_offsets(self, move: bool, hit: bool) -> torch.Tensor:
         """Counter offsets of one step's draws, ``[items | walks | moves if move | hits if hit]``."""
@@ -492,7 +497,9 @@ def bearing_index(diff: torch.Tensor) -> torch.Tensor:
     a = diff.abs()  # (..., 2)
     s = (a[..., 0] + a[..., 1]).unsqueeze(-1)  # (..., 1)
     sq2 = 2 * a * a  # (..., 2)
-    keep = (s * s >= sq2.flip(-1)).to(diff.dtype)  # (..., 2): row kept unless east/west, col unless N/S
+    keep = (s * s >= sq2.flip(-1)).to(
+        diff.dtype
+    )  # (..., 2): row kept unless east/west, col unless N/S
     q = diff.sign() * keep + 1  # (..., 2) in {0, 1, 2}
     return q[..., 0] * 3 + q[..., 1]
 

@@ -1,4 +1,4 @@
-"""TorchRL ``EnvBase`` over the batched Wargus dynamics (paper §3.5, SPEC §1.2, DESIGN "Env state")."""
+"""TorchRL ``EnvBase`` over the batched Wargus dynamics (paper §3.5)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
 from taskvar_torch import keys, rng
-from taskvar_torch.envs import wargus
+from taskvar_torch.envs import wargus, wargus_render
 from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, WargusState
 
@@ -287,7 +287,6 @@ class WargusEnv(BatchedFamilyEnv):
 
     def render(self, index: int = 0, mode: str = "ansi"):
         """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""
-        from taskvar_torch.envs import wargus_render
 
         if not 0 <= index < self.num_envs:
             raise ValueError(f"index must be in [0, {self.num_envs - 1}], got {index}")

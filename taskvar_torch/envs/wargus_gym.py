@@ -1,4 +1,4 @@
-"""Gymnasium front end of the Wargus family (SPEC §1 item 2, paper §3.5).
+"""Gymnasium front end of the Wargus family (paper §3.5).
 
 One environment, stepped through the same pure batched functions as :class:`WargusEnv` with a batch
 of one, so that ``WargusGymEnv`` after ``reset(seed=s)`` and ``WargusEnv(num_envs=1, seed=s)``
@@ -21,7 +21,7 @@ _OPTION_KEYS = ("instance", "start")
 
 
 class WargusGymEnv(gym.Env):
-    """Wargus resource gathering (paper §3.5, SPEC §1.2) as a single Gymnasium environment.
+    """Wargus resource gathering (paper §3.5) as a single Gymnasium environment.
 
     ## Description
     Collect items on a ``size x size`` grid while patrols walk at random, chase the agent once they

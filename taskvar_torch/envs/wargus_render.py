@@ -1,4 +1,4 @@
-"""Wargus rendering (SPEC §1): a text grid (``ansi``) and a uint8 image (``rgb_array``), numpy only.
+"""Wargus rendering: a text grid (``ansi``) and a uint8 image (``rgb_array``), numpy only.
 
 Both show the agent, the item(s), the patrol(s), the patrols' sight and shoot radii, and (image only)
 the agent's own sight.

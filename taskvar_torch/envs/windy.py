@@ -1,4 +1,4 @@
-"""Windy gridworld family (paper §3.3.1, SPEC §1.1): layouts, pure batched dynamics, exact model.
+"""Windy gridworld family (paper §3.3.1): layouts, pure batched dynamics, exact model.
 
 Cells are flat indices ``row * width + col`` (row 0 is north). Everything a step needs is
 precomputed into small lookup tables (:class:`WindyModel`):
@@ -33,7 +33,7 @@ S . # G G
 S . # G G
 S W . G G
 """
-"""SPEC §1.1 default: a wall in column 2 with exits on the border rows, wind just west of them."""
+"""The default layout: a wall in column 2 with exits on the border rows, wind just west of them."""
 
 MIDDLE_EXITS_MAP = """
 S . # G G
@@ -113,7 +113,9 @@ class WindyLayout:
     def named(cls, name: str) -> WindyLayout:
         """One of the shipped layouts: ``default``, ``middle_exits``, ``whole_column_windy``."""
         if name not in LAYOUTS:
-            raise ValueError(f"layout must be one of {sorted(LAYOUTS)} or a map string, got {name!r}")
+            raise ValueError(
+                f"layout must be one of {sorted(LAYOUTS)} or a map string, got {name!r}"
+            )
         return cls.from_map(LAYOUTS[name])
 
     @property
@@ -200,7 +202,7 @@ def make_layout(
     wall_col: int | None = None,
     wind_cells_per_exit: int = 1,
 ) -> WindyLayout:
-    """Scaled-up generator (SPEC §1.1): a full-height wall with ``num_exits`` one-cell gaps.
+    """Scaled-up generator (docs/scale.md): a full-height wall with ``num_exits`` one-cell gaps.
 
     Exits are spread evenly from the north to the south border row (two exits sit on the border
     rows, as in the default layout); the ``wind_cells_per_exit`` cells immediately west of each exit
@@ -286,7 +288,7 @@ def step(
     direction: torch.Tensor,  # (B,) int64
     gust: torch.Tensor,  # (B,) bool: the wind blows this step (a Bernoulli(p) draw)
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One batched step (SPEC §1.1 default timing: move, then at most one gust).
+    """One batched step (move, then at most one gust).
 
     Returns ``(next_cell, terminated)``; the reward is -1 for every step.
     """

@@ -1,4 +1,4 @@
-"""TorchRL ``EnvBase`` over the batched windy dynamics (SPEC §1, DESIGN "Env state and params")."""
+"""TorchRL ``EnvBase`` over the batched windy dynamics (paper §3.3.1)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
 from taskvar_torch import keys, rng
-from taskvar_torch.envs import windy
+from taskvar_torch.envs import render, windy
 from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.envs.instances import WindyInstances, windy_instances
 
@@ -29,7 +29,9 @@ def observation_table(
     if encoding == "onehot":
         return np.eye(S, dtype=np.float32)
     if encoding != "coords_patch":
-        raise ValueError(f"observation encoding must be one of {list(OBS_ENCODINGS)}, got {encoding!r}")
+        raise ValueError(
+            f"observation encoding must be one of {list(OBS_ENCODINGS)}, got {encoding!r}"
+        )
     if patch_radius < 0:
         raise ValueError(f"patch_radius must be >= 0, got {patch_radius}")
     H, W, r = layout.height, layout.width, patch_radius
@@ -107,7 +109,7 @@ class WindyGridEnv(BatchedFamilyEnv):
         noise_seed: salt of the per-step wind stream. Two envs with the same ``seed`` draw the same
             instances and start cells; with the same ``noise_seed`` they also see the same gusts
             (common random numbers), with different ones independent gusts (the null comparison
-            of SPEC §5).
+            of docs/windy-fig2.md).
         validate_actions: check actions are in range, raising a one-line error (one host sync
             per step). ``None`` (default): on CPU only, so that on an accelerator the step has no
             host round trip.
@@ -243,7 +245,6 @@ class WindyGridEnv(BatchedFamilyEnv):
 
     def render(self, index: int = 0, mode: str = "ansi"):
         """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""
-        from taskvar_torch.envs import render
 
         cell = int(self._cell[index])
         p, d = float(self._p[index]), windy.DIRECTIONS[int(self._dir[index])]

@@ -1,4 +1,4 @@
-"""Gymnasium ``Env`` for one windy gridworld (SPEC §1, "for people who live in Gymnasium").
+"""Gymnasium ``Env`` for one windy gridworld (for people who live in Gymnasium).
 
 It steps the same lookup tables and keyed random stream as :class:`WindyGridEnv`, so with the same
 seed it produces bit-identical trajectories to sub-environment 0 of the TorchRL env.
@@ -134,7 +134,7 @@ class WindyGridGymEnv(gym.Env):
         return self._obs[self._cell].copy(), self._info()
 
     def step(self, action):
-        """Move, then at most one gust (SPEC §1.1); reward -1."""
+        """Move, then at most one gust; reward -1."""
         if not self._started:
             raise RuntimeError("call reset() before step()")
         a = gym_checks.check_action(action, 4)

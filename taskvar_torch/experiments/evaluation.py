@@ -1,4 +1,4 @@
-"""Batched evaluation episodes and the statistics experiments report (SPEC §5).
+"""Batched evaluation episodes and the statistics experiments report.
 
 :func:`run_episodes` plays exactly one episode in each of N sub-environments with any TorchRL
 policy (a controller with carried state included) and returns per-episode figures. Two calls on

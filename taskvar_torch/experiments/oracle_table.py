@@ -1,4 +1,4 @@
-"""The exact oracle's table for a windy family, and a picture of the grid (SPEC §4).
+"""The exact oracle's table for a windy family, and a picture of the grid (docs/oracle.md).
 
 For every start cell: the exact expected 100-step return (over the training distribution, instance
 held fixed per episode) of the mean-MDP optimal averaging policy (paper §3.1), the same under
@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from taskvar_torch.envs import render, windy
-from taskvar_torch.experiments.plots import save_figure
+from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.oracle import WindyOracle
 
 _ARROW = {0: (0, -0.3), 1: (0, 0.3), 2: (0.3, 0), 3: (-0.3, 0)}  # (dx, dy) in image coordinates
@@ -66,7 +66,9 @@ def format_table(result: dict) -> str:
         head,
     ]
     for r in result["rows"]:
-        line = f"{str(tuple(r['start'])):>8} {r['averaging_train']:12.3f} {r['averaging_south']:12.3f}"
+        line = (
+            f"{str(tuple(r['start'])):>8} {r['averaging_train']:12.3f} {r['averaging_south']:12.3f}"
+        )
         line += f" {r['averaging_mean_mdp']:15.3f}" + "".join(f" {r[n]:18.3f}" for n in names)
         lines.append(line)
     lines.append(
@@ -78,10 +80,13 @@ def format_table(result: dict) -> str:
 
 def plot_grid(layout: str, result: dict, path: Path) -> None:
     """PNG of the grid with the averaging policy's actions and expected returns per cell."""
-    from taskvar_torch.experiments.plots import _pyplot
 
     plt = _pyplot()
-    lay = windy.WindyLayout.named(layout) if layout in windy.LAYOUTS else windy.WindyLayout.from_map(layout)
+    lay = (
+        windy.WindyLayout.named(layout)
+        if layout in windy.LAYOUTS
+        else windy.WindyLayout.from_map(layout)
+    )
     px = render.CELL_PX
     fig, ax = plt.subplots(figsize=(1.2 * lay.width + 1, 1.2 * lay.height + 1))
     ax.imshow(render.windy_rgb(lay, None, "north", cell_px=px))
@@ -92,17 +97,23 @@ def plot_grid(layout: str, result: dict, path: Path) -> None:
         r, c = divmod(cell, lay.width)
         x, y = (c + 0.5) * px, (r + 0.5) * px
         dx, dy = _ARROW[a]
-        ax.annotate("", (x + dx * px, y + dy * px), (x, y), arrowprops=dict(arrowstyle="->", lw=1.5))
+        ax.annotate(
+            "", (x + dx * px, y + dy * px), (x, y), arrowprops=dict(arrowstyle="->", lw=1.5)
+        )
         ax.text(x, y + 0.38 * px, f"{v:.1f}", ha="center", va="center", fontsize=7)
     ax.set_xticks([])
     ax.set_yticks([])
-    ax.set_title(f"windy '{layout}': averaging policy and exact expected return\n(wind arrows show a north gust)")
+    ax.set_title(
+        f"windy '{layout}': averaging policy and exact expected return\n(wind arrows show a north gust)"
+    )
     save_figure(fig, path)
     plt.close(fig)
 
 
 def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--layout", default="default", help=f"one of {sorted(windy.LAYOUTS)}")
     ap.add_argument("--out", default="results/oracle", help="results folder")
     args = ap.parse_args(argv)

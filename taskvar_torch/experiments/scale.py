@@ -1,4 +1,4 @@
-"""Scaled-up grids (SPEC §5 "Scaled-up grids"): training time and final performance of the four
+"""Scaled-up grids (docs/scale.md): training time and final performance of the four
 methods against grid size and against the number of parallel environments.
 
 The protocol, top to bottom (:func:`scale`), for each *case* (a family config: windy 5x5, 25x25,
@@ -44,6 +44,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
+from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules import RandomPolicy
@@ -58,8 +59,14 @@ from taskvar_torch.config import (
     windy_env_kwargs,
     windy_layout,
 )
+from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
+from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.factory import make_method_controller
+from taskvar_torch.oracle import WindyOracle
+from taskvar_torch.train import load_heads, make_subtasks, train
 
 EXPERIMENT = "scale"
 METHODS = ("averaging", "options", "interruption", "hierarchy")
@@ -91,7 +98,7 @@ class ScaleCase:
 
 @dataclass(frozen=True)
 class ScaleConfig:
-    """The scaled-up grids experiment (SPEC §5): which cases, num_envs values, budgets."""
+    """The scaled-up grids experiment: which cases, num_envs values, budgets."""
 
     seed: int = 0
     """Seed of every cell's training (cfg.seed); test episodes use seed + 1000."""
@@ -129,9 +136,13 @@ class ScaleConfig:
             if not 0.0 <= v <= 1.0:
                 raise ValueError(f"{name} must be in [0, 1], got {v}")
         if self.updates_per_frame is not None and not 0 < self.updates_per_frame <= 64:
-            raise ValueError(f"updates_per_frame must be in (0, 64] or null, got {self.updates_per_frame}")
+            raise ValueError(
+                f"updates_per_frame must be in (0, 64] or null, got {self.updates_per_frame}"
+            )
         if not self.num_envs or min(self.num_envs) < 1:
-            raise ValueError(f"num_envs must be a non-empty list of ints >= 1, got {list(self.num_envs)}")
+            raise ValueError(
+                f"num_envs must be a non-empty list of ints >= 1, got {list(self.num_envs)}"
+            )
         for name in ("eval_episodes", "eval_batch_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -207,7 +218,9 @@ def load_scale_config(
     try:
         data = OmegaConf.load(path)
     except Exception as e:  # yaml errors
-        raise ValueError(f"config file {str(path)!r} is not valid YAML: {str(e).splitlines()[0]}") from None
+        raise ValueError(
+            f"config file {str(path)!r} is not valid YAML: {str(e).splitlines()[0]}"
+        ) from None
     schema = OmegaConf.structured(ScaleConfig)
     node = _merge(schema, data, f"in {path}")
     base = _to_scale_config(node, f"in {path}")
@@ -245,8 +258,14 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
     t = base.train
     n = int(num_envs)
     fpb = max(n, round(t.frames_per_batch / n) * n)
-    fpb = min(fpb, max(n, (cfg.total_frames // n) * n))  # at least two batches when the budget allows
-    ratio = t.updates_per_batch / t.frames_per_batch if cfg.updates_per_frame is None else cfg.updates_per_frame
+    fpb = min(
+        fpb, max(n, (cfg.total_frames // n) * n)
+    )  # at least two batches when the budget allows
+    ratio = (
+        t.updates_per_batch / t.frames_per_batch
+        if cfg.updates_per_frame is None
+        else cfg.updates_per_frame
+    )
     upb = max(1, round(ratio * fpb)) if ratio > 0 else 0
     return apply_overrides(
         base,
@@ -280,17 +299,25 @@ def grid_side(cfg: Config) -> int:
 def make_test_env(cfg: Config, num_envs: int, seed: int, index_offset: int = 0) -> EnvBase:
     """The family env on fresh test instances; the same ``seed`` gives the same episodes."""
     if cfg.family == "windy":
-        from taskvar_torch.envs.windy_env import WindyGridEnv
-
         kw = windy_env_kwargs(cfg)
-        kw.update(num_envs=int(num_envs), instances="test", seed=int(seed),
-                  index_offset=int(index_offset), validate_actions=False)
+        kw.update(
+            num_envs=int(num_envs),
+            instances="test",
+            seed=int(seed),
+            index_offset=int(index_offset),
+            validate_actions=False,
+        )
         return WindyGridEnv(**kw)
-    from taskvar_torch.envs.wargus_env import WargusEnv
 
-    return WargusEnv(int(num_envs), config=dataclasses.asdict(cfg.env.wargus), instances="test",
-                     seed=int(seed), index_offset=int(index_offset), validate_actions=False,
-                     device=cfg.device)
+    return WargusEnv(
+        int(num_envs),
+        config=dataclasses.asdict(cfg.env.wargus),
+        instances="test",
+        seed=int(seed),
+        index_offset=int(index_offset),
+        validate_actions=False,
+        device=cfg.device,
+    )
 
 
 class TablePolicy(nn.Module):
@@ -306,17 +333,17 @@ class TablePolicy(nn.Module):
 
 def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None, env: Any = None):
     """A TorchRL policy: a method's controller on ``heads``, ``random`` or ``oracle_averaging``."""
-    from tensordict.nn import TensorDictModule
-
-    from taskvar_torch.factory import make_method_controller
 
     if name == "random":
         return RandomPolicy(env.action_spec)
     if name == "oracle_averaging":
-        from taskvar_torch.oracle import WindyOracle
-
-        oracle = WindyOracle(windy_layout(cfg.env), gamma=cfg.train.gamma, horizon=cfg.env.horizon,
-                             train_instances=cfg.env.instances, device=cfg.device)
+        oracle = WindyOracle(
+            windy_layout(cfg.env),
+            gamma=cfg.train.gamma,
+            horizon=cfg.env.horizon,
+            train_instances=cfg.env.instances,
+            device=cfg.device,
+        )
         return TensorDictModule(TablePolicy(oracle.averaging_policy()), [keys.CELL], [keys.ACTION])
     return make_method_controller(cfg, name, heads, subtasks)
 
@@ -328,7 +355,6 @@ def evaluate(
     episodes (global indices ``0..episodes-1`` at the test seed: the same for every policy).
 
     ``None`` where the method does not apply (hierarchy without a composition hierarchy)."""
-    from taskvar_torch.train import make_subtasks
 
     seed = cfg.seed + TEST_SEED_OFFSET
     probe = make_test_env(cfg, 1, seed)
@@ -351,8 +377,12 @@ def evaluate(
         inter.append(out["interruptions"].double().cpu())
     r = torch.cat(returns)
     mean, ci = mean_ci95(r)
-    result = {"mean_return": mean, "ci95": ci, "mean_length": float(torch.cat(lengths).mean()),
-              "episodes": int(r.numel())}
+    result = {
+        "mean_return": mean,
+        "ci95": ci,
+        "mean_length": float(torch.cat(lengths).mean()),
+        "episodes": int(r.numel()),
+    }
     if policy_name in ("options", "interruption", "hierarchy"):
         result["interruptions_per_episode"] = float(torch.cat(inter).mean())
     return result
@@ -364,8 +394,10 @@ def references(cfg: Config, episodes: int, batch_size: int) -> dict[str, Any]:
     refs: dict[str, Any] = {"random": evaluate(cfg, "random", episodes, batch_size)}
     if cfg.family == "windy":
         refs["oracle_averaging"] = evaluate(cfg, "oracle_averaging", episodes, batch_size)
-        refs["oracle_note"] = ("mean-MDP optimal averaging policy (exact value iteration, paper "
-                               "§3.1), rolled out on the same test episodes")
+        refs["oracle_note"] = (
+            "mean-MDP optimal averaging policy (exact value iteration, paper "
+            "§3.1), rolled out on the same test episodes"
+        )
     else:
         refs["oracle_averaging"] = None
         refs["oracle_note"] = "no exact oracle for Wargus"
@@ -393,7 +425,6 @@ def run_cell(
     overwrite: bool = False,
 ) -> dict[str, Any]:
     """Train one (case, num_envs) cell with the real trainer, time it, evaluate every method."""
-    from taskvar_torch.train import load_heads, train
 
     ccfg = case_config(cfg, case, num_envs)
     cell_dir = out / "cells" / f"{case.name}-n{num_envs}"
@@ -413,7 +444,8 @@ def run_cell(
         "case": case.name,
         "family": ccfg.family,
         "grid_side": grid_side(ccfg),
-        "cells": windy_layout(ccfg.env).num_cells if ccfg.family == "windy"
+        "cells": windy_layout(ccfg.env).num_cells
+        if ccfg.family == "windy"
         else ccfg.env.wargus.size**2,
         "num_envs": int(num_envs),
         "frames": int(result["frames"]),
@@ -454,10 +486,13 @@ def scale(
     cases = cfg.selected()
     refs: dict[str, Any] = {}
     cells: list[dict[str, Any]] = []
-    bar = tqdm(total=len(cases) * len(cfg.num_envs), disable=not progress, desc="scale", unit="cell")
+    bar = tqdm(
+        total=len(cases) * len(cfg.num_envs), disable=not progress, desc="scale", unit="cell"
+    )
     for case in cases:
-        refs[case.name] = references(case_config(cfg, case, cfg.num_envs[0]), cfg.eval_episodes,
-                                     cfg.eval_batch_size)
+        refs[case.name] = references(
+            case_config(cfg, case, cfg.num_envs[0]), cfg.eval_episodes, cfg.eval_batch_size
+        )
         for n in cfg.num_envs:
             bar.set_postfix_str(f"{case.name} N={n}")
             cells.append(run_cell(cfg, case, n, out, refs[case.name], overwrite))
@@ -500,14 +535,20 @@ def csv_rows(metrics: dict[str, Any]) -> list[dict[str, Any]]:
         for m in METHODS:
             r = c["methods"].get(m)
             row = {k: c[k] for k in CSV_FIELDS if k in c}
-            row.update(method=m, random_return=ref["random"]["mean_return"],
-                       oracle_return=orc["mean_return"] if orc else "")
+            row.update(
+                method=m,
+                random_return=ref["random"]["mean_return"],
+                oracle_return=orc["mean_return"] if orc else "",
+            )
             if r is None:
                 row["mean_return"] = "n/a"
             else:
-                row.update(mean_return=r["mean_return"], ci95=r["ci95"],
-                           gap_closed="" if r.get("gap_closed") is None else r["gap_closed"],
-                           interruptions_per_episode=r.get("interruptions_per_episode", ""))
+                row.update(
+                    mean_return=r["mean_return"],
+                    ci95=r["ci95"],
+                    gap_closed="" if r.get("gap_closed") is None else r["gap_closed"],
+                    interruptions_per_episode=r.get("interruptions_per_episode", ""),
+                )
             rows.append(row)
     return rows
 
@@ -524,7 +565,8 @@ def format_table(metrics: dict[str, Any]) -> str:
         "per cell: mean return +- 95% CI (windy: -steps, and in brackets the gap closed, "
         "(R - random) / (oracle - random); Wargus: items per episode)",
         f"{'case':<14} {'N':>5} {'updates':>7} {'train s':>8} {'frames/s':>9} "
-        + " ".join(f"{m:>21}" for m in METHODS) + f" {'random':>8} {'oracle':>8}",
+        + " ".join(f"{m:>21}" for m in METHODS)
+        + f" {'random':>8} {'oracle':>8}",
     ]
     for c in metrics["cells"]:
         ref = metrics["references"][c["case"]]
@@ -541,7 +583,8 @@ def format_table(metrics: dict[str, Any]) -> str:
         orc = ref["oracle_averaging"]
         lines.append(
             f"{c['case']:<14} {c['num_envs']:>5} {c['updates']:>7} {c['train_seconds']:8.1f} "
-            f"{c['frames_per_second'] or 0:9.0f} " + " ".join(cols)
+            f"{c['frames_per_second'] or 0:9.0f} "
+            + " ".join(cols)
             + f" {ref['random']['mean_return']:8.2f} "
             + (f"{orc['mean_return']:8.2f}" if orc else f"{'n/a':>8}")
         )
@@ -556,13 +599,21 @@ def _ci(x: float | None) -> str:
 def is_results_folder(out_dir: str | os.PathLike) -> bool:
     """Whether ``out_dir`` holds a ``metrics.json`` written by :func:`scale`."""
     try:
-        return json.loads((Path(out_dir) / METRICS_NAME).read_text()).get("experiment") == EXPERIMENT
+        return (
+            json.loads((Path(out_dir) / METRICS_NAME).read_text()).get("experiment") == EXPERIMENT
+        )
     except (OSError, ValueError, AttributeError):
         return False
 
 
-COLOURS = {"averaging": "tab:green", "options": "tab:orange", "interruption": "tab:red",
-           "hierarchy": "tab:blue", "random": "0.5", "oracle_averaging": "black"}
+COLOURS = {
+    "averaging": "tab:green",
+    "options": "tab:orange",
+    "interruption": "tab:red",
+    "hierarchy": "tab:blue",
+    "random": "0.5",
+    "oracle_averaging": "black",
+}
 FAMILY_STYLE = {"windy": dict(ls="-", marker="o"), "wargus": dict(ls="--", marker="s")}
 
 
@@ -570,7 +621,6 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     """(Re)draw ``scale.png`` from ``metrics.json``: (a) training time vs grid side per num_envs,
     (b, c) final return per method vs grid side (windy, Wargus; at the largest num_envs, references
     dashed), (d) frames/s vs num_envs per case, (e, f) final return per method vs num_envs."""
-    from taskvar_torch.experiments.plots import _pyplot, save_figure
 
     out = Path(out_dir)
     if not is_results_folder(out):
@@ -580,72 +630,126 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     ns = sorted({c["num_envs"] for c in cells})
     families = [f for f in ("windy", "wargus") if any(c["family"] == f for c in cells)]
     plt = _pyplot()
-    fig, axes = plt.subplots(2, 1 + len(families), figsize=(5.2 * (1 + len(families)), 8.4),
-                             squeeze=False, layout="constrained")
+    fig, axes = plt.subplots(
+        2,
+        1 + len(families),
+        figsize=(5.2 * (1 + len(families)), 8.4),
+        squeeze=False,
+        layout="constrained",
+    )
     cmap = plt.get_cmap("viridis")
     shade = {n: cmap(i / max(len(ns) - 1, 1) * 0.85) for i, n in enumerate(ns)}
 
     ax = axes[0, 0]  # (a) training time vs grid side
     for fam in families:
         for n in ns:
-            sel = sorted((c for c in cells if c["family"] == fam and c["num_envs"] == n),
-                         key=lambda c: c["grid_side"])
+            sel = sorted(
+                (c for c in cells if c["family"] == fam and c["num_envs"] == n),
+                key=lambda c: c["grid_side"],
+            )
             if sel:
-                ax.plot([c["grid_side"] for c in sel], [c["train_seconds"] for c in sel],
-                        color=shade[n], label=f"{fam} N={n}", **FAMILY_STYLE[fam])
-    ax.set(xlabel="grid side", ylabel="training time (s)", yscale="log",
-           title=f"(a) training time, {metrics['total_frames']} frames per cell")
+                ax.plot(
+                    [c["grid_side"] for c in sel],
+                    [c["train_seconds"] for c in sel],
+                    color=shade[n],
+                    label=f"{fam} N={n}",
+                    **FAMILY_STYLE[fam],
+                )
+    ax.set(
+        xlabel="grid side",
+        ylabel="training time (s)",
+        yscale="log",
+        title=f"(a) training time, {metrics['total_frames']} frames per cell",
+    )
 
     ax = axes[1, 0]  # (d) frames/s vs num_envs
     for case in refs:
         sel = sorted((c for c in cells if c["case"] == case), key=lambda c: c["num_envs"])
         if sel:
-            ax.plot([c["num_envs"] for c in sel], [c["frames_per_second"] or np.nan for c in sel],
-                    label=case, **FAMILY_STYLE[sel[0]["family"]])
-    ax.set(xlabel="parallel environments N", ylabel="training frames/s", xscale="log",
-           yscale="log", title="(d) training throughput (collection + learning)")
+            ax.plot(
+                [c["num_envs"] for c in sel],
+                [c["frames_per_second"] or np.nan for c in sel],
+                label=case,
+                **FAMILY_STYLE[sel[0]["family"]],
+            )
+    ax.set(
+        xlabel="parallel environments N",
+        ylabel="training frames/s",
+        xscale="log",
+        yscale="log",
+        title="(d) training throughput (collection + learning)",
+    )
     _num_envs_ticks(ax, ns)
 
     n_max = ns[-1]
     for j, fam in enumerate(families, start=1):
         unit = "items per episode" if fam == "wargus" else "return (-steps)"
         ax = axes[0, j]  # (b/c) performance vs grid side at the largest N
-        sel = sorted((c for c in cells if c["family"] == fam and c["num_envs"] == n_max),
-                     key=lambda c: c["grid_side"])
+        sel = sorted(
+            (c for c in cells if c["family"] == fam and c["num_envs"] == n_max),
+            key=lambda c: c["grid_side"],
+        )
         x = [c["grid_side"] for c in sel]
         for m in metrics["methods"]:
             pts = [(xx, c["methods"].get(m)) for xx, c in zip(x, sel)]
             pts = [(xx, r) for xx, r in pts if r is not None]
             if pts:
-                ax.errorbar([p[0] for p in pts], [p[1]["mean_return"] for p in pts],
-                            yerr=[p[1]["ci95"] or 0.0 for p in pts], color=COLOURS[m], marker="o",
-                            capsize=3, label=m)
+                ax.errorbar(
+                    [p[0] for p in pts],
+                    [p[1]["mean_return"] for p in pts],
+                    yerr=[p[1]["ci95"] or 0.0 for p in pts],
+                    color=COLOURS[m],
+                    marker="o",
+                    capsize=3,
+                    label=m,
+                )
         for ref in ("random", "oracle_averaging"):
             ys = [(refs[c["case"]].get(ref) or {}).get("mean_return") for c in sel]
             if any(y is not None for y in ys):
-                ax.plot(x, [np.nan if y is None else y for y in ys], ls=":", color=COLOURS[ref],
-                        marker="x", label=ref.replace("_", " "))
-        ax.set(xlabel="grid side", ylabel=unit, title=f"({'bc'[j - 1]}) {fam}: final performance, N={n_max}")
+                ax.plot(
+                    x,
+                    [np.nan if y is None else y for y in ys],
+                    ls=":",
+                    color=COLOURS[ref],
+                    marker="x",
+                    label=ref.replace("_", " "),
+                )
+        ax.set(
+            xlabel="grid side",
+            ylabel=unit,
+            title=f"({'bc'[j - 1]}) {fam}: final performance, N={n_max}",
+        )
 
         ax = axes[1, j]  # (e/f) performance vs num_envs, per case (line style) and method (colour)
         styles = ["-", "--", ":", "-."]
-        for k, case in enumerate(c for c in refs if any(x["case"] == c and x["family"] == fam for x in cells)):
+        for k, case in enumerate(
+            c for c in refs if any(x["case"] == c and x["family"] == fam for x in cells)
+        ):
             sel = sorted((c for c in cells if c["case"] == case), key=lambda c: c["num_envs"])
             for m in metrics["methods"]:
                 pts = [(c["num_envs"], c["methods"].get(m)) for c in sel]
                 pts = [(n, r) for n, r in pts if r is not None]
                 if pts:
-                    ax.plot([p[0] for p in pts], [p[1]["mean_return"] for p in pts], marker=".",
-                            ls=styles[k % len(styles)], color=COLOURS[m],
-                            label=f"{case}: {m}")
-        ax.set(xlabel="parallel environments N", ylabel=unit, xscale="log",
-               title=f"({'ef'[j - 1]}) {fam}: final performance vs N")
+                    ax.plot(
+                        [p[0] for p in pts],
+                        [p[1]["mean_return"] for p in pts],
+                        marker=".",
+                        ls=styles[k % len(styles)],
+                        color=COLOURS[m],
+                        label=f"{case}: {m}",
+                    )
+        ax.set(
+            xlabel="parallel environments N",
+            ylabel=unit,
+            xscale="log",
+            title=f"({'ef'[j - 1]}) {fam}: final performance vs N",
+        )
         _num_envs_ticks(ax, ns)
     for ax in axes.flat:
         ax.grid(alpha=0.3)
         if ax.has_data():
             ax.legend(fontsize=7)
-    fig.suptitle("Scaled-up grids (SPEC §5): training cost and final performance", fontsize=11)
+    fig.suptitle("Scaled-up grids: training cost and final performance", fontsize=11)
     path = save_figure(fig, out / FIGURE)
     plt.close(fig)
     return [path]

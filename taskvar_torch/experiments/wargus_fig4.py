@@ -1,4 +1,4 @@
-"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3, SPEC §5 "Wargus, Figure 4").
+"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md).
 
 The protocol, top to bottom (:func:`wargus_fig4`), for each of R repetitions (own seed
 ``cfg.seed + rep``, own env streams, own replay generator, own torch RNG stream; never one RNG
@@ -38,7 +38,7 @@ Definitions used in ``metrics.json``:
 Repetitions run sequentially or, with ``workers > 1``, in spawned processes (one torch thread
 each); both give the same numbers (each repetition depends on its own seed only).
 
-Speed (README "Wargus Figure 4", ``benchmarks/wargus_trial.py``): the loops step the pure
+Speed (docs/benchmarks.md, ``benchmarks/wargus_trial.py``): the loops step the pure
 dynamics through :meth:`WargusEnv.reset_all` / :meth:`WargusEnv.step_all` (no ``EnvBase``
 checks, transforms or ``step_mdp``), write replay once per update phase, run every head in one
 stacked pass (:class:`HeadValues`), and test :data:`TEST_GROUP` trials side by side on frozen
@@ -67,6 +67,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import torch.multiprocessing as mp
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import TransformedEnv
@@ -80,6 +81,7 @@ from taskvar_torch.controllers import Controller, HierarchyController, option_fi
 from taskvar_torch.envs.wargus import ITEM_LOST, NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.factory import calibrate, make_method_controller, replay_states
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
@@ -144,7 +146,6 @@ class LifelongAgent:
     updates: int = 0
 
 
-
 def learn_due(agent: LifelongAgent, t: Any) -> None:
     """``train.updates_per_batch`` updates for every ``train.frames_per_batch`` frames played (after
     ``train.init_random_frames``), each on one shared sample for every head."""
@@ -154,6 +155,7 @@ def learn_due(agent: LifelongAgent, t: Any) -> None:
             for _ in range(t.updates_per_batch):
                 agent.learner.update(agent.buffer.sample())
                 agent.updates += 1
+
 
 def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> LifelongAgent:
     """Fresh heads, learner, behaviour policy and an empty replay buffer (seeded by ``seed``)."""
@@ -190,10 +192,7 @@ def make_test_env(
     trial (the seeds cycle)."""
     seeds = nominal_seeds(k)
     rows = tuple(
-        seeds[(j + first_trial + g) % k]
-        for g in range(trials)
-        for _ in METHODS
-        for j in range(k)
+        seeds[(j + first_trial + g) % k] for g in range(trials) for _ in METHODS for j in range(k)
     )
     return WargusEnv(
         len(rows),
@@ -280,9 +279,7 @@ class HeadValues:
 
         # elementwise math (the optimism gap's softplus) runs on rows of the layout forward_one
         # gives (same kernel path, same bits); only the final values are reshaped
-        return {
-            k: run(net).reshape(obs.shape[0], *_out_shape(net)) for k, net in self.nets.items()
-        }
+        return {k: run(net).reshape(obs.shape[0], *_out_shape(net)) for k, net in self.nets.items()}
 
 
 def _stacked_forward(
@@ -394,7 +391,9 @@ class SideBySide(TensorDictModuleBase):
 
         outs = []
         for i, c in enumerate(self.controllers):
-            values = {HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads}
+            values = {
+                HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads
+            }
             values.update({key: part(v, i) for key, v in c.extra_inputs(td).items()})
             if calibrations is not None and isinstance(c, HierarchyController):
                 cals = [cal or c.calibration for cal in calibrations]
@@ -576,7 +575,9 @@ def test_trials(
     h = METHODS.index("hierarchy")
     options, alives = [], []
     for _ in range(env.horizon):
-        lost += (td.get(ITEM_LOST).reshape(n) & alive).long()  # the step that led here lost the item
+        lost += (
+            td.get(ITEM_LOST).reshape(n) & alive
+        ).long()  # the step that led here lost the item
         out = policy.decide_batch(td, running, params, calibrations)
         inter += (out[keys.INTERRUPTED] & alive).long()
         options.append(out[keys.OPTION])
@@ -719,9 +720,7 @@ def run_repetition(
             env = make_test_env(cfg, k, seed, first_trial=len(rows["items"]), trials=len(snapshots))
             if group == 1 and calibrations[0] is not None:
                 hier.calibration = calibrations[0]
-            tested_all = test_trials(
-                policy, env, k, snapshots if group > 1 else None, calibrations
-            )
+            tested_all = test_trials(policy, env, k, snapshots if group > 1 else None, calibrations)
             for tested in tested_all:
                 for key, v in tested.items():
                     rows[key].append(v)
@@ -794,8 +793,6 @@ def run_repetitions(
         for rep in range(reps):
             results[rep] = run_repetition(cfg, rep, out_dir, lambda r, t: bar.update(1))
     else:
-        import torch.multiprocessing as mp
-
         ctx = mp.get_context("spawn")
         queue = ctx.Queue()
         pending = list(range(reps))
@@ -1040,10 +1037,6 @@ def summarise(
 # files, table, plot
 
 
-
-
-
-
 def format_table(metrics: dict[str, Any]) -> str:
     """Final score and trials-to-90% per method, the hierarchy's control split, the wall time."""
     p, tm = metrics.get("protocol", {}), metrics.get("timing", {})
@@ -1097,7 +1090,6 @@ def is_results_folder(out_dir: str | os.PathLike) -> bool:
 def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     """(Re)draw ``fig4.png`` from ``metrics.json``: smoothed mean items per test episode per trial
     with +-std bands over repetitions, and the trials-to-90% bars (paper Figure 4 layout)."""
-    from taskvar_torch.experiments.plots import _pyplot, save_figure
 
     out = Path(out_dir)
     metrics = json.loads((out / "metrics.json").read_text())

@@ -1,4 +1,4 @@
-"""Windy Figure 2 with the learnt networks (paper §3.3.1, SPEC §5 "Windy, Figure 2").
+"""Windy Figure 2 with the learnt networks (paper §3.3.1; docs/windy-fig2.md).
 
 The protocol, top to bottom (:func:`windy_fig2`):
 
@@ -28,6 +28,7 @@ Examples:
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import time
@@ -40,6 +41,7 @@ from torchrl.envs import TransformedEnv
 from tqdm.auto import tqdm
 
 from taskvar_torch import keys
+from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import (
     Config,
     load_config,
@@ -47,13 +49,24 @@ from taskvar_torch.config import (
     windy_env_kwargs,
     windy_layout,
 )
-from taskvar_torch.controllers import Controller, make_controller
+from taskvar_torch.controllers import CONTROLLERS, Controller, make_controller
 from taskvar_torch.envs import windy
 from taskvar_torch.envs.instances import WindyInstances
 from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.evaluation import mean_ci95, paired_summary, run_episodes
+from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sorted_differences
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.oracle import WindyOracle
+from taskvar_torch.train import (
+    check_device,
+    check_output_folder,
+    load_heads,
+    make_env,
+    make_subtasks,
+    run_files,
+    train,
+)
 
 METHODS = ("averaging", "options", "interruption")
 """Methods of Figure 2: the flat baseline, options without interruption, Algorithm 1."""
@@ -112,8 +125,7 @@ def make_eval_env(
 
 
 def build_controller(method: str, heads: Heads, cfg: Config) -> Controller:
-    """A controller of ``method`` on ``heads`` with the family's option terminations (SPEC §3)."""
-    from taskvar_torch.train import make_env, make_subtasks
+    """A controller of ``method`` on ``heads`` with the family's option terminations."""
 
     if method == "hierarchy":
         raise ValueError(
@@ -139,7 +151,7 @@ def evaluate(
     """Play ``episodes`` one-episode sub-envs (global indices ``0..episodes-1``) with ``method``.
 
     The same ``(seed, instances)`` gives every method the same instance and start per episode, and
-    the same gusts when ``noise_seed`` matches: this is the pairing of SPEC §5. The env is seeded
+    the same gusts when ``noise_seed`` matches: the pairing of docs/windy-fig2.md. The env is seeded
     per sub-env, so the result does not depend on ``batch_size``.
 
     Returns per-episode arrays ``return``, ``length``, ``interruptions``, ``p``, ``direction``,
@@ -182,7 +194,6 @@ def evaluate(
 
 def make_oracle(cfg: Config):
     """The exact oracle of ``cfg``'s layout, or ``None`` when the layout is too large."""
-    from taskvar_torch.oracle import WindyOracle
 
     layout = windy_layout(cfg.env)
     if layout.num_cells > EXACT_MAX_CELLS:
@@ -191,7 +202,12 @@ def make_oracle(cfg: Config):
 
 
 def exact_returns(
-    oracle, ctrl: Controller, cfg: Config, p: np.ndarray, direction: np.ndarray, start: np.ndarray,
+    oracle,
+    ctrl: Controller,
+    cfg: Config,
+    p: np.ndarray,
+    direction: np.ndarray,
+    start: np.ndarray,
     chunk: int = 2000,
 ) -> np.ndarray:
     """Exact expected horizon-step return of ``ctrl`` (learnt heads) per (instance, start) episode."""
@@ -284,7 +300,9 @@ def theorem1_check(
     def outcome(mask: np.ndarray) -> dict[str, Any]:
         o: dict[str, Any] = {"episodes": int(mask.sum())}
         if mask.any():
-            o["vs_averaging_sampled"] = _short(paired_summary(torch.as_tensor(diff_vs_averaging[mask])))
+            o["vs_averaging_sampled"] = _short(
+                paired_summary(torch.as_tensor(diff_vs_averaging[mask]))
+            )
             if exact_diff_vs_options is not None:
                 o["vs_options_exact"] = _short(_exact_summary(exact_diff_vs_options[mask]))
         return o
@@ -304,8 +322,16 @@ def theorem1_check(
 
 
 def _short(summary: dict[str, float]) -> dict[str, float]:
-    return {k: summary[k] for k in ("fraction_no_worse", "fraction_better", "fraction_worse",
-                                    "mean_difference", "mean_difference_ci95")}
+    return {
+        k: summary[k]
+        for k in (
+            "fraction_no_worse",
+            "fraction_better",
+            "fraction_worse",
+            "mean_difference",
+            "mean_difference_ci95",
+        )
+    }
 
 
 def _exact_summary(diff: np.ndarray) -> dict[str, float]:
@@ -335,21 +361,45 @@ def run_distribution(
     fire_parts: dict[str, list[np.ndarray]] = {}
     width = windy_layout(cfg.env).width
     ctrls = {m: build_controller(m, heads, cfg) for m in METHODS} if oracle is not None else {}
-    bar = tqdm(total=runs * episodes * (len(METHODS) + 1), disable=not progress, desc=desc,
-               unit="ep")
+    bar = tqdm(
+        total=runs * episodes * (len(METHODS) + 1), disable=not progress, desc=desc, unit="ep"
+    )
     for run in range(runs):
         seed = test_seed(cfg, run)
-        r = {m: evaluate(heads, cfg, m, instances, seed, episodes, record_firings=m == "interruption",
-                         progress=bar) for m in METHODS}
-        null = evaluate(heads, cfg, "averaging", instances, seed, episodes,
-                        noise_seed=NULL_NOISE_SEED, progress=bar)
+        r = {
+            m: evaluate(
+                heads,
+                cfg,
+                m,
+                instances,
+                seed,
+                episodes,
+                record_firings=m == "interruption",
+                progress=bar,
+            )
+            for m in METHODS
+        }
+        null = evaluate(
+            heads,
+            cfg,
+            "averaging",
+            instances,
+            seed,
+            episodes,
+            noise_seed=NULL_NOISE_SEED,
+            progress=bar,
+        )
         base = r["averaging"]
         for m in METHODS:  # the pairing: same instances and starts for every method
-            assert np.array_equal(r[m]["p"], base["p"]) and np.array_equal(r[m]["start"], base["start"])
+            assert np.array_equal(r[m]["p"], base["p"]) and np.array_equal(
+                r[m]["start"], base["start"]
+            )
         ex = {}
         if oracle is not None:
             for m in METHODS:
-                ex[m] = exact_returns(oracle, ctrls[m], cfg, base["p"], base["direction"], base["start"])
+                ex[m] = exact_returns(
+                    oracle, ctrls[m], cfg, base["p"], base["direction"], base["start"]
+                )
         cols = {
             "return_averaging": base["return"],
             "return_options": r["options"]["return"],
@@ -362,23 +412,38 @@ def run_distribution(
             pooled.setdefault(k, []).append(v)
         roll = r["interruption"]
         for k in ("fire_episode", "fire_cell", "fire_option"):
-            fire_parts.setdefault(k, []).append(roll[k] + (run * episodes if k == "fire_episode" else 0))
+            fire_parts.setdefault(k, []).append(
+                roll[k] + (run * episodes if k == "fire_episode" else 0)
+            )
         for k in ("p", "direction", "start"):
             pooled.setdefault(k, []).append(base[k])
         diff = torch.as_tensor(cols["return_interruption"] - cols["return_averaging"])
-        per_run.append({
-            "run": run,
-            "seed": seed,
-            **_short(paired_summary(diff)),
-            "fraction_no_worse_null": float(np.mean(cols["return_averaging"] >= cols["return_averaging_null"])),
-            "mean_return": {m: float(np.mean(r[m]["return"], dtype=np.float64)) for m in METHODS},
-            "interruptions_per_episode": float(np.mean(cols["interruptions"])),
-        })
+        per_run.append(
+            {
+                "run": run,
+                "seed": seed,
+                **_short(paired_summary(diff)),
+                "fraction_no_worse_null": float(
+                    np.mean(cols["return_averaging"] >= cols["return_averaging_null"])
+                ),
+                "mean_return": {
+                    m: float(np.mean(r[m]["return"], dtype=np.float64)) for m in METHODS
+                },
+                "interruptions_per_episode": float(np.mean(cols["interruptions"])),
+            }
+        )
         start_row, start_col = np.divmod(base["start"], width)
         for i in range(episodes):
-            row = {"distribution": desc, "run": run, "seed": seed, "episode": i,
-                   "p": float(base["p"][i]), "direction": windy.DIRECTIONS[int(base["direction"][i])],
-                   "start_row": int(start_row[i]), "start_col": int(start_col[i])}
+            row = {
+                "distribution": desc,
+                "run": run,
+                "seed": seed,
+                "episode": i,
+                "p": float(base["p"][i]),
+                "direction": windy.DIRECTIONS[int(base["direction"][i])],
+                "start_row": int(start_row[i]),
+                "start_col": int(start_col[i]),
+            }
             for k, v in cols.items():
                 row[k] = v[i].item()
             rows.append(row)
@@ -388,9 +453,17 @@ def run_distribution(
     metrics = summarise(data, fires, cfg, runs, episodes)
     metrics["per_run"] = per_run
     if oracle is not None:
-        rolls = {"return": data["return_averaging"], "p": data["p"], "direction": data["direction"], **fires}
+        rolls = {
+            "return": data["return_averaging"],
+            "p": data["p"],
+            "direction": data["direction"],
+            **fires,
+        }
         metrics["theorem1"] = theorem1_check(
-            oracle, ctrls["options"], cfg, rolls,
+            oracle,
+            ctrls["options"],
+            cfg,
+            rolls,
             data["exact_interruption"] - data["exact_options"],
             data["return_interruption"] - data["return_averaging"],
         )
@@ -410,7 +483,9 @@ def summarise(
     m["fraction_no_worse_null"] = null["fraction_no_worse"]
     m["null"] = _short(null)
     m["options_vs_averaging"] = _short(paired_summary(t["return_options"] - t["return_averaging"]))
-    m["interruption_vs_options"] = _short(paired_summary(t["return_interruption"] - t["return_options"]))
+    m["interruption_vs_options"] = _short(
+        paired_summary(t["return_interruption"] - t["return_options"])
+    )
     m["mean_return"] = {}
     for name in (*METHODS, "averaging_null"):
         mean, ci = mean_ci95(t[f"return_{name}"])
@@ -420,8 +495,12 @@ def summarise(
         m["fraction_no_worse_exact"] = ex["fraction_no_worse"]
         m["exact"] = {
             **_short(ex),
-            "options_vs_averaging": _short(_exact_summary(data["exact_options"] - data["exact_averaging"])),
-            "interruption_vs_options": _short(_exact_summary(data["exact_interruption"] - data["exact_options"])),
+            "options_vs_averaging": _short(
+                _exact_summary(data["exact_options"] - data["exact_averaging"])
+            ),
+            "interruption_vs_options": _short(
+                _exact_summary(data["exact_interruption"] - data["exact_options"])
+            ),
             "mean_return": {n: float(data[f"exact_{n}"].mean()) for n in METHODS},
             "note": "exact expected returns of the learnt controllers in each episode's (instance, start)",
         }
@@ -469,8 +548,6 @@ def windy_fig2(
     Returns:
         The metrics dict written to ``metrics.json``.
     """
-    from taskvar_torch.checkpoint import load_checkpoint
-    from taskvar_torch.train import check_device, check_output_folder, load_heads, run_files, train
 
     if cfg.family != "windy":
         raise ValueError(f"windy-fig2 needs family='windy', got family={cfg.family!r}")
@@ -519,7 +596,9 @@ def windy_fig2(
     all_rows: list[dict[str, Any]] = []
     eval_t0 = time.perf_counter()
     for key, instances in DISTRIBUTIONS.items():
-        m, rows = run_distribution(heads, cfg, instances, runs, episodes, oracle, progress, desc=key)
+        m, rows = run_distribution(
+            heads, cfg, instances, runs, episodes, oracle, progress, desc=key
+        )
         all_rows += rows
         if key == "train":
             metrics.update(m)
@@ -534,21 +613,18 @@ def windy_fig2(
     figures = [str(p) for p in plot_results(out)] if plots else []
     print(format_table(metrics))
     print(format_start_table(metrics["oracle_by_start"]))
-    print(f"wrote {out / METRICS_NAME}, {out / CSV_NAME}"
-          + "".join(f", {f}" for f in figures)
-          + ("" if plots else f" (no plots: taskvar plot {out})"))
+    print(
+        f"wrote {out / METRICS_NAME}, {out / CSV_NAME}"
+        + "".join(f", {f}" for f in figures)
+        + ("" if plots else f" (no plots: taskvar plot {out})")
+    )
     return metrics
 
 
 def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
     """The checkpoint's config with ``cfg``'s experiment and eval sections (sizes of this run)."""
-    import dataclasses
 
     return dataclasses.replace(ckpt_cfg, experiment=cfg.experiment, eval=cfg.eval)
-
-
-
-
 
 
 # --------------------------------------------------------------------------------------------
@@ -557,22 +633,28 @@ def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
 
 def learnt_vs_oracle_by_start(heads: Any, oracle: Any) -> list[dict[str, Any]]:
     """Per start cell: exact expected return (training distribution) of the mean-MDP optimal
-    averaging policy (paper §3.1) and of the learnt averaging head's greedy policy (SPEC §4)."""
+    averaging policy (paper §3.1) and of the learnt averaging head's greedy policy."""
     with torch.no_grad():
         q = heads(oracle.observation_td().to(oracle.device))[keys.ACTION_VALUE]  # (S, A)
     learnt = oracle.expected_return(q.argmax(-1), None, starts=None)  # (S,)
     optimum = oracle.expected_return(oracle.averaging_policy(), None, starts=None)  # (S,)
     width = oracle.layout.width
     return [
-        {"start": list(divmod(c, width)), "oracle_optimum": float(optimum[c]), "learnt": float(learnt[c])}
+        {
+            "start": list(divmod(c, width)),
+            "oracle_optimum": float(optimum[c]),
+            "learnt": float(learnt[c]),
+        }
         for c in oracle.start_cells.tolist()
     ]
 
 
 def format_start_table(rows: list[dict[str, Any]]) -> str:
     """The learnt averaging policy beside the oracle's optimum, per start cell."""
-    lines = ["Averaging policy, exact expected 100-step return over the training distribution:",
-             f"{'start':>8} {'oracle optimum':>15} {'learnt head':>12}"]
+    lines = [
+        "Averaging policy, exact expected 100-step return over the training distribution:",
+        f"{'start':>8} {'oracle optimum':>15} {'learnt head':>12}",
+    ]
     for r in rows:
         lines.append(f"{str(tuple(r['start'])):>8} {r['oracle_optimum']:15.3f} {r['learnt']:12.3f}")
     return "\n".join(lines)
@@ -609,20 +691,27 @@ def format_table(metrics: dict[str, Any]) -> str:
         line(dist, "interruption - options (sampled, paired)", m["interruption_vs_options"])
         th = m.get("theorem1") or {}
         fired = th.get("firings", 0)
-        prem = (f"Theorem 1 premise held at {th['premise_held_fraction']:.1%} of {fired} firings"
-                if fired else "interruption never fired")
+        prem = (
+            f"Theorem 1 premise held at {th['premise_held_fraction']:.1%} of {fired} firings"
+            if fired
+            else "interruption never fired"
+        )
         lines.append(
             f"{'':<12} interruptions/episode {m['interruptions_per_episode']:.3f} "
             f"(in {m['episodes_with_interruption']:.1%} of episodes); {prem}"
         )
-    never = [d for d, m in (("train", metrics), ("south_only", metrics.get("south_only")))
-             if m and not (m.get("theorem1") or {}).get("firings", 0)
-             and not m.get("interruptions_per_episode")]
+    never = [
+        d
+        for d, m in (("train", metrics), ("south_only", metrics.get("south_only")))
+        if m
+        and not (m.get("theorem1") or {}).get("firings", 0)
+        and not m.get("interruptions_per_episode")
+    ]
     if never:
         lines.append(
             f"Note ({', '.join(never)}): interruption never fired, so the interruption and options "
             "policies are identical there and a 0.000 difference with 100% no worse is a tie, not "
-            "a gain; see README.md#what-the-numbers-say"
+            "a gain; see docs/windy-fig2.md#what-the-numbers-say"
         )
     return "\n".join(lines)
 
@@ -648,7 +737,6 @@ def read_csv_columns(path: Path) -> dict[str, dict[str, np.ndarray]]:
 
 def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     """(Re)draw Figure 2 per distribution and the interruption heat-map from a results folder."""
-    from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sorted_differences
 
     out = Path(out_dir)
     for name in (CSV_NAME, METRICS_NAME, "config.yaml"):
@@ -670,24 +758,35 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
         if not np.isnan(c["exact_interruption"]).any():
             exact = [c["exact_interruption"][s] - c["exact_averaging"][s] for s in sel]
         label = "south-only test winds" if dist == "south_only" else "training distribution"
-        paths.append(plot_sorted_differences(
-            diffs, nulls, out / fname,
-            title=f"Windy Figure 2 ({label}): interruption - averaging, {len(runs)} runs",
-            exact_runs=exact,
-        ))
+        paths.append(
+            plot_sorted_differences(
+                diffs,
+                nulls,
+                out / fname,
+                title=f"Windy Figure 2 ({label}): interruption - averaging, {len(runs)} runs",
+                exact_runs=exact,
+            )
+        )
     m_south = metrics.get("south_only") or {}
-    paths.append(plot_interruption_heatmap(
-        windy_layout(cfg.env),
-        {"training distribution": metrics.get("interruption_cells"),
-         "south-only": m_south.get("interruption_cells")},
-        episodes={"training distribution": metrics.get("episodes"), "south-only": m_south.get("episodes")},
-        path=out / HEATMAP,
-    ))
+    paths.append(
+        plot_interruption_heatmap(
+            windy_layout(cfg.env),
+            {
+                "training distribution": metrics.get("interruption_cells"),
+                "south-only": m_south.get("interruption_cells"),
+            },
+            episodes={
+                "training distribution": metrics.get("episodes"),
+                "south-only": m_south.get("episodes"),
+            },
+            path=out / HEATMAP,
+        )
+    )
     return paths
 
 
 # --------------------------------------------------------------------------------------------
-# checkpoint-based evaluation (SPEC §5 "Checkpoint-based evaluation")
+# checkpoint-based evaluation
 
 
 def eval_checkpoint(
@@ -707,8 +806,6 @@ def eval_checkpoint(
     episodes and method (``test``: ``train`` for the training distribution, ``south`` for
     south-only). Writes ``out_dir/metrics.json`` when ``out_dir`` is given.
     """
-    from taskvar_torch.controllers import CONTROLLERS
-    from taskvar_torch.train import check_output_folder, load_heads
 
     if method not in CONTROLLERS:  # fail before any work or progress bar, in one line
         raise ValueError(f"method must be one of {list(CONTROLLERS)}, got {method!r}")

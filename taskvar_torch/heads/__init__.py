@@ -1,4 +1,4 @@
-"""Heads: the learnt functions of the paper as networks, and their learners (SPEC §2)."""
+"""Heads: the learnt functions of the paper as networks, and their learners (docs/design.md)."""
 
 from taskvar_torch.heads.bundle import HEAD_NAMES, HEAD_OUT_KEYS, Heads
 

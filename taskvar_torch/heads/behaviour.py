@@ -1,4 +1,4 @@
-"""The exploration behaviour that generates the one stream of experience (SPEC §2).
+"""The exploration behaviour that generates the one stream of experience.
 
 Every head learns off-policy from the same transitions, so the behaviour must visit what each head
 needs: the averaging policy's own trajectories, and each option's trajectories from everywhere

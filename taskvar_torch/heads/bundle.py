@@ -1,4 +1,4 @@
-"""The one interface controllers see: a bundle of heads (DESIGN.md "Heads").
+"""The one interface controllers see: a bundle of heads (docs/design.md, The ``Heads`` interface).
 
 Each head is a ``TensorDictModule`` with explicit keys and shapes:
 

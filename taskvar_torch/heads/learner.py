@@ -1,4 +1,4 @@
-"""The shared replay/update loop of every head (SPEC §2): one sample, every head, one step.
+"""The shared replay/update loop of every head: one sample, every head, one step.
 
 :class:`MultiHeadLoss` is a TorchRL ``LossModule``: from one sampled batch of raw transitions it
 relabels the targets of every head (:mod:`taskvar_torch.heads.relabel`), runs each online network

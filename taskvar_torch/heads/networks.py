@@ -1,7 +1,8 @@
-"""Network builders for the heads (SPEC §2: "network shapes are config").
+"""Network builders for the heads (network shapes are config: ``heads:``).
 
 Every head is an MLP over the observation vector, wrapped in a ``TensorDictModule`` with the key
-and output shape of DESIGN.md. Sizes come from :class:`taskvar_torch.config.HeadsConfig` (``hidden``
+and output shape of docs/design.md, The ``Heads`` interface. Sizes come from
+:class:`taskvar_torch.config.HeadsConfig` (``hidden``
 widths and ``activation``). The trainer builds the heads as members of one :class:`StackedMLP`
 (independent weights, batched matmuls), so the learner runs every head in one pass;
 :func:`make_head` builds a stand-alone TorchRL :class:`~torchrl.modules.MLP` head.
@@ -239,7 +240,7 @@ def make_stacked_heads(
 ) -> dict[str, TensorDictModule]:
     """One head per ``name: (out_key, out_shape)``, all members of one :class:`StackedMLP`.
 
-    Each head is a ``TensorDictModule`` with its own key and shape (DESIGN.md), the networks are
+    Each head is a ``TensorDictModule`` with its own key and shape (docs/design.md), the networks are
     independent (no shared weights), and a learner can run all of them in one pass.
     ``network="conv"`` makes them :class:`StackedConvMLP` members (needs the observation's
     ``patch`` layout).

@@ -1,4 +1,4 @@
-"""Per-head target relabelling of raw transitions (SPEC §2, "one stream of experience").
+"""Per-head target relabelling of raw transitions (one stream of experience: docs/design.md).
 
 The replay buffer holds raw transitions only (observation, action, next observation, env reward,
 done flags, and the integer state the subtasks read). :func:`relabel` turns one sampled batch into

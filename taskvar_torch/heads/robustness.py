@@ -20,7 +20,7 @@ through beta_o, as if o kept running after its own end.)
 attainability under the *robustness-greedy* policy, which no controller runs. It overrates an
 option whose own policy loses its goal: in Wargus the root's policy walks out of the item's sight,
 yet the greedy target values that step as "one step back and the +1s resume" (~5.8 > tau = 2), so
-Algorithm 2 kept handing the root control at the sight boundary (README "Wargus Figure 4").
+Algorithm 2 kept handing the root control at the sight boundary (docs/changelog.md).
 
 **Scale** (Wargus, ``subtasks/wargus.py``). With the root never terminating, R(TG+FE, s, a) is the
 discounted count of future steps with the item in sight, minus the steps in a patrol's sight, along

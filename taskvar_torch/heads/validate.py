@@ -1,4 +1,4 @@
-"""Trained heads against the exact windy oracle (SPEC §4; the acceptance figures of issue 3).
+"""Trained heads against the exact windy oracle (docs/oracle.md; figures in docs/design.md).
 
 :func:`compare_with_oracle` tabulates every head over the cells and measures, against
 :class:`~taskvar_torch.oracle.WindyOracle` built for the same layout and training distribution:
@@ -34,6 +34,7 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from tensordict import TensorDict
 
 from taskvar_torch import keys
 from taskvar_torch.heads.bundle import Heads
@@ -42,7 +43,6 @@ from taskvar_torch.heads.bundle import Heads
 @torch.no_grad()
 def head_tables(heads: Heads, observations: torch.Tensor) -> dict[str, torch.Tensor]:
     """Every head's output on ``observations`` (S, D), as float64 tables keyed by head name."""
-    from tensordict import TensorDict
 
     td = TensorDict({keys.OBSERVATION: observations}, batch_size=observations.shape[:1])
     td = heads(td)

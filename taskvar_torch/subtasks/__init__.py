@@ -1,7 +1,7 @@
 """Subtasks (capabilities) as data: initiation, termination, subtask and robustness rewards.
 
 Every family exposes a :class:`Subtasks` object whose methods are vectorised over a batch of
-transitions, so one stream of raw transitions can be relabelled for every option head (SPEC §2).
+transitions, so one stream of raw transitions can be relabelled for every option head.
 """
 
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks

@@ -35,7 +35,9 @@ class Hierarchy:
             stack.extend(self.children.get(o, ()))
         unknown = sorted(set(self.children) - seen)
         if unknown:
-            raise ValueError(f"hierarchy children given for options not under root {self.root!r}: {unknown}")
+            raise ValueError(
+                f"hierarchy children given for options not under root {self.root!r}: {unknown}"
+            )
 
     @property
     def options(self) -> tuple[str, ...]:

@@ -1,4 +1,4 @@
-"""Windy capabilities (SPEC §1.1): one ``exit_*`` option per exit of the wall."""
+"""Windy capabilities (paper §3.3.1): one ``exit_*`` option per exit of the wall."""
 
 from __future__ import annotations
 
