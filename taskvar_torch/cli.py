@@ -287,6 +287,11 @@ def _experiment_run(args: argparse.Namespace) -> int:
     config_path, overrides = _split_config_and_overrides(args.items)
     if args.checkpoint is not None:
         _check_checkpoint_overrides(overrides)
+        if config_path is not None:  # its env/heads/train keys would be ignored
+            raise ValueError(
+                f"config file {config_path!r} cannot apply with --checkpoint: the bundle's own "
+                "config is used; pass experiment.*, eval.* or device overrides instead"
+            )
     cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     windy_fig2(

@@ -325,6 +325,8 @@ def test_experiment_checkpoint_mismatches_are_refused_before_any_work(reference,
         (["--checkpoint", str(tmp_path / "wargus.pt")], "is a 'wargus' bundle"),
         (["--checkpoint", str(reference[0] / "final.pt"), "env.layout=middle_exits"],
          "cannot apply with --checkpoint"),
+        (["--checkpoint", str(reference[0] / "final.pt"), str(ROOT / "configs" / "windy.yaml")],
+         "cannot apply with --checkpoint"),
     ):  # fmt: skip
         assert main(["experiment", "windy-fig2", "--out", str(out), *argv, "--no-progress"]) == 2
         _one_line_error(capsys, needle)
