@@ -61,7 +61,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -367,12 +367,13 @@ class SideBySide(TensorDictModuleBase):
         td: Any,
         running: torch.Tensor,
         params: Sequence[torch.Tensor] | None = None,
-        calibrations: Sequence[RobustnessCalibration | None] | None = None,
+        thresholds: Mapping[str, torch.Tensor] | None = None,
     ) -> dict[str, torch.Tensor]:
         """Decisions ``(B,)`` at the state ``td`` (a tensordict with the env's keys) with carried
         ``running`` ``(B,)``: ``action``, ``next_running`` and the traces. ``params``:
         :meth:`HeadValues.snapshot` s stacked over ``G`` groups of rows (``None``: live heads);
-        ``calibrations``: the hierarchy's thresholds of each group (``None``: the controller's)."""
+        ``thresholds``: the hierarchy's per-row thresholds (:meth:`threshold_rows`; ``None``: the
+        controller's own)."""
         k, M = self.k, len(self.controllers)
         G = 1 if params is None else params[0].shape[0]
         if self.head_values is not None:
@@ -395,11 +396,8 @@ class SideBySide(TensorDictModuleBase):
                 HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads
             }
             values.update({key: part(v, i) for key, v in c.extra_inputs(td).items()})
-            if calibrations is not None and isinstance(c, HierarchyController):
-                cals = [cal or c.calibration for cal in calibrations]
-                if all(cal is not None for cal in cals):  # per-row thresholds (G k, O)
-                    values[keys.ROBUSTNESS_TAU] = _rows([cal.tau for cal in cals], k)
-                    values[keys.ROBUSTNESS_SCALE] = _rows([cal.scale for cal in cals], k)
+            if thresholds and isinstance(c, HierarchyController):
+                values.update(thresholds)  # per-row (G k, O)
             run = part(running, i) if c.stateful else None
             term = None
             if run is not None and c.subtasks is not None:
@@ -424,6 +422,23 @@ class SideBySide(TensorDictModuleBase):
                 ]
             )
         return result
+
+    def threshold_rows(
+        self, calibrations: Sequence[RobustnessCalibration | None]
+    ) -> dict[str, torch.Tensor]:
+        """The hierarchy's per-row thresholds and scales ``(G k, O)`` for ``calibrations`` (one per
+        group of rows; ``None``: the controller's own); empty when some group has none. Built once
+        per test phase and passed to every :meth:`decide_batch` call."""
+        c = next((c for c in self.controllers if isinstance(c, HierarchyController)), None)
+        if c is None:
+            return {}
+        cals = [cal or c.calibration for cal in calibrations]
+        if any(cal is None for cal in cals):
+            return {}
+        return {
+            keys.ROBUSTNESS_TAU: _rows([cal.tau for cal in cals], self.k),
+            keys.ROBUSTNESS_SCALE: _rows([cal.scale for cal in cals], self.k),
+        }
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         out = self.decide_batch(td, td.get(keys.RUNNING_OPTION))
@@ -573,12 +588,13 @@ def test_trials(
     inter = torch.zeros(n, dtype=torch.int64, device=dev)
     lost = torch.zeros(n, dtype=torch.int64, device=dev)
     h = METHODS.index("hierarchy")
+    thresholds = policy.threshold_rows(calibrations) if calibrations is not None else None
     options, alives = [], []
     for _ in range(env.horizon):
         lost += (
             td.get(ITEM_LOST).reshape(n) & alive
         ).long()  # the step that led here lost the item
-        out = policy.decide_batch(td, running, params, calibrations)
+        out = policy.decide_batch(td, running, params, thresholds)
         inter += (out[keys.INTERRUPTED] & alive).long()
         options.append(out[keys.OPTION])
         alives.append(alive)
