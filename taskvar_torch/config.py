@@ -44,6 +44,7 @@ from taskvar_torch.envs.windy_env import OBS_ENCODINGS
 FAMILIES = ("wargus", "windy")
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
 HEAD_NETWORKS = ("mlp", "conv")  # taskvar_torch/heads/networks.py NETWORKS
+OPTION_INPUTS = ("full", "subtask")
 TARGET_UPDATES = ("hard", "soft")
 SWITCHING_MODES = ("intra",)
 MU_BAR_MODES = ("greedy", "softmax")
@@ -132,6 +133,10 @@ class HeadsConfig:
     patch, flattened, plus the coordinates, then the MLP; one conv trunk per head)."""
     conv_channels: tuple[int, ...] = (16, 32)
     """heads.network=conv: output channels of each 3x3 conv layer (same padding)."""
+    option_inputs: str = "full"
+    """full (every option's policy sees the whole observation) or subtask (wargus, mlp: each
+    option's policy is its own network that sees its subtask's features only: TG the item's, FE
+    the patrol's, both the agent's position; the composed root sees everything)."""
 
 
 @dataclass(frozen=True)
@@ -375,6 +380,14 @@ def _validate(cfg: Config) -> None:
                 "heads.network='conv' needs family='windy' and env.obs_encoding='coords_patch', "
                 f"got family={cfg.family!r}, env.obs_encoding={cfg.env.obs_encoding!r}"
             )
+    _one_of("heads.option_inputs", cfg.heads.option_inputs, OPTION_INPUTS)
+    if cfg.heads.option_inputs == "subtask" and (
+        cfg.family != "wargus" or cfg.heads.network != "mlp"
+    ):
+        raise ValueError(
+            "heads.option_inputs='subtask' needs family='wargus' and heads.network='mlp', "
+            f"got family={cfg.family!r}, heads.network={cfg.heads.network!r}"
+        )
 
     t = cfg.train
     _within("train.gamma", t.gamma, 0.0, 1.0, open_low=True)

@@ -278,6 +278,14 @@ def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
     if cfg.heads.network == "conv":  # windy coords_patch: (row, col), then 3 (2r+1)^2 channels
         size = 2 * cfg.env.patch_radius + 1
         patch = PatchLayout(coords_dim=2, channels=3, size=size)
+    input_masks = None
+    if cfg.heads.option_inputs == "subtask":  # each option's policy sees its subtask's features
+        mask = subtasks.option_input_mask(obs_dim)
+        if mask is None:
+            raise ValueError(
+                f"heads.option_inputs='subtask': {type(subtasks).__name__} defines no option inputs"
+            )
+        input_masks = {"options": mask}
     heads = make_stacked_heads(
         obs_dim,
         specs,
@@ -286,6 +294,7 @@ def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
         network=cfg.heads.network,
         patch=patch,
         conv_channels=tuple(cfg.heads.conv_channels),
+        input_masks=input_masks,
     )
     critic = None  # the instance estimator's C(s, o | z) (heads/max_value.py)
     if cfg.train.max_value_estimator == "instance":

@@ -275,7 +275,7 @@ class HeadValues:
         def run(net: torch.nn.Module) -> torch.Tensor:  # (G, B / G, flat output)
             if isinstance(net, OptimismGapHead):
                 return net.combine(run(net.base), run(net.gap))
-            return out[:, net.index, :, : self.stack.out_sizes[net.index]]
+            return net.select(out, dim=1)
 
         # elementwise math (the optimism gap's softplus) runs on rows of the layout forward_one
         # gives (same kernel path, same bits); only the final values are reshaped
@@ -297,7 +297,7 @@ def _stacked_forward(
         ws, bs = list(params[:n]), list(params[n:])  # (G, K, d_in, d_out), (G, K, 1, d_out)
     G = ws[0].shape[0]
     R = obs.shape[0] // G
-    h = obs.view(G, 1, R, -1).expand(G, K, R, obs.shape[-1]).reshape(G * K, R, -1)
+    h = stack.member_inputs(obs.view(G, R, -1)).transpose(0, 1).reshape(G * K, R, -1)
     for i, (w, b) in enumerate(zip(ws, bs)):
         h = torch.baddbmm(b.reshape(G * K, 1, -1), h, w.reshape(G * K, *w.shape[2:]))
         if i < n - 1:

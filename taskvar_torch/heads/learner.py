@@ -201,15 +201,8 @@ class MultiHeadLoss(LossModule):
                     return OptimismGapHead.combine(
                         run(net.base, which).detach(), run(net.gap, which)
                     )
-                k, size = net.index, self.stack.out_sizes[net.index]
-                y = (
-                    out_target[k]
-                    if which == "target"
-                    else out[k]
-                    if which == "cur"
-                    else out_next[k]
-                )
-                return y[:, :size].reshape(B, *net.out_shape)
+                y = out_target if which == "target" else out if which == "cur" else out_next
+                return net.select(y).reshape(B, *net.out_shape)
 
         else:  # independent networks
             both = torch.cat([obs, next_obs])  # (2B, D)

@@ -67,6 +67,11 @@ class StackedMLP(nn.Module):
     :meth:`forward` runs all members on one input ``(M, in_dim) -> (K, M, max_out)`` with one
     matmul per layer (how the learner fuses the heads); :meth:`forward_one` runs one member (how
     a head runs on its own, e.g. in a controller).
+
+    ``input_mask`` ``(K, in_dim)`` (optional, 0/1) multiplies member ``k``'s input by row ``k``:
+    the member sees only the observation features its row keeps (``heads.option_inputs=subtask``:
+    each option's policy sees its subtask's features). It is a non-persistent buffer, rebuilt from
+    the config, so checkpoints are the same with or without it.
     """
 
     def __init__(
@@ -75,12 +80,19 @@ class StackedMLP(nn.Module):
         out_sizes: Sequence[int],
         hidden: Sequence[int] = (64, 64),
         activation: str = "relu",
+        input_mask: torch.Tensor | None = None,
     ):
         super().__init__()
         if activation not in ACTIVATIONS:
             raise ValueError(f"activation must be one of {sorted(ACTIVATIONS)}, got {activation!r}")
         self.out_sizes = tuple(int(o) for o in out_sizes)
         K = len(self.out_sizes)
+        if input_mask is not None and tuple(input_mask.shape) != (K, int(in_dim)):
+            raise ValueError(
+                f"input_mask must have shape ({K}, {int(in_dim)}), got {tuple(input_mask.shape)}"
+            )
+        mask = None if input_mask is None else input_mask.to(torch.float32)
+        self.register_buffer("input_mask", mask, persistent=False)
         dims = [int(in_dim), *(int(h) for h in hidden), max(self.out_sizes)]
         self.weights = nn.ParameterList()
         self.biases = nn.ParameterList()
@@ -94,9 +106,16 @@ class StackedMLP(nn.Module):
     def num_members(self) -> int:
         return len(self.out_sizes)
 
+    def member_inputs(self, x: torch.Tensor) -> torch.Tensor:
+        """Every member's input: ``(..., in_dim) -> (K, ..., in_dim)`` (masked if ``input_mask``)."""
+        h = x.unsqueeze(0).expand(self.num_members, *x.shape)
+        if self.input_mask is None:
+            return h
+        return h * self.input_mask.view(self.num_members, *(1,) * (x.dim() - 1), x.shape[-1])
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """All members: ``(M, in_dim) -> (K, M, max_out)``."""
-        return self._layers(x.unsqueeze(0).expand(self.num_members, *x.shape))
+        return self._layers(self.member_inputs(x))
 
     def _layers(self, h: torch.Tensor) -> torch.Tensor:
         """The stacked layers on per-member inputs: ``(K, M, in_dim) -> (K, M, max_out)``."""
@@ -110,6 +129,8 @@ class StackedMLP(nn.Module):
     def forward_one(self, x: torch.Tensor, k: int) -> torch.Tensor:
         """Member ``k``: ``(..., in_dim) -> (..., out_sizes[k])``."""
         batch = x.shape[:-1]
+        if self.input_mask is not None:
+            x = x * self.input_mask[k]
         out = self._layers_one(x.reshape(-1, x.shape[-1]), k)  # (M, max_out)
         return out[:, : self.out_sizes[k]].reshape(*batch, self.out_sizes[k])
 
@@ -215,17 +236,43 @@ class StackedConvMLP(StackedMLP):
 
 
 class StackedHead(nn.Module):
-    """Member ``index`` of a :class:`StackedMLP`, reshaped to ``out_shape`` (a head on its own)."""
+    """Members ``index .. index + members - 1`` of a :class:`StackedMLP` as one head of shape
+    ``out_shape`` (a head on its own). A head of several members (``members > 1``) stacks them
+    along its first output dimension (one option per member: ``heads.option_inputs=subtask``)."""
 
-    def __init__(self, stack: StackedMLP, index: int, out_shape: Sequence[int]):
+    def __init__(self, stack: StackedMLP, index: int, out_shape: Sequence[int], members: int = 1):
         super().__init__()
         self.stack = stack
         self.index = int(index)
         self.out_shape = tuple(int(s) for s in out_shape)
+        self.members = int(members)
+        if self.members > 1 and self.out_shape[0] != self.members:
+            raise ValueError(
+                f"a head of {self.members} members needs out_shape[0] == {self.members}, "
+                f"got {self.out_shape}"
+            )
+
+    @property
+    def member_size(self) -> int:
+        """Output values per member."""
+        return int(torch.Size(self.out_shape).numel()) // self.members
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        out = self.stack.forward_one(x, self.index)  # (..., prod(out_shape))
-        return out.reshape(*x.shape[:-1], *self.out_shape)
+        if self.members == 1:
+            out = self.stack.forward_one(x, self.index)  # (..., prod(out_shape))
+            return out.reshape(*x.shape[:-1], *self.out_shape)
+        parts = [self.stack.forward_one(x, self.index + j) for j in range(self.members)]
+        return torch.stack(parts, -2).reshape(*x.shape[:-1], *self.out_shape)
+
+    def select(self, out: torch.Tensor, dim: int = 0) -> torch.Tensor:
+        """This head's values from a stacked output whose member axis is ``dim`` (the stack's
+        :meth:`StackedMLP.forward`: ``(K, B, max_out)``), flat per row: ``(..., B, prod(out_shape))``
+        with the member axis removed (reshape it to ``out_shape`` on the caller's side)."""
+        size = self.member_size
+        if self.members == 1:
+            return out.select(dim, self.index)[..., :size]
+        y = out.narrow(dim, self.index, self.members)[..., :size]  # (.., m, .., B, size)
+        return y.movedim(dim, -2).flatten(-2)  # (.., B, m * size)
 
 
 def make_stacked_heads(
@@ -237,26 +284,51 @@ def make_stacked_heads(
     network: str = "mlp",
     patch: PatchLayout | None = None,
     conv_channels: Sequence[int] = (16, 32),
+    input_masks: dict[str, torch.Tensor] | None = None,
 ) -> dict[str, TensorDictModule]:
     """One head per ``name: (out_key, out_shape)``, all members of one :class:`StackedMLP`.
 
     Each head is a ``TensorDictModule`` with its own key and shape (docs/design.md), the networks are
     independent (no shared weights), and a learner can run all of them in one pass.
     ``network="conv"`` makes them :class:`StackedConvMLP` members (needs the observation's
-    ``patch`` layout).
+    ``patch`` layout). ``input_masks[name]`` ``(m, in_dim)`` splits head ``name`` (out_shape
+    ``(m, ...)``) into ``m`` members, member ``j`` seeing the observation times row ``j``.
     """
     if network not in NETWORKS:
         raise ValueError(f"network must be one of {list(NETWORKS)}, got {network!r}")
-    sizes = [int(torch.Size(shape).numel()) for _, shape in specs.values()]
+    input_masks = dict(input_masks or {})
+    unknown = sorted(set(input_masks) - set(specs))
+    if unknown:
+        raise ValueError(f"input_masks for unknown heads {unknown}; heads: {list(specs)}")
+    sizes, masks, layout = [], [], {}
+    for name, (_, shape) in specs.items():
+        numel = int(torch.Size(shape).numel())
+        mask = input_masks.get(name)
+        m = 1 if mask is None else int(mask.shape[0])
+        if mask is not None and (tuple(shape)[:1] != (m,) or mask.shape[-1] != int(in_dim)):
+            raise ValueError(
+                f"input_masks[{name!r}] must have shape ({tuple(shape)[0]}, {int(in_dim)}), "
+                f"got {tuple(mask.shape)}"
+            )
+        layout[name] = (len(sizes), m)
+        sizes += [numel // m] * m
+        masks.append(torch.ones(1, int(in_dim)) if mask is None else mask.to(torch.float32))
+    input_mask = torch.cat(masks) if input_masks else None
     if network == "conv":
         if patch is None:
             raise ValueError("network='conv' needs the observation's patch layout (patch=...)")
+        if input_mask is not None:
+            raise ValueError("input_masks need network='mlp' (a conv trunk reads the whole patch)")
         stack = StackedConvMLP(in_dim, sizes, patch, conv_channels, hidden, activation)
     else:
-        stack = StackedMLP(in_dim, sizes, hidden, activation)
+        stack = StackedMLP(in_dim, sizes, hidden, activation, input_mask=input_mask)
     return {
-        name: TensorDictModule(StackedHead(stack, k, shape), in_keys=[in_key], out_keys=[out_key])
-        for k, (name, (out_key, shape)) in enumerate(specs.items())
+        name: TensorDictModule(
+            StackedHead(stack, layout[name][0], shape, members=layout[name][1]),
+            in_keys=[in_key],
+            out_keys=[out_key],
+        )
+        for name, (out_key, shape) in specs.items()
     }
 
 

@@ -122,3 +122,8 @@ class Subtasks:
         §3.5.3); the states on which a calibrated threshold keeps the composed node in control.
         Default: every state."""
         return torch.ones(td.batch_size, dtype=torch.bool, device=td.device)
+
+    def option_input_mask(self, obs_dim: int) -> torch.Tensor | None:
+        """``(O, obs_dim)`` 0/1: the observation features option o's own subtask needs (what its
+        policy sees with ``heads.option_inputs=subtask``); ``None``: the family defines none."""
+        return None

@@ -70,7 +70,20 @@ import torch
 from tensordict import TensorDictBase
 
 from taskvar_torch import keys
-from taskvar_torch.envs.wargus import ITEM_LOST, ITEM_SEEN, PATROL_SEEN, PICKED
+from taskvar_torch.envs.wargus import (
+    ITEM_LOST,
+    ITEM_SEEN,
+    OBS_AGENT,
+    OBS_DIM,
+    OBS_ITEM_BEARING,
+    OBS_ITEM_OFFSET,
+    OBS_ITEM_SEEN,
+    OBS_PATROL_BEARING,
+    OBS_PATROL_OFFSET,
+    OBS_PATROL_SEEN,
+    PATROL_SEEN,
+    PICKED,
+)
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
 TG, FE, TG_FE = "TG", "FE", "TG+FE"
@@ -173,3 +186,27 @@ class WargusSubtasks(Subtasks):
         tg = reached.to(torch.float32) - (seen & ~reached).to(torch.float32)
         fe = self._fe(td, self.robustness_destruction_penalty)
         return torch.stack((tg, fe, tg + fe), -1)
+
+    def option_input_mask(self, obs_dim: int) -> torch.Tensor:
+        """``(3, 24)``: TG sees the agent's position and the item's bearing, seen flag and offset;
+        FE the agent's position and the patrol's; TG+FE (the full task) everything."""
+        if obs_dim != OBS_DIM:
+            raise ValueError(f"Wargus observations have {OBS_DIM} values, got {obs_dim}")
+        mask = torch.zeros(3, OBS_DIM)
+        item = (
+            OBS_AGENT,
+            OBS_ITEM_BEARING,
+            slice(OBS_ITEM_SEEN, OBS_ITEM_SEEN + 1),
+            OBS_ITEM_OFFSET,
+        )
+        patrol = (
+            OBS_AGENT,
+            OBS_PATROL_BEARING,
+            slice(OBS_PATROL_SEEN, OBS_PATROL_SEEN + 1),
+            OBS_PATROL_OFFSET,
+        )
+        for row, parts in ((0, item), (1, patrol)):
+            for part in parts:
+                mask[row, part] = 1.0
+        mask[2] = 1.0
+        return mask
