@@ -1,6 +1,6 @@
 """Compare two results folders' ``metrics.json`` numbers exactly; exit 1 on any difference.
 
-Timing (wall-clock seconds and rates) is skipped; every other leaf must be equal, floats bit for
+Timing (wall-clock seconds and rates) and file locations (``checkpoint``) are skipped; every other leaf must be equal, floats bit for
 bit. Used to show that a restructuring changed no behaviour: run the quick experiments at the old
 and the new commit and compare, e.g.::
 
@@ -19,10 +19,11 @@ from pathlib import Path
 from typing import Any
 
 TIMING = ("seconds", "timing", "per_s", "wall")  # key fragments of wall-clock figures
+LOCATIONS = ("checkpoint",)  # keys holding where a run wrote its files, not what it measured
 
 
 def _is_timing(key: str) -> bool:
-    return any(t in key.lower() for t in TIMING)
+    return any(t in key.lower() for t in TIMING) or key in LOCATIONS
 
 
 def differences(a: Any, b: Any, path: str = "") -> list[str]:

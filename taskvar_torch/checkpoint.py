@@ -430,3 +430,20 @@ def load_checkpoint(
                 f"{wanted!r}{more}"
             )
     return data
+
+
+def require_finite_heads(bundle: dict[str, Any], path: str | os.PathLike) -> None:
+    """:class:`CheckpointError` when a checkpoint's heads hold a NaN or infinite value."""
+    heads = bundle.get("models", {}).get("heads", {})
+    bad = [
+        k
+        for k, v in heads.items()
+        if isinstance(v, torch.Tensor)
+        and v.is_floating_point()
+        and not bool(torch.isfinite(v).all())
+    ]
+    if bad:
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} has non-finite heads ({bad[0]}"
+            f"{', ...' if len(bad) > 1 else ''}): its run diverged; use an earlier checkpoint"
+        )

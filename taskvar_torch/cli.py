@@ -112,17 +112,17 @@ def _train_run(args: argparse.Namespace) -> int:
 
 def _print_oracle_summary(path: str | os.PathLike) -> None:
     """For small windy layouts, print the learnt heads beside the exact oracle (docs/oracle.md)."""
+    from taskvar_torch.families import EXACT_ORACLE_CELLS, family, windy_layout
     from taskvar_torch.train import load_heads
 
     heads, cfg = load_heads(path)
-    if cfg.family != "windy" or cfg.env.obs_encoding != "onehot":
+    if not family(cfg).exact_oracle or cfg.env.obs_encoding != "onehot":
         return
-    from taskvar_torch.config import windy_layout
     from taskvar_torch.heads.validate import compare_with_oracle
     from taskvar_torch.oracle import WindyOracle
 
     layout = windy_layout(cfg.env)
-    if layout.num_cells > 400:
+    if layout.num_cells > EXACT_ORACLE_CELLS:
         return
     oracle = WindyOracle(
         layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon, train_instances=cfg.env.instances

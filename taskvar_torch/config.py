@@ -37,11 +37,15 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from taskvar_torch.envs import windy
-from taskvar_torch.envs.instances import WindyInstances
-from taskvar_torch.envs.windy_env import OBS_ENCODINGS
+from taskvar_torch.families import FAMILIES as _REGISTRY
+from taskvar_torch.families import (  # noqa: F401  (GENERATED and the windy helpers: re-exported)
+    GENERATED,
+    family,
+    windy_env_kwargs,
+    windy_layout,
+)
 
-FAMILIES = ("wargus", "windy")
+FAMILIES = tuple(sorted(_REGISTRY))  # the family registry's names (taskvar_torch/families.py)
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
 HEAD_NETWORKS = ("mlp", "conv")  # taskvar_torch/heads/networks.py NETWORKS
 OPTION_INPUTS = ("full", "subtask")
@@ -57,8 +61,6 @@ HIERARCHY_DESCENTS = ("normalised", "raw")  # mirrors controllers/hierarchy.py
 COMPOSED_REWARDS = ("env", "sum")  # mirrors subtasks/wargus.py
 METHODS = ("averaging", "hierarchy", "interruption", "options")
 COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector
-GENERATED = "generated"
-"""``env.layout`` value that builds the grid from ``env.height``/``env.width``/... (make_layout)."""
 
 
 @dataclass(frozen=True)
@@ -338,6 +340,11 @@ def _within(key: str, value: float, low: float, high: float, open_low: bool = Fa
         raise ValueError(f"{key} must be in {'(' if open_low else '['}{low}, {high}], got {value}")
 
 
+def _families_with(feature: str) -> str:
+    """``family='windy'`` (or several, joined by "or"): the families that support ``feature``."""
+    return " or ".join(f"family={f.name!r}" for f in _REGISTRY.values() if getattr(f, feature))
+
+
 def _validate(cfg: Config) -> None:
     """Check value ranges and choices; every error names the dotted key and what is allowed."""
     _one_of("family", cfg.family, FAMILIES)
@@ -349,22 +356,8 @@ def _validate(cfg: Config) -> None:
         ) from e
     env = cfg.env
     _at_least("env.num_envs", env.num_envs, 1)
-    if cfg.family == "windy":  # each family's own keys; the other family's are never read
-        _one_of("env.instances", env.instances, WindyInstances.NAMES)
-        _one_of("eval.test", cfg.eval.test, WindyInstances.NAMES)
-        _at_least("env.horizon", env.horizon, 1)
-        _one_of("env.obs_encoding", env.obs_encoding, OBS_ENCODINGS)
-        _at_least("env.patch_radius", env.patch_radius, 0)
-        windy_layout(env)  # raises a ValueError naming the layout keys
-    else:
-        from taskvar_torch.envs import wargus  # the family's own validation, not a copy of it
-
-        _one_of("env.instances", env.instances, wargus.WargusInstances.NAMES)
-        _one_of("eval.test", cfg.eval.test, wargus.WargusInstances.NAMES)
-        try:
-            wargus.WargusConfig(**dataclasses.asdict(env.wargus))
-        except ValueError as e:
-            raise ValueError(f"env.wargus.{e}") from None
+    fam = family(cfg)
+    fam.validate(cfg)  # the family's own keys; the other family's are never read
 
     for i, h in enumerate(cfg.heads.hidden):
         _at_least(f"heads.hidden[{i}]", h, 1)
@@ -375,17 +368,19 @@ def _validate(cfg: Config) -> None:
             raise ValueError("heads.conv_channels must name at least one layer, got []")
         for i, c in enumerate(cfg.heads.conv_channels):
             _at_least(f"heads.conv_channels[{i}]", c, 1)
-        if cfg.family != "windy" or cfg.env.obs_encoding != "coords_patch":
+        if fam.conv_patch is None:
             raise ValueError(
-                "heads.network='conv' needs family='windy' and env.obs_encoding='coords_patch', "
-                f"got family={cfg.family!r}, env.obs_encoding={cfg.env.obs_encoding!r}"
+                "heads.network='conv' needs a family with a patch observation "
+                f"({_families_with('conv_patch')}), got family={cfg.family!r}"
             )
+        fam.conv_patch(cfg)  # raises naming the observation key it needs
     _one_of("heads.option_inputs", cfg.heads.option_inputs, OPTION_INPUTS)
     if cfg.heads.option_inputs == "subtask" and (
-        cfg.family != "wargus" or cfg.heads.network != "mlp"
+        not fam.option_inputs or cfg.heads.network != "mlp"
     ):
         raise ValueError(
-            "heads.option_inputs='subtask' needs family='wargus' and heads.network='mlp', "
+            "heads.option_inputs='subtask' needs a family whose options define input features "
+            f"({_families_with('option_inputs')}) and heads.network='mlp', "
             f"got family={cfg.family!r}, heads.network={cfg.heads.network!r}"
         )
 
@@ -424,9 +419,10 @@ def _validate(cfg: Config) -> None:
     _one_of("train.switching", t.switching, SWITCHING_MODES)
     _one_of("train.max_value_estimator", t.max_value_estimator, MAX_VALUE_ESTIMATORS)
     _at_least("train.max_value_instances", t.max_value_instances, 1)
-    if t.max_value_estimator == "instance" and cfg.family != "windy":
+    if t.max_value_estimator == "instance" and fam.instance_dim is None:
         raise ValueError(
-            "train.max_value_estimator='instance' needs instance features (family='windy'), got "
+            "train.max_value_estimator='instance' needs instance features "
+            f"({_families_with('instance_dim')}), got "
             f"family={cfg.family!r}: use 'expectile' (taskvar_torch/heads/max_value.py)"
         )
     _one_of("train.mu_bar", t.mu_bar, MU_BAR_MODES)
@@ -459,69 +455,6 @@ def _validate(cfg: Config) -> None:
     for name in ("runs", "episodes_per_run", "trials", "learning_episodes_per_trial"):
         _at_least(f"experiment.{name}", getattr(x, name), 1)
     _at_least("experiment.test_episodes_per_trial", x.test_episodes_per_trial, 1)
-
-
-_GENERATOR_KEYS = ("height", "width", "num_exits", "wall_col", "wind_cells_per_exit")
-
-
-def windy_layout(env: EnvConfig) -> windy.WindyLayout:
-    """The windy layout an ``EnvConfig`` describes (a name, a map string, or generated).
-
-    Raises:
-        ValueError: naming ``env.layout`` or the generator key at fault.
-    """
-    if env.layout != GENERATED:
-        stray = [k for k in _GENERATOR_KEYS if getattr(env, k) is not None]
-        if stray:
-            raise ValueError(
-                f"env.{stray[0]} is only read when env.layout={GENERATED!r}; "
-                f"remove it or set env.layout={GENERATED!r} (env.layout is {env.layout!r})"
-            )
-        if env.layout in windy.LAYOUTS:
-            return windy.WindyLayout.named(env.layout)
-        if "\n" not in env.layout.strip():
-            raise ValueError(
-                f"env.layout must be one of {sorted([*windy.LAYOUTS, GENERATED])} or a multi-line "
-                f"map string, got {env.layout!r}"
-            )
-        try:
-            return windy.WindyLayout.from_map(env.layout)
-        except ValueError as e:
-            raise ValueError(f"env.layout: {e}") from None
-    for k in ("height", "width"):
-        if getattr(env, k) is None:
-            raise ValueError(f"env.{k} is required when env.layout={GENERATED!r}")
-    try:
-        return windy.make_layout(
-            env.height,
-            env.width,
-            num_exits=2 if env.num_exits is None else env.num_exits,
-            wall_col=env.wall_col,
-            wind_cells_per_exit=1 if env.wind_cells_per_exit is None else env.wind_cells_per_exit,
-        )
-    except ValueError as e:
-        raise ValueError(f"env (layout={GENERATED!r}): {e}") from None
-
-
-def windy_env_kwargs(cfg: Config) -> dict[str, Any]:
-    """Keyword arguments of ``WindyGridEnv`` for the training environment of ``cfg``.
-
-    Examples:
-        >>> env = WindyGridEnv(**windy_env_kwargs(cfg))  # doctest: +SKIP
-    """
-    if cfg.family != "windy":
-        raise ValueError(f"windy_env_kwargs needs family='windy', got family={cfg.family!r}")
-    e = cfg.env
-    return {
-        "num_envs": e.num_envs,
-        "layout": windy_layout(e),
-        "instances": e.instances,
-        "horizon": e.horizon,
-        "obs_encoding": e.obs_encoding,
-        "patch_radius": e.patch_radius,
-        "seed": cfg.seed,
-        "device": cfg.device,
-    }
 
 
 # --------------------------------------------------------------------------------------------

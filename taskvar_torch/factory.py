@@ -1,22 +1,41 @@
-"""Config -> controllers and their calibration: the one place a method's controller is built.
+"""Config -> everything a run is made of: the one place envs, options, heads, learners and
+controllers are built (in the manner of TorchRL's ``sota-implementations/*/utils.py``).
 
-:func:`make_method_controller` turns a config and a head bundle into any of the four methods'
-controllers with every setting the config gives (the composed root's policy, the hierarchy's
-termination handling, descent metric and thresholds). :func:`calibrate` sets the hierarchy's
-per-capability thresholds on *training* states (the replay, or rollouts of the averaging policy on
-fresh training instances: :func:`training_states`), never on the nominal test seeds.
+- :func:`make_env`, :func:`make_subtasks`: the family's batched env and options, through the family
+  registry (``families.py``), so nothing here tests a family's name;
+- :func:`build_heads`: fresh networks for every head, from a :class:`HeadSpec` (the constructor
+  arguments a checkpoint records, so :func:`load_heads` needs no env);
+- :func:`make_learner`: the fused multi-head learner of ``cfg.train``;
+- :func:`make_method_controller` (alias :func:`make_method`): any of the four methods'
+  controllers with every setting the config gives (the composed root's policy, the hierarchy's
+  termination handling, descent metric and thresholds); :func:`calibrate` sets the hierarchy's
+  per-capability thresholds on *training* states (the replay, or rollouts of the averaging policy
+  on fresh training instances: :func:`training_states`), never on the nominal test seeds;
+- :func:`load_heads`: a trained bundle's heads and config.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import os
+from dataclasses import dataclass
+from typing import Any
+
 import torch
 from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule
+from torchrl.envs import EnvBase
 
 from taskvar_torch import keys
-from taskvar_torch.config import Config
+from taskvar_torch.checkpoint import load_checkpoint, load_state_dicts, require_finite_heads
+from taskvar_torch.config import Config, TrainConfig, config_from_dict
 from taskvar_torch.controllers import Controller, make_controller
+from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads, with_root_row
-from taskvar_torch.heads.networks import head_network
+from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
+from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
+from taskvar_torch.heads.networks import head_network, make_stacked_heads
+from taskvar_torch.heads.relabel import has_robustness
 from taskvar_torch.heads.robustness import RobustnessCalibration, calibrate_robustness
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -101,8 +120,6 @@ def training_states(
     """States the greedy averaging policy visits on fresh *training* instances (``env.instances``
     of ``cfg``, env seed ``seed``): ``episodes`` episodes, at most :data:`CALIBRATION_STATES`
     states, evenly spaced."""
-    from taskvar_torch.train import make_env  # the env factory lives with the trainer
-
     env = make_env(cfg, num_envs=episodes, seed=seed)
     td = env.reset()
     state_keys = list(td.exclude(keys.INSTANCE).keys(True, True))
@@ -117,3 +134,254 @@ def training_states(
     states = torch.cat(seen)
     idx = torch.linspace(0, states.shape[0] - 1, min(CALIBRATION_STATES, states.shape[0]))
     return states[idx.round().long()]
+
+
+# --------------------------------------------------------------------------------------------
+# envs and options
+
+
+def make_env(
+    cfg: Config,
+    num_envs: int | None = None,
+    seed: int | None = None,
+    index_offset: int = 0,
+    *,
+    instances: Any = None,
+    noise_seed: int | None = None,
+    validate_actions: bool | None = None,
+) -> EnvBase:
+    """The family's batched env (no transforms) of ``cfg``: its training instances unless
+    ``instances`` names another distribution (:meth:`taskvar_torch.families.Family.make_env`).
+
+    ``index_offset``: global index of sub-environment 0 in the keyed streams, so envs with
+    offsets 0, n, 2n... are disjoint slices of one env of the summed size.
+    """
+    return family(cfg).make_env(
+        cfg,
+        num_envs,
+        seed=seed,
+        index_offset=index_offset,
+        instances=instances,
+        noise_seed=noise_seed,
+        validate_actions=validate_actions,
+    )
+
+
+def make_subtasks(cfg: Config, env: EnvBase) -> Subtasks:
+    """The family's options (windy: one exit option per exit; Wargus: TG, FE, TG+FE)."""
+    return family(cfg).subtasks(cfg, env)
+
+
+def check_device(device: str | torch.device) -> None:
+    """A one-line ``ValueError`` when ``device`` cannot be used by this torch build on this
+    machine (e.g. ``device=cuda`` with a CPU-only torch)."""
+    dev = torch.device(device)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(
+                f"device={str(device)!r} needs CUDA, which this torch {torch.__version__} cannot "
+                "use here (CPU build or no GPU); use device=cpu"
+            )
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(
+                f"device={str(device)!r}: this machine has {torch.cuda.device_count()} CUDA "
+                "device(s); use device=cuda:0 or device=cpu"
+            )
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"device={str(device)!r} is not available here; use device=cpu")
+
+
+# --------------------------------------------------------------------------------------------
+# heads
+
+
+@dataclass(frozen=True)
+class HeadSpec:
+    """The constructor arguments of a head bundle beside the config (what a checkpoint records
+    as ``heads_spec``, so loading needs no env): observation size, number of actions, the options'
+    names, whether there are robustness critics, and the options' input masks
+    (``heads.option_inputs=subtask``)."""
+
+    obs_dim: int
+    num_actions: int
+    option_names: tuple[str, ...]
+    robustness: bool
+    option_input_mask: tuple[tuple[float, ...], ...] | None = None
+
+    @classmethod
+    def of(cls, cfg: Config, env: EnvBase, subtasks: Subtasks) -> HeadSpec:
+        """The spec of ``cfg``'s heads on ``env`` with ``subtasks``."""
+        obs_dim = int(env.observation_spec[keys.OBSERVATION].shape[-1])
+        mask = None
+        if cfg.heads.option_inputs == "subtask":  # each option's policy sees its own features
+            m = subtasks.option_input_mask(obs_dim)
+            if m is None:
+                raise ValueError(
+                    f"heads.option_inputs='subtask': {type(subtasks).__name__} defines no option "
+                    "inputs"
+                )
+            mask = tuple(tuple(float(v) for v in row) for row in m.tolist())
+        return cls(
+            obs_dim=obs_dim,
+            num_actions=int(env.action_spec.space.n),
+            option_names=tuple(subtasks.names),
+            robustness=has_robustness(subtasks),
+            option_input_mask=mask,
+        )
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain data for a checkpoint (lists, not tuples)."""
+        d = dataclasses.asdict(self)
+        d["option_names"] = list(self.option_names)
+        if self.option_input_mask is not None:
+            d["option_input_mask"] = [list(r) for r in self.option_input_mask]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> HeadSpec:
+        mask = d.get("option_input_mask")
+        return cls(
+            obs_dim=int(d["obs_dim"]),
+            num_actions=int(d["num_actions"]),
+            option_names=tuple(d["option_names"]),
+            robustness=bool(d["robustness"]),
+            option_input_mask=None if mask is None else tuple(tuple(r) for r in mask),
+        )
+
+
+def build_heads(cfg: Config, env: EnvBase | HeadSpec, subtasks: Subtasks | None = None) -> Heads:
+    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (docs/design.md).
+
+    ``env`` and ``subtasks`` give the :class:`HeadSpec` (or pass the spec itself). The heads are
+    independent MLPs stored as members of one ``StackedMLP``, so the learner runs them in one
+    batched pass (``heads/networks.py``); ``heads.network=conv`` gives each a conv trunk over the
+    family's local patch (``StackedConvMLP``).
+    """
+    spec = env if isinstance(env, HeadSpec) else HeadSpec.of(cfg, env, subtasks)
+    A, O = spec.num_actions, len(spec.option_names)  # noqa: E741
+    specs = {
+        "averaging": (keys.ACTION_VALUE, (A,)),
+        "options": (keys.OPTION_ACTION_VALUE, (O, A)),
+        "switching": (keys.OPTION_VALUE, (O,)),
+        "max_value": (keys.MAX_VALUE, (O,)),
+    }
+    if spec.robustness:
+        specs["robustness"] = (keys.ROBUSTNESS, (O, A))
+    fam = family(cfg)
+    patch = fam.conv_patch(cfg) if cfg.heads.network == "conv" else None
+    masks = None
+    if spec.option_input_mask is not None:
+        masks = {"options": torch.tensor(spec.option_input_mask, dtype=torch.float32)}
+    heads = make_stacked_heads(
+        spec.obs_dim,
+        specs,
+        hidden=tuple(cfg.heads.hidden),
+        activation=cfg.heads.activation,
+        network=cfg.heads.network,
+        patch=patch,
+        conv_channels=tuple(cfg.heads.conv_channels),
+        input_masks=masks,
+    )
+    critic = None  # the instance estimator's C(s, o | z) (heads/max_value.py)
+    if cfg.train.max_value_estimator == "instance":
+        critic = make_instance_critic(
+            spec.obs_dim, fam.instance_dim, O, tuple(cfg.heads.hidden), cfg.heads.activation
+        )
+    heads["max_value"] = TensorDictModule(  # Q_hat = Q_mu + softplus(gap) >= Q_mu
+        OptimismGapHead(heads["switching"].module, heads["max_value"].module, critic),
+        in_keys=[keys.OBSERVATION],
+        out_keys=[keys.MAX_VALUE],
+    )
+    bundle = Heads(spec.option_names, **heads, softmax_temperature=mu_bar_temperature(cfg.train))
+    bundle.spec = spec  # what a checkpoint records beside the weights (load_heads)
+    return bundle.to(cfg.device)
+
+
+def mu_bar_temperature(t: TrainConfig) -> float | None:
+    """``None`` for a greedy mu_bar, else the softmax temperature."""
+    return t.mu_bar_temperature if t.mu_bar == "softmax" else None
+
+
+def load_heads(
+    path: str | os.PathLike, device: str | torch.device | None = None
+) -> tuple[Heads, Config]:
+    """The trained :class:`Heads` bundle and config of a checkpoint written by ``train`` or an
+    experiment. Built from the checkpoint's ``heads_spec`` (no env is made); a checkpoint without
+    one (written before it existed) builds a one-environment env to read the spec.
+
+    Raises:
+        CheckpointError: unreadable file, foreign content, non-finite heads, or weights that do
+            not fit the config.
+        ValueError: the bundle's device is not available here.
+    """
+    bundle = load_checkpoint(path)
+    require_finite_heads(bundle, path)
+    cfg = config_from_dict(bundle["config"], f"checkpoint {path}")
+    if device is not None:
+        cfg = dataclasses.replace(cfg, device=str(device))
+    check_device(cfg.device)
+    if isinstance(bundle.get("heads_spec"), dict):
+        spec = HeadSpec.from_dict(bundle["heads_spec"])
+    else:
+        env = make_env(cfg, num_envs=1)
+        spec = HeadSpec.of(cfg, env, make_subtasks(cfg, env))
+    heads = build_heads(cfg, spec)
+    load_state_dicts(bundle, models={"heads": heads})
+    return heads.eval(), cfg
+
+
+# --------------------------------------------------------------------------------------------
+# learner
+
+
+def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLearner:
+    """The fused multi-head learner of ``cfg.train``."""
+    t = cfg.train
+    if t.switching != "intra":
+        raise ValueError(
+            f"train.switching={t.switching!r} is not implemented; use 'intra' (intra-option "
+            "Q-learning, see taskvar_torch/heads/switching.py)"
+        )
+    settings = LossSettings(
+        gamma=t.gamma,
+        robustness_gamma=t.robustness_gamma,
+        robustness_target=t.robustness_target,
+        robustness_until=t.robustness_until,
+        root_policy=t.hierarchy_root_policy,
+        double_q=t.double_q,
+        max_value_expectile=t.max_value_expectile,
+        mu_bar_temperature=mu_bar_temperature(t),
+        max_value_estimator=t.max_value_estimator,
+        max_value_instances=t.max_value_instances,
+    )
+    return MultiHeadLearner(
+        MultiHeadLoss(heads, subtasks, settings).to(cfg.device),
+        lr=t.lr,
+        max_grad_norm=t.max_grad_norm,
+        target_update=t.target_update,
+        target_tau=t.target_tau,
+        target_period=t.target_period,
+    )
+
+
+make_method = make_method_controller
+"""Short name of :func:`make_method_controller`: the controller of a method (averaging, options,
+interruption, hierarchy) on trained heads."""
+
+
+__all__ = [
+    "CALIBRATION_STATES",
+    "HeadSpec",
+    "build_heads",
+    "calibrate",
+    "check_device",
+    "load_heads",
+    "make_env",
+    "make_learner",
+    "make_method",
+    "make_method_controller",
+    "make_subtasks",
+    "mu_bar_temperature",
+    "replay_states",
+    "training_states",
+]

@@ -44,10 +44,10 @@ from taskvar_torch.config import Config, load_config
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
 from taskvar_torch.experiments.windy_fig2 import windy_fig2
+from taskvar_torch.families import family
 from taskvar_torch.train import TrainingDiverged
 
 BACKENDS = ("local", "ray")
-EXPERIMENT_OF_FAMILY = {"windy": "windy-fig2", "wargus": "wargus-fig4"}
 """Config family -> the experiment each sweep point runs (as ``taskvar experiment NAME``)."""
 RAY_MISSING = 'taskvar sweep --backend ray needs Ray: pip install "taskvar-torch[distributed]"'
 SUMMARY_CSV, SUMMARY_JSON, POINT_LOG = "summary.csv", "summary.json", "output.txt"
@@ -166,7 +166,7 @@ def run_point(
     t0 = time.perf_counter()
     with open(out / POINT_LOG, "w") as log, contextlib.redirect_stdout(log):
         try:
-            if cfg.family == "windy":
+            if family(cfg).experiment == "windy-fig2":
                 metrics = windy_fig2(
                     cfg, out, progress=False, quick=quick, plots=plots, overwrite=overwrite
                 )
@@ -337,7 +337,7 @@ def sweep(
         out / SUMMARY_JSON,
         {
             "config": str(config),
-            "experiment": sorted({EXPERIMENT_OF_FAMILY[c.family] for c in cfgs}),
+            "experiment": sorted({family(c).experiment for c in cfgs}),
             "backend": backend,
             "quick": bool(quick),
             "plots": bool(plots),

@@ -30,7 +30,6 @@ Examples:
 from __future__ import annotations
 
 import copy
-import dataclasses
 import fcntl
 import functools
 import os
@@ -47,7 +46,6 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModule
 from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
@@ -64,6 +62,7 @@ from taskvar_torch.checkpoint import (
     load_checkpoint,
     load_state_dicts,
     make_bundle,
+    require_finite_heads,
     rng_state,
     save_checkpoint,
     set_rng_state,
@@ -75,20 +74,19 @@ from taskvar_torch.config import (
     atomic_write,
     config_from_dict,
     save_config_yaml,
-    windy_env_kwargs,
 )
-from taskvar_torch.envs.wargus_env import WargusEnv
-from taskvar_torch.envs.windy_env import WindyGridEnv
+from taskvar_torch.factory import (  # noqa: F401  (the factories stay importable from here)
+    build_heads,
+    check_device,
+    load_heads,
+    make_env,
+    make_learner,
+    make_subtasks,
+    mu_bar_temperature,
+)
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
-from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
-from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
-from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
-from taskvar_torch.heads.networks import PatchLayout, make_stacked_heads
-from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, has_robustness
-from taskvar_torch.subtasks.base import Subtasks
-from taskvar_torch.subtasks.wargus import WargusSubtasks
-from taskvar_torch.subtasks.windy import WindySubtasks
+from taskvar_torch.heads.learner import MultiHeadLearner
 
 EPISODE_REWARD = "episode_reward"  # RewardSum's running return
 
@@ -113,40 +111,6 @@ class TrainingInterrupted(RuntimeError):
 
 # --------------------------------------------------------------------------------------------
 # factories
-
-
-def make_env(
-    cfg: Config, num_envs: int | None = None, seed: int | None = None, index_offset: int = 0
-) -> EnvBase:
-    """The family's batched env (no transforms) with ``cfg``'s training instances.
-
-    ``index_offset``: global index of sub-environment 0 in the keyed streams, so envs with
-    offsets 0, n, 2n... are disjoint slices of one env of the summed size.
-    """
-    n = cfg.env.num_envs if num_envs is None else int(num_envs)
-    s = cfg.seed if seed is None else int(seed)
-    if cfg.family == "windy":
-        return WindyGridEnv(
-            **{**windy_env_kwargs(cfg), "num_envs": n, "seed": s, "index_offset": index_offset}
-        )
-    if cfg.family == "wargus":
-        return WargusEnv(
-            n,
-            config=dataclasses.asdict(cfg.env.wargus),
-            instances=cfg.env.instances,
-            seed=s,
-            index_offset=index_offset,
-            device=cfg.device,
-        )
-    raise ValueError(f"family must be one of ['wargus', 'windy'], got {cfg.family!r}")
-
-
-def make_subtasks(cfg: Config, env: EnvBase) -> Subtasks:
-    """The family's options (windy: one exit option per exit; Wargus: TG, FE, TG+FE)."""
-    if cfg.family == "windy":
-        return WindySubtasks(env.model)
-
-    return WargusSubtasks(composed_reward=cfg.train.composed_reward)
 
 
 def make_training_env(
@@ -256,96 +220,6 @@ def make_ray_collector(cfg: Config, behaviour: BehaviourPolicy, total_frames: in
     return collector
 
 
-def build_heads(cfg: Config, env: EnvBase, subtasks: Subtasks) -> Heads:
-    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (docs/design.md).
-
-    The heads are independent MLPs stored as members of one ``StackedMLP``, so the learner runs
-    them in one batched pass (``heads/networks.py``); ``heads.network=conv`` gives each a conv
-    trunk over the windy ``coords_patch`` patch (``StackedConvMLP``).
-    """
-    obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
-    A = env.action_spec.space.n
-    O = subtasks.num_options  # noqa: E741
-    specs = {
-        "averaging": (keys.ACTION_VALUE, (A,)),
-        "options": (keys.OPTION_ACTION_VALUE, (O, A)),
-        "switching": (keys.OPTION_VALUE, (O,)),
-        "max_value": (keys.MAX_VALUE, (O,)),
-    }
-    if has_robustness(subtasks):
-        specs["robustness"] = (keys.ROBUSTNESS, (O, A))
-    patch = None
-    if cfg.heads.network == "conv":  # windy coords_patch: (row, col), then 3 (2r+1)^2 channels
-        size = 2 * cfg.env.patch_radius + 1
-        patch = PatchLayout(coords_dim=2, channels=3, size=size)
-    input_masks = None
-    if cfg.heads.option_inputs == "subtask":  # each option's policy sees its subtask's features
-        mask = subtasks.option_input_mask(obs_dim)
-        if mask is None:
-            raise ValueError(
-                f"heads.option_inputs='subtask': {type(subtasks).__name__} defines no option inputs"
-            )
-        input_masks = {"options": mask}
-    heads = make_stacked_heads(
-        obs_dim,
-        specs,
-        hidden=tuple(cfg.heads.hidden),
-        activation=cfg.heads.activation,
-        network=cfg.heads.network,
-        patch=patch,
-        conv_channels=tuple(cfg.heads.conv_channels),
-        input_masks=input_masks,
-    )
-    critic = None  # the instance estimator's C(s, o | z) (heads/max_value.py)
-    if cfg.train.max_value_estimator == "instance":
-        critic = make_instance_critic(
-            obs_dim, WINDY_INSTANCE_DIM, O, tuple(cfg.heads.hidden), cfg.heads.activation
-        )
-    heads["max_value"] = TensorDictModule(  # Q_hat = Q_mu + softplus(gap) >= Q_mu
-        OptimismGapHead(heads["switching"].module, heads["max_value"].module, critic),
-        in_keys=[keys.OBSERVATION],
-        out_keys=[keys.MAX_VALUE],
-    )
-    return Heads(subtasks.names, **heads, softmax_temperature=mu_bar_temperature(cfg.train)).to(
-        cfg.device
-    )
-
-
-def mu_bar_temperature(t: TrainConfig) -> float | None:
-    """``None`` for a greedy mu_bar, else the softmax temperature."""
-    return t.mu_bar_temperature if t.mu_bar == "softmax" else None
-
-
-def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLearner:
-    """The fused multi-head learner of ``cfg.train``."""
-    t = cfg.train
-    if t.switching != "intra":
-        raise ValueError(
-            f"train.switching={t.switching!r} is not implemented; use 'intra' (intra-option "
-            "Q-learning, see taskvar_torch/heads/switching.py)"
-        )
-    settings = LossSettings(
-        gamma=t.gamma,
-        robustness_gamma=t.robustness_gamma,
-        robustness_target=t.robustness_target,
-        robustness_until=t.robustness_until,
-        root_policy=t.hierarchy_root_policy,
-        double_q=t.double_q,
-        max_value_expectile=t.max_value_expectile,
-        mu_bar_temperature=mu_bar_temperature(t),
-        max_value_estimator=t.max_value_estimator,
-        max_value_instances=t.max_value_instances,
-    )
-    return MultiHeadLearner(
-        MultiHeadLoss(heads, subtasks, settings).to(cfg.device),
-        lr=t.lr,
-        max_grad_norm=t.max_grad_norm,
-        target_update=t.target_update,
-        target_tau=t.target_tau,
-        target_period=t.target_period,
-    )
-
-
 def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
     """Uniform replay of raw transitions; sampling draws from ``generator`` only."""
     t = cfg.train
@@ -449,6 +323,7 @@ def _make_bundle(
         carrier=_collector_carrier(collector).to_dict() if single else None,
         first_visit=first_visit.state_dict(),
         stats={k: v.clone() for k, v in stats.items()},
+        heads_spec=learner.heads.spec.to_dict(),
     )
 
 
@@ -491,25 +366,6 @@ def check_output_folder(path: str | os.PathLike, flag: str = "--out") -> None:
             f"{flag} {str(path)!r} is not writable (no write access to {str(existing)!r}); "
             f"choose another {flag}"
         )
-
-
-def check_device(device: str | torch.device) -> None:
-    """A one-line ``ValueError`` when ``device`` cannot be used by this torch build on this
-    machine (e.g. ``device=cuda`` with a CPU-only torch)."""
-    dev = torch.device(device)
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise ValueError(
-                f"device={str(device)!r} needs CUDA, which this torch {torch.__version__} cannot "
-                "use here (CPU build or no GPU); use device=cpu"
-            )
-        if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise ValueError(
-                f"device={str(device)!r}: this machine has {torch.cuda.device_count()} CUDA "
-                "device(s); use device=cuda:0 or device=cpu"
-            )
-    elif dev.type == "mps" and not torch.backends.mps.is_available():
-        raise ValueError(f"device={str(device)!r} is not available here; use device=cpu")
 
 
 def _latest_checkpoint(out: Path) -> Path | None:
@@ -681,23 +537,6 @@ def _require_finite(learner: MultiHeadLearner, frames: int, last: Path | None) -
         raise TrainingDiverged(
             f"non-finite values in the {' and '.join(bad)} at frame {frames}: training diverged "
             f"(lower train.lr?); nothing written, {_last_checkpoint_note(last)}"
-        )
-
-
-def require_finite_heads(bundle: dict[str, Any], path: str | os.PathLike) -> None:
-    """:class:`CheckpointError` when a checkpoint's heads hold a NaN or infinite value."""
-    heads = bundle.get("models", {}).get("heads", {})
-    bad = [
-        k
-        for k, v in heads.items()
-        if isinstance(v, torch.Tensor)
-        and v.is_floating_point()
-        and not bool(torch.isfinite(v).all())
-    ]
-    if bad:
-        raise CheckpointError(
-            f"checkpoint {str(path)!r} has non-finite heads ({bad[0]}"
-            f"{', ...' if len(bad) > 1 else ''}): its run diverged; use an earlier checkpoint"
         )
 
 
@@ -1056,29 +895,6 @@ def _log_row(
 
 # --------------------------------------------------------------------------------------------
 # loading a trained bundle
-
-
-def load_heads(
-    path: str | os.PathLike, device: str | torch.device | None = None
-) -> tuple[Heads, Config]:
-    """The trained :class:`Heads` bundle and config of a checkpoint written by :func:`train`.
-
-    Raises:
-        CheckpointError: unreadable file, foreign content, non-finite heads, or weights that do
-            not fit the config.
-        ValueError: the bundle's device is not available here.
-    """
-    bundle = load_checkpoint(path)
-    require_finite_heads(bundle, path)
-    cfg = config_from_dict(bundle["config"], f"checkpoint {path}")
-    if device is not None:
-        cfg = dataclasses.replace(cfg, device=str(device))
-    check_device(cfg.device)
-    env = make_env(cfg, num_envs=1)
-    subtasks = make_subtasks(cfg, env)
-    heads = build_heads(cfg, env, subtasks)
-    load_state_dicts(bundle, models={"heads": heads})
-    return heads.eval(), cfg
 
 
 __all__ = [

@@ -56,17 +56,15 @@ from taskvar_torch.config import (
     apply_overrides,
     atomic_write,
     load_config,
-    windy_env_kwargs,
     windy_layout,
 )
-from taskvar_torch.envs.wargus_env import WargusEnv
-from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
-from taskvar_torch.factory import make_method_controller
+from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
+from taskvar_torch.families import family
 from taskvar_torch.oracle import WindyOracle
-from taskvar_torch.train import load_heads, make_subtasks, train
+from taskvar_torch.train import train
 
 EXPERIMENT = "scale"
 METHODS = ("averaging", "options", "interruption", "hierarchy")
@@ -290,33 +288,18 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
 
 def grid_side(cfg: Config) -> int:
     """The grid's side length (windy: max of height and width; Wargus: ``size``)."""
-    if cfg.family == "windy":
-        lay = windy_layout(cfg.env)
-        return max(lay.height, lay.width)
-    return int(cfg.env.wargus.size)
+    return family(cfg).grid_side(cfg)
 
 
 def make_test_env(cfg: Config, num_envs: int, seed: int, index_offset: int = 0) -> EnvBase:
     """The family env on fresh test instances; the same ``seed`` gives the same episodes."""
-    if cfg.family == "windy":
-        kw = windy_env_kwargs(cfg)
-        kw.update(
-            num_envs=int(num_envs),
-            instances="test",
-            seed=int(seed),
-            index_offset=int(index_offset),
-            validate_actions=False,
-        )
-        return WindyGridEnv(**kw)
-
-    return WargusEnv(
-        int(num_envs),
-        config=dataclasses.asdict(cfg.env.wargus),
+    return make_env(
+        cfg,
+        num_envs,
+        seed=seed,
+        index_offset=index_offset,
         instances="test",
-        seed=int(seed),
-        index_offset=int(index_offset),
         validate_actions=False,
-        device=cfg.device,
     )
 
 
@@ -392,7 +375,7 @@ def references(cfg: Config, episodes: int, batch_size: int) -> dict[str, Any]:
     """The random policy and (windy) the oracle's averaging optimum on the same test episodes."""
     t0 = time.perf_counter()
     refs: dict[str, Any] = {"random": evaluate(cfg, "random", episodes, batch_size)}
-    if cfg.family == "windy":
+    if family(cfg).exact_oracle:
         refs["oracle_averaging"] = evaluate(cfg, "oracle_averaging", episodes, batch_size)
         refs["oracle_note"] = (
             "mean-MDP optimal averaging policy (exact value iteration, paper "
@@ -444,16 +427,14 @@ def run_cell(
         "case": case.name,
         "family": ccfg.family,
         "grid_side": grid_side(ccfg),
-        "cells": windy_layout(ccfg.env).num_cells
-        if ccfg.family == "windy"
-        else ccfg.env.wargus.size**2,
+        "cells": family(ccfg).cells(ccfg),
         "num_envs": int(num_envs),
         "frames": int(result["frames"]),
         "updates": int(result["updates"]),
         "frames_per_batch": ccfg.train.frames_per_batch,
         "updates_per_batch": ccfg.train.updates_per_batch,
         "hidden": list(ccfg.heads.hidden),
-        "obs_encoding": ccfg.env.obs_encoding if ccfg.family == "windy" else "wargus",
+        "obs_encoding": family(ccfg).observation(ccfg),
         "train_seconds": secs,
         "frames_per_second": result["frames"] / secs if secs > 0 else None,
         "eval_seconds": time.perf_counter() - t0,

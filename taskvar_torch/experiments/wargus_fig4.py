@@ -84,6 +84,7 @@ from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.factory import calibrate, make_method_controller, replay_states
+from taskvar_torch.families import FAMILIES
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
 from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
@@ -194,13 +195,8 @@ def make_test_env(
     rows = tuple(
         seeds[(j + first_trial + g) % k] for g in range(trials) for _ in METHODS for j in range(k)
     )
-    return WargusEnv(
-        len(rows),
-        config=dataclasses.asdict(cfg.env.wargus),
-        instances=WargusInstances(seeds=rows),
-        seed=seed,
-        validate_actions=False,
-        device=cfg.device,
+    return make_env(
+        cfg, len(rows), seed=seed, instances=WargusInstances(seeds=rows), validate_actions=False
     )
 
 
@@ -766,6 +762,7 @@ def run_repetition(
                 optimizers={"adam": agent.learner.optimizer},
                 counters={"frames": agent.frames, "updates": agent.updates, "trials": x.trials},
                 rng=rng_state({"replay": agent.replay_generator}),
+                heads_spec=agent.heads.spec.to_dict(),
             ),
         )
     result = {key: np.asarray(v) for key, v in rows.items()}
@@ -855,8 +852,7 @@ def wargus_fig4(
     DIR`` draws it later from the folder); ``overwrite`` replaces results already in ``out_dir``
     (without it such a folder is refused).
     """
-    if cfg.family != "wargus":
-        raise ValueError(f"wargus-fig4 needs a Wargus config (family='wargus'), got {cfg.family!r}")
+    FAMILIES["wargus"].require(cfg, "wargus-fig4")
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     out = Path(out_dir)

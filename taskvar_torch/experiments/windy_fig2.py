@@ -46,7 +46,6 @@ from taskvar_torch.config import (
     Config,
     load_config,
     save_config_yaml,
-    windy_env_kwargs,
     windy_layout,
 )
 from taskvar_torch.controllers import CONTROLLERS, Controller, make_controller
@@ -56,6 +55,7 @@ from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.evaluation import mean_ci95, paired_summary, run_episodes
 from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sorted_differences
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.families import FAMILIES
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle import WindyOracle
 from taskvar_torch.train import (
@@ -112,16 +112,15 @@ def make_eval_env(
     noise_seed: int = 0,
 ) -> WindyGridEnv:
     """The family env of ``cfg`` on a test distribution; sub-env ``i`` is global episode ``offset + i``."""
-    kw = windy_env_kwargs(cfg)
-    kw.update(
-        num_envs=int(num_envs),
+    return make_env(
+        cfg,
+        num_envs,
+        seed=seed,
+        index_offset=index_offset,
         instances=instances,
-        seed=int(seed),
-        index_offset=int(index_offset),
-        noise_seed=int(noise_seed),
+        noise_seed=noise_seed,
         validate_actions=False,
     )
-    return WindyGridEnv(**kw)
 
 
 def build_controller(method: str, heads: Heads, cfg: Config) -> Controller:
@@ -549,17 +548,16 @@ def windy_fig2(
         The metrics dict written to ``metrics.json``.
     """
 
-    if cfg.family != "windy":
-        raise ValueError(f"windy-fig2 needs family='windy', got family={cfg.family!r}")
+    FAMILIES["windy"].require(cfg, "windy-fig2")
     out = Path(out_dir)
     check_output_folder(out)  # every check before any work or any file written
     check_device(cfg.device)
     heads = tcfg = None
     if checkpoint is not None:
-        family = load_checkpoint(checkpoint)["config"].get("family")
-        if family != "windy":
+        saved = load_checkpoint(checkpoint)["config"].get("family")
+        if saved not in FAMILIES or FAMILIES[saved].experiment != "windy-fig2":
             raise ValueError(
-                f"--checkpoint {str(checkpoint)!r} is a {family!r} bundle; windy-fig2 "
+                f"--checkpoint {str(checkpoint)!r} is a {saved!r} bundle; windy-fig2 "
                 "evaluates windy bundles (wargus-fig4 trains its own)"
             )
         heads, tcfg = load_heads(checkpoint, device=cfg.device)
@@ -815,10 +813,7 @@ def eval_checkpoint(
     if out_dir is not None:
         check_output_folder(out_dir)
     heads, cfg = load_heads(checkpoint)
-    if cfg.family != "windy":
-        raise ValueError(
-            f"taskvar eval supports windy checkpoints; {str(checkpoint)!r} is family={cfg.family!r}"
-        )
+    FAMILIES["windy"].require(cfg, f"taskvar eval (checkpoint {str(checkpoint)!r})")
     seed = test_seed(cfg, 0) if seed is None else int(seed)
     bar = tqdm(total=int(episodes), disable=not progress, desc=f"eval {method}", unit="ep")
     r = evaluate(heads, cfg, method, test, seed, int(episodes), noise_seed=noise_seed, progress=bar)
