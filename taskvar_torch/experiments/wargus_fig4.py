@@ -41,8 +41,9 @@ each); both give the same numbers (each repetition depends on its own seed only)
 Speed (docs/benchmarks.md, ``benchmarks/wargus_trial.py``): the loops step the pure
 dynamics through :meth:`WargusEnv.reset_all` / :meth:`WargusEnv.step_all` (no ``EnvBase``
 checks, transforms or ``step_mdp``), write replay once per update phase, run every head in one
-stacked pass (:class:`HeadValues`), and test :data:`TEST_GROUP` trials side by side on frozen
-copies of their heads (:func:`test_trials`). The TorchRL loops :func:`learning_phase_torchrl` /
+stacked pass (:class:`~taskvar_torch.heads.snapshots.HeadValues`), and test :data:`TEST_GROUP`
+trials side by side on frozen copies of their heads (:func:`test_trials` with
+:class:`~taskvar_torch.controllers.side_by_side.SideBySide`). The TorchRL loops :func:`learning_phase_torchrl` /
 :func:`test_phase_torchrl` are kept as the reference the tests check them bit-equal to.
 
 Writes ``config.yaml``, ``rep{r}/final.pt`` (every head, loadable by ``taskvar eval``),
@@ -61,7 +62,7 @@ import json
 import math
 import os
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -69,7 +70,6 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import step_mdp
 from tqdm.auto import tqdm
@@ -77,7 +77,8 @@ from tqdm.auto import tqdm
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
 from taskvar_torch.config import Config, save_config_yaml
-from taskvar_torch.controllers import Controller, HierarchyController, option_first, select0
+from taskvar_torch.controllers import Controller
+from taskvar_torch.controllers.side_by_side import SideBySide
 from taskvar_torch.envs.wargus import ITEM_LOST, NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
@@ -85,11 +86,9 @@ from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.factory import calibrate, make_method_controller, replay_states
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
-from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
-from taskvar_torch.heads.max_value import OptimismGapHead
-from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
 from taskvar_torch.heads.robustness import RobustnessCalibration
+from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.train import (
     build_heads,
     epsilon_at,
@@ -226,237 +225,6 @@ def trial_calibration(agent: LifelongAgent) -> RobustnessCalibration | None:
     if agent.cfg.train.robustness_threshold != "calibrated" or len(agent.buffer) == 0:
         return None
     return calibrate(agent.cfg, agent.heads, agent.subtasks, replay_states(agent.buffer))
-
-
-class HeadValues:
-    """Head outputs ``{out_key: (B, ...)}`` from plain observations ``(B, D)`` (inference).
-
-    When the heads are members of one :class:`StackedMLP` (how the trainer builds them), every head
-    comes from *one* batched pass of the stack (the learner's fused pass), and the pass can run
-    ``G`` frozen copies of the weights (:meth:`snapshot`) at once, rows ``[g R, (g + 1) R)`` through
-    copy ``g``: the experiment tests many trials' heads in one batch. An optimism-gap head combines
-    its members' outputs. Equal to running each head on its own (each member's slice is computed
-    by the same matmul; checked in the tests).
-    """
-
-    def __init__(self, heads: Heads, names: Sequence[str]):
-        self.nets = {HEAD_OUT_KEYS[n]: head_network(heads.heads[n]) for n in names}
-        members = [m for net in self.nets.values() for m in _members(net)]
-        stacks = {id(m.stack): m.stack for m in members if isinstance(m, StackedHead)}
-        fused = len(stacks) == 1 and all(isinstance(m, StackedHead) for m in members)
-        self.stack: StackedMLP | None = next(iter(stacks.values())) if fused else None
-
-    @staticmethod
-    def supports(heads: Heads, names: Sequence[str]) -> bool:
-        """Whether every head reads the observation only (``TensorDictModule`` with one out-key)."""
-        return all(
-            list(getattr(heads.heads[n], "in_keys", ())) == [keys.OBSERVATION]
-            and len(getattr(heads.heads[n], "out_keys", ())) == 1
-            for n in names
-        )
-
-    def snapshot(self) -> list[torch.Tensor]:
-        """A frozen copy of the stack's weights and biases (for :meth:`__call__`'s ``params``)."""
-        if self.stack is None:
-            raise ValueError("snapshots need heads stored in one StackedMLP")
-        return [p.detach().clone() for p in (*self.stack.weights, *self.stack.biases)]
-
-    def __call__(
-        self, obs: torch.Tensor, params: Sequence[torch.Tensor] | None = None
-    ) -> dict[str, torch.Tensor]:
-        """Every head on ``obs`` ``(B, D)``; ``params``: :meth:`snapshot` s stacked along a new
-        first dim ``G`` (rows split into ``G`` equal groups), ``None``: the live weights."""
-        if self.stack is None:  # independent networks: each head on its own
-            if params is not None:
-                raise ValueError("snapshots need heads stored in one StackedMLP")
-            return {k: net(obs) for k, net in self.nets.items()}
-        out = _stacked_forward(self.stack, obs, params)  # (G, K, B / G, max_out)
-
-        def run(net: torch.nn.Module) -> torch.Tensor:  # (G, B / G, flat output)
-            if isinstance(net, OptimismGapHead):
-                return net.combine(run(net.base), run(net.gap))
-            return net.select(out, dim=1)
-
-        # elementwise math (the optimism gap's softplus) runs on rows of the layout forward_one
-        # gives (same kernel path, same bits); only the final values are reshaped
-        return {k: run(net).reshape(obs.shape[0], *_out_shape(net)) for k, net in self.nets.items()}
-
-
-def _stacked_forward(
-    stack: StackedMLP, obs: torch.Tensor, params: Sequence[torch.Tensor] | None
-) -> torch.Tensor:
-    """:meth:`StackedMLP.forward` of ``G`` weight copies on ``G`` row groups: ``(G, K, B/G, out)``.
-
-    Member ``(g, k)`` is one ``baddbmm`` batch entry, the matmul ``forward_one`` does for it.
-    """
-    K, n = stack.num_members, len(stack.weights)
-    if params is None:
-        ws = [w.unsqueeze(0) for w in stack.weights]  # (1, K, d_in, d_out)
-        bs = [b.unsqueeze(0) for b in stack.biases]  # (1, K, 1, d_out)
-    else:
-        ws, bs = list(params[:n]), list(params[n:])  # (G, K, d_in, d_out), (G, K, 1, d_out)
-    G = ws[0].shape[0]
-    R = obs.shape[0] // G
-    h = stack.member_inputs(obs.view(G, R, -1)).transpose(0, 1).reshape(G * K, R, -1)
-    for i, (w, b) in enumerate(zip(ws, bs)):
-        h = torch.baddbmm(b.reshape(G * K, 1, -1), h, w.reshape(G * K, *w.shape[2:]))
-        if i < n - 1:
-            h = stack.activation(h)
-    return h.view(G, K, R, -1)
-
-
-def _out_shape(net: torch.nn.Module) -> tuple[int, ...]:
-    """A stacked head's output shape per row (an optimism-gap head: its base's)."""
-    return _out_shape(net.base) if isinstance(net, OptimismGapHead) else net.out_shape
-
-
-def _members(net: torch.nn.Module) -> list[torch.nn.Module]:
-    if isinstance(net, OptimismGapHead):
-        return _members(net.base) + _members(net.gap)
-    return [net]
-
-
-class SideBySide(TensorDictModuleBase):
-    """Several controllers on consecutive equal slices of one batch: one env step serves them all.
-
-    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``. Every head the
-    controllers need runs once over the whole batch (one pass of the shared stacked network, see
-    :class:`HeadValues`), then each controller's decision rule (:meth:`Controller.decide`, the same
-    rule its ``forward`` applies) reads its slice. Traces a controller does not write are filled
-    with -1 (``option``, ``hierarchy_level``) or False (``interrupted``); stateless controllers
-    carry ``running_option = -1``. ``forward`` is the TorchRL module; :meth:`decide_batch` the
-    same decision on plain tensors, optionally for ``G`` groups of rows (``G`` trials' frozen heads
-    side by side, rows ``(g, i, j)``: group, controller, episode).
-    """
-
-    TRACES = ((keys.OPTION, -1), (keys.HIERARCHY_LEVEL, -1), (keys.INTERRUPTED, False))
-
-    def __init__(self, controllers: Sequence[Controller], slice_size: int):
-        super().__init__()
-        heads = {id(c.heads) for c in controllers}
-        if len(heads) != 1:
-            raise ValueError("SideBySide needs controllers over one shared Heads bundle")
-        self.controllers = torch.nn.ModuleList(controllers)
-        self.heads = controllers[0].heads
-        self.subtasks = next((c.subtasks for c in controllers if c.subtasks is not None), None)
-        self.k = int(slice_size)
-        names = [h for h in self.heads.heads if any(h in c.required_heads for c in controllers)]
-        self.head_names = names
-        self.head_values = (
-            HeadValues(self.heads, names) if HeadValues.supports(self.heads, names) else None
-        )
-        self.in_keys = [*self.heads.in_keys, keys.RUNNING_OPTION]
-        self.out_keys = [
-            keys.ACTION,
-            (keys.NEXT, keys.RUNNING_OPTION),
-            *(k for k, _ in self.TRACES),
-        ]
-
-    @property
-    def batchable(self) -> bool:
-        """Whether groups of frozen heads can be decided side by side: stacked heads and no
-        random draws (a softmax mu_bar draws from the controllers' generators per row)."""
-        return (
-            self.head_values is not None
-            and self.head_values.stack is not None
-            and self.heads.softmax_temperature is None
-        )
-
-    def decide_batch(
-        self,
-        td: Any,
-        running: torch.Tensor,
-        params: Sequence[torch.Tensor] | None = None,
-        thresholds: Mapping[str, torch.Tensor] | None = None,
-    ) -> dict[str, torch.Tensor]:
-        """Decisions ``(B,)`` at the state ``td`` (a tensordict with the env's keys) with carried
-        ``running`` ``(B,)``: ``action``, ``next_running`` and the traces. ``params``:
-        :meth:`HeadValues.snapshot` s stacked over ``G`` groups of rows (``None``: live heads);
-        ``thresholds``: the hierarchy's per-row thresholds (:meth:`threshold_rows`; ``None``: the
-        controller's own)."""
-        k, M = self.k, len(self.controllers)
-        G = 1 if params is None else params[0].shape[0]
-        if self.head_values is not None:
-            values_all = self.head_values(td.get(keys.OBSERVATION), params)
-        else:  # generic heads (e.g. tables reading other keys): the bundle's tensordict path
-            if params is not None:
-                raise ValueError("decide_batch with params needs stacked heads (see batchable)")
-            td = self.heads(td)
-            values_all = {HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h]) for h in self.head_names}
-        beta = None
-        if self.subtasks is not None:
-            beta = self.subtasks.termination(td)  # (B, O)
-
-        def part(x: torch.Tensor, i: int) -> torch.Tensor:  # rows of controller i, all groups
-            return x.view(G, M, k, *x.shape[1:])[:, i].reshape(G * k, *x.shape[1:])
-
-        outs = []
-        for i, c in enumerate(self.controllers):
-            values = {
-                HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads
-            }
-            values.update({key: part(v, i) for key, v in c.extra_inputs(td).items()})
-            if thresholds and isinstance(c, HierarchyController):
-                values.update(thresholds)  # per-row (G k, O)
-            run = part(running, i) if c.stateful else None
-            term = None
-            if run is not None and c.subtasks is not None:
-                term = select0(option_first(part(beta, i)), run.clamp(min=0))  # beta_{o_run}(s_t)
-            out = c.decide(values, run, term)
-            if not c.stateful:
-                out["option"] = torch.full_like(out["action"], -1)
-            outs.append(out)
-
-        def whole(parts: list[torch.Tensor]) -> torch.Tensor:  # back to rows (g, i, j)
-            return torch.stack([p.view(G, k) for p in parts], 1).reshape(G * M * k)
-
-        result = {
-            keys.ACTION: whole([o["action"] for o in outs]),
-            "next_running": whole([o["option"] for o in outs]),
-        }
-        for key, fill in self.TRACES:
-            result[key] = whole(
-                [
-                    o[key] if key in c.trace_keys else _full(o["action"], fill)
-                    for o, c in zip(outs, self.controllers)
-                ]
-            )
-        return result
-
-    def threshold_rows(
-        self, calibrations: Sequence[RobustnessCalibration | None]
-    ) -> dict[str, torch.Tensor]:
-        """The hierarchy's per-row thresholds and scales ``(G k, O)`` for ``calibrations`` (one per
-        group of rows; ``None``: the controller's own); empty when some group has none. Built once
-        per test phase and passed to every :meth:`decide_batch` call."""
-        c = next((c for c in self.controllers if isinstance(c, HierarchyController)), None)
-        if c is None:
-            return {}
-        cals = [cal or c.calibration for cal in calibrations]
-        if any(cal is None for cal in cals):
-            return {}
-        return {
-            keys.ROBUSTNESS_TAU: _rows([cal.tau for cal in cals], self.k),
-            keys.ROBUSTNESS_SCALE: _rows([cal.scale for cal in cals], self.k),
-        }
-
-    def forward(self, td: TensorDictBase) -> TensorDictBase:
-        out = self.decide_batch(td, td.get(keys.RUNNING_OPTION))
-        td.set(keys.ACTION, out[keys.ACTION])
-        td.set((keys.NEXT, keys.RUNNING_OPTION), out["next_running"])
-        for key, _ in self.TRACES:
-            td.set(key, out[key])
-        return td
-
-
-def _rows(per_group: Sequence[torch.Tensor], k: int) -> torch.Tensor:
-    """``(G k, O)``: each group's ``(O,)`` vector repeated for its ``k`` rows."""
-    return torch.stack(per_group).repeat_interleave(k, 0)
-
-
-def _full(like: torch.Tensor, value: int | bool) -> torch.Tensor:
-    dtype = torch.bool if isinstance(value, bool) else torch.int64
-    return torch.full(like.shape, value, dtype=dtype, device=like.device)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1145,6 +913,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
 
 __all__ = [
     "METHODS",
+    "HeadValues",
     "LifelongAgent",
     "SideBySide",
     "default_config_path",
