@@ -159,8 +159,10 @@ class StackedMLP(nn.Module):
 
         ``params``: ``G`` :meth:`snapshot` s stacked along a new first dim (weights ``(G, K, d_in,
         d_out)``, biases ``(G, K, 1, d_out)``); rows ``[g R, (g + 1) R)`` (``R = B / G``) run
-        through copy ``g``. ``None``: the live weights (``G = 1``). Member ``(g, k)`` is one
-        ``baddbmm`` batch entry, the matmul ``forward_one`` does for it.
+        through copy ``g``. ``None``: the live weights (``G = 1``; equal to :meth:`forward`).
+        Member ``(g, k)`` is one ``baddbmm`` batch entry, the matmul ``forward_one`` does for it
+        (same values; the same bits where the BLAS gives an entry the same bits in any batch, as
+        for the Wargus heads: ``heads/snapshots.py``).
         """
         K, n = self.num_members, len(self.weights)
         if params is None:

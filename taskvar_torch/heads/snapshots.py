@@ -8,13 +8,16 @@ snapshot ``g`` (:meth:`HeadValues.__call__` with the snapshots stacked). Every h
 batched pass of the heads' shared :class:`~taskvar_torch.heads.networks.StackedMLP`
 (:meth:`StackedMLP.forward_snapshots`).
 
-The pass is an explicit ``baddbmm`` per layer over the ``G K`` (snapshot, member) pairs, not
-``torch.vmap`` of ``torch.func.functional_call`` over stacked parameters (or
-``TensorDict.from_module``): member ``(g, k)`` is by construction one batch entry of the matmul the
-learner's fused pass (:meth:`StackedMLP.forward`) runs for member ``k``, so a snapshot gives the
-live heads' values bit for bit (equal to each head on its own: ``tests/test_wargus_fast_loop.py``)
-instead of relying on vmap's batching rules, and it is faster (Wargus heads, 25 snapshots of 20
-rows, one thread: 3.8-5.0 ms per pass against 5.4-6.1 ms for vmap + functional_call).
+The pass is an explicit ``baddbmm`` per layer over the ``G K`` (snapshot, member) pairs
+(:meth:`StackedMLP.forward_snapshots`): member ``(g, k)`` is one batch entry of the op the
+learner's fused pass (:meth:`StackedMLP.forward`) runs for member ``k``. With the Wargus shapes a
+snapshot's values are bit-equal to each head run on its own, and testing trials side by side
+gives the episodes testing each trial at once gives (``tests/test_wargus_fast_loop.py``); in
+general the last bits of a batch entry may depend on the batch it sits in (the BLAS's choice:
+``tests/test_heads.py`` shows a small shape where they do). ``torch.vmap`` of
+``torch.func.functional_call`` over stacked parameters (or ``TensorDict.from_module``) gave the
+same bits here but was slower (Wargus heads, 25 snapshots of 20 rows, one thread: 3.8-5.0 ms per
+pass against 5.4-6.1 ms), so the explicit pass is kept.
 
 Examples:
     >>> values = HeadValues(heads, ["averaging", "options"])  # doctest: +SKIP
