@@ -18,6 +18,7 @@ import torch
 from torchrl.envs import InitTracker, TransformedEnv
 
 from taskvar_torch.config import load_config
+from taskvar_torch.controllers import SideBySide
 from taskvar_torch.experiments import wargus_fig4 as fig4
 from taskvar_torch.train import make_env
 
@@ -30,9 +31,7 @@ def build(cfg, torchrl: bool, seed: int = 0):
     else:
         env.validate_actions = False
     agent = fig4.make_agent(cfg, env, seed)
-    policy = fig4.SideBySide(
-        fig4.make_test_controllers(agent), cfg.experiment.test_episodes_per_trial
-    )
+    policy = SideBySide(fig4.make_test_controllers(agent), cfg.experiment.test_episodes_per_trial)
     return env, agent, policy
 
 

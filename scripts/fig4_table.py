@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from taskvar_torch.experiments.wargus_fig4 import (
+from taskvar_torch.experiments.fig4_metrics import (
     METHODS,
     mean_over_trials,
     trials_to_fraction,

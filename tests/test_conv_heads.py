@@ -134,3 +134,12 @@ def test_tiny_conv_training_run_and_checkpoint_round_trip(tmp_path):
     td = heads(TensorDict({keys.OBSERVATION: obs.reshape(1, -1)}, [1]))
     assert td[keys.ACTION_VALUE].shape == (1, 4) and td[keys.OPTION_ACTION_VALUE].shape == (1, 2, 4)
     assert (td[keys.MAX_VALUE] >= td[keys.OPTION_VALUE]).all()
+
+
+def test_conv_stack_has_no_snapshots():
+    """Snapshots cover the MLP layers only: a conv stack refuses them."""
+    stack, patch = _stack()
+    with pytest.raises(NotImplementedError):
+        stack.snapshot()
+    with pytest.raises(NotImplementedError):
+        stack.forward_snapshots(torch.zeros(2, patch.obs_dim))

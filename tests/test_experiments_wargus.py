@@ -14,9 +14,12 @@ from torchrl.envs import InitTracker, TransformedEnv
 
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
+from taskvar_torch.controllers import side_by_side
 from taskvar_torch.envs.wargus import WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.experiments import fig4_metrics, fig4_report
 from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.heads import snapshots
 from taskvar_torch.train import load_heads, make_env
 
 torch.set_num_threads(1)
@@ -173,6 +176,15 @@ def test_trials_to_90pct_on_known_curves():
     down = np.concatenate([np.full(50, 10.0), np.zeros(5), np.full(5, -1.0)])  # final < 0
     assert fig4.trials_to_fraction(down)[0] == 1
     assert fig4.final_count(500) == 50 and fig4.smoothing_window(500) == 25
+
+
+def test_wargus_fig4_re_exports_the_split_modules():
+    """Names that moved out of ``wargus_fig4`` (metrics, report, side by side, head snapshots)
+    are still importable from it, as the same objects."""
+    for module in (fig4_metrics, fig4_report, side_by_side, snapshots):
+        for name in module.__all__:
+            assert getattr(fig4, name) is getattr(module, name), (module.__name__, name)
+            assert name in fig4.__all__, name
 
 
 def test_nominal_seeds_extend_the_fixed_list():

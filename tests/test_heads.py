@@ -93,6 +93,34 @@ def test_stacked_mlp_members_are_independent_networks():
         )
 
 
+def test_forward_snapshots_equals_forward_per_snapshot():
+    """``G`` stacked snapshots on ``G`` row groups give each group what its copy's ``forward``
+    gives; no ``params``: the live weights, ``G = 1``; snapshots are detached copies."""
+    torch.manual_seed(0)
+    stack = StackedMLP(7, (3, 5, 2), hidden=(16, 8), input_mask=(torch.rand(3, 7) > 0.3).float())
+    x = torch.randn(2 * 11, 7)
+    with torch.no_grad():
+        assert torch.equal(stack.forward_snapshots(x)[0], stack(x))  # the same baddbmm calls
+        first = stack.snapshot()
+        before = copy.deepcopy(stack)
+        for p in stack.parameters():
+            p.add_(0.5)
+        second = stack.snapshot()
+        one = stack.forward_snapshots(x[11:], [p.unsqueeze(0) for p in second])
+        assert torch.equal(one[0], stack(x[11:]))
+        out = stack.forward_snapshots(x, [torch.stack(p) for p in zip(first, second)])
+        assert out.shape == (2, 3, 11, 5)
+        # G > 1: a larger batched matmul, whose last bits the BLAS may give differently (here the
+        # second group's); the Wargus shapes are checked bit for bit in test_wargus_fast_loop.py
+        torch.testing.assert_close(out[0], before(x[:11]))
+        torch.testing.assert_close(out[1], stack(x[11:]))
+    assert not any(p.requires_grad for p in first)
+    assert [tuple(p.shape) for p in first] == [
+        *(tuple(w.shape) for w in stack.weights),
+        *(tuple(b.shape) for b in stack.biases),
+    ]
+
+
 def test_fused_pass_equals_each_head_run_alone(windy):
     cfg, env, subtasks = windy
     torch.manual_seed(0)

@@ -3,6 +3,7 @@
 ``averaging`` (paper §3.1), ``options`` (§3.2), ``interruption`` (§3.3, Algorithm 1) and
 ``hierarchy`` (§3.4, Algorithm 2). Each is a ``TensorDictModuleBase`` carrying ``running_option``
 like a recurrent state; install its primer with ``TransformedEnv(env, controller.primer())``.
+:class:`SideBySide` plays several of them on consecutive slices of one batch (``side_by_side.py``).
 
 Examples:
     >>> oracle = WindyOracle()
@@ -34,6 +35,7 @@ from taskvar_torch.controllers.interruption import (
     interruption_decide_of,
 )
 from taskvar_torch.controllers.options import OptionsController, options_decide
+from taskvar_torch.controllers.side_by_side import SideBySide
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
@@ -97,6 +99,7 @@ __all__ = [
     "HierarchyController",
     "InterruptionController",
     "OptionsController",
+    "SideBySide",
     "TreeTables",
     "argmax0",
     "averaging_decide",

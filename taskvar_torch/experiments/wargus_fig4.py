@@ -23,27 +23,24 @@ shared between repetitions):
       ``tau = train.robustness_tau``) -- all 4 x K episodes side by side in one batched env;
       score = items collected per test episode.
 
-Definitions used in ``metrics.json``:
-
-- ``curve_mean`` / ``curve_std``: per trial, mean and standard deviation over repetitions of the
-  mean items per test episode (raw, unsmoothed);
-- ``curve_smoothed``: trailing moving average of ``curve_mean`` over ``smoothing_window`` trials
-  (``max(1, T // 20)``, 25 for 500 trials); trailing, so the value at trial t uses trials <= t;
-- ``final_score``: mean of ``curve_mean`` over the last 10% of trials (at least one);
-- ``trials_to_90pct``: first trial (1-based) at which ``curve_smoothed`` reaches 90% of
-  ``final_score`` (``T`` and ``reached_90pct = false`` if it never does);
-- ``hierarchy_trace``: fraction of the hierarchy's (alive) test steps at which each level / each
-  subtask held control (Algorithm 2's decision), over all trials and over the last 10%.
+The repetitions' per-trial test scores then go to the metrics
+(:mod:`taskvar_torch.experiments.fig4_metrics`: ``metrics.json``'s final scores, trials to 90% and
+the hierarchy's control split, with their definitions) and to the report
+(:mod:`taskvar_torch.experiments.fig4_report`: ``per_trial.csv``, the table, ``fig4.png``): this
+module is the protocol, and re-exports the public names of those two, of
+:mod:`taskvar_torch.controllers.side_by_side` and of :mod:`taskvar_torch.heads.snapshots`.
 
 Repetitions run sequentially or, with ``workers > 1``, in spawned processes (one torch thread
 each); both give the same numbers (each repetition depends on its own seed only).
 
-Speed (docs/benchmarks.md, ``benchmarks/wargus_trial.py``): the loops step the pure
-dynamics through :meth:`WargusEnv.reset_all` / :meth:`WargusEnv.step_all` (no ``EnvBase``
-checks, transforms or ``step_mdp``), write replay once per update phase, run every head in one
-stacked pass (:class:`HeadValues`), and test :data:`TEST_GROUP` trials side by side on frozen
-copies of their heads (:func:`test_trials`). The TorchRL loops :func:`learning_phase_torchrl` /
-:func:`test_phase_torchrl` are kept as the reference the tests check them bit-equal to.
+Speed (docs/benchmarks.md, ``benchmarks/wargus_trial.py``): the loops step the pure dynamics
+through :meth:`WargusEnv.reset_all` / :meth:`WargusEnv.step_all` (no ``EnvBase`` checks,
+transforms or ``step_mdp``), write replay once per update phase, run every head in one stacked
+pass (:class:`~taskvar_torch.heads.snapshots.HeadValues`), and test :data:`TEST_GROUP` trials side
+by side on frozen copies of their heads (:func:`test_trials` with
+:class:`~taskvar_torch.controllers.side_by_side.SideBySide`). The TorchRL loops
+:func:`learning_phase_torchrl` / :func:`test_phase_torchrl` are kept as the reference the tests
+check them bit-equal to.
 
 Writes ``config.yaml``, ``rep{r}/final.pt`` (every head, loadable by ``taskvar eval``),
 ``per_trial.csv`` (rep, trial, method, items, interruptions), ``metrics.json``, ``fig4.png``;
@@ -57,11 +54,9 @@ Examples:
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 import os
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -69,7 +64,6 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 from tensordict import TensorDict, TensorDictBase
-from tensordict.nn import TensorDictModuleBase
 from torchrl.envs import TransformedEnv
 from torchrl.envs.utils import step_mdp
 from tqdm.auto import tqdm
@@ -77,20 +71,38 @@ from tqdm.auto import tqdm
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
 from taskvar_torch.config import Config, save_config_yaml
-from taskvar_torch.controllers import Controller, HierarchyController, option_first, select0
+from taskvar_torch.controllers import Controller
+from taskvar_torch.controllers.side_by_side import SideBySide
 from taskvar_torch.envs.wargus import ITEM_LOST, NOMINAL_SEEDS, WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
-from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.fig4_metrics import (
+    EXPERIMENT,
+    FINAL_FRACTION,
+    METHODS,
+    final_count,
+    mean_over_trials,
+    moving_average,
+    smoothing_window,
+    summarise,
+    trials_to_fraction,
+    trials_to_fraction_of_max,
+)
+from taskvar_torch.experiments.fig4_report import (
+    CSV_FIELDS,
+    STYLES,
+    csv_rows,
+    format_table,
+    is_results_folder,
+    plot_results,
+)
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.factory import calibrate, make_method_controller, replay_states
 from taskvar_torch.families import FAMILIES
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
-from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
-from taskvar_torch.heads.max_value import OptimismGapHead
-from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
 from taskvar_torch.heads.robustness import RobustnessCalibration
+from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.train import (
     build_heads,
     epsilon_at,
@@ -100,10 +112,6 @@ from taskvar_torch.train import (
     make_subtasks,
 )
 
-METHODS = ("averaging", "options", "interruption", "hierarchy")
-EXPERIMENT = "wargus-fig4"
-CSV_FIELDS = ("rep", "trial", "method", "items", "interruptions")
-FINAL_FRACTION = 0.1  # "final" performance: the mean of the last 10% of trials
 TEST_GROUP = 25  # trials whose test phases run side by side (run_repetition)
 
 
@@ -222,237 +230,6 @@ def trial_calibration(agent: LifelongAgent) -> RobustnessCalibration | None:
     if agent.cfg.train.robustness_threshold != "calibrated" or len(agent.buffer) == 0:
         return None
     return calibrate(agent.cfg, agent.heads, agent.subtasks, replay_states(agent.buffer))
-
-
-class HeadValues:
-    """Head outputs ``{out_key: (B, ...)}`` from plain observations ``(B, D)`` (inference).
-
-    When the heads are members of one :class:`StackedMLP` (how the trainer builds them), every head
-    comes from *one* batched pass of the stack (the learner's fused pass), and the pass can run
-    ``G`` frozen copies of the weights (:meth:`snapshot`) at once, rows ``[g R, (g + 1) R)`` through
-    copy ``g``: the experiment tests many trials' heads in one batch. An optimism-gap head combines
-    its members' outputs. Equal to running each head on its own (each member's slice is computed
-    by the same matmul; checked in the tests).
-    """
-
-    def __init__(self, heads: Heads, names: Sequence[str]):
-        self.nets = {HEAD_OUT_KEYS[n]: head_network(heads.heads[n]) for n in names}
-        members = [m for net in self.nets.values() for m in _members(net)]
-        stacks = {id(m.stack): m.stack for m in members if isinstance(m, StackedHead)}
-        fused = len(stacks) == 1 and all(isinstance(m, StackedHead) for m in members)
-        self.stack: StackedMLP | None = next(iter(stacks.values())) if fused else None
-
-    @staticmethod
-    def supports(heads: Heads, names: Sequence[str]) -> bool:
-        """Whether every head reads the observation only (``TensorDictModule`` with one out-key)."""
-        return all(
-            list(getattr(heads.heads[n], "in_keys", ())) == [keys.OBSERVATION]
-            and len(getattr(heads.heads[n], "out_keys", ())) == 1
-            for n in names
-        )
-
-    def snapshot(self) -> list[torch.Tensor]:
-        """A frozen copy of the stack's weights and biases (for :meth:`__call__`'s ``params``)."""
-        if self.stack is None:
-            raise ValueError("snapshots need heads stored in one StackedMLP")
-        return [p.detach().clone() for p in (*self.stack.weights, *self.stack.biases)]
-
-    def __call__(
-        self, obs: torch.Tensor, params: Sequence[torch.Tensor] | None = None
-    ) -> dict[str, torch.Tensor]:
-        """Every head on ``obs`` ``(B, D)``; ``params``: :meth:`snapshot` s stacked along a new
-        first dim ``G`` (rows split into ``G`` equal groups), ``None``: the live weights."""
-        if self.stack is None:  # independent networks: each head on its own
-            if params is not None:
-                raise ValueError("snapshots need heads stored in one StackedMLP")
-            return {k: net(obs) for k, net in self.nets.items()}
-        out = _stacked_forward(self.stack, obs, params)  # (G, K, B / G, max_out)
-
-        def run(net: torch.nn.Module) -> torch.Tensor:  # (G, B / G, flat output)
-            if isinstance(net, OptimismGapHead):
-                return net.combine(run(net.base), run(net.gap))
-            return net.select(out, dim=1)
-
-        # elementwise math (the optimism gap's softplus) runs on rows of the layout forward_one
-        # gives (same kernel path, same bits); only the final values are reshaped
-        return {k: run(net).reshape(obs.shape[0], *_out_shape(net)) for k, net in self.nets.items()}
-
-
-def _stacked_forward(
-    stack: StackedMLP, obs: torch.Tensor, params: Sequence[torch.Tensor] | None
-) -> torch.Tensor:
-    """:meth:`StackedMLP.forward` of ``G`` weight copies on ``G`` row groups: ``(G, K, B/G, out)``.
-
-    Member ``(g, k)`` is one ``baddbmm`` batch entry, the matmul ``forward_one`` does for it.
-    """
-    K, n = stack.num_members, len(stack.weights)
-    if params is None:
-        ws = [w.unsqueeze(0) for w in stack.weights]  # (1, K, d_in, d_out)
-        bs = [b.unsqueeze(0) for b in stack.biases]  # (1, K, 1, d_out)
-    else:
-        ws, bs = list(params[:n]), list(params[n:])  # (G, K, d_in, d_out), (G, K, 1, d_out)
-    G = ws[0].shape[0]
-    R = obs.shape[0] // G
-    h = stack.member_inputs(obs.view(G, R, -1)).transpose(0, 1).reshape(G * K, R, -1)
-    for i, (w, b) in enumerate(zip(ws, bs)):
-        h = torch.baddbmm(b.reshape(G * K, 1, -1), h, w.reshape(G * K, *w.shape[2:]))
-        if i < n - 1:
-            h = stack.activation(h)
-    return h.view(G, K, R, -1)
-
-
-def _out_shape(net: torch.nn.Module) -> tuple[int, ...]:
-    """A stacked head's output shape per row (an optimism-gap head: its base's)."""
-    return _out_shape(net.base) if isinstance(net, OptimismGapHead) else net.out_shape
-
-
-def _members(net: torch.nn.Module) -> list[torch.nn.Module]:
-    if isinstance(net, OptimismGapHead):
-        return _members(net.base) + _members(net.gap)
-    return [net]
-
-
-class SideBySide(TensorDictModuleBase):
-    """Several controllers on consecutive equal slices of one batch: one env step serves them all.
-
-    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``. Every head the
-    controllers need runs once over the whole batch (one pass of the shared stacked network, see
-    :class:`HeadValues`), then each controller's decision rule (:meth:`Controller.decide`, the same
-    rule its ``forward`` applies) reads its slice. Traces a controller does not write are filled
-    with -1 (``option``, ``hierarchy_level``) or False (``interrupted``); stateless controllers
-    carry ``running_option = -1``. ``forward`` is the TorchRL module; :meth:`decide_batch` the
-    same decision on plain tensors, optionally for ``G`` groups of rows (``G`` trials' frozen heads
-    side by side, rows ``(g, i, j)``: group, controller, episode).
-    """
-
-    TRACES = ((keys.OPTION, -1), (keys.HIERARCHY_LEVEL, -1), (keys.INTERRUPTED, False))
-
-    def __init__(self, controllers: Sequence[Controller], slice_size: int):
-        super().__init__()
-        heads = {id(c.heads) for c in controllers}
-        if len(heads) != 1:
-            raise ValueError("SideBySide needs controllers over one shared Heads bundle")
-        self.controllers = torch.nn.ModuleList(controllers)
-        self.heads = controllers[0].heads
-        self.subtasks = next((c.subtasks for c in controllers if c.subtasks is not None), None)
-        self.k = int(slice_size)
-        names = [h for h in self.heads.heads if any(h in c.required_heads for c in controllers)]
-        self.head_names = names
-        self.head_values = (
-            HeadValues(self.heads, names) if HeadValues.supports(self.heads, names) else None
-        )
-        self.in_keys = [*self.heads.in_keys, keys.RUNNING_OPTION]
-        self.out_keys = [
-            keys.ACTION,
-            (keys.NEXT, keys.RUNNING_OPTION),
-            *(k for k, _ in self.TRACES),
-        ]
-
-    @property
-    def batchable(self) -> bool:
-        """Whether groups of frozen heads can be decided side by side: stacked heads and no
-        random draws (a softmax mu_bar draws from the controllers' generators per row)."""
-        return (
-            self.head_values is not None
-            and self.head_values.stack is not None
-            and self.heads.softmax_temperature is None
-        )
-
-    def decide_batch(
-        self,
-        td: Any,
-        running: torch.Tensor,
-        params: Sequence[torch.Tensor] | None = None,
-        thresholds: Mapping[str, torch.Tensor] | None = None,
-    ) -> dict[str, torch.Tensor]:
-        """Decisions ``(B,)`` at the state ``td`` (a tensordict with the env's keys) with carried
-        ``running`` ``(B,)``: ``action``, ``next_running`` and the traces. ``params``:
-        :meth:`HeadValues.snapshot` s stacked over ``G`` groups of rows (``None``: live heads);
-        ``thresholds``: the hierarchy's per-row thresholds (:meth:`threshold_rows`; ``None``: the
-        controller's own)."""
-        k, M = self.k, len(self.controllers)
-        G = 1 if params is None else params[0].shape[0]
-        if self.head_values is not None:
-            values_all = self.head_values(td.get(keys.OBSERVATION), params)
-        else:  # generic heads (e.g. tables reading other keys): the bundle's tensordict path
-            if params is not None:
-                raise ValueError("decide_batch with params needs stacked heads (see batchable)")
-            td = self.heads(td)
-            values_all = {HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h]) for h in self.head_names}
-        beta = None
-        if self.subtasks is not None:
-            beta = self.subtasks.termination(td)  # (B, O)
-
-        def part(x: torch.Tensor, i: int) -> torch.Tensor:  # rows of controller i, all groups
-            return x.view(G, M, k, *x.shape[1:])[:, i].reshape(G * k, *x.shape[1:])
-
-        outs = []
-        for i, c in enumerate(self.controllers):
-            values = {
-                HEAD_OUT_KEYS[h]: part(values_all[HEAD_OUT_KEYS[h]], i) for h in c.required_heads
-            }
-            values.update({key: part(v, i) for key, v in c.extra_inputs(td).items()})
-            if thresholds and isinstance(c, HierarchyController):
-                values.update(thresholds)  # per-row (G k, O)
-            run = part(running, i) if c.stateful else None
-            term = None
-            if run is not None and c.subtasks is not None:
-                term = select0(option_first(part(beta, i)), run.clamp(min=0))  # beta_{o_run}(s_t)
-            out = c.decide(values, run, term)
-            if not c.stateful:
-                out["option"] = torch.full_like(out["action"], -1)
-            outs.append(out)
-
-        def whole(parts: list[torch.Tensor]) -> torch.Tensor:  # back to rows (g, i, j)
-            return torch.stack([p.view(G, k) for p in parts], 1).reshape(G * M * k)
-
-        result = {
-            keys.ACTION: whole([o["action"] for o in outs]),
-            "next_running": whole([o["option"] for o in outs]),
-        }
-        for key, fill in self.TRACES:
-            result[key] = whole(
-                [
-                    o[key] if key in c.trace_keys else _full(o["action"], fill)
-                    for o, c in zip(outs, self.controllers)
-                ]
-            )
-        return result
-
-    def threshold_rows(
-        self, calibrations: Sequence[RobustnessCalibration | None]
-    ) -> dict[str, torch.Tensor]:
-        """The hierarchy's per-row thresholds and scales ``(G k, O)`` for ``calibrations`` (one per
-        group of rows; ``None``: the controller's own); empty when some group has none. Built once
-        per test phase and passed to every :meth:`decide_batch` call."""
-        c = next((c for c in self.controllers if isinstance(c, HierarchyController)), None)
-        if c is None:
-            return {}
-        cals = [cal or c.calibration for cal in calibrations]
-        if any(cal is None for cal in cals):
-            return {}
-        return {
-            keys.ROBUSTNESS_TAU: _rows([cal.tau for cal in cals], self.k),
-            keys.ROBUSTNESS_SCALE: _rows([cal.scale for cal in cals], self.k),
-        }
-
-    def forward(self, td: TensorDictBase) -> TensorDictBase:
-        out = self.decide_batch(td, td.get(keys.RUNNING_OPTION))
-        td.set(keys.ACTION, out[keys.ACTION])
-        td.set((keys.NEXT, keys.RUNNING_OPTION), out["next_running"])
-        for key, _ in self.TRACES:
-            td.set(key, out[key])
-        return td
-
-
-def _rows(per_group: Sequence[torch.Tensor], k: int) -> torch.Tensor:
-    """``(G k, O)``: each group's ``(O,)`` vector repeated for its ``k`` rows."""
-    return torch.stack(per_group).repeat_interleave(k, 0)
-
-
-def _full(like: torch.Tensor, value: int | bool) -> torch.Tensor:
-    dtype = torch.bool if isinstance(value, bool) else torch.int64
-    return torch.full(like.shape, value, dtype=dtype, device=like.device)
 
 
 # --------------------------------------------------------------------------------------------
@@ -677,6 +454,8 @@ def test_phase_torchrl(policy: SideBySide, env: TransformedEnv, k: int) -> dict[
 # one repetition
 
 
+# One function of ~90 lines on purpose: every draw of a repetition (network init, behaviour,
+# replay) and its batched test phases run inside its one ``fork_rng`` scope, in this order.
 def run_repetition(
     cfg: Config,
     rep: int,
@@ -868,7 +647,7 @@ def wargus_fig4(
     inter = np.stack([r["interruptions"] for r in results])  # (R, T, M)
     control = np.stack([r["control_steps"] for r in results])  # (R, T, O)
     lost = np.stack([r["item_lost"] for r in results])  # (R, T, M)
-    write_csv(out / "per_trial.csv", _csv_rows(items, inter), CSV_FIELDS)
+    write_csv(out / "per_trial.csv", csv_rows(items, inter), CSV_FIELDS)
     metrics = summarise(
         items, inter, control, results[0]["option_names"], results[0]["option_depths"], lost
     )
@@ -904,257 +683,42 @@ def wargus_fig4(
     return metrics
 
 
-def _csv_rows(items: np.ndarray, inter: np.ndarray) -> list[dict[str, Any]]:
-    R, T, M = items.shape
-    return [
-        {
-            "rep": r,
-            "trial": t + 1,
-            "method": METHODS[m],
-            "items": float(items[r, t, m]),
-            "interruptions": float(inter[r, t, m]),
-        }
-        for r in range(R)
-        for t in range(T)
-        for m in range(M)
-    ]
-
-
-# --------------------------------------------------------------------------------------------
-# statistics
-
-
-def smoothing_window(trials: int) -> int:
-    """Moving-average window: ``max(1, trials // 20)`` (25 for the paper's 500 trials)."""
-    return max(1, int(trials) // 20)
-
-
-def moving_average(x: np.ndarray, window: int) -> np.ndarray:
-    """Trailing moving average along the last axis (the first values average what exists)."""
-    x = np.asarray(x, dtype=float)
-    c = np.cumsum(x, axis=-1)
-    out = c.copy()
-    out[..., window:] = c[..., window:] - c[..., :-window]
-    n = np.minimum(np.arange(1, x.shape[-1] + 1), window)
-    return out / n
-
-
-def final_count(trials: int) -> int:
-    """Number of last trials whose mean is the "final" performance: 10%, at least one."""
-    return max(1, int(math.ceil(FINAL_FRACTION * trials)))
-
-
-def trials_to_fraction_of_max(curve: np.ndarray, fraction: float = 0.9) -> int:
-    """First trial (1-based) at which the smoothed ``curve`` reaches ``fraction`` of its own
-    maximum (the paper's Figure 4 bars: "90% to their maximum performance")."""
-    smooth = moving_average(np.asarray(curve, dtype=float), smoothing_window(np.size(curve)))
-    return int(np.nonzero(smooth >= fraction * smooth.max())[0][0]) + 1
-
-
-def mean_over_trials(items: np.ndarray, first: int | None = None) -> dict[str, float]:
-    """Mean items per test episode over trials ``1..first`` (all: ``None``) of ``items`` ``(R,
-    T)``: the mean, the standard deviation across repetitions and a 95% CI half-width
-    (normal approximation over repetitions)."""
-    per_rep = np.asarray(items, dtype=float)[:, :first].mean(1)  # (R,)
-    R = per_rep.size
-    std = float(per_rep.std(ddof=1)) if R > 1 else float("nan")
-    return {
-        "mean": float(per_rep.mean()),
-        "std": std,
-        "ci95": 1.959964 * std / math.sqrt(R) if R > 1 else float("nan"),
-        "trials": int(np.asarray(items)[:, :first].shape[1]),
-    }
-
-
-def trials_to_fraction(curve: np.ndarray, fraction: float = 0.9) -> tuple[int, bool]:
-    """First trial (1-based) at which the smoothed ``curve`` reaches ``fraction`` of its final
-    value (mean of the last 10% of the raw curve); ``(len(curve), False)`` if it never does."""
-    curve = np.asarray(curve, dtype=float)
-    final = curve[-final_count(curve.size) :].mean()
-    smooth = moving_average(curve, smoothing_window(curve.size))
-    hit = np.nonzero(smooth >= fraction * final)[0]
-    return (int(hit[0]) + 1, True) if hit.size else (int(curve.size), False)
-
-
-def summarise(
-    items: np.ndarray,  # (R, T, M) mean items per test episode
-    inter: np.ndarray,  # (R, T, M) interruptions per test episode
-    control: np.ndarray,  # (R, T, O) hierarchy steps per controlling subtask
-    option_names: Sequence[str],
-    option_depths: Sequence[int],
-    item_lost: np.ndarray | None = None,  # (R, T, M) item_lost events per test episode
-) -> dict[str, Any]:
-    """``metrics.json``'s content (definitions in the module docstring)."""
-    R, T, M = items.shape
-    nf = final_count(T)
-    w = smoothing_window(T)
-    methods = {}
-    for m, name in enumerate(METHODS):
-        mean, std = items[:, :, m].mean(0), items[:, :, m].std(0)
-        t90, reached = trials_to_fraction(mean)
-        per_rep = [trials_to_fraction(items[r, :, m])[0] for r in range(R)]
-        methods[name] = {
-            "final_score": float(mean[-nf:].mean()),
-            "final_score_std": float(items[:, -nf:, m].mean(1).std()),
-            "trials_to_90pct": t90,
-            "reached_90pct": reached,
-            "trials_to_90pct_per_rep": per_rep,
-            "trials_to_90pct_std": float(np.std(per_rep)),
-            "trials_to_90pct_of_max": trials_to_fraction_of_max(mean),
-            "mean_over_trials": mean_over_trials(items[:, :, m]),
-            "mean_first_250_trials": mean_over_trials(items[:, :, m], 250),
-            "interruptions_per_episode": float(inter[:, :, m].mean()),
-            "curve_mean": mean.tolist(),
-            "curve_std": std.tolist(),
-            "curve_smoothed": moving_average(mean, w).tolist(),
-            "curve_per_rep": items[:, :, m].tolist(),
-        }
-        if item_lost is not None:
-            methods[name]["item_lost_per_episode"] = float(item_lost[:, :, m].mean())
-
-    def fractions(c: np.ndarray) -> dict[str, Any]:
-        total = max(float(c.sum()), 1.0)
-        per_option = {o: float(c[..., i].sum()) / total for i, o in enumerate(option_names)}
-        per_level = {
-            f"level_{d}": sum(v for v, dd in zip(per_option.values(), option_depths) if dd == d)
-            for d in sorted(set(option_depths))
-        }
-        return {"per_subtask": per_option, "per_level": per_level, "steps": int(c.sum())}
-
-    return {
-        "experiment": EXPERIMENT,
-        "methods": methods,
-        "smoothing_window": w,
-        "final_trials": nf,
-        "definitions": {
-            "score": "items collected per nominal test episode",
-            "final_score": f"mean over repetitions of the last {nf} trials (10%)",
-            "trials_to_90pct": f"first trial where the trailing {w}-trial moving average of the "
-            "repetition-mean curve reaches 90% of final_score",
-            "trials_to_90pct_of_max": f"first trial where the trailing {w}-trial moving average "
-            "of the repetition-mean curve reaches 90% of its own maximum (the paper's bars)",
-            "mean_over_trials": "mean items per test episode over all trials (std and 95% CI "
-            "across repetitions); mean_first_250_trials: the same over trials 1-250",
-            "hierarchy_trace": "fraction of the hierarchy's test steps each subtask (level 0: root "
-            "TG+FE, level 1: components TG, FE) held control",
-        },
-        "hierarchy_trace": {
-            "all_trials": fractions(control),
-            "last_10pct": fractions(control[:, -nf:]),
-        },
-    }
-
-
-# --------------------------------------------------------------------------------------------
-# files, table, plot
-
-
-def format_table(metrics: dict[str, Any]) -> str:
-    """Final score and trials-to-90% per method, the hierarchy's control split, the wall time."""
-    p, tm = metrics.get("protocol", {}), metrics.get("timing", {})
-    lines = [
-        f"Wargus Figure 4: {p.get('repetitions')} repetitions x {p.get('trials')} trials "
-        f"({p.get('learning_episodes_per_trial')} learning + {p.get('test_episodes_per_trial')} "
-        f"nominal test episodes), grid {p.get('grid')}, horizon {p.get('horizon')}, "
-        + (
-            f"tau calibrated (root keeps {p.get('keep_share'):.0%} of no-conflict states)"
-            if p.get("threshold") == "calibrated"
-            else f"tau {p.get('tau')}"
-        ),
-        f"{'method':<14}{'final items':>12}{'+-std':>8}{'mean (all)':>12}{'90% final':>11}"
-        f"{'90% max':>9}{'interr./ep':>12}",
-    ]
-    for name, m in metrics["methods"].items():
-        t90 = f"{m['trials_to_90pct']}{'' if m['reached_90pct'] else '*'}"
-        mean_all = m.get("mean_over_trials", {}).get("mean", float("nan"))
-        lines.append(
-            f"{name:<14}{m['final_score']:>12.3f}{m['final_score_std']:>8.3f}{mean_all:>12.3f}"
-            f"{t90:>11}{m.get('trials_to_90pct_of_max', '-'):>9}"
-            f"{m['interruptions_per_episode']:>12.2f}"
-        )
-    h = metrics["hierarchy_trace"]["all_trials"]["per_subtask"]
-    lines.append("hierarchy control: " + ", ".join(f"{o} {v:.1%}" for o, v in h.items()))
-    if "wall_seconds" in tm:
-        lines.append(
-            f"wall time {tm['wall_seconds']:.1f} s ({tm['seconds_per_trial']:.2f} s per trial); "
-            "paper: hierarchy ~100 trials to 90%, averaging > 350"
-        )
-    return "\n".join(lines)
-
-
-STYLES = {
-    "hierarchy": dict(color="tab:blue", ls="-"),
-    "averaging": dict(color="tab:green", ls="--"),
-    "options": dict(color="tab:orange", ls=":"),
-    "interruption": dict(color="tab:red", ls="-."),
-}
-
-
-def is_results_folder(out_dir: str | os.PathLike) -> bool:
-    """Whether ``out_dir`` holds a ``metrics.json`` written by :func:`wargus_fig4`."""
-    path = Path(out_dir) / "metrics.json"
-    try:
-        return json.loads(path.read_text()).get("experiment") == EXPERIMENT
-    except (OSError, ValueError, AttributeError):
-        return False
-
-
-def plot_results(out_dir: str | os.PathLike) -> list[Path]:
-    """(Re)draw ``fig4.png`` from ``metrics.json``: smoothed mean items per test episode per trial
-    with +-std bands over repetitions, and the trials-to-90% bars (paper Figure 4 layout)."""
-
-    out = Path(out_dir)
-    metrics = json.loads((out / "metrics.json").read_text())
-    plt = _pyplot()
-    fig, (ax, bx) = plt.subplots(
-        2, 1, figsize=(8, 6), gridspec_kw={"height_ratios": [3, 1]}, sharex=True
-    )
-    w = metrics["smoothing_window"]
-    for name, m in metrics["methods"].items():
-        mean = np.asarray(m["curve_smoothed"], dtype=float)
-        std = moving_average(np.asarray(m["curve_std"], dtype=float), w)
-        x = np.arange(1, mean.size + 1)
-        ax.plot(x, mean, lw=1.6, label=name, **STYLES.get(name, {}))
-        ax.fill_between(
-            x, mean - std, mean + std, alpha=0.15, color=STYLES.get(name, {}).get("color")
-        )
-    ax.set_ylabel("items per test episode")
-    ax.set_title(
-        f"Wargus lifelong protocol: mean of {metrics['protocol']['repetitions']} repetitions "
-        f"(moving average of {w} trials, bands: std)"
-    )
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
-    names = list(metrics["methods"])
-    t90 = [metrics["methods"][n]["trials_to_90pct"] for n in names]
-    err = [metrics["methods"][n]["trials_to_90pct_std"] for n in names]
-    bx.barh(names, t90, xerr=err, color=[STYLES.get(n, {}).get("color") for n in names], alpha=0.7)
-    bx.set_xlabel("trial")
-    bx.set_title(
-        "trials to 90% of final performance (error bars: std over repetitions)", fontsize=9
-    )
-    bx.grid(alpha=0.3, axis="x")
-    path = save_figure(fig, out / "fig4.png")
-    plt.close(fig)
-    return [path]
-
-
-__all__ = [
+__all__ = [  # the protocol, then the names of side_by_side, fig4_metrics, fig4_report it re-exports
+    "EXPERIMENT",
     "METHODS",
+    "TEST_GROUP",
     "LifelongAgent",
-    "SideBySide",
     "default_config_path",
+    "hierarchy_depths",
+    "learn_due",
     "learning_phase",
     "learning_phase_torchrl",
     "make_agent",
-    "moving_average",
-    "plot_results",
+    "make_test_controllers",
+    "make_test_env",
+    "nominal_seeds",
     "repetition_seed",
     "run_repetition",
     "run_repetitions",
-    "summarise",
     "test_phase",
     "test_phase_torchrl",
-    "trials_to_fraction",
+    "test_trials",
+    "trial_calibration",
     "wargus_fig4",
+    "HeadValues",
+    "SideBySide",
+    "FINAL_FRACTION",
+    "final_count",
+    "mean_over_trials",
+    "moving_average",
+    "smoothing_window",
+    "summarise",
+    "trials_to_fraction",
+    "trials_to_fraction_of_max",
+    "CSV_FIELDS",
+    "STYLES",
+    "csv_rows",
+    "format_table",
+    "is_results_folder",
+    "plot_results",
 ]

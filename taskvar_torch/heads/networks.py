@@ -66,7 +66,9 @@ class StackedMLP(nn.Module):
 
     :meth:`forward` runs all members on one input ``(M, in_dim) -> (K, M, max_out)`` with one
     matmul per layer (how the learner fuses the heads); :meth:`forward_one` runs one member (how
-    a head runs on its own, e.g. in a controller).
+    a head runs on its own, e.g. in a controller); :meth:`forward_snapshots` runs ``G`` frozen
+    copies of the weights (:meth:`snapshot`) on ``G`` groups of rows in one pass
+    (``heads/snapshots.py``).
 
     ``input_mask`` ``(K, in_dim)`` (optional, 0/1) multiplies member ``k``'s input by row ``k``:
     the member sees only the observation features its row keeps (``heads.option_inputs=subtask``:
@@ -142,6 +144,40 @@ class StackedMLP(nn.Module):
             if i < last:
                 h = self.activation(h)
         return h
+
+    def snapshot(self) -> list[torch.Tensor]:
+        """A frozen copy of the stacked layers' parameters, for :meth:`forward_snapshots`:
+        ``[weight_0, ..., weight_{n-1}, bias_0, ..., bias_{n-1}]`` (``n`` layers; detached clones
+        of shapes ``(K, d_in, d_out)`` and ``(K, 1, d_out)``)."""
+        return [p.detach().clone() for p in (*self.weights, *self.biases)]
+
+    def forward_snapshots(
+        self, x: torch.Tensor, params: Sequence[torch.Tensor] | None = None
+    ) -> torch.Tensor:
+        """:meth:`forward` of ``G`` weight copies on ``G`` row groups: ``(B, in_dim) -> (G, K, B /
+        G, max_out)``.
+
+        ``params``: ``G`` :meth:`snapshot` s stacked along a new first dim (weights ``(G, K, d_in,
+        d_out)``, biases ``(G, K, 1, d_out)``); rows ``[g R, (g + 1) R)`` (``R = B / G``) run
+        through copy ``g``. ``None``: the live weights (``G = 1``; equal to :meth:`forward`).
+        Member ``(g, k)`` is one ``baddbmm`` batch entry, the matmul ``forward_one`` does for it
+        (same values; the same bits where the BLAS gives an entry the same bits in any batch, as
+        for the Wargus heads: ``heads/snapshots.py``).
+        """
+        K, n = self.num_members, len(self.weights)
+        if params is None:
+            ws = [w.unsqueeze(0) for w in self.weights]  # (1, K, d_in, d_out)
+            bs = [b.unsqueeze(0) for b in self.biases]  # (1, K, 1, d_out)
+        else:
+            ws, bs = list(params[:n]), list(params[n:])  # (G, K, d_in, d_out), (G, K, 1, d_out)
+        G = ws[0].shape[0]
+        R = x.shape[0] // G
+        h = self.member_inputs(x.view(G, R, -1)).transpose(0, 1).reshape(G * K, R, -1)
+        for i, (w, b) in enumerate(zip(ws, bs)):
+            h = torch.baddbmm(b.reshape(G * K, 1, -1), h, w.reshape(G * K, *w.shape[2:]))
+            if i < n - 1:
+                h = self.activation(h)
+        return h.view(G, K, R, -1)
 
 
 @dataclass(frozen=True)
@@ -233,6 +269,16 @@ class StackedConvMLP(StackedMLP):
         batch = x.shape[:-1]
         out = self._layers_one(self._trunk_one(x.reshape(-1, x.shape[-1]), k), k)
         return out[:, : self.out_sizes[k]].reshape(*batch, self.out_sizes[k])
+
+    def snapshot(self) -> list[torch.Tensor]:
+        """Not supported: snapshots cover the MLP layers only, not the conv trunk."""
+        raise NotImplementedError("StackedConvMLP has no snapshots (the conv trunk is not covered)")
+
+    def forward_snapshots(
+        self, x: torch.Tensor, params: Sequence[torch.Tensor] | None = None
+    ) -> torch.Tensor:
+        """Not supported: snapshots cover the MLP layers only, not the conv trunk."""
+        raise NotImplementedError("StackedConvMLP has no snapshots (the conv trunk is not covered)")
 
 
 class StackedHead(nn.Module):

@@ -1,0 +1,177 @@
+"""Wargus Figure 4 statistics: the content of ``metrics.json`` (paper §3.5.3; docs/wargus-fig4.md).
+
+:func:`summarise` turns the per-trial test scores of every repetition into the figure's numbers.
+Definitions used in ``metrics.json``:
+
+- ``curve_mean`` / ``curve_std``: per trial, mean and standard deviation over repetitions of the
+  mean items per test episode (raw, unsmoothed);
+- ``curve_smoothed``: trailing moving average of ``curve_mean`` over ``smoothing_window`` trials
+  (``max(1, T // 20)``, 25 for 500 trials); trailing, so the value at trial t uses trials <= t;
+- ``final_score``: mean of ``curve_mean`` over the last 10% of trials (at least one);
+- ``trials_to_90pct``: first trial (1-based) at which ``curve_smoothed`` reaches 90% of
+  ``final_score`` (``T`` and ``reached_90pct = false`` if it never does);
+- ``trials_to_90pct_of_max``: the same against 90% of the smoothed curve's own maximum (the
+  paper's Figure 4 bars);
+- ``mean_over_trials`` / ``mean_first_250_trials``: mean items per test episode over all trials /
+  trials 1-250, with the standard deviation and a 95% CI half-width across repetitions;
+- ``hierarchy_trace``: fraction of the hierarchy's (alive) test steps at which each level / each
+  subtask held control (Algorithm 2's decision), over all trials and over the last 10%.
+
+Examples:
+    >>> trials_to_fraction(np.array([0.0, 1.0, 2.0, 2.0]))  # window 1, final 2.0
+    (3, True)
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+METHODS = ("averaging", "options", "interruption", "hierarchy")  # tested side by side, this order
+EXPERIMENT = "wargus-fig4"  # metrics.json's "experiment" (a results folder's kind)
+FINAL_FRACTION = 0.1  # "final" performance: the mean of the last 10% of trials
+
+
+def smoothing_window(trials: int) -> int:
+    """Moving-average window: ``max(1, trials // 20)`` (25 for the paper's 500 trials)."""
+    return max(1, int(trials) // 20)
+
+
+def moving_average(x: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average along the last axis (the first values average what exists)."""
+    x = np.asarray(x, dtype=float)
+    c = np.cumsum(x, axis=-1)
+    out = c.copy()
+    out[..., window:] = c[..., window:] - c[..., :-window]
+    n = np.minimum(np.arange(1, x.shape[-1] + 1), window)
+    return out / n
+
+
+def final_count(trials: int) -> int:
+    """Number of last trials whose mean is the "final" performance: 10%, at least one."""
+    return max(1, int(math.ceil(FINAL_FRACTION * trials)))
+
+
+def trials_to_fraction_of_max(curve: np.ndarray, fraction: float = 0.9) -> int:
+    """First trial (1-based) at which the smoothed ``curve`` reaches ``fraction`` of its own
+    maximum (the paper's Figure 4 bars: "90% to their maximum performance")."""
+    smooth = moving_average(np.asarray(curve, dtype=float), smoothing_window(np.size(curve)))
+    return int(np.nonzero(smooth >= fraction * smooth.max())[0][0]) + 1
+
+
+def mean_over_trials(items: np.ndarray, first: int | None = None) -> dict[str, float]:
+    """Mean items per test episode over trials ``1..first`` (all: ``None``) of ``items`` ``(R,
+    T)``: the mean, the standard deviation across repetitions and a 95% CI half-width
+    (normal approximation over repetitions)."""
+    per_rep = np.asarray(items, dtype=float)[:, :first].mean(1)  # (R,)
+    R = per_rep.size
+    std = float(per_rep.std(ddof=1)) if R > 1 else float("nan")
+    return {
+        "mean": float(per_rep.mean()),
+        "std": std,
+        "ci95": 1.959964 * std / math.sqrt(R) if R > 1 else float("nan"),
+        "trials": int(np.asarray(items)[:, :first].shape[1]),
+    }
+
+
+def trials_to_fraction(curve: np.ndarray, fraction: float = 0.9) -> tuple[int, bool]:
+    """First trial (1-based) at which the smoothed ``curve`` reaches ``fraction`` of its final
+    value (mean of the last 10% of the raw curve); ``(len(curve), False)`` if it never does."""
+    curve = np.asarray(curve, dtype=float)
+    final = curve[-final_count(curve.size) :].mean()
+    smooth = moving_average(curve, smoothing_window(curve.size))
+    hit = np.nonzero(smooth >= fraction * final)[0]
+    return (int(hit[0]) + 1, True) if hit.size else (int(curve.size), False)
+
+
+def summarise(
+    items: np.ndarray,  # (R, T, M) mean items per test episode
+    inter: np.ndarray,  # (R, T, M) interruptions per test episode
+    control: np.ndarray,  # (R, T, O) hierarchy steps per controlling subtask
+    option_names: Sequence[str],
+    option_depths: Sequence[int],
+    item_lost: np.ndarray | None = None,  # (R, T, M) item_lost events per test episode
+) -> dict[str, Any]:
+    """``metrics.json``'s content (definitions in the module docstring).
+
+    ``items`` ``(R, T, M)``: mean items per test episode per repetition, trial and method
+    (:data:`METHODS` order); ``inter`` ``(R, T, M)``: interruptions per test episode; ``control``
+    ``(R, T, O)``: the hierarchy's live test steps per controlling subtask (``option_names``, at
+    composition-tree depths ``option_depths``); ``item_lost`` ``(R, T, M)``: item-lost events per
+    test episode (optional).
+    """
+    R, T, M = items.shape
+    nf = final_count(T)
+    w = smoothing_window(T)
+    methods = {}
+    for m, name in enumerate(METHODS):
+        mean, std = items[:, :, m].mean(0), items[:, :, m].std(0)
+        t90, reached = trials_to_fraction(mean)
+        per_rep = [trials_to_fraction(items[r, :, m])[0] for r in range(R)]
+        methods[name] = {
+            "final_score": float(mean[-nf:].mean()),
+            "final_score_std": float(items[:, -nf:, m].mean(1).std()),
+            "trials_to_90pct": t90,
+            "reached_90pct": reached,
+            "trials_to_90pct_per_rep": per_rep,
+            "trials_to_90pct_std": float(np.std(per_rep)),
+            "trials_to_90pct_of_max": trials_to_fraction_of_max(mean),
+            "mean_over_trials": mean_over_trials(items[:, :, m]),
+            "mean_first_250_trials": mean_over_trials(items[:, :, m], 250),
+            "interruptions_per_episode": float(inter[:, :, m].mean()),
+            "curve_mean": mean.tolist(),
+            "curve_std": std.tolist(),
+            "curve_smoothed": moving_average(mean, w).tolist(),
+            "curve_per_rep": items[:, :, m].tolist(),
+        }
+        if item_lost is not None:
+            methods[name]["item_lost_per_episode"] = float(item_lost[:, :, m].mean())
+
+    def fractions(c: np.ndarray) -> dict[str, Any]:
+        total = max(float(c.sum()), 1.0)
+        per_option = {o: float(c[..., i].sum()) / total for i, o in enumerate(option_names)}
+        per_level = {
+            f"level_{d}": sum(v for v, dd in zip(per_option.values(), option_depths) if dd == d)
+            for d in sorted(set(option_depths))
+        }
+        return {"per_subtask": per_option, "per_level": per_level, "steps": int(c.sum())}
+
+    return {
+        "experiment": EXPERIMENT,
+        "methods": methods,
+        "smoothing_window": w,
+        "final_trials": nf,
+        "definitions": {
+            "score": "items collected per nominal test episode",
+            "final_score": f"mean over repetitions of the last {nf} trials (10%)",
+            "trials_to_90pct": f"first trial where the trailing {w}-trial moving average of the "
+            "repetition-mean curve reaches 90% of final_score",
+            "trials_to_90pct_of_max": f"first trial where the trailing {w}-trial moving average "
+            "of the repetition-mean curve reaches 90% of its own maximum (the paper's bars)",
+            "mean_over_trials": "mean items per test episode over all trials (std and 95% CI "
+            "across repetitions); mean_first_250_trials: the same over trials 1-250",
+            "hierarchy_trace": "fraction of the hierarchy's test steps each subtask (level 0: root "
+            "TG+FE, level 1: components TG, FE) held control",
+        },
+        "hierarchy_trace": {
+            "all_trials": fractions(control),
+            "last_10pct": fractions(control[:, -nf:]),
+        },
+    }
+
+
+__all__ = [
+    "EXPERIMENT",
+    "FINAL_FRACTION",
+    "METHODS",
+    "final_count",
+    "mean_over_trials",
+    "moving_average",
+    "smoothing_window",
+    "summarise",
+    "trials_to_fraction",
+    "trials_to_fraction_of_max",
+]
