@@ -72,41 +72,73 @@ class ControllerChains:
         elif heads is None:
             heads, subtasks = self.heads(), self.subtasks if subtasks is None else subtasks
         t = self.tabulate(heads, obs_encoding)
-        S = self.S
         if name == "averaging":
-            act = t[keys.ACTION_VALUE].argmax(-1).unsqueeze(-1)  # (S, 1)
-            one = torch.ones(S, 1, 1, dtype=torch.float64, device=self.device)
-            return {
-                "decision": one,
-                "action": act,
-                "next_state": torch.zeros(1, dtype=torch.int64, device=self.device),
-                "fires": torch.zeros(S, 1, dtype=torch.bool, device=self.device),
-            }
+            return self._averaging_chain(t)
+        if name in ("options", "interruption"):
+            return self._option_chain(t, heads, subtasks, interrupt=name == "interruption")
+        return self._hierarchy_chain(t, heads, hierarchy, tau)
+
+    def _averaging_chain(self, t: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The averaging policy (paper §3.1) as a one-state chain: greedy in ``action_value``."""
+        S = self.S
+        act = t[keys.ACTION_VALUE].argmax(-1).unsqueeze(-1)  # (S, 1)
+        one = torch.ones(S, 1, 1, dtype=torch.float64, device=self.device)
+        return {
+            "decision": one,
+            "action": act,
+            "next_state": torch.zeros(1, dtype=torch.int64, device=self.device),
+            "fires": torch.zeros(S, 1, dtype=torch.bool, device=self.device),
+        }
+
+    def _empty_option_chain(self, t: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """``(action (S, O), decision (S, O + 1, O), fires (S, O + 1), next_state (O,))``: greedy
+        option actions, an all-zero decision kernel and firing table, ``z' = n + 1``."""
+        S = self.S
         q_opt = t[keys.OPTION_ACTION_VALUE]  # (S, O, A)
         O = q_opt.shape[1]  # noqa: E741
         act = q_opt.argmax(-1)  # (S, O)
         decision = torch.zeros(S, O + 1, O, dtype=torch.float64, device=self.device)
         fires = torch.zeros(S, O + 1, dtype=torch.bool, device=self.device)
         next_state = torch.arange(1, O + 1, device=self.device)
-        if name in ("options", "interruption"):
-            q_mu = t[keys.OPTION_VALUE]  # (S, O)
-            mu = heads.mu_bar(q_mu).to(torch.float64)  # (S, O)
-            v = (heads.mu_bar(q_mu) * q_mu).sum(-1)  # (S,)
-            best = q_mu.argmax(-1)  # (S,) line 4
-            beta = torch.zeros(S, O, dtype=torch.bool, device=self.device)
-            if subtasks is not None:
-                beta = subtasks.termination(self._cells_td(torch.arange(S, device=self.device)))
-            for s in range(S):
-                for z in range(O + 1):
-                    if z == 0 or bool(beta[s, z - 1]):
-                        decision[s, z, best[s]] = 1.0
-                    elif name == "interruption" and bool(t[keys.MAX_VALUE][s, z - 1] < v[s]):
-                        decision[s, z] = mu[s]  # lines 6-8
-                        fires[s, z] = True
-                    else:
-                        decision[s, z, z - 1] = 1.0
-            return {"decision": decision, "action": act, "next_state": next_state, "fires": fires}
-        # hierarchy (Algorithm 2), literally, with greedy option policies
+        return act, decision, fires, next_state
+
+    def _option_chain(
+        self, t: dict[str, Tensor], heads: Heads, subtasks: Subtasks | None, interrupt: bool
+    ) -> dict[str, Tensor]:
+        """Options: the option greedy in ``option_value`` at the start and at termination
+        (Algorithm 1 line 4); with ``interrupt``, also Algorithm 1's interruption (lines 6-8)."""
+        S = self.S
+        act, decision, fires, next_state = self._empty_option_chain(t)
+        O = act.shape[1]  # noqa: E741
+        q_mu = t[keys.OPTION_VALUE]  # (S, O)
+        mu = heads.mu_bar(q_mu).to(torch.float64)  # (S, O)
+        v = (heads.mu_bar(q_mu) * q_mu).sum(-1)  # (S,)
+        best = q_mu.argmax(-1)  # (S,) line 4
+        beta = torch.zeros(S, O, dtype=torch.bool, device=self.device)
+        if subtasks is not None:
+            beta = subtasks.termination(self._cells_td(torch.arange(S, device=self.device)))
+        for s in range(S):
+            for z in range(O + 1):
+                if z == 0 or bool(beta[s, z - 1]):
+                    decision[s, z, best[s]] = 1.0
+                elif interrupt and bool(t[keys.MAX_VALUE][s, z - 1] < v[s]):
+                    decision[s, z] = mu[s]  # lines 6-8
+                    fires[s, z] = True
+                else:
+                    decision[s, z, z - 1] = 1.0
+        return {"decision": decision, "action": act, "next_state": next_state, "fires": fires}
+
+    def _hierarchy_chain(
+        self,
+        t: dict[str, Tensor],
+        heads: Heads,
+        hierarchy: Hierarchy | None,
+        tau: float | None,
+    ) -> dict[str, Tensor]:
+        """Algorithm 2 (hierarchical search), literally, with greedy option policies."""
+        S = self.S
+        act, decision, fires, next_state = self._empty_option_chain(t)
+        O = act.shape[1]  # noqa: E741
         if hierarchy is None or tau is None:
             raise ValueError("the hierarchy controller needs a hierarchy and tau")
         names = list(heads.option_names)
