@@ -72,12 +72,19 @@ Modules:
 - :mod:`~taskvar_torch.oracle.chains`: controllers as Markov chains (Algorithms 1-2), exact
   returns, firing counts and discounted chain values;
 - :mod:`~taskvar_torch.oracle.replay`: what the learnt heads converge to (fixed-instance
-  objective, first-visit replay MDP and its Q-learning fixed point).
+  objective, first-visit replay MDP and its Q-learning fixed point);
+- :mod:`~taskvar_torch.oracle.learnt`: learnt heads and controllers measured exactly (windy
+  Figure 2: per-episode exact returns, Theorem 1's values at each firing, returns per start).
 """
 
 from __future__ import annotations
 
-from taskvar_torch.oracle.chains import CONTROLLER_NAMES, ControllerChains
+from taskvar_torch.oracle.chains import (
+    CONTROLLER_NAMES,
+    ControllerChains,
+    discounted_chain_values,
+)
+from taskvar_torch.oracle.learnt import exact_returns, firing_values, learnt_vs_oracle_by_start
 from taskvar_torch.oracle.mdp import TIE_ATOL, gauss_legendre, greedy, snap_ties, solve_mdp
 from taskvar_torch.oracle.replay import ReplayReference
 from taskvar_torch.oracle.tables import TableLookup, table_heads
@@ -90,8 +97,12 @@ __all__ = [
     "ReplayReference",
     "TableLookup",
     "WindyOracle",
+    "discounted_chain_values",
+    "exact_returns",
+    "firing_values",
     "gauss_legendre",
     "greedy",
+    "learnt_vs_oracle_by_start",
     "snap_ties",
     "solve_mdp",
     "table_heads",

@@ -5,7 +5,8 @@ Algorithms 1-2; docs/oracle.md).
 tabulates any :class:`~taskvar_torch.heads.bundle.Heads` bundle over the cells, builds the
 controller's decision kernel by an implementation of Algorithms 1 and 2 independent of
 ``controllers/``, and gives exact returns and firing counts by backward induction over steps-to-go
-(see "Controllers" in the :mod:`taskvar_torch.oracle` docstring).
+(see "Controllers" in the :mod:`taskvar_torch.oracle` docstring). :func:`discounted_chain_values`
+gives a chain's infinite-horizon discounted values (one linear solve).
 """
 
 from __future__ import annotations
@@ -224,3 +225,23 @@ class ControllerChains:
             if count_fires:
                 V = V + fz
         return V
+
+
+def discounted_chain_values(
+    P: torch.Tensor, R: torch.Tensor, chain: dict[str, torch.Tensor], gamma: float
+) -> torch.Tensor:
+    """Discounted values ``V (B, S, Z)`` of a controller chain (``WindyOracle.controller_chain``).
+
+    ``V(s, z) = sum_n D[s,z,n] (R(s, a_n) + gamma sum_s' P(s, a_n, s') V(s', z'_n))``, solved as a
+    linear system; ``z = 0`` is an empty carried state, ``z = o + 1`` option ``o`` running.
+    """
+    D, act, nz = chain["decision"], chain["action"], chain["next_state"]  # (S,Z,N) (S,N) (N,)
+    B, S = P.shape[0], P.shape[1]
+    N, Z = act.shape[1], D.shape[1]
+    Pn = P.gather(2, act.view(1, S, N, 1).expand(B, S, N, S))  # (B, S, N, S')
+    rn = R.gather(2, act.unsqueeze(0).expand(B, S, N))  # (B, S, N)
+    r = torch.einsum("szn,bsn->bsz", D, rn).reshape(B, S * Z)
+    to_z = torch.nn.functional.one_hot(nz, Z).to(P.dtype)  # (N, Z')
+    M = torch.einsum("szn,bsnt,nw->bsztw", D, Pn, to_z).reshape(B, S * Z, S * Z)
+    eye = torch.eye(S * Z, dtype=P.dtype)
+    return torch.linalg.solve(eye - gamma * M, r.unsqueeze(-1)).reshape(B, S, Z)
