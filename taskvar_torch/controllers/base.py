@@ -18,7 +18,7 @@ Three implementations of each decision rule, tested against each other:
   layout enter as permuted views (no copy); heads that emit option-first need no permute.
 - **scalar path** (:meth:`Controller.act_one`) for one environment in real time: one fused head
   forward (:class:`FusedHeads`), one host transfer, then the rule on Python floats.
-- the oracle's tabular chain (``oracle.py``) is a third, independent implementation.
+- the oracle's tabular chain (``oracle/chains.py``) is a third, independent implementation.
 """
 
 from __future__ import annotations

@@ -57,7 +57,13 @@ from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sort
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import FAMILIES
 from taskvar_torch.heads.bundle import Heads
-from taskvar_torch.oracle import WindyOracle
+from taskvar_torch.oracle import (  # the exact maths; also importable from this module
+    WindyOracle,
+    discounted_chain_values,  # noqa: F401
+    exact_returns,
+    firing_values,
+    learnt_vs_oracle_by_start,
+)
 from taskvar_torch.train import (
     check_device,
     check_output_folder,
@@ -200,51 +206,6 @@ def make_oracle(cfg: Config):
     return WindyOracle(layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon)
 
 
-def exact_returns(
-    oracle,
-    ctrl: Controller,
-    cfg: Config,
-    p: np.ndarray,
-    direction: np.ndarray,
-    start: np.ndarray,
-    chunk: int = 2000,
-) -> np.ndarray:
-    """Exact expected horizon-step return of ``ctrl`` (learnt heads) per (instance, start) episode."""
-    out = []
-    for lo in range(0, len(p), chunk):
-        sl = slice(lo, lo + chunk)
-        V = oracle.controller_return(  # (B, S)
-            ctrl,
-            torch.as_tensor(p[sl], dtype=torch.float64),
-            torch.as_tensor(direction[sl], dtype=torch.int64),
-            start=None,
-            obs_encoding=cfg.env.obs_encoding,
-        )
-        idx = torch.as_tensor(start[sl], dtype=torch.int64).unsqueeze(-1)
-        out.append(V.gather(1, idx).squeeze(-1).numpy())
-    return np.concatenate(out) if out else np.zeros(0)
-
-
-def discounted_chain_values(
-    P: torch.Tensor, R: torch.Tensor, chain: dict[str, torch.Tensor], gamma: float
-) -> torch.Tensor:
-    """Discounted values ``V (B, S, Z)`` of a controller chain (``WindyOracle.controller_chain``).
-
-    ``V(s, z) = sum_n D[s,z,n] (R(s, a_n) + gamma sum_s' P(s, a_n, s') V(s', z'_n))``, solved as a
-    linear system; ``z = 0`` is an empty carried state, ``z = o + 1`` option ``o`` running.
-    """
-    D, act, nz = chain["decision"], chain["action"], chain["next_state"]  # (S,Z,N) (S,N) (N,)
-    B, S = P.shape[0], P.shape[1]
-    N, Z = act.shape[1], D.shape[1]
-    Pn = P.gather(2, act.view(1, S, N, 1).expand(B, S, N, S))  # (B, S, N, S')
-    rn = R.gather(2, act.unsqueeze(0).expand(B, S, N))  # (B, S, N)
-    r = torch.einsum("szn,bsn->bsz", D, rn).reshape(B, S * Z)
-    to_z = torch.nn.functional.one_hot(nz, Z).to(P.dtype)  # (N, Z')
-    M = torch.einsum("szn,bsnt,nw->bsztw", D, Pn, to_z).reshape(B, S * Z, S * Z)
-    eye = torch.eye(S * Z, dtype=P.dtype)
-    return torch.linalg.solve(eye - gamma * M, r.unsqueeze(-1)).reshape(B, S, Z)
-
-
 def theorem1_check(
     oracle,
     options_ctrl: Controller,
@@ -261,36 +222,18 @@ def theorem1_check(
     proof's condition ``Q^{m,mu_bar}(s', o) <= V^{m,mu_bar}(s')``; and the max-value assumption
     ``Q^{m,mu_bar}(s', o) <= Q_hat(s', o)``. Outcomes per episode group (premise held at every
     firing / failed at some): interruption - options (exact, what the theorem bounds) and
-    interruption - averaging (sampled, paired).
+    interruption - averaging (sampled, paired). The values come from
+    :func:`~taskvar_torch.oracle.learnt.firing_values`.
     """
-    ep, cell, opt = rolls["fire_episode"], rolls["fire_cell"], rolls["fire_option"]
+    ep = rolls["fire_episode"]
     if ep.size == 0:
         return {"firings": 0, "episodes_with_firing": 0}
-    chain = oracle.controller_chain(options_ctrl, obs_encoding=cfg.env.obs_encoding)
-    tab = oracle.tabulate(options_ctrl.heads, cfg.env.obs_encoding)
-    heads = options_ctrl.heads
-    q_mu = tab[keys.OPTION_VALUE].double()  # (S, O)
-    v_learnt = (heads.mu_bar(q_mu) * q_mu).sum(-1).numpy()  # (S,) V^{mu_bar}
-    q_hat = tab[keys.MAX_VALUE].double().numpy()  # (S, O)
+    vals = firing_values(oracle, options_ctrl, cfg.env.obs_encoding, rolls, chunk)
+    v_m, q_m = vals["v_m"], vals["q_m"]
     episodes = np.unique(ep)
-    v_m = np.zeros(ep.size)
-    q_m = np.zeros(ep.size)
-    for lo in range(0, episodes.size, chunk):
-        eps = episodes[lo : lo + chunk]
-        P, R = windy.transition_tensors(
-            oracle.model,
-            torch.as_tensor(rolls["p"][eps], dtype=torch.float64),
-            torch.as_tensor(rolls["direction"][eps], dtype=torch.int64),
-            dtype=torch.float64,
-        )
-        V = discounted_chain_values(P, R, chain, oracle.gamma).numpy()  # (b, S, Z)
-        sel = np.isin(ep, eps)
-        row = np.searchsorted(eps, ep[sel])
-        v_m[sel] = V[row, cell[sel], 0]
-        q_m[sel] = V[row, cell[sel], opt[sel] + 1]
-    premise = v_learnt[cell] <= v_m + 1e-9
+    premise = vals["v_mu_bar"] <= v_m + 1e-9
     proof_condition = q_m <= v_m + 1e-9
-    max_assumption = q_m <= q_hat[cell, opt] + 1e-9
+    max_assumption = q_m <= vals["q_hat"] + 1e-9
     failed = np.zeros(rolls["return"].size, dtype=bool)
     np.logical_or.at(failed, ep, ~premise)
     fired = np.zeros_like(failed)
@@ -627,24 +570,6 @@ def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
 
 # --------------------------------------------------------------------------------------------
 # table and plots
-
-
-def learnt_vs_oracle_by_start(heads: Any, oracle: Any) -> list[dict[str, Any]]:
-    """Per start cell: exact expected return (training distribution) of the mean-MDP optimal
-    averaging policy (paper §3.1) and of the learnt averaging head's greedy policy."""
-    with torch.no_grad():
-        q = heads(oracle.observation_td().to(oracle.device))[keys.ACTION_VALUE]  # (S, A)
-    learnt = oracle.expected_return(q.argmax(-1), None, starts=None)  # (S,)
-    optimum = oracle.expected_return(oracle.averaging_policy(), None, starts=None)  # (S,)
-    width = oracle.layout.width
-    return [
-        {
-            "start": list(divmod(c, width)),
-            "oracle_optimum": float(optimum[c]),
-            "learnt": float(learnt[c]),
-        }
-        for c in oracle.start_cells.tolist()
-    ]
 
 
 def format_start_table(rows: list[dict[str, Any]]) -> str:

@@ -12,7 +12,7 @@ max_value      Q_hat(s, o)  (§3.3, Def. 1)    max_value       (B, O)
 robustness     R(o, s, a)   (§3.4.3)          robustness      (B, O, A)
 =============  =============================  ==============  =============================
 
-Trained networks (``heads/``) and the exact oracle's tables (``oracle.py``) both build a
+Trained networks (``heads/``) and the exact oracle's tables (``oracle/``) both build a
 :class:`Heads`, so the same controller code runs on either.
 """
 
