@@ -14,6 +14,7 @@ optimizers      ``{name: optimizer.state_dict()}``
 counters        step counters, e.g. ``{"frames": 1000, "updates": 250}``
 rng             :func:`rng_state` (torch CPU, CUDA, numpy, python and named generators)
 replay          optional replay-buffer contents as plain tensors
+heads_spec      the heads' constructor arguments (``factory.HeadSpec``): loading needs no env
 ==============  =============================================================================
 
 Writes go to a temporary file in the destination folder, are flushed and fsynced, then renamed over
