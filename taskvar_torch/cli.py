@@ -26,6 +26,8 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from taskvar_torch.checkpoint import CheckpointError
+from taskvar_torch.experiments.registry import EXPERIMENTS as _EXPERIMENTS
+from taskvar_torch.experiments.registry import experiment, experiment_of_folder
 
 # Each subcommand imports the machinery it runs inside its own function: the experiment modules
 # share function names (default_config_path, plot_results, scale), and `taskvar --help` or a
@@ -239,7 +241,7 @@ def _test_name(name: str) -> str:
     return name
 
 
-EXPERIMENTS = ("windy-fig2", "wargus-fig4", "scale")
+EXPERIMENTS = tuple(_EXPERIMENTS)  # the experiment registry's names (experiments/registry.py)
 
 
 def _experiment_arguments(p: argparse.ArgumentParser) -> None:
@@ -280,7 +282,7 @@ def _experiment_run(args: argparse.Namespace) -> int:
         return _scale_run(args)
     import torch
 
-    from taskvar_torch.experiments.windy_fig2 import default_config_path, windy_fig2
+    from taskvar_torch.experiments.windy_fig2 import windy_fig2
 
     torch.set_num_threads(1)  # small MLPs: more threads only contend on a shared CPU (see train)
 
@@ -292,7 +294,8 @@ def _experiment_run(args: argparse.Namespace) -> int:
                 f"config file {config_path!r} cannot apply with --checkpoint: the bundle's own "
                 "config is used; pass experiment.*, eval.* or device overrides instead"
             )
-    cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)
+    default = experiment(args.name).default_config_path()
+    cfg = load_config(config_path or default, overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     windy_fig2(
         cfg,
@@ -327,14 +330,15 @@ def _wargus_fig4_run(args: argparse.Namespace) -> int:
     import torch
 
     from taskvar_torch.config import load_config
-    from taskvar_torch.experiments.wargus_fig4 import default_config_path, wargus_fig4
+    from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
 
     if args.checkpoint is not None:
         raise ValueError(
             "wargus-fig4 learns from scratch (lifelong protocol); --checkpoint is not used"
         )
     config_path, overrides = _split_config_and_overrides(args.items)
-    cfg = load_config(config_path or default_config_path(), overrides, quick=args.quick)
+    default = experiment(args.name).default_config_path()
+    cfg = load_config(config_path or default, overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     # small batches: one intra-op thread per process; 2 threads under contention ran 10x slower
     torch.set_num_threads(1)
@@ -440,17 +444,7 @@ def _plot_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _plot_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.experiments import scale
-    from taskvar_torch.experiments.wargus_fig4 import is_results_folder
-
-    if scale.is_results_folder(args.results):
-        from taskvar_torch.experiments.scale import plot_results
-    elif is_results_folder(args.results):
-        from taskvar_torch.experiments.wargus_fig4 import plot_results
-    else:
-        from taskvar_torch.experiments.windy_fig2 import plot_results
-
-    for path in plot_results(args.results):
+    for path in experiment_of_folder(args.results).plot_results(args.results):
         print(path)
     return 0
 

@@ -41,9 +41,8 @@ import torch
 from tqdm.auto import tqdm
 
 from taskvar_torch.config import Config, load_config
+from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
-from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
-from taskvar_torch.experiments.windy_fig2 import windy_fig2
 from taskvar_torch.families import family
 from taskvar_torch.train import TrainingDiverged
 
@@ -166,14 +165,9 @@ def run_point(
     t0 = time.perf_counter()
     with open(out / POINT_LOG, "w") as log, contextlib.redirect_stdout(log):
         try:
-            if family(cfg).experiment == "windy-fig2":
-                metrics = windy_fig2(
-                    cfg, out, progress=False, quick=quick, plots=plots, overwrite=overwrite
-                )
-            else:
-                metrics = wargus_fig4(
-                    cfg, out, workers=1, progress=False, plots=plots, overwrite=overwrite
-                )
+            metrics = experiment(family(cfg).experiment).call(
+                cfg, out, workers=1, progress=False, quick=quick, plots=plots, overwrite=overwrite
+            )
         except TrainingDiverged as e:
             print(f"error: {e}")
             return {"error": f"TrainingDiverged: {e}", "seconds": time.perf_counter() - t0}
