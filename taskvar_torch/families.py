@@ -22,8 +22,8 @@ from typing import TYPE_CHECKING, Any
 from torchrl.envs import EnvBase
 
 from taskvar_torch.envs import windy
-from taskvar_torch.envs.instances import WindyInstances
-from taskvar_torch.envs.wargus import WargusConfig, WargusInstances
+from taskvar_torch.envs.instances import WindyInstances, windy_instances
+from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, wargus_instances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.envs.windy_env import OBS_ENCODINGS, WindyGridEnv
 from taskvar_torch.heads.networks import PatchLayout
@@ -40,6 +40,22 @@ GENERATED = "generated"
 _GENERATOR_KEYS = ("height", "width", "num_exits", "wall_col", "wind_cells_per_exit")
 EXACT_ORACLE_CELLS = 400
 """Windy layouts up to this many cells get the exact oracle in reports (docs/oracle.md)."""
+
+
+@dataclass(frozen=True)
+class TestDistribution:
+    """A named test distribution of a family (``taskvar eval --test NAME``): which instances its
+    episodes draw and which env keys it changes from the bundle's training config.
+
+    Attributes:
+        description: what it shifts, in one line (docs/evaluation.md lists them all).
+        instances: a named instance distribution or the fields of one (a dict).
+        overrides: config overrides of ``env`` keys (``key=value``), validated like a config.
+    """
+
+    description: str
+    instances: Any = "train"
+    overrides: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -64,6 +80,10 @@ class Family:
         option_inputs: the subtasks define per-option input features
             (``heads.option_inputs=subtask``).
         exact_oracle: small instances have exact values (``oracle/``).
+        tests: the named test distributions (``taskvar eval --test``), the first the default.
+        instance_fields: an instance distribution (name, dict or object) -> its fields as a dict,
+            for ``--shift env.instances.FIELD=...``; ``None``: the instances cannot be shifted.
+        make_instances: fields -> an instance distribution (raises a one-line ``ValueError``).
     """
 
     name: str
@@ -80,6 +100,9 @@ class Family:
     conv_patch: Callable[[Config], PatchLayout] | None = None
     option_inputs: bool = False
     exact_oracle: bool = False
+    tests: dict[str, TestDistribution] = dataclasses.field(default_factory=dict)
+    instance_fields: Callable[[Any], dict[str, Any]] | None = None
+    make_instances: Callable[[dict[str, Any]], Any] | None = None
 
     def make_env(
         self,
@@ -212,6 +235,48 @@ def _windy_patch(cfg: Config) -> PatchLayout:
     return PatchLayout(coords_dim=2, channels=3, size=2 * cfg.env.patch_radius + 1)
 
 
+def _windy_fields(spec: Any) -> dict[str, Any]:
+    inst = windy_instances(spec)
+    return {
+        "p_low": inst.p_low,
+        "p_high": inst.p_high,
+        "directions": list(inst.directions),
+        "points": None if inst.points is None else [list(p) for p in inst.points],
+    }
+
+
+def _windy_make_instances(fields: dict[str, Any]) -> WindyInstances:
+    fields = dict(fields)
+    if "p" in fields:  # one wind strength: p_low = p_high = p
+        p = fields.pop("p")
+        fields.update(p_low=p, p_high=p)
+    if isinstance(fields.get("directions"), str):
+        fields["directions"] = tuple(d for d in fields["directions"].split("+") if d)
+    return windy_instances(fields)
+
+
+WINDY_TESTS = {
+    "train": TestDistribution("the training distribution: p ~ U[0, 1], wind north or south"),
+    "south": TestDistribution("only southerly winds (push south), p ~ U[0, 1]", "south"),
+    "north": TestDistribution("only northerly winds (push north), p ~ U[0, 1]", "north"),
+    "calm": TestDistribution(
+        "calm winds: p ~ U[0, 0.3], north or south", {"p_low": 0.0, "p_high": 0.3}
+    ),
+    "stormy": TestDistribution(
+        "stormy winds: p ~ U[0.7, 1], north or south", {"p_low": 0.7, "p_high": 1.0}
+    ),
+    "middle_exits": TestDistribution(
+        "another 5x5 layout: the exits in the middle rows (training winds)",
+        overrides=("env.layout=middle_exits",),
+    ),
+    "whole_column_windy": TestDistribution(
+        "another 5x5 layout: wind in the whole column before the wall (training winds)",
+        overrides=("env.layout=whole_column_windy",),
+    ),
+}
+"""Windy test distributions (docs/evaluation.md); the layouts need a bundle of the same size."""
+
+
 # --------------------------------------------------------------------------------------------
 # wargus
 
@@ -224,6 +289,50 @@ def _wargus_env_kwargs(cfg: Config) -> dict[str, Any]:
         "seed": cfg.seed,
         "device": cfg.device,
     }
+
+
+def _wargus_fields(spec: Any) -> dict[str, Any]:
+    inst = wargus_instances(spec)
+    return {"seeds": None if inst.seeds is None else list(inst.seeds), "order": inst.order}
+
+
+def _wargus_make_instances(fields: dict[str, Any]) -> WargusInstances:
+    fields = dict(fields)
+    if isinstance(fields.get("seeds"), (int, str)):
+        fields["seeds"] = [int(s) for s in str(fields["seeds"]).split("+") if s]
+    return wargus_instances(fields)
+
+
+WARGUS_TESTS = {
+    "nominal": TestDistribution(
+        "the nominal test instances (seeds 0-4: Figure 4's test episodes)", "nominal"
+    ),
+    "train": TestDistribution("fresh instances of the training distribution", "train"),
+    "fast_patrol": TestDistribution(
+        "a faster patrol: moves every step (patrol_speed 1.0; paper 0.8)",
+        overrides=("env.wargus.patrol_speed=1.0",),
+    ),
+    "more_patrols": TestDistribution(
+        "two patrols instead of one", overrides=("env.wargus.num_patrols=2",)
+    ),
+    "long_sight": TestDistribution(
+        "longer sight: objects seen within 12 cells (paper 8)", overrides=("env.wargus.sight=12",)
+    ),
+    "short_sight": TestDistribution(
+        "shorter sight: objects seen within 6 cells (paper 8)", overrides=("env.wargus.sight=6",)
+    ),
+    "long_range": TestDistribution(
+        "longer shooting range: 7 cells (paper 5)", overrides=("env.wargus.shoot_range=7",)
+    ),
+    "short_range": TestDistribution(
+        "shorter shooting range: 3 cells (paper 5)", overrides=("env.wargus.shoot_range=3",)
+    ),
+    "large_grid": TestDistribution(
+        "a 64x64 grid (paper 32x32; the observation is size-independent)",
+        overrides=("env.wargus.size=64",),
+    ),
+}
+"""Wargus test distributions (docs/evaluation.md), fresh instances unless stated."""
 
 
 def _validate_wargus(cfg: Config) -> None:
@@ -253,6 +362,9 @@ FAMILIES: dict[str, Family] = {
         instance_dim=WINDY_INSTANCE_DIM,
         conv_patch=_windy_patch,
         exact_oracle=True,
+        tests=WINDY_TESTS,
+        instance_fields=_windy_fields,
+        make_instances=_windy_make_instances,
     ),
     "wargus": Family(
         name="wargus",
@@ -266,6 +378,9 @@ FAMILIES: dict[str, Family] = {
         cells=lambda cfg: int(cfg.env.wargus.size) ** 2,
         observation=lambda cfg: "wargus",
         option_inputs=True,
+        tests=WARGUS_TESTS,
+        instance_fields=_wargus_fields,
+        make_instances=_wargus_make_instances,
     ),
 }
 """Every family, by its config name."""
@@ -279,4 +394,12 @@ def family(cfg_or_name: Config | str) -> Family:
     return FAMILIES[name]
 
 
-__all__ = ["FAMILIES", "GENERATED", "Family", "family", "windy_env_kwargs", "windy_layout"]
+__all__ = [
+    "FAMILIES",
+    "GENERATED",
+    "Family",
+    "TestDistribution",
+    "family",
+    "windy_env_kwargs",
+    "windy_layout",
+]

@@ -1,0 +1,336 @@
+"""``taskvar eval``: every method of a trained bundle, side by side, on test distributions and
+shifts of either family (docs/evaluation.md).
+
+:func:`eval_bundle` loads a bundle (``taskvar train``'s ``final.pt``, an experiment repetition's, or
+an exported ``heads.pt``), builds each method's controller with the bundle's settings
+(``factory.make_method_controller``; the hierarchy's thresholds calibrated on the bundle's
+*training* distribution, never on the test one) and plays the same episodes with every method:
+sub-environment ``i`` of every method's env has the same seed and global index, so it draws the
+same instance, start and random streams (paired episodes, ``rng.py``). Each test point
+(``experiments/shift.py``) gives mean return with a 95% CI, interruptions per episode and the
+control split per option; on small windy layouts also the exact expected return of each learnt
+controller given each episode's instance and start (``oracle/``), beside the sampled one.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torchrl.envs import TransformedEnv
+from tqdm.auto import tqdm
+
+from taskvar_torch import keys
+from taskvar_torch.config import METHODS, Config
+from taskvar_torch.controllers import Controller
+from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
+from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.shift import Shift, TestPoint, parse_shift, test_points
+from taskvar_torch.factory import (
+    calibrate,
+    load_heads,
+    make_env,
+    make_method_controller,
+    make_subtasks,
+    training_states,
+)
+from taskvar_torch.families import EXACT_ORACLE_CELLS, family, windy_layout
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.oracle import WindyOracle, exact_returns
+from taskvar_torch.subtasks.base import Subtasks
+
+METRICS_NAME = "metrics.json"
+CSV_NAME = "episodes.csv"
+PNG_NAME = "eval.png"
+ORDER = ("averaging", "options", "interruption", "hierarchy")  # the paper's order
+
+
+def parse_methods(spec: str, subtasks: Subtasks, heads: Heads) -> list[str]:
+    """``all``, one method or a comma list -> the methods, in the paper's order. ``all`` is every
+    method the bundle supports (the hierarchy needs a composition hierarchy and robustness
+    critics); naming an unsupported or unknown one is a one-line error."""
+    can_compose = subtasks.hierarchy is not None and heads.has("robustness")
+    if spec == "all":
+        return [m for m in ORDER if m != "hierarchy" or can_compose]
+    names = [m.strip() for m in spec.split(",") if m.strip()]
+    for m in names:
+        if m not in METHODS:
+            raise ValueError(f"--method must be 'all' or among {list(ORDER)}, got {m!r}")
+    if "hierarchy" in names and not can_compose:
+        raise ValueError(
+            "method 'hierarchy' needs robustness heads and a composition hierarchy, which this "
+            "bundle does not have; use averaging, options or interruption"
+        )
+    return [m for m in ORDER if m in names]
+
+
+def _check_fits(point: TestPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:
+    """The shifted env must keep the bundle's observation, actions and options."""
+    obs = int(env.observation_spec[keys.OBSERVATION].shape[-1])
+    spec = getattr(heads, "spec", None)
+    want = None if spec is None else (spec.obs_dim, spec.num_actions)
+    got = (obs, int(env.action_spec.space.n))
+    where = point.label or "the test distribution"
+    if want is not None and got != want:
+        raise ValueError(
+            f"{where} gives observations of {got[0]} values and {got[1]} actions; the bundle "
+            f"was trained on {want[0]} and {want[1]}"
+        )
+    if tuple(subtasks.names) != tuple(heads.option_names):
+        raise ValueError(
+            f"{where} has options {list(subtasks.names)}; the bundle's are "
+            f"{list(heads.option_names)}"
+        )
+
+
+def _exact_oracle(cfg: Config, point: TestPoint) -> WindyOracle | None:
+    """The exact oracle of a test point, where the family has one and the layout is small."""
+    if not family(cfg).exact_oracle or point.cfg.env.obs_encoding != "onehot":
+        return None
+    layout = windy_layout(point.cfg.env)
+    if layout.num_cells > EXACT_ORACLE_CELLS:
+        return None
+    return WindyOracle(layout, gamma=cfg.train.gamma, horizon=point.cfg.env.horizon)
+
+
+def play(
+    ctrl: Controller,
+    point: TestPoint,
+    episodes: int,
+    seed: int,
+    batch_size: int,
+    noise_seed: int | None = None,
+    progress: Any = None,
+) -> dict[str, np.ndarray]:
+    """Play ``episodes`` episodes (global indices ``0..episodes-1``) of ``point`` with ``ctrl``;
+    per-episode ``return``, ``length``, ``interruptions``, the instance fields and, for option
+    controllers, ``steps_<o>`` (steps option ``o`` held control)."""
+    parts: dict[str, list[np.ndarray]] = {}
+    O = len(ctrl.heads.option_names)  # noqa: E741
+    trace = (keys.OPTION,) if ctrl.name != "averaging" else ()
+    for lo in range(0, int(episodes), batch_size):
+        n = min(batch_size, int(episodes) - lo)
+        base = make_env(
+            point.cfg,
+            n,
+            seed=seed,
+            index_offset=lo,
+            instances=point.instances,
+            noise_seed=noise_seed,
+            validate_actions=False,
+        )
+        out = run_episodes(
+            TransformedEnv(base, ctrl.primer()), ctrl, max_steps=int(base.horizon), trace_keys=trace
+        )
+        got = {k: out[k] for k in ("return", "length", "interruptions")}
+        for k, v in out[keys.INSTANCE].items():
+            if v.dim() == 1:  # scalar instance fields (windy p, direction; Wargus seed)
+                got[f"instance_{k}"] = v
+        if "start" in out.keys():
+            got["start"] = out["start"]
+        if trace:
+            tr = out["trace"]
+            opt = torch.where(tr["alive"], tr[keys.OPTION], torch.full_like(tr[keys.OPTION], -1))
+            for o in range(O):
+                got[f"steps_{o}"] = (opt == o).sum(-1)
+        for k, v in got.items():
+            parts.setdefault(k, []).append(v.detach().cpu().numpy())
+        if progress is not None:
+            progress.update(n)
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+def summarise(r: dict[str, np.ndarray], names: Sequence[str], method: str) -> dict[str, Any]:
+    """Mean return with its 95% CI, mean length, interruptions and control split of one method."""
+    mean, ci = mean_ci95(torch.as_tensor(r["return"], dtype=torch.float64))
+    out: dict[str, Any] = {
+        "mean_return": float(np.mean(r["return"], dtype=np.float64)),
+        "mean_return_ci95": ci,
+        "mean_length": float(np.mean(r["length"], dtype=np.float64)),
+    }
+    if method != "averaging":
+        out["interruptions_per_episode"] = float(np.mean(r["interruptions"], dtype=np.float64))
+        steps = np.array([r[f"steps_{o}"].sum() for o in range(len(names))], dtype=np.float64)
+        total = steps.sum()
+        out["control"] = {n: float(s / total) if total else 0.0 for n, s in zip(names, steps)}
+    return out
+
+
+def eval_bundle(
+    checkpoint: str | os.PathLike,
+    method: str = "all",
+    test: str | None = None,
+    shifts: Sequence[str | Shift] = (),
+    episodes: int = 1000,
+    seed: int | None = None,
+    noise_seed: int | None = None,
+    batch_size: int | None = None,
+    out_dir: str | os.PathLike | None = None,
+    progress: bool = True,
+    plots: bool = True,
+) -> dict[str, Any]:
+    """Evaluate the bundle at ``checkpoint`` with ``method`` (``all``, one, or a comma list) on
+    the named test distribution ``test`` (``None``: the family's first) with ``shifts``
+    (``KEY=V`` or ``KEY=V1,V2,..``: a shift curve); no retraining. ``seed`` defaults to the bundle's
+    ``seed + 1`` (the first test run of the experiments). Writes ``metrics.json``,
+    ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given; returns the metrics."""
+    if int(episodes) < 1:
+        raise ValueError(f"--episodes must be >= 1, got {episodes}")
+    shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
+    heads, cfg = load_heads(checkpoint)
+    fam = family(cfg)
+    points = test_points(cfg, test, shifts)  # every input error before any episode is played
+    test_name = test if test is not None else next(iter(fam.tests))
+    train_subtasks = make_subtasks(cfg, make_env(cfg, 1))
+    methods = parse_methods(method, train_subtasks, heads)
+    seed = int(cfg.seed) + 1 if seed is None else int(seed)
+    bs = int(batch_size or cfg.eval.batch_size)
+    calibration = None  # the hierarchy's thresholds: on the bundle's *training* distribution
+    if "hierarchy" in methods and cfg.train.robustness_threshold == "calibrated":
+        calibration = calibrate(cfg, heads, train_subtasks, training_states(cfg, heads))
+    bar = tqdm(total=len(points) * len(methods) * int(episodes), disable=not progress, desc="eval")
+    rows: list[dict[str, Any]] = []
+    results = []
+    for point in points:
+        probe = make_env(point.cfg, 1, instances=point.instances)
+        subtasks = make_subtasks(point.cfg, probe)
+        _check_fits(point, heads, subtasks, probe)
+        oracle = _exact_oracle(cfg, point)
+        per_method = {}
+        for m in methods:
+            ctrl = make_method_controller(point.cfg, m, heads, subtasks, calibration=calibration)
+            r = play(ctrl, point, int(episodes), seed, bs, noise_seed, bar)
+            per_method[m] = summarise(r, heads.option_names, m)
+            if oracle is not None:
+                exact = exact_returns(
+                    oracle, ctrl, point.cfg, r["instance_p"], r["instance_direction"], r["start"]
+                )
+                per_method[m]["exact_mean_return"] = float(np.mean(exact, dtype=np.float64))
+                r["exact_return"] = exact
+            rows += _csv_rows(point, m, r)
+        results.append({"shift": point.label, "value": point.value, "methods": per_method})
+    bar.close()
+    metrics = _metrics(checkpoint, cfg, test_name, shifts, methods, seed, noise_seed, episodes)
+    metrics["points"] = results
+    if len(points) == 1 and len(methods) == 1:  # the keys of a one-method evaluation
+        metrics.update({"method": methods[0], **results[0]["methods"][methods[0]]})
+    if out_dir is not None:
+        _write(Path(out_dir), metrics, rows, plots)
+    return metrics
+
+
+def _metrics(checkpoint, cfg, test, shifts, methods, seed, noise_seed, episodes) -> dict[str, Any]:
+    return {
+        "experiment": "eval",
+        "checkpoint": str(checkpoint),
+        "family": cfg.family,
+        "test": test,
+        "test_description": family(cfg).tests[test].description,
+        "shifts": [f"{s.key}={','.join(s.values)}" for s in shifts],
+        "method": ",".join(methods),
+        "methods": list(methods),
+        "seed": seed,
+        "noise_seed": noise_seed,
+        "episodes": int(episodes),
+    }
+
+
+CSV_FIELDS = ("shift", "method", "episode", "return", "length", "interruptions")
+
+
+def _csv_rows(point: TestPoint, method: str, r: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+    extra = [k for k in r if k.startswith("instance_") or k in ("start", "exact_return")]
+    return [
+        {
+            "shift": point.label,
+            "method": method,
+            "episode": i,
+            "return": float(r["return"][i]),
+            "length": int(r["length"][i]),
+            "interruptions": int(r["interruptions"][i]),
+            **{k: r[k][i].item() for k in extra},
+        }
+        for i in range(len(r["return"]))
+    ]
+
+
+def _write(out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]], plots: bool) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    fields = list(CSV_FIELDS) + sorted({k for r in rows for k in r} - set(CSV_FIELDS))
+    write_csv(out / CSV_NAME, rows, fields)
+    if plots:
+        metrics["figures"] = [str(plot_eval(metrics, out / PNG_NAME))]
+    write_json(out / METRICS_NAME, metrics)
+
+
+def plot_eval(metrics: dict[str, Any], path: Path) -> Path:
+    """Each method's mean return with its 95% CI: bars for one test point, else the shift curve
+    against the swept value (with the oracle's exact values dashed where there are any)."""
+    plt = _pyplot()
+    points, methods = metrics["points"], metrics["methods"]
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    if len(points) == 1:
+        ms = points[0]["methods"]
+        ax.bar(
+            methods,
+            [ms[m]["mean_return"] for m in methods],
+            yerr=[ms[m]["mean_return_ci95"] for m in methods],
+            capsize=4,
+            color="#4c72b0",
+        )
+        ax.set_ylabel("mean return (95% CI)")
+        ax.set_title(f"{metrics['family']}: test {metrics['test']}")
+    else:
+        key = points[0]["shift"].split("=")[0]
+        xs = np.arange(len(points))
+        for m in methods:
+            y = np.array([p["methods"][m]["mean_return"] for p in points])
+            ci = np.array([p["methods"][m]["mean_return_ci95"] for p in points])
+            (line,) = ax.plot(xs, y, marker="o", label=m)
+            ax.fill_between(xs, y - ci, y + ci, alpha=0.2, color=line.get_color())
+            if all("exact_mean_return" in p["methods"][m] for p in points):
+                exact = [p["methods"][m]["exact_mean_return"] for p in points]
+                ax.plot(xs, exact, ls="--", color=line.get_color(), label=f"{m} (exact)")
+        ax.set_xticks(xs, [str(p["value"]) for p in points])
+        ax.set_xlabel(key)
+        ax.set_ylabel("mean return (95% CI band)")
+        ax.set_title(f"{metrics['family']} shift curve: test {metrics['test']}")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    save_figure(fig, path)
+    plt.close(fig)
+    return path
+
+
+def format_table(metrics: dict[str, Any]) -> str:
+    """The methods side by side per test point: mean return +- 95% CI (exact where known),
+    interruptions per episode and the control split."""
+    lines = [
+        f"{metrics['family']} bundle {metrics['checkpoint']}: test {metrics['test']} "
+        f"({metrics['test_description']}), {metrics['episodes']} paired episodes, seed "
+        f"{metrics['seed']}"
+    ]
+    for p in metrics["points"]:
+        if p["shift"]:
+            lines.append(f"{p['shift']}:")
+        lines.append(
+            f"  {'method':<13} {'mean return':>12} {'+-95%':>8} {'exact':>9} {'interr./ep':>10}  control"
+        )
+        for m, r in p["methods"].items():
+            exact = f"{r['exact_mean_return']:9.3f}" if "exact_mean_return" in r else f"{'':>9}"
+            inter = r.get("interruptions_per_episode")
+            inter_s = f"{inter:10.2f}" if inter is not None else f"{'':>10}"
+            control = " ".join(f"{k} {v:.0%}" for k, v in r.get("control", {}).items())
+            lines.append(
+                f"  {m:<13} {r['mean_return']:12.3f} {r['mean_return_ci95']:8.3f} {exact} "
+                f"{inter_s}  {control}"
+            )
+    return "\n".join(lines)
+
+
+__all__ = ["eval_bundle", "format_table", "parse_methods", "play", "plot_eval", "summarise"]
