@@ -34,6 +34,7 @@ Examples:
 from __future__ import annotations
 
 import copy
+import dataclasses
 import functools
 import os
 import time
@@ -449,16 +450,183 @@ def _train_loop(
     progress: bool,
     on_start: Any,
 ) -> dict[str, Any]:
-    """:func:`train` once its inputs are checked and ``out`` is held."""
+    """:func:`train` once its inputs are checked and ``out`` is held: build the run (or restore it
+    from ``bundle``), then, batch by batch until ``train.total_frames``, store the transitions
+    (:meth:`_Run.store`), learn (:meth:`_Run.learn`), log and checkpoint (:meth:`_Run.report`)."""
     t = cfg.train
-    workers = cfg.collector.num_workers
-    ray_backend = cfg.collector.backend == "ray"
-    remote = collects_in_workers(cfg)
     save_config_yaml(cfg, out / "config.yaml")
+    run = _build_run(cfg, out, bundle)
+    threads = torch.get_num_threads()
+    with warnings.catch_warnings():  # TorchRL's note that the last batch may pass total_frames
+        warnings.filterwarnings("ignore", message=r"total_frames \(\d+\) is not exactly divisible")
+        run.collector = make_collector(
+            cfg, run.env, run.behaviour, max(t.total_frames - run.counters["frames"], 0)
+        )
+    pbar = None
+    try:  # shut the worker processes down on any exit
+        if bundle is not None:  # after the collector's own reset and policy probe
+            _restore_collection(run, bundle, resume)
+        logger = CSVLogger(exp_name="logs", log_dir=str(out))
+        pbar = tqdm(
+            total=t.total_frames, initial=run.counters["frames"], disable=not progress, unit="frame"
+        )
+        start_time, last_log = time.perf_counter(), {}
+        on_start()
+        with _StopSignals() as stop:
+            try:
+                for batch in run.collector:
+                    frames_before = run.store(batch)
+                    run.learn()
+                    pbar.update(min(batch.numel(), max(pbar.total - pbar.n, 0)))  # ends at total
+                    row = run.report(frames_before, stop, logger, pbar, start_time)
+                    if row is not None:
+                        last_log = row
+                pbar.close()
+                final = out / "final.pt"  # a first signal from here on: the run ends normally
+                run.save(final)
+            except KeyboardInterrupt:
+                raise KeyboardInterrupt(
+                    f"aborted by a second signal; nothing written, "
+                    f"{_last_checkpoint_note(run.last_checkpoint)}"
+                ) from None
+    finally:
+        if pbar is not None:
+            pbar.close()  # before any message: the bar's last line does not run into it
+        run.collector.shutdown()
+        torch.set_num_threads(threads)  # MultiSyncCollector.shutdown adds num_workers threads
+    return {
+        "final": final,
+        "frames": run.counters["frames"],
+        "updates": run.counters["updates"],
+        "seconds": time.perf_counter() - start_time,
+        "last_log": last_log,
+    }
 
-    # ---- build everything from the config (seeded), then overwrite with the checkpoint -------
+
+@dataclasses.dataclass
+class _Run:
+    """One training run between batches: what :func:`_build_run` builds from the config (or a
+    checkpoint), and the steps :func:`_train_loop` takes on every collected batch."""
+
+    cfg: Config
+    out: Path
+    env: TransformedEnv
+    learner: MultiHeadLearner
+    behaviour: BehaviourPolicy
+    buffer: ReplayBuffer
+    first_visit: FirstVisitFilter
+    replay_generator: torch.Generator
+    counters: dict[str, int]
+    stats: dict[str, torch.Tensor]  # device-side episode statistics since the last log row
+    collector: BaseCollector | None = None
+    last_checkpoint: Path | None = None  # the newest periodic checkpoint in ``out``
+
+    def store(self, batch: TensorDictBase) -> int:
+        """Replay ``batch``'s raw transitions (first visits only with ``train.first_visit``) and
+        add its finished episodes to the statistics; returns the frame count before it."""
+        t = self.cfg.train
+        if self.cfg.collector.backend == "ray":
+            # (W, n, T) from W actors -> (N, T): worker w's rows [w n, (w+1) n)
+            batch = batch.reshape(-1, batch.shape[-1])
+        if collects_in_workers(self.cfg):
+            batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
+        counters, stats = self.counters, self.stats
+        frames_before = counters["frames"]
+        counters["frames"] += batch.numel()
+        counters["batches"] += 1
+        raw = raw_transitions(batch, keep_instance=t.max_value_estimator == "instance")  # (N*T,)
+        if t.first_visit:
+            raw = raw[self.first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
+        self.buffer.extend(raw)
+        counters["stored"] += raw.numel()
+        done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
+        ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
+        by_options = done & (batch.get(BEHAVIOUR) >= 0)
+        stats["return_sum"] += (ret * done).sum()
+        stats["episodes"] += done.sum()
+        stats["return_sum_options"] += (ret * by_options).sum()
+        stats["episodes_options"] += by_options.sum()
+        return frames_before
+
+    def learn(self) -> None:
+        """Every head from one shared sample per update, ``train.updates_per_batch`` updates once
+        past ``train.init_random_frames``; then the exploration rate for the frames played, and
+        the new weights and epsilon to the collector workers before their next batch."""
+        t = self.cfg.train
+        if self.counters["frames"] >= t.init_random_frames and len(self.buffer) >= t.batch_size:
+            for _ in range(t.updates_per_batch):
+                self.learner.update(self.buffer.sample())
+                self.counters["updates"] += 1
+        self.behaviour.set_epsilon(epsilon_at(self.counters["frames"], t))
+        if collects_in_workers(self.cfg):
+            self.collector.update_policy_weights_(self.behaviour)
+
+    def report(
+        self,
+        frames_before: int,
+        stop: _StopSignals,
+        logger: CSVLogger,
+        pbar: tqdm,
+        start_time: float,
+    ) -> dict[str, float] | None:
+        """After a batch: the log row (one host sync) when ``train.log_every`` frames were crossed
+        or at the end, then a periodic checkpoint when ``train.checkpoint_every`` frames were
+        crossed or a signal asks to stop (:class:`TrainingInterrupted`). Returns the row, if any."""
+        t = self.cfg.train
+        frames = self.counters["frames"]
+        log_now = _crossed(frames_before, frames, t.log_every)
+        checkpoint_now = _crossed(frames_before, frames, t.checkpoint_every)
+        is_last = frames >= t.total_frames
+        stop_now = stop.signum is not None and not is_last
+        row = None
+        if log_now or checkpoint_now or is_last:
+            row = _log_row(
+                self.learner,
+                self.stats,
+                self.behaviour,
+                self.counters,
+                logger,
+                start_time,
+                self.last_checkpoint,
+            )
+            pbar.set_postfix({k: f"{v:.3g}" for k, v in row.items() if k.startswith("loss")})
+        if (checkpoint_now or stop_now) and not is_last:
+            path = self.out / f"checkpoint_{frames:09d}.pt"
+            self.save(path)
+            if self.last_checkpoint is not None and self.last_checkpoint != path:
+                self.last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic one
+            self.last_checkpoint = path
+        if stop_now:
+            remote = collects_in_workers(self.cfg)
+            raise _interrupted(stop.signum, self.last_checkpoint, self.out, self.counters, remote)
+        return row
+
+    def save(self, path: Path) -> None:
+        """Write the whole run state to ``path``; a non-finite model is never written."""
+        _require_finite(self.learner, self.counters["frames"], self.last_checkpoint)
+        save_checkpoint(
+            path,
+            _make_bundle(
+                self.cfg,
+                self.learner,
+                self.buffer,
+                self.env,
+                self.collector,
+                self.first_visit,
+                self.counters,
+                self.stats,
+                self.replay_generator,
+            ),
+        )
+
+
+def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
+    """Everything from the config, seeded (the networks' initialisation draws from the global
+    torch stream, in this order), then overwritten with ``bundle``'s state when resuming."""
+    t = cfg.train
     torch.manual_seed(cfg.seed)
     replay_generator = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
+    workers = cfg.collector.num_workers
     env = make_training_env(cfg, num_envs=cfg.env.num_envs // workers)  # workers > 1: specs only
     subtasks = make_subtasks(cfg, env.base_env)
     heads = build_heads(cfg, env, subtasks)
@@ -473,13 +641,23 @@ def _train_loop(
     buffer = make_replay_buffer(cfg, replay_generator)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
     first_visit = FirstVisitFilter(cfg.env.num_envs, obs_dim, device=cfg.device)
-    counters = {"frames": 0, "updates": 0, "batches": 0, "stored": 0}
-    stats = {  # device-side episode statistics since the last log row
-        "return_sum": torch.zeros((), device=cfg.device),
-        "episodes": torch.zeros((), device=cfg.device),
-        "return_sum_options": torch.zeros((), device=cfg.device),
-        "episodes_options": torch.zeros((), device=cfg.device),
-    }
+    run = _Run(
+        cfg=cfg,
+        out=out,
+        env=env,
+        learner=learner,
+        behaviour=behaviour,
+        buffer=buffer,
+        first_visit=first_visit,
+        replay_generator=replay_generator,
+        counters={"frames": 0, "updates": 0, "batches": 0, "stored": 0},
+        stats={
+            "return_sum": torch.zeros((), device=cfg.device),
+            "episodes": torch.zeros((), device=cfg.device),
+            "return_sum_options": torch.zeros((), device=cfg.device),
+            "episodes_options": torch.zeros((), device=cfg.device),
+        },
+    )
     if bundle is not None:
         load_state_dicts(
             bundle,
@@ -495,138 +673,26 @@ def _train_loop(
         )
         _load_replay_state(buffer, bundle["replay"])
         first_visit.load_state_dict(bundle["first_visit"])
-        counters.update(bundle["counters"])
-        stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}
-    behaviour.set_epsilon(epsilon_at(counters["frames"], t))
+        run.counters.update(bundle["counters"])
+        run.stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}
+    behaviour.set_epsilon(epsilon_at(run.counters["frames"], t))
+    return run
 
-    threads = torch.get_num_threads()
-    with warnings.catch_warnings():  # TorchRL's note that the last batch may pass total_frames
-        warnings.filterwarnings("ignore", message=r"total_frames \(\d+\) is not exactly divisible")
-        collector = make_collector(cfg, env, behaviour, max(t.total_frames - counters["frames"], 0))
-    last_checkpoint: Path | None = None
-    pbar = None
-    try:  # shut the worker processes down on any exit
-        if bundle is not None:  # after the collector's own reset and policy probe
-            env.base_env.load_state_dict(bundle["env"])
-            _collector_carrier(collector).update(
-                TensorDict(bundle["carrier"], batch_size=env.batch_size)
-            )
-            set_rng_state(bundle["rng"], {"replay": replay_generator})
-            # the logs up to the checkpoint, without the rows a stopped run wrote after it
-            _restore_logs(Path(resume).parent, out, counters["frames"])
-            if Path(resume).parent.resolve() == out.resolve() and Path(resume).name.startswith(
-                "checkpoint_"
-            ):
-                last_checkpoint = Path(resume)  # replaced by the next periodic checkpoint
 
-        logger = CSVLogger(exp_name="logs", log_dir=str(out))
-        pbar = tqdm(
-            total=t.total_frames, initial=counters["frames"], disable=not progress, unit="frame"
-        )
-        start_time, last_log = time.perf_counter(), {}
-        on_start()
-
-        def bundle_now() -> dict[str, Any]:
-            return _make_bundle(
-                cfg,
-                learner,
-                buffer,
-                env,
-                collector,
-                first_visit,
-                counters,
-                stats,
-                replay_generator,
-            )
-
-        with _StopSignals() as stop:
-            try:
-                for batch in collector:
-                    if (
-                        ray_backend
-                    ):  # (W, n, T) from W actors -> (N, T): worker w's rows [w n, (w+1) n)
-                        batch = batch.reshape(-1, batch.shape[-1])
-                    if remote:
-                        batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
-                    # ---- store the raw transitions ----------------------------------------------
-                    frames_before = counters["frames"]
-                    counters["frames"] += batch.numel()
-                    counters["batches"] += 1
-                    raw = raw_transitions(
-                        batch, keep_instance=t.max_value_estimator == "instance"
-                    )  # (N*T,)
-                    if t.first_visit:
-                        raw = raw[
-                            first_visit(batch).reshape(-1)
-                        ]  # one sample per (s, a) per episode
-                    buffer.extend(raw)
-                    counters["stored"] += raw.numel()
-                    done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
-                    ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
-                    by_options = done & (batch.get(BEHAVIOUR) >= 0)
-                    stats["return_sum"] += (ret * done).sum()
-                    stats["episodes"] += done.sum()
-                    stats["return_sum_options"] += (ret * by_options).sum()
-                    stats["episodes_options"] += by_options.sum()
-
-                    # ---- learn: every head from one shared sample per update --------------------
-                    if counters["frames"] >= t.init_random_frames and len(buffer) >= t.batch_size:
-                        for _ in range(t.updates_per_batch):
-                            learner.update(buffer.sample())
-                            counters["updates"] += 1
-                    behaviour.set_epsilon(epsilon_at(counters["frames"], t))
-                    if remote:  # new weights and epsilon to the workers, before their next batch
-                        collector.update_policy_weights_(behaviour)
-                    pbar.update(min(batch.numel(), max(pbar.total - pbar.n, 0)))  # ends at total
-
-                    # ---- log (one host sync), then checkpoint ---------------------------------
-                    log_now = _crossed(frames_before, counters["frames"], t.log_every)
-                    checkpoint_now = _crossed(frames_before, counters["frames"], t.checkpoint_every)
-                    is_last = counters["frames"] >= t.total_frames
-                    stop_now = stop.signum is not None and not is_last
-                    if log_now or checkpoint_now or is_last:
-                        last_log = _log_row(
-                            learner,
-                            stats,
-                            behaviour,
-                            counters,
-                            logger,
-                            start_time,
-                            last_checkpoint,
-                        )
-                        pbar.set_postfix(
-                            {k: f"{v:.3g}" for k, v in last_log.items() if k.startswith("loss")}
-                        )
-                    if (checkpoint_now or stop_now) and not is_last:
-                        path = out / f"checkpoint_{counters['frames']:09d}.pt"
-                        _require_finite(learner, counters["frames"], last_checkpoint)
-                        save_checkpoint(path, bundle_now())
-                        if last_checkpoint is not None and last_checkpoint != path:
-                            last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic one
-                        last_checkpoint = path
-                    if stop_now:
-                        raise _interrupted(stop.signum, last_checkpoint, out, counters, remote)
-                pbar.close()
-                final = out / "final.pt"  # a first signal from here on: the run ends normally
-                _require_finite(learner, counters["frames"], last_checkpoint)
-                save_checkpoint(final, bundle_now())
-            except KeyboardInterrupt:
-                raise KeyboardInterrupt(
-                    f"aborted by a second signal; nothing written, "
-                    f"{_last_checkpoint_note(last_checkpoint)}"
-                ) from None
-    finally:
-        if pbar is not None:
-            pbar.close()  # before any message: the bar's last line does not run into it
-        collector.shutdown()
-        torch.set_num_threads(threads)  # MultiSyncCollector.shutdown adds num_workers threads
-    return {
-        "final": final,
-        "frames": counters["frames"],
-        "updates": counters["updates"],
-        "seconds": time.perf_counter() - start_time,
-        "last_log": last_log,
-    }
+def _restore_collection(run: _Run, bundle: dict[str, Any], resume: str | os.PathLike) -> None:
+    """The checkpoint's env simulator state, collector carrier and replay RNG (after the
+    collector's own reset and policy probe), and the logs up to the checkpoint, without the rows a
+    stopped run wrote after it; a periodic checkpoint of ``out`` is replaced by the next one."""
+    run.env.base_env.load_state_dict(bundle["env"])
+    _collector_carrier(run.collector).update(
+        TensorDict(bundle["carrier"], batch_size=run.env.batch_size)
+    )
+    set_rng_state(bundle["rng"], {"replay": run.replay_generator})
+    _restore_logs(Path(resume).parent, run.out, run.counters["frames"])
+    if Path(resume).parent.resolve() == run.out.resolve() and Path(resume).name.startswith(
+        "checkpoint_"
+    ):
+        run.last_checkpoint = Path(resume)
 
 
 def _crossed(before: int, after: int, every: int) -> bool:
