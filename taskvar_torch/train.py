@@ -7,7 +7,8 @@ The loop, top to bottom (:func:`train`)::
       one shared sample --MultiHeadLearner--> every head (averaging, options, switching, max-value,
       robustness) --> CSV logs, periodic checkpoints, DIR/final.pt
 
-With ``collector.num_workers = W > 1`` the collector is TorchRL's ``MultiSyncCollector``: W spawned
+The env and collector come from :mod:`taskvar_torch.collection` (re-exported here). With
+``collector.num_workers = W > 1`` the collector is TorchRL's ``MultiSyncCollector``: W spawned
 processes, each stepping its own slice of the N environments (:func:`make_worker_env`), their
 batches concatenated in worker order into the same ``(N, T)`` batch; after every update phase the
 learner's behaviour weights (epsilon included) reach the workers through TorchRL's
@@ -33,9 +34,7 @@ Examples:
 
 from __future__ import annotations
 
-import copy
 import dataclasses
-import functools
 import os
 import time
 import warnings
@@ -45,15 +44,14 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
+from torchrl.collectors import BaseCollector, Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
-from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, TransformedEnv
+from torchrl.envs import TransformedEnv
 from torchrl.record.loggers import CSVLogger
-from torchrl.weight_update import SharedMemWeightSyncScheme
 from tqdm.auto import tqdm
 
-from taskvar_torch import keys, rng
+from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
     RUNTIME_KEYS,
     CheckpointError,
@@ -65,6 +63,13 @@ from taskvar_torch.checkpoint import (
     rng_state,
     save_checkpoint,
     set_rng_state,
+)
+from taskvar_torch.collection import (  # noqa: F401  (the collection names stay importable here)
+    collects_in_workers,
+    make_collector,
+    make_ray_collector,
+    make_training_env,
+    make_worker_env,
 )
 from taskvar_torch.config import (
     Config,
@@ -108,114 +113,7 @@ class TrainingDiverged(RuntimeError):
 
 
 # --------------------------------------------------------------------------------------------
-# factories
-
-
-def make_training_env(
-    cfg: Config, num_envs: int | None = None, index_offset: int = 0
-) -> TransformedEnv:
-    """The family env with ``InitTracker`` (new-episode flags) and ``RewardSum`` (episode returns)."""
-    env = make_env(cfg, num_envs=num_envs, index_offset=index_offset)
-    return TransformedEnv(env, Compose(InitTracker(), RewardSum()))
-
-
-def make_worker_env(cfg: Config, worker: int) -> TransformedEnv:
-    """Collector process ``worker``'s training env: sub-envs ``[worker * n, (worker + 1) * n)``.
-
-    Runs inside the worker (a picklable ``functools.partial`` of this function): it also seeds
-    the worker's global torch RNG, which the behaviour policy's exploration draws from.
-    """
-    n = cfg.env.num_envs // cfg.collector.num_workers
-    torch.manual_seed(rng.hash32(rng.hash32(cfg.seed & rng.MASK32) + worker + 1))
-    return make_training_env(cfg, num_envs=n, index_offset=worker * n)
-
-
-def collects_in_workers(cfg: Config) -> bool:
-    """Whether the envs run outside the trainer's process (worker processes or Ray actors): then
-    the trainer syncs weights to them after every update phase, and their env and RNG states are
-    not in the checkpoint (no exact resume)."""
-    return cfg.collector.num_workers > 1 or cfg.collector.backend == "ray"
-
-
-def make_collector(
-    cfg: Config, env: EnvBase, behaviour: BehaviourPolicy, total_frames: int
-) -> BaseCollector:
-    """The experience collector of ``cfg.collector``.
-
-    One process: TorchRL's ``Collector`` on ``env`` with ``behaviour`` itself. Several: a
-    ``MultiSyncCollector`` over :func:`make_worker_env` slices, acting with a copy of
-    ``behaviour`` whose weights live in shared memory; the trainer refreshes them with
-    ``collector.update_policy_weights_(behaviour)``. Worker processes use as many threads as
-    this one.
-    """
-    t = cfg.train
-    workers = cfg.collector.num_workers
-    if cfg.collector.backend == "ray":
-        return make_ray_collector(cfg, behaviour, total_frames)
-    if workers == 1:
-        return Collector(
-            env,
-            behaviour,
-            frames_per_batch=t.frames_per_batch,
-            total_frames=total_frames,
-            track_traj_ids=False,
-        )
-    return MultiSyncCollector(
-        [functools.partial(make_worker_env, cfg, w) for w in range(workers)],
-        copy.deepcopy(behaviour),  # the acting copy: the learner's weights stay private
-        frames_per_batch=t.frames_per_batch,
-        total_frames=total_frames,
-        device=cfg.device,
-        cat_results=0,  # (N, T): worker w's rows are sub-envs [w * n, (w + 1) * n)
-        use_buffers=True,
-        weight_sync_schemes={"policy": SharedMemWeightSyncScheme()},
-        num_threads=torch.get_num_threads(),
-        num_sub_threads=torch.get_num_threads(),
-    )
-
-
-def make_ray_collector(cfg: Config, behaviour: BehaviourPolicy, total_frames: int) -> BaseCollector:
-    """``collector.backend = ray``: TorchRL's ``Collector(backend="ray")`` (a ``RayCollector``).
-
-    Worker w is a Ray actor (1 CPU; a share of a GPU when ``device`` is CUDA) running a TorchRL
-    ``Collector`` over :func:`make_worker_env` slice w with a copy of ``behaviour``; ``sync=True``
-    gathers one ``(n, T)`` batch per actor each iteration (the trainer flattens them to ``(N, T)``,
-    worker order) and ``collector.update_policy_weights_(behaviour)`` sends the learner's weights
-    and epsilon (``RayWeightSyncScheme``). Ray starts locally (``address="local"``, never a
-    cluster found in ``RAY_ADDRESS``) unless ``collector.ray_address`` names one; a Ray already
-    running in the process is reused. On a cluster every node needs this package installed.
-    """
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        raise ValueError(
-            'collector.backend=ray needs Ray: pip install "taskvar-torch[distributed]"'
-        ) from None
-    workers = cfg.collector.num_workers
-    address = cfg.collector.ray_address
-    init = {"address": "local", "num_cpus": max(workers, os.cpu_count() or 1)}
-    if address is not None:
-        init = {"address": address}
-    remote = {"num_cpus": 1}
-    if torch.device(cfg.device).type == "cuda":
-        remote["num_gpus"] = 1.0 / workers
-    collector = Collector(
-        [functools.partial(make_worker_env, cfg, w) for w in range(workers)],
-        copy.deepcopy(behaviour),  # the acting copy, sent to the actors
-        backend="ray",
-        num_collectors=workers,
-        sync=True,
-        frames_per_batch=cfg.train.frames_per_batch,
-        total_frames=total_frames if total_frames >= 0 else 2**62,  # RayCollector: no -1 (endless)
-        device=cfg.device,
-        backend_options={
-            "ray_init_config": {**init, "include_dashboard": False, "log_to_driver": False},
-            "remote_configs": remote,
-            "collector_kwargs": {"track_traj_ids": False},
-        },
-    )
-    collector.update_policy_weights_(behaviour)  # the actors start from the learner's weights
-    return collector
+# replay and exploration
 
 
 def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
@@ -293,36 +191,6 @@ def _collector_carrier(collector: Collector) -> TensorDictBase:
     # such as the behaviour mode, RewardSum's returns) in ``_carrier``; its state_dict does not
     # include it, so exact resume saves and restores it here.
     return collector._carrier
-
-
-def _make_bundle(
-    cfg: Config,
-    learner: MultiHeadLearner,
-    buffer: ReplayBuffer,
-    env: TransformedEnv,
-    collector: Collector,
-    first_visit: FirstVisitFilter,
-    counters: dict[str, int],
-    stats: dict[str, torch.Tensor],
-    replay_generator: torch.Generator,
-) -> dict[str, Any]:
-    single = not collects_in_workers(cfg)  # else the env states live in the workers
-    return make_bundle(
-        cfg,
-        models={"heads": learner.heads, "targets": learner.loss.target_heads},
-        optimizers={"adam": learner.optimizer},
-        counters=dict(counters),
-        rng=rng_state({"replay": replay_generator}),
-        replay=_replay_state(buffer),
-        learner={
-            k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
-        },
-        env=env.base_env.state_dict() if single else None,
-        carrier=_collector_carrier(collector).to_dict() if single else None,
-        first_visit=first_visit.state_dict(),
-        stats={k: v.clone() for k, v in stats.items()},
-        heads_spec=learner.heads.spec.to_dict(),
-    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -602,21 +470,32 @@ class _Run:
         return row
 
     def save(self, path: Path) -> None:
-        """Write the whole run state to ``path``; a non-finite model is never written."""
+        """Write the whole run state (:meth:`bundle`) to ``path``; a non-finite model is never
+        written."""
         _require_finite(self.learner, self.counters["frames"], self.last_checkpoint)
-        save_checkpoint(
-            path,
-            _make_bundle(
-                self.cfg,
-                self.learner,
-                self.buffer,
-                self.env,
-                self.collector,
-                self.first_visit,
-                self.counters,
-                self.stats,
-                self.replay_generator,
-            ),
+        save_checkpoint(path, self.bundle())
+
+    def bundle(self) -> dict[str, Any]:
+        """The checkpoint of the run: every head, target and optimiser, the learner's counters,
+        replay, first-visit filter, statistics and RNG, and (one collector process) the env's
+        simulator state and the collector's carried tensordict."""
+        learner = self.learner
+        single = not collects_in_workers(self.cfg)  # else the env states live in the workers
+        return make_bundle(
+            self.cfg,
+            models={"heads": learner.heads, "targets": learner.loss.target_heads},
+            optimizers={"adam": learner.optimizer},
+            counters=dict(self.counters),
+            rng=rng_state({"replay": self.replay_generator}),
+            replay=_replay_state(self.buffer),
+            learner={
+                k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
+            },
+            env=self.env.base_env.state_dict() if single else None,
+            carrier=_collector_carrier(self.collector).to_dict() if single else None,
+            first_visit=self.first_visit.state_dict(),
+            stats={k: v.clone() for k, v in self.stats.items()},
+            heads_spec=learner.heads.spec.to_dict(),
         )
 
 
@@ -741,6 +620,7 @@ __all__ = [
     "build_heads",
     "check_device",
     "check_output_folder",
+    "collects_in_workers",
     "epsilon_at",
     "load_heads",
     "make_collector",
