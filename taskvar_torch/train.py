@@ -626,6 +626,7 @@ __all__ = [
     "make_collector",
     "make_env",
     "make_learner",
+    "make_ray_collector",
     "make_replay_buffer",
     "make_subtasks",
     "make_training_env",
