@@ -7,7 +7,8 @@ The loop, top to bottom (:func:`train`)::
       one shared sample --MultiHeadLearner--> every head (averaging, options, switching, max-value,
       robustness) --> CSV logs, periodic checkpoints, DIR/final.pt
 
-With ``collector.num_workers = W > 1`` the collector is TorchRL's ``MultiSyncCollector``: W spawned
+The env and collector come from :mod:`taskvar_torch.collection` (re-exported here). With
+``collector.num_workers = W > 1`` the collector is TorchRL's ``MultiSyncCollector``: W spawned
 processes, each stepping its own slice of the N environments (:func:`make_worker_env`), their
 batches concatenated in worker order into the same ``(N, T)`` batch; after every update phase the
 learner's behaviour weights (epsilon included) reach the workers through TorchRL's
@@ -21,6 +22,10 @@ counters, the replay buffer, the env's simulator state, the collector's carried 
 RNG state, so ``train(..., resume=ckpt)`` continues bit for bit on CPU (one collector process only:
 the workers' env and RNG states are not saved, so resuming a multi-process run is refused).
 
+The results folder (one run per folder, locked, never silently reused; logs cut back on resume;
+SIGINT / SIGTERM stop at a resumable checkpoint) is :mod:`taskvar_torch.run_folder`, whose names
+this module re-exports.
+
 Examples:
     >>> cfg = load_config("configs/windy.yaml", ["train.total_frames=20000"])  # doctest: +SKIP
     >>> result = train(cfg, "/tmp/run")  # doctest: +SKIP
@@ -29,15 +34,8 @@ Examples:
 
 from __future__ import annotations
 
-import copy
-import fcntl
-import functools
+import dataclasses
 import os
-import re
-import shlex
-import shutil
-import signal
-import threading
 import time
 import warnings
 from collections.abc import Sequence
@@ -46,15 +44,14 @@ from typing import Any
 
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.collectors import BaseCollector, Collector, MultiSyncCollector
+from torchrl.collectors import BaseCollector, Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
-from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, TransformedEnv
+from torchrl.envs import TransformedEnv
 from torchrl.record.loggers import CSVLogger
-from torchrl.weight_update import SharedMemWeightSyncScheme
 from tqdm.auto import tqdm
 
-from taskvar_torch import keys, rng
+from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
     RUNTIME_KEYS,
     CheckpointError,
@@ -67,11 +64,17 @@ from taskvar_torch.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
+from taskvar_torch.collection import (  # noqa: F401  (the collection names stay importable here)
+    collects_in_workers,
+    make_collector,
+    make_ray_collector,
+    make_training_env,
+    make_worker_env,
+)
 from taskvar_torch.config import (
     Config,
     TrainConfig,
     apply_overrides,
-    atomic_write,
     config_from_dict,
     save_config_yaml,
 )
@@ -87,6 +90,19 @@ from taskvar_torch.factory import (  # noqa: F401  (the factories stay importabl
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import MultiHeadLearner
+from taskvar_torch.run_folder import (  # noqa: F401  (the run-folder names stay importable here)
+    LOCK_NAME,
+    RunFolder,
+    TrainingInterrupted,
+    _interrupted,
+    _last_checkpoint_note,
+    _latest_checkpoint,
+    _restore_logs,
+    _StopSignals,
+    check_output_folder,
+    resume_command,
+    run_files,
+)
 
 EPISODE_REWARD = "episode_reward"  # RewardSum's running return
 
@@ -96,128 +112,8 @@ class TrainingDiverged(RuntimeError):
     last checkpoint on disk is intact."""
 
 
-class TrainingInterrupted(RuntimeError):
-    """SIGINT or SIGTERM stopped the run after its current batch; ``checkpoint`` holds the state
-    (``None`` when the weights were not finite), ``resume_command`` continues it."""
-
-    def __init__(
-        self, message: str, checkpoint: Path | None, resume_command: str | None, signum: int
-    ):
-        super().__init__(message)
-        self.checkpoint = checkpoint
-        self.resume_command = resume_command
-        self.signum = signum
-
-
 # --------------------------------------------------------------------------------------------
-# factories
-
-
-def make_training_env(
-    cfg: Config, num_envs: int | None = None, index_offset: int = 0
-) -> TransformedEnv:
-    """The family env with ``InitTracker`` (new-episode flags) and ``RewardSum`` (episode returns)."""
-    env = make_env(cfg, num_envs=num_envs, index_offset=index_offset)
-    return TransformedEnv(env, Compose(InitTracker(), RewardSum()))
-
-
-def make_worker_env(cfg: Config, worker: int) -> TransformedEnv:
-    """Collector process ``worker``'s training env: sub-envs ``[worker * n, (worker + 1) * n)``.
-
-    Runs inside the worker (a picklable ``functools.partial`` of this function): it also seeds
-    the worker's global torch RNG, which the behaviour policy's exploration draws from.
-    """
-    n = cfg.env.num_envs // cfg.collector.num_workers
-    torch.manual_seed(rng.hash32(rng.hash32(cfg.seed & rng.MASK32) + worker + 1))
-    return make_training_env(cfg, num_envs=n, index_offset=worker * n)
-
-
-def collects_in_workers(cfg: Config) -> bool:
-    """Whether the envs run outside the trainer's process (worker processes or Ray actors): then
-    the trainer syncs weights to them after every update phase, and their env and RNG states are
-    not in the checkpoint (no exact resume)."""
-    return cfg.collector.num_workers > 1 or cfg.collector.backend == "ray"
-
-
-def make_collector(
-    cfg: Config, env: EnvBase, behaviour: BehaviourPolicy, total_frames: int
-) -> BaseCollector:
-    """The experience collector of ``cfg.collector``.
-
-    One process: TorchRL's ``Collector`` on ``env`` with ``behaviour`` itself. Several: a
-    ``MultiSyncCollector`` over :func:`make_worker_env` slices, acting with a copy of
-    ``behaviour`` whose weights live in shared memory; the trainer refreshes them with
-    ``collector.update_policy_weights_(behaviour)``. Worker processes use as many threads as
-    this one.
-    """
-    t = cfg.train
-    workers = cfg.collector.num_workers
-    if cfg.collector.backend == "ray":
-        return make_ray_collector(cfg, behaviour, total_frames)
-    if workers == 1:
-        return Collector(
-            env,
-            behaviour,
-            frames_per_batch=t.frames_per_batch,
-            total_frames=total_frames,
-            track_traj_ids=False,
-        )
-    return MultiSyncCollector(
-        [functools.partial(make_worker_env, cfg, w) for w in range(workers)],
-        copy.deepcopy(behaviour),  # the acting copy: the learner's weights stay private
-        frames_per_batch=t.frames_per_batch,
-        total_frames=total_frames,
-        device=cfg.device,
-        cat_results=0,  # (N, T): worker w's rows are sub-envs [w * n, (w + 1) * n)
-        use_buffers=True,
-        weight_sync_schemes={"policy": SharedMemWeightSyncScheme()},
-        num_threads=torch.get_num_threads(),
-        num_sub_threads=torch.get_num_threads(),
-    )
-
-
-def make_ray_collector(cfg: Config, behaviour: BehaviourPolicy, total_frames: int) -> BaseCollector:
-    """``collector.backend = ray``: TorchRL's ``Collector(backend="ray")`` (a ``RayCollector``).
-
-    Worker w is a Ray actor (1 CPU; a share of a GPU when ``device`` is CUDA) running a TorchRL
-    ``Collector`` over :func:`make_worker_env` slice w with a copy of ``behaviour``; ``sync=True``
-    gathers one ``(n, T)`` batch per actor each iteration (the trainer flattens them to ``(N, T)``,
-    worker order) and ``collector.update_policy_weights_(behaviour)`` sends the learner's weights
-    and epsilon (``RayWeightSyncScheme``). Ray starts locally (``address="local"``, never a
-    cluster found in ``RAY_ADDRESS``) unless ``collector.ray_address`` names one; a Ray already
-    running in the process is reused. On a cluster every node needs this package installed.
-    """
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        raise ValueError(
-            'collector.backend=ray needs Ray: pip install "taskvar-torch[distributed]"'
-        ) from None
-    workers = cfg.collector.num_workers
-    address = cfg.collector.ray_address
-    init = {"address": "local", "num_cpus": max(workers, os.cpu_count() or 1)}
-    if address is not None:
-        init = {"address": address}
-    remote = {"num_cpus": 1}
-    if torch.device(cfg.device).type == "cuda":
-        remote["num_gpus"] = 1.0 / workers
-    collector = Collector(
-        [functools.partial(make_worker_env, cfg, w) for w in range(workers)],
-        copy.deepcopy(behaviour),  # the acting copy, sent to the actors
-        backend="ray",
-        num_collectors=workers,
-        sync=True,
-        frames_per_batch=cfg.train.frames_per_batch,
-        total_frames=total_frames if total_frames >= 0 else 2**62,  # RayCollector: no -1 (endless)
-        device=cfg.device,
-        backend_options={
-            "ray_init_config": {**init, "include_dashboard": False, "log_to_driver": False},
-            "remote_configs": remote,
-            "collector_kwargs": {"track_traj_ids": False},
-        },
-    )
-    collector.update_policy_weights_(behaviour)  # the actors start from the learner's weights
-    return collector
+# replay and exploration
 
 
 def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
@@ -297,210 +193,8 @@ def _collector_carrier(collector: Collector) -> TensorDictBase:
     return collector._carrier
 
 
-def _make_bundle(
-    cfg: Config,
-    learner: MultiHeadLearner,
-    buffer: ReplayBuffer,
-    env: TransformedEnv,
-    collector: Collector,
-    first_visit: FirstVisitFilter,
-    counters: dict[str, int],
-    stats: dict[str, torch.Tensor],
-    replay_generator: torch.Generator,
-) -> dict[str, Any]:
-    single = not collects_in_workers(cfg)  # else the env states live in the workers
-    return make_bundle(
-        cfg,
-        models={"heads": learner.heads, "targets": learner.loss.target_heads},
-        optimizers={"adam": learner.optimizer},
-        counters=dict(counters),
-        rng=rng_state({"replay": replay_generator}),
-        replay=_replay_state(buffer),
-        learner={
-            k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
-        },
-        env=env.base_env.state_dict() if single else None,
-        carrier=_collector_carrier(collector).to_dict() if single else None,
-        first_visit=first_visit.state_dict(),
-        stats={k: v.clone() for k, v in stats.items()},
-        heads_spec=learner.heads.spec.to_dict(),
-    )
-
-
 # --------------------------------------------------------------------------------------------
-# the run folder: one run per folder, locked, never silently reused
-
-
-LOCK_NAME = ".taskvar.lock"
-"""Lock file of a run folder: ``flock``-ed by the run writing there (released by the kernel when
-the process dies, even by SIGKILL), holding its pid; removed when the run ends."""
-_RUN_NAMES = ("config.yaml", "final.pt", "logs")
-_STALE_TMP = re.compile(r"^\..+\.[0-9a-f]{12}\.tmp$")  # config.atomic_write's temporary files
-
-
-def run_files(out: str | os.PathLike) -> list[Path]:
-    """What a training run left in ``out``: ``config.yaml``, ``final.pt``, ``checkpoint_*.pt``,
-    ``logs/`` (empty when ``out`` is not a folder)."""
-    out = Path(out)
-    if not out.is_dir():
-        return []
-    found = [out / n for n in _RUN_NAMES if (out / n).exists()]
-    return found + sorted(out.glob("checkpoint_*.pt"))
-
-
-def check_output_folder(path: str | os.PathLike, flag: str = "--out") -> None:
-    """A one-line ``ValueError`` unless ``path`` is a writable folder or can be created as one."""
-    path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"{flag} {str(path)!r} is a file, not a folder; choose another {flag}")
-    existing = path
-    while not existing.exists() and existing != existing.parent:
-        existing = existing.parent
-    if not existing.is_dir():
-        raise ValueError(
-            f"{flag} {str(path)!r} cannot be created: {str(existing)!r} is a file; choose another "
-            f"{flag}"
-        )
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise ValueError(
-            f"{flag} {str(path)!r} is not writable (no write access to {str(existing)!r}); "
-            f"choose another {flag}"
-        )
-
-
-def _latest_checkpoint(out: Path) -> Path | None:
-    """``final.pt`` if present, else the newest ``checkpoint_*.pt`` of ``out``, else ``None``."""
-    if (out / "final.pt").is_file():
-        return out / "final.pt"
-    periodic = sorted(out.glob("checkpoint_*.pt"))
-    return periodic[-1] if periodic else None
-
-
-class RunFolder:
-    """The results folder of one run (:func:`train`), held from :meth:`acquire` to :meth:`release`.
-
-    ``acquire`` creates the folder if needed, locks it (a second run on it is refused), removes
-    temporary files a killed write left behind, and refuses a folder that already holds a run
-    unless ``resume`` names a checkpoint inside it (continue the run) or ``overwrite`` is set (the
-    old run's files are removed first). :meth:`abandon` undoes what a run that failed before
-    training started wrote: the folder if it created it, else the files of a fresh run.
-    """
-
-    def __init__(
-        self, out: str | os.PathLike, resume: str | os.PathLike | None, overwrite: bool
-    ) -> None:
-        self.out = Path(out)
-        self.resume = None if resume is None else Path(resume)
-        self.overwrite = bool(overwrite)
-        self.created = False
-        self.fresh = True  # holds no earlier run's files (none, or removed by --overwrite)
-        self._fd: int | None = None
-
-    def acquire(self) -> RunFolder:
-        out = self.out
-        check_output_folder(out)
-        self.created = not out.exists()
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-            self._lock()
-        except OSError as e:
-            self._remove_if_created()
-            raise ValueError(
-                f"cannot write in --out {str(out)!r} ({e.strerror or e}); choose another --out"
-            ) from None
-        try:
-            for p in out.iterdir():  # a write killed between its temp file and the rename
-                if _STALE_TMP.match(p.name) and p.is_file():
-                    p.unlink()
-            existing = run_files(out)
-            continuing = self.resume is not None and self.resume.resolve().parent == out.resolve()
-            if existing and self.overwrite:
-                for p in existing:
-                    shutil.rmtree(p) if p.is_dir() else p.unlink()
-            elif existing and not continuing:
-                names = ", ".join(p.name for p in existing[:4]) + (
-                    ", ..." if len(existing) > 4 else ""
-                )
-                latest = _latest_checkpoint(out)
-                hint = f"continue it with --resume {shlex.quote(str(latest))}, " if latest else ""
-                raise ValueError(
-                    f"--out {str(out)!r} already holds a run ({names}); {hint}replace it with "
-                    "--overwrite, or choose another --out"
-                )
-            self.fresh = not existing or self.overwrite
-        except BaseException:
-            self.release()
-            raise
-        return self
-
-    def _lock(self) -> None:
-        path = self.out / LOCK_NAME
-        for _ in range(10):  # the file may be unlinked by the run that held it: take the new one
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-                os.close(fd)
-                raise ValueError(
-                    f"--out {str(self.out)!r} is in use by another taskvar run (pid {pid}); wait "
-                    "for it to end or choose another --out"
-                ) from None
-            try:
-                same = os.stat(path).st_ino == os.fstat(fd).st_ino
-            except FileNotFoundError:
-                same = False
-            if same:
-                os.ftruncate(fd, 0)
-                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-                self._fd = fd
-                return
-            os.close(fd)
-        raise ValueError(f"--out {str(self.out)!r}: could not lock {LOCK_NAME}; try again")
-
-    def release(self) -> None:
-        """Remove the lock file and unlock (the lock is held until its file is gone)."""
-        if self._fd is None:
-            return
-        try:
-            (self.out / LOCK_NAME).unlink(missing_ok=True)
-        finally:
-            os.close(self._fd)
-            self._fd = None
-
-    def abandon(self) -> None:
-        """After a failure before training started: leave nothing of this run behind."""
-        self.release()
-        if self.created:
-            self._remove_if_created()
-        elif self.fresh:
-            for p in run_files(self.out):
-                shutil.rmtree(p) if p.is_dir() else p.unlink()
-
-    def _remove_if_created(self) -> None:
-        if self.created and self.out.is_dir():
-            shutil.rmtree(self.out, ignore_errors=True)
-
-
-def _restore_logs(src: Path, out: Path, frame: int) -> None:
-    """Write ``out/logs`` as the rows of run folder ``src``'s logs up to ``frame`` (the checkpoint
-    a run resumes from): rows a killed or interrupted run logged after it are dropped, so the
-    logs of a resumed run equal those of an uninterrupted one. ``src`` may be ``out``."""
-    scalars = src / "logs" / "scalars"
-    if not scalars.is_dir():
-        return
-    for f in sorted(scalars.glob("*.csv")):
-        kept = []
-        for line in f.read_text().splitlines(keepends=True):
-            step = line.split(",", 1)[0]
-            if line.endswith("\n") and step.isdigit() and int(step) <= frame:
-                kept.append(line)
-        text = "".join(kept).encode()
-        atomic_write(out / "logs" / "scalars" / f.name, lambda h, text=text: h.write(text))
-
-
-# --------------------------------------------------------------------------------------------
-# faults: non-finite weights, SIGINT / SIGTERM
+# faults: non-finite weights
 
 
 def _non_finite(learner: MultiHeadLearner) -> list[str]:
@@ -525,10 +219,6 @@ def _non_finite(learner: MultiHeadLearner) -> list[str]:
     return [n for n, good in zip(names, ok) if not good]
 
 
-def _last_checkpoint_note(path: Path | None) -> str:
-    return f"the last checkpoint {str(path)!r} is intact" if path else "no checkpoint was written"
-
-
 def _require_finite(learner: MultiHeadLearner, frames: int, last: Path | None) -> None:
     """:class:`TrainingDiverged` when a weight or optimiser value is not finite: such a model is
     never written."""
@@ -538,36 +228,6 @@ def _require_finite(learner: MultiHeadLearner, frames: int, last: Path | None) -
             f"non-finite values in the {' and '.join(bad)} at frame {frames}: training diverged "
             f"(lower train.lr?); nothing written, {_last_checkpoint_note(last)}"
         )
-
-
-class _StopSignals:
-    """While active (main thread only): the first SIGINT or SIGTERM is recorded in ``signum`` for
-    the loop to stop after its current batch; a second one raises ``KeyboardInterrupt`` at once."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self._old: dict[int, Any] = {}
-
-    def __enter__(self) -> _StopSignals:
-        if threading.current_thread() is threading.main_thread():
-            for sig in (signal.SIGINT, signal.SIGTERM):
-                self._old[sig] = signal.signal(sig, self._handle)
-        return self
-
-    def _handle(self, signum: int, frame: Any) -> None:
-        if self.signum is not None:
-            raise KeyboardInterrupt
-        self.signum = signum
-
-    def __exit__(self, *exc: Any) -> None:
-        for sig, handler in self._old.items():
-            signal.signal(sig, handler)
-        self._old.clear()
-
-
-def resume_command(checkpoint: Path, out: Path) -> str:
-    """The ``taskvar train`` command line continuing a run from ``checkpoint`` in ``out``."""
-    return f"taskvar train --resume {shlex.quote(str(checkpoint))} --out {shlex.quote(str(out))}"
 
 
 # --------------------------------------------------------------------------------------------
@@ -658,16 +318,194 @@ def _train_loop(
     progress: bool,
     on_start: Any,
 ) -> dict[str, Any]:
-    """:func:`train` once its inputs are checked and ``out`` is held."""
+    """:func:`train` once its inputs are checked and ``out`` is held: build the run (or restore it
+    from ``bundle``), then, batch by batch until ``train.total_frames``, store the transitions
+    (:meth:`_Run.store`), learn (:meth:`_Run.learn`), log and checkpoint (:meth:`_Run.report`)."""
     t = cfg.train
-    workers = cfg.collector.num_workers
-    ray_backend = cfg.collector.backend == "ray"
-    remote = collects_in_workers(cfg)
     save_config_yaml(cfg, out / "config.yaml")
+    run = _build_run(cfg, out, bundle)
+    threads = torch.get_num_threads()
+    with warnings.catch_warnings():  # TorchRL's note that the last batch may pass total_frames
+        warnings.filterwarnings("ignore", message=r"total_frames \(\d+\) is not exactly divisible")
+        run.collector = make_collector(
+            cfg, run.env, run.behaviour, max(t.total_frames - run.counters["frames"], 0)
+        )
+    pbar = None
+    try:  # shut the worker processes down on any exit
+        if bundle is not None:  # after the collector's own reset and policy probe
+            _restore_collection(run, bundle, resume)
+        logger = CSVLogger(exp_name="logs", log_dir=str(out))
+        pbar = tqdm(
+            total=t.total_frames, initial=run.counters["frames"], disable=not progress, unit="frame"
+        )
+        start_time, last_log = time.perf_counter(), {}
+        on_start()
+        with _StopSignals() as stop:
+            try:
+                for batch in run.collector:
+                    frames_before = run.store(batch)
+                    run.learn()
+                    pbar.update(min(batch.numel(), max(pbar.total - pbar.n, 0)))  # ends at total
+                    row = run.report(frames_before, stop, logger, pbar, start_time)
+                    if row is not None:
+                        last_log = row
+                pbar.close()
+                final = out / "final.pt"  # a first signal from here on: the run ends normally
+                run.save(final)
+            except KeyboardInterrupt:
+                raise KeyboardInterrupt(
+                    f"aborted by a second signal; nothing written, "
+                    f"{_last_checkpoint_note(run.last_checkpoint)}"
+                ) from None
+    finally:
+        if pbar is not None:
+            pbar.close()  # before any message: the bar's last line does not run into it
+        run.collector.shutdown()
+        torch.set_num_threads(threads)  # MultiSyncCollector.shutdown adds num_workers threads
+    return {
+        "final": final,
+        "frames": run.counters["frames"],
+        "updates": run.counters["updates"],
+        "seconds": time.perf_counter() - start_time,
+        "last_log": last_log,
+    }
 
-    # ---- build everything from the config (seeded), then overwrite with the checkpoint -------
+
+@dataclasses.dataclass
+class _Run:
+    """One training run between batches: what :func:`_build_run` builds from the config (or a
+    checkpoint), and the steps :func:`_train_loop` takes on every collected batch."""
+
+    cfg: Config
+    out: Path
+    env: TransformedEnv
+    learner: MultiHeadLearner
+    behaviour: BehaviourPolicy
+    buffer: ReplayBuffer
+    first_visit: FirstVisitFilter
+    replay_generator: torch.Generator
+    counters: dict[str, int]
+    stats: dict[str, torch.Tensor]  # device-side episode statistics since the last log row
+    collector: BaseCollector | None = None
+    last_checkpoint: Path | None = None  # the newest periodic checkpoint in ``out``
+
+    def store(self, batch: TensorDictBase) -> int:
+        """Replay ``batch``'s raw transitions (first visits only with ``train.first_visit``) and
+        add its finished episodes to the statistics; returns the frame count before it."""
+        t = self.cfg.train
+        if self.cfg.collector.backend == "ray":
+            # (W, n, T) from W actors -> (N, T): worker w's rows [w n, (w+1) n)
+            batch = batch.reshape(-1, batch.shape[-1])
+        if collects_in_workers(self.cfg):
+            batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
+        counters, stats = self.counters, self.stats
+        frames_before = counters["frames"]
+        counters["frames"] += batch.numel()
+        counters["batches"] += 1
+        raw = raw_transitions(batch, keep_instance=t.max_value_estimator == "instance")  # (N*T,)
+        if t.first_visit:
+            raw = raw[self.first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
+        self.buffer.extend(raw)
+        counters["stored"] += raw.numel()
+        done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
+        ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
+        by_options = done & (batch.get(BEHAVIOUR) >= 0)
+        stats["return_sum"] += (ret * done).sum()
+        stats["episodes"] += done.sum()
+        stats["return_sum_options"] += (ret * by_options).sum()
+        stats["episodes_options"] += by_options.sum()
+        return frames_before
+
+    def learn(self) -> None:
+        """Every head from one shared sample per update, ``train.updates_per_batch`` updates once
+        past ``train.init_random_frames``; then the exploration rate for the frames played, and
+        the new weights and epsilon to the collector workers before their next batch."""
+        t = self.cfg.train
+        if self.counters["frames"] >= t.init_random_frames and len(self.buffer) >= t.batch_size:
+            for _ in range(t.updates_per_batch):
+                self.learner.update(self.buffer.sample())
+                self.counters["updates"] += 1
+        self.behaviour.set_epsilon(epsilon_at(self.counters["frames"], t))
+        if collects_in_workers(self.cfg):
+            self.collector.update_policy_weights_(self.behaviour)
+
+    def report(
+        self,
+        frames_before: int,
+        stop: _StopSignals,
+        logger: CSVLogger,
+        pbar: tqdm,
+        start_time: float,
+    ) -> dict[str, float] | None:
+        """After a batch: the log row (one host sync) when ``train.log_every`` frames were crossed
+        or at the end, then a periodic checkpoint when ``train.checkpoint_every`` frames were
+        crossed or a signal asks to stop (:class:`TrainingInterrupted`). Returns the row, if any."""
+        t = self.cfg.train
+        frames = self.counters["frames"]
+        log_now = _crossed(frames_before, frames, t.log_every)
+        checkpoint_now = _crossed(frames_before, frames, t.checkpoint_every)
+        is_last = frames >= t.total_frames
+        stop_now = stop.signum is not None and not is_last
+        row = None
+        if log_now or checkpoint_now or is_last:
+            row = _log_row(
+                self.learner,
+                self.stats,
+                self.behaviour,
+                self.counters,
+                logger,
+                start_time,
+                self.last_checkpoint,
+            )
+            pbar.set_postfix({k: f"{v:.3g}" for k, v in row.items() if k.startswith("loss")})
+        if (checkpoint_now or stop_now) and not is_last:
+            path = self.out / f"checkpoint_{frames:09d}.pt"
+            self.save(path)
+            if self.last_checkpoint is not None and self.last_checkpoint != path:
+                self.last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic one
+            self.last_checkpoint = path
+        if stop_now:
+            remote = collects_in_workers(self.cfg)
+            raise _interrupted(stop.signum, self.last_checkpoint, self.out, self.counters, remote)
+        return row
+
+    def save(self, path: Path) -> None:
+        """Write the whole run state (:meth:`bundle`) to ``path``; a non-finite model is never
+        written."""
+        _require_finite(self.learner, self.counters["frames"], self.last_checkpoint)
+        save_checkpoint(path, self.bundle())
+
+    def bundle(self) -> dict[str, Any]:
+        """The checkpoint of the run: every head, target and optimiser, the learner's counters,
+        replay, first-visit filter, statistics and RNG, and (one collector process) the env's
+        simulator state and the collector's carried tensordict."""
+        learner = self.learner
+        single = not collects_in_workers(self.cfg)  # else the env states live in the workers
+        return make_bundle(
+            self.cfg,
+            models={"heads": learner.heads, "targets": learner.loss.target_heads},
+            optimizers={"adam": learner.optimizer},
+            counters=dict(self.counters),
+            rng=rng_state({"replay": self.replay_generator}),
+            replay=_replay_state(self.buffer),
+            learner={
+                k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
+            },
+            env=self.env.base_env.state_dict() if single else None,
+            carrier=_collector_carrier(self.collector).to_dict() if single else None,
+            first_visit=self.first_visit.state_dict(),
+            stats={k: v.clone() for k, v in self.stats.items()},
+            heads_spec=learner.heads.spec.to_dict(),
+        )
+
+
+def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
+    """Everything from the config, seeded (the networks' initialisation draws from the global
+    torch stream, in this order), then overwritten with ``bundle``'s state when resuming."""
+    t = cfg.train
     torch.manual_seed(cfg.seed)
     replay_generator = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
+    workers = cfg.collector.num_workers
     env = make_training_env(cfg, num_envs=cfg.env.num_envs // workers)  # workers > 1: specs only
     subtasks = make_subtasks(cfg, env.base_env)
     heads = build_heads(cfg, env, subtasks)
@@ -682,13 +520,23 @@ def _train_loop(
     buffer = make_replay_buffer(cfg, replay_generator)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
     first_visit = FirstVisitFilter(cfg.env.num_envs, obs_dim, device=cfg.device)
-    counters = {"frames": 0, "updates": 0, "batches": 0, "stored": 0}
-    stats = {  # device-side episode statistics since the last log row
-        "return_sum": torch.zeros((), device=cfg.device),
-        "episodes": torch.zeros((), device=cfg.device),
-        "return_sum_options": torch.zeros((), device=cfg.device),
-        "episodes_options": torch.zeros((), device=cfg.device),
-    }
+    run = _Run(
+        cfg=cfg,
+        out=out,
+        env=env,
+        learner=learner,
+        behaviour=behaviour,
+        buffer=buffer,
+        first_visit=first_visit,
+        replay_generator=replay_generator,
+        counters={"frames": 0, "updates": 0, "batches": 0, "stored": 0},
+        stats={
+            "return_sum": torch.zeros((), device=cfg.device),
+            "episodes": torch.zeros((), device=cfg.device),
+            "return_sum_options": torch.zeros((), device=cfg.device),
+            "episodes_options": torch.zeros((), device=cfg.device),
+        },
+    )
     if bundle is not None:
         load_state_dicts(
             bundle,
@@ -704,156 +552,26 @@ def _train_loop(
         )
         _load_replay_state(buffer, bundle["replay"])
         first_visit.load_state_dict(bundle["first_visit"])
-        counters.update(bundle["counters"])
-        stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}
-    behaviour.set_epsilon(epsilon_at(counters["frames"], t))
-
-    threads = torch.get_num_threads()
-    with warnings.catch_warnings():  # TorchRL's note that the last batch may pass total_frames
-        warnings.filterwarnings("ignore", message=r"total_frames \(\d+\) is not exactly divisible")
-        collector = make_collector(cfg, env, behaviour, max(t.total_frames - counters["frames"], 0))
-    last_checkpoint: Path | None = None
-    pbar = None
-    try:  # shut the worker processes down on any exit
-        if bundle is not None:  # after the collector's own reset and policy probe
-            env.base_env.load_state_dict(bundle["env"])
-            _collector_carrier(collector).update(
-                TensorDict(bundle["carrier"], batch_size=env.batch_size)
-            )
-            set_rng_state(bundle["rng"], {"replay": replay_generator})
-            # the logs up to the checkpoint, without the rows a stopped run wrote after it
-            _restore_logs(Path(resume).parent, out, counters["frames"])
-            if Path(resume).parent.resolve() == out.resolve() and Path(resume).name.startswith(
-                "checkpoint_"
-            ):
-                last_checkpoint = Path(resume)  # replaced by the next periodic checkpoint
-
-        logger = CSVLogger(exp_name="logs", log_dir=str(out))
-        pbar = tqdm(
-            total=t.total_frames, initial=counters["frames"], disable=not progress, unit="frame"
-        )
-        start_time, last_log = time.perf_counter(), {}
-        on_start()
-
-        def bundle_now() -> dict[str, Any]:
-            return _make_bundle(
-                cfg,
-                learner,
-                buffer,
-                env,
-                collector,
-                first_visit,
-                counters,
-                stats,
-                replay_generator,
-            )
-
-        with _StopSignals() as stop:
-            try:
-                for batch in collector:
-                    if (
-                        ray_backend
-                    ):  # (W, n, T) from W actors -> (N, T): worker w's rows [w n, (w+1) n)
-                        batch = batch.reshape(-1, batch.shape[-1])
-                    if remote:
-                        batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
-                    # ---- store the raw transitions ----------------------------------------------
-                    frames_before = counters["frames"]
-                    counters["frames"] += batch.numel()
-                    counters["batches"] += 1
-                    raw = raw_transitions(
-                        batch, keep_instance=t.max_value_estimator == "instance"
-                    )  # (N*T,)
-                    if t.first_visit:
-                        raw = raw[
-                            first_visit(batch).reshape(-1)
-                        ]  # one sample per (s, a) per episode
-                    buffer.extend(raw)
-                    counters["stored"] += raw.numel()
-                    done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
-                    ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
-                    by_options = done & (batch.get(BEHAVIOUR) >= 0)
-                    stats["return_sum"] += (ret * done).sum()
-                    stats["episodes"] += done.sum()
-                    stats["return_sum_options"] += (ret * by_options).sum()
-                    stats["episodes_options"] += by_options.sum()
-
-                    # ---- learn: every head from one shared sample per update --------------------
-                    if counters["frames"] >= t.init_random_frames and len(buffer) >= t.batch_size:
-                        for _ in range(t.updates_per_batch):
-                            learner.update(buffer.sample())
-                            counters["updates"] += 1
-                    behaviour.set_epsilon(epsilon_at(counters["frames"], t))
-                    if remote:  # new weights and epsilon to the workers, before their next batch
-                        collector.update_policy_weights_(behaviour)
-                    pbar.update(min(batch.numel(), max(pbar.total - pbar.n, 0)))  # ends at total
-
-                    # ---- log (one host sync), then checkpoint ---------------------------------
-                    log_now = _crossed(frames_before, counters["frames"], t.log_every)
-                    checkpoint_now = _crossed(frames_before, counters["frames"], t.checkpoint_every)
-                    is_last = counters["frames"] >= t.total_frames
-                    stop_now = stop.signum is not None and not is_last
-                    if log_now or checkpoint_now or is_last:
-                        last_log = _log_row(
-                            learner,
-                            stats,
-                            behaviour,
-                            counters,
-                            logger,
-                            start_time,
-                            last_checkpoint,
-                        )
-                        pbar.set_postfix(
-                            {k: f"{v:.3g}" for k, v in last_log.items() if k.startswith("loss")}
-                        )
-                    if (checkpoint_now or stop_now) and not is_last:
-                        path = out / f"checkpoint_{counters['frames']:09d}.pt"
-                        _require_finite(learner, counters["frames"], last_checkpoint)
-                        save_checkpoint(path, bundle_now())
-                        if last_checkpoint is not None and last_checkpoint != path:
-                            last_checkpoint.unlink(missing_ok=True)  # keep the newest periodic one
-                        last_checkpoint = path
-                    if stop_now:
-                        raise _interrupted(stop.signum, last_checkpoint, out, counters, remote)
-                pbar.close()
-                final = out / "final.pt"  # a first signal from here on: the run ends normally
-                _require_finite(learner, counters["frames"], last_checkpoint)
-                save_checkpoint(final, bundle_now())
-            except KeyboardInterrupt:
-                raise KeyboardInterrupt(
-                    f"aborted by a second signal; nothing written, "
-                    f"{_last_checkpoint_note(last_checkpoint)}"
-                ) from None
-    finally:
-        if pbar is not None:
-            pbar.close()  # before any message: the bar's last line does not run into it
-        collector.shutdown()
-        torch.set_num_threads(threads)  # MultiSyncCollector.shutdown adds num_workers threads
-    return {
-        "final": final,
-        "frames": counters["frames"],
-        "updates": counters["updates"],
-        "seconds": time.perf_counter() - start_time,
-        "last_log": last_log,
-    }
+        run.counters.update(bundle["counters"])
+        run.stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}
+    behaviour.set_epsilon(epsilon_at(run.counters["frames"], t))
+    return run
 
 
-def _interrupted(
-    signum: int, checkpoint: Path, out: Path, counters: dict[str, int], remote: bool
-) -> TrainingInterrupted:
-    """The one-line report of a run stopped by ``signum`` after writing ``checkpoint``."""
-    name = signal.Signals(signum).name
-    head = f"interrupted by {name} at frame {counters['frames']}; saved {str(checkpoint)!r}"
-    if remote:
-        return TrainingInterrupted(
-            f"{head} (a run with collector workers cannot be resumed; evaluate it with taskvar "
-            f"eval --checkpoint {shlex.quote(str(checkpoint))})",
-            checkpoint,
-            None,
-            signum,
-        )
-    command = resume_command(checkpoint, out)
-    return TrainingInterrupted(f"{head}; continue with: {command}", checkpoint, command, signum)
+def _restore_collection(run: _Run, bundle: dict[str, Any], resume: str | os.PathLike) -> None:
+    """The checkpoint's env simulator state, collector carrier and replay RNG (after the
+    collector's own reset and policy probe), and the logs up to the checkpoint, without the rows a
+    stopped run wrote after it; a periodic checkpoint of ``out`` is replaced by the next one."""
+    run.env.base_env.load_state_dict(bundle["env"])
+    _collector_carrier(run.collector).update(
+        TensorDict(bundle["carrier"], batch_size=run.env.batch_size)
+    )
+    set_rng_state(bundle["rng"], {"replay": run.replay_generator})
+    _restore_logs(Path(resume).parent, run.out, run.counters["frames"])
+    if Path(resume).parent.resolve() == run.out.resolve() and Path(resume).name.startswith(
+        "checkpoint_"
+    ):
+        run.last_checkpoint = Path(resume)
 
 
 def _crossed(before: int, after: int, every: int) -> bool:
@@ -893,27 +611,28 @@ def _log_row(
     return row
 
 
-# --------------------------------------------------------------------------------------------
-# loading a trained bundle
-
-
 __all__ = [
     "CheckpointError",
+    "LOCK_NAME",
     "RunFolder",
     "TrainingDiverged",
     "TrainingInterrupted",
     "build_heads",
     "check_device",
     "check_output_folder",
+    "collects_in_workers",
     "epsilon_at",
     "load_heads",
     "make_collector",
     "make_env",
     "make_learner",
+    "make_ray_collector",
     "make_replay_buffer",
     "make_subtasks",
     "make_training_env",
     "make_worker_env",
     "raw_transitions",
+    "resume_command",
+    "run_files",
     "train",
 ]

@@ -17,7 +17,7 @@ from taskvar_torch.config import load_config
 from taskvar_torch.controllers import side_by_side
 from taskvar_torch.envs.wargus import WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
-from taskvar_torch.experiments import fig4_metrics, fig4_report
+from taskvar_torch.experiments import fig4_metrics, fig4_report, fig4_trial
 from taskvar_torch.experiments import wargus_fig4 as fig4
 from taskvar_torch.heads import snapshots
 from taskvar_torch.train import load_heads, make_env
@@ -179,9 +179,9 @@ def test_trials_to_90pct_on_known_curves():
 
 
 def test_wargus_fig4_re_exports_the_split_modules():
-    """Names that moved out of ``wargus_fig4`` (metrics, report, side by side, head snapshots)
-    are still importable from it, as the same objects."""
-    for module in (fig4_metrics, fig4_report, side_by_side, snapshots):
+    """Names that moved out of ``wargus_fig4`` (trial loops, metrics, report, side by side, head
+    snapshots) are still importable from it, as the same objects."""
+    for module in (fig4_trial, fig4_metrics, fig4_report, side_by_side, snapshots):
         for name in module.__all__:
             assert getattr(fig4, name) is getattr(module, name), (module.__name__, name)
             assert name in fig4.__all__, name

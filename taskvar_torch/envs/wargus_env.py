@@ -262,7 +262,7 @@ class WargusEnv(BatchedFamilyEnv):
         """Start a new episode in every sub-environment and return their data.
 
         The same draws and keys as ``reset()`` (no ``_reset`` mask), without ``EnvBase``'s checks
-        and transforms: the experiments' fast loop (``experiments/wargus_fig4.py``) steps the
+        and transforms: the experiments' fast loop (``experiments/fig4_trial.py``) steps the
         dynamics through :meth:`reset_all` / :meth:`step_all` on plain tensordicts.
         """
         return self._reset(None)
