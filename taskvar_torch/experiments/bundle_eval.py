@@ -235,7 +235,7 @@ def _metrics(checkpoint, cfg, test, shifts, methods, seed, noise_seed, episodes)
         "method": ",".join(methods),
         "methods": list(methods),
         "seed": seed,
-        "noise_seed": noise_seed,
+        "noise_seed": 0 if noise_seed is None else int(noise_seed),
         "episodes": int(episodes),
     }
 
@@ -264,7 +264,8 @@ def _write(out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]], plots
     fields = list(CSV_FIELDS) + sorted({k for r in rows for k in r} - set(CSV_FIELDS))
     write_csv(out / CSV_NAME, rows, fields)
     if plots:
-        metrics["figures"] = [str(plot_eval(metrics, out / PNG_NAME))]
+        plot_eval(metrics, out / PNG_NAME)
+        metrics["figures"] = [PNG_NAME]  # relative to the folder
     write_json(out / METRICS_NAME, metrics)
 
 

@@ -48,10 +48,11 @@ from taskvar_torch.config import (
     save_config_yaml,
     windy_layout,
 )
-from taskvar_torch.controllers import CONTROLLERS, Controller, make_controller
+from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.envs import windy
 from taskvar_torch.envs.instances import WindyInstances
 from taskvar_torch.envs.windy_env import WindyGridEnv
+from taskvar_torch.experiments.bundle_eval import eval_bundle
 from taskvar_torch.experiments.evaluation import mean_ci95, paired_summary, run_episodes
 from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sorted_differences
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
@@ -722,43 +723,21 @@ def eval_checkpoint(
     noise_seed: int = 0,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Evaluate any saved windy bundle with ``method`` on test distribution ``test``; no retraining.
+    """Evaluate a saved windy bundle with ``method`` on test distribution ``test``; no retraining.
 
-    ``seed`` defaults to :func:`test_seed` of run 0, so ``windy_fig2``'s run ``r`` (seed
+    :func:`~taskvar_torch.experiments.bundle_eval.eval_bundle` with one method and no shift (no
+    plot): ``seed`` defaults to :func:`test_seed` of run 0, so ``windy_fig2``'s run ``r`` (seed
     ``cfg.seed + 1 + r``, ``episodes_per_run`` episodes) is reproduced exactly by the same seed,
-    episodes and method (``test``: ``train`` for the training distribution, ``south`` for
-    south-only). Writes ``out_dir/metrics.json`` when ``out_dir`` is given.
+    episodes and method. Writes ``out_dir/metrics.json`` (and ``episodes.csv``) when given.
     """
-
-    if method not in CONTROLLERS:  # fail before any work or progress bar, in one line
-        raise ValueError(f"method must be one of {list(CONTROLLERS)}, got {method!r}")
-    WindyInstances.named(test)  # a one-line error naming the distribution
-    if int(episodes) < 1:
-        raise ValueError(f"--episodes must be >= 1, got {episodes}")
-    if out_dir is not None:
-        check_output_folder(out_dir)
-    heads, cfg = load_heads(checkpoint)
-    FAMILIES["windy"].require(cfg, f"taskvar eval (checkpoint {str(checkpoint)!r})")
-    seed = test_seed(cfg, 0) if seed is None else int(seed)
-    bar = tqdm(total=int(episodes), disable=not progress, desc=f"eval {method}", unit="ep")
-    r = evaluate(heads, cfg, method, test, seed, int(episodes), noise_seed=noise_seed, progress=bar)
-    bar.close()
-    mean, ci = mean_ci95(torch.as_tensor(r["return"], dtype=torch.float64))
-    metrics: dict[str, Any] = {
-        "checkpoint": str(checkpoint),
-        "method": method,
-        "test": test,
-        "seed": seed,
-        "noise_seed": int(noise_seed),
-        "episodes": int(episodes),
-        "mean_return": float(np.mean(r["return"], dtype=np.float64)),
-        "mean_return_ci95": ci,
-        "mean_length": float(np.mean(r["length"], dtype=np.float64)),
-    }
-    if method in ("options", "interruption"):
-        metrics["interruptions_per_episode"] = float(np.mean(r["interruptions"], dtype=np.float64))
-    if out_dir is not None:
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        write_json(out / METRICS_NAME, metrics)
-    return metrics
+    return eval_bundle(
+        checkpoint,
+        method,
+        test,
+        episodes=episodes,
+        seed=seed,
+        noise_seed=noise_seed,
+        out_dir=out_dir,
+        progress=progress,
+        plots=False,
+    )
