@@ -10,7 +10,10 @@ from __future__ import annotations
 
 from taskvar_torch.families import FAMILIES as _REGISTRY
 
-METHODS = ("averaging", "hierarchy", "interruption", "options")
+METHODS = ("averaging", "options", "interruption", "hierarchy")
+"""The paper's four controllers, in its order: averaging (§3.1), options (§3.2), interruption
+(Algorithm 1), hierarchy (Algorithm 2). The experiments iterate them in this order; the windy
+Figure 2 takes all but hierarchy (experiments/windy_fig2.py)."""
 
 FAMILIES = tuple(sorted(_REGISTRY))  # the family registry's names (taskvar_torch/families.py)
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")

@@ -50,6 +50,7 @@ from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.config import (
+    METHODS,
     Config,
     apply_overrides,
     config_to_dict,
@@ -67,7 +68,6 @@ from taskvar_torch.oracle import WindyOracle
 from taskvar_torch.train import train
 
 EXPERIMENT = "scale"
-METHODS = ("averaging", "options", "interruption", "hierarchy")
 TEST_SEED_OFFSET = 1000
 """Test episodes use env seed ``seed + TEST_SEED_OFFSET`` (never a training seed)."""
 CSV_NAME, METRICS_NAME, FIGURE = "scale.csv", "metrics.json", "scale.png"
