@@ -46,7 +46,8 @@ import torch
 from torch import nn
 
 import taskvar_torch
-from taskvar_torch.config import Config, atomic_write, config_to_dict
+from taskvar_torch.config import Config, config_to_dict
+from taskvar_torch.io import atomic_write
 
 FORMAT = "taskvar_torch.checkpoint"
 FORMAT_VERSION = 1

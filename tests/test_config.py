@@ -10,6 +10,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from taskvar_torch.config import (
+    METHODS,
     Config,
     EnvConfig,
     EvalConfig,
@@ -28,7 +29,10 @@ from taskvar_torch.config import (
     windy_layout,
 )
 from taskvar_torch.envs import WindyGridEnv
+from taskvar_torch.experiments import fig4_metrics, windy_fig2
+from taskvar_torch.experiments import scale as scale_experiment
 from taskvar_torch.experiments.scale import ScaleConfig, load_scale_config
+from taskvar_torch.families import EXACT_ORACLE_CELLS
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 # Training/experiment configs (the `Config` schema); `scale.yaml` is the scale experiment's own
@@ -419,3 +423,34 @@ def test_scale_config_file_loads_strictly():
 
     assert isinstance(load_scale_config(SCALE_CONFIG), ScaleConfig)
     assert isinstance(load_scale_config(SCALE_CONFIG, quick=True), ScaleConfig)
+
+
+def test_a_list_item_cannot_be_set_alone():
+    _raises_one_line(
+        ["'heads.hidden.0'", "heads.hidden=[...]"], load_config, WINDY, ["heads.hidden.0=5"]
+    )
+
+
+def test_scale_config_errors_come_from_the_same_loader(tmp_path: Path):
+    case = _write(tmp_path, "cases:\n  - {name: a, config: windy.yaml, extra: 1}\n")
+    _raises_one_line(
+        ["'extra'", "allowed keys in ScaleCase: name, config, overrides"], load_scale_config, case
+    )
+    _raises_one_line(
+        ["'totl_frames'", "did you mean 'total_frames'"],
+        load_scale_config,
+        SCALE_CONFIG,
+        ["totl_frames=1"],
+    )
+    _raises_one_line(
+        ["key=value", "total_frames="], load_scale_config, SCALE_CONFIG, ["total_frames"]
+    )
+    listed = _write(tmp_path, "- 1\n", "list.yaml")
+    _raises_one_line(["must hold a mapping"], load_scale_config, listed)
+
+
+def test_one_method_list_in_the_papers_order():
+    assert METHODS == ("averaging", "options", "interruption", "hierarchy")
+    assert scale_experiment.METHODS is METHODS and fig4_metrics.METHODS is METHODS
+    assert windy_fig2.METHODS == tuple(m for m in METHODS if m != "hierarchy")
+    assert windy_fig2.EXACT_MAX_CELLS == EXACT_ORACLE_CELLS

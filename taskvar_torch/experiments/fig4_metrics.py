@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-METHODS = ("averaging", "options", "interruption", "hierarchy")  # tested side by side, this order
+from taskvar_torch.config import METHODS  # tested side by side, in the paper's order
+
 EXPERIMENT = "wargus-fig4"  # metrics.json's "experiment" (a results folder's kind)
 FINAL_FRACTION = 0.1  # "final" performance: the mean of the last 10% of trials
 

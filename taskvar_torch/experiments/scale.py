@@ -38,12 +38,10 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
-from omegaconf import DictConfig, OmegaConf
-from omegaconf.errors import OmegaConfBaseException
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
@@ -52,10 +50,13 @@ from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.config import (
+    METHODS,
     Config,
     apply_overrides,
-    atomic_write,
+    config_to_dict,
     load_config,
+    load_strict,
+    save_config_yaml,
     windy_layout,
 )
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
@@ -67,7 +68,6 @@ from taskvar_torch.oracle import WindyOracle
 from taskvar_torch.train import train
 
 EXPERIMENT = "scale"
-METHODS = ("averaging", "options", "interruption", "hierarchy")
 TEST_SEED_OFFSET = 1000
 """Test episodes use env seed ``seed + TEST_SEED_OFFSET`` (never a training seed)."""
 CSV_NAME, METRICS_NAME, FIGURE = "scale.csv", "metrics.json", "scale.png"
@@ -79,7 +79,7 @@ CSV_FIELDS = (
 
 
 # --------------------------------------------------------------------------------------------
-# config (mirrored by configs/scale.yaml, loaded strictly)
+# config (mirrored by configs/scale.yaml, loaded strictly by taskvar_torch.config.load_strict)
 
 
 @dataclass(frozen=True)
@@ -98,6 +98,8 @@ class ScaleCase:
 class ScaleConfig:
     """The scaled-up grids experiment: which cases, num_envs values, budgets."""
 
+    override_example: ClassVar[str] = "total_frames=20000"
+    """An override shown in the error for a malformed one (a class constant, not a config key)."""
     seed: int = 0
     """Seed of every cell's training (cfg.seed); test episodes use seed + 1000."""
     total_frames: int = 100_000
@@ -167,67 +169,25 @@ def default_config_path() -> Path:
     return here if here.is_file() else Path("configs") / "scale.yaml"
 
 
-def _merge(node: DictConfig, update: Any, source: str, key: str | None = None) -> DictConfig:
-    """``OmegaConf.merge`` with a one-line error naming the key (``key``: the override's)."""
-    try:
-        return OmegaConf.merge(node, update)
-    except (OmegaConfBaseException, TypeError) as e:
-        key = getattr(e, "full_key", None) or key or "?"
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        if "$VALUE" in first:  # an unformatted OmegaConf template: "... converted to Integer"
-            first = f"could not be converted to {first.rsplit(' ', 1)[-1]}"
-        if isinstance(e, TypeError):
-            first = "a list is set whole (e.g. num_envs=[16,64]); list items cannot be overridden"
-        allowed = ", ".join(f.name for f in dataclasses.fields(ScaleConfig))
-        raise ValueError(
-            f"bad scale config key {key!r} ({source}): {first}; top-level keys: {allowed}"
-        ) from None
-
-
-def _dotlist(item: str) -> Any:
-    if not isinstance(item, str) or "=" not in item:
-        raise ValueError(f"override {item!r} must look like key=value (e.g. total_frames=20000)")
-    try:
-        return OmegaConf.from_dotlist([item])
-    except Exception as e:  # OmegaConf and YAML parse errors
-        raise ValueError(f"override {item!r} cannot be parsed: {str(e).splitlines()[0]}") from None
-
-
-def _to_scale_config(node: DictConfig, source: str) -> ScaleConfig:
-    try:
-        cfg = OmegaConf.to_object(node)
-    except OmegaConfBaseException as e:
-        raise ValueError(f"bad scale config ({source}): {str(e).splitlines()[0]}") from None
-    except ValueError as e:  # ScaleConfig.__post_init__
-        raise ValueError(f"{e} ({source})") from None
-    assert isinstance(cfg, ScaleConfig)
-    return cfg
-
-
 def load_scale_config(
     path: str | os.PathLike, overrides: Sequence[str] = (), quick: bool = False
 ) -> ScaleConfig:
     """Load ``configs/scale.yaml`` strictly (unknown keys and bad types are one-line errors), apply
     ``quick_overrides`` with ``quick``, then ``key=value`` overrides; case config paths are resolved
-    beside the YAML file, and every case's family config is loaded (strictly) to fail early."""
+    beside the YAML file, and every case's family config is loaded (strictly) to fail early.
+
+    Loading is :func:`taskvar_torch.config.load_strict`, the training configs' loader; the quick
+    overrides are read (and checked) only with ``quick``.
+    """
     path = Path(path)
-    if not path.is_file():
-        raise ValueError(f"config file {str(path)!r} does not exist")
-    try:
-        data = OmegaConf.load(path)
-    except Exception as e:  # yaml errors
-        raise ValueError(
-            f"config file {str(path)!r} is not valid YAML: {str(e).splitlines()[0]}"
-        ) from None
-    schema = OmegaConf.structured(ScaleConfig)
-    node = _merge(schema, data, f"in {path}")
-    base = _to_scale_config(node, f"in {path}")
-    if quick:
-        for item in base.quick_overrides:
-            node = _merge(node, _dotlist(item), f"quick override {item!r}", item.split("=")[0])
-    for item in overrides:
-        node = _merge(node, _dotlist(item), f"override {item!r}", item.split("=")[0])
-    cfg = _to_scale_config(node, f"in {path} with overrides")
+    cfg = load_strict(
+        ScaleConfig,
+        path,
+        overrides,
+        quick=quick,
+        quick_overrides=lambda c: c.quick_overrides,
+        check_quick=False,
+    )
     cases = []
     for c in cfg.cases:
         p = Path(c.config)
@@ -242,7 +202,7 @@ def load_scale_config(
 
 def scale_config_to_dict(cfg: ScaleConfig) -> dict[str, Any]:
     """Plain nested data of ``cfg`` (tuples as lists)."""
-    return json.loads(json.dumps(dataclasses.asdict(cfg)))
+    return config_to_dict(cfg)
 
 
 def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
@@ -461,8 +421,7 @@ def scale(
     out = Path(out_dir)
     refuse_existing_results(out, overwrite, "taskvar experiment scale")
     out.mkdir(parents=True, exist_ok=True)
-    data = OmegaConf.to_yaml(OmegaConf.create(scale_config_to_dict(cfg))).encode()
-    atomic_write(out / "config.yaml", lambda f: f.write(data))
+    save_config_yaml(cfg, out / "config.yaml")
     t0 = time.perf_counter()
     cases = cfg.selected()
     refs: dict[str, Any] = {}

@@ -1,0 +1,32 @@
+"""The allowed values of the config's choice fields, and the paper's method list.
+
+Defined here, below both :mod:`~taskvar_torch.config.schema` and
+:mod:`~taskvar_torch.config.validate`: ``Config.__post_init__`` runs the validation, and the
+validation checks values against these tuples, so neither of those modules can hold them without
+importing the other.
+"""
+
+from __future__ import annotations
+
+from taskvar_torch.families import FAMILIES as _REGISTRY
+
+METHODS = ("averaging", "options", "interruption", "hierarchy")
+"""The paper's four controllers, in its order: averaging (§3.1), options (§3.2), interruption
+(Algorithm 1), hierarchy (Algorithm 2). The experiments iterate them in this order; the windy
+Figure 2 takes all but hierarchy (experiments/windy_fig2.py)."""
+
+FAMILIES = tuple(sorted(_REGISTRY))  # the family registry's names (taskvar_torch/families.py)
+ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
+HEAD_NETWORKS = ("mlp", "conv")  # taskvar_torch/heads/networks.py NETWORKS
+OPTION_INPUTS = ("full", "subtask")
+TARGET_UPDATES = ("hard", "soft")
+SWITCHING_MODES = ("intra",)
+MU_BAR_MODES = ("greedy", "softmax")
+MAX_VALUE_ESTIMATORS = ("expectile", "instance")
+ROBUSTNESS_TARGETS = ("greedy", "option")  # mirrors heads/robustness.py
+ROOT_POLICIES = ("averaging", "option")  # mirrors controllers/base.py
+ROBUSTNESS_THRESHOLDS = ("calibrated", "fixed")
+ROBUSTNESS_UNTIL = ("episode", "termination")  # mirrors heads/robustness.py
+HIERARCHY_DESCENTS = ("normalised", "raw")  # mirrors controllers/hierarchy.py
+COMPOSED_REWARDS = ("env", "sum")  # mirrors subtasks/wargus.py
+COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector

@@ -1,0 +1,386 @@
+"""Strict loading of config dataclasses with OmegaConf structured configs (docs/design.md, Configs).
+
+One pipeline serves every schema, the training :class:`~taskvar_torch.config.schema.Config` and
+the scale experiment's ``ScaleConfig`` alike (:func:`load_strict`): the YAML file is merged into
+``OmegaConf.structured(schema)``, Hydra-style ``key.sub=value`` overrides are merged on top, and
+``OmegaConf.to_object`` builds the frozen dataclass, whose ``__post_init__`` checks ranges and
+choices. An unknown or misspelt key anywhere, or a value of the wrong type, is a one-line
+``ValueError`` naming the full dotted key (for an unknown key, also the closest allowed key and
+the keys allowed at that level); a range or choice error gets its source appended (the file,
+an override, a checkpoint).
+
+:func:`load_config`, :func:`apply_overrides`, :func:`config_from_dict`, :func:`config_to_dict`,
+:func:`config_to_yaml` and :func:`save_config_yaml` are the :class:`Config` entry points; the
+last four take any config dataclass.
+
+Examples:
+    >>> cfg = load_config("configs/windy.yaml", ["train.lr=0.01"])
+    >>> cfg.train.lr
+    0.01
+    >>> config_from_dict(config_to_dict(cfg)) == cfg
+    True
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import os
+import typing
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
+
+from taskvar_torch.config.schema import Config
+from taskvar_torch.io import atomic_write
+
+T = TypeVar("T")
+
+_LIST_ITEM = "a list is set whole (e.g. {key}=[...]); its items cannot be set one by one"
+
+
+# --------------------------------------------------------------------------------------------
+# schema lookups
+
+
+def _structured(schema: type) -> DictConfig:
+    """A writable OmegaConf node of ``schema`` with its defaults (unknown keys refused)."""
+    node = OmegaConf.structured(schema)
+    OmegaConf.set_readonly(node, False)
+    return node
+
+
+def _field_class(cls: type, name: str) -> type | None:
+    """The dataclass a dotted-key part names in ``cls``: a section, or ``name[i]`` of a list of
+    dataclasses; None otherwise."""
+    base, _, index = name.partition("[")
+    t = typing.get_type_hints(cls).get(base)
+    if index:  # list[X] or tuple[X, ...]: the element's class
+        args = [a for a in typing.get_args(t) if a is not Ellipsis]
+        t = args[0] if len(args) == 1 else None
+    return t if t is not None and dataclasses.is_dataclass(t) else None
+
+
+def _schema_class(schema: type, dotted: str) -> type | None:
+    """The dataclass that holds the last part of ``dotted`` (``train.lr`` -> TrainConfig)."""
+    cls: type | None = schema
+    for part in [p for p in dotted.split(".") if p][:-1]:
+        cls = _field_class(cls, part)
+        if cls is None:
+            return None
+    return cls
+
+
+def _list_key(schema: type, dotted: str) -> str:
+    """The first part of ``dotted`` that is not a section (``heads.hidden.0`` -> heads.hidden)."""
+    parts = dotted.split(".")
+    cls: type | None = schema
+    for i, part in enumerate(parts):
+        cls = _field_class(cls, part) if cls is not None else None
+        if cls is None:
+            return ".".join(parts[: i + 1])
+    return dotted
+
+
+def _first_non_mapping(node: Any, cls: type, prefix: str = "") -> str | None:
+    """First dotted key whose value should be a section (mapping) but is not."""
+    if not isinstance(node, Mapping):
+        return None
+    hints = typing.get_type_hints(cls)
+    for k, v in node.items():
+        t = hints.get(k)
+        if t is not None and dataclasses.is_dataclass(t):
+            if not isinstance(v, Mapping):
+                return f"{prefix}{k}"
+            found = _first_non_mapping(v, t, f"{prefix}{k}.")
+            if found:
+                return found
+    return None
+
+
+def _failing_leaf(schema: type, raw: Any) -> str | None:
+    """The first dotted leaf of ``raw`` that fails to merge on its own (OmegaConf sometimes loses
+    the key, e.g. for a bad list element)."""
+    if not isinstance(raw, Mapping):
+        return None
+
+    def leaves(node: Mapping, prefix: str = ""):
+        for k, v in node.items():
+            if isinstance(v, Mapping) and v:
+                yield from leaves(v, f"{prefix}{k}.")
+            else:
+                yield f"{prefix}{k}", v
+
+    for dotted, value in leaves(raw):
+        single: Any = value
+        for part in reversed(dotted.split(".")):
+            single = {part: single}
+        try:
+            OmegaConf.merge(_structured(schema), single)
+        except (OmegaConfBaseException, TypeError):
+            return dotted
+    return None
+
+
+def _raw_value(raw: Any, dotted: str) -> Any:
+    """Value at ``dotted`` in a nested mapping, or None."""
+    node = raw
+    for part in dotted.split("."):
+        if not isinstance(node, Mapping) or part not in node:
+            return None
+        node = node[part]
+    return node
+
+
+# --------------------------------------------------------------------------------------------
+# one-line errors
+
+
+def _config_error(schema: type, e: Exception, source: str, raw: Any) -> ValueError:
+    """Turn an OmegaConf error (or its ``TypeError`` for a list item set alone) into a one-line
+    ValueError naming the dotted key; ``raw`` is the data whose merge failed (None: unknown)."""
+    key = getattr(e, "full_key", None)
+    first = (
+        str(getattr(e, "msg", None) or e).strip().splitlines()[0]
+        if str(e).strip()
+        else type(e).__name__
+    )
+    if not key:
+        key = _first_non_mapping(raw, schema)
+        if key:
+            cls = _schema_class(schema, key + ".x")
+            return ValueError(
+                f"config key {key!r} ({source}) must be a section of "
+                f"{[f.name for f in dataclasses.fields(cls)]}, got {_raw_value(raw, key)!r}"
+            )
+        key = _failing_leaf(schema, raw)
+        if not key:
+            return ValueError(f"invalid config ({source}): {first}")
+        if "$VALUE" in first:  # an unformatted OmegaConf template: "... converted to Integer"
+            first = f"{_raw_value(raw, key)!r} could not be converted to {first.rsplit(' ', 1)[-1]}"
+    if isinstance(e, TypeError):  # OmegaConf merging a mapping into a list
+        first = _LIST_ITEM.format(key=_list_key(schema, key))
+    leaf = key.split(".")[-1].partition("[")[0]
+    cls = _schema_class(schema, key)
+    allowed = [f.name for f in dataclasses.fields(cls)] if cls is not None else []
+    object_type = getattr(e, "object_type", None)
+    if cls is not None and leaf not in allowed:
+        level = key.rsplit(".", 1)[0] if "." in key else "the top level"
+        if dataclasses.is_dataclass(object_type) and object_type is not cls:
+            # a key inside a list item: OmegaConf names the leaf and the item's class only
+            cls, level = object_type, object_type.__name__
+            allowed = [f.name for f in dataclasses.fields(cls)]
+        hint = difflib.get_close_matches(leaf, allowed, n=1)
+        mean = f" (did you mean {hint[0]!r}?)" if hint else ""
+        return ValueError(
+            f"unknown config key {key!r} ({source}){mean}; allowed keys in {level}: {', '.join(allowed)}"
+        )
+    return ValueError(f"bad value for config key {key!r} ({source}): {first}")
+
+
+# --------------------------------------------------------------------------------------------
+# the pipeline: file -> schema -> overrides -> frozen dataclass
+
+
+def _read_yaml(path: Path) -> DictConfig:
+    """The YAML mapping in ``path``; a missing file, bad YAML or a non-mapping is one line."""
+    if not path.is_file():
+        raise ValueError(f"config file {str(path)!r} does not exist")
+    try:
+        data = OmegaConf.load(path)
+    except Exception as e:  # yaml.YAMLError and friends
+        raise ValueError(
+            f"config file {str(path)!r} is not valid YAML: {_yaml_problem(e)}"
+        ) from None
+    if not isinstance(data, DictConfig):
+        raise ValueError(f"config file {str(path)!r} must hold a mapping, got a list")
+    return data
+
+
+def _yaml_problem(e: BaseException) -> str:
+    """``line L, column C: problem`` of a YAML syntax error (1-based), else its first line."""
+    mark = getattr(e, "problem_mark", None) or getattr(e, "context_mark", None)
+    problem = getattr(e, "problem", None) or getattr(e, "context", None)
+    if mark is not None and problem:
+        return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+    text = str(e).strip()
+    return text.splitlines()[0] if text else type(e).__name__
+
+
+def _merge(schema: type, base: DictConfig, update: Any, source: str) -> DictConfig:
+    """``OmegaConf.merge(base, update)`` with its errors reworded (:func:`_config_error`)."""
+    raw = OmegaConf.to_container(update) if isinstance(update, DictConfig) else update
+    if not isinstance(raw, Mapping):
+        raise ValueError(
+            f"config ({source}) must be a mapping of keys to values, got {type(raw).__name__}"
+        )
+    try:
+        return OmegaConf.merge(base, update)
+    except (OmegaConfBaseException, TypeError) as e:
+        raise _config_error(schema, e, source, raw) from None
+
+
+def _to_object(schema: type[T], node: DictConfig, source: str) -> T:
+    """The frozen dataclass of ``node``; its ``__post_init__`` errors get ``source`` appended."""
+    try:
+        cfg = OmegaConf.to_object(node)
+    except OmegaConfBaseException as e:
+        raise _config_error(schema, e, source, None) from None
+    except ValueError as e:  # __post_init__: range and choice checks
+        raise ValueError(f"{e} ({source})") from None
+    assert isinstance(cfg, schema)
+    return cfg
+
+
+def _parse_override(schema: type, item: str) -> DictConfig:
+    """``key.sub=value`` as an OmegaConf node; anything else (``+key``, ``~key``) is refused."""
+    if not isinstance(item, str) or "=" not in item or item.startswith(("+", "~")):
+        nested = any(dataclasses.is_dataclass(t) for t in typing.get_type_hints(schema).values())
+        form = "key.sub=value" if nested else "key=value"
+        example = getattr(schema, "override_example", None)
+        raise ValueError(
+            f"override {item!r} must look like {form}" + (f" (e.g. {example})" if example else "")
+        )
+    try:
+        return OmegaConf.from_dotlist([item])
+    except Exception as e:  # OmegaConf and YAML parse errors
+        raise ValueError(f"override {item!r} cannot be parsed: {str(e).splitlines()[0]}") from None
+
+
+def _apply_overrides(
+    schema: type, node: DictConfig, overrides: Sequence[str], label: str = "override"
+) -> DictConfig:
+    """``node`` with the overrides merged in order; an error names the override (``label``)."""
+    if isinstance(overrides, str):
+        overrides = [overrides]
+    parsed = [_parse_override(schema, item) for item in overrides]
+    if not parsed:
+        return node
+    try:  # one merge; on failure, redo them one by one to name the culprit
+        return OmegaConf.merge(node, *parsed)
+    except (OmegaConfBaseException, TypeError):
+        for item, update in zip(overrides, parsed):
+            node = _merge(schema, node, update, f"{label} {item!r}")
+        return node
+
+
+def load_strict(
+    schema: type[T],
+    path: str | os.PathLike,
+    overrides: Sequence[str] = (),
+    *,
+    quick: bool = False,
+    quick_overrides: Callable[[T], Sequence[str]] | None = None,
+    check_quick: bool = True,
+) -> T:
+    """Load a YAML file into the config dataclass ``schema`` strictly, then apply overrides.
+
+    Args:
+        schema: a dataclass whose fields all have defaults; keys left out of the file take them.
+            Its ``override_example`` class constant, if any, is shown for a malformed override.
+        path: the YAML file.
+        overrides: ``key.sub=value`` strings, applied in order after the file.
+        quick: apply ``quick_overrides(config in the file)`` before ``overrides``.
+        quick_overrides: where the file's quick overrides are (None: the schema has none).
+        check_quick: without ``quick``, still check that the quick overrides apply, so a typo
+            there fails now rather than in the next quick run.
+
+    Returns:
+        The frozen ``schema`` instance.
+
+    Raises:
+        ValueError: a missing file, an unknown key, a wrong type or a value out of range, in one
+            line naming the dotted key.
+    """
+    path = Path(path)
+    node = _merge(schema, _structured(schema), _read_yaml(path), f"in {path}")
+    cfg = _to_object(schema, node, f"in {path}")
+    if quick_overrides is not None and quick:
+        node = _apply_overrides(schema, node, quick_overrides(cfg), "quick override")
+    elif quick_overrides is not None and check_quick:
+        checked = _apply_overrides(schema, node.copy(), quick_overrides(cfg), "quick override")
+        _to_object(schema, checked, "quick_overrides")
+    node = _apply_overrides(schema, node, overrides)
+    return _to_object(schema, node, f"in {path} with overrides")
+
+
+# --------------------------------------------------------------------------------------------
+# Config entry points (the dict and YAML ones take any config dataclass)
+
+
+def load_config(
+    path: str | os.PathLike, overrides: Sequence[str] = (), quick: bool = False
+) -> Config:
+    """Load a YAML config strictly, then apply ``key.sub=value`` overrides.
+
+    Args:
+        path: YAML file mirroring :class:`Config`; keys left out take the dataclass defaults.
+        overrides: Hydra-style dotlist strings, applied in order after the file.
+        quick: apply ``experiment.quick_overrides`` (before ``overrides``); without it they are
+            still checked.
+
+    Returns:
+        The frozen :class:`Config`.
+
+    Raises:
+        ValueError: a missing file, an unknown key, a wrong type or a value out of range, in one
+            line naming the dotted key.
+    """
+    return load_strict(
+        Config,
+        path,
+        overrides,
+        quick=quick,
+        quick_overrides=lambda cfg: cfg.experiment.quick_overrides,
+    )
+
+
+def apply_overrides(cfg: T, overrides: Sequence[str]) -> T:
+    """``cfg`` (any config dataclass) with ``key.sub=value`` overrides applied (same strict
+    errors)."""
+    schema = type(cfg)
+    node = _merge(schema, _structured(schema), OmegaConf.structured(cfg), "config")
+    return _to_object(schema, _apply_overrides(schema, node, overrides), "with overrides")
+
+
+def config_to_dict(cfg: Any) -> dict[str, Any]:
+    """Plain nested dict of str/int/float/bool/None/list (tuples become lists), e.g. for
+    checkpoints; ``cfg`` is any config dataclass."""
+
+    def plain(x: Any) -> Any:
+        if isinstance(x, Mapping):
+            return {k: plain(v) for k, v in x.items()}
+        if isinstance(x, (list, tuple)):
+            return [plain(v) for v in x]
+        return x
+
+    return plain(OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True))
+
+
+def config_from_dict(
+    d: Mapping[str, Any], source: str = "config dict", schema: type[T] = Config
+) -> T:
+    """Strictly rebuild a ``schema`` instance (a :class:`Config` by default) from
+    :func:`config_to_dict` output (same errors as YAML)."""
+    if not isinstance(d, Mapping):
+        raise ValueError(f"config ({source}) must be a mapping, got {type(d).__name__}")
+    try:
+        data = OmegaConf.create(dict(d))
+    except OmegaConfBaseException as e:
+        raise ValueError(f"config ({source}) is not plain data: {str(e).splitlines()[0]}") from None
+    return _to_object(schema, _merge(schema, _structured(schema), data, source), source)
+
+
+def config_to_yaml(cfg: Any) -> str:
+    """YAML text of ``cfg`` (every key), loadable by :func:`load_config` (or :func:`load_strict`
+    with its schema)."""
+    return OmegaConf.to_yaml(OmegaConf.create(config_to_dict(cfg)))
+
+
+def save_config_yaml(cfg: Any, path: str | os.PathLike) -> None:
+    """Write ``cfg`` as YAML atomically (see :func:`~taskvar_torch.io.atomic_write`)."""
+    text = config_to_yaml(cfg).encode()
+    atomic_write(path, lambda f: f.write(text))

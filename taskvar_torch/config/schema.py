@@ -1,0 +1,276 @@
+"""The config schema: frozen dataclasses mirrored by ``configs/*.yaml`` (docs/design.md, Configs).
+
+:class:`Config` is a whole experiment; its sections are :class:`EnvConfig` (with
+:class:`WargusConfig` under ``env.wargus``), :class:`HeadsConfig`, :class:`TrainConfig`,
+:class:`CollectorConfig`, :class:`EvalConfig` and :class:`ExperimentConfig`. Every field carries
+a docstring (the string literal right below it), the source of ``taskvar train --help``
+(:mod:`taskvar_torch.config.help`). Building a :class:`Config` in any way runs the range and
+choice checks of :mod:`taskvar_torch.config.validate`; files and overrides are loaded strictly by
+:mod:`taskvar_torch.config.loader`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+from taskvar_torch.config.validate import _validate
+
+
+@dataclass(frozen=True)
+class WargusConfig:
+    """Wargus resource-gathering family (paper §3.5); read only when ``family='wargus'``."""
+
+    size: int = 32
+    """Grid side length (size x size cells, no obstacles)."""
+    num_patrols: int = 1
+    """Number of enemy patrols."""
+    num_items: int = 1
+    """Number of items present at a time."""
+    sight: int = 8
+    """An object is seen when its Chebyshev distance to the viewer is < sight."""
+    shoot_range: int = 5
+    """A patrol shoots when the agent is within this Chebyshev distance."""
+    hit_prob: float = 1.0
+    """Probability that a shot destroys the agent."""
+    patrol_speed: float = 0.8
+    """Probability that a patrol moves on a given step."""
+    horizon: int = 500
+    """Steps before truncation."""
+    noop: bool = False
+    """Add a no-op action to the 8 compass moves."""
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """The environment: shared and windy fields at this level, Wargus fields under ``env.wargus``.
+
+    Only the keys of ``family`` are validated and read; the other family's are ignored.
+    """
+
+    num_envs: int = 16
+    """Number of environments simulated in parallel for training (the batch size N)."""
+    layout: str = "default"
+    """Windy layout: a name (default, middle_exits, whole_column_windy), a multi-line map string,
+    or 'generated' to build it from height/width/num_exits/wall_col/wind_cells_per_exit."""
+    height: int | None = None
+    """Generated windy grid: number of rows (only with layout='generated')."""
+    width: int | None = None
+    """Generated windy grid: number of columns (only with layout='generated')."""
+    num_exits: int | None = None
+    """Generated windy grid: exits in the wall, >= 2 (only with layout='generated'; default 2)."""
+    wall_col: int | None = None
+    """Generated windy grid: column of the wall (only with layout='generated'; default width // 2)."""
+    wind_cells_per_exit: int | None = None
+    """Generated windy grid: windy cells west of each exit (only with layout='generated'; default 1)."""
+    instances: str = "train"
+    """Training instance distribution; windy: train, test, south or north; Wargus: train, test or
+    nominal."""
+    horizon: int | None = None
+    """Windy steps before truncation; null: max(100, 4 * (height + width))."""
+    obs_encoding: str = "onehot"
+    """Windy observation: onehot (one-hot cell) or coords_patch (coordinates + local patch)."""
+    patch_radius: int = 2
+    """Windy coords_patch encoding: radius r of the (2r+1)^2 local patch."""
+    wargus: WargusConfig = field(default_factory=WargusConfig)
+    """Wargus family parameters."""
+
+
+@dataclass(frozen=True)
+class HeadsConfig:
+    """Network shapes shared by every head (averaging, options, switching, max-value, robustness)."""
+
+    hidden: tuple[int, ...] = (64, 64)
+    """MLP hidden layer widths; [] gives a linear head."""
+    activation: str = "relu"
+    """Hidden-layer activation: elu, gelu, relu, silu or tanh."""
+    network: str = "mlp"
+    """mlp (over the whole observation) or conv (windy coords_patch only: 3x3 convs over the local
+    patch, flattened, plus the coordinates, then the MLP; one conv trunk per head)."""
+    conv_channels: tuple[int, ...] = (16, 32)
+    """heads.network=conv: output channels of each 3x3 conv layer (same padding)."""
+    option_inputs: str = "full"
+    """full (every option's policy sees the whole observation) or subtask (wargus, mlp: each
+    option's policy is its own network that sees its subtask's features only: TG the item's, FE
+    the patrol's, both the agent's position; the composed root sees everything)."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Offline training of every head from one stream of experience (docs/design.md, Training)."""
+
+    gamma: float = 0.99
+    """Discount of the environment and subtask rewards."""
+    lr: float = 1e-3
+    """Adam learning rate."""
+    batch_size: int = 256
+    """Transitions per gradient step (one shared sample for all heads)."""
+    buffer_size: int = 100_000
+    """Replay buffer capacity in transitions."""
+    frames_per_batch: int = 256
+    """Environment steps (summed over the N environments) collected between update phases."""
+    total_frames: int = 200_000
+    """Total environment steps to collect."""
+    updates_per_batch: int = 4
+    """Gradient steps after each collected batch (update-to-data ratio)."""
+    init_random_frames: int = 5_000
+    """Steps of uniformly random actions collected before learning starts."""
+    eps_start: float = 1.0
+    """Initial epsilon of epsilon-greedy exploration."""
+    eps_end: float = 0.05
+    """Final epsilon."""
+    eps_decay_frames: int = 100_000
+    """Steps over which epsilon decays linearly from eps_start to eps_end."""
+    option_behaviour_prob: float = 0.5
+    """Share of training episodes whose behaviour runs mu_bar-picked options (epsilon-greedy in
+    their option heads) instead of epsilon-greedy in the averaging head."""
+    first_visit: bool = True
+    """Replay only the first visit of each (observation, action) per episode, so every instance
+    weighs equally at a state-action as in the mean MDP (taskvar_torch/heads/first_visit.py)."""
+    target_update: str = "soft"
+    """Target-network update: soft (Polyak, target_tau) or hard (copy every target_period)."""
+    target_tau: float = 0.01
+    """Soft target update rate (target_update='soft')."""
+    target_period: int = 500
+    """Gradient steps between hard target copies (target_update='hard')."""
+    double_q: bool = True
+    """Use double Q-learning targets."""
+    max_value_expectile: float = 0.95
+    """Expectile level of the max-value head's upper estimator, in (0, 1)."""
+    switching: str = "intra"
+    """Option-switching learner: intra (intra-option Q-learning; SMDP learning is not built yet)."""
+    mu_bar: str = "greedy"
+    """mu_bar over Q_mu: greedy or softmax."""
+    mu_bar_temperature: float = 1.0
+    """Softmax temperature of mu_bar (mu_bar='softmax')."""
+    robustness_gamma: float = 0.99
+    """Discount of the robustness critics (Wargus): 0.99 looks ~100 steps ahead, so the root's
+    R(TG+FE) reads survival and future sightings, not only whether the item is in sight now
+    (heads/robustness.py "Scale")."""
+    robustness_tau: float = 2.0
+    """Robustness threshold tau of the hierarchy controller (Wargus) when
+    robustness_threshold='fixed' (the paper's 2), and the fallback of a calibration with no
+    qualifying state."""
+    robustness_threshold: str = "calibrated"
+    """How the hierarchy's thresholds are set (Wargus): fixed (robustness_tau for every
+    capability) or calibrated (per capability, on training states: a composed subtask keeps
+    control on robustness_keep_share of the training states where its subgoals do not conflict;
+    heads/robustness.py RobustnessCalibration). Never set on the nominal test seeds."""
+    robustness_keep_share: float = 0.9
+    """robustness_threshold='calibrated': share of no-conflict training states on which a composed
+    subtask keeps control, in (0, 1)."""
+    robustness_until: str = "termination"
+    """Horizon of the robustness critics (Wargus): termination (no bootstrap past the option's own
+    termination beta_o or the episode's end) or episode (bootstrap through beta_o)."""
+    robustness_target: str = "option"
+    """Next action of the robustness critics' TD target (Wargus): option (pi^o(s'), R of following
+    option o, paper §3.4.3) or greedy (argmax_a' R_o(s', a'), Q-learning on R)."""
+    hierarchy_root_policy: str = "averaging"
+    """Policy of the hierarchy's root (Wargus), in the controller and in its robustness target:
+    averaging (the averaging head: paper §3.4.2, "the policy of this subtask is the full task
+    averaging policy") or option (the root's own option head). The same root policy is used by
+    the options and interruption controllers and by the behaviour's option episodes."""
+    hierarchy_termination: bool = True
+    """Hierarchy controller (Wargus): honour the options' termination (a component whose beta
+    holds hands control back up; the descent only picks components that can take control there).
+    false: the paper's literal Algorithm 2."""
+    hierarchy_descent: str = "normalised"
+    """Hierarchy controller (Wargus): metric of the descent to a component, raw (argmax R, the
+    paper) or normalised ((R - tau) / scale per component, a common scale)."""
+    composed_reward: str = "env"
+    """Subtask reward of the composed option TG+FE (Wargus): env (the environment reward: it is
+    the full task, paper §3.4.2) or sum (TG's plus FE's subtask rewards)."""
+    max_grad_norm: float | None = 10.0
+    """Gradient-norm clipping; null disables it."""
+    checkpoint_every: int = 50_000
+    """Save a checkpoint every this many frames; 0: only the final one."""
+    log_every: int = 5_000
+    """Write a log row every this many frames."""
+    max_value_estimator: str = "expectile"
+    """Estimator of the max-value head Q_hat (Definition 1; taskvar_torch/heads/max_value.py):
+    expectile (expectile-TD upper estimator, max_value_expectile: optimistic over all randomness,
+    any family) or instance (an instance-conditioned critic Q(s, o | z) learnt by intra-option TD
+    under mu_bar, its max over the training instances in the sample distilled into Q_hat: optimism
+    over instances only; windy only, the instance z = (p, direction) is read from the replay)."""
+    max_value_instances: int = 64
+    """max_value_estimator=instance: training instances (from the sampled batch) the max of
+    Definition 1 is taken over at each update."""
+
+
+@dataclass(frozen=True)
+class CollectorConfig:
+    """Experience collection: one process, TorchRL's MultiSyncCollector, or Ray collector actors
+    (docs/design.md, Many processes and Ray actors)."""
+
+    num_workers: int = 1
+    """Collector workers; > 1 gives each a slice of env.num_envs (behaviour weights and epsilon
+    synced after every update phase, no exact resume)."""
+    backend: str = "process"
+    """process: the workers are spawned processes on this machine (MultiSyncCollector; with
+    num_workers = 1 collection runs in the trainer's own process); ray: each worker is a Ray actor
+    (TorchRL Collector(backend="ray"), even with num_workers = 1), on a new local Ray or the
+    cluster at ray_address."""
+    ray_address: str | None = None
+    """backend=ray: the Ray cluster to join ("auto", "HOST:6379"); null starts a local Ray (an
+    already running Ray in the process is reused)."""
+
+
+@dataclass(frozen=True)
+class EvalConfig:
+    """Evaluation of a trained bundle on an instance distribution."""
+
+    method: str = "interruption"
+    """Controller: averaging, options, interruption or hierarchy."""
+    episodes: int = 1_000
+    """Evaluation episodes."""
+    test: str = "test"
+    """Test instance distribution (names as for env.instances)."""
+    batch_size: int = 1_000
+    """Environments evaluated in parallel."""
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    """The paper's experiments: windy Figure 2, Wargus Figure 4."""
+
+    runs: int = 5
+    """Independent repetitions (windy: test runs; Wargus: repetitions)."""
+    episodes_per_run: int = 10_000
+    """Windy Figure 2: test episodes per run."""
+    trials: int = 500
+    """Wargus Figure 4: trials per repetition."""
+    learning_episodes_per_trial: int = 30
+    """Wargus Figure 4: learning episodes per trial."""
+    test_episodes_per_trial: int = 5
+    """Wargus Figure 4: nominal test episodes per trial (fixed seeds, no learning)."""
+    quick_overrides: tuple[str, ...] = ()
+    """key.sub=value overrides applied by load_config(..., quick=True) (smoke tests, notebooks)."""
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole experiment: family, seed, device, environment, heads, training, evaluation."""
+
+    override_example: ClassVar[str] = "train.lr=0.01"
+    """An override shown in the error for a malformed one (a class constant, not a config key)."""
+    family: str = "windy"
+    """MDP family: wargus or windy."""
+    seed: int = 0
+    """Master seed of environments, networks and exploration."""
+    device: str = "cpu"
+    """Torch device for environments and networks (cpu, cuda, cuda:1...)."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    """Environment family."""
+    heads: HeadsConfig = field(default_factory=HeadsConfig)
+    """Network shapes."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Training."""
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    """Experience collection workers (processes or Ray actors)."""
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    """Evaluation."""
+    experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
+    """Experiments."""
+
+    def __post_init__(self):
+        _validate(self)

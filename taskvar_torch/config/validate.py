@@ -1,0 +1,192 @@
+"""Range and choice checks of a :class:`~taskvar_torch.config.schema.Config`
+(docs/design.md, Configs).
+
+:func:`_validate` runs in ``Config.__post_init__``, so every way of building a config (YAML,
+overrides, a checkpoint's dict, ``dataclasses.replace``) is checked. Each error is one line naming
+the dotted key and what is allowed there. The family's own ``env`` keys are checked by the family
+registry (``Family.validate``, taskvar_torch/families.py); the other family's keys are never read.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from taskvar_torch.config.choices import (
+    ACTIVATIONS,
+    COLLECTOR_BACKENDS,
+    COMPOSED_REWARDS,
+    FAMILIES,
+    HEAD_NETWORKS,
+    HIERARCHY_DESCENTS,
+    MAX_VALUE_ESTIMATORS,
+    METHODS,
+    MU_BAR_MODES,
+    OPTION_INPUTS,
+    ROBUSTNESS_TARGETS,
+    ROBUSTNESS_THRESHOLDS,
+    ROBUSTNESS_UNTIL,
+    ROOT_POLICIES,
+    SWITCHING_MODES,
+    TARGET_UPDATES,
+)
+from taskvar_torch.families import FAMILIES as _REGISTRY
+from taskvar_torch.families import Family, family
+
+if TYPE_CHECKING:  # the schema calls _validate() in Config.__post_init__
+    from taskvar_torch.config.schema import Config
+
+
+def _one_of(key: str, value: Any, allowed: Sequence[str]) -> None:
+    if value not in allowed:
+        raise ValueError(f"{key} must be one of {sorted(allowed)}, got {value!r}")
+
+
+def _at_least(key: str, value: int | float | None, low: int | float) -> None:
+    if value is not None and value < low:
+        raise ValueError(f"{key} must be >= {low}, got {value}")
+
+
+def _within(key: str, value: float, low: float, high: float, open_low: bool = False) -> None:
+    ok = (low < value if open_low else low <= value) and value <= high
+    if not ok:
+        raise ValueError(f"{key} must be in {'(' if open_low else '['}{low}, {high}], got {value}")
+
+
+def _families_with(feature: str) -> str:
+    """``family='windy'`` (or several, joined by "or"): the families that support ``feature``."""
+    return " or ".join(f"family={f.name!r}" for f in _REGISTRY.values() if getattr(f, feature))
+
+
+def _validate(cfg: Config) -> None:
+    """Check value ranges and choices; every error names the dotted key and what is allowed.
+
+    The sections are checked in schema order (top level and env, heads, train, collector, eval
+    and experiment), so the first bad key of a config is the one reported.
+    """
+    _one_of("family", cfg.family, FAMILIES)
+    try:
+        torch.device(cfg.device)
+    except (RuntimeError, ValueError) as e:
+        raise ValueError(
+            f"device must be a torch device such as 'cpu' or 'cuda:0', got {cfg.device!r}"
+        ) from e
+    _at_least("env.num_envs", cfg.env.num_envs, 1)
+    fam = family(cfg)
+    fam.validate(cfg)  # the family's own keys; the other family's are never read
+    _check_heads(cfg, fam)
+    _check_train(cfg, fam)
+    _check_collector(cfg)
+    _check_eval_and_experiment(cfg)
+
+
+def _check_heads(cfg: Config, fam: Family) -> None:
+    """``heads.*``: layer sizes, activation, network kind and what the family supports."""
+    for i, h in enumerate(cfg.heads.hidden):
+        _at_least(f"heads.hidden[{i}]", h, 1)
+    _one_of("heads.activation", cfg.heads.activation, ACTIVATIONS)
+    _one_of("heads.network", cfg.heads.network, HEAD_NETWORKS)
+    if cfg.heads.network == "conv":
+        if not cfg.heads.conv_channels:
+            raise ValueError("heads.conv_channels must name at least one layer, got []")
+        for i, c in enumerate(cfg.heads.conv_channels):
+            _at_least(f"heads.conv_channels[{i}]", c, 1)
+        if fam.conv_patch is None:
+            raise ValueError(
+                "heads.network='conv' needs a family with a patch observation "
+                f"({_families_with('conv_patch')}), got family={cfg.family!r}"
+            )
+        fam.conv_patch(cfg)  # raises naming the observation key it needs
+    _one_of("heads.option_inputs", cfg.heads.option_inputs, OPTION_INPUTS)
+    if cfg.heads.option_inputs == "subtask" and (
+        not fam.option_inputs or cfg.heads.network != "mlp"
+    ):
+        raise ValueError(
+            "heads.option_inputs='subtask' needs a family whose options define input features "
+            f"({_families_with('option_inputs')}) and heads.network='mlp', "
+            f"got family={cfg.family!r}, heads.network={cfg.heads.network!r}"
+        )
+
+
+def _check_train(cfg: Config, fam: Family) -> None:
+    """``train.*``: discounts, rates, schedules, target updates and the estimators' choices."""
+    t = cfg.train
+    _within("train.gamma", t.gamma, 0.0, 1.0, open_low=True)
+    _within("train.robustness_gamma", t.robustness_gamma, 0.0, 1.0, open_low=True)
+    _one_of("train.robustness_target", t.robustness_target, ROBUSTNESS_TARGETS)
+    _one_of("train.hierarchy_root_policy", t.hierarchy_root_policy, ROOT_POLICIES)
+    _one_of("train.robustness_threshold", t.robustness_threshold, ROBUSTNESS_THRESHOLDS)
+    if not 0.0 < t.robustness_keep_share < 1.0:
+        raise ValueError(
+            f"train.robustness_keep_share must be in (0, 1), got {t.robustness_keep_share}"
+        )
+    _one_of("train.robustness_until", t.robustness_until, ROBUSTNESS_UNTIL)
+    _one_of("train.hierarchy_descent", t.hierarchy_descent, HIERARCHY_DESCENTS)
+    _one_of("train.composed_reward", t.composed_reward, COMPOSED_REWARDS)
+    if not t.lr > 0:
+        raise ValueError(f"train.lr must be > 0, got {t.lr}")
+    _at_least("train.batch_size", t.batch_size, 1)
+    _at_least("train.buffer_size", t.buffer_size, t.batch_size)
+    _at_least("train.frames_per_batch", t.frames_per_batch, 1)
+    _at_least("train.total_frames", t.total_frames, 0)
+    _at_least("train.updates_per_batch", t.updates_per_batch, 0)
+    _at_least("train.init_random_frames", t.init_random_frames, 0)
+    _within("train.eps_start", t.eps_start, 0.0, 1.0)
+    _within("train.eps_end", t.eps_end, 0.0, 1.0)
+    _at_least("train.eps_decay_frames", t.eps_decay_frames, 0)
+    _within("train.option_behaviour_prob", t.option_behaviour_prob, 0.0, 1.0)
+    _one_of("train.target_update", t.target_update, TARGET_UPDATES)
+    _within("train.target_tau", t.target_tau, 0.0, 1.0, open_low=True)
+    _at_least("train.target_period", t.target_period, 1)
+    if not 0.0 < t.max_value_expectile < 1.0:
+        raise ValueError(
+            f"train.max_value_expectile must be in (0, 1), got {t.max_value_expectile}"
+        )
+    _one_of("train.switching", t.switching, SWITCHING_MODES)
+    _one_of("train.max_value_estimator", t.max_value_estimator, MAX_VALUE_ESTIMATORS)
+    _at_least("train.max_value_instances", t.max_value_instances, 1)
+    if t.max_value_estimator == "instance" and fam.instance_dim is None:
+        raise ValueError(
+            "train.max_value_estimator='instance' needs instance features "
+            f"({_families_with('instance_dim')}), got "
+            f"family={cfg.family!r}: use 'expectile' (taskvar_torch/heads/max_value.py)"
+        )
+    _one_of("train.mu_bar", t.mu_bar, MU_BAR_MODES)
+    if not t.mu_bar_temperature > 0:
+        raise ValueError(f"train.mu_bar_temperature must be > 0, got {t.mu_bar_temperature}")
+    if t.max_grad_norm is not None and not t.max_grad_norm > 0:
+        raise ValueError(f"train.max_grad_norm must be > 0 or null, got {t.max_grad_norm}")
+    _at_least("train.checkpoint_every", t.checkpoint_every, 0)
+    _at_least("train.log_every", t.log_every, 1)
+
+
+def _check_collector(cfg: Config) -> None:
+    """``collector.*``: workers, backend, and that the workers split the batch evenly."""
+    env, t = cfg.env, cfg.train
+    w = cfg.collector.num_workers
+    _at_least("collector.num_workers", w, 1)
+    _one_of("collector.backend", cfg.collector.backend, COLLECTOR_BACKENDS)
+    if cfg.collector.ray_address is not None and cfg.collector.backend != "ray":
+        raise ValueError(
+            f"collector.ray_address is for collector.backend=ray, got backend "
+            f"{cfg.collector.backend!r}"
+        )
+    if env.num_envs % w or t.frames_per_batch % w:
+        raise ValueError(
+            f"collector.num_workers={w} must divide env.num_envs ({env.num_envs}) and "
+            f"train.frames_per_batch ({t.frames_per_batch})"
+        )
+
+
+def _check_eval_and_experiment(cfg: Config) -> None:
+    """``eval.*`` and ``experiment.*``: the method and positive episode counts."""
+    _one_of("eval.method", cfg.eval.method, METHODS)
+    _at_least("eval.episodes", cfg.eval.episodes, 1)
+    _at_least("eval.batch_size", cfg.eval.batch_size, 1)
+
+    x = cfg.experiment
+    for name in ("runs", "episodes_per_run", "trials", "learning_episodes_per_trial"):
+        _at_least(f"experiment.{name}", getattr(x, name), 1)
+    _at_least("experiment.test_episodes_per_trial", x.test_episodes_per_trial, 1)
