@@ -466,6 +466,22 @@ def _plot_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("checkpoint", metavar="PATH", help="a training checkpoint (final.pt)")
+    p.add_argument(
+        "--out", metavar="FILE", help="where to write it (default: heads.pt beside PATH)"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
+
+
+def _export_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.factory import export_heads
+
+    path = export_heads(args.checkpoint, args.out, overwrite=args.overwrite)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+    return 0
+
+
 # --------------------------------------------------------------------------------------------
 # registry and entry point
 
@@ -479,8 +495,12 @@ COMMANDS: dict[str, Command] = {
         epilog=_train_epilog,
     ),
     "eval": Command(
-        help="evaluate a trained bundle with a controller on a test distribution",
-        description="Evaluate any saved bundle without retraining (checkpoint-based evaluation).",
+        help="evaluate a trained bundle's methods side by side on test distributions and shifts",
+        description="Evaluate any saved bundle of either family without retraining: every method "
+        "on the same paired episodes of a named test distribution, optionally shifted "
+        "(--shift env.KEY=V, or V1,V2,... for a shift curve); prints a table and writes "
+        "DIR/metrics.json, episodes.csv and eval.png with --out.\n\n"
+        "  taskvar eval --checkpoint runs/windy/final.pt --method all --shift env.instances.p=0.2,0.5,0.8",
         add_arguments=_eval_arguments,
         run=_eval_run,
     ),
@@ -499,6 +519,13 @@ COMMANDS: dict[str, Command] = {
         "  taskvar sweep configs/windy.yaml --backend ray --quick --out results/sweep seed=0,1",
         add_arguments=_sweep_arguments,
         run=_sweep_run,
+    ),
+    "export": Command(
+        help="write a checkpoint's shareable bundle (heads and config, no replay or optimiser)",
+        description="Write the evaluation bundle of a training checkpoint: the heads, their "
+        "constructor arguments and the config (taskvar train writes it as DIR/heads.pt).",
+        add_arguments=_export_arguments,
+        run=_export_run,
     ),
     "plot": Command(
         help="redraw the figures of an experiment's results folder",

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -27,7 +28,13 @@ from tensordict.nn import TensorDictModule
 from torchrl.envs import EnvBase
 
 from taskvar_torch import keys
-from taskvar_torch.checkpoint import load_checkpoint, load_state_dicts, require_finite_heads
+from taskvar_torch.checkpoint import (
+    load_checkpoint,
+    load_state_dicts,
+    make_bundle,
+    require_finite_heads,
+    save_checkpoint,
+)
 from taskvar_torch.config import Config, TrainConfig, config_from_dict
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.families import family
@@ -330,6 +337,39 @@ def load_heads(
     return heads.eval(), cfg
 
 
+HEADS_NAME = "heads.pt"
+"""The shareable bundle ``taskvar train`` writes beside ``final.pt`` (:func:`export_heads`)."""
+
+
+def export_heads(
+    checkpoint: str | os.PathLike, out: str | os.PathLike | None = None, overwrite: bool = False
+) -> Path:
+    """Write the evaluation bundle of a checkpoint: the heads, their constructor arguments
+    (``heads_spec``) and the config, without the replay buffer, targets and optimiser (what
+    :func:`load_heads`, ``taskvar eval`` and the notebooks need; the full checkpoint stays for
+    resuming). ``out`` defaults to ``heads.pt`` beside ``checkpoint``; an existing file is refused
+    unless ``overwrite``. Loads with ``weights_only=True`` like every bundle."""
+    heads, cfg = load_heads(checkpoint)
+    dest = Path(out) if out is not None else Path(checkpoint).with_name(HEADS_NAME)
+    if dest.exists() and not overwrite:
+        raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
+    return write_heads(dest, heads, cfg, counters=load_checkpoint(checkpoint).get("counters"))
+
+
+def write_heads(
+    path: str | os.PathLike, heads: Heads, cfg: Config, counters: dict | None = None
+) -> Path:
+    """Save ``heads`` (with their ``heads_spec``) and ``cfg`` as a shareable bundle at ``path``."""
+    bundle = make_bundle(
+        cfg,
+        models={"heads": heads},
+        counters=dict(counters or {}),
+        rng={},
+        heads_spec=heads.spec.to_dict(),
+    )
+    return save_checkpoint(path, bundle)
+
+
 # --------------------------------------------------------------------------------------------
 # learner
 
@@ -375,6 +415,8 @@ __all__ = [
     "build_heads",
     "calibrate",
     "check_device",
+    "export_heads",
+    "write_heads",
     "load_heads",
     "make_env",
     "make_learner",

@@ -53,6 +53,8 @@ class TestDistribution:
         overrides: config overrides of ``env`` keys (``key=value``), validated like a config.
     """
 
+    __test__ = False  # not a pytest test class
+
     description: str
     instances: Any = "train"
     overrides: tuple[str, ...] = ()

@@ -79,6 +79,7 @@ from taskvar_torch.config import (
     save_config_yaml,
 )
 from taskvar_torch.factory import (  # noqa: F401  (the factories stay importable from here)
+    HEADS_NAME,
     build_heads,
     check_device,
     load_heads,
@@ -86,6 +87,7 @@ from taskvar_torch.factory import (  # noqa: F401  (the factories stay importabl
     make_learner,
     make_subtasks,
     mu_bar_temperature,
+    write_heads,
 )
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
@@ -352,6 +354,7 @@ def _train_loop(
                 pbar.close()
                 final = out / "final.pt"  # a first signal from here on: the run ends normally
                 run.save(final)
+                write_heads(out / HEADS_NAME, run.learner.heads, cfg, run.counters)
             except KeyboardInterrupt:
                 raise KeyboardInterrupt(
                     f"aborted by a second signal; nothing written, "

@@ -30,7 +30,7 @@ from taskvar_torch.controllers import Controller
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import write_csv, write_json
-from taskvar_torch.experiments.shift import Shift, TestPoint, parse_shift, test_points
+from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
     calibrate,
     load_heads,
@@ -69,7 +69,7 @@ def parse_methods(spec: str, subtasks: Subtasks, heads: Heads) -> list[str]:
     return [m for m in ORDER if m in names]
 
 
-def _check_fits(point: TestPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:
+def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:
     """The shifted env must keep the bundle's observation, actions and options."""
     obs = int(env.observation_spec[keys.OBSERVATION].shape[-1])
     spec = getattr(heads, "spec", None)
@@ -88,7 +88,7 @@ def _check_fits(point: TestPoint, heads: Heads, subtasks: Subtasks, env: Any) ->
         )
 
 
-def _exact_oracle(cfg: Config, point: TestPoint) -> WindyOracle | None:
+def _exact_oracle(cfg: Config, point: EvalPoint) -> WindyOracle | None:
     """The exact oracle of a test point, where the family has one and the layout is small."""
     if not family(cfg).exact_oracle or point.cfg.env.obs_encoding != "onehot":
         return None
@@ -100,7 +100,7 @@ def _exact_oracle(cfg: Config, point: TestPoint) -> WindyOracle | None:
 
 def play(
     ctrl: Controller,
-    point: TestPoint,
+    point: EvalPoint,
     episodes: int,
     seed: int,
     batch_size: int,
@@ -184,7 +184,7 @@ def eval_bundle(
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
     heads, cfg = load_heads(checkpoint)
     fam = family(cfg)
-    points = test_points(cfg, test, shifts)  # every input error before any episode is played
+    points = shift_points(cfg, test, shifts)  # every input error before any episode is played
     test_name = test if test is not None else next(iter(fam.tests))
     train_subtasks = make_subtasks(cfg, make_env(cfg, 1))
     methods = parse_methods(method, train_subtasks, heads)
@@ -243,7 +243,7 @@ def _metrics(checkpoint, cfg, test, shifts, methods, seed, noise_seed, episodes)
 CSV_FIELDS = ("shift", "method", "episode", "return", "length", "interruptions")
 
 
-def _csv_rows(point: TestPoint, method: str, r: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+def _csv_rows(point: EvalPoint, method: str, r: dict[str, np.ndarray]) -> list[dict[str, Any]]:
     extra = [k for k in r if k.startswith("instance_") or k in ("start", "exact_return")]
     return [
         {

@@ -1,7 +1,7 @@
 """Test distributions and shifts of a trained bundle's family (``taskvar eval --test --shift``).
 
 A *test point* is what one evaluation plays: the bundle's config with some ``env`` keys changed,
-and an instance distribution. :func:`test_points` builds them from a named test distribution of
+and an instance distribution. :func:`shift_points` builds them from a named test distribution of
 the family (``families.py``: ``Family.tests``, listed in docs/evaluation.md) and ad-hoc shifts:
 
 - ``env.KEY=VALUE``: any ``env`` config key (``env.wargus.patrol_speed=1.0``,
@@ -14,7 +14,7 @@ the family (``families.py``: ``Family.tests``, listed in docs/evaluation.md) and
 
 Examples:
     >>> shifts = [parse_shift("env.instances.p=0.2,0.5,0.8")]  # doctest: +SKIP
-    >>> [p.label for p in test_points(cfg, "train", shifts)]  # doctest: +SKIP
+    >>> [p.label for p in shift_points(cfg, "train", shifts)]  # doctest: +SKIP
     ['env.instances.p=0.2', 'env.instances.p=0.5', 'env.instances.p=0.8']
 """
 
@@ -40,7 +40,7 @@ class Shift:
 
 
 @dataclass(frozen=True)
-class TestPoint:
+class EvalPoint:
     """One evaluation's environment: ``cfg`` (the bundle's, env keys shifted) and ``instances``.
 
     ``label`` is ``""`` without a swept key, else ``KEY=VALUE`` of the swept key; ``value`` its
@@ -119,7 +119,7 @@ def _instances(fam: Family, fields: dict[str, Any], where: str) -> Any:
         raise ValueError(f"--shift {where}: {e}") from None
 
 
-def test_points(cfg: Config, test: str | None, shifts: Sequence[Shift] = ()) -> list[TestPoint]:
+def shift_points(cfg: Config, test: str | None, shifts: Sequence[Shift] = ()) -> list[EvalPoint]:
     """The test points of the named distribution ``test`` of ``cfg``'s family (``None``: the
     family's first) with ``shifts`` applied; one point per value of the swept key (at most one
     shift may hold several values)."""
@@ -139,13 +139,13 @@ def test_points(cfg: Config, test: str | None, shifts: Sequence[Shift] = ()) -> 
             point_cfg, point_fields = _apply(fam, point_cfg, point_fields, s.key, s.values[0])
     fixed = ",".join(f"{s.key}={s.values[0]}" for s in shifts if len(s.values) == 1)
     if not swept:
-        return [TestPoint("", None, point_cfg, _instances(fam, point_fields, fixed or name))]
+        return [EvalPoint("", None, point_cfg, _instances(fam, point_fields, fixed or name))]
     out = []
     for value in swept[0].values:
         c, f = _apply(fam, point_cfg, point_fields, swept[0].key, value)
         label = f"{swept[0].key}={value}"
-        out.append(TestPoint(label, value, c, _instances(fam, f, label)))
+        out.append(EvalPoint(label, value, c, _instances(fam, f, label)))
     return out
 
 
-__all__ = ["Shift", "TestPoint", "parse_shift", "test_points"]
+__all__ = ["Shift", "EvalPoint", "parse_shift", "shift_points"]

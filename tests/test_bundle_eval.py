@@ -1,0 +1,166 @@
+"""``taskvar eval`` on bundles of either family (experiments/bundle_eval.py, experiments/shift.py):
+every method on the same paired episodes, named test distributions, shifts that reach the env,
+one-line errors for bad shifts, shareable bundles (heads.pt, taskvar export)."""
+
+from __future__ import annotations
+
+import csv
+import json
+
+import pytest
+import torch
+
+from taskvar_torch.cli import main
+from taskvar_torch.config import load_config
+from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
+from taskvar_torch.experiments.shift import parse_shift, shift_points
+from taskvar_torch.factory import export_heads, load_heads, make_env
+from taskvar_torch.train import train
+
+torch.set_num_threads(1)
+TINY = [
+    "env.num_envs=4",
+    "train.frames_per_batch=100",
+    "train.total_frames=300",
+    "train.checkpoint_every=0",
+    "train.log_every=300",
+    "train.init_random_frames=100",
+    "train.batch_size=16",
+    "train.updates_per_batch=1",
+    "train.buffer_size=1000",
+]
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory):
+    out = {}
+    for name, config in (("wargus", "configs/wargus.yaml"), ("windy", "configs/windy.yaml")):
+        d = tmp_path_factory.mktemp(name)
+        train(
+            load_config(config, [*TINY, "env.wargus.horizon=60"] if name == "wargus" else TINY),
+            d,
+            progress=False,
+        )
+        out[name] = d
+    return out
+
+
+def _rows(path):
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_a_wargus_bundle_evaluates_every_method_on_paired_episodes(bundles, tmp_path):
+    m = eval_bundle(
+        bundles["wargus"] / "final.pt",
+        "all",
+        "fast_patrol",
+        episodes=6,
+        out_dir=tmp_path,
+        progress=False,
+    )
+    assert m["methods"] == ["averaging", "options", "interruption", "hierarchy"]
+    point = m["points"][0]["methods"]
+    assert set(point) == set(m["methods"]) and "control" in point["hierarchy"]
+    assert abs(sum(point["hierarchy"]["control"].values()) - 1.0) < 1e-9
+    assert {p.name for p in tmp_path.iterdir()} >= {"metrics.json", "episodes.csv", "eval.png"}
+    rows = _rows(tmp_path / "episodes.csv")
+    assert len(rows) == 4 * 6
+    seeds = {}
+    for r in rows:  # the same instance per episode index, whatever the method
+        seeds.setdefault(r["episode"], set()).add(r["instance_seed"])
+    assert all(len(s) == 1 for s in seeds.values()) and len(seeds) == 6
+    assert "hierarchy" in format_table(m) and "fast_patrol" in format_table(m)
+
+
+def test_windy_shift_curve_with_exact_values_and_paired_instances(bundles, tmp_path):
+    m = eval_bundle(
+        bundles["windy"] / "final.pt",
+        "all",
+        "south",
+        ["env.instances.p=0.0,1.0"],
+        episodes=40,
+        out_dir=tmp_path,
+        progress=False,
+    )
+    assert m["methods"] == ["averaging", "options", "interruption"]  # no hierarchy on windy
+    assert all("exact_mean_return" in p["methods"][k] for p in m["points"] for k in m["methods"])
+    rows = _rows(tmp_path / "episodes.csv")
+    for r in rows:  # the shift reached the env: every episode's wind is the swept value
+        assert float(r["instance_p"]) == float(r["shift"].split("=")[1])
+        assert r["instance_direction"] == "1"  # south-only
+    key = {(r["shift"], r["episode"]): set() for r in rows}
+    for r in rows:
+        key[(r["shift"], r["episode"])].add((r["instance_p"], r["start"]))
+    assert all(len(v) == 1 for v in key.values())
+
+
+def test_a_shift_changes_the_env_parameters(bundles):
+    _, cfg = load_heads(bundles["wargus"] / "final.pt")
+    (point,) = shift_points(cfg, "train", [parse_shift("env.wargus.patrol_speed=0.25")])
+    env = make_env(point.cfg, 2, instances=point.instances)
+    assert point.cfg.env.wargus.patrol_speed == 0.25 and env.config.patrol_speed == 0.25
+    (named,) = shift_points(cfg, "large_grid")
+    assert make_env(named.cfg, 1, instances=named.instances).config.size == 64
+
+
+@pytest.mark.parametrize(
+    ("shift", "part"),
+    [
+        ("train.lr=1", "env keys only"),
+        ("env.wargus.speed=1", "env.wargus.speed"),
+        ("env.wargus.patrol_speed=2", "patrol_speed"),
+        ("env.instances.q=1", "instance fields"),
+        ("env.wargus", "KEY=VALUE"),
+    ],
+)
+def test_bad_shifts_are_one_line_errors(bundles, capsys, shift, part):
+    argv = ["eval", "--checkpoint", str(bundles["wargus"] / "final.pt"), "--episodes", "2"]
+    assert main([*argv, "--no-progress", "--shift", shift]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and part in err, err
+
+
+def test_bad_test_names_and_methods_are_one_line_errors(bundles, capsys):
+    windy = str(bundles["windy"] / "final.pt")
+    for extra, part in (
+        (["--test", "fast_patrol"], "calm"),
+        (["--method", "hierarchy"], "hierarchy"),
+    ):
+        assert main(["eval", "--checkpoint", windy, "--no-progress", *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and part in err, err
+
+
+def test_shareable_bundle_beside_the_checkpoint_and_export(bundles, tmp_path, capsys):
+    run = bundles["wargus"]
+    shared = run / "heads.pt"
+    assert shared.is_file() and shared.stat().st_size < (run / "final.pt").stat().st_size
+    a, _ = load_heads(run / "final.pt")
+    b, cfg = load_heads(shared)
+    obs = torch.rand(3, 24)
+    assert torch.equal(a.heads["options"].module(obs), b.heads["options"].module(obs))
+    with pytest.raises(ValueError, match="exists"):
+        export_heads(run / "final.pt")
+    assert main(["export", str(run / "final.pt"), "--out", str(tmp_path / "h.pt")]) == 0
+    assert "wrote" in capsys.readouterr().out
+    m = eval_bundle(tmp_path / "h.pt", "averaging", episodes=3, progress=False)
+    json.dumps(m)
+    assert m["method"] == "averaging" and "mean_return" in m
+
+
+def test_returns_change_where_the_shift_must_change_them(bundles):
+    m = eval_bundle(
+        bundles["windy"] / "final.pt",
+        "averaging",
+        shifts=["env.horizon=7,300"],
+        episodes=20,
+        progress=False,
+    )
+    short, long = (p["methods"]["averaging"] for p in m["points"])
+    assert short["mean_length"] <= 7 and short["mean_return"] >= -7  # the horizon reached the env
+    assert short["exact_mean_return"] >= -7.0 - 1e-9  # exact: a 7-step episode costs at most 7
+    # paired episodes, -1 per step: a longer horizon can only add cost
+    assert (
+        long["mean_return"] <= short["mean_return"] and long["mean_length"] >= short["mean_length"]
+    )
