@@ -287,18 +287,7 @@ def sweep(
     Raises:
         ValueError: one line, for an unknown backend or key, an empty value, a missing Ray.
     """
-    if backend not in BACKENDS:
-        raise ValueError(f"--backend must be one of {list(BACKENDS)}, got {backend!r}")
-    if backend == "local" and (address is not None or workers is not None):
-        raise ValueError(
-            "--address and --workers are for --backend ray; local runs one point at a time"
-        )
-    if address is not None and workers is not None:
-        raise ValueError(
-            "--workers sets the CPUs of a local Ray; with --address the cluster's are used"
-        )
-    if workers is not None and workers < 1:
-        raise ValueError(f"--workers must be >= 1, got {workers}")
+    _check_backend(backend, address, workers)
     points = expand_points(items)
     cfgs = load_point_configs(config, points, quick=quick)
     if backend == "ray":
@@ -316,7 +305,57 @@ def sweep(
     else:
         results = _run_ray(jobs, quick, progress, address, workers, plots, overwrite)
     wall = time.perf_counter() - t0
+    rows = _summary_rows(points, results)
+    fields = list(dict.fromkeys(k for row in rows for k in row))
+    write_csv(out / SUMMARY_CSV, rows, fields)
+    summary = {
+        "config": str(config),
+        "experiment": sorted({family(c).experiment for c in cfgs}),
+        "backend": backend,
+        "quick": bool(quick),
+        "plots": bool(plots),
+        "items": list(items),
+        "wall_seconds": wall,
+        "points": [
+            {
+                "name": p.name,
+                "folder": str(out / p.name),
+                "values": p.values,
+                "overrides": list(p.overrides),
+                "seconds": r["seconds"],
+                "error": r.get("error"),
+            }
+            for p, r in zip(points, results)
+        ],
+        "rows": rows,
+    }
+    write_json(out / SUMMARY_JSON, summary)
+    print(format_summary(rows, fields))
+    print(
+        f"{len(rows)} points in {wall:.1f} s ({backend}); wrote {out / SUMMARY_CSV}, "
+        f"{out / SUMMARY_JSON}"
+    )
+    return rows
 
+
+def _check_backend(backend: str, address: str | None, workers: int | None) -> None:
+    """One-line errors for a backend and its options that do not fit together."""
+    if backend not in BACKENDS:
+        raise ValueError(f"--backend must be one of {list(BACKENDS)}, got {backend!r}")
+    if backend == "local" and (address is not None or workers is not None):
+        raise ValueError(
+            "--address and --workers are for --backend ray; local runs one point at a time"
+        )
+    if address is not None and workers is not None:
+        raise ValueError(
+            "--workers sets the CPUs of a local Ray; with --address the cluster's are used"
+        )
+    if workers is not None and workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {workers}")
+
+
+def _summary_rows(points: Sequence[Any], results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One summary row per point: its swept values, headline numbers, seconds (and error)."""
     rows = []
     for p, r in zip(points, results):
         row: dict[str, Any] = {"point": p.name, **p.values}
@@ -325,37 +364,6 @@ def sweep(
         if any("error" in x for x in results):
             row["error"] = r.get("error", "")
         rows.append(row)
-    fields = list(dict.fromkeys(k for row in rows for k in row))
-    write_csv(out / SUMMARY_CSV, rows, fields)
-    write_json(
-        out / SUMMARY_JSON,
-        {
-            "config": str(config),
-            "experiment": sorted({family(c).experiment for c in cfgs}),
-            "backend": backend,
-            "quick": bool(quick),
-            "plots": bool(plots),
-            "items": list(items),
-            "wall_seconds": wall,
-            "points": [
-                {
-                    "name": p.name,
-                    "folder": str(out / p.name),
-                    "values": p.values,
-                    "overrides": list(p.overrides),
-                    "seconds": r["seconds"],
-                    "error": r.get("error"),
-                }
-                for p, r in zip(points, results)
-            ],
-            "rows": rows,
-        },
-    )
-    print(format_summary(rows, fields))
-    print(
-        f"{len(rows)} points in {wall:.1f} s ({backend}); wrote {out / SUMMARY_CSV}, "
-        f"{out / SUMMARY_JSON}"
-    )
     return rows
 
 
