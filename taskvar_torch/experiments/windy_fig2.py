@@ -17,6 +17,13 @@ The protocol, top to bottom (:func:`windy_fig2`):
    ``V^{mu_bar}(s') <= V^{m, mu_bar}(s')`` with the learnt ``V^{mu_bar}`` and the exact discounted
    value of the learnt options controller in the test instance ``m``, with the outcome per case.
 
+The per-episode columns then go to the metrics (:mod:`taskvar_torch.experiments.fig2_metrics`:
+``metrics.json``'s paired summaries, the null and exact comparisons, the interruption counts and
+Theorem 1's check, with their definitions) and to the report
+(:mod:`taskvar_torch.experiments.fig2_report`: ``episodes.csv``, the tables, the figures): this
+module is the protocol, and re-exports the public names of those two and the oracle functions it
+uses (:mod:`taskvar_torch.oracle`).
+
 Writes ``config.yaml``, ``train/`` (checkpoints, logs), ``episodes.csv``, ``metrics.json``,
 ``fig2_train.png``, ``fig2_south_only.png``, ``interruptions_heatmap.png``; prints a table.
 
@@ -27,41 +34,49 @@ Examples:
 
 from __future__ import annotations
 
-import csv
 import dataclasses
-import json
 import os
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from torchrl.envs import TransformedEnv
 from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import load_checkpoint
-from taskvar_torch.config import METHODS as ALL_METHODS
-from taskvar_torch.config import (
-    Config,
-    load_config,
-    save_config_yaml,
-    windy_layout,
-)
+from taskvar_torch.config import Config, save_config_yaml, windy_layout
 from taskvar_torch.controllers import Controller, make_controller
-from taskvar_torch.envs import windy
 from taskvar_torch.envs.instances import WindyInstances
 from taskvar_torch.envs.windy_env import WindyGridEnv
 from taskvar_torch.experiments.bundle_eval import eval_bundle
-from taskvar_torch.experiments.evaluation import mean_ci95, paired_summary, run_episodes
-from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sorted_differences
+from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.experiments.fig2_metrics import (
+    EXACT_ATOL,
+    METHODS,
+    run_summary,
+    summarise,
+    theorem1_check,
+)
+from taskvar_torch.experiments.fig2_report import (
+    CSV_FIELDS,
+    CSV_NAME,
+    FIGURES,
+    HEATMAP,
+    METRICS_NAME,
+    csv_rows,
+    format_start_table,
+    format_table,
+    plot_results,
+    read_csv_columns,
+)
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import EXACT_ORACLE_CELLS, FAMILIES
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle import (  # the exact maths; also importable from this module
     WindyOracle,
-    discounted_chain_values,  # noqa: F401
+    discounted_chain_values,
     exact_returns,
     firing_values,
     learnt_vs_oracle_by_start,
@@ -76,9 +91,6 @@ from taskvar_torch.train import (
     train,
 )
 
-METHODS = tuple(m for m in ALL_METHODS if m != "hierarchy")
-"""Methods of Figure 2, every method but hierarchy (the windy family has no composition
-hierarchy): the flat baseline, options without interruption, Algorithm 1."""
 DISTRIBUTIONS = {"train": "train", "south_only": "south"}
 """metrics.json key -> test instance distribution (``train``: the training distribution)."""
 NULL_NOISE_SEED = 1
@@ -86,16 +98,6 @@ NULL_NOISE_SEED = 1
 EXACT_MAX_CELLS = EXACT_ORACLE_CELLS
 """The exact figure is computed on layouts with at most this many cells (the family registry's
 exact-oracle limit)."""
-EXACT_ATOL = 1e-9
-"""Exact differences within this of 0 count as ties ("no worse", not "better")."""
-CSV_NAME, METRICS_NAME = "episodes.csv", "metrics.json"
-CSV_FIELDS = (
-    "distribution", "run", "seed", "episode", "p", "direction", "start_row", "start_col",
-    "return_averaging", "return_options", "return_interruption", "return_averaging_null",
-    "interruptions", "exact_averaging", "exact_options", "exact_interruption",
-)  # fmt: skip
-FIGURES = {"train": "fig2_train.png", "south_only": "fig2_south_only.png"}
-HEATMAP = "interruptions_heatmap.png"
 
 
 def default_config_path() -> Path:
@@ -210,84 +212,64 @@ def make_oracle(cfg: Config):
     return WindyOracle(layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon)
 
 
-def theorem1_check(
-    oracle,
-    options_ctrl: Controller,
-    cfg: Config,
-    rolls: dict[str, np.ndarray],
-    exact_diff_vs_options: np.ndarray | None,
-    diff_vs_averaging: np.ndarray,
-    chunk: int = 1000,
-) -> dict[str, Any]:
-    """Theorem 1's premise at every state where interruption fired, and the outcome per case.
-
-    At a firing (s', o) in test instance m: premise ``V^{mu_bar}(s') <= V^{m,mu_bar}(s')`` (learnt
-    switching value vs the exact discounted value of the learnt options controller in m); the
-    proof's condition ``Q^{m,mu_bar}(s', o) <= V^{m,mu_bar}(s')``; and the max-value assumption
-    ``Q^{m,mu_bar}(s', o) <= Q_hat(s', o)``. Outcomes per episode group (premise held at every
-    firing / failed at some): interruption - options (exact, what the theorem bounds) and
-    interruption - averaging (sampled, paired). The values come from
-    :func:`~taskvar_torch.oracle.learnt.firing_values`.
-    """
-    ep = rolls["fire_episode"]
-    if ep.size == 0:
-        return {"firings": 0, "episodes_with_firing": 0}
-    vals = firing_values(oracle, options_ctrl, cfg.env.obs_encoding, rolls, chunk)
-    v_m, q_m = vals["v_m"], vals["q_m"]
-    episodes = np.unique(ep)
-    premise = vals["v_mu_bar"] <= v_m + 1e-9
-    proof_condition = q_m <= v_m + 1e-9
-    max_assumption = q_m <= vals["q_hat"] + 1e-9
-    failed = np.zeros(rolls["return"].size, dtype=bool)
-    np.logical_or.at(failed, ep, ~premise)
-    fired = np.zeros_like(failed)
-    fired[episodes] = True
-
-    def outcome(mask: np.ndarray) -> dict[str, Any]:
-        o: dict[str, Any] = {"episodes": int(mask.sum())}
-        if mask.any():
-            o["vs_averaging_sampled"] = _short(
-                paired_summary(torch.as_tensor(diff_vs_averaging[mask]))
-            )
-            if exact_diff_vs_options is not None:
-                o["vs_options_exact"] = _short(_exact_summary(exact_diff_vs_options[mask]))
-        return o
-
-    return {
-        "firings": int(ep.size),
-        "episodes_with_firing": int(episodes.size),
-        "premise_held": int(premise.sum()),
-        "premise_held_fraction": float(premise.mean()),
-        "proof_condition_held": int(proof_condition.sum()),
-        "proof_condition_held_fraction": float(proof_condition.mean()),
-        "max_value_assumption_held_fraction": float(max_assumption.mean()),
-        "outcome_premise_held_at_every_firing": outcome(fired & ~failed),
-        "outcome_premise_failed_somewhere": outcome(fired & failed),
-        "note": "values discounted with train.gamma; V^{m,mu_bar} = learnt options controller in m",
-    }
-
-
-def _short(summary: dict[str, float]) -> dict[str, float]:
-    return {
-        k: summary[k]
-        for k in (
-            "fraction_no_worse",
-            "fraction_better",
-            "fraction_worse",
-            "mean_difference",
-            "mean_difference_ci95",
-        )
-    }
-
-
-def _exact_summary(diff: np.ndarray) -> dict[str, float]:
-    """``paired_summary`` of exact expected-return differences, ties within ``EXACT_ATOL``."""
-    d = np.where(np.abs(diff) <= EXACT_ATOL, 0.0, diff)
-    return paired_summary(torch.as_tensor(d))
-
-
 # --------------------------------------------------------------------------------------------
 # one test distribution
+
+
+def play_run(
+    heads: Heads, cfg: Config, instances: str, seed: int, episodes: int, bar: Any = None
+) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, np.ndarray]]:
+    """One run's paired rollouts (protocol steps 3-4): every method in :data:`METHODS` order
+    (interruption records its firings), then the null averaging rollout (``NULL_NOISE_SEED``).
+
+    Returns ``({method: evaluate(...)}, null)``; asserts the pairing (same instances and starts
+    for every method).
+    """
+    r = {
+        m: evaluate(
+            heads,
+            cfg,
+            m,
+            instances,
+            seed,
+            episodes,
+            record_firings=m == "interruption",
+            progress=bar,
+        )
+        for m in METHODS
+    }
+    null = evaluate(
+        heads,
+        cfg,
+        "averaging",
+        instances,
+        seed,
+        episodes,
+        noise_seed=NULL_NOISE_SEED,
+        progress=bar,
+    )
+    base = r["averaging"]
+    for m in METHODS:  # the pairing: same instances and starts for every method
+        assert np.array_equal(r[m]["p"], base["p"]) and np.array_equal(r[m]["start"], base["start"])
+    return r, null
+
+
+def episode_columns(
+    r: dict[str, dict[str, np.ndarray]],
+    null: dict[str, np.ndarray],
+    exact: dict[str, np.ndarray],
+) -> dict[str, np.ndarray]:
+    """One run's per-episode columns of ``episodes.csv`` (besides instance and start): each
+    method's return, the null return, interruptions and the ``exact`` returns per method (step 5;
+    empty without an oracle)."""
+    return {
+        "return_averaging": r["averaging"]["return"],
+        "return_options": r["options"]["return"],
+        "return_interruption": r["interruption"]["return"],
+        "return_averaging_null": null["return"],
+        "interruptions": r["interruption"]["interruptions"],
+        **{f"exact_{m}": v for m, v in exact.items()},
+    }
 
 
 def run_distribution(
@@ -300,7 +282,12 @@ def run_distribution(
     progress: bool = True,
     desc: str = "",
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Every method on R paired runs of E episodes of one test distribution; metrics and CSV rows."""
+    """Every method on R paired runs of E episodes of one test distribution; metrics and CSV rows.
+
+    Per run: :func:`play_run`, the exact returns of each learnt controller (with ``oracle``),
+    :func:`episode_columns`, the run's summary and CSV rows; then the pooled columns go to
+    :func:`~taskvar_torch.experiments.fig2_metrics.summarise` and Theorem 1's check (step 6).
+    """
     rows: list[dict[str, Any]] = []
     per_run: list[dict[str, Any]] = []
     pooled: dict[str, list[np.ndarray]] = {}
@@ -312,87 +299,26 @@ def run_distribution(
     )
     for run in range(runs):
         seed = test_seed(cfg, run)
-        r = {
-            m: evaluate(
-                heads,
-                cfg,
-                m,
-                instances,
-                seed,
-                episodes,
-                record_firings=m == "interruption",
-                progress=bar,
-            )
-            for m in METHODS
-        }
-        null = evaluate(
-            heads,
-            cfg,
-            "averaging",
-            instances,
-            seed,
-            episodes,
-            noise_seed=NULL_NOISE_SEED,
-            progress=bar,
-        )
+        r, null = play_run(heads, cfg, instances, seed, episodes, bar)
         base = r["averaging"]
-        for m in METHODS:  # the pairing: same instances and starts for every method
-            assert np.array_equal(r[m]["p"], base["p"]) and np.array_equal(
-                r[m]["start"], base["start"]
-            )
         ex = {}
         if oracle is not None:
             for m in METHODS:
                 ex[m] = exact_returns(
                     oracle, ctrls[m], cfg, base["p"], base["direction"], base["start"]
                 )
-        cols = {
-            "return_averaging": base["return"],
-            "return_options": r["options"]["return"],
-            "return_interruption": r["interruption"]["return"],
-            "return_averaging_null": null["return"],
-            "interruptions": r["interruption"]["interruptions"],
-            **{f"exact_{m}": v for m, v in ex.items()},
-        }
+        cols = episode_columns(r, null, ex)
         for k, v in cols.items():
             pooled.setdefault(k, []).append(v)
         roll = r["interruption"]
-        for k in ("fire_episode", "fire_cell", "fire_option"):
+        for k in ("fire_episode", "fire_cell", "fire_option"):  # episode indices over all runs
             fire_parts.setdefault(k, []).append(
                 roll[k] + (run * episodes if k == "fire_episode" else 0)
             )
         for k in ("p", "direction", "start"):
             pooled.setdefault(k, []).append(base[k])
-        diff = torch.as_tensor(cols["return_interruption"] - cols["return_averaging"])
-        per_run.append(
-            {
-                "run": run,
-                "seed": seed,
-                **_short(paired_summary(diff)),
-                "fraction_no_worse_null": float(
-                    np.mean(cols["return_averaging"] >= cols["return_averaging_null"])
-                ),
-                "mean_return": {
-                    m: float(np.mean(r[m]["return"], dtype=np.float64)) for m in METHODS
-                },
-                "interruptions_per_episode": float(np.mean(cols["interruptions"])),
-            }
-        )
-        start_row, start_col = np.divmod(base["start"], width)
-        for i in range(episodes):
-            row = {
-                "distribution": desc,
-                "run": run,
-                "seed": seed,
-                "episode": i,
-                "p": float(base["p"][i]),
-                "direction": windy.DIRECTIONS[int(base["direction"][i])],
-                "start_row": int(start_row[i]),
-                "start_col": int(start_col[i]),
-            }
-            for k, v in cols.items():
-                row[k] = v[i].item()
-            rows.append(row)
+        per_run.append(run_summary(run, seed, cols, r))
+        rows += csv_rows(desc, run, seed, base, cols, width)
     bar.close()
     data = {k: np.concatenate(v) for k, v in pooled.items()}
     fires = {k: np.concatenate(v) for k, v in fire_parts.items()}
@@ -416,51 +342,6 @@ def run_distribution(
     else:
         metrics["theorem1"] = None
     return metrics, rows
-
-
-def summarise(
-    data: dict[str, np.ndarray], fires: dict[str, np.ndarray], cfg: Config, runs: int, episodes: int
-) -> dict[str, Any]:
-    """Figure 2's numbers for one distribution from the pooled per-episode columns."""
-    t = {k: torch.as_tensor(v, dtype=torch.float64) for k, v in data.items()}
-    main = paired_summary(t["return_interruption"] - t["return_averaging"])
-    null = paired_summary(t["return_averaging"] - t["return_averaging_null"])
-    m: dict[str, Any] = {**main, "runs": runs, "episodes_per_run": episodes}
-    m["fraction_no_worse_null"] = null["fraction_no_worse"]
-    m["null"] = _short(null)
-    m["options_vs_averaging"] = _short(paired_summary(t["return_options"] - t["return_averaging"]))
-    m["interruption_vs_options"] = _short(
-        paired_summary(t["return_interruption"] - t["return_options"])
-    )
-    m["mean_return"] = {}
-    for name in (*METHODS, "averaging_null"):
-        mean, ci = mean_ci95(t[f"return_{name}"])
-        m["mean_return"][name] = {"mean": mean, "ci95": ci}
-    if "exact_interruption" in data:
-        ex = _exact_summary(data["exact_interruption"] - data["exact_averaging"])
-        m["fraction_no_worse_exact"] = ex["fraction_no_worse"]
-        m["exact"] = {
-            **_short(ex),
-            "options_vs_averaging": _short(
-                _exact_summary(data["exact_options"] - data["exact_averaging"])
-            ),
-            "interruption_vs_options": _short(
-                _exact_summary(data["exact_interruption"] - data["exact_options"])
-            ),
-            "mean_return": {n: float(data[f"exact_{n}"].mean()) for n in METHODS},
-            "note": "exact expected returns of the learnt controllers in each episode's (instance, start)",
-        }
-    else:
-        m["fraction_no_worse_exact"] = None
-        m["exact"] = None
-    k = data["interruptions"].astype(np.float64)
-    S = windy_layout(cfg.env).num_cells
-    m["interruptions_per_episode"] = float(k.mean())
-    m["episodes_with_interruption"] = float((k > 0).mean())
-    m["interruption_cells"] = np.bincount(fires["fire_cell"], minlength=S).astype(int).tolist()
-    opts = np.bincount(fires["fire_option"], minlength=2)
-    m["interruptions_by_running_option"] = opts.astype(int).tolist()
-    return m
 
 
 # --------------------------------------------------------------------------------------------
@@ -497,23 +378,7 @@ def windy_fig2(
 
     FAMILIES["windy"].require(cfg, "windy-fig2")
     out = Path(out_dir)
-    check_output_folder(out)  # every check before any work or any file written
-    check_device(cfg.device)
-    heads = tcfg = None
-    if checkpoint is not None:
-        saved = load_checkpoint(checkpoint)["config"].get("family")
-        if saved not in FAMILIES or FAMILIES[saved].experiment != "windy-fig2":
-            raise ValueError(
-                f"--checkpoint {str(checkpoint)!r} is a {saved!r} bundle; windy-fig2 "
-                "evaluates windy bundles (wargus-fig4 trains its own)"
-            )
-        heads, tcfg = load_heads(checkpoint, device=cfg.device)
-    elif run_files(out / "train") and not overwrite:
-        raise ValueError(
-            f"{str(out / 'train')!r} already holds a training run; replace it with --overwrite, "
-            f"evaluate it with --checkpoint {out / 'train' / 'final.pt'}, or choose another --out"
-        )
-    refuse_existing_results(out, overwrite, "taskvar experiment windy-fig2")
+    heads, tcfg = _check_inputs(cfg, out, checkpoint, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     train_seconds = 0.0
@@ -553,7 +418,45 @@ def windy_fig2(
     metrics["train_seconds"] = train_seconds
     metrics["eval_seconds"] = time.perf_counter() - eval_t0
     metrics["wall_seconds"] = time.perf_counter() - t0
-    write_csv(out / CSV_NAME, all_rows, CSV_FIELDS)
+    _write_results(out, metrics, all_rows, plots)
+    return metrics
+
+
+def _check_inputs(
+    cfg: Config, out: Path, checkpoint: str | os.PathLike | None, overwrite: bool
+) -> tuple[Heads | None, Config | None]:
+    """Every check before any work or any file written: the output folder, the device, a given
+    ``checkpoint``'s family (then its heads and config are loaded), a training run already in
+    ``out/train`` without ``overwrite``, and results already in ``out``.
+
+    Returns the checkpoint's ``(heads, config)``, or ``(None, None)`` without one.
+    """
+    check_output_folder(out)
+    check_device(cfg.device)
+    heads = tcfg = None
+    if checkpoint is not None:
+        saved = load_checkpoint(checkpoint)["config"].get("family")
+        if saved not in FAMILIES or FAMILIES[saved].experiment != "windy-fig2":
+            raise ValueError(
+                f"--checkpoint {str(checkpoint)!r} is a {saved!r} bundle; windy-fig2 "
+                "evaluates windy bundles (wargus-fig4 trains its own)"
+            )
+        heads, tcfg = load_heads(checkpoint, device=cfg.device)
+    elif run_files(out / "train") and not overwrite:
+        raise ValueError(
+            f"{str(out / 'train')!r} already holds a training run; replace it with --overwrite, "
+            f"evaluate it with --checkpoint {out / 'train' / 'final.pt'}, or choose another --out"
+        )
+    refuse_existing_results(out, overwrite, "taskvar experiment windy-fig2")
+    return heads, tcfg
+
+
+def _write_results(
+    out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]], plots: bool
+) -> None:
+    """Write ``episodes.csv``, ``metrics.json`` and (with ``plots``) the figures; print the
+    tables and what was written."""
+    write_csv(out / CSV_NAME, rows, CSV_FIELDS)
     write_json(out / METRICS_NAME, metrics)
     figures = [str(p) for p in plot_results(out)] if plots else []
     print(format_table(metrics))
@@ -563,153 +466,12 @@ def windy_fig2(
         + "".join(f", {f}" for f in figures)
         + ("" if plots else f" (no plots: taskvar plot {out})")
     )
-    return metrics
 
 
 def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
     """The checkpoint's config with ``cfg``'s experiment and eval sections (sizes of this run)."""
 
     return dataclasses.replace(ckpt_cfg, experiment=cfg.experiment, eval=cfg.eval)
-
-
-# --------------------------------------------------------------------------------------------
-# table and plots
-
-
-def format_start_table(rows: list[dict[str, Any]]) -> str:
-    """The learnt averaging policy beside the oracle's optimum, per start cell."""
-    lines = [
-        "Averaging policy, exact expected 100-step return over the training distribution:",
-        f"{'start':>8} {'oracle optimum':>15} {'learnt head':>12}",
-    ]
-    for r in rows:
-        lines.append(f"{str(tuple(r['start'])):>8} {r['oracle_optimum']:15.3f} {r['learnt']:12.3f}")
-    return "\n".join(lines)
-
-
-def format_table(metrics: dict[str, Any]) -> str:
-    """Sampled vs null vs exact, per distribution, as fixed-width text."""
-    runs, eps = metrics.get("runs"), metrics.get("episodes_per_run")
-    lines = [
-        f"Windy Figure 2 (layout {metrics.get('layout')!r}, {runs} runs x {eps} episodes per "
-        "distribution): return difference per paired episode",
-        f"{'distribution':<12} {'comparison':<44} {'no worse':>9} {'better':>7} {'worse':>7} "
-        f"{'mean diff +- CI95':>18}",
-    ]
-
-    def line(dist: str, name: str, s: dict[str, Any] | None) -> None:
-        if s is None:
-            lines.append(f"{dist:<12} {name:<44} {'n/a':>9}")
-            return
-        ci = s.get("mean_difference_ci95")
-        ci_txt = "nan" if ci is None else f"{ci:.3f}"
-        lines.append(
-            f"{dist:<12} {name:<44} {s['fraction_no_worse']:9.1%} {s['fraction_better']:7.1%} "
-            f"{s['fraction_worse']:7.1%} {s['mean_difference']:+9.3f} +- {ci_txt:<6}"
-        )
-
-    for dist, m in (("train", metrics), ("south_only", metrics.get("south_only"))):
-        if not m:
-            continue
-        line(dist, "interruption - averaging (sampled, paired)", m)
-        line(dist, "null: averaging - averaging (indep. gusts)", m["null"])
-        line(dist, "interruption - averaging (exact, learnt)", m.get("exact"))
-        line(dist, "options - averaging (sampled, paired)", m["options_vs_averaging"])
-        line(dist, "interruption - options (sampled, paired)", m["interruption_vs_options"])
-        th = m.get("theorem1") or {}
-        fired = th.get("firings", 0)
-        prem = (
-            f"Theorem 1 premise held at {th['premise_held_fraction']:.1%} of {fired} firings"
-            if fired
-            else "interruption never fired"
-        )
-        lines.append(
-            f"{'':<12} interruptions/episode {m['interruptions_per_episode']:.3f} "
-            f"(in {m['episodes_with_interruption']:.1%} of episodes); {prem}"
-        )
-    never = [
-        d
-        for d, m in (("train", metrics), ("south_only", metrics.get("south_only")))
-        if m
-        and not (m.get("theorem1") or {}).get("firings", 0)
-        and not m.get("interruptions_per_episode")
-    ]
-    if never:
-        lines.append(
-            f"Note ({', '.join(never)}): interruption never fired, so the interruption and options "
-            "policies are identical there and a 0.000 difference with 100% no worse is a tie, not "
-            "a gain; see docs/windy-fig2.md#what-the-numbers-say"
-        )
-    return "\n".join(lines)
-
-
-def read_csv_columns(path: Path) -> dict[str, dict[str, np.ndarray]]:
-    """``{distribution: {column: array}}`` from ``episodes.csv``."""
-    cols: dict[str, dict[str, list]] = {}
-    with open(path, newline="") as f:
-        for row in csv.DictReader(f):
-            d = cols.setdefault(row["distribution"], {})
-            for k, v in row.items():
-                d.setdefault(k, []).append(v)
-    out: dict[str, dict[str, np.ndarray]] = {}
-    for dist, d in cols.items():
-        out[dist] = {}
-        for k, v in d.items():
-            try:
-                out[dist][k] = np.array([float(x) if x != "" else np.nan for x in v])
-            except ValueError:
-                out[dist][k] = np.array(v)
-    return out
-
-
-def plot_results(out_dir: str | os.PathLike) -> list[Path]:
-    """(Re)draw Figure 2 per distribution and the interruption heat-map from a results folder."""
-
-    out = Path(out_dir)
-    for name in (CSV_NAME, METRICS_NAME, "config.yaml"):
-        if not (out / name).is_file():
-            raise ValueError(f"{str(out)!r} is not a windy-fig2 results folder: {name} is missing")
-    metrics = json.loads((out / METRICS_NAME).read_text())
-    cfg = load_config(out / "config.yaml")
-    cols = read_csv_columns(out / CSV_NAME)
-    paths = []
-    for dist, fname in FIGURES.items():
-        c = cols.get(dist)
-        if c is None:
-            continue
-        runs = sorted(set(c["run"].astype(int).tolist()))
-        sel = [c["run"] == r for r in runs]
-        diffs = [c["return_interruption"][s] - c["return_averaging"][s] for s in sel]
-        nulls = [c["return_averaging"][s] - c["return_averaging_null"][s] for s in sel]
-        exact = []
-        if not np.isnan(c["exact_interruption"]).any():
-            exact = [c["exact_interruption"][s] - c["exact_averaging"][s] for s in sel]
-        label = "south-only test winds" if dist == "south_only" else "training distribution"
-        paths.append(
-            plot_sorted_differences(
-                diffs,
-                nulls,
-                out / fname,
-                title=f"Windy Figure 2 ({label}): interruption - averaging, {len(runs)} runs",
-                exact_runs=exact,
-            )
-        )
-    m_south = metrics.get("south_only") or {}
-    paths.append(
-        plot_interruption_heatmap(
-            windy_layout(cfg.env),
-            {
-                "training distribution": metrics.get("interruption_cells"),
-                "south-only": m_south.get("interruption_cells"),
-            },
-            episodes={
-                "training distribution": metrics.get("episodes"),
-                "south-only": m_south.get("episodes"),
-            },
-            path=out / HEATMAP,
-        )
-    )
-    return paths
 
 
 # --------------------------------------------------------------------------------------------
@@ -744,3 +506,41 @@ def eval_checkpoint(
         progress=progress,
         plots=False,
     )
+
+
+__all__ = [  # the protocol, then the names of fig2_metrics, fig2_report and oracle it re-exports
+    "DISTRIBUTIONS",
+    "EXACT_MAX_CELLS",
+    "NULL_NOISE_SEED",
+    "build_controller",
+    "default_config_path",
+    "episode_columns",
+    "eval_checkpoint",
+    "evaluate",
+    "make_eval_env",
+    "make_oracle",
+    "play_run",
+    "run_distribution",
+    "test_seed",
+    "windy_fig2",
+    "EXACT_ATOL",
+    "METHODS",
+    "run_summary",
+    "summarise",
+    "theorem1_check",
+    "CSV_FIELDS",
+    "CSV_NAME",
+    "FIGURES",
+    "HEATMAP",
+    "METRICS_NAME",
+    "csv_rows",
+    "format_start_table",
+    "format_table",
+    "plot_results",
+    "read_csv_columns",
+    "WindyOracle",
+    "discounted_chain_values",
+    "exact_returns",
+    "firing_values",
+    "learnt_vs_oracle_by_start",
+]

@@ -1,0 +1,317 @@
+"""Scaled-up grids report: ``scale.csv`` rows, the printed table and ``scale.png`` (docs/scale.md).
+
+Reads the ``metrics.json`` that :func:`taskvar_torch.experiments.scale.scale` writes (per cell:
+frames, updates, training seconds, frames/s, each method's mean return with its 95% CI and the gap
+closed between the random policy and the exact averaging optimum, paper §3.1);
+:func:`plot_results` redraws the figure from a results folder alone (``taskvar plot DIR``).
+
+Examples:
+    >>> print(format_table(json.loads(Path("DIR/metrics.json").read_text())))  # doctest: +SKIP
+    >>> plot_results("DIR")  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from taskvar_torch.config import METHODS
+from taskvar_torch.experiments.plots import _pyplot, save_figure
+
+EXPERIMENT = "scale"
+"""``metrics.json``'s ``"experiment"`` (a results folder's kind)."""
+CSV_NAME, METRICS_NAME, FIGURE = "scale.csv", "metrics.json", "scale.png"
+CSV_FIELDS = (
+    "case", "family", "grid_side", "cells", "num_envs", "frames", "updates", "frames_per_batch",
+    "updates_per_batch", "train_seconds", "frames_per_second", "method", "mean_return", "ci95",
+    "gap_closed", "random_return", "oracle_return", "interruptions_per_episode",
+)  # fmt: skip
+
+
+def csv_rows(metrics: dict[str, Any]) -> list[dict[str, Any]]:
+    """One row per (cell, method), references in every row."""
+    rows = []
+    for c in metrics["cells"]:
+        ref = metrics["references"][c["case"]]
+        orc = ref["oracle_averaging"]
+        for m in METHODS:
+            r = c["methods"].get(m)
+            row = {k: c[k] for k in CSV_FIELDS if k in c}
+            row.update(
+                method=m,
+                random_return=ref["random"]["mean_return"],
+                oracle_return=orc["mean_return"] if orc else "",
+            )
+            if r is None:
+                row["mean_return"] = "n/a"
+            else:
+                row.update(
+                    mean_return=r["mean_return"],
+                    ci95=r["ci95"],
+                    gap_closed="" if r.get("gap_closed") is None else r["gap_closed"],
+                    interruptions_per_episode=r.get("interruptions_per_episode", ""),
+                )
+            rows.append(row)
+    return rows
+
+
+# --------------------------------------------------------------------------------------------
+# table and figure
+
+
+def format_table(metrics: dict[str, Any]) -> str:
+    """One line per cell: time, frames/s, each method's mean return (CI), the references."""
+    lines = [
+        f"Scaled-up grids: {metrics['total_frames']} training frames per cell, "
+        f"{metrics['eval_episodes']} test episodes per method "
+        "per cell: mean return +- 95% CI (windy: -steps, and in brackets the gap closed, "
+        "(R - random) / (oracle - random); Wargus: items per episode)",
+        f"{'case':<14} {'N':>5} {'updates':>7} {'train s':>8} {'frames/s':>9} "
+        + " ".join(f"{m:>21}" for m in METHODS)
+        + f" {'random':>8} {'oracle':>8}",
+    ]
+    for c in metrics["cells"]:
+        ref = metrics["references"][c["case"]]
+        cols = []
+        for m in METHODS:
+            r = c["methods"].get(m)
+            if r is None:
+                cols.append(f"{'n/a':>21}")
+                continue
+            gap = r.get("gap_closed")
+            txt = f"{r['mean_return']:.2f}+-{_ci(r['ci95'])}"
+            txt += f" ({gap:.2f})" if gap is not None else ""
+            cols.append(f"{txt:>21}")
+        orc = ref["oracle_averaging"]
+        lines.append(
+            f"{c['case']:<14} {c['num_envs']:>5} {c['updates']:>7} {c['train_seconds']:8.1f} "
+            f"{c['frames_per_second'] or 0:9.0f} "
+            + " ".join(cols)
+            + f" {ref['random']['mean_return']:8.2f} "
+            + (f"{orc['mean_return']:8.2f}" if orc else f"{'n/a':>8}")
+        )
+    lines.append(f"wall time {metrics['wall_seconds']:.0f} s, {metrics['threads']} torch thread(s)")
+    return "\n".join(lines)
+
+
+def _ci(x: float | None) -> str:
+    return "nan" if x is None or not np.isfinite(x) else f"{x:.2f}"
+
+
+def is_results_folder(out_dir: str | os.PathLike) -> bool:
+    """Whether ``out_dir`` holds a ``metrics.json`` written by :func:`scale`."""
+    try:
+        return (
+            json.loads((Path(out_dir) / METRICS_NAME).read_text()).get("experiment") == EXPERIMENT
+        )
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+COLOURS = {
+    "averaging": "tab:green",
+    "options": "tab:orange",
+    "interruption": "tab:red",
+    "hierarchy": "tab:blue",
+    "random": "0.5",
+    "oracle_averaging": "black",
+}
+FAMILY_STYLE = {"windy": dict(ls="-", marker="o"), "wargus": dict(ls="--", marker="s")}
+
+
+def plot_results(out_dir: str | os.PathLike) -> list[Path]:
+    """(Re)draw ``scale.png`` from ``metrics.json``: (a) training time vs grid side per num_envs,
+    (b, c) final return per method vs grid side (windy, Wargus; at the largest num_envs, references
+    dashed), (d) frames/s vs num_envs per case, (e, f) final return per method vs num_envs."""
+
+    out = Path(out_dir)
+    if not is_results_folder(out):
+        raise ValueError(f"{str(out)!r} is not a scale results folder: {METRICS_NAME} is missing")
+    metrics = json.loads((out / METRICS_NAME).read_text())
+    cells, refs = metrics["cells"], metrics["references"]
+    ns = sorted({c["num_envs"] for c in cells})
+    families = [f for f in ("windy", "wargus") if any(c["family"] == f for c in cells)]
+    plt = _pyplot()
+    fig, axes = plt.subplots(
+        2,
+        1 + len(families),
+        figsize=(5.2 * (1 + len(families)), 8.4),
+        squeeze=False,
+        layout="constrained",
+    )
+    cmap = plt.get_cmap("viridis")
+    shade = {n: cmap(i / max(len(ns) - 1, 1) * 0.85) for i, n in enumerate(ns)}
+    _plot_training_time(axes[0, 0], cells, families, ns, shade, metrics["total_frames"])
+    _plot_throughput(axes[1, 0], cells, refs, ns)
+    for j, fam in enumerate(families, start=1):
+        unit = "items per episode" if fam == "wargus" else "return (-steps)"
+        _plot_vs_grid_side(
+            axes[0, j], cells, refs, metrics["methods"], fam, ns[-1], "bc"[j - 1], unit
+        )
+        _plot_vs_num_envs(axes[1, j], cells, refs, metrics["methods"], fam, ns, "ef"[j - 1], unit)
+    for ax in axes.flat:
+        ax.grid(alpha=0.3)
+        if ax.has_data():
+            ax.legend(fontsize=7)
+    fig.suptitle("Scaled-up grids: training cost and final performance", fontsize=11)
+    path = save_figure(fig, out / FIGURE)
+    plt.close(fig)
+    return [path]
+
+
+def _plot_training_time(
+    ax, cells: list[dict], families: list[str], ns: list[int], shade: dict, total_frames: int
+) -> None:
+    """Panel (a): training time vs grid side, one line per family and num_envs."""
+    for fam in families:
+        for n in ns:
+            sel = sorted(
+                (c for c in cells if c["family"] == fam and c["num_envs"] == n),
+                key=lambda c: c["grid_side"],
+            )
+            if sel:
+                ax.plot(
+                    [c["grid_side"] for c in sel],
+                    [c["train_seconds"] for c in sel],
+                    color=shade[n],
+                    label=f"{fam} N={n}",
+                    **FAMILY_STYLE[fam],
+                )
+    ax.set(
+        xlabel="grid side",
+        ylabel="training time (s)",
+        yscale="log",
+        title=f"(a) training time, {total_frames} frames per cell",
+    )
+
+
+def _plot_throughput(ax, cells: list[dict], refs: dict[str, Any], ns: list[int]) -> None:
+    """Panel (d): training frames/s vs num_envs, one line per case."""
+    for case in refs:
+        sel = sorted((c for c in cells if c["case"] == case), key=lambda c: c["num_envs"])
+        if sel:
+            ax.plot(
+                [c["num_envs"] for c in sel],
+                [c["frames_per_second"] or np.nan for c in sel],
+                label=case,
+                **FAMILY_STYLE[sel[0]["family"]],
+            )
+    ax.set(
+        xlabel="parallel environments N",
+        ylabel="training frames/s",
+        xscale="log",
+        yscale="log",
+        title="(d) training throughput (collection + learning)",
+    )
+    _num_envs_ticks(ax, ns)
+
+
+def _plot_vs_grid_side(
+    ax,
+    cells: list[dict],
+    refs: dict[str, Any],
+    methods: list[str],
+    fam: str,
+    n_max: int,
+    letter: str,
+    unit: str,
+) -> None:
+    """Panel (b) or (c): one family's final return per method vs grid side at ``n_max`` envs
+    (95% CI bars), the random and oracle references dotted."""
+    sel = sorted(
+        (c for c in cells if c["family"] == fam and c["num_envs"] == n_max),
+        key=lambda c: c["grid_side"],
+    )
+    x = [c["grid_side"] for c in sel]
+    for m in methods:
+        pts = [(xx, c["methods"].get(m)) for xx, c in zip(x, sel)]
+        pts = [(xx, r) for xx, r in pts if r is not None]
+        if pts:
+            ax.errorbar(
+                [p[0] for p in pts],
+                [p[1]["mean_return"] for p in pts],
+                yerr=[p[1]["ci95"] or 0.0 for p in pts],
+                color=COLOURS[m],
+                marker="o",
+                capsize=3,
+                label=m,
+            )
+    for ref in ("random", "oracle_averaging"):
+        ys = [(refs[c["case"]].get(ref) or {}).get("mean_return") for c in sel]
+        if any(y is not None for y in ys):
+            ax.plot(
+                x,
+                [np.nan if y is None else y for y in ys],
+                ls=":",
+                color=COLOURS[ref],
+                marker="x",
+                label=ref.replace("_", " "),
+            )
+    ax.set(
+        xlabel="grid side",
+        ylabel=unit,
+        title=f"({letter}) {fam}: final performance, N={n_max}",
+    )
+
+
+def _plot_vs_num_envs(
+    ax,
+    cells: list[dict],
+    refs: dict[str, Any],
+    methods: list[str],
+    fam: str,
+    ns: list[int],
+    letter: str,
+    unit: str,
+) -> None:
+    """Panel (e) or (f): one family's final return vs num_envs, per case (line style) and method
+    (colour)."""
+    styles = ["-", "--", ":", "-."]
+    for k, case in enumerate(
+        c for c in refs if any(x["case"] == c and x["family"] == fam for x in cells)
+    ):
+        sel = sorted((c for c in cells if c["case"] == case), key=lambda c: c["num_envs"])
+        for m in methods:
+            pts = [(c["num_envs"], c["methods"].get(m)) for c in sel]
+            pts = [(n, r) for n, r in pts if r is not None]
+            if pts:
+                ax.plot(
+                    [p[0] for p in pts],
+                    [p[1]["mean_return"] for p in pts],
+                    marker=".",
+                    ls=styles[k % len(styles)],
+                    color=COLOURS[m],
+                    label=f"{case}: {m}",
+                )
+    ax.set(
+        xlabel="parallel environments N",
+        ylabel=unit,
+        xscale="log",
+        title=f"({letter}) {fam}: final performance vs N",
+    )
+    _num_envs_ticks(ax, ns)
+
+
+def _num_envs_ticks(ax, ns: list[int]) -> None:
+    """Tick the log-scaled num_envs axis at the values run, as plain integers."""
+    ax.set_xticks(ns, [str(n) for n in ns])
+    ax.minorticks_off()
+
+
+__all__ = [
+    "COLOURS",
+    "CSV_FIELDS",
+    "CSV_NAME",
+    "EXPERIMENT",
+    "FAMILY_STYLE",
+    "FIGURE",
+    "METRICS_NAME",
+    "csv_rows",
+    "format_table",
+    "is_results_folder",
+    "plot_results",
+]
