@@ -30,7 +30,7 @@ test: install-test
 	$(BIN)/ruff format --check taskvar_torch tests benchmarks scripts
 	$(BIN)/python -m pytest -q
 
-## notebooks: install the test extras (nbclient, ipykernel) and execute the three notebooks with
+## notebooks: install the test extras (nbclient, ipykernel) and execute the four notebooks with
 ## small settings (tests/test_notebooks.py; each notebook's table lists its TASKVAR_NB_* knobs)
 notebooks: install-test
 	$(BIN)/python -m pytest -q tests/test_notebooks.py

@@ -107,3 +107,33 @@ def test_wargus_composition_notebook_executes(tmp_path):
     assert "hierarchy control" in text and "instance seed 0:" in text and "root TG+FE ->" in text
     assert (tmp_path / "run" / "rep0" / "final.pt").is_file()
     assert _images(nb) >= 3  # Figure 4, the decision traces and a rendered frame
+
+
+@pytest.mark.slow
+def test_shift_notebook_executes(tmp_path):
+    tiny_wargus = [
+        "env.num_envs=4",
+        "train.frames_per_batch=100",
+        "train.total_frames=300",
+        "train.init_random_frames=100",
+        "train.batch_size=16",
+        "train.updates_per_batch=1",
+        "train.buffer_size=1000",
+        "train.log_every=300",
+        "env.wargus.horizon=60",
+    ]
+    env = {
+        "TASKVAR_NB_FRAMES": "3000",
+        "TASKVAR_NB_EPISODES": "100",
+        "TASKVAR_NB_WARGUS_OVERRIDES": " ".join(tiny_wargus),
+        "TASKVAR_NB_OUT": str(tmp_path / "run"),
+        "OMP_NUM_THREADS": "1",
+    }
+    nb = run_notebook("04_shift.ipynb", tmp_path, env)
+    text = _code_text(nb)
+    assert "interruption" in text and "env.instances.p=1.0:" in text
+    assert "test stormy" in text and "env.horizon=200:" in text and "fast_patrol" in text
+    assert "interruption fired at" in text and "sampled mean within its 95% CI" in text
+    for folder in ("p_sweep", "horizon", "wargus_fast_patrol"):
+        assert (tmp_path / "run" / folder / "metrics.json").is_file()
+    assert _images(nb) >= 5  # eval.png twice, the two reference plots, Wargus's eval.png
