@@ -211,6 +211,7 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
         "--batch-size", type=int, metavar="N", help="episodes per batch (eval.batch_size)"
     )
     p.add_argument("--out", metavar="DIR", help="write DIR/metrics.json, episodes.csv, eval.png")
+    _overwrite_argument(p, "DIR")
     _threads_argument(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
@@ -236,6 +237,7 @@ def _eval_run(args: argparse.Namespace) -> int:
         batch_size=args.batch_size,
         out_dir=args.out,
         progress=not args.no_progress,
+        overwrite=args.overwrite,
     )
     print(format_table(metrics))
     if args.out is not None:

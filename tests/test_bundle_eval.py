@@ -164,3 +164,39 @@ def test_returns_change_where_the_shift_must_change_them(bundles):
     assert (
         long["mean_return"] <= short["mean_return"] and long["mean_length"] >= short["mean_length"]
     )
+
+
+def test_eval_refuses_a_folder_holding_results_and_checks_points_first(bundles, tmp_path, capsys):
+    ckpt = str(bundles["windy"] / "final.pt")
+    argv = [
+        "eval",
+        "--checkpoint",
+        ckpt,
+        "--episodes",
+        "3",
+        "--no-progress",
+        "--out",
+        str(tmp_path),
+    ]
+    assert main(argv) == 0
+    before = (tmp_path / "metrics.json").read_text()
+    assert main([*argv, "--method", "averaging"]) == 2  # no silent replacement
+    assert "--overwrite" in capsys.readouterr().err
+    assert (tmp_path / "metrics.json").read_text() == before
+    assert main([*argv, "--method", "averaging", "--overwrite"]) == 0
+    # a sweep whose second point does not fit the bundle fails before any episode is played
+    bad = ["--shift", "env.obs_encoding=onehot,coords_patch", "--episodes", "100000"]
+    assert main(["eval", "--checkpoint", ckpt, "--no-progress", *bad]) == 2
+    assert "trained on" in capsys.readouterr().err
+
+
+def test_the_table_names_fixed_shifts(bundles):
+    m = eval_bundle(
+        bundles["windy"] / "final.pt",
+        "averaging",
+        "north",
+        ["env.instances.p_high=0.5"],
+        episodes=2,
+        progress=False,
+    )
+    assert "shifted: env.instances.p_high=0.5" in format_table(m)

@@ -29,7 +29,7 @@ from taskvar_torch.config import METHODS, Config
 from taskvar_torch.controllers import Controller
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.experiments.plots import _pyplot, save_figure
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
     calibrate,
@@ -173,12 +173,14 @@ def eval_bundle(
     out_dir: str | os.PathLike | None = None,
     progress: bool = True,
     plots: bool = True,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Evaluate the bundle at ``checkpoint`` with ``method`` (``all``, one, or a comma list) on
     the named test distribution ``test`` (``None``: the family's first) with ``shifts``
     (``KEY=V`` or ``KEY=V1,V2,..``: a shift curve); no retraining. ``seed`` defaults to the bundle's
     ``seed + 1`` (the first test run of the experiments). Writes ``metrics.json``,
-    ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given; returns the metrics."""
+    ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given (a folder already holding
+    results is refused unless ``overwrite``); returns the metrics."""
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
@@ -193,13 +195,17 @@ def eval_bundle(
     calibration = None  # the hierarchy's thresholds: on the bundle's *training* distribution
     if "hierarchy" in methods and cfg.train.robustness_threshold == "calibrated":
         calibration = calibrate(cfg, heads, train_subtasks, training_states(cfg, heads))
+    point_subtasks = []
+    for point in points:  # every point must fit the bundle before any episode is played
+        probe = make_env(point.cfg, 1, instances=point.instances)
+        point_subtasks.append(make_subtasks(point.cfg, probe))
+        _check_fits(point, heads, point_subtasks[-1], probe)
+    if out_dir is not None:
+        refuse_existing_results(Path(out_dir), overwrite, "taskvar eval")
     bar = tqdm(total=len(points) * len(methods) * int(episodes), disable=not progress, desc="eval")
     rows: list[dict[str, Any]] = []
     results = []
-    for point in points:
-        probe = make_env(point.cfg, 1, instances=point.instances)
-        subtasks = make_subtasks(point.cfg, probe)
-        _check_fits(point, heads, subtasks, probe)
+    for point, subtasks in zip(points, point_subtasks):
         oracle = _exact_oracle(cfg, point)
         per_method = {}
         for m in methods:
@@ -316,6 +322,9 @@ def format_table(metrics: dict[str, Any]) -> str:
         f"({metrics['test_description']}), {metrics['episodes']} paired episodes, seed "
         f"{metrics['seed']}"
     ]
+    fixed = [s for s in metrics["shifts"] if "," not in s]
+    if fixed:
+        lines.append(f"shifted: {', '.join(fixed)}")
     for p in metrics["points"]:
         if p["shift"]:
             lines.append(f"{p['shift']}:")

@@ -505,6 +505,7 @@ def eval_checkpoint(
         out_dir=out_dir,
         progress=progress,
         plots=False,
+        overwrite=False,  # a folder holding results is refused
     )
 
 
