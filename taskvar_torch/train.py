@@ -45,8 +45,7 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import BaseCollector, Collector
-from torchrl.data import LazyTensorStorage, ReplayBuffer
-from torchrl.data.replay_buffers import RandomSampler
+from torchrl.data import ReplayBuffer
 from torchrl.envs import TransformedEnv
 from torchrl.record.loggers import CSVLogger
 from tqdm.auto import tqdm
@@ -92,6 +91,13 @@ from taskvar_torch.factory import (  # noqa: F401  (the factories stay importabl
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import MultiHeadLearner
+from taskvar_torch.replay import (  # noqa: F401  (importable from here too)
+    EPISODE_REWARD,
+    load_replay_state,
+    make_replay_buffer,
+    raw_transitions,
+    replay_state,
+)
 from taskvar_torch.run_folder import (  # noqa: F401  (the run-folder names stay importable here)
     LOCK_NAME,
     RunFolder,
@@ -106,8 +112,6 @@ from taskvar_torch.run_folder import (  # noqa: F401  (the run-folder names stay
     run_files,
 )
 
-EPISODE_REWARD = "episode_reward"  # RewardSum's running return
-
 
 class TrainingDiverged(RuntimeError):
     """A loss or a weight became NaN or infinite; no checkpoint holding it is ever written, so the
@@ -116,17 +120,6 @@ class TrainingDiverged(RuntimeError):
 
 # --------------------------------------------------------------------------------------------
 # replay and exploration
-
-
-def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
-    """Uniform replay of raw transitions; sampling draws from ``generator`` only."""
-    t = cfg.train
-    return ReplayBuffer(
-        storage=LazyTensorStorage(t.buffer_size, device=cfg.device),
-        sampler=RandomSampler(),
-        batch_size=t.batch_size,
-        generator=generator,
-    )
 
 
 def epsilon_at(frames: int, t: TrainConfig) -> float:
@@ -139,42 +132,8 @@ def epsilon_at(frames: int, t: TrainConfig) -> float:
     return t.eps_start + frac * (t.eps_end - t.eps_start)
 
 
-def raw_transitions(batch: TensorDictBase, keep_instance: bool = False) -> TensorDictBase:
-    """Flatten a collector batch ``(N, T)`` to ``(N*T,)`` raw transitions, minus what no head may read.
-
-    Dropped: RewardSum's running returns, and the hidden instance (``("instance", ...)``) unless
-    ``keep_instance`` (the ``instance`` max-value estimator's critic reads the episode's instance,
-    offline only; ``next``'s copy is dropped either way: the instance is fixed along an episode).
-    """
-    drop = [(keys.NEXT, keys.INSTANCE), EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD)]
-    if not keep_instance:
-        drop.append(keys.INSTANCE)
-    return batch.exclude(*drop).reshape(-1)
-
-
 # --------------------------------------------------------------------------------------------
 # checkpoint pieces that checkpoint.py's conventional keys do not cover
-
-
-def _replay_state(buffer: ReplayBuffer) -> dict[str, Any]:
-    """The buffer's filled rows (in storage order) and its writer's cursor, as plain data.
-
-    Sampling draws from the trainer's own generator, whose state is saved with the other RNGs.
-    """
-    n = len(buffer)
-    return {
-        "data": buffer[:n].to_dict() if n else {},
-        "size": n,
-        "writer": buffer.writer.state_dict(),
-    }
-
-
-def _load_replay_state(buffer: ReplayBuffer, state: dict[str, Any]) -> None:
-    """Refill an empty buffer from :func:`_replay_state`: same rows, same cursor."""
-    n = int(state["size"])
-    if n:
-        buffer.extend(TensorDict(state["data"], batch_size=[n]))
-    buffer.writer.load_state_dict(state["writer"])
 
 
 def _check_runtime_only(bundle: dict[str, Any], cfg: Config, path: Any) -> None:
@@ -490,7 +449,7 @@ class _Run:
             optimizers={"adam": learner.optimizer},
             counters=dict(self.counters),
             rng=rng_state({"replay": self.replay_generator}),
-            replay=_replay_state(self.buffer),
+            replay=replay_state(self.buffer),
             learner={
                 k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
             },
@@ -553,7 +512,7 @@ def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
                 "optimizer": bundle["optimizers"]["adam"],
             }
         )
-        _load_replay_state(buffer, bundle["replay"])
+        load_replay_state(buffer, bundle["replay"])
         first_visit.load_state_dict(bundle["first_visit"])
         run.counters.update(bundle["counters"])
         run.stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}

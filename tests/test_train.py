@@ -143,7 +143,12 @@ def test_cli_help(command, capsys):
 def test_final_bundle_reloads_the_trained_heads(tmp_path):
     cfg = load_config(CONFIG, [*TINY, "train.total_frames=600", "train.checkpoint_every=0"])
     train(cfg, tmp_path, progress=False)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml", "final.pt", "logs"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "config.yaml",
+        "final.pt",
+        "heads.pt",
+        "logs",
+    ]
     bundle = load_checkpoint(tmp_path / "final.pt")
     assert bundle["replay"]["size"] > 0 and bundle["counters"]["updates"] > 0
     heads, cfg2 = load_heads(tmp_path / "final.pt")
