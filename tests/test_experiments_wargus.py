@@ -199,3 +199,24 @@ def test_no_plots_writes_everything_but_the_png(tmp_path):
     assert main([*argv, *tiny]) == 0
     assert (tmp_path / "metrics.json").is_file() and (tmp_path / "per_trial.csv").is_file()
     assert not (tmp_path / "fig4.png").exists()
+
+
+def test_taskvar_eval_runs_every_method_on_a_repetition_bundle(results, tmp_path, capsys):
+    out = tmp_path / "eval"
+    argv = ["eval", "--checkpoint", str(results / "rep0" / "final.pt"), "--method", "all"]
+    assert (
+        main(
+            [*argv, "--test", "fast_patrol", "--episodes", "4", "--no-progress", "--out", str(out)]
+        )
+        == 0
+    )
+    printed = capsys.readouterr().out
+    for method in ("averaging", "options", "interruption", "hierarchy"):
+        assert method in printed
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["methods"] == ["averaging", "options", "interruption", "hierarchy"]
+    assert (
+        m["test"] == "fast_patrol"
+        and (out / "episodes.csv").is_file()
+        and (out / "eval.png").is_file()
+    )
