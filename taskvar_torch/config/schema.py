@@ -1,7 +1,7 @@
 """The config schema: frozen dataclasses mirrored by ``configs/*.yaml`` (docs/design.md, Configs).
 
 :class:`Config` is a whole experiment; its sections are :class:`EnvConfig` (with
-:class:`WargusConfig` under ``env.wargus``), :class:`HeadsConfig`, :class:`TrainConfig`,
+:class:`WargusConfig`, the Wargus env's own config, under ``env.wargus``), :class:`HeadsConfig`, :class:`TrainConfig`,
 :class:`CollectorConfig`, :class:`EvalConfig` and :class:`ExperimentConfig`. Every field carries
 a docstring (the string literal right below it), the source of ``taskvar train --help``
 (:mod:`taskvar_torch.config.help`). Building a :class:`Config` in any way runs the range and
@@ -15,30 +15,17 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from taskvar_torch.config.validate import _validate
+from taskvar_torch.envs import wargus
 
 
 @dataclass(frozen=True)
-class WargusConfig:
-    """Wargus resource-gathering family (paper §3.5); read only when ``family='wargus'``."""
+class WargusConfig(wargus.WargusConfig):
+    """The Wargus env's own config (``envs/wargus.py``: the one definition of its fields and
+    their docs) under ``env.wargus``. Its range checks run in the family's validation
+    (``families.py``) only when ``family='wargus'``, so a windy config never reads these keys."""
 
-    size: int = 32
-    """Grid side length (size x size cells, no obstacles)."""
-    num_patrols: int = 1
-    """Number of enemy patrols."""
-    num_items: int = 1
-    """Number of items present at a time."""
-    sight: int = 8
-    """An object is seen when its Chebyshev distance to the viewer is < sight."""
-    shoot_range: int = 5
-    """A patrol shoots when the agent is within this Chebyshev distance."""
-    hit_prob: float = 1.0
-    """Probability that a shot destroys the agent."""
-    patrol_speed: float = 0.8
-    """Probability that a patrol moves on a given step."""
-    horizon: int = 500
-    """Steps before truncation."""
-    noop: bool = False
-    """Add a no-op action to the 8 compass moves."""
+    def __post_init__(self) -> None:  # checked by the Wargus family's validation instead
+        pass
 
 
 @dataclass(frozen=True)

@@ -147,14 +147,23 @@ class WargusConfig:
     """
 
     size: int = 32
+    """Grid side length (size x size cells, no obstacles)."""
     num_patrols: int = 1
+    """Number of enemy patrols."""
     num_items: int = 1
+    """Number of items present at a time."""
     sight: int = 8
+    """An object is seen when its Chebyshev distance to the viewer is < sight."""
     shoot_range: int = 5
+    """A patrol shoots when the agent is within this Chebyshev distance."""
     hit_prob: float = 1.0
+    """Probability that a shot destroys the agent."""
     patrol_speed: float = 0.8
+    """Probability that a patrol moves on a given step."""
     horizon: int = 500
+    """Steps before truncation."""
     noop: bool = False
+    """Add a no-op action to the 8 compass moves."""
 
     def __post_init__(self) -> None:
         def _int(name: str, lo: int, hi: int) -> None:
