@@ -270,7 +270,13 @@ def test_overwrite_removes_the_old_run_first(reference, tmp_path, capsys):
     argv = ["train", CONFIG, "--out", str(out), *TINY, "train.total_frames=400",
             "train.checkpoint_every=0", "--overwrite", "--no-progress"]  # fmt: skip
     assert main(argv) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["config.yaml", "final.pt", "logs", "notes.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "config.yaml",
+        "final.pt",
+        "heads.pt",
+        "logs",
+        "notes.txt",
+    ]
     assert load_checkpoint(out / "final.pt")["counters"]["frames"] == 400
     assert all(int(row.split(",")[0]) <= 400 for rows in read_logs(out).values() for row in rows)
 
