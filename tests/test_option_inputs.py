@@ -75,7 +75,7 @@ def test_fused_pass_equals_each_head_and_full_inputs_keep_one_member():
     heads = _heads(SUBTASK)
     stack = head_network(heads.heads["options"]).stack
     assert isinstance(stack, StackedMLP) and stack.input_mask is not None
-    full = head_network(_heads([]).heads["options"]).stack
+    full = head_network(_heads(["heads.option_inputs=full"]).heads["options"]).stack
     assert full.input_mask is None and stack.num_members == full.num_members + 2
     obs = torch.rand(7, 24)
     out = stack(obs)  # (K, 7, max_out)
