@@ -321,7 +321,13 @@ def load_heads(
             not fit the config.
         ValueError: the bundle's device is not available here.
     """
-    bundle = load_checkpoint(path)
+    return _heads_of(load_checkpoint(path), path, device)
+
+
+def _heads_of(
+    bundle: dict[str, Any], path: str | os.PathLike, device: str | torch.device | None = None
+) -> tuple[Heads, Config]:
+    """The heads and config of a loaded checkpoint ``bundle`` (read from ``path``)."""
     require_finite_heads(bundle, path)
     cfg = config_from_dict(bundle["config"], f"checkpoint {path}")
     if device is not None:
@@ -349,11 +355,12 @@ def export_heads(
     :func:`load_heads`, ``taskvar eval`` and the notebooks need; the full checkpoint stays for
     resuming). ``out`` defaults to ``heads.pt`` beside ``checkpoint``; an existing file is refused
     unless ``overwrite``. Loads with ``weights_only=True`` like every bundle."""
-    heads, cfg = load_heads(checkpoint)
     dest = Path(out) if out is not None else Path(checkpoint).with_name(HEADS_NAME)
     if dest.exists() and not overwrite:
         raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
-    return write_heads(dest, heads, cfg, counters=load_checkpoint(checkpoint).get("counters"))
+    bundle = load_checkpoint(checkpoint)  # read once: a training checkpoint holds the replay
+    heads, cfg = _heads_of(bundle, checkpoint)
+    return write_heads(dest, heads, cfg, counters=bundle.get("counters"))
 
 
 def write_heads(

@@ -47,7 +47,6 @@ from taskvar_torch.subtasks.base import Subtasks
 METRICS_NAME = "metrics.json"
 CSV_NAME = "episodes.csv"
 PNG_NAME = "eval.png"
-ORDER = ("averaging", "options", "interruption", "hierarchy")  # the paper's order
 
 
 def parse_methods(spec: str, subtasks: Subtasks, heads: Heads) -> list[str]:
@@ -56,17 +55,17 @@ def parse_methods(spec: str, subtasks: Subtasks, heads: Heads) -> list[str]:
     critics); naming an unsupported or unknown one is a one-line error."""
     can_compose = subtasks.hierarchy is not None and heads.has("robustness")
     if spec == "all":
-        return [m for m in ORDER if m != "hierarchy" or can_compose]
+        return [m for m in METHODS if m != "hierarchy" or can_compose]
     names = [m.strip() for m in spec.split(",") if m.strip()]
     for m in names:
         if m not in METHODS:
-            raise ValueError(f"--method must be 'all' or among {list(ORDER)}, got {m!r}")
+            raise ValueError(f"--method must be 'all' or among {list(METHODS)}, got {m!r}")
     if "hierarchy" in names and not can_compose:
         raise ValueError(
             "method 'hierarchy' needs robustness heads and a composition hierarchy, which this "
             "bundle does not have; use averaging, options or interruption"
         )
-    return [m for m in ORDER if m in names]
+    return [m for m in METHODS if m in names]
 
 
 def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:

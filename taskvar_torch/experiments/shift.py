@@ -91,10 +91,9 @@ def _apply(fam: Family, cfg: Config, fields: dict[str, Any], key: str, value: st
             v: Any = float(value) if name in FLOAT_FIELDS else value
         except ValueError:
             raise ValueError(f"--shift {key} must be a number, got {value!r}") from None
-        fields = {**fields, name: v}
-        if name == "p":
-            fields.pop("p_low", None), fields.pop("p_high", None)
-        return cfg, fields
+        if name == "p":  # one wind strength replaces the band
+            fields = {k: f for k, f in fields.items() if k not in ("p_low", "p_high")}
+        return cfg, {**fields, name: v}
     try:
         return apply_overrides(cfg, [f"{key}={value}"]), fields
     except ValueError as e:
