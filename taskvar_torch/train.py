@@ -91,6 +91,7 @@ from taskvar_torch.factory import (  # noqa: F401  (the factories stay importabl
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import MultiHeadLearner
+from taskvar_torch.heads.nstep import nstep_returns
 from taskvar_torch.replay import (  # noqa: F401  (importable from here too)
     EPISODE_REWARD,
     load_replay_state,
@@ -111,6 +112,9 @@ from taskvar_torch.run_folder import (  # noqa: F401  (the run-folder names stay
     resume_command,
     run_files,
 )
+
+HEADS_SNAPSHOTS = "heads"
+"""Folder of a run's ``train.heads_every`` snapshots (``heads_<frames>.pt``)."""
 
 
 class TrainingDiverged(RuntimeError):
@@ -364,6 +368,10 @@ class _Run:
         frames_before = counters["frames"]
         counters["frames"] += batch.numel()
         counters["batches"] += 1
+        if t.n_step > 1:  # multi-step windows, within this batch (heads/nstep.py)
+            batch = nstep_returns(
+                batch.copy(), self.learner.loss.subtasks, t.gamma, t.n_step, BEHAVIOUR
+            )  # a shallow copy: the collector's own batch is left as it was
         raw = raw_transitions(batch, keep_instance=t.max_value_estimator == "instance")  # (N*T,)
         if t.first_visit:
             raw = raw[self.first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
@@ -420,6 +428,14 @@ class _Run:
                 self.last_checkpoint,
             )
             pbar.set_postfix({k: f"{v:.3g}" for k, v in row.items() if k.startswith("loss")})
+        if _crossed(frames_before, frames, t.heads_every):  # learning curves (docs/scale.md)
+            seconds = time.perf_counter() - start_time
+            write_heads(
+                self.out / HEADS_SNAPSHOTS / f"heads_{frames:09d}.pt",
+                self.learner.heads,
+                self.cfg,
+                {**self.counters, "seconds": seconds},
+            )
         if (checkpoint_now or stop_now) and not is_last:
             path = self.out / f"checkpoint_{frames:09d}.pt"
             self.save(path)
@@ -478,6 +494,7 @@ def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
         env.action_spec,
         option_prob=t.option_behaviour_prob,
         root_policy=t.hierarchy_root_policy,
+        option_coverage=t.option_coverage,
     )
     buffer = make_replay_buffer(cfg, replay_generator)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]

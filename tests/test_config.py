@@ -269,7 +269,10 @@ def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
         ("train.switching=hybrid", ["train.switching must be one of ['intra']"]),
         ("train.mu_bar=eps", ["train.mu_bar must be one of ['greedy', 'softmax']"]),
         ("train.target_update=polyak", ["train.target_update must be one of ['hard', 'soft']"]),
-        ("env.obs_encoding=pixels", ["env.obs_encoding must be one of ['coords_patch', 'onehot']"]),
+        (
+            "env.obs_encoding=pixels",
+            ["env.obs_encoding must be one of ['coords_patch', 'fourier_patch', 'onehot']"],
+        ),
         ("env.instances=east", ["env.instances must be one of", "'south'"]),
         ("eval.method=random", ["eval.method must be one of", "'interruption'"]),
         ("eval.test=west", ["eval.test must be one of"]),

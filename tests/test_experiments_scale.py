@@ -21,9 +21,11 @@ TINY = [  # --quick, reduced further: two small cases, a few hundred frames, 16 
     "eval_episodes=16",
     "eval_batch_size=8",
     "only=[windy-5x5,wargus-32x32]",
+    "curve_points=3",
+    "curve_episodes=8",
     'overrides=[env.wargus.size=12,env.wargus.horizon=40,"heads.hidden=[32]",train.batch_size=32]',
 ]
-FILES = ("config.yaml", "scale.csv", "metrics.json", "scale.png")
+FILES = ("config.yaml", "scale.csv", "metrics.json", "scale.png", "scale_curves.png")
 
 
 @pytest.fixture(scope="module")
@@ -62,6 +64,22 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
                 assert 0 <= r["mean_return"] <= horizon  # items per episode
                 assert r["gap_closed"] is None  # no oracle for Wargus
         assert c["grid_side"] == (5 if c["family"] == "windy" else 12)
+    for c in m["cells"]:  # learning curves: 3 snapshots, then the final evaluation
+        frames = [p["frames"] for p in c["curve"]]
+        assert len(frames) == 4 and frames == sorted(frames) and frames[-1] == c["frames"]
+        assert all(p["seconds"] > 0 for p in c["curve"])
+        assert c["curve"][-1]["methods"]["averaging"]["mean_return"] == pytest.approx(
+            c["methods"]["averaging"]["mean_return"]
+        )
+        assert not list((out / "cells" / f"{c['case']}-n{c['num_envs']}").glob("heads/*.pt"))
+        if c["family"] == "windy":  # every head against the exact optimum
+            h = c["heads"]
+            assert h["averaging"]["optimum"] <= 0 and math.isfinite(h["averaging"]["rel_gap"])
+            assert set(h["options"]) == {"exit_north", "exit_south"}
+            assert 0 <= h["mu_bar"]["start_agreement"] <= 1
+            assert 0 <= h["interruption_condition"]["agreement"] <= 1
+        else:
+            assert c["heads"] is None
     w = m["references"]["windy-5x5"]
     assert w["oracle_averaging"]["mean_return"] > w["random"]["mean_return"]  # optimum beats random
     assert m["references"]["wargus-32x32"]["oracle_averaging"] is None

@@ -128,7 +128,7 @@ def test_fused_pass_equals_each_head_run_alone(windy):
     loss = MultiHeadLoss(heads, subtasks, LossSettings())
     assert loss.stack is not None  # every head is a member of one StackedMLP
     batch = random_batch(env)
-    cur, nxt, nxt_target = loss._head_outputs(
+    cur, nxt, nxt_target, *_ = loss._head_outputs(
         batch[keys.OBSERVATION], batch[keys.NEXT, keys.OBSERVATION]
     )
     out = heads(batch.select(keys.OBSERVATION).clone())
@@ -271,7 +271,7 @@ def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
                 p.add_(0.1 * torch.randn_like(p))
         got = loss(batch.clone())["loss_robustness"]
         tr = relabel(batch, subtasks, robustness=True)
-        cur, nxt, nxt_t = loss._head_outputs(tr.observation, tr.next_observation)
+        cur, nxt, nxt_t, *_ = loss._head_outputs(tr.observation, tr.next_observation)
         mask = parent_closure(tr.initiation, loss.components)
         pi_next = nxt["options"].argmax(-1) if target == "option" else None
         if root == "averaging":  # the root (TG+FE, index 2) follows pi^avg (paper §3.4.2)

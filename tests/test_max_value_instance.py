@@ -105,7 +105,7 @@ def test_critic_loss_trains_the_critic_and_head_loss_only_the_gap(windy):
     loss = MultiHeadLoss(heads, subtasks, LossSettings(max_value_estimator="instance"))
     td = batch_with_instances(env)
     batch = relabel(td, subtasks)
-    cur, _, _ = loss._head_outputs(batch.observation, batch.next_observation)
+    cur, *_ = loss._head_outputs(batch.observation, batch.next_observation)
     B, O = batch.initiation.shape  # noqa: E741
     mu = torch.full((B, O), 1.0 / O)
     consistent = torch.ones(B, O, dtype=torch.bool)

@@ -56,7 +56,8 @@ class EnvConfig:
     horizon: int | None = None
     """Windy steps before truncation; null: max(100, 4 * (height + width))."""
     obs_encoding: str = "onehot"
-    """Windy observation: onehot (one-hot cell) or coords_patch (coordinates + local patch)."""
+    """Windy observation: onehot (one-hot cell), coords_patch (coordinates + local patch) or
+    fourier_patch (coords_patch + sin/cos features of the coordinates)."""
     patch_radius: int = 2
     """Windy coords_patch encoding: radius r of the (2r+1)^2 local patch."""
     wargus: WargusConfig = field(default_factory=WargusConfig)
@@ -111,6 +112,13 @@ class TrainConfig:
     option_behaviour_prob: float = 0.5
     """Share of training episodes whose behaviour runs mu_bar-picked options (epsilon-greedy in
     their option heads) instead of epsilon-greedy in the averaging head."""
+    option_coverage: float = 0.0
+    """Least probability that the behaviour's option pick is uniform over the initiable options
+    rather than mu_bar's (at least epsilon anyway), so every option runs its own trajectories."""
+    n_step: int = 1
+    """Multi-step targets of the averaging and option heads: up to n rewards of the behaviour
+    that ran that head (cut at the episode's end, the option's termination, a change of behaviour
+    mode, the batch's end), then the bootstrap; 1: one-step targets (heads/nstep.py)."""
     first_visit: bool = True
     """Replay only the first visit of each (observation, action) per episode, so every instance
     weighs equally at a state-action as in the mean MDP (taskvar_torch/heads/first_visit.py)."""
@@ -173,6 +181,9 @@ class TrainConfig:
     """Save a checkpoint every this many frames; 0: only the final one."""
     log_every: int = 5_000
     """Write a log row every this many frames."""
+    heads_every: int = 0
+    """Save the heads alone (a small shareable bundle, ``heads/heads_<frames>.pt``, with the frames,
+    updates and training seconds) every this many frames, for learning curves; 0: never."""
     max_value_estimator: str = "expectile"
     """Estimator of the max-value head Q_hat (Definition 1; taskvar_torch/heads/max_value.py):
     expectile (expectile-TD upper estimator, max_value_expectile: optimistic over all randomness,

@@ -137,6 +137,9 @@ def _check_train(cfg: Config, fam: Family) -> None:
     _within("train.eps_end", t.eps_end, 0.0, 1.0)
     _at_least("train.eps_decay_frames", t.eps_decay_frames, 0)
     _within("train.option_behaviour_prob", t.option_behaviour_prob, 0.0, 1.0)
+    _within("train.option_coverage", t.option_coverage, 0.0, 1.0)
+    if t.n_step < 1:
+        raise ValueError(f"train.n_step must be >= 1, got {t.n_step}")
     _one_of("train.target_update", t.target_update, TARGET_UPDATES)
     _within("train.target_tau", t.target_tau, 0.0, 1.0, open_low=True)
     _at_least("train.target_period", t.target_period, 1)
@@ -160,6 +163,7 @@ def _check_train(cfg: Config, fam: Family) -> None:
         raise ValueError(f"train.max_grad_norm must be > 0 or null, got {t.max_grad_norm}")
     _at_least("train.checkpoint_every", t.checkpoint_every, 0)
     _at_least("train.log_every", t.log_every, 1)
+    _at_least("train.heads_every", t.heads_every, 0)
 
 
 def _check_collector(cfg: Config) -> None:

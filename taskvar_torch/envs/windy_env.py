@@ -12,7 +12,7 @@ from taskvar_torch.envs import render, windy
 from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.envs.instances import WindyInstances, windy_instances
 
-OBS_ENCODINGS = ("onehot", "coords_patch")
+OBS_ENCODINGS = ("onehot", "coords_patch", "fourier_patch")
 _C_START = rng.RESET_COUNTER + 4
 
 
@@ -23,11 +23,21 @@ def observation_table(
 
     ``onehot``: one-hot over cells (D = S). ``coords_patch``: normalised ``(row, col)`` then a
     ``(2r+1)^2`` local patch per channel wall-or-edge, windy, goal (D = 2 + 3 (2r+1)^2), for grids
-    too large for one-hot. The instance is never in the observation.
+    too large for one-hot. ``fourier_patch``: ``coords_patch`` followed by ``sin, cos(2^j pi x)``
+    of each normalised coordinate, ``j = 0 .. ceil(log2(side))`` (random-feature style positional
+    encoding: cells far apart in value but close in coordinates, like two exits of the same
+    look, become easy to tell apart; docs/scale.md). The instance is never in the observation.
     """
     S = layout.num_cells
     if encoding == "onehot":
         return np.eye(S, dtype=np.float32)
+    if encoding == "fourier_patch":
+        base = observation_table(layout, "coords_patch", patch_radius)
+        side = max(layout.height, layout.width)
+        freqs = np.pi * 2.0 ** np.arange(int(np.ceil(np.log2(max(side, 2)))) + 1)  # (F,)
+        x = base[:, :2, None] * freqs  # (S, 2, F)
+        extra = np.concatenate([np.sin(x), np.cos(x)], 1).reshape(S, -1)  # (S, 4F)
+        return np.concatenate([base, extra], 1).astype(np.float32)
     if encoding != "coords_patch":
         raise ValueError(
             f"observation encoding must be one of {list(OBS_ENCODINGS)}, got {encoding!r}"

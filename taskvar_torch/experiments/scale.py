@@ -51,6 +51,7 @@ from torchrl.modules import RandomPolicy
 from tqdm.auto import tqdm
 
 from taskvar_torch import keys
+from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import (
     METHODS,
     Config,
@@ -77,9 +78,11 @@ from taskvar_torch.experiments.scale_report import (
     plot_results,
 )
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
-from taskvar_torch.families import family
+from taskvar_torch.families import EXACT_ORACLE_CELLS, family
 from taskvar_torch.oracle import WindyOracle
-from taskvar_torch.train import train
+from taskvar_torch.oracle.head_report import head_report
+from taskvar_torch.oracle.sparse import SparseWindyOracle
+from taskvar_torch.train import HEADS_SNAPSHOTS, train
 
 TEST_SEED_OFFSET = 1000
 """Test episodes use env seed ``seed + TEST_SEED_OFFSET`` (never a training seed)."""
@@ -99,6 +102,8 @@ class ScaleCase:
     """Family YAML (configs/*.yaml); a relative path is read beside the scale config."""
     overrides: tuple[str, ...] = ()
     """key.sub=value overrides of the family config for this case."""
+    total_frames: int | None = None
+    """Training frames of this case's cells; null: the experiment's ``total_frames``."""
 
 
 @dataclass(frozen=True)
@@ -132,6 +137,15 @@ class ScaleConfig:
     """key.sub=value overrides applied to every case's family config (before the case's own)."""
     keep_checkpoints: bool = False
     """Keep each cell's cells/<case>-n<N>/final.pt (with its replay buffer: large)."""
+    curve_points: int = 10
+    """Learning curves: the heads are saved this many times per cell (train.heads_every) and every
+    method is evaluated on each snapshot; 0: no curves."""
+    curve_episodes: int = 100
+    """Test episodes per method per learning-curve point (the first of the final evaluation's)."""
+    head_report: bool = True
+    """Windy cells: every learnt head against its exact optimum (oracle/head_report.py)."""
+    head_report_max_value: bool = True
+    """With head_report: compare the learnt interruption condition too (the slowest exact solve)."""
     quick_overrides: tuple[str, ...] = ()
     """Overrides of this config applied by --quick."""
 
@@ -150,7 +164,9 @@ class ScaleConfig:
             raise ValueError(
                 f"num_envs must be a non-empty list of ints >= 1, got {list(self.num_envs)}"
             )
-        for name in ("eval_episodes", "eval_batch_size"):
+        if self.curve_points < 0:
+            raise ValueError(f"curve_points must be >= 0, got {self.curve_points}")
+        for name in ("eval_episodes", "eval_batch_size", "curve_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not self.cases:
@@ -159,6 +175,10 @@ class ScaleConfig:
         for i, c in enumerate(self.cases):
             if not c.name or not c.config:
                 raise ValueError(f"cases[{i}] needs a name and a config, got {c}")
+            if c.total_frames is not None and c.total_frames < 1:
+                raise ValueError(
+                    f"cases[{i}].total_frames must be >= 1 or null, got {c.total_frames}"
+                )
         if len(set(names)) != len(names):
             raise ValueError(f"case names must be unique, got {names}")
         unknown = [n for n in self.only if n not in names]
@@ -222,10 +242,9 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
     base = load_config(case.config, [*cfg.overrides, *case.overrides])
     t = base.train
     n = int(num_envs)
+    total = case_frames(cfg, case)
     fpb = max(n, round(t.frames_per_batch / n) * n)
-    fpb = min(
-        fpb, max(n, (cfg.total_frames // n) * n)
-    )  # at least two batches when the budget allows
+    fpb = min(fpb, max(n, (total // n) * n))  # at least two batches when the budget allows
     ratio = (
         t.updates_per_batch / t.frames_per_batch
         if cfg.updates_per_frame is None
@@ -237,16 +256,22 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
         [
             f"seed={cfg.seed}",
             f"env.num_envs={n}",
-            f"train.total_frames={cfg.total_frames}",
-            f"train.init_random_frames={int(cfg.init_random_fraction * cfg.total_frames)}",
-            f"train.eps_decay_frames={int(cfg.eps_decay_fraction * cfg.total_frames)}",
+            f"train.total_frames={total}",
+            f"train.init_random_frames={int(cfg.init_random_fraction * total)}",
+            f"train.eps_decay_frames={int(cfg.eps_decay_fraction * total)}",
             f"train.frames_per_batch={fpb}",
             f"train.updates_per_batch={upb}",
-            f"train.buffer_size={max(min(t.buffer_size, cfg.total_frames), t.batch_size)}",
+            f"train.buffer_size={max(min(t.buffer_size, total), t.batch_size)}",
             "train.checkpoint_every=0",
-            f"train.log_every={max(cfg.total_frames // 10, 1)}",
+            f"train.log_every={max(total // 10, 1)}",
+            f"train.heads_every={total // cfg.curve_points if cfg.curve_points else 0}",
         ],
     )
+
+
+def case_frames(cfg: ScaleConfig, case: ScaleCase) -> int:
+    """The training budget of a case's cells (its own ``total_frames``, else the experiment's)."""
+    return case.total_frames if case.total_frames is not None else cfg.total_frames
 
 
 # --------------------------------------------------------------------------------------------
@@ -286,13 +311,18 @@ def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None,
 
     if name == "random":
         return RandomPolicy(env.action_spec)
-    if name == "oracle_averaging":
-        oracle = WindyOracle(
-            windy_layout(cfg.env),
-            gamma=cfg.train.gamma,
-            horizon=cfg.env.horizon,
-            train_instances=cfg.env.instances,
-            device=cfg.device,
+    if name == "oracle_averaging":  # dense on small layouts, successor tables beyond
+        layout = windy_layout(cfg.env)
+        oracle = (
+            WindyOracle(
+                layout,
+                gamma=cfg.train.gamma,
+                horizon=cfg.env.horizon,
+                train_instances=cfg.env.instances,
+                device=cfg.device,
+            )
+            if layout.num_cells <= EXACT_ORACLE_CELLS
+            else sparse_oracle(cfg)
         )
         return TensorDictModule(TablePolicy(oracle.averaging_policy()), [keys.CELL], [keys.ACTION])
     return make_method_controller(cfg, name, heads, subtasks)
@@ -389,6 +419,24 @@ def run_cell(
     for r in methods.values():
         if r is not None:
             r["gap_closed"] = gap_closed(r["mean_return"], rand, orc)
+    curve = learning_curve(cfg, ccfg, cell_dir, rand, orc)
+    curve.append(
+        {
+            "frames": int(result["frames"]),
+            "updates": int(result["updates"]),
+            "seconds": float(result["seconds"]),
+            "methods": {m: _curve_point(r) for m, r in methods.items()},
+        }
+    )
+    report = None
+    if cfg.head_report and family(ccfg).exact_oracle:
+        report = head_report(
+            heads,
+            sparse_oracle(ccfg),
+            ccfg.env.obs_encoding,
+            ccfg.env.patch_radius,
+            with_max_value=cfg.head_report_max_value,
+        )
     secs = float(result["seconds"])
     return {
         "case": case.name,
@@ -406,7 +454,55 @@ def run_cell(
         "frames_per_second": result["frames"] / secs if secs > 0 else None,
         "eval_seconds": time.perf_counter() - t0,
         "methods": methods,
+        "curve": curve,
+        "heads": report,
     }
+
+
+def _curve_point(r: dict[str, Any] | None) -> dict[str, Any] | None:
+    return None if r is None else {k: r.get(k) for k in ("mean_return", "ci95", "gap_closed")}
+
+
+def learning_curve(
+    cfg: ScaleConfig, ccfg: Config, cell_dir: Path, random_ret: float, oracle_ret: float | None
+) -> list[dict[str, Any]]:
+    """Every method on each heads snapshot of a cell (``train.heads_every``), on the first
+    ``curve_episodes`` test episodes; the snapshots are removed once read."""
+    points = []
+    snapshots = sorted((cell_dir / HEADS_SNAPSHOTS).glob("heads_*.pt"))
+    n = min(cfg.curve_episodes, cfg.eval_episodes)
+    for path in snapshots:
+        heads, _ = load_heads(path, device=ccfg.device)
+        counters = load_checkpoint(path)["counters"]
+        methods = {}
+        for m in METHODS:
+            r = evaluate(ccfg, m, n, min(n, cfg.eval_batch_size), heads)
+            if r is not None:
+                r["gap_closed"] = gap_closed(r["mean_return"], random_ret, oracle_ret)
+            methods[m] = _curve_point(r)
+        points.append(
+            {
+                "frames": int(counters["frames"]),
+                "updates": int(counters["updates"]),
+                "seconds": float(counters["seconds"]),
+                "methods": methods,
+            }
+        )
+    if not cfg.keep_checkpoints:
+        for path in snapshots:
+            path.unlink(missing_ok=True)
+    return points
+
+
+def sparse_oracle(ccfg: Config) -> SparseWindyOracle:
+    """The exact oracle of a windy cell at any size (oracle/sparse.py)."""
+    return SparseWindyOracle(
+        windy_layout(ccfg.env),
+        gamma=ccfg.train.gamma,
+        horizon=ccfg.env.horizon,
+        train_instances=ccfg.env.instances,
+        device=ccfg.device,
+    )
 
 
 def scale(

@@ -25,6 +25,7 @@ from taskvar_torch.experiments.plots import _pyplot, save_figure
 EXPERIMENT = "scale"
 """``metrics.json``'s ``"experiment"`` (a results folder's kind)."""
 CSV_NAME, METRICS_NAME, FIGURE = "scale.csv", "metrics.json", "scale.png"
+CURVES_FIGURE = "scale_curves.png"
 CSV_FIELDS = (
     "case", "family", "grid_side", "cells", "num_envs", "frames", "updates", "frames_per_batch",
     "updates_per_batch", "train_seconds", "frames_per_second", "method", "mean_return", "ci95",
@@ -160,7 +161,49 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     fig.suptitle("Scaled-up grids: training cost and final performance", fontsize=11)
     path = save_figure(fig, out / FIGURE)
     plt.close(fig)
-    return [path]
+    paths = [path]
+    if any(len(c.get("curve") or []) > 1 for c in cells):
+        paths.append(plot_curves(metrics, out / CURVES_FIGURE))
+    return paths
+
+
+def plot_curves(metrics: dict[str, Any], path: Path) -> Path:
+    """``scale_curves.png``: per cell (columns), every method's test return against training
+    frames (top) and training wall time (bottom), with the random policy and the exact averaging
+    optimum (windy) as horizontal references."""
+    cells = [c for c in metrics["cells"] if len(c.get("curve") or []) > 1]
+    plt = _pyplot()
+    fig, axes = plt.subplots(
+        2, len(cells), figsize=(4.6 * len(cells), 7.2), squeeze=False, layout="constrained"
+    )
+    for j, c in enumerate(cells):
+        ref = metrics["references"][c["case"]]
+        unit = "items per episode" if c["family"] == "wargus" else "return (-steps)"
+        for i, (x_key, x_label) in enumerate(
+            (("frames", "training frames"), ("seconds", "training s"))
+        ):
+            ax = axes[i, j]
+            xs = [p[x_key] for p in c["curve"]]
+            for m in metrics["methods"]:
+                ys = [(p["methods"].get(m) or {}).get("mean_return") for p in c["curve"]]
+                if any(y is not None for y in ys):
+                    ax.plot(
+                        xs, [np.nan if y is None else y for y in ys],
+                        color=COLOURS[m], marker=".", label=m,
+                    )  # fmt: skip
+            for name in ("random", "oracle_averaging"):
+                r = ref.get(name)
+                if r is not None:
+                    ax.axhline(
+                        r["mean_return"], ls=":", color=COLOURS[name], label=name.replace("_", " ")
+                    )
+            ax.set(xlabel=x_label, ylabel=unit, title=f"{c['case']} N={c['num_envs']}")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+    fig.suptitle("Scaled-up grids: learning curves (test return of each method)", fontsize=11)
+    out = save_figure(fig, path)
+    plt.close(fig)
+    return out
 
 
 def _plot_training_time(
@@ -306,6 +349,7 @@ __all__ = [
     "COLOURS",
     "CSV_FIELDS",
     "CSV_NAME",
+    "CURVES_FIGURE",
     "EXPERIMENT",
     "FAMILY_STYLE",
     "FIGURE",
@@ -313,5 +357,6 @@ __all__ = [
     "csv_rows",
     "format_table",
     "is_results_folder",
+    "plot_curves",
     "plot_results",
 ]

@@ -35,11 +35,20 @@ def averaging_loss(
     batch: Transitions,
     gamma: float,
     double_q: bool = True,
+    q_far: torch.Tensor | None = None,  # (B, A) online Q(s_{t+k}, .) with n-step windows
+    q_far_target: torch.Tensor | None = None,  # (B, A) target Q(s_{t+k}, .)
 ) -> torch.Tensor:
-    """Mean squared TD error of the averaging head (scalar)."""
+    """Mean squared TD error of the averaging head (scalar); with ``batch.nstep``, the n-step
+    target on the averaging-mode rows (heads/nstep.py)."""
     q_taken = q.gather(-1, batch.action.unsqueeze(-1)).squeeze(-1)  # (B,)
     with torch.no_grad():
         target = batch.reward + gamma * (1.0 - batch.terminated) * bootstrap_value(
             q_next, q_next_target, double_q
         )  # (B,)
+        w = batch.nstep
+        if w is not None and q_far is not None:
+            far = w.reward + w.discount * (1.0 - w.terminated) * bootstrap_value(
+                q_far, q_far_target, double_q
+            )
+            target = torch.where(w.averaging_rows, far, target)
     return (q_taken - target).pow(2).mean()

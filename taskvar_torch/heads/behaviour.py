@@ -8,7 +8,9 @@ action is pi^o's). At every reset a sub-environment draws its *behaviour mode* f
 * with probability ``1 - option_prob``: the epsilon-greedy averaging policy (``behaviour = -1``);
 * otherwise: options, as the options controller runs them (paper §3.2): an option picked
   epsilon-greedily from mu_bar among those initiable, run until its termination beta_o, then
-  picked again (``behaviour = o``).
+  picked again (``behaviour = o``). With ``option_coverage = c`` a pick is uniform over the
+  initiable options with probability ``max(epsilon, c)`` rather than epsilon, so an option mu_bar
+  does not prefer still runs its own trajectories once epsilon has decayed (docs/scale.md).
 
 Actions are the greedy actions of the chosen head, then TorchRL's ``EGreedyModule`` replaces them
 by uniform ones with probability epsilon (scheduled by the trainer). The mode is carried in the
@@ -49,6 +51,8 @@ class BehaviourPolicy(TensorDictModuleBase):
         root_policy: ``"averaging"``: the composition hierarchy's root option acts by the averaging
             head (its policy is the full-task averaging policy, paper §3.4.2); ``"option"``: by its
             own option head.
+        option_coverage: least probability that an option pick is uniform over the initiable
+            options (regardless of mu_bar and epsilon).
     """
 
     def __init__(
@@ -59,10 +63,14 @@ class BehaviourPolicy(TensorDictModuleBase):
         option_prob: float = 0.5,
         eps: float = 1.0,
         root_policy: str = "option",
+        option_coverage: float = 0.0,
     ):
         super().__init__()
         if not 0.0 <= option_prob <= 1.0:
             raise ValueError(f"option_prob must be in [0, 1], got {option_prob}")
+        if not 0.0 <= option_coverage <= 1.0:
+            raise ValueError(f"option_coverage must be in [0, 1], got {option_coverage}")
+        self.option_coverage = float(option_coverage)
         self.heads = heads
         self.subtasks = subtasks
         self.use_options = heads.has("options") and heads.has("switching") and option_prob > 0
@@ -102,7 +110,9 @@ class BehaviourPolicy(TensorDictModuleBase):
             greedy = mu_bar_probs(q_mu, init).argmax(-1)  # (N,)
             allowed = (init | ~init.any(-1, keepdim=True)).to(torch.float32)  # (N, O)
             uniform = torch.multinomial(allowed, 1).squeeze(-1)  # (N,)
-            explore = torch.rand(N, device=obs.device) < self.egreedy.eps
+            explore = torch.rand(N, device=obs.device) < self.egreedy.eps.clamp_min(
+                self.option_coverage
+            )
             picked = torch.where(explore, uniform, greedy)  # (N,) eps-greedy mu_bar
             run_options = torch.rand(N, device=obs.device) < self.option_prob
             running = mode.clamp_min(0)

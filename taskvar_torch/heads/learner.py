@@ -182,48 +182,62 @@ class MultiHeadLoss(LossModule):
         )
 
     def _head_outputs(
-        self, obs: torch.Tensor, next_obs: torch.Tensor
-    ) -> tuple[dict[str, torch.Tensor], dict[str, torch.Tensor], dict[str, torch.Tensor]]:
-        """Every head at s (with gradient), at s' (online, detached) and at s' (target).
+        self, obs: torch.Tensor, next_obs: torch.Tensor, far_obs: torch.Tensor | None = None
+    ) -> tuple[dict[str, torch.Tensor], ...]:
+        """Every head at s (with gradient), at s' (online, detached) and at s' (target); with
+        ``far_obs`` (n-step windows, heads/nstep.py) also the averaging and option heads at
+        ``s_{t+k}`` (online, detached; target).
 
         The max-value head (an :class:`OptimismGapHead`) is ``Q_mu + softplus(gap)`` with ``Q_mu``
         detached, so its loss trains the gap only.
         """
         B = obs.shape[0]
+        ahead = next_obs if far_obs is None else torch.cat([next_obs, far_obs])  # (B or 2B, D)
         if self.stack is not None:  # fused: one batched pass for every head
             out = self.stack(obs)  # (K, B, max_out), with gradient
             with torch.no_grad():  # s' values are only read detached: no backward through them
-                out_next = self.stack(next_obs)  # (K, B, max_out)
-                out_target = self.target_stack(next_obs)  # (K, B, max_out)
+                out_ahead = self.stack(ahead)  # (K, B or 2B, max_out)
+                target_ahead = self.target_stack(ahead)
+            outs = {
+                "cur": out,
+                "next": out_ahead[:, :B],
+                "target": target_ahead[:, :B],
+                "far": out_ahead[:, B:],
+                "far_target": target_ahead[:, B:],
+            }
 
             def run(net: nn.Module, which: str) -> torch.Tensor:
                 if isinstance(net, OptimismGapHead):
                     return OptimismGapHead.combine(
                         run(net.base, which).detach(), run(net.gap, which)
                     )
-                y = out_target if which == "target" else out if which == "cur" else out_next
-                return net.select(y).reshape(B, *net.out_shape)
+                return net.select(outs[which]).reshape(B, *net.out_shape)
 
         else:  # independent networks
-            both = torch.cat([obs, next_obs])  # (2B, D)
+            both = torch.cat([obs, ahead])  # (2B or 3B, D)
 
             def run(net: nn.Module, which: str) -> torch.Tensor:
                 if isinstance(net, OptimismGapHead):
                     return OptimismGapHead.combine(
                         run(net.base, which).detach(), run(net.gap, which)
                     )
-                x = both if which != "target" else next_obs
-                y = net(x)
-                return y if which == "target" else y[:B] if which == "cur" else y[B:]
+                if which in ("target", "far_target"):
+                    y = net(ahead)
+                    return y[:B] if which == "target" else y[B:]
+                y = net(both)
+                return y[:B] if which == "cur" else y[B : 2 * B] if which == "next" else y[2 * B :]
 
-        cur, nxt, nxt_target = {}, {}, {}
+        cur, nxt, nxt_target, far, far_target = {}, {}, {}, {}, {}
         for n in self.head_names:
             online, target = head_network(self.heads.heads[n]), head_network(self.target_heads[n])
             cur[n] = run(online, "cur")
             nxt[n] = run(online, "next").detach()
             with torch.no_grad():
                 nxt_target[n] = run(target, "target")
-        return cur, nxt, nxt_target
+                if far_obs is not None and n in ("averaging", "options"):
+                    far[n] = run(online, "far")
+                    far_target[n] = run(target, "far_target")
+        return cur, nxt, nxt_target, far, far_target
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:  # LossModule hook; no estimator
         pass
@@ -231,7 +245,10 @@ class MultiHeadLoss(LossModule):
     def forward(self, tensordict: TensorDictBase) -> TensorDict:
         s = self.settings
         batch = relabel(tensordict, self.subtasks, robustness=self.heads.has("robustness"))
-        cur, nxt, nxt_target = self._head_outputs(batch.observation, batch.next_observation)
+        far_obs = batch.nstep.observation if batch.nstep is not None else None
+        cur, nxt, nxt_target, far, far_target = self._head_outputs(
+            batch.observation, batch.next_observation, far_obs
+        )
 
         losses: dict[str, torch.Tensor] = {}
         if "averaging" in cur:
@@ -242,10 +259,19 @@ class MultiHeadLoss(LossModule):
                 batch,
                 s.gamma,
                 s.double_q,
+                far.get("averaging"),
+                far_target.get("averaging"),
             )
         if "options" in cur:
             losses["loss_options"] = options_loss(
-                cur["options"], nxt["options"], nxt_target["options"], batch, s.gamma, s.double_q
+                cur["options"],
+                nxt["options"],
+                nxt_target["options"],
+                batch,
+                s.gamma,
+                s.double_q,
+                far.get("options"),
+                far_target.get("options"),
             )
         if "switching" in cur:
             q_options = cur["options"].detach()  # (B, O, A)

@@ -47,8 +47,11 @@ def options_loss(
     batch: Transitions,
     gamma: float,
     double_q: bool = True,
+    q_far: torch.Tensor | None = None,  # (B, O, A) online Q_o(s_{t+k}, .) with n-step windows
+    q_far_target: torch.Tensor | None = None,  # (B, O, A) target Q_o(s_{t+k}, .)
 ) -> torch.Tensor:
-    """Sum over options of each option's mean squared TD error over its initiation set (scalar)."""
+    """Sum over options of each option's mean squared TD error over its initiation set (scalar);
+    with ``batch.nstep``, option o's n-step target on the rows its own episodes made."""
     num_options = q.shape[1]
     action = batch.action.view(-1, 1, 1).expand(-1, num_options, 1)  # (B, O, 1)
     q_taken = q.gather(-1, action).squeeze(-1)  # (B, O)
@@ -57,4 +60,11 @@ def options_loss(
         target = batch.subtask_reward + gamma * (1.0 - done) * bootstrap_value(
             q_next, q_next_target, double_q
         )  # (B, O)
+        w = batch.nstep
+        if w is not None and q_far is not None:
+            far_done = torch.maximum(w.terminated.unsqueeze(-1), w.beta)  # (B, O)
+            far = w.subtask_reward + w.discount.unsqueeze(-1) * (1.0 - far_done) * bootstrap_value(
+                q_far, q_far_target, double_q
+            )
+            target = torch.where(w.option_rows, far, target)
     return masked_mean((q_taken - target).pow(2), batch.initiation)

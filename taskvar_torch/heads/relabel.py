@@ -33,6 +33,21 @@ class Transitions:
     subtask_reward: torch.Tensor  # (B, O)
     robustness_reward: torch.Tensor | None  # (B, O) or None when the family has no robustness
     instance: torch.Tensor | None = None  # (B, F) hidden instance features, or None (see below)
+    nstep: NStep | None = None  # multi-step window quantities (heads/nstep.py), or None
+
+
+@dataclass
+class NStep:
+    """The n-step window of each sampled transition (:func:`taskvar_torch.heads.nstep.nstep_returns`)."""
+
+    observation: torch.Tensor  # (B, D) s_{t+k}
+    reward: torch.Tensor  # (B,) discounted env-reward sum
+    subtask_reward: torch.Tensor  # (B, O) discounted subtask-reward sums
+    discount: torch.Tensor  # (B,) gamma^k
+    terminated: torch.Tensor  # (B,) float, the episode ended for good at the window's end
+    beta: torch.Tensor  # (B, O) float, beta_o(s_{t+k})
+    averaging_rows: torch.Tensor  # (B,) bool, the averaging head uses the window (mode -1)
+    option_rows: torch.Tensor  # (B, O) bool, option o uses it (mode o)
 
     @property
     def batch_size(self) -> int:
@@ -68,6 +83,21 @@ def relabel(td: TensorDictBase, subtasks: Subtasks, robustness: bool = False) ->
     """Relabel a sampled batch ``td`` (B,) of raw transitions for every head."""
     nxt = td.get(keys.NEXT)
     terminated = nxt.get(keys.TERMINATED).reshape(-1).to(torch.float32)  # (B,)
+    nstep = None
+    if "nstep" in td.keys():
+        w = td.get("nstep")
+        mode = td.get("behaviour").reshape(-1)
+        opts = mode.unsqueeze(-1) == torch.arange(subtasks.num_options, device=mode.device)
+        nstep = NStep(
+            observation=w.get(keys.OBSERVATION),
+            reward=w.get("reward").reshape(-1),
+            subtask_reward=w.get("subtask_reward"),
+            discount=w.get("discount").reshape(-1),
+            terminated=w.get(keys.TERMINATED).reshape(-1).to(torch.float32),
+            beta=w.get("beta").to(torch.float32),
+            averaging_rows=mode < 0,
+            option_rows=opts,
+        )
     return Transitions(
         observation=td.get(keys.OBSERVATION),
         next_observation=nxt.get(keys.OBSERVATION),
@@ -80,4 +110,5 @@ def relabel(td: TensorDictBase, subtasks: Subtasks, robustness: bool = False) ->
         subtask_reward=subtasks.reward(td).to(torch.float32),
         robustness_reward=subtasks.robustness_reward(td).to(torch.float32) if robustness else None,
         instance=instance_features(td),
+        nstep=nstep,
     )
