@@ -166,6 +166,8 @@ class WindyGridEnv(BatchedFamilyEnv):
         self.validate_actions = (
             self.device.type == "cpu" if validate_actions is None else bool(validate_actions)
         )
+        counters = (*self.instances.counters, _C_START)  # the instance's, then the start cell's
+        self._reset_counters = torch.tensor(counters, device=self.device).unsqueeze(-1)  # (C, 1)
         self._make_specs()
         self._set_seed(seed)
 
@@ -205,30 +207,42 @@ class WindyGridEnv(BatchedFamilyEnv):
         return self._finish(td, reward, terminated, truncated)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        idx, key = self._next_episodes(tensordict, started=hasattr(self, "_cell"))
-        p, direction = self.instances.sample(key)
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        self._start_episodes(reset if hasattr(self, "_cell") else None)
+        return self._out(self._cell, self._p, self._dir)
+
+    def _start_episodes(self, reset: torch.Tensor | None) -> None:
+        """Start the next episode of the sub-envs where ``reset`` (``(N,)`` or ``(N, 1)`` bool) is
+        set, or of all of them (``None``): new instance, start cell, gust key and step counter."""
+        idx, key = self._next_episodes_where(reset)
+        bits = rng.draw_bits(key, self._reset_counters)  # (C, n): every reset draw in one pass
+        p, direction = self.instances.from_bits(bits)
         if self.start is None:
             starts = self.model.start_cells
-            cell = starts[rng.draw_index(key, _C_START, starts.numel())]
+            cell = starts.index_select(0, rng.index_of(bits[-1], starts.numel()))
         else:
             cell = torch.full_like(key, self.start)
         noise_key = key if self.noise_seed == 0 else rng.hash32(key ^ self._noise_salt)
         key32, threshold = rng.to_i32(noise_key), rng.probability_threshold(p)
         t = torch.zeros_like(key32)
-        if idx is None:
-            self._key32, self._threshold, self._t = key32, threshold, t
-            self._p, self._dir, self._cell = p, direction, cell
-        else:  # out-of-place updates: tensors already handed out are never mutated
-            self._key32 = self._key32.index_put((idx,), key32)
-            self._threshold = self._threshold.index_put((idx,), threshold)
-            self._t = self._t.index_put((idx,), t)
-            self._p = self._p.index_put((idx,), p)
-            self._dir = self._dir.index_put((idx,), direction)
-            self._cell = self._cell.index_put((idx,), cell)
-        return self._out(self._cell, self._p, self._dir)
+        state = dict(_key32=key32, _threshold=threshold, _t=t, _p=p, _dir=direction, _cell=cell)
+        if idx is not None:  # out-of-place updates: tensors already handed out are never mutated
+            state = {k: getattr(self, k).index_put((idx,), v) for k, v in state.items()}
+        self._set_state(state)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(keys.ACTION).reshape(-1)
+        cell, terminated, truncated = self._advance(action)
+        reward = torch.full((self.num_envs, 1), -1.0, device=self.device)
+        return self._out(
+            cell, self._p, self._dir, reward, terminated.unsqueeze(-1), truncated.unsqueeze(-1)
+        )
+
+    def _advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step of every sub-env with ``action`` ``(N,)``: draw the gusts, move, count the step.
+
+        Returns ``(cell, terminated, truncated)``, each ``(N,)``; the new state replaces the old.
+        """
         if self.validate_actions and (
             bool((action < 0).any()) or bool((action >= self.model.num_actions).any())
         ):
@@ -236,12 +250,9 @@ class WindyGridEnv(BatchedFamilyEnv):
             raise ValueError(f"action must be in [0, {self.model.num_actions - 1}], got {bad}")
         gust = rng.bernoulli_i32(self._key32, self._t, self._threshold)  # (N,) this step's wind
         cell, terminated = windy.step(self.model, self._cell, action, self._dir, gust)
-        self._cell = cell
-        self._t = self._t + 1
-        terminated = terminated.unsqueeze(-1)
-        truncated = (self._t >= self.horizon).unsqueeze(-1) & ~terminated
-        reward = torch.full((self.num_envs, 1), -1.0, device=self.device)
-        return self._out(cell, self._p, self._dir, reward, terminated, truncated)
+        self._set_state({"_cell": cell, "_t": self._t + 1})
+        truncated = (self._t >= self.horizon) & ~terminated
+        return cell, terminated, truncated
 
     def render(self, index: int = 0, mode: str = "ansi"):
         """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""
