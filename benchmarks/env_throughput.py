@@ -2,21 +2,30 @@
 
 (a) a Gymnasium loop over ``taskvar/WindyGrid-v0``;
 (b) the raw batched windy step (keyed wind draw + dynamics + step counter) at several N;
-(c) ``WindyGridEnv`` driven by TorchRL's ``Collector`` with a random policy at N=16384.
+(c) ``WindyGridEnv`` driven by TorchRL's ``Collector`` with a random policy at N=16384, three ways:
+    c0: the collector as first measured (``TensorDictModule`` policy, trajectory ids, a fresh batch
+        every iteration);
+    c1: the improved collector: a ``TensorDictModuleBase`` policy (no ``TensorDictModule`` output
+        wrapping), ``track_traj_ids=False``, ``return_same_td=True`` (the batch's memory reused);
+    c2: the fast path ``WindyGridEnv.rollout_fast`` (same batch layout and values as the
+        collector, tested), writing into the previous batch (``out=``).
+    All use ``compact_obs=True`` and 16 steps per batch.
 
-Usage: ``python benchmarks/env_throughput.py [--threads 1] [--device cpu] [--quick]``.
-Prints steps/s and the ratios b/a and c/b, with the thread count.
+Usage: ``python benchmarks/env_throughput.py [--threads 1,2] [--device cpu] [--quick]``.
+Prints steps/s and the ratios b/a, c/b and c1/c0, c2/c0 for each thread count.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import time
 
 import gymnasium as gym
 import numpy as np
 import torch
-from tensordict.nn import TensorDictModule
+from tensordict import TensorDictBase
+from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torchrl.collectors import Collector
 
@@ -88,18 +97,44 @@ class _RandomAction(nn.Module):
         return self.table[self.t % 64]
 
 
-def bench_collector(n_envs: int, seconds: float, device: torch.device) -> float:
+class _RandomPolicy(TensorDictModuleBase):
+    """The same actions as :class:`_RandomAction`, written straight into the tensordict."""
+
+    in_keys = ["cell"]
+    out_keys = ["action"]
+
+    def __init__(self, n_envs: int, device: torch.device):
+        super().__init__()
+        self.inner = _RandomAction(n_envs, device)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        self.inner.t += 1
+        return tensordict.set("action", self.inner.table[self.inner.t % 64])
+
+
+STEPS_PER_BATCH = 16
+
+
+def bench_collector(n_envs: int, seconds: float, device: torch.device, improved: bool) -> float:
     env = WindyGridEnv(num_envs=n_envs, seed=0, validate_actions=False, device=device)
-    policy = TensorDictModule(_RandomAction(n_envs, device), in_keys=["cell"], out_keys=["action"])
-    steps_per_batch = 16
+    if improved:
+        policy = _RandomPolicy(n_envs, device)
+        options = dict(track_traj_ids=False, return_same_td=True)
+    else:
+        policy = TensorDictModule(
+            _RandomAction(n_envs, device), in_keys=["cell"], out_keys=["action"]
+        )
+        options = {}
     collector = Collector(
         env,
         policy,
-        frames_per_batch=n_envs * steps_per_batch,
+        frames_per_batch=n_envs * STEPS_PER_BATCH,
         total_frames=-1,
         device=device,
         trust_policy=True,
         compact_obs=True,
+        auto_register_policy_transforms=False,
+        **options,
     )
     it = iter(collector)
     next(it)
@@ -113,32 +148,58 @@ def bench_collector(n_envs: int, seconds: float, device: torch.device) -> float:
     return rate
 
 
+def bench_fast(n_envs: int, seconds: float, device: torch.device) -> float:
+    env = WindyGridEnv(num_envs=n_envs, seed=0, validate_actions=False, device=device)
+    policy = _RandomPolicy(n_envs, device)
+    batch = env.rollout_fast(policy, STEPS_PER_BATCH, compact_obs=True)
+    frames, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        batch = env.rollout_fast(policy, STEPS_PER_BATCH, compact_obs=True, out=batch)
+        frames += batch.numel()
+    sync(device)
+    return frames / (time.perf_counter() - t0)
+
+
+def run(threads: int, args: argparse.Namespace, device: torch.device, secs: float) -> None:
+    torch.set_num_threads(threads)
+    print(f"-- threads={torch.get_num_threads()}")
+    a = bench_gym(secs)
+    print(f"(a)  gymnasium loop, taskvar/WindyGrid-v0          : {a / 1e6:10.3f} M steps/s")
+    raw = {}
+    for n in [int(x) for x in args.sizes.split(",")]:
+        raw[n] = bench_raw(n, secs, device)
+        print(f"(b)  raw batched step, N={n:<8d}                 : {raw[n] / 1e6:10.3f} M steps/s")
+    print(f"ratio b(N={max(raw)})/a = {raw[max(raw)] / a:8.1f}x")
+    for n in [int(x) for x in args.collector_n.split(",")]:
+        c0 = bench_collector(n, secs * 2, device, improved=False)
+        print(f"(c0) Collector, as first measured, N={n:<8d}     : {c0 / 1e6:10.3f} M steps/s")
+        c1 = bench_collector(n, secs * 2, device, improved=True)
+        print(f"(c1) Collector, improved, N={n:<8d}              : {c1 / 1e6:10.3f} M steps/s")
+        c2 = bench_fast(n, secs * 2, device)
+        print(f"(c2) fast path rollout_fast, N={n:<8d}           : {c2 / 1e6:10.3f} M steps/s")
+        b = raw.get(n, max(raw.values()))
+        print(
+            f"ratios N={n}: c1/c0 = {c1 / c0:.2f}x, c2/c0 = {c2 / c0:.2f}x, c2/c1 = {c2 / c1:.2f}x, "
+            f"c0/b = {c0 / b:.3f}, c2/b = {c2 / b:.3f}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--threads", type=int, default=1, help="torch threads (1 = single-threaded)")
+    ap.add_argument("--threads", default="1,2", help="torch thread counts, one run each")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--quick", action="store_true", help="short timings (smoke run)")
     ap.add_argument("--sizes", default="1,1024,16384,262144", help="N values for (b)")
-    ap.add_argument("--collector-n", type=int, default=16384, help="N for (c)")
+    ap.add_argument("--collector-n", default="16384", help="N values for (c), comma-separated")
     args = ap.parse_args()
-    torch.set_num_threads(args.threads)
     device = torch.device(args.device)
     secs = 0.3 if args.quick else 2.0
-    print(f"torch {torch.__version__}, threads={torch.get_num_threads()}, device={device}")
-    a = bench_gym(secs)
-    print(f"(a) gymnasium loop, taskvar/WindyGrid-v0       : {a / 1e6:10.3f} M steps/s")
-    raw = {}
-    for n in [int(x) for x in args.sizes.split(",")]:
-        raw[n] = bench_raw(n, secs, device)
-        print(f"(b) raw batched step, N={n:<8d}              : {raw[n] / 1e6:10.3f} M steps/s")
-    c = bench_collector(args.collector_n, secs * 2, device)
-    print(f"(c) WindyGridEnv + Collector, N={args.collector_n:<8d}     : {c / 1e6:10.3f} M steps/s")
-    b_max = max(raw.values())
-    b_c = raw.get(args.collector_n, b_max)
-    print(f"ratio b(N={max(raw)})/a = {raw[max(raw)] / a:8.1f}x")
-    print(f"ratio c/b(N={args.collector_n}) = {c / b_c:8.3f}")
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    print(f"torch {torch.__version__}, device={device}, load average {load:.2f}")
+    for threads in [int(x) for x in args.threads.split(",")]:
+        run(threads, args, device, secs)
 
 
 if __name__ == "__main__":

@@ -28,6 +28,12 @@ RESET_COUNTER = 1 << 30
 
 def hash32(x):
     """lowbias32 integer hash on values holding uint32s (int / int64 array / int64 tensor)."""
+    if isinstance(x, torch.Tensor) and x.dtype == torch.int64:
+        x = x ^ (x >> 16)  # a fresh tensor: the steps below update it in place (fewer allocations)
+        x.mul_(_M1).bitwise_and_(MASK32)
+        x.bitwise_xor_(x >> 15)
+        x.mul_(_M2).bitwise_and_(MASK32)
+        return x.bitwise_xor_(x >> 16)
     x = x ^ (x >> 16)
     x = (x * _M1) & MASK32
     x = x ^ (x >> 15)
@@ -42,7 +48,17 @@ def draw_bits(key, counter):
 
 def draw_uniform(key, counter):
     """Uniform in [0, 1) on the 24-bit grid ``k / 2^24``, for ``(key, counter)``."""
-    bits = draw_bits(key, counter) >> 8
+    return uniform_of(draw_bits(key, counter))
+
+
+def draw_index(key, counter, n):
+    """Uniform integer in ``[0, n)`` for ``(key, counter)`` (n < 2^24)."""
+    return index_of(draw_bits(key, counter), n)
+
+
+def uniform_of(bits):
+    """:func:`draw_uniform` from the :func:`draw_bits` of the same ``(key, counter)``."""
+    bits = bits >> 8
     if isinstance(bits, torch.Tensor):
         return bits.to(torch.float32) * _INV24
     if isinstance(bits, int):
@@ -50,9 +66,9 @@ def draw_uniform(key, counter):
     return bits.astype("float32") * _INV24
 
 
-def draw_index(key, counter, n):
-    """Uniform integer in ``[0, n)`` for ``(key, counter)`` (n < 2^24)."""
-    return ((draw_bits(key, counter) >> 8) * n) >> 24
+def index_of(bits, n):
+    """:func:`draw_index` from the :func:`draw_bits` of the same ``(key, counter)``."""
+    return ((bits >> 8) * n) >> 24
 
 
 def probability_threshold(p: torch.Tensor) -> torch.Tensor:
@@ -67,7 +83,7 @@ def sub_env_key(seed: int, index):
 
 def episode_key(base_key, episode):
     """Key of episode number ``episode`` of the sub-environment with ``base_key``."""
-    return hash32((base_key ^ hash32((episode + 0x632BE5AB) & MASK32)) & MASK32)
+    return hash32(base_key ^ hash32((episode + 0x632BE5AB) & MASK32))  # both sides uint32
 
 
 def to_i32(key: torch.Tensor) -> torch.Tensor:
@@ -77,16 +93,17 @@ def to_i32(key: torch.Tensor) -> torch.Tensor:
 
 def draw_bits_i32(key: torch.Tensor, counter: torch.Tensor | int) -> torch.Tensor:
     """:func:`draw_bits` on int32 keys/counters; returns the uint32 bit pattern as int32."""
-    x = key + counter * (_GOLDEN - (1 << 32))  # int32 wrapping arithmetic
-    x = x ^ ((x >> 16) & 0xFFFF)  # logical shifts: mask off the sign-extended bits
-    x = x * (_M1)
-    x = x ^ ((x >> 15) & 0x1FFFF)
-    x = x * (_M2 - (1 << 32))
-    return x ^ ((x >> 16) & 0xFFFF)
+    x = torch.add(key, counter, alpha=_GOLDEN - (1 << 32))  # int32 wrapping arithmetic
+    # logical shifts: mask off the sign-extended bits; in place on the fresh x (fewer allocations)
+    x.bitwise_xor_((x >> 16).bitwise_and_(0xFFFF))
+    x.mul_(_M1)
+    x.bitwise_xor_((x >> 15).bitwise_and_(0x1FFFF))
+    x.mul_(_M2 - (1 << 32))
+    return x.bitwise_xor_((x >> 16).bitwise_and_(0xFFFF))
 
 
 def bernoulli_i32(
     key: torch.Tensor, counter: torch.Tensor | int, threshold: torch.Tensor
 ) -> torch.Tensor:
     """``u(key, counter) < p`` with ``threshold = probability_threshold(p)``: bool, hot path."""
-    return ((draw_bits_i32(key, counter) >> 8) & 0xFFFFFF) < threshold
+    return draw_bits_i32(key, counter).bitwise_right_shift_(8).bitwise_and_(0xFFFFFF) < threshold

@@ -56,6 +56,7 @@ class WindyInstances:
                     raise ValueError(f"p must be in [0, 1], got {p}")
                 direction_index(d)
             object.__setattr__(self, "points", pts)
+        object.__setattr__(self, "_tensors", {})  # device -> constant tensors (not a field)
 
     @classmethod
     def named(cls, name: str) -> WindyInstances:
@@ -71,21 +72,41 @@ class WindyInstances:
         """A single instance."""
         return cls(points=((float(p), DIRECTIONS[direction_index(direction)]),))
 
+    @property
+    def counters(self) -> tuple[int, ...]:
+        """The reset counters :meth:`sample` draws from (one per random quantity)."""
+        return (_C_POINT,) if self.points is not None else (_C_P, _C_DIR)
+
     def sample(self, key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(p, direction)`` for each episode key in ``key`` (B,) int64."""
+        counters = torch.tensor(self.counters, device=key.device).unsqueeze(-1)  # (C, 1)
+        return self.from_bits(rng.draw_bits(key, counters))
+
+    def from_bits(self, bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`sample` from ``rng.draw_bits(key, c)`` for the ``c`` in :attr:`counters`
+        (``(C, B)``), so a caller can draw them together with its own counters."""
+        values = self._tensors.get(bits.device)
+        if values is None:
+            values = self._tensors[bits.device] = _values(self, bits.device)
         if self.points is not None:
-            k = rng.draw_index(key, _C_POINT, len(self.points))
-            ps = torch.tensor([p for p, _ in self.points], dtype=torch.float32, device=key.device)
-            ds = torch.tensor(
-                [direction_index(d) for _, d in self.points], dtype=torch.int64, device=key.device
-            )
-            return ps[k], ds[k]
-        u = rng.draw_uniform(key, _C_P)
+            ps, ds = values
+            k = rng.index_of(bits[0], len(self.points))
+            return ps.index_select(0, k), ds.index_select(0, k)
+        u = rng.uniform_of(bits[0])
         p = self.p_low + (self.p_high - self.p_low) * u
-        dirs = torch.tensor(
-            [direction_index(d) for d in self.directions], dtype=torch.int64, device=key.device
-        )
-        return p, dirs[rng.draw_index(key, _C_DIR, len(dirs))]
+        (dirs,) = values
+        return p, dirs.index_select(0, rng.index_of(bits[1], len(dirs)))
+
+
+def _values(instances: WindyInstances, device: torch.device) -> tuple[torch.Tensor, ...]:
+    """The distribution's constant tensors on ``device``: point ``p`` and direction values, or the
+    direction indices (built once, not at every reset)."""
+    if instances.points is not None:
+        ps = torch.tensor([p for p, _ in instances.points], dtype=torch.float32, device=device)
+        ds = [direction_index(d) for _, d in instances.points]
+        return ps, torch.tensor(ds, dtype=torch.int64, device=device)
+    dirs = [direction_index(d) for d in instances.directions]
+    return (torch.tensor(dirs, dtype=torch.int64, device=device),)
 
 
 def windy_instances(spec: str | WindyInstances | dict) -> WindyInstances:

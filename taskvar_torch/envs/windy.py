@@ -292,7 +292,7 @@ def step(
 
     Returns ``(next_cell, terminated)``; the reward is -1 for every step.
     """
-    idx = cell * 32 + action * 8 + direction * 2 + gust  # (B,)
+    idx = torch.add(gust, direction, alpha=2).add_(action, alpha=8).add_(cell, alpha=32)  # (B,)
     nxt = model.next_flat.index_select(0, idx)  # (B,)
     return nxt, model.is_goal.index_select(0, nxt)
 

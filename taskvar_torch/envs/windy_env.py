@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -14,6 +16,7 @@ from taskvar_torch.envs.instances import WindyInstances, windy_instances
 
 OBS_ENCODINGS = ("onehot", "coords_patch", "fourier_patch")
 _C_START = rng.RESET_COUNTER + 4
+_FLAGS = (keys.DONE, keys.TERMINATED, keys.TRUNCATED)
 
 
 def observation_table(
@@ -176,6 +179,8 @@ class WindyGridEnv(BatchedFamilyEnv):
         self.validate_actions = (
             self.device.type == "cpu" if validate_actions is None else bool(validate_actions)
         )
+        counters = (*self.instances.counters, _C_START)  # the instance's, then the start cell's
+        self._reset_counters = torch.tensor(counters, device=self.device).unsqueeze(-1)  # (C, 1)
         self._make_specs()
         self._set_seed(seed)
 
@@ -215,30 +220,42 @@ class WindyGridEnv(BatchedFamilyEnv):
         return self._finish(td, reward, terminated, truncated)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        idx, key = self._next_episodes(tensordict, started=hasattr(self, "_cell"))
-        p, direction = self.instances.sample(key)
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        self._start_episodes(reset if hasattr(self, "_cell") else None)
+        return self._out(self._cell, self._p, self._dir)
+
+    def _start_episodes(self, reset: torch.Tensor | None) -> None:
+        """Start the next episode of the sub-envs where ``reset`` (``(N,)`` or ``(N, 1)`` bool) is
+        set, or of all of them (``None``): new instance, start cell, gust key and step counter."""
+        idx, key = self._next_episodes_where(reset)
+        bits = rng.draw_bits(key, self._reset_counters)  # (C, n): every reset draw in one pass
+        p, direction = self.instances.from_bits(bits)
         if self.start is None:
             starts = self.model.start_cells
-            cell = starts[rng.draw_index(key, _C_START, starts.numel())]
+            cell = starts.index_select(0, rng.index_of(bits[-1], starts.numel()))
         else:
             cell = torch.full_like(key, self.start)
         noise_key = key if self.noise_seed == 0 else rng.hash32(key ^ self._noise_salt)
         key32, threshold = rng.to_i32(noise_key), rng.probability_threshold(p)
         t = torch.zeros_like(key32)
-        if idx is None:
-            self._key32, self._threshold, self._t = key32, threshold, t
-            self._p, self._dir, self._cell = p, direction, cell
-        else:  # out-of-place updates: tensors already handed out are never mutated
-            self._key32 = self._key32.index_put((idx,), key32)
-            self._threshold = self._threshold.index_put((idx,), threshold)
-            self._t = self._t.index_put((idx,), t)
-            self._p = self._p.index_put((idx,), p)
-            self._dir = self._dir.index_put((idx,), direction)
-            self._cell = self._cell.index_put((idx,), cell)
-        return self._out(self._cell, self._p, self._dir)
+        state = dict(_key32=key32, _threshold=threshold, _t=t, _p=p, _dir=direction, _cell=cell)
+        if idx is not None:  # out-of-place updates: tensors already handed out are never mutated
+            state = {k: getattr(self, k).index_put((idx,), v) for k, v in state.items()}
+        self._set_state(state)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(keys.ACTION).reshape(-1)
+        cell, terminated, truncated = self._advance(action)
+        reward = torch.full((self.num_envs, 1), -1.0, device=self.device)
+        return self._out(
+            cell, self._p, self._dir, reward, terminated.unsqueeze(-1), truncated.unsqueeze(-1)
+        )
+
+    def _advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step of every sub-env with ``action`` ``(N,)``: draw the gusts, move, count the step.
+
+        Returns ``(cell, terminated, truncated)``, each ``(N,)``; the new state replaces the old.
+        """
         if self.validate_actions and (
             bool((action < 0).any()) or bool((action >= self.model.num_actions).any())
         ):
@@ -246,12 +263,155 @@ class WindyGridEnv(BatchedFamilyEnv):
             raise ValueError(f"action must be in [0, {self.model.num_actions - 1}], got {bad}")
         gust = rng.bernoulli_i32(self._key32, self._t, self._threshold)  # (N,) this step's wind
         cell, terminated = windy.step(self.model, self._cell, action, self._dir, gust)
-        self._cell = cell
-        self._t = self._t + 1
-        terminated = terminated.unsqueeze(-1)
-        truncated = (self._t >= self.horizon).unsqueeze(-1) & ~terminated
-        reward = torch.full((self.num_envs, 1), -1.0, device=self.device)
-        return self._out(cell, self._p, self._dir, reward, terminated, truncated)
+        self._set_state({"_cell": cell, "_t": self._t + 1})
+        truncated = (self._t >= self.horizon) & ~terminated
+        return cell, terminated, truncated
+
+    @torch.no_grad()
+    def rollout_fast(
+        self,
+        policy: Callable[[TensorDictBase], TensorDictBase],
+        steps: int,
+        compact_obs: bool = False,
+        out: TensorDictBase | None = None,
+    ) -> TensorDictBase:
+        """``steps`` steps of every sub-env under ``policy``, resetting done sub-envs as they end.
+
+        Returns the ``(N, steps)`` batch that TorchRL's ``Collector(env, policy,
+        frames_per_batch=N * steps, track_traj_ids=False, compact_obs=compact_obs)`` yields: the
+        same keys, shapes, dtypes and values (tested bit for bit), and leaves the env where the
+        collector would (successive calls continue the episodes; the first starts them if the env
+        was never reset). It skips the collector's per-step tensordict work (``EnvBase.step``,
+        ``step_mdp``, ``maybe_reset``, per-step stacking): a step is the policy, the pure step
+        (:meth:`_advance`) and, where episodes ended, :meth:`_start_episodes`; observations are
+        gathered once per batch unless the policy reads them (docs/benchmarks.md has the figures).
+
+        Args:
+            policy: a tensordict module reading the root keys of a step (``observation``,
+                ``cell``, ``instance``, ``done``...) and writing ``action`` ``(N,)`` and any other
+                ``out_keys`` (stored like the collector's policy outputs). Nothing is carried
+                from step to step: recurrent policies and transforms (``InitTracker``, ``RewardSum``)
+                need the collector.
+            steps: time steps T of the batch.
+            compact_obs: drop the ``("next", ...)`` observation keys, as the collector's option.
+            out: a batch returned by an earlier call (same ``steps``, ``compact_obs`` and policy)
+                to overwrite and return, as the collector's ``return_same_td=True``: fresh memory
+                for every batch costs more than the writes themselves at large N.
+
+        Examples:
+            >>> from tensordict.nn import TensorDictModule
+            >>> env = WindyGridEnv(num_envs=4, seed=0)
+            >>> policy = TensorDictModule(lambda cell: cell % 4, ["cell"], ["action"])
+            >>> batch = env.rollout_fast(policy, 16)
+            >>> batch["next", "observation"].shape
+            torch.Size([4, 16, 25])
+            >>> batch = env.rollout_fast(policy, 16, out=batch)  # the next 16 steps, same memory
+        """
+        T = int(steps)
+        if T < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        if out is not None and tuple(out.batch_size) != (self.num_envs, T):
+            raise ValueError(
+                f"out has batch size {tuple(out.batch_size)}, expected ({self.num_envs}, {T})"
+            )
+        if not hasattr(self, "_cell"):
+            self._start_episodes(None)
+        N, dev = self.num_envs, self.device
+        in_keys = getattr(policy, "in_keys", None)
+        obs_per_step = in_keys is None or keys.OBSERVATION in in_keys
+        out_keys = list(getattr(policy, "out_keys", [keys.ACTION]))
+        false = torch.zeros(N, 1, dtype=torch.bool, device=dev)
+        cols: dict[str, list[torch.Tensor]] = {
+            k: [] for k in ("cell", "p", "dir", "next", "term", "trunc", "obs")
+        }
+        outs: dict = {k: [] for k in out_keys}
+        for _ in range(T):
+            if obs_per_step:
+                root = self._out(self._cell, self._p, self._dir)
+                cols["obs"].append(root.get(keys.OBSERVATION))
+            else:
+                instance = TensorDict._new_unsafe(
+                    {"p": self._p, "direction": self._dir}, batch_size=self.batch_size, device=dev
+                )
+                flags = dict.fromkeys(_FLAGS, false)
+                root = TensorDict._new_unsafe(
+                    {keys.CELL: self._cell, keys.INSTANCE: instance, **flags},
+                    batch_size=self.batch_size,
+                    device=dev,
+                )
+            cols["cell"].append(self._cell)
+            cols["p"].append(self._p)
+            cols["dir"].append(self._dir)
+            td = policy(root)
+            for k in out_keys:
+                outs[k].append(td.get(k))
+            cell, terminated, truncated = self._advance(td.get(keys.ACTION).reshape(-1))
+            cols["next"].append(cell)
+            cols["term"].append(terminated)
+            cols["trunc"].append(truncated)
+            done = terminated | truncated
+            if bool(done.any()):
+                self._start_episodes(done)
+        if out is None:
+            out = self._empty_batch(T, compact_obs, outs)
+        return self._fill_batch(out, cols, outs, compact_obs)
+
+    def _empty_batch(self, T: int, compact_obs: bool, outs: dict) -> TensorDictBase:
+        """An uninitialised ``(N, T)`` batch in the collector's layout, for :meth:`rollout_fast`."""
+        N, D, dev = self.num_envs, self._obs_table.shape[1], self.device
+
+        def new(*shape, dtype=torch.int64):
+            return torch.empty(N, T, *shape, dtype=dtype, device=dev)
+
+        def step_data():
+            return {
+                keys.OBSERVATION: new(D, dtype=torch.float32),
+                keys.CELL: new(),
+                keys.INSTANCE: {"p": new(dtype=torch.float32), "direction": new()},
+            }
+
+        flags = {k: new(1, dtype=torch.bool) for k in _FLAGS}
+        following = {keys.REWARD: new(1, dtype=torch.float32), **flags}
+        following.update({keys.INSTANCE: {}} if compact_obs else step_data())
+        batch = TensorDict(
+            {**step_data(), **{k: new(1, dtype=torch.bool) for k in _FLAGS}, keys.NEXT: following},
+            batch_size=(N, T),
+        )
+        for k, v in outs.items():
+            batch.set(k, new(*v[0].shape[1:], dtype=v[0].dtype))
+        batch.refine_names(..., "time")
+        return batch
+
+    def _fill_batch(
+        self, batch: TensorDictBase, cols: dict, outs: dict, compact_obs: bool
+    ) -> TensorDictBase:
+        """Write :meth:`rollout_fast`'s per-step columns into ``batch`` (``(N, T)``), in place."""
+        N, T = batch.batch_size
+        D = self._obs_table.shape[1]
+        cell = torch.stack(cols["cell"], 1, out=batch.get(keys.CELL))
+        if cols["obs"]:
+            torch.stack(cols["obs"], 1, out=batch.get(keys.OBSERVATION))
+        else:
+            obs = batch.get(keys.OBSERVATION).view(N * T, D)
+            torch.index_select(self._obs_table, 0, cell.view(-1), out=obs)
+        for k in _FLAGS:
+            batch.get(k).zero_()
+        instance = batch.get(keys.INSTANCE)
+        torch.stack(cols["p"], 1, out=instance.get("p"))
+        torch.stack(cols["dir"], 1, out=instance.get("direction"))
+        following = batch.get(keys.NEXT)
+        following.get(keys.REWARD).fill_(-1.0)
+        terminated = torch.stack(cols["term"], 1, out=following.get(keys.TERMINATED).view(N, T))
+        truncated = torch.stack(cols["trunc"], 1, out=following.get(keys.TRUNCATED).view(N, T))
+        torch.bitwise_or(terminated, truncated, out=following.get(keys.DONE).view(N, T))
+        if not compact_obs:
+            nxt = torch.stack(cols["next"], 1, out=following.get(keys.CELL))
+            obs = following.get(keys.OBSERVATION).view(N * T, D)
+            torch.index_select(self._obs_table, 0, nxt.view(-1), out=obs)
+            following.get(keys.INSTANCE).update_(instance)
+        for k, v in outs.items():
+            torch.stack(v, 1, out=batch.get(k))
+        return batch
 
     def render(self, index: int = 0, mode: str = "ansi"):
         """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""
