@@ -219,6 +219,11 @@ def _validate_windy(cfg: Config) -> None:
     _one_of("env.obs_encoding", env.obs_encoding, OBS_ENCODINGS)
     if env.patch_radius is not None and env.patch_radius < 0:
         raise ValueError(f"env.patch_radius must be >= 0, got {env.patch_radius}")
+    if cfg.heads.option_inputs == "subtask" and env.obs_encoding != "exits_patch":
+        raise ValueError(
+            "heads.option_inputs='subtask' on the windy family needs env.obs_encoding="
+            f"'exits_patch' (each exit's offset), got env.obs_encoding={env.obs_encoding!r}"
+        )
     windy_layout(env)  # raises a ValueError naming the layout keys
 
 
@@ -355,7 +360,7 @@ FAMILIES: dict[str, Family] = {
         experiment="windy-fig2",
         env_kwargs=windy_env_kwargs,
         env_class=WindyGridEnv,
-        subtasks=lambda cfg, env: WindySubtasks(env.model),
+        subtasks=lambda cfg, env: WindySubtasks(env.model, obs_encoding=cfg.env.obs_encoding),
         instance_names=WindyInstances.NAMES,
         validate=_validate_windy,
         grid_side=_windy_side,
@@ -363,6 +368,7 @@ FAMILIES: dict[str, Family] = {
         observation=lambda cfg: cfg.env.obs_encoding,
         instance_dim=WINDY_INSTANCE_DIM,
         conv_patch=_windy_patch,
+        option_inputs=True,
         exact_oracle=True,
         tests=WINDY_TESTS,
         instance_fields=_windy_fields,

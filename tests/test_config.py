@@ -271,7 +271,9 @@ def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
         ("train.target_update=polyak", ["train.target_update must be one of ['hard', 'soft']"]),
         (
             "env.obs_encoding=pixels",
-            ["env.obs_encoding must be one of ['coords_patch', 'fourier_patch', 'onehot']"],
+            [
+                "env.obs_encoding must be one of ['coords_patch', 'exits_patch', 'fourier_patch', 'onehot', 'rowcol_patch']"
+            ],
         ),
         ("env.instances=east", ["env.instances must be one of", "'south'"]),
         ("eval.method=random", ["eval.method must be one of", "'interruption'"]),

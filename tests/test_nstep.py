@@ -75,7 +75,13 @@ def test_window_stops_at_mode_change_and_running_option_termination():
     beta[1, 0] = True  # option a terminates after step 1; option b does not care
     td = nstep_returns(batch([0, 0, 0, 1, 1], [-1] * 5, [0] * 5, beta=beta), TableSubtasks(), G, 3)
     w = td.get("nstep")
-    assert w["steps"][0].tolist() == [2, 1, 1, 2, 1]  # t=0 stops at a's beta, t=2 at the mode change
+    assert w["steps"][0].tolist() == [
+        2,
+        1,
+        1,
+        2,
+        1,
+    ]  # t=0 stops at a's beta, t=2 at the mode change
     assert w["beta"][0, 0].tolist() == [True, False]  # beta at s_{t+k} = s_2
 
 

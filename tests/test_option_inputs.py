@@ -88,7 +88,7 @@ def test_fused_pass_equals_each_head_and_full_inputs_keep_one_member():
 def test_bad_option_inputs_are_one_line_errors():
     for config, overrides, parts in (
         (WARGUS, ["heads.option_inputs=items"], ["heads.option_inputs", "'full'", "'subtask'"]),
-        ("configs/windy.yaml", SUBTASK, ["heads.option_inputs='subtask'", "wargus"]),
+        ("configs/windy.yaml", SUBTASK, ["heads.option_inputs='subtask'", "exits_patch"]),
     ):
         with pytest.raises(ValueError) as info:
             load_config(config, overrides)

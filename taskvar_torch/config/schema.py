@@ -56,8 +56,9 @@ class EnvConfig:
     horizon: int | None = None
     """Windy steps before truncation; null: max(100, 4 * (height + width))."""
     obs_encoding: str = "onehot"
-    """Windy observation: onehot (one-hot cell), coords_patch (coordinates + local patch) or
-    fourier_patch (coords_patch + sin/cos features of the coordinates)."""
+    """Windy observation: onehot (one-hot cell), coords_patch (coordinates + local patch),
+    fourier_patch (coords_patch + sin/cos features of the coordinates) or rowcol_patch
+    (coords_patch + one-hot row and column)."""
     patch_radius: int = 2
     """Windy coords_patch encoding: radius r of the (2r+1)^2 local patch."""
     wargus: WargusConfig = field(default_factory=WargusConfig)

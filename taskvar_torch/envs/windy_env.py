@@ -14,7 +14,7 @@ from taskvar_torch.envs import render, windy
 from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.envs.instances import WindyInstances, windy_instances
 
-OBS_ENCODINGS = ("onehot", "coords_patch", "fourier_patch")
+OBS_ENCODINGS = ("onehot", "coords_patch", "fourier_patch", "rowcol_patch", "exits_patch")
 _C_START = rng.RESET_COUNTER + 4
 _FLAGS = (keys.DONE, keys.TERMINATED, keys.TRUNCATED)
 
@@ -29,11 +29,30 @@ def observation_table(
     too large for one-hot. ``fourier_patch``: ``coords_patch`` followed by ``sin, cos(2^j pi x)``
     of each normalised coordinate, ``j = 0 .. ceil(log2(side))`` (random-feature style positional
     encoding: cells far apart in value but close in coordinates, like two exits of the same
-    look, become easy to tell apart; docs/scale.md). The instance is never in the observation.
+    look, become easy to tell apart; docs/scale.md). ``rowcol_patch``: ``coords_patch`` followed by
+    a one-hot row and a one-hot column (D + H + W). ``exits_patch``: ``coords_patch`` followed
+    by the ``(row, col)`` offset from the cell to each exit, divided by the grid side (D + 2 x
+    exits): the feature each exit option's own subtask needs (with ``heads.option_inputs=subtask``
+    option k sees the coordinates, the patch and exit k's offset only; :class:`WindySubtasks`).
+    The instance is never in the observation.
     """
     S = layout.num_cells
     if encoding == "onehot":
         return np.eye(S, dtype=np.float32)
+    if encoding == "exits_patch":  # coords_patch + (row, col) offset to each exit, / side
+        base = observation_table(layout, "coords_patch", patch_radius)
+        side = max(layout.height - 1, layout.width - 1, 1)
+        rows, cols = np.divmod(np.arange(S), layout.width)
+        offsets = []
+        for group in layout.exit_cells:
+            er, ec = np.divmod(np.asarray(group), layout.width)
+            offsets += [(er.mean() - rows) / side, (ec.mean() - cols) / side]
+        return np.concatenate([base, np.stack(offsets, 1)], 1).astype(np.float32)
+    if encoding == "rowcol_patch":  # coords_patch + one-hot row + one-hot column (D + H + W)
+        base = observation_table(layout, "coords_patch", patch_radius)
+        rows, cols = np.divmod(np.arange(S), layout.width)
+        extra = np.concatenate([np.eye(layout.height)[rows], np.eye(layout.width)[cols]], 1)
+        return np.concatenate([base, extra], 1).astype(np.float32)
     if encoding == "fourier_patch":
         base = observation_table(layout, "coords_patch", patch_radius)
         side = max(layout.height, layout.width)

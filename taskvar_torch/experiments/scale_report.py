@@ -95,8 +95,37 @@ def format_table(metrics: dict[str, Any]) -> str:
             + f" {ref['random']['mean_return']:8.2f} "
             + (f"{orc['mean_return']:8.2f}" if orc else f"{'n/a':>8}")
         )
+    lines += format_heads(metrics)
     lines.append(f"wall time {metrics['wall_seconds']:.0f} s, {metrics['threads']} torch thread(s)")
     return "\n".join(lines)
+
+
+def format_heads(metrics: dict[str, Any]) -> list[str]:
+    """Lines of the every-head report (windy cells): each head's relative gap to its exact
+    optimum (``*``: within 2%), mu_bar's agreement at the start cells, the interruption
+    condition's agreement over (cell, option) pairs (oracle/head_report.py)."""
+    cells = [c for c in metrics["cells"] if c.get("heads")]
+    if not cells:
+        return []
+    lines = [
+        "Every head against its exact optimum (relative gap of its own objective, * within 2%; "
+        "mu_bar: share of start cells choosing an exact best option; interruption condition: "
+        "agreement with the exact one)"
+    ]
+    for c in cells:
+        h = c["heads"]
+        parts = [f"averaging {_gap(h['averaging'])}"]
+        parts += [f"{name} {_gap(r)}" for name, r in (h.get("options") or {}).items()]
+        if "mu_bar" in h:
+            parts.append(f"mu_bar {h['mu_bar']['start_agreement']:.2f}")
+        if "interruption_condition" in h:
+            parts.append(f"interruption condition {h['interruption_condition']['agreement']:.3f}")
+        lines.append(f"{c['case']:<14} {c['num_envs']:>5}  " + ", ".join(parts))
+    return lines
+
+
+def _gap(r: dict[str, Any]) -> str:
+    return f"{r['rel_gap']:.3f}" + ("*" if r["within_2pct"] else "")
 
 
 def _ci(x: float | None) -> str:
@@ -355,6 +384,7 @@ __all__ = [
     "FIGURE",
     "METRICS_NAME",
     "csv_rows",
+    "format_heads",
     "format_table",
     "is_results_folder",
     "plot_curves",

@@ -89,4 +89,3 @@ def nstep_returns(
     for k, v in out.items():
         batch.set((NSTEP, k), v)
     return batch
-

@@ -20,8 +20,11 @@ class WindySubtasks(Subtasks):
       option is credited with reaching *its* goal only.
     """
 
-    def __init__(self, model: WindyModel, wrong_exit_penalty: float = 100.0):
+    def __init__(
+        self, model: WindyModel, wrong_exit_penalty: float = 100.0, obs_encoding: str = "onehot"
+    ):
         self.model = model
+        self.obs_encoding = obs_encoding
         self.names = model.layout.exit_names
         self.wrong_exit_penalty = float(wrong_exit_penalty)
         self._option_ids = torch.arange(len(self.names), device=model.device)
@@ -40,3 +43,16 @@ class WindySubtasks(Subtasks):
         exit_used = self.model.exit_id[cell]  # (B,): the exit cell the agent left from, or -1
         wrong = arrived.unsqueeze(-1) & (exit_used.unsqueeze(-1) != self._option_ids)  # (B, O)
         return -1.0 - self.wrong_exit_penalty * wrong.to(torch.float32)
+
+    def option_input_mask(self, obs_dim: int) -> torch.Tensor | None:
+        """With the ``exits_patch`` observation: option k sees the coordinates, the local patch and
+        its own exit's offset (the last ``2 x exits`` features hold every exit's offset); ``None``
+        for the other encodings (no per-option features)."""
+        if self.obs_encoding != "exits_patch":
+            return None
+        O = self.num_options
+        mask = torch.ones(O, obs_dim)
+        mask[:, obs_dim - 2 * O :] = 0.0
+        for k in range(O):
+            mask[k, obs_dim - 2 * O + 2 * k : obs_dim - 2 * O + 2 * k + 2] = 1.0
+        return mask
