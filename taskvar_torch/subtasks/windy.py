@@ -50,9 +50,10 @@ class WindySubtasks(Subtasks):
         for the other encodings (no per-option features)."""
         if self.obs_encoding != "exits_patch":
             return None
-        O = self.num_options
-        mask = torch.ones(O, obs_dim)
-        mask[:, obs_dim - 2 * O :] = 0.0
-        for k in range(O):
-            mask[k, obs_dim - 2 * O + 2 * k : obs_dim - 2 * O + 2 * k + 2] = 1.0
+        n = self.num_options
+        first = obs_dim - 2 * n  # where the exits' offsets start
+        mask = torch.ones(n, obs_dim)
+        mask[:, first:] = 0.0
+        for k in range(n):
+            mask[k, first + 2 * k : first + 2 * k + 2] = 1.0
         return mask
