@@ -9,6 +9,7 @@ from taskvar_torch import keys
 from taskvar_torch.config import load_config
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.train import make_env
 
 torch.set_num_threads(1)
@@ -122,3 +123,29 @@ def test_run_repetition_same_for_any_test_group(tmp_path):
     for key in ("items", "interruptions", "control_steps", "learn_items", "frames", "updates"):
         assert one[key].tolist() == two[key].tolist(), key
     assert one["control_steps"].sum() > 0
+
+
+def test_behaviour_stacked_pass_equals_each_head_alone():
+    """The behaviour policy reads its heads from one stacked pass (HeadValues): same actions,
+    modes and global RNG draws as running each head on its own (paper widths, 30 rows)."""
+    cfg = load_config(fig4.default_config_path(), SMALL[:-1])  # heads.hidden=[128, 128]
+    env, agent, _ = _agent(cfg, torchrl=False)
+    fused = agent.behaviour
+    assert fused._values is not None and fused._values.stack is not None
+    alone = BehaviourPolicy(
+        agent.heads, agent.subtasks, env.action_spec, option_prob=0.5, root_policy="averaging"
+    )
+    alone._values = None  # each head on its own
+    td = env.reset_all()
+    td.set("is_init", torch.ones(env.num_envs, 1, dtype=torch.bool))
+    for step, eps in enumerate((0.0, 0.3, 0.3)):
+        fused.set_epsilon(eps)
+        alone.set_epsilon(eps)
+        torch.manual_seed(step)
+        a = fused(td.clone())
+        torch.manual_seed(step)
+        b = alone(td.clone())
+        assert torch.equal(a[keys.ACTION], b[keys.ACTION])
+        assert torch.equal(a["behaviour"], b["behaviour"])
+        td = env.step_all(a[keys.ACTION]).set("behaviour", a["behaviour"])
+        td.set("is_init", torch.zeros(env.num_envs, 1, dtype=torch.bool))

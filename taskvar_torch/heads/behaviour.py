@@ -26,8 +26,9 @@ from torchrl.data import Categorical
 from torchrl.modules import EGreedyModule
 
 from taskvar_torch import keys
-from taskvar_torch.heads.bundle import Heads, with_root_row
+from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads, with_root_row
 from taskvar_torch.heads.networks import head_network
+from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.heads.switching import mu_bar_probs
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -76,6 +77,10 @@ class BehaviourPolicy(TensorDictModuleBase):
         self.in_keys = [keys.OBSERVATION, IS_INIT]
         self.out_keys = [keys.ACTION, BEHAVIOUR]
         self.egreedy = EGreedyModule(action_spec, eps_init=float(eps), eps_end=0.0)
+        names = ["averaging", "switching", "options"] if self.use_options else ["averaging"]
+        # every head the behaviour reads from one stacked pass (each head's values bit-equal to
+        # running it on its own: heads/snapshots.py), or each head on its own
+        self._values = HeadValues(heads, names) if HeadValues.supports(heads, names) else None
 
     @property
     def epsilon(self) -> float:
@@ -93,12 +98,19 @@ class BehaviourPolicy(TensorDictModuleBase):
         mode = td.get(BEHAVIOUR, None)  # (N,) int64, absent before the first step
         if mode is None:
             mode = torch.full((N,), -1, dtype=torch.int64, device=obs.device)
-        q_avg = head_network(self.heads.heads["averaging"])(obs)  # (N, A)
+        values = None if self._values is None or self._values.stack is None else self._values(obs)
+
+        def head(name: str) -> torch.Tensor:
+            if values is not None:
+                return values[HEAD_OUT_KEYS[name]]
+            return head_network(self.heads.heads[name])(obs)
+
+        q_avg = head("averaging")  # (N, A)
         action = q_avg.argmax(-1)  # (N,)
 
         if self.use_options:
             init = self.subtasks.initiation(td)  # (N, O) bool
-            q_mu = head_network(self.heads.heads["switching"])(obs)  # (N, O)
+            q_mu = head("switching")  # (N, O)
             greedy = mu_bar_probs(q_mu, init).argmax(-1)  # (N,)
             allowed = (init | ~init.any(-1, keepdim=True)).to(torch.float32)  # (N, O)
             uniform = torch.multinomial(allowed, 1).squeeze(-1)  # (N,)
@@ -112,7 +124,7 @@ class BehaviourPolicy(TensorDictModuleBase):
                 torch.where(run_options, picked, torch.full_like(picked, -1)),
                 torch.where((mode >= 0) & ended, picked, mode),
             )  # (N,)
-            q_opt = head_network(self.heads.heads["options"])(obs)  # (N, O, A)
+            q_opt = head("options")  # (N, O, A)
             if self.root is not None:  # pi^root = pi^avg
                 q_opt = with_root_row(q_opt, q_avg, self.root)
             opt_action = q_opt.argmax(-1).gather(
