@@ -438,3 +438,18 @@ def test_learner_update_changes_weights_and_pops_mean_losses(windy):
         (l1["loss_options"] + l2["loss_options"]).item() / 2
     )
     assert learner.pop_losses() == {}
+
+
+def test_first_visit_steps_equal_one_visit_per_step():
+    """FirstVisitFilter.visit_steps (T steps at once) equals T calls of visit: masks and flags."""
+    g = torch.Generator().manual_seed(0)
+    for T in (1, 2, 17, 40):
+        N, D = 7, 3
+        obs = torch.randint(0, 3, (T, N, D), generator=g).float()  # few values: many revisits
+        action = torch.randint(0, 2, (T, N), generator=g)
+        a, b = FirstVisitFilter(N, D, buckets=64), FirstVisitFilter(N, D, buckets=64)
+        before = torch.randint(0, 3, (N, D), generator=g).float(), torch.zeros(N, dtype=torch.long)
+        a.visit(*before), b.visit(*before)  # flags from earlier steps count too
+        ref = torch.stack([a.visit(obs[t], action[t]) for t in range(T)])
+        assert torch.equal(b.visit_steps(obs, action), ref)
+        assert torch.equal(a.seen, b.seen)

@@ -133,9 +133,14 @@ def test_behaviour_stacked_pass_equals_each_head_alone():
     fused = agent.behaviour
     assert fused._values is not None and fused._values.stack is not None
     alone = BehaviourPolicy(
-        agent.heads, agent.subtasks, env.action_spec, option_prob=0.5, root_policy="averaging"
+        agent.heads,
+        agent.subtasks,
+        env.action_spec,
+        option_prob=0.5,
+        root_policy="averaging",
+        stacked=False,  # each head on its own
     )
-    alone._values = None  # each head on its own
+    assert alone._values is None
     td = env.reset_all()
     td.set("is_init", torch.ones(env.num_envs, 1, dtype=torch.bool))
     for step, eps in enumerate((0.0, 0.3, 0.3)):

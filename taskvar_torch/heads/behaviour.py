@@ -50,6 +50,9 @@ class BehaviourPolicy(TensorDictModuleBase):
         root_policy: ``"averaging"``: the composition hierarchy's root option acts by the averaging
             head (its policy is the full-task averaging policy, paper §3.4.2); ``"option"``: by its
             own option head.
+        stacked: read every head from one pass of their shared ``StackedMLP`` (where they have
+            one: :class:`~taskvar_torch.heads.snapshots.HeadValues`, the same values); ``False``:
+            run each head on its own (the slower reference, ``benchmarks/wargus_trial.py``).
     """
 
     def __init__(
@@ -60,6 +63,7 @@ class BehaviourPolicy(TensorDictModuleBase):
         option_prob: float = 0.5,
         eps: float = 1.0,
         root_policy: str = "option",
+        stacked: bool = True,
     ):
         super().__init__()
         if not 0.0 <= option_prob <= 1.0:
@@ -80,7 +84,9 @@ class BehaviourPolicy(TensorDictModuleBase):
         names = ["averaging", "switching", "options"] if self.use_options else ["averaging"]
         # every head the behaviour reads from one stacked pass (each head's values bit-equal to
         # running it on its own: heads/snapshots.py), or each head on its own
-        self._values = HeadValues(heads, names) if HeadValues.supports(heads, names) else None
+        self._values = (
+            HeadValues(heads, names) if stacked and HeadValues.supports(heads, names) else None
+        )
 
     @property
     def epsilon(self) -> float:
