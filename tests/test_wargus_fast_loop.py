@@ -154,3 +154,18 @@ def test_behaviour_stacked_pass_equals_each_head_alone():
         assert torch.equal(a["behaviour"], b["behaviour"])
         td = env.step_all(a[keys.ACTION]).set("behaviour", a["behaviour"])
         td.set("is_init", torch.zeros(env.num_envs, 1, dtype=torch.bool))
+
+
+def test_compiled_dynamics_equal_eager():
+    """train.compile: step_all through the compiled dynamics gives the eager step's bits."""
+    kw = dict(size=10, sight=4, shoot_range=2, patrol_speed=0.8, hit_prob=0.9, horizon=60)
+    a, b = WargusEnv(12, seed=3, **kw), WargusEnv(12, seed=3, **kw)
+    b.compile_dynamics()
+    ta, tb = a.reset_all(), b.reset_all()
+    g = torch.Generator().manual_seed(0)
+    for _ in range(80):
+        action = torch.randint(0, 8, (12,), generator=g)
+        ta, tb = a.step_all(action), b.step_all(action)
+        for key in ta.keys(True, True):
+            assert torch.equal(ta[key], tb[key]), key
+    assert b._dynamics.failed is None

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import copy
 import math
-import warnings
 from dataclasses import dataclass
 
 import torch
@@ -33,6 +32,7 @@ from tensordict.nn import TensorDictParams
 from torch import nn
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
+from taskvar_torch.compiling import Compiled
 from taskvar_torch.heads.averaging import averaging_loss
 from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.heads.max_value import (
@@ -357,15 +357,13 @@ def clip_grad_norm_stacked(params: list[torch.Tensor], max_norm: float) -> None:
         g.mul_(coef.view(-1, *([1] * (g.dim() - 1))))
 
 
-class CompiledLosses:
-    """:meth:`MultiHeadLoss.losses` through ``torch.compile`` (Inductor), with an eager fallback.
+class CompiledLosses(Compiled):
+    """:meth:`MultiHeadLoss.losses` through ``torch.compile`` (Inductor), with an eager fallback
+    (:class:`~taskvar_torch.compiling.Compiled`).
 
-    Dynamo traces the losses once per input layout (shapes are static: one batch size) and
-    AOTAutograd compiles their backward too, so one update runs a few fused C++ kernels around the
-    matmuls instead of ~300 small eager ops (``benchmarks/wargus_trial.py``: the Wargus update's
-    forward and backward ~30% cheaper, after a compile of ~20 s per process). If compiling fails
-    (no C++ compiler, an unsupported op) the error is warned once and every later call runs eager:
-    the losses have no side effects, so the failed call is simply rerun.
+    Dynamo traces the losses once (shapes are static: one batch size) and AOTAutograd compiles
+    their backward too, so one update runs a few fused C++ kernels around the matmuls instead of
+    ~300 small eager ops (Wargus Figure 4: the update ~35% cheaper; docs/benchmarks.md).
 
     Examples:
         >>> losses = CompiledLosses(loss)  # doctest: +SKIP
@@ -373,22 +371,7 @@ class CompiledLosses:
     """
 
     def __init__(self, loss: MultiHeadLoss):
-        self.eager = loss.losses
-        self.compiled = torch.compile(loss.losses, dynamic=False)
-        self.failed: Exception | None = None
-
-    def __call__(self, batch: Transitions) -> dict[str, torch.Tensor]:
-        if self.failed is None:
-            try:
-                return self.compiled(batch)
-            except Exception as e:  # noqa: BLE001 - any compile failure: run eager from now on
-                self.failed = e
-                warnings.warn(
-                    f"torch.compile of the learner failed, running eager: {type(e).__name__}: "
-                    f"{str(e).splitlines()[0] if str(e) else ''}",
-                    stacklevel=2,
-                )
-        return self.eager(batch)
+        super().__init__(loss.losses, "the learner")
 
 
 class MultiHeadLearner:
