@@ -6,8 +6,9 @@ load hits both alike:
 * **old path**: the behaviour policy runs each head on its own (``BehaviourPolicy(stacked=False)``)
   and the learner and dynamics run eager (``train.compile=false``): the fast loops as they were
   before issue 13, but for the first-visit filter (now once per update phase in both);
-* **new path**: the behaviour reads its heads from one stacked pass, and the learner's losses and
-  the dynamics step run through ``torch.compile`` (``train.compile=true``; ``--eager``: eager).
+* **new path**: the behaviour reads its heads from one stacked pass, and the behaviour's choices,
+  the learner's losses and the dynamics step run through ``torch.compile``
+  (``train.compile=true``; ``--eager``: eager).
 
 A trial is what :func:`~taskvar_torch.experiments.wargus_fig4.run_repetition` does per trial: the
 learning phase, the hierarchy's calibration, a snapshot of the heads, and the test phase (the
@@ -87,7 +88,7 @@ class Path:
             self.env.compile_dynamics()
         self.seconds = self.frames = self.updates = 0.0
         self.snapshots, self.calibrations = [], []
-        self.compile_wall = 0.0  # wall seconds of the first step and update (their compiles)
+        self.compile_wall = 0.0  # wall seconds of the first step, action and update (compiles)
         self.clock = clock
         if clock is not None:
             a = self.agent
@@ -100,7 +101,8 @@ class Path:
                 (a.learner, "update", "gradient updates"),
             ):
                 timed(obj, name, clock, label)
-        for obj, name in ((self.env, "step_all"), (self.agent.learner, "update")):
+        a = self.agent
+        for obj, name in ((self.env, "step_all"), (a.behaviour, "forward"), (a.learner, "update")):
             self._time_first_call(obj, name)
 
     def _time_first_call(self, obj, name: str) -> None:
@@ -197,13 +199,18 @@ def main() -> None:
     )
     print(
         f"  new path (one stacked behaviour pass, "
-        f"{'compiled learner and dynamics' if compiled else 'eager'}) {new.seconds / n:6.3f}"
+        f"{'all compiled' if compiled else 'eager'})             {new.seconds / n:6.3f}"
         f"   {new.frames / n:.0f} frames, {new.updates / n:.0f} updates per trial"
     )
-    print(f"  ratio old / new {old.seconds / max(new.seconds, 1e-9):.2f}x")
+    print(
+        f"  ratio old / new {old.seconds / max(new.seconds, 1e-9):.2f}x per trial, "
+        f"{old.seconds / max(old.frames, 1) / max(new.seconds / max(new.frames, 1), 1e-12):.2f}x "
+        "per frame (the agents drift apart: compiled losses differ in the last bits)"
+    )
     if compiled:
         print(
-            f"  compile (the new path's first env step and update): {new.compile_wall:.1f} s wall"
+            f"  compile (the new path's first env step, action and update): "
+            f"{new.compile_wall:.1f} s wall"
         )
     print("  new path split per trial:")
     learn_s = new.seconds - test_new * n

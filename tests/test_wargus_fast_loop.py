@@ -125,35 +125,43 @@ def test_run_repetition_same_for_any_test_group(tmp_path):
     assert one["control_steps"].sum() > 0
 
 
-def test_behaviour_stacked_pass_equals_each_head_alone():
-    """The behaviour policy reads its heads from one stacked pass (HeadValues): same actions,
-    modes and global RNG draws as running each head on its own (paper widths, 30 rows)."""
+def test_behaviour_stacked_and_compiled_equal_each_head_alone():
+    """The behaviour policy reads its heads from one stacked pass (HeadValues), and with
+    compile=True (train.compile) runs it and its choices compiled: same actions, modes and global
+    RNG draws as running each head on its own (paper widths, 30 rows)."""
     cfg = load_config(fig4.default_config_path(), SMALL[:-1])  # heads.hidden=[128, 128]
     env, agent, _ = _agent(cfg, torchrl=False)
     fused = agent.behaviour
     assert fused._values is not None and fused._values.stack is not None
-    alone = BehaviourPolicy(
-        agent.heads,
-        agent.subtasks,
-        env.action_spec,
-        option_prob=0.5,
-        root_policy="averaging",
-        stacked=False,  # each head on its own
-    )
-    assert alone._values is None
+    policies = [
+        BehaviourPolicy(
+            agent.heads,
+            agent.subtasks,
+            env.action_spec,
+            option_prob=0.5,
+            root_policy="averaging",
+            stacked=stacked,
+            compile=compile_,
+        )
+        for stacked, compile_ in ((False, False), (True, True))  # each head alone; compiled
+    ]
+    assert policies[0]._values is None
     td = env.reset_all()
     td.set("is_init", torch.ones(env.num_envs, 1, dtype=torch.bool))
-    for step, eps in enumerate((0.0, 0.3, 0.3)):
-        fused.set_epsilon(eps)
-        alone.set_epsilon(eps)
-        torch.manual_seed(step)
-        a = fused(td.clone())
-        torch.manual_seed(step)
-        b = alone(td.clone())
-        assert torch.equal(a[keys.ACTION], b[keys.ACTION])
-        assert torch.equal(a["behaviour"], b["behaviour"])
-        td = env.step_all(a[keys.ACTION]).set("behaviour", a["behaviour"])
-        td.set("is_init", torch.zeros(env.num_envs, 1, dtype=torch.bool))
+    for step in range(12):
+        outs = []
+        for policy in (fused, *policies):
+            policy.set_epsilon(0.3 * (step % 2))
+            torch.manual_seed(step)
+            out = policy(td.clone())
+            # the draws left the stream in the same state
+            outs.append({k: out[k] for k in (keys.ACTION, "behaviour")} | {"rng": torch.rand(3)})
+        for out in outs[1:]:
+            for key, v in out.items():
+                assert torch.equal(v, outs[0][key]), (step, key)
+        td = env.step_all(outs[0][keys.ACTION]).set("behaviour", outs[0]["behaviour"])
+        td.set("is_init", torch.rand(env.num_envs, 1) < 0.1)
+    assert policies[1]._compiled.failed is None
 
 
 def test_compiled_dynamics_equal_eager():

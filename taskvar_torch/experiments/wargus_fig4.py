@@ -153,6 +153,7 @@ def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> Lifel
         env.action_spec,
         option_prob=cfg.train.option_behaviour_prob,
         root_policy=cfg.train.hierarchy_root_policy,
+        compile=cfg.train.compile,
     )
     generator = torch.Generator(device="cpu").manual_seed(seed + 1)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
