@@ -172,8 +172,9 @@ class TrainConfig:
     compile: bool = False
     """torch.compile the hot paths (taskvar_torch/compiling.py): the learner's losses, forward and
     backward of every head (the same losses up to float rounding), and in the wargus-fig4 learning
-    loop the Wargus dynamics step (the same bits). Cheaper trials after a compile of 10-30 s per
-    process (docs/benchmarks.md); falls back to eager, with a warning, where compiling fails."""
+    loop the behaviour policy's choices and the Wargus dynamics step (the same bits). Cheaper
+    trials after a compile of 20-30 s per process (docs/benchmarks.md); falls back to eager, with a
+    warning, where compiling fails."""
     checkpoint_every: int = 50_000
     """Save a checkpoint every this many frames; 0: only the final one."""
     log_every: int = 5_000
