@@ -16,7 +16,9 @@ pass (:class:`~taskvar_torch.heads.snapshots.HeadValues`), and test several tria
 (:data:`~taskvar_torch.experiments.wargus_fig4.TEST_GROUP`) side by side on frozen copies of their
 heads (:func:`test_trials` with :class:`~taskvar_torch.controllers.side_by_side.SideBySide`). The
 TorchRL loops :func:`learning_phase_torchrl` / :func:`test_phase_torchrl` are kept as the
-reference the tests check them bit-equal to.
+reference the tests check them bit-equal to. ``train.compile`` also runs the behaviour's
+choices, the dynamics step and the learner's losses through ``torch.compile``
+(``taskvar_torch/compiling.py``).
 """
 
 from __future__ import annotations

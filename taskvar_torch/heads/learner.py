@@ -17,7 +17,9 @@ losses accumulated on the device (no host sync per step).
 
 :class:`MultiHeadLearner` adds the optimiser (fused Adam over every head, gradient norm clipped per head),
 the target updater (TorchRL ``SoftUpdate`` with a foreach step, or ``HardUpdate``), and
-device-side loss sums for logging (:meth:`MultiHeadLearner.pop_losses`).
+device-side loss sums for logging (:meth:`MultiHeadLearner.pop_losses`); with ``compile=True``
+(``train.compile``) the losses and their backward run through ``torch.compile``
+(:class:`CompiledLosses`).
 """
 
 from __future__ import annotations
