@@ -1,16 +1,33 @@
-"""Wargus Figure 4: CPU time per paper-scale trial, TorchRL loops vs the fast loops, side by side.
+"""Wargus Figure 4: CPU time per paper-scale trial, the old fast path vs the new, side by side.
 
-Two agents from the same seed play the same trials (the loops are bit-identical, so they stay in
-lockstep); trials alternate between them, so machine load hits both alike. Prints the CPU seconds
-per trial of each loop, their ratio, and where the fast loop's time goes (env steps, behaviour,
-replay, updates, test phases). Single-threaded.
+Two agents from the same seed play the same protocol, trials alternating between them so machine
+load hits both alike:
 
-    python benchmarks/wargus_trial.py --trials 6 [overrides like train.updates_per_batch=4]
+* **old path**: the behaviour policy runs each head on its own (``BehaviourPolicy(stacked=False)``)
+  and the learner and dynamics run eager (``train.compile=false``): the fast loops as they were
+  before issue 13, but for the first-visit filter (now once per update phase in both);
+* **new path**: the behaviour reads its heads from one stacked pass, and the behaviour's choices,
+  the learner's losses and the dynamics step run through ``torch.compile``
+  (``train.compile=true``; ``--eager``: eager).
+
+A trial is what :func:`~taskvar_torch.experiments.wargus_fig4.run_repetition` does per trial: the
+learning phase, the hierarchy's calibration, a snapshot of the heads, and the test phase (the
+trials' test phases run side by side at the end, ``TEST_GROUP`` at a time as in the protocol, and
+their cost is shared out per trial). The compiled learner may differ from the eager one in the
+last float bits, so the two agents can drift apart over the trials (their frames and updates per
+trial are printed). Prints the CPU seconds per trial of each path, their ratio, the compile time
+(wall, once per process: Inductor compiles in worker processes whose CPU ``process_time`` does not
+see), where the new path's time goes, and the projected wall time of the full protocol
+(``configs/wargus.yaml``: runs x trials, one repetition per process on 2 cores). Single-threaded.
+``--torchrl`` adds the TorchRL reference loops (EnvBase + transforms, per-trial tests).
+
+    python benchmarks/wargus_trial.py --trials 6 [--eager] [--torchrl] [overrides ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 from collections import defaultdict
 
@@ -20,10 +37,13 @@ from torchrl.envs import InitTracker, TransformedEnv
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import SideBySide
 from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.train import make_env
 
+CORES = 2  # this project's machine
 
-def build(cfg, torchrl: bool, seed: int = 0):
+
+def build(cfg, torchrl: bool = False, stacked: bool = True, seed: int = 0):
     torch.manual_seed(seed)
     env = make_env(cfg, num_envs=cfg.experiment.learning_episodes_per_trial, seed=seed)
     if torchrl:
@@ -31,6 +51,15 @@ def build(cfg, torchrl: bool, seed: int = 0):
     else:
         env.validate_actions = False
     agent = fig4.make_agent(cfg, env, seed)
+    if not stacked:  # the old behaviour: each head on its own
+        agent.behaviour = BehaviourPolicy(
+            agent.heads,
+            agent.subtasks,
+            env.action_spec,
+            option_prob=cfg.train.option_behaviour_prob,
+            root_policy=cfg.train.hierarchy_root_policy,
+            stacked=False,
+        )
     policy = SideBySide(fig4.make_test_controllers(agent), cfg.experiment.test_episodes_per_trial)
     return env, agent, policy
 
@@ -49,71 +78,158 @@ def timed(obj, name: str, clock: dict, label: str) -> None:
     setattr(obj, name, wrapper)
 
 
+class Path:
+    """One agent playing the fast loops, with its CPU clock and its untested trials."""
+
+    def __init__(self, cfg, stacked: bool, clock: dict | None = None):
+        self.cfg = cfg
+        self.env, self.agent, self.policy = build(cfg, stacked=stacked)
+        if cfg.train.compile:  # as run_repetition
+            self.env.compile_dynamics()
+        self.seconds = self.frames = self.updates = 0.0
+        self.snapshots, self.calibrations = [], []
+        self.compile_wall = 0.0  # wall seconds of the first step, action and update (compiles)
+        self.clock = clock
+        if clock is not None:
+            a = self.agent
+            for obj, name, label in (
+                (self.env, "step_all", "env steps"),
+                (a.behaviour, "forward", "behaviour policy"),
+                (a.first_visit, "visit_steps", "first-visit filter"),
+                (a.buffer, "extend", "replay extend"),
+                (a.buffer, "sample", "replay sample"),
+                (a.learner, "update", "gradient updates"),
+            ):
+                timed(obj, name, clock, label)
+        a = self.agent
+        for obj, name in ((self.env, "step_all"), (a.behaviour, "forward"), (a.learner, "update")):
+            self._time_first_call(obj, name)
+
+    def _time_first_call(self, obj, name: str) -> None:
+        """Add the wall time of ``obj.name``'s first call (its compile, if any) to
+        ``compile_wall``."""
+        f = getattr(obj, name)
+
+        def first(*a, **kw):
+            w = time.perf_counter()
+            out = f(*a, **kw)
+            self.compile_wall += time.perf_counter() - w
+            setattr(obj, name, f)
+            return out
+
+        setattr(obj, name, first)
+
+    def trial(self, on: bool) -> None:
+        a, u = self.agent, self.agent.updates
+        t = time.process_time()
+        learned = fig4.learning_phase(a, self.env)
+        c = time.process_time()
+        self.calibrations.append(fig4.trial_calibration(a))
+        if self.clock is not None:
+            self.clock["calibration"] += time.process_time() - c
+        self.snapshots.append(self.policy.head_values.snapshot())
+        self.seconds += (time.process_time() - t) * on
+        self.frames += learned["frames"] * on
+        self.updates += (a.updates - u) * on
+
+    def test(self, trials: int) -> float:
+        """Test every trial played, TEST_GROUP side by side; CPU seconds per timed trial."""
+        k = self.cfg.experiment.test_episodes_per_trial
+        t = time.process_time()
+        n = len(self.snapshots)
+        for g in range(0, n, fig4.TEST_GROUP):
+            snaps, cals = (
+                self.snapshots[g : g + fig4.TEST_GROUP],
+                self.calibrations[g : g + fig4.TEST_GROUP],
+            )
+            env = fig4.make_test_env(self.cfg, k, 0, g, len(snaps))
+            fig4.test_trials(self.policy, env, k, snaps, cals)
+        s = (time.process_time() - t) / n
+        self.seconds += s * trials
+        return s
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--trials", type=int, default=6)
-    p.add_argument("--warmup", type=int, default=2, help="untimed trials first (both loops)")
+    p.add_argument(
+        "--warmup", type=int, default=2, help="untimed trials first (both paths; >= 2: the compile)"
+    )
+    p.add_argument("--eager", action="store_true", help="new path with train.compile=false")
+    p.add_argument("--torchrl", action="store_true", help="also time the TorchRL loops")
     p.add_argument("overrides", nargs="*")
     args = p.parse_args()
     torch.set_num_threads(1)
     cfg = load_config(fig4.default_config_path(), args.overrides)
-    k = cfg.experiment.test_episodes_per_trial
-    ref_env, ref_agent, ref_policy = build(cfg, torchrl=True)
-    ref_test_env = TransformedEnv(
-        fig4.make_test_env(cfg, k, 0), ref_policy.controllers[-1].primer()
-    )
-    env, agent, policy = build(cfg, torchrl=False)
+    old_cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, compile=False))
+    new_cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, compile=not args.eager))
     clock: dict = defaultdict(float)
-    for obj, name, label in (
-        (env, "step_all", "env steps"),
-        (agent.behaviour, "forward", "behaviour policy"),
-        (agent.first_visit, "visit", "first-visit filter"),
-        (agent.buffer, "extend", "replay extend"),
-        (agent.buffer, "sample", "replay sample"),
-        (agent.learner, "update", "gradient updates"),
-    ):
-        timed(obj, name, clock, label)
-    ref_s = fast_s = test_s = 0.0
-    snapshots = []
-    frames = updates = 0
+    old, new = Path(old_cfg, stacked=False), Path(new_cfg, stacked=True, clock=clock)
+    if args.torchrl:
+        k = cfg.experiment.test_episodes_per_trial
+        ref_env, ref_agent, ref_policy = build(old_cfg, torchrl=True)
+        ref_test_env = TransformedEnv(
+            fig4.make_test_env(cfg, k, 0), ref_policy.controllers[-1].primer()
+        )
+    ref_s = 0.0
     for trial in range(args.warmup + args.trials):
         on = trial >= args.warmup
         if trial == args.warmup:
             clock.clear()
-        t = time.process_time()
-        fig4.learning_phase_torchrl(ref_agent, ref_env)
-        fig4.test_phase_torchrl(ref_policy, ref_test_env, k)
-        ref_s += (time.process_time() - t) * on
-        t = time.process_time()
-        u = agent.updates
-        learned = fig4.learning_phase(agent, env)
-        snapshots.append(policy.head_values.snapshot())
-        fast_s += (time.process_time() - t) * on
-        frames += learned["frames"] * on
-        updates += (agent.updates - u) * on
-    t = time.process_time()
-    test_env = fig4.make_test_env(cfg, k, 0, 0, len(snapshots))
-    fig4.test_trials(policy, test_env, k, snapshots)
-    test_s = (time.process_time() - t) * args.trials / len(snapshots)
-    fast_s += test_s
+        for path in (old, new) if trial % 2 else (new, old):
+            path.trial(on)
+        if args.torchrl:
+            t = time.process_time()
+            fig4.learning_phase_torchrl(ref_agent, ref_env)
+            fig4.test_phase_torchrl(ref_policy, ref_test_env, k)
+            ref_s += (time.process_time() - t) * on
+    old.test(args.trials)
+    test_new = new.test(args.trials)
     n = args.trials
+    x = cfg.experiment
+    compiled = new.agent.learner.losses is not new.agent.learner.loss.losses
     print(
-        f"CPU seconds per trial over {n} trials (after {args.warmup} warm-up), 1 thread, "
-        f"{frames / n:.0f} frames and {updates / n:.0f} updates per trial:"
+        f"CPU seconds per paper-scale trial over {n} trials (after {args.warmup} warm-up), 1 thread"
     )
-    print(f"  TorchRL loops (EnvBase + transforms, per-trial test) {ref_s / n:7.2f}")
+    if args.torchrl:
+        print(f"  TorchRL loops (EnvBase + transforms, per-trial test)        {ref_s / n:6.3f}")
     print(
-        f"  fast loops (pure dynamics, tests {len(snapshots)} trials side by side) {fast_s / n:7.2f}"
-        f"   ratio {ref_s / max(fast_s, 1e-9):.2f}x"
+        f"  old path (each head on its own in the behaviour, all eager)     {old.seconds / n:6.3f}"
+        f"   {old.frames / n:.0f} frames, {old.updates / n:.0f} updates per trial"
     )
-    print("  fast loop split per trial:")
-    learn_s = fast_s - test_s
+    print(
+        f"  new path (one stacked behaviour pass, "
+        f"{'all compiled' if compiled else 'eager'})             {new.seconds / n:6.3f}"
+        f"   {new.frames / n:.0f} frames, {new.updates / n:.0f} updates per trial"
+    )
+    print(
+        f"  ratio old / new {old.seconds / max(new.seconds, 1e-9):.2f}x per trial, "
+        f"{old.seconds / max(old.frames, 1) / max(new.seconds / max(new.frames, 1), 1e-12):.2f}x "
+        "per frame (the agents drift apart: compiled losses differ in the last bits)"
+    )
+    if compiled:
+        print(
+            f"  compile (the new path's first env step, action and update): "
+            f"{new.compile_wall:.1f} s wall"
+        )
+    print("  new path split per trial:")
+    learn_s = new.seconds - test_new * n
     for label, s in sorted(clock.items(), key=lambda kv: -kv[1]):
-        print(f"    {label:<22}{s / n:7.3f}")
-    print(f"    {'other learning loop':<22}{(learn_s - sum(clock.values())) / n:7.3f}")
-    print(f"    {'test phases':<22}{test_s / n:7.3f}")
-    if updates:
-        print(f"  per gradient update: {clock['gradient updates'] / updates * 1e3:.1f} ms")
+        print(f"    {label:<26}{s / n:7.3f}")
+    other = (learn_s - sum(clock.values())) / n
+    print(f"    {'other learning loop':<26}{other:7.3f}")
+    print(f"    {'test phases':<26}{test_new:7.3f}")
+    if new.updates:
+        print(f"  per gradient update: {clock['gradient updates'] / new.updates * 1e3:.1f} ms")
+    trials = x.runs * x.trials
+    for name, path, extra in (("old", old, 0.0), ("new", new, new.compile_wall if compiled else 0)):
+        wall = (trials * path.seconds / n + x.runs * extra) / CORES
+        print(
+            f"  projected {x.runs} x {x.trials} protocol on {CORES} cores, {name} path: "
+            f"{wall / 60:.1f} min ({trials} trials / {CORES} cores x s/trial"
+            + (f" + {x.runs} compiles" if extra else "")
+            + ")"
+        )
 
 
 if __name__ == "__main__":

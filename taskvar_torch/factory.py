@@ -408,6 +408,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         target_update=t.target_update,
         target_tau=t.target_tau,
         target_period=t.target_period,
+        compile=t.compile,
     )
 
 

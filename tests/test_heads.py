@@ -16,8 +16,10 @@ from taskvar_torch import keys
 from taskvar_torch.config import load_config
 from taskvar_torch.heads.averaging import averaging_loss, make_averaging_head
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
+from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import (
+    CompiledLosses,
     ForeachSoftUpdate,
     LossSettings,
     MultiHeadLearner,
@@ -358,6 +360,52 @@ def _spec(n: int):
     return Categorical(4, shape=(n,), dtype=torch.int64)
 
 
+def test_compiled_learner_matches_eager(windy):
+    """train.compile: the compiled losses (forward and backward) give the eager losses and
+    weights within float rounding, update after update (averaging and options heads: a small
+    graph, so a cold compile stays short)."""
+    cfg, env, subtasks = windy
+    batch = random_batch(env)
+    learners = []
+    for compile_ in (False, True):
+        torch.manual_seed(0)
+        full = build_heads(cfg, env, subtasks)
+        names = ("averaging", "options")
+        heads = Heads(full.option_names, **{n: full.heads[n] for n in names})
+        loss = MultiHeadLoss(heads, subtasks, LossSettings())
+        learners.append(MultiHeadLearner(loss, compile=compile_))
+    eager, compiled = learners
+    assert isinstance(compiled.losses, CompiledLosses)
+    for _ in range(3):
+        a, b = eager.update(batch), compiled.update(batch)
+        for k in a.keys():
+            torch.testing.assert_close(b[k], a[k], rtol=1e-5, atol=1e-6)
+    assert compiled.losses.failed is None
+    for p, q in zip(eager.heads.parameters(), compiled.heads.parameters()):
+        torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
+
+
+def test_compiled_learner_falls_back_to_eager(windy, monkeypatch):
+    cfg, env, subtasks = windy
+    heads = build_heads(cfg, env, subtasks)
+    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, LossSettings()), compile=True)
+
+    def broken(batch):
+        raise RuntimeError("no C++ compiler\nmore lines")
+
+    learner.losses.compiled = broken
+    with pytest.warns(UserWarning, match="running eager: RuntimeError: no C\\+\\+ compiler$"):
+        losses = learner.update(random_batch(env))
+    assert set(losses.keys()) == {
+        "loss_averaging",
+        "loss_options",
+        "loss_switching",
+        "loss_max_value",
+    }
+    assert isinstance(learner.losses.failed, RuntimeError)
+    learner.update(random_batch(env))  # eager from now on, no second warning
+
+
 def test_soft_update_moves_every_target_once_by_tau(windy):
     cfg, env, subtasks = windy
     heads = build_heads(cfg, env, subtasks)
@@ -390,3 +438,18 @@ def test_learner_update_changes_weights_and_pops_mean_losses(windy):
         (l1["loss_options"] + l2["loss_options"]).item() / 2
     )
     assert learner.pop_losses() == {}
+
+
+def test_first_visit_steps_equal_one_visit_per_step():
+    """FirstVisitFilter.visit_steps (T steps at once) equals T calls of visit: masks and flags."""
+    g = torch.Generator().manual_seed(0)
+    for T in (1, 2, 17, 40):
+        N, D = 7, 3
+        obs = torch.randint(0, 3, (T, N, D), generator=g).float()  # few values: many revisits
+        action = torch.randint(0, 2, (T, N), generator=g)
+        a, b = FirstVisitFilter(N, D, buckets=64), FirstVisitFilter(N, D, buckets=64)
+        before = torch.randint(0, 3, (N, D), generator=g).float(), torch.zeros(N, dtype=torch.long)
+        a.visit(*before), b.visit(*before)  # flags from earlier steps count too
+        ref = torch.stack([a.visit(obs[t], action[t]) for t in range(T)])
+        assert torch.equal(b.visit_steps(obs, action), ref)
+        assert torch.equal(a.seen, b.seen)

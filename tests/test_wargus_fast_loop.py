@@ -9,6 +9,7 @@ from taskvar_torch import keys
 from taskvar_torch.config import load_config
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.train import make_env
 
 torch.set_num_threads(1)
@@ -122,3 +123,57 @@ def test_run_repetition_same_for_any_test_group(tmp_path):
     for key in ("items", "interruptions", "control_steps", "learn_items", "frames", "updates"):
         assert one[key].tolist() == two[key].tolist(), key
     assert one["control_steps"].sum() > 0
+
+
+def test_behaviour_stacked_and_compiled_equal_each_head_alone():
+    """The behaviour policy reads its heads from one stacked pass (HeadValues), and with
+    compile=True (train.compile) runs it and its choices compiled: same actions, modes and global
+    RNG draws as running each head on its own (paper widths, 30 rows)."""
+    cfg = load_config(fig4.default_config_path(), SMALL[:-1])  # heads.hidden=[128, 128]
+    env, agent, _ = _agent(cfg, torchrl=False)
+    fused = agent.behaviour
+    assert fused._values is not None and fused._values.stack is not None
+    policies = [
+        BehaviourPolicy(
+            agent.heads,
+            agent.subtasks,
+            env.action_spec,
+            option_prob=0.5,
+            root_policy="averaging",
+            stacked=stacked,
+            compile=compile_,
+        )
+        for stacked, compile_ in ((False, False), (True, True))  # each head alone; compiled
+    ]
+    assert policies[0]._values is None
+    td = env.reset_all()
+    td.set("is_init", torch.ones(env.num_envs, 1, dtype=torch.bool))
+    for step in range(12):
+        outs = []
+        for policy in (fused, *policies):
+            policy.set_epsilon(0.3 * (step % 2))
+            torch.manual_seed(step)
+            out = policy(td.clone())
+            # the draws left the stream in the same state
+            outs.append({k: out[k] for k in (keys.ACTION, "behaviour")} | {"rng": torch.rand(3)})
+        for out in outs[1:]:
+            for key, v in out.items():
+                assert torch.equal(v, outs[0][key]), (step, key)
+        td = env.step_all(outs[0][keys.ACTION]).set("behaviour", outs[0]["behaviour"])
+        td.set("is_init", torch.rand(env.num_envs, 1) < 0.1)
+    assert policies[1]._compiled.failed is None
+
+
+def test_compiled_dynamics_equal_eager():
+    """train.compile: step_all through the compiled dynamics gives the eager step's bits."""
+    kw = dict(size=10, sight=4, shoot_range=2, patrol_speed=0.8, hit_prob=0.9, horizon=60)
+    a, b = WargusEnv(12, seed=3, **kw), WargusEnv(12, seed=3, **kw)
+    b.compile_dynamics()
+    ta, tb = a.reset_all(), b.reset_all()
+    g = torch.Generator().manual_seed(0)
+    for _ in range(80):
+        action = torch.randint(0, 8, (12,), generator=g)
+        ta, tb = a.step_all(action), b.step_all(action)
+        for key in ta.keys(True, True):
+            assert torch.equal(ta[key], tb[key]), key
+    assert b._dynamics.failed is None

@@ -178,6 +178,12 @@ class TrainConfig:
     the full task, paper §3.4.2) or sum (TG's plus FE's subtask rewards)."""
     max_grad_norm: float | None = 10.0
     """Gradient-norm clipping; null disables it."""
+    compile: bool = False
+    """torch.compile the hot paths (taskvar_torch/compiling.py): the learner's losses, forward and
+    backward of every head (the same losses up to float rounding), and in the wargus-fig4 learning
+    loop the behaviour policy's choices and the Wargus dynamics step (the same bits). Cheaper
+    trials after a compile of 20-30 s per process (docs/benchmarks.md); falls back to eager, with a
+    warning, where compiling fails."""
     checkpoint_every: int = 50_000
     """Save a checkpoint every this many frames; 0: only the final one."""
     log_every: int = 5_000

@@ -16,7 +16,9 @@ pass (:class:`~taskvar_torch.heads.snapshots.HeadValues`), and test several tria
 (:data:`~taskvar_torch.experiments.wargus_fig4.TEST_GROUP`) side by side on frozen copies of their
 heads (:func:`test_trials` with :class:`~taskvar_torch.controllers.side_by_side.SideBySide`). The
 TorchRL loops :func:`learning_phase_torchrl` / :func:`test_phase_torchrl` are kept as the
-reference the tests check them bit-equal to.
+reference the tests check them bit-equal to. ``train.compile`` also runs the behaviour's
+choices, the dynamics step and the learner's losses through ``torch.compile``
+(``taskvar_torch/compiling.py``).
 """
 
 from __future__ import annotations
@@ -88,10 +90,10 @@ def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
 
     The fast loop: it steps ``env``'s dynamics directly (:meth:`WargusEnv.reset_all` /
     :meth:`WargusEnv.step_all`, no ``EnvBase`` checks, transforms or ``step_mdp``), carries
-    ``is_init`` and the behaviour mode itself, and writes the kept transitions to the replay buffer
-    in one ``extend`` per update phase (before any sample, so the buffer holds the same rows in the
-    same order). Same draws, same transitions, same updates as the TorchRL loop
-    :func:`learning_phase_torchrl` (tested equal).
+    ``is_init`` and the behaviour mode itself, and filters first visits and writes the kept
+    transitions to the replay buffer once per update phase (before any sample, so the buffer
+    holds the same rows in the same order). Same draws, same transitions, same updates as the
+    TorchRL loop :func:`learning_phase_torchrl` (tested equal).
     """
     t = agent.cfg.train
     n = env.num_envs
@@ -112,12 +114,9 @@ def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
         action = td.get(keys.ACTION)
         nxt = env.step_all(action)
         nxt.set(IS_INIT, not_init)
-        # ---- stage this step's transitions of the live episodes ------------------------------
-        keep = alive
-        if t.first_visit:
-            keep = keep & agent.first_visit.visit(td.get(keys.OBSERVATION), action)
+        # ---- stage this step's transitions of the live episodes (first visits: at the flush) --
         staged.append(_transition(td, nxt))
-        masks.append(keep)
+        masks.append(alive)
         n_alive = int(alive.sum())
         agent.frames += n_alive
         agent.pending += n_alive
@@ -125,14 +124,14 @@ def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
         items += torch.where(alive, nxt.get(keys.REWARD).reshape(n), 0.0)
         # ---- learn: every head from one shared sample per update ----------------------------
         if agent.pending >= t.frames_per_batch:
-            _flush(agent, staged, masks)
+            _flush(agent, staged, masks, t.first_visit)
         learn_due(agent, t)
         alive = alive & ~nxt.get(keys.DONE).reshape(n)
         if not bool(alive.any()):
             break
         nxt.set(BEHAVIOUR, td.get(BEHAVIOUR))  # carried, like step_mdp(keep_other=True)
         td = nxt
-    _flush(agent, staged, masks)
+    _flush(agent, staged, masks, t.first_visit)
     return {"learn_items": float(items.mean()), "frames": frames}
 
 
@@ -147,13 +146,20 @@ def _transition(td: TensorDictBase, nxt: TensorDictBase) -> TensorDictBase:
     return TensorDict._new_unsafe(root, batch_size=td.batch_size, device=td.device)
 
 
-def _flush(agent: LifelongAgent, staged: list, masks: list) -> None:
-    """Write the staged transitions that are kept to the replay buffer (one ``extend``)."""
+def _flush(agent: LifelongAgent, staged: list, masks: list, first_visit: bool) -> None:
+    """Write the staged transitions of live episodes (``masks``) that are kept to the replay
+    buffer (one ``extend``); ``first_visit``: first visits only, filtered here for all the staged
+    steps at once (:meth:`FirstVisitFilter.visit_steps`, equal to a visit per step)."""
     if not staged:
         return
+    batch = torch.cat(staged)  # (T N,) step-major
     keep = torch.cat(masks)
+    if first_visit:
+        T, N = len(staged), staged[0].shape[0]
+        obs = batch.get(keys.OBSERVATION).view(T, N, -1)
+        keep = keep & agent.first_visit.visit_steps(obs, batch.get(keys.ACTION).view(T, N)).view(-1)
     if bool(keep.any()):
-        agent.buffer.extend(torch.cat(staged)[keep])
+        agent.buffer.extend(batch[keep])
     staged.clear()
     masks.clear()
 

@@ -153,6 +153,7 @@ def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> Lifel
         env.action_spec,
         option_prob=cfg.train.option_behaviour_prob,
         root_policy=cfg.train.hierarchy_root_policy,
+        compile=cfg.train.compile,
     )
     generator = torch.Generator(device="cpu").manual_seed(seed + 1)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
@@ -245,6 +246,8 @@ def run_repetition(
         torch.manual_seed(seed)
         learn_env = make_env(rep_cfg, num_envs=x.learning_episodes_per_trial, seed=seed)
         learn_env.validate_actions = False  # the behaviour's actions are in range by construction
+        if cfg.train.compile:  # the learning loop's dynamics too (the learner: make_agent)
+            learn_env.compile_dynamics()
         agent = make_agent(rep_cfg, learn_env, seed)
         controllers = make_test_controllers(agent)
         policy = SideBySide(controllers, k)

@@ -28,8 +28,10 @@ from torchrl.data import Categorical
 from torchrl.modules import EGreedyModule
 
 from taskvar_torch import keys
-from taskvar_torch.heads.bundle import Heads, with_root_row
+from taskvar_torch.compiling import Compiled
+from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads, with_root_row
 from taskvar_torch.heads.networks import head_network
+from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.heads.switching import mu_bar_probs
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -53,6 +55,13 @@ class BehaviourPolicy(TensorDictModuleBase):
             own option head.
         option_coverage: least probability that an option pick is uniform over the initiable
             options (regardless of mu_bar and epsilon).
+        stacked: read every head from one pass of their shared ``StackedMLP`` (where they have
+            one: :class:`~taskvar_torch.heads.snapshots.HeadValues`, the same values); ``False``:
+            run each head on its own (the slower reference, ``benchmarks/wargus_trial.py``).
+        compile: run the heads and the choice of action and mode (everything but the random
+            draws, which stay eager and in their order) through ``torch.compile``
+            (``train.compile``; :class:`~taskvar_torch.compiling.Compiled`): the same bits
+            (tested), fewer ops per step.
     """
 
     def __init__(
@@ -64,6 +73,8 @@ class BehaviourPolicy(TensorDictModuleBase):
         eps: float = 1.0,
         root_policy: str = "option",
         option_coverage: float = 0.0,
+        stacked: bool = True,
+        compile: bool = False,
     ):
         super().__init__()
         if not 0.0 <= option_prob <= 1.0:
@@ -84,6 +95,13 @@ class BehaviourPolicy(TensorDictModuleBase):
         self.in_keys = [keys.OBSERVATION, IS_INIT]
         self.out_keys = [keys.ACTION, BEHAVIOUR]
         self.egreedy = EGreedyModule(action_spec, eps_init=float(eps), eps_end=0.0)
+        names = ["averaging", "switching", "options"] if self.use_options else ["averaging"]
+        # every head the behaviour reads from one stacked pass (each head's values bit-equal to
+        # running it on its own: heads/snapshots.py), or each head on its own
+        self._values = (
+            HeadValues(heads, names) if stacked and HeadValues.supports(heads, names) else None
+        )
+        self._compiled = Compiled(self._decide_eager, "the behaviour policy") if compile else None
 
     @property
     def epsilon(self) -> float:
@@ -93,6 +111,46 @@ class BehaviourPolicy(TensorDictModuleBase):
         """Set the exploration rate (the trainer's schedule owns it)."""
         self.egreedy.eps.fill_(float(eps))
 
+    def _decide_eager(
+        self,
+        obs: torch.Tensor,  # (N, D)
+        mode: torch.Tensor,  # (N,) int64 behaviour mode before the step
+        init: torch.Tensor | None = None,  # (N, O) bool initiation
+        is_init: torch.Tensor | None = None,  # (N,) bool new episode
+        uniform: torch.Tensor | None = None,  # (N,) a uniform initiable option
+        explore: torch.Tensor | None = None,  # (N,) bool pick the option uniformly
+        run_options: torch.Tensor | None = None,  # (N,) bool a new episode runs options
+        ended: torch.Tensor | None = None,  # (N, O) bool termination beta_o(s)
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The greedy action and the behaviour mode from the heads and the step's draws (no random
+        draws: a pure function, what ``compile=True`` compiles)."""
+        values = None if self._values is None or self._values.stack is None else self._values(obs)
+
+        def head(name: str) -> torch.Tensor:
+            if values is not None:
+                return values[HEAD_OUT_KEYS[name]]
+            return head_network(self.heads.heads[name])(obs)
+
+        q_avg = head("averaging")  # (N, A)
+        action = q_avg.argmax(-1)  # (N,)
+        if not self.use_options:
+            return action, mode
+        q_mu = head("switching")  # (N, O)
+        greedy = mu_bar_probs(q_mu, init).argmax(-1)  # (N,)
+        picked = torch.where(explore, uniform, greedy)  # (N,) eps-greedy mu_bar
+        running = mode.clamp_min(0)
+        ended = ended.gather(-1, running.unsqueeze(-1)).squeeze(-1)
+        mode = torch.where(
+            is_init,
+            torch.where(run_options, picked, torch.full_like(picked, -1)),
+            torch.where((mode >= 0) & ended, picked, mode),
+        )  # (N,)
+        q_opt = head("options")  # (N, O, A)
+        if self.root is not None:  # pi^root = pi^avg
+            q_opt = with_root_row(q_opt, q_avg, self.root)
+        opt_action = q_opt.argmax(-1).gather(-1, mode.clamp(0, init.shape[-1] - 1).unsqueeze(-1))
+        return torch.where(mode >= 0, opt_action.squeeze(-1), action), mode  # (N,), (N,)
+
     @torch.no_grad()
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         obs = td.get(keys.OBSERVATION)  # (N, D)
@@ -101,35 +159,21 @@ class BehaviourPolicy(TensorDictModuleBase):
         mode = td.get(BEHAVIOUR, None)  # (N,) int64, absent before the first step
         if mode is None:
             mode = torch.full((N,), -1, dtype=torch.int64, device=obs.device)
-        q_avg = head_network(self.heads.heads["averaging"])(obs)  # (N, A)
-        action = q_avg.argmax(-1)  # (N,)
-
-        if self.use_options:
+        decide = self._decide_eager if self._compiled is None else self._compiled
+        if not self.use_options:
+            action, mode = decide(obs, mode)
+        else:
+            # the random draws, in their fixed order (the networks draw nothing): uniform options,
+            # exploration, option episodes; then EGreedyModule's
             init = self.subtasks.initiation(td)  # (N, O) bool
-            q_mu = head_network(self.heads.heads["switching"])(obs)  # (N, O)
-            greedy = mu_bar_probs(q_mu, init).argmax(-1)  # (N,)
             allowed = (init | ~init.any(-1, keepdim=True)).to(torch.float32)  # (N, O)
             uniform = torch.multinomial(allowed, 1).squeeze(-1)  # (N,)
             explore = torch.rand(N, device=obs.device) < self.egreedy.eps.clamp_min(
                 self.option_coverage
             )
-            picked = torch.where(explore, uniform, greedy)  # (N,) eps-greedy mu_bar
             run_options = torch.rand(N, device=obs.device) < self.option_prob
-            running = mode.clamp_min(0)
-            ended = self.subtasks.termination(td).gather(-1, running.unsqueeze(-1)).squeeze(-1)
-            mode = torch.where(
-                is_init,
-                torch.where(run_options, picked, torch.full_like(picked, -1)),
-                torch.where((mode >= 0) & ended, picked, mode),
-            )  # (N,)
-            q_opt = head_network(self.heads.heads["options"])(obs)  # (N, O, A)
-            if self.root is not None:  # pi^root = pi^avg
-                q_opt = with_root_row(q_opt, q_avg, self.root)
-            opt_action = q_opt.argmax(-1).gather(
-                -1, mode.clamp(0, init.shape[-1] - 1).unsqueeze(-1)
-            )
-            action = torch.where(mode >= 0, opt_action.squeeze(-1), action)  # (N,)
-
+            ended = self.subtasks.termination(td)  # (N, O) bool
+            action, mode = decide(obs, mode, init, is_init, uniform, explore, run_options, ended)
         td.set(keys.ACTION, action)
         td.set(BEHAVIOUR, mode)
         return self.egreedy(td)

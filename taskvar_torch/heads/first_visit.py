@@ -84,6 +84,28 @@ class FirstVisitFilter(nn.Module):
         self.seen[rows, h] = True
         return keep
 
+    @torch.no_grad()
+    def visit_steps(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """:meth:`visit` of ``T`` consecutive steps at once: ``(T, N)`` first-visit mask of
+        observations ``(T, N, D)`` and actions ``(T, N)`` (no episode starts among them).
+
+        Equal to ``T`` calls of :meth:`visit` in step order: a pair is kept where its bucket was
+        not flagged before these steps and no earlier step of the same environment hashed to it.
+        One hash of all ``T N`` pairs and a sort, instead of ``T`` calls.
+        """
+        T, N = action.shape
+        h = self._hash(obs.reshape(T * N, -1), action.reshape(-1)).view(T, N)  # (T, N)
+        rows = torch.arange(N, device=obs.device).expand(T, N)
+        new = ~self.seen[rows, h]  # (T, N) not flagged before these steps
+        key = (rows * self.buckets + h).reshape(-1)  # step-major: earlier steps first
+        order = torch.sort(key, stable=True).indices  # equal keys stay in step order
+        sorted_key = key[order]
+        first = torch.ones_like(sorted_key, dtype=torch.bool)
+        first[1:] = sorted_key[1:] != sorted_key[:-1]  # the earliest step of each (env, bucket)
+        earliest = torch.empty_like(first).scatter_(0, order, first).view(T, N)
+        self.seen[rows, h] = True
+        return new & earliest
+
     def clear(self) -> None:
         """Forget every visit (every environment starts a new episode)."""
         self.seen.zero_()

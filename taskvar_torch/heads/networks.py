@@ -108,12 +108,16 @@ class StackedMLP(nn.Module):
     def num_members(self) -> int:
         return len(self.out_sizes)
 
-    def member_inputs(self, x: torch.Tensor) -> torch.Tensor:
-        """Every member's input: ``(..., in_dim) -> (K, ..., in_dim)`` (masked if ``input_mask``)."""
-        h = x.unsqueeze(0).expand(self.num_members, *x.shape)
+    def member_inputs(
+        self, x: torch.Tensor, members: tuple[int, int] | None = None
+    ) -> torch.Tensor:
+        """Every member's input: ``(..., in_dim) -> (K, ..., in_dim)`` (masked if ``input_mask``);
+        ``members=(lo, hi)``: members ``lo .. hi - 1`` only, ``(hi - lo, ..., in_dim)``."""
+        lo, hi = members or (0, self.num_members)
+        h = x.unsqueeze(0).expand(hi - lo, *x.shape)
         if self.input_mask is None:
             return h
-        return h * self.input_mask.view(self.num_members, *(1,) * (x.dim() - 1), x.shape[-1])
+        return h * self.input_mask[lo:hi].view(hi - lo, *(1,) * (x.dim() - 1), x.shape[-1])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """All members: ``(M, in_dim) -> (K, M, max_out)``."""
@@ -152,10 +156,14 @@ class StackedMLP(nn.Module):
         return [p.detach().clone() for p in (*self.weights, *self.biases)]
 
     def forward_snapshots(
-        self, x: torch.Tensor, params: Sequence[torch.Tensor] | None = None
+        self,
+        x: torch.Tensor,
+        params: Sequence[torch.Tensor] | None = None,
+        members: tuple[int, int] | None = None,
     ) -> torch.Tensor:
         """:meth:`forward` of ``G`` weight copies on ``G`` row groups: ``(B, in_dim) -> (G, K, B /
-        G, max_out)``.
+        G, max_out)``; ``members=(lo, hi)``: members ``lo .. hi - 1`` only (``K = hi - lo``; the
+        same values for them: each member is its own batch entry).
 
         ``params``: ``G`` :meth:`snapshot` s stacked along a new first dim (weights ``(G, K, d_in,
         d_out)``, biases ``(G, K, 1, d_out)``); rows ``[g R, (g + 1) R)`` (``R = B / G``) run
@@ -164,15 +172,19 @@ class StackedMLP(nn.Module):
         (same values; the same bits where the BLAS gives an entry the same bits in any batch, as
         for the Wargus heads: ``heads/snapshots.py``).
         """
-        K, n = self.num_members, len(self.weights)
+        n = len(self.weights)
+        lo, hi = members or (0, self.num_members)
+        K = hi - lo
         if params is None:
             ws = [w.unsqueeze(0) for w in self.weights]  # (1, K, d_in, d_out)
             bs = [b.unsqueeze(0) for b in self.biases]  # (1, K, 1, d_out)
         else:
             ws, bs = list(params[:n]), list(params[n:])  # (G, K, d_in, d_out), (G, K, 1, d_out)
+        if K != self.num_members:
+            ws, bs = [w[:, lo:hi] for w in ws], [b[:, lo:hi] for b in bs]
         G = ws[0].shape[0]
         R = x.shape[0] // G
-        h = self.member_inputs(x.view(G, R, -1)).transpose(0, 1).reshape(G * K, R, -1)
+        h = self.member_inputs(x.view(G, R, -1), (lo, hi)).transpose(0, 1).reshape(G * K, R, -1)
         for i, (w, b) in enumerate(zip(ws, bs)):
             h = torch.baddbmm(b.reshape(G * K, 1, -1), h, w.reshape(G * K, *w.shape[2:]))
             if i < n - 1:
@@ -310,14 +322,15 @@ class StackedHead(nn.Module):
         parts = [self.stack.forward_one(x, self.index + j) for j in range(self.members)]
         return torch.stack(parts, -2).reshape(*x.shape[:-1], *self.out_shape)
 
-    def select(self, out: torch.Tensor, dim: int = 0) -> torch.Tensor:
+    def select(self, out: torch.Tensor, dim: int = 0, first: int = 0) -> torch.Tensor:
         """This head's values from a stacked output whose member axis is ``dim`` (the stack's
-        :meth:`StackedMLP.forward`: ``(K, B, max_out)``), flat per row: ``(..., B, prod(out_shape))``
-        with the member axis removed (reshape it to ``out_shape`` on the caller's side)."""
+        :meth:`StackedMLP.forward`: ``(K, B, max_out)``; ``first``: the member that axis starts
+        at), flat per row: ``(..., B, prod(out_shape))`` with the member axis removed (reshape it
+        to ``out_shape`` on the caller's side)."""
         size = self.member_size
         if self.members == 1:
-            return out.select(dim, self.index)[..., :size]
-        y = out.narrow(dim, self.index, self.members)[..., :size]  # (.., m, .., B, size)
+            return out.select(dim, self.index - first)[..., :size]
+        y = out.narrow(dim, self.index - first, self.members)[..., :size]  # (.., m, .., B, size)
         return y.movedim(dim, -2).flatten(-2)  # (.., B, m * size)
 
 

@@ -65,6 +65,14 @@ class HeadValues:
         stacks = {id(m.stack): m.stack for m in members if isinstance(m, StackedHead)}
         fused = len(stacks) == 1 and all(isinstance(m, StackedHead) for m in members)
         self.stack: StackedMLP | None = next(iter(stacks.values())) if fused else None
+        # the members the heads read: one pass runs these only (the behaviour policy's heads are
+        # members 0-4 of the Wargus stack's 7)
+        self.members: tuple[int, int] | None = None
+        if fused:
+            self.members = (
+                min(m.index for m in members),
+                max(m.index + m.members for m in members),
+            )
 
     @staticmethod
     def supports(heads: Heads, names: Sequence[str]) -> bool:
@@ -92,12 +100,12 @@ class HeadValues:
             if params is not None:
                 raise ValueError("snapshots need heads stored in one StackedMLP")
             return {k: net(obs) for k, net in self.nets.items()}
-        out = self.stack.forward_snapshots(obs, params)  # (G, K, B / G, max_out)
+        out = self.stack.forward_snapshots(obs, params, self.members)  # (G, K', B / G, max_out)
 
         def run(net: torch.nn.Module) -> torch.Tensor:  # (G, B / G, flat output)
             if isinstance(net, OptimismGapHead):
                 return net.combine(run(net.base), run(net.gap))
-            return net.select(out, dim=1)
+            return net.select(out, dim=1, first=self.members[0])
 
         # elementwise math (the optimism gap's softplus) runs on rows of the layout forward_one
         # gives (same kernel path, same bits); only the final values are reshaped
