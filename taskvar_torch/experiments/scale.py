@@ -265,8 +265,13 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
             "train.checkpoint_every=0",
             f"train.log_every={max(total // 10, 1)}",
             f"train.heads_every={total // cfg.curve_points if cfg.curve_points else 0}",
-        ],
+        ]
+        + [o for o in case.overrides if o.split("=", 1)[0] in SCHEDULE_KEYS],
     )
+
+
+SCHEDULE_KEYS = ("train.init_random_frames", "train.eps_decay_frames")
+"""Keys a case's own overrides may set instead of the experiment's fractions of its budget."""
 
 
 def case_frames(cfg: ScaleConfig, case: ScaleCase) -> int:
