@@ -142,4 +142,6 @@ def test_conv_stack_has_no_snapshots():
     with pytest.raises(NotImplementedError):
         stack.snapshot()
     with pytest.raises(NotImplementedError):
-        stack.forward_snapshots(torch.zeros(2, patch.obs_dim))
+        stack.forward_snapshots(torch.zeros(2, patch.obs_dim), stack.parameters())
+    x = torch.zeros(2, patch.obs_dim)  # the live weights: forward, one group
+    assert torch.equal(stack.forward_snapshots(x)[0], stack(x))

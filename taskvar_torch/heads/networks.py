@@ -287,10 +287,22 @@ class StackedConvMLP(StackedMLP):
         raise NotImplementedError("StackedConvMLP has no snapshots (the conv trunk is not covered)")
 
     def forward_snapshots(
-        self, x: torch.Tensor, params: Sequence[torch.Tensor] | None = None
+        self,
+        x: torch.Tensor,
+        params: Sequence[torch.Tensor] | None = None,
+        members: tuple[int, int] | None = None,
     ) -> torch.Tensor:
-        """Not supported: snapshots cover the MLP layers only, not the conv trunk."""
-        raise NotImplementedError("StackedConvMLP has no snapshots (the conv trunk is not covered)")
+        """The live weights only (``params=None``: :meth:`forward` as ``(1, K, B, max_out)``,
+        members ``lo .. hi - 1`` with ``members``); weight snapshots cover the MLP layers only, not
+        the conv trunk, so ``params`` is refused."""
+        if params is not None:
+            raise NotImplementedError(
+                "StackedConvMLP has no snapshots (the conv trunk is not covered)"
+            )
+        out = self.forward(x)
+        if members is not None:
+            out = out[members[0] : members[1]]
+        return out.unsqueeze(0)
 
 
 class StackedHead(nn.Module):
