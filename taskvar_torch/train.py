@@ -428,7 +428,7 @@ class _Run:
                 self.last_checkpoint,
             )
             pbar.set_postfix({k: f"{v:.3g}" for k, v in row.items() if k.startswith("loss")})
-        if _crossed(frames_before, frames, t.heads_every):  # learning curves (docs/scale.md)
+        if _crossed(frames_before, frames, t.heads_every) and not is_last:  # learning curves
             seconds = time.perf_counter() - start_time
             write_heads(
                 self.out / HEADS_SNAPSHOTS / f"heads_{frames:09d}.pt",

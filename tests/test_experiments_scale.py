@@ -64,9 +64,9 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
                 assert 0 <= r["mean_return"] <= horizon  # items per episode
                 assert r["gap_closed"] is None  # no oracle for Wargus
         assert c["grid_side"] == (5 if c["family"] == "windy" else 12)
-    for c in m["cells"]:  # learning curves: 3 snapshots, then the final evaluation
+    for c in m["cells"]:  # learning curves: snapshots before the end, then the final evaluation
         frames = [p["frames"] for p in c["curve"]]
-        assert len(frames) == 4 and frames == sorted(frames) and frames[-1] == c["frames"]
+        assert len(frames) >= 2 and frames == sorted(set(frames)) and frames[-1] == c["frames"]
         assert all(p["seconds"] > 0 for p in c["curve"])
         assert c["curve"][-1]["methods"]["averaging"]["mean_return"] == pytest.approx(
             c["methods"]["averaging"]["mean_return"]
