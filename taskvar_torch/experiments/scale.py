@@ -273,8 +273,8 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
     )
 
 
-SCHEDULE_KEYS = ("train.init_random_frames", "train.eps_decay_frames")
-"""Keys a case's own overrides may set instead of the experiment's fractions of its budget."""
+SCHEDULE_KEYS = ("train.init_random_frames", "train.eps_decay_frames", "train.updates_per_batch")
+"""Keys a case's own overrides may set instead of the experiment's budget-derived values."""
 
 
 def case_frames(cfg: ScaleConfig, case: ScaleCase) -> int:
