@@ -42,8 +42,8 @@ import torch
 
 from taskvar_torch.envs import windy
 from taskvar_torch.envs.instances import WindyInstances, windy_instances
-from taskvar_torch.envs.windy_env import resolve_layout
 from taskvar_torch.oracle.mdp import gauss_legendre, greedy, snap_ties
+from taskvar_torch.oracle.windy import layout_of, p_grid_values
 
 Tensor = torch.Tensor
 
@@ -109,10 +109,7 @@ class SparseWindyOracle:
         tie_atol: float = 1e-6,
         device: torch.device | str = "cpu",
     ):
-        if isinstance(model_or_layout, windy.WindyModel):
-            layout = model_or_layout.layout
-        else:
-            layout = resolve_layout(model_or_layout)
+        layout = layout_of(model_or_layout)
         if not 0.0 <= gamma < 1.0:
             raise ValueError(f"gamma must be in [0, 1), got {gamma}")
         if quad_nodes < 1:
@@ -130,16 +127,7 @@ class SparseWindyOracle:
         self.wrong_exit_penalty = float(wrong_exit_penalty)
         self.quad_nodes = int(quad_nodes)
         self.tol, self.tie_atol = float(tol), float(tie_atol)
-        ti = self.train_instances
-        if isinstance(p_grid, int):
-            if p_grid < 1:
-                raise ValueError(f"p_grid must be >= 1 or a sequence of p values, got {p_grid}")
-            grid = torch.linspace(ti.p_low, ti.p_high, p_grid, dtype=torch.float64)
-        else:
-            grid = torch.as_tensor(list(p_grid), dtype=torch.float64)
-            if grid.numel() == 0 or bool(((grid < 0) | (grid > 1)).any()):
-                raise ValueError(f"p_grid values must be in [0, 1], got {list(p_grid)}")
-        self.p_grid = grid.to(self.device)
+        self.p_grid = p_grid_values(p_grid, self.train_instances).to(self.device)
         self.option_names = layout.exit_names
         self.S, self.A, self.O = self.model.num_cells, self.model.num_actions, layout.num_exits
         self.start_cells = self.model.start_cells

@@ -43,6 +43,26 @@ from taskvar_torch.subtasks.windy import WindySubtasks
 Tensor = torch.Tensor
 
 
+def layout_of(model_or_layout: windy.WindyModel | windy.WindyLayout | str) -> windy.WindyLayout:
+    """The layout of a model, a layout, a layout name or a map string (both oracles' input)."""
+    if isinstance(model_or_layout, windy.WindyModel):
+        return model_or_layout.layout
+    return resolve_layout(model_or_layout)
+
+
+def p_grid_values(p_grid: int | Sequence[float], instances: WindyInstances) -> Tensor:
+    """Q_hat's ``p`` values (float64): ``p_grid`` evenly spaced over ``instances``' range (an
+    int) or the given values; a one-line ``ValueError`` otherwise."""
+    if isinstance(p_grid, int):
+        if p_grid < 1:
+            raise ValueError(f"p_grid must be >= 1 or a sequence of p values, got {p_grid}")
+        return torch.linspace(instances.p_low, instances.p_high, p_grid, dtype=torch.float64)
+    grid = torch.as_tensor(list(p_grid), dtype=torch.float64)
+    if grid.numel() == 0 or bool(((grid < 0) | (grid > 1)).any()):
+        raise ValueError(f"p_grid values must be in [0, 1], got {list(p_grid)}")
+    return grid
+
+
 class WindyOracle(ControllerChains, ReplayReference):
     """Exact solver of a windy layout's family (docs/oracle.md).
 
@@ -76,10 +96,7 @@ class WindyOracle(ControllerChains, ReplayReference):
         tol: float = 1e-10,
         device: torch.device | str = "cpu",
     ):
-        if isinstance(model_or_layout, windy.WindyModel):
-            layout = model_or_layout.layout
-        else:
-            layout = resolve_layout(model_or_layout)
+        layout = layout_of(model_or_layout)
         if not 0.0 <= gamma < 1.0:
             raise ValueError(f"gamma must be in [0, 1), got {gamma}")
         self.layout = layout
@@ -97,16 +114,7 @@ class WindyOracle(ControllerChains, ReplayReference):
             int(quad_nodes) if quad_nodes is not None else max(1, math.ceil(self.horizon / 2))
         )
         self.tol = float(tol)
-        ti = self.train_instances
-        if isinstance(p_grid, int):
-            if p_grid < 1:
-                raise ValueError(f"p_grid must be >= 1 or a sequence of p values, got {p_grid}")
-            grid = torch.linspace(ti.p_low, ti.p_high, p_grid, dtype=torch.float64)
-        else:
-            grid = torch.as_tensor(list(p_grid), dtype=torch.float64)
-            if grid.numel() == 0 or bool(((grid < 0) | (grid > 1)).any()):
-                raise ValueError(f"p_grid values must be in [0, 1], got {list(p_grid)}")
-        self.p_grid = grid.to(self.device)
+        self.p_grid = p_grid_values(p_grid, self.train_instances).to(self.device)
         self.S, self.A, self.O = (
             self.model.num_cells,
             self.model.num_actions,
