@@ -55,3 +55,67 @@ def test_sparse_objectives_and_errors():
         o.kernel(1.5, "north")
     with pytest.raises(ValueError, match="starts"):
         o.expected_return(o.averaging_policy(), starts="corner")
+
+
+@pytest.mark.parametrize(
+    "layout,instances", [("default", "train"), ("whole_column_windy", "south")]
+)
+def test_controller_returns_match_dense_chains(layout, instances):
+    """The sparse (cell, running option) chain of Algorithm 1 gives the dense oracle's exact
+    options and interruption returns and firing counts (whole_column_windy, south: it fires)."""
+    dense = WindyOracle(layout, train_instances=instances)
+    sparse = SparseWindyOracle(layout, quad_nodes=50, train_instances=instances)
+    pols, q_mu = sparse.option_policies(), sparse.switching_q()
+    for name, q_hat in (("options", None), ("interruption", sparse.max_value())):
+        got = sparse.controller_returns(pols, q_mu, q_hat)
+        want = float(dense.controller_expected_return(name))
+        assert float(got["expected_return"]) == pytest.approx(want, abs=1e-9)
+        p, d, w = dense.quadrature()
+        fires = float(w @ dense.controller_fire_count(name, p, d, start="uniform"))
+        assert float(got["interruptions_per_episode"]) == pytest.approx(fires, abs=1e-9)
+    if layout == "whole_column_windy":  # interruption adds something here (paper Figure 2)
+        assert float(got["interruptions_per_episode"]) > 0.05
+        assert got["expected_return"] > sparse.controller_returns(pols, q_mu)["expected_return"]
+    with pytest.raises(ValueError, match="starts"):
+        sparse.controller_returns(pols, q_mu, starts="corner")
+
+
+def test_head_report_of_exact_tables():
+    """A bundle of the oracle's own tables scores 0 gap on every head, full agreement of mu_bar
+    and of the interruption condition, and the oracle's controller returns."""
+    from taskvar_torch import keys
+    from taskvar_torch.oracle.head_report import head_report
+    from taskvar_torch.oracle.tables import table_heads
+
+    o = SparseWindyOracle("whole_column_windy", train_instances="south")
+    heads = table_heads(
+        o.option_names,
+        averaging=o.averaging_q(),
+        options=o.option_q().permute(1, 0, 2),
+        switching=o.switching_q(),
+        max_value=o.max_value(),
+        in_key=keys.OBSERVATION,
+    )
+    r = head_report(heads, o, "onehot")
+    assert r["averaging"]["rel_gap"] == pytest.approx(0.0, abs=1e-9)
+    assert all(abs(x["rel_gap"]) < 1e-9 for x in r["options"].values())
+    assert r["mu_bar"]["start_agreement"] == 1.0
+    assert r["interruption_condition"]["agreement"] == 1.0
+    ctrl = r["interruption_controller"]
+    assert ctrl["expected_return"] == pytest.approx(ctrl["oracle_interruption_return"], abs=1e-9)
+    assert ctrl["interruptions_per_episode"] > 0
+    assert ctrl["oracle_interruption_return"] > ctrl["oracle_options_return"]
+    oc = r["options_controller"]
+    assert oc["expected_return"] == pytest.approx(oc["oracle_options_return"], abs=1e-9)
+    # a max-value head that always says "lower than now" interrupts at every step
+    low = table_heads(
+        o.option_names,
+        averaging=o.averaging_q(),
+        options=o.option_q().permute(1, 0, 2),
+        switching=o.switching_q(),
+        max_value=o.max_value() - 100.0,
+        in_key=keys.OBSERVATION,
+    )
+    r_low = head_report(low, o, "onehot")
+    assert r_low["interruption_controller"]["interruptions_per_episode"] > 1.0
+    assert r_low["interruption_condition"]["agreement"] < 1.0

@@ -14,6 +14,11 @@ table) and measures, with a :class:`~taskvar_torch.oracle.sparse.SparseWindyOrac
 - **options controller**: the exact expected return of the learnt options controller (mu_bar's
   pick at the start, then that option's greedy policy to the goal; windy options end only there)
   against the oracle's own options controller and the averaging optimum;
+- **interruption controller** (Algorithm 1 with greedy mu_bar): the exact expected return and
+  interruptions per episode of the learnt controller and of the oracle's own (exact option
+  policies, Q_mu and Q_hat), :meth:`SparseWindyOracle.controller_returns`; the oracle's
+  interruption return against its options return is what offline interruption *can* add on
+  this layout and training distribution;
 - **interruption condition** (Algorithm 1 line 6, ``Q_hat(s, o) < max_q Q_mu(s, q)``): agreement
   of the learnt condition with the exact one over every (open cell, option) pair, and how many
   pairs each says fire.
@@ -66,7 +71,8 @@ def head_report(
     ``with_max_value=False`` skips the max-value comparison (the slowest exact solve).
     """
     table = observation_table(oracle.layout, obs_encoding, patch_radius)
-    device = next(heads.parameters()).device
+    tensor = next(iter([*heads.parameters(), *heads.buffers()]), None)  # tables: buffers only
+    device = oracle.device if tensor is None else tensor.device
     tab = tabulate_heads(heads, torch.as_tensor(table, device=device))
     starts = oracle.start_cells.cpu()
     open_cells = torch.tensor([oracle.layout.char(c) != "#" for c in range(oracle.S)])
@@ -123,15 +129,13 @@ def head_report(
     }
 
     # the options controller: mu_bar's pick at the start cell, then that option's policy
-    def controller_return(policies: torch.Tensor, picks: torch.Tensor) -> float:
-        rets = torch.stack(
-            [oracle.expected_return(policies[o], starts=None) for o in range(len(policies))]
-        )
-        return float(rets.cpu()[picks[starts], starts].mean())
-
+    exact_pols, exact_q_mu = oracle.option_policies(), oracle.switching_q()
+    learnt_q_mu = tab["switching"].to(oracle.device)
     report["options_controller"] = {
-        "expected_return": controller_return(pols, pick),
-        "oracle_options_return": controller_return(oracle.option_policies(), oracle.mu_bar().cpu()),
+        "expected_return": float(oracle.controller_returns(pols, learnt_q_mu)["expected_return"]),
+        "oracle_options_return": float(
+            oracle.controller_returns(exact_pols, exact_q_mu)["expected_return"]
+        ),
         "averaging_optimal_return": ret_star,
     }
 
@@ -146,5 +150,14 @@ def head_report(
             "exact_pairs": int(exact[cells].sum()),
             "learnt_pairs": int(learnt[cells].sum()),
             "pairs": int(cells.sum()) * len(oracle.option_names),
+        }
+        learnt_ctrl = oracle.controller_returns(pols, learnt_q_mu, tab["max_value"])
+        exact_ctrl = oracle.controller_returns(exact_pols, exact_q_mu, oracle.max_value())
+        report["interruption_controller"] = {
+            "expected_return": float(learnt_ctrl["expected_return"]),
+            "interruptions_per_episode": float(learnt_ctrl["interruptions_per_episode"]),
+            "oracle_interruption_return": float(exact_ctrl["expected_return"]),
+            "oracle_interruptions_per_episode": float(exact_ctrl["interruptions_per_episode"]),
+            "oracle_options_return": report["options_controller"]["oracle_options_return"],
         }
     return report

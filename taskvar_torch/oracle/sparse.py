@@ -409,6 +409,81 @@ class SparseWindyOracle:
             raise ValueError(f"starts must be 'uniform' or None, got {starts!r}")
         return total[self.start_cells].mean()
 
+    def controller_returns(
+        self,
+        policies: Tensor,
+        q_mu: Tensor,
+        q_hat: Tensor | None = None,
+        instances: Any = None,
+        starts: str | None = "uniform",
+        chunk: int = 32,
+    ) -> dict[str, Tensor]:
+        """Exact expected return and interruptions per episode of the options controller with a
+        greedy mu_bar, with offline interruption (Algorithm 1) when ``q_hat`` is given.
+
+        The controller is a Markov chain on (cell, running option): at the start and never again
+        (windy options end only at the goal) ``o_run = argmax_o Q_mu(s, o)`` (line 4); at every
+        later step line 6, ``Q_hat(s, o_run) < max_q Q_mu(s, q)``, switches to that argmax
+        (lines 7-8); then ``a = pi^{o_run}(s)`` (line 11). The comparison is strict, as in
+        ``controllers/interruption.py``, and an interruption is counted whenever line 6 holds, even
+        when mu_bar picks the running option again (the controllers' ``interrupted``); the
+        oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them. Horizon-step returns by backward induction over
+        steps-to-go, expected over ``instances`` (default: the training distribution) by
+        :meth:`quadrature`, as :meth:`expected_return`.
+
+        Args:
+            policies: ``(O, S)`` greedy option policies (exact or learnt).
+            q_mu: ``(S, O)`` switching values (mu_bar is greedy in them; first index on ties).
+            q_hat: ``(S, O)`` max-values; ``None``: plain options (no interruption).
+            starts: ``"uniform"`` (scalars: the mean over start cells) or ``None`` (``(S,)``).
+
+        Returns:
+            ``{"expected_return": ..., "interruptions_per_episode": ...}``.
+        """
+        O, S = self.O, self.S  # noqa: E741
+        pol = policies.to(self.device, torch.int64)
+        q_mu = q_mu.to(self.device, torch.float64)
+        best = q_mu.argmax(-1)  # (S,) line 4
+        keep = torch.arange(O, device=self.device).expand(S, O)
+        fire = torch.zeros(S, O, dtype=torch.bool, device=self.device)
+        if q_hat is not None:
+            v = q_mu.max(-1, keepdim=True).values
+            fire = (q_hat.to(self.device, torch.float64) < v) & ~self.is_goal.view(-1, 1)
+        nxt = torch.where(fire, best.view(-1, 1), keep)  # (S, O): o_run after line 6-8
+        act = pol.gather(0, nxt.T.contiguous()).T  # (S, O): pi^{nxt}(s)
+        goal = self.is_goal.view(1, S, 1)
+        r = torch.where(goal, 0.0, -1.0).to(torch.float64)
+        fr = (fire & ~self.is_goal.view(-1, 1)).to(torch.float64).view(1, S, O)
+        p, d, w = self.quadrature(instances)
+        ret = torch.zeros(S, dtype=torch.float64, device=self.device)
+        fires = torch.zeros(S, dtype=torch.float64, device=self.device)
+        start_idx = best.view(1, S, 1)
+        for i in range(0, p.numel(), chunk):
+            k = self.kernel(p[i : i + chunk], d[i : i + chunk])
+            B, K = k.B, k.K
+            idx = act.view(1, S, O, 1).expand(B, S, O, K)
+            succ, prob = k.succ.gather(2, idx), k.prob.gather(2, idx)  # (B, S, O, K)
+            flat = (succ * O + nxt.view(1, S, O, 1)).reshape(B, -1)
+            V = torch.zeros(B, S, O, dtype=torch.float64, device=self.device)
+            F = torch.zeros_like(V)
+            for _ in range(self.horizon):
+                V_next = (V.reshape(B, -1).gather(1, flat).view(B, S, O, K) * prob).sum(-1)
+                F_next = (F.reshape(B, -1).gather(1, flat).view(B, S, O, K) * prob).sum(-1)
+                V = (r + V_next).masked_fill(goal, 0.0)
+                F = (fr + F_next).masked_fill(goal, 0.0)
+            wi = w[i : i + chunk, None]
+            ret = ret + (wi * V.gather(2, start_idx.expand(B, S, 1))[..., 0]).sum(0)
+            fires = fires + (wi * F.gather(2, start_idx.expand(B, S, 1))[..., 0]).sum(0)
+        if starts is None:
+            return {"expected_return": ret, "interruptions_per_episode": fires}
+        if starts != "uniform":
+            raise ValueError(f"starts must be 'uniform' or None, got {starts!r}")
+        cells = self.start_cells
+        return {
+            "expected_return": ret[cells].mean(),
+            "interruptions_per_episode": fires[cells].mean(),
+        }
+
 
 def _directions(direction: Any, device: torch.device) -> Tensor:
     """Direction names / indices (scalar or sequence) -> ``(B,)`` int64."""
