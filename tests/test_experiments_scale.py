@@ -78,6 +78,12 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
             assert set(h["options"]) == {"exit_north", "exit_south"}
             assert 0 <= h["mu_bar"]["start_agreement"] <= 1
             assert 0 <= h["interruption_condition"]["agreement"] <= 1
+            ic = h["interruption_controller"]
+            assert -100 <= ic["expected_return"] <= -1 and ic["interruptions_per_episode"] >= 0
+            if ic["interruptions_per_episode"] == 0:  # never fires: the plain options controller
+                assert ic["expected_return"] == pytest.approx(
+                    h["options_controller"]["expected_return"], abs=1e-9
+                )
         else:
             assert c["heads"] is None
     w = m["references"]["windy-5x5"]

@@ -66,12 +66,18 @@ def csv_rows(metrics: dict[str, Any]) -> list[dict[str, Any]]:
 
 def format_table(metrics: dict[str, Any]) -> str:
     """One line per cell: time, frames/s, each method's mean return (CI), the references."""
+    budgets = sorted({int(c["frames"]) for c in metrics["cells"]}) or [metrics["total_frames"]]
+    frames = (
+        f"{budgets[0]} training frames per cell"
+        if len(budgets) == 1
+        else f"{budgets[0]}-{budgets[-1]} training frames per cell (column 'frames')"
+    )
     lines = [
-        f"Scaled-up grids: {metrics['total_frames']} training frames per cell, "
+        f"Scaled-up grids: {frames}, "
         f"{metrics['eval_episodes']} test episodes per method "
         "per cell: mean return +- 95% CI (windy: -steps, and in brackets the gap closed, "
         "(R - random) / (oracle - random); Wargus: items per episode)",
-        f"{'case':<14} {'N':>5} {'updates':>7} {'train s':>8} {'frames/s':>9} "
+        f"{'case':<14} {'N':>5} {'frames':>8} {'updates':>7} {'train s':>8} {'frames/s':>9} "
         + " ".join(f"{m:>21}" for m in METHODS)
         + f" {'random':>8} {'oracle':>8}",
     ]
@@ -89,7 +95,8 @@ def format_table(metrics: dict[str, Any]) -> str:
             cols.append(f"{txt:>21}")
         orc = ref["oracle_averaging"]
         lines.append(
-            f"{c['case']:<14} {c['num_envs']:>5} {c['updates']:>7} {c['train_seconds']:8.1f} "
+            f"{c['case']:<14} {c['num_envs']:>5} {c['frames']:>8} {c['updates']:>7} "
+            f"{c['train_seconds']:8.1f} "
             f"{c['frames_per_second'] or 0:9.0f} "
             + " ".join(cols)
             + f" {ref['random']['mean_return']:8.2f} "
@@ -103,7 +110,8 @@ def format_table(metrics: dict[str, Any]) -> str:
 def format_heads(metrics: dict[str, Any]) -> list[str]:
     """Lines of the every-head report (windy cells): each head's relative gap to its exact
     optimum (``*``: within 2%), mu_bar's agreement at the start cells, the interruption
-    condition's agreement over (cell, option) pairs (oracle/head_report.py)."""
+    condition's agreement over (cell, option) pairs, and the exact returns of the learnt and the
+    oracle's interruption controllers (oracle/head_report.py)."""
     cells = [c for c in metrics["cells"] if c.get("heads")]
     if not cells:
         return []
@@ -120,6 +128,14 @@ def format_heads(metrics: dict[str, Any]) -> list[str]:
             parts.append(f"mu_bar {h['mu_bar']['start_agreement']:.2f}")
         if "interruption_condition" in h:
             parts.append(f"interruption condition {h['interruption_condition']['agreement']:.3f}")
+        if "interruption_controller" in h:
+            ic = h["interruption_controller"]
+            parts.append(
+                f"exact returns: interruption {ic['expected_return']:.2f} "
+                f"({ic['interruptions_per_episode']:.2f} interruptions/episode), oracle's "
+                f"{ic['oracle_interruption_return']:.2f} ({ic['oracle_interruptions_per_episode']:.2f}) "
+                f"vs oracle's options {ic['oracle_options_return']:.2f}"
+            )
         lines.append(f"{c['case']:<14} {c['num_envs']:>5}  " + ", ".join(parts))
     return lines
 
