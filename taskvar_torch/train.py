@@ -136,6 +136,16 @@ def epsilon_at(frames: int, t: TrainConfig) -> float:
     return t.eps_start + frac * (t.eps_end - t.eps_start)
 
 
+def lr_at(frames: int, t: TrainConfig) -> float:
+    """Adam learning rate after ``frames`` steps: ``lr``, then (with ``lr_end``) linear decay from
+    ``lr_decay_start_frames`` to ``lr_end`` at ``total_frames``."""
+    if t.lr_end is None or frames <= t.lr_decay_start_frames:
+        return t.lr
+    span = t.total_frames - t.lr_decay_start_frames
+    frac = 1.0 if span <= 0 else min((frames - t.lr_decay_start_frames) / span, 1.0)
+    return t.lr + frac * (t.lr_end - t.lr)
+
+
 # --------------------------------------------------------------------------------------------
 # checkpoint pieces that checkpoint.py's conventional keys do not cover
 
@@ -392,6 +402,7 @@ class _Run:
         the new weights and epsilon to the collector workers before their next batch."""
         t = self.cfg.train
         if self.counters["frames"] >= t.init_random_frames and len(self.buffer) >= t.batch_size:
+            self.learner.set_lr(lr_at(self.counters["frames"], t))
             for _ in range(t.updates_per_batch):
                 self.learner.update(self.buffer.sample())
                 self.counters["updates"] += 1
@@ -601,6 +612,7 @@ __all__ = [
     "check_output_folder",
     "collects_in_workers",
     "epsilon_at",
+    "lr_at",
     "load_heads",
     "make_collector",
     "make_env",

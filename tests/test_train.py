@@ -167,3 +167,26 @@ def test_train_re_exports_the_split_modules():
         for name in module.__all__:
             assert getattr(T, name) is getattr(module, name), (module.__name__, name)
             assert name in T.__all__, name
+
+
+def test_lr_schedule_decays_linearly_to_lr_end(tmp_path):
+    """``train.lr_end``: lr until ``lr_decay_start_frames``, then linear to ``lr_end`` at
+    ``total_frames``; the saved optimiser ends at lr_end; bad values are refused in one line."""
+    over = ["train.lr=0.001", "train.lr_end=0.0001", "train.lr_decay_start_frames=1000"]
+    t = load_config(CONFIG, over).train
+    assert T.lr_at(0, t) == T.lr_at(1000, t) == pytest.approx(1e-3)
+    mid = 1000 + (t.total_frames - 1000) // 2
+    assert T.lr_at(mid, t) == pytest.approx(5.5e-4, rel=1e-3)
+    assert T.lr_at(t.total_frames, t) == T.lr_at(10 * t.total_frames, t) == pytest.approx(1e-4)
+    plain = load_config(CONFIG).train
+    assert T.lr_at(10**9, plain) == plain.lr  # null lr_end: constant
+    cfg = load_config(
+        CONFIG,
+        [*TINY, "train.total_frames=1000", "train.checkpoint_every=0", "train.lr_end=0.0002"],
+    )
+    train(cfg, tmp_path, progress=False)
+    groups = load_checkpoint(tmp_path / "final.pt")["optimizers"]["adam"]["param_groups"]
+    assert all(g["lr"] == pytest.approx(2e-4) for g in groups)  # the last phase: 1000 frames
+    for bad in ("train.lr_end=0.5", "train.lr_end=0", "train.lr_decay_start_frames=-1"):
+        with pytest.raises(ValueError, match=bad.split("=")[0]):
+            load_config(CONFIG, [bad])

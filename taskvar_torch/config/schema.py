@@ -92,6 +92,12 @@ class TrainConfig:
     """Discount of the environment and subtask rewards."""
     lr: float = 1e-3
     """Adam learning rate."""
+    lr_end: float | None = None
+    """Final Adam learning rate: linear decay from train.lr at lr_decay_start_frames to lr_end at
+    total_frames, so the last updates average out the minibatch noise that flips near-tied
+    greedy actions (docs/scale.md); null: a constant lr."""
+    lr_decay_start_frames: int = 0
+    """Frames after which the learning rate starts decaying to lr_end (lr_end set only)."""
     batch_size: int = 256
     """Transitions per gradient step (one shared sample for all heads)."""
     buffer_size: int = 100_000

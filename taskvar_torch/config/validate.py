@@ -127,6 +127,9 @@ def _check_train(cfg: Config, fam: Family) -> None:
     _one_of("train.composed_reward", t.composed_reward, COMPOSED_REWARDS)
     if not t.lr > 0:
         raise ValueError(f"train.lr must be > 0, got {t.lr}")
+    if t.lr_end is not None and not 0 < t.lr_end <= t.lr:
+        raise ValueError(f"train.lr_end must be in (0, train.lr={t.lr}] or null, got {t.lr_end}")
+    _at_least("train.lr_decay_start_frames", t.lr_decay_start_frames, 0)
     _at_least("train.batch_size", t.batch_size, 1)
     _at_least("train.buffer_size", t.buffer_size, t.batch_size)
     _at_least("train.frames_per_batch", t.frames_per_batch, 1)

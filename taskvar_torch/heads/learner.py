@@ -476,6 +476,11 @@ class MultiHeadLearner:
         self.num_updates += 1
         return losses
 
+    def set_lr(self, lr: float) -> None:
+        """The Adam learning rate of every head from the next update on (``train.lr_end``)."""
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     def pop_losses(self) -> dict[str, float]:
         """Mean of each loss since the last call (one host sync), then reset the sums.
 
