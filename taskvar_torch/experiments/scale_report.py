@@ -214,8 +214,9 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
 
 def plot_curves(metrics: dict[str, Any], path: Path) -> Path:
     """``scale_curves.png``: per cell (columns), every method's test return against training
-    frames (top) and training wall time (bottom), with the random policy and the exact averaging
-    optimum (windy) as horizontal references."""
+    frames (top) and training wall time (bottom), shaded 95% CI, with the random policy and the
+    exact averaging optimum (windy) as horizontal references; a method whose curve equals one
+    drawn before it (options when interruption never fires) is dashed and labelled so."""
     cells = [c for c in metrics["cells"] if len(c.get("curve") or []) > 1]
     plt = _pyplot()
     fig, axes = plt.subplots(
@@ -229,13 +230,23 @@ def plot_curves(metrics: dict[str, Any], path: Path) -> Path:
         ):
             ax = axes[i, j]
             xs = [p[x_key] for p in c["curve"]]
+            drawn: list[list[float]] = []
             for m in metrics["methods"]:
-                ys = [(p["methods"].get(m) or {}).get("mean_return") for p in c["curve"]]
-                if any(y is not None for y in ys):
-                    ax.plot(
-                        xs, [np.nan if y is None else y for y in ys],
-                        color=COLOURS[m], marker=".", label=m,
-                    )  # fmt: skip
+                pts = [p["methods"].get(m) or {} for p in c["curve"]]
+                ys = [np.nan if q.get("mean_return") is None else q["mean_return"] for q in pts]
+                if all(np.isnan(ys)):
+                    continue
+                ci = np.array([q.get("ci95") or 0.0 for q in pts], dtype=float)
+                same = any(np.allclose(ys, d, equal_nan=True) for d in drawn)  # e.g. options
+                ax.plot(
+                    xs, ys, color=COLOURS[m], marker=".", ls="--" if same else "-",
+                    label=m + (" (= a line above)" if same else ""),
+                )  # fmt: skip
+                if not same:
+                    ax.fill_between(
+                        xs, np.array(ys) - ci, np.array(ys) + ci, color=COLOURS[m], alpha=0.12
+                    )
+                drawn.append(ys)
             for name in ("random", "oracle_averaging"):
                 r = ref.get(name)
                 if r is not None:
