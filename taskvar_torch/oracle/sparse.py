@@ -451,29 +451,31 @@ class SparseWindyOracle:
             fire = (q_hat.to(self.device, torch.float64) < v) & ~self.is_goal.view(-1, 1)
         nxt = torch.where(fire, best.view(-1, 1), keep)  # (S, O): o_run after line 6-8
         act = pol.gather(0, nxt.T.contiguous()).T  # (S, O): pi^{nxt}(s)
-        goal = self.is_goal.view(1, S, 1)
-        r = torch.where(goal, 0.0, -1.0).to(torch.float64)
-        fr = (fire & ~self.is_goal.view(-1, 1)).to(torch.float64).view(1, S, O)
+        goal = self.is_goal.view(S, 1).expand(S, O).reshape(1, S * O)
+        fr = fire.to(torch.float64).reshape(1, S * O)  # firing indicator per step (goal rows 0)
         p, d, w = self.quadrature(instances)
         ret = torch.zeros(S, dtype=torch.float64, device=self.device)
         fires = torch.zeros(S, dtype=torch.float64, device=self.device)
-        start_idx = best.view(1, S, 1)
+        start_idx = (torch.arange(S, device=self.device) * O + best).view(1, S)  # line 4's o_run
         for i in range(0, p.numel(), chunk):
             k = self.kernel(p[i : i + chunk], d[i : i + chunk])
             B, K = k.B, k.K
             idx = act.view(1, S, O, 1).expand(B, S, O, K)
             succ, prob = k.succ.gather(2, idx), k.prob.gather(2, idx)  # (B, S, O, K)
-            flat = (succ * O + nxt.view(1, S, O, 1)).reshape(B, -1)
-            V = torch.zeros(B, S, O, dtype=torch.float64, device=self.device)
-            F = torch.zeros_like(V)
-            for _ in range(self.horizon):
-                V_next = (V.reshape(B, -1).gather(1, flat).view(B, S, O, K) * prob).sum(-1)
-                F_next = (F.reshape(B, -1).gather(1, flat).view(B, S, O, K) * prob).sum(-1)
-                V = (r + V_next).masked_fill(goal, 0.0)
-                F = (fr + F_next).masked_fill(goal, 0.0)
-            wi = w[i : i + chunk, None]
-            ret = ret + (wi * V.gather(2, start_idx.expand(B, S, 1))[..., 0]).sum(0)
-            fires = fires + (wi * F.gather(2, start_idx.expand(B, S, 1))[..., 0]).sum(0)
+            flat = (succ * O + nxt.view(1, S, O, 1)).reshape(B, S * O * K)
+            prob = prob.reshape(B, S * O, K)
+            V = torch.zeros(B, S * O, dtype=torch.float64, device=self.device)
+            F = torch.zeros_like(V) if q_hat is not None else None
+            for _ in range(self.horizon):  # V_k(s, o) = -1 + E[V_{k-1}(s', o')], 0 at the goal
+                V = (V.gather(1, flat).view(B, S * O, K) * prob).sum(-1).sub_(1.0)
+                V.masked_fill_(goal, 0.0)
+                if F is not None:  # the same recursion with the firing indicator as reward
+                    F = (F.gather(1, flat).view(B, S * O, K) * prob).sum(-1).add_(fr)
+                    F.masked_fill_(goal, 0.0)
+            wi = w[i : i + chunk].view(-1, 1)
+            ret = ret + (wi * V.gather(1, start_idx.expand(B, S))).sum(0)
+            if F is not None:
+                fires = fires + (wi * F.gather(1, start_idx.expand(B, S))).sum(0)
         if starts is None:
             return {"expected_return": ret, "interruptions_per_episode": fires}
         if starts != "uniform":
