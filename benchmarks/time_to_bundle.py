@@ -1,0 +1,118 @@
+"""Time to a learnt bundle (docs/scale.md, "The shipped settings and time to a learnt bundle").
+
+For each variant of a windy family config (``NAME=key.sub=value,...``; the first is the baseline)
+and each seed: the real :func:`~taskvar_torch.train.train` to the config's budget, then
+:func:`~taskvar_torch.oracle.head_report.head_report` against the exact oracle. Prints, per run,
+the training seconds and their ratio to the baseline's (same seed), each head's relative gap to
+its exact optimum (``*``: within 2%), how many heads are within 2%, mu_bar's agreement at the
+start cells and the exact return of the learnt options controller; then, per variant, the share
+of heads within 2% over the seeds. Runs one after the other in this process (``--threads``
+torch threads), so their seconds are comparable when nothing else runs.
+
+Usage::
+
+    python benchmarks/time_to_bundle.py --config configs/windy_xl.yaml --seeds 0,1,2
+    python benchmarks/time_to_bundle.py --config configs/windy_xl.yaml \\
+        --variant shipped= --variant lr-decay=train.lr_end=0.0001,train.lr_decay_start_frames=2000000
+    python benchmarks/time_to_bundle.py --quick      # a smoke run: 5x5 layout, 3k frames
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+import torch
+
+from taskvar_torch.config import load_config
+from taskvar_torch.experiments.scale import sparse_oracle
+from taskvar_torch.factory import load_heads
+from taskvar_torch.oracle.head_report import head_report
+from taskvar_torch.train import train
+
+QUICK = ["train.total_frames=3000", "train.init_random_frames=500", "train.eps_decay_frames=1500"]
+
+
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """``NAME=key.sub=value,key.sub=value`` (or ``NAME=``) -> ``(NAME, [overrides])``."""
+    name, sep, rest = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(
+            f"--variant must be NAME=key.sub=value,... (or NAME= for none), got {text!r}"
+        )
+    return name, [o for o in rest.split(",") if o]
+
+
+def run_once(config: str, overrides: list[str], seed: int) -> dict:
+    """Train one variant and seed in a scratch folder; its training seconds and head report."""
+    cfg = load_config(config, [*overrides, f"seed={seed}", "train.checkpoint_every=0"])
+    if cfg.family != "windy":
+        raise SystemExit(f"--config must be a windy config (exact oracle), got family {cfg.family}")
+    with tempfile.TemporaryDirectory() as tmp:
+        result = train(cfg, Path(tmp) / "run", progress=False)
+        heads, _ = load_heads(result["final"], device=cfg.device)
+    report = head_report(
+        heads, sparse_oracle(cfg), cfg.env.obs_encoding, cfg.env.patch_radius, with_max_value=False
+    )
+    gaps = {"averaging": report["averaging"]}
+    gaps.update(report.get("options", {}))
+    return {
+        "seconds": float(result["seconds"]),
+        "frames": int(result["frames"]),
+        "gaps": gaps,
+        "within": sum(g["within_2pct"] for g in gaps.values()),
+        "mu_bar": report["mu_bar"]["start_agreement"] if "mu_bar" in report else float("nan"),
+        "controller": report.get("options_controller", {}).get("expected_return", float("nan")),
+        "optimum": report["averaging"]["optimal_return"],
+    }
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default="configs/windy_xl.yaml", help="a windy family config")
+    ap.add_argument(
+        "--variant",
+        action="append",
+        type=parse_variant,
+        help="NAME=key.sub=value,... (repeatable; the first is the baseline; default shipped=)",
+    )
+    ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    ap.add_argument("--quick", action="store_true", help="5x5 windy.yaml, 3k frames: a smoke run")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    variants = args.variant or [("shipped", [])]
+    config = "configs/windy.yaml" if args.quick else args.config
+    extra = QUICK if args.quick else []
+    seeds = [int(s) for s in args.seeds.split(",") if s]
+    print(f"{config}, seeds {seeds}, {args.threads} torch thread(s)")
+    base_seconds: dict[int, float] = {}
+    share: dict[str, list[int]] = {}
+    for name, overrides in variants:
+        for seed in seeds:
+            r = run_once(config, [*extra, *overrides], seed)
+            base_seconds.setdefault(seed, r["seconds"])
+            share.setdefault(name, []).append(r["within"])
+            heads = ", ".join(
+                f"{h} {g['rel_gap']:.3f}" + ("*" if g["within_2pct"] else "")
+                for h, g in r["gaps"].items()
+            )
+            print(
+                f"{name:<12} seed {seed}: {r['frames']} frames in {r['seconds']:.1f} s "
+                f"(x{r['seconds'] / base_seconds[seed]:.2f} of {variants[0][0]}); {heads}; "
+                f"{r['within']}/{len(r['gaps'])} heads within 2%; mu_bar {r['mu_bar']:.2f}; "
+                f"options controller {r['controller']:.2f} (optimum {r['optimum']:.2f})",
+                flush=True,
+            )
+    n_heads = len(r["gaps"])
+    for name, counts in share.items():
+        every = sum(c == n_heads for c in counts)
+        print(
+            f"{name}: {sum(counts)}/{n_heads * len(counts)} heads within 2% over {len(counts)} "
+            f"seed(s); every head within 2% in {every} of {len(counts)}"
+        )
+
+
+if __name__ == "__main__":
+    main()
