@@ -5,7 +5,8 @@ and each seed: the real :func:`~taskvar_torch.train.train` to the config's budge
 :func:`~taskvar_torch.oracle.head_report.head_report` against the exact oracle. Prints, per run,
 the training seconds and their ratio to the baseline's (same seed), each head's relative gap to
 its exact optimum (``*``: within 2%), how many heads are within 2%, mu_bar's agreement at the
-start cells and the exact return of the learnt options controller; then, per variant, the share
+start cells, the exact return of the learnt options controller and the learnt interruption
+condition's agreement with the exact one (``--no-max-value`` skips it); then, per variant, the share
 of heads within 2% over the seeds. Runs one after the other in this process (``--threads``
 torch threads), so their seconds are comparable when nothing else runs.
 
@@ -44,7 +45,7 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
     return name, [o for o in rest.split(",") if o]
 
 
-def run_once(config: str, overrides: list[str], seed: int) -> dict:
+def run_once(config: str, overrides: list[str], seed: int, max_value: bool = True) -> dict:
     """Train one variant and seed in a scratch folder; its training seconds and head report."""
     cfg = load_config(config, [*overrides, f"seed={seed}", "train.checkpoint_every=0"])
     if cfg.family != "windy":
@@ -53,7 +54,7 @@ def run_once(config: str, overrides: list[str], seed: int) -> dict:
         result = train(cfg, Path(tmp) / "run", progress=False)
         heads, _ = load_heads(result["final"], device=cfg.device)
     report = head_report(
-        heads, sparse_oracle(cfg), cfg.env.obs_encoding, cfg.env.patch_radius, with_max_value=False
+        heads, sparse_oracle(cfg), cfg.env.obs_encoding, cfg.env.patch_radius, max_value
     )
     gaps = {"averaging": report["averaging"]}
     gaps.update(report.get("options", {}))
@@ -65,6 +66,7 @@ def run_once(config: str, overrides: list[str], seed: int) -> dict:
         "mu_bar": report["mu_bar"]["start_agreement"] if "mu_bar" in report else float("nan"),
         "controller": report.get("options_controller", {}).get("expected_return", float("nan")),
         "optimum": report["averaging"]["optimal_return"],
+        "condition": report.get("interruption_condition", {}).get("agreement", float("nan")),
     }
 
 
@@ -80,6 +82,11 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     ap.add_argument("--quick", action="store_true", help="5x5 windy.yaml, 3k frames: a smoke run")
+    ap.add_argument(
+        "--no-max-value",
+        action="store_true",
+        help="skip the interruption condition's agreement with the exact one (the slowest solve)",
+    )
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
     variants = args.variant or [("shipped", [])]
@@ -91,7 +98,7 @@ def main(argv: list[str] | None = None) -> None:
     share: dict[str, list[int]] = {}
     for name, overrides in variants:
         for seed in seeds:
-            r = run_once(config, [*extra, *overrides], seed)
+            r = run_once(config, [*extra, *overrides], seed, not args.no_max_value)
             base_seconds.setdefault(seed, r["seconds"])
             share.setdefault(name, []).append(r["within"])
             heads = ", ".join(
@@ -102,7 +109,8 @@ def main(argv: list[str] | None = None) -> None:
                 f"{name:<12} seed {seed}: {r['frames']} frames in {r['seconds']:.1f} s "
                 f"(x{r['seconds'] / base_seconds[seed]:.2f} of {variants[0][0]}); {heads}; "
                 f"{r['within']}/{len(r['gaps'])} heads within 2%; mu_bar {r['mu_bar']:.2f}; "
-                f"options controller {r['controller']:.2f} (optimum {r['optimum']:.2f})",
+                f"options controller {r['controller']:.2f} (optimum {r['optimum']:.2f}); "
+                f"interruption condition {r['condition']:.3f}",
                 flush=True,
             )
     n_heads = len(r["gaps"])

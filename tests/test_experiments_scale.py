@@ -64,6 +64,9 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
                 assert 0 <= r["mean_return"] <= horizon  # items per episode
                 assert r["gap_closed"] is None  # no oracle for Wargus
         assert c["grid_side"] == (5 if c["family"] == "windy" else 12)
+    peaks = [c["peak_rss_mb"] for c in m["cells"]]  # the process's high-water mark after each cell
+    assert peaks == sorted(peaks) and peaks[0] > 50
+    assert all(c["peak_cuda_mb"] is None for c in m["cells"])  # CPU cells
     for c in m["cells"]:  # learning curves: snapshots before the end, then the final evaluation
         frames = [p["frames"] for p in c["curve"]]
         assert len(frames) >= 2 and frames == sorted(set(frames)) and frames[-1] == c["frames"]

@@ -37,6 +37,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import resource
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -447,6 +449,7 @@ def run_cell(
         )
     secs = float(result["seconds"])
     return {
+        **peak_memory(ccfg.device),
         "case": case.name,
         "family": ccfg.family,
         "grid_side": grid_side(ccfg),
@@ -465,6 +468,17 @@ def run_cell(
         "curve": curve,
         "heads": report,
     }
+
+
+def peak_memory(device: str | torch.device) -> dict[str, float | None]:
+    """``peak_rss_mb``: this process's peak resident memory so far (a high-water mark: with
+    several cells in one process, the largest cell run so far; Linux and macOS), and on CUDA
+    ``peak_cuda_mb``, the peak of tensors allocated on the device so far (else ``None``)."""
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # KiB on Linux, bytes on macOS
+    rss_mb = rss / 2**20 if sys.platform == "darwin" else rss / 2**10
+    dev = torch.device(device)
+    cuda = torch.cuda.max_memory_allocated(dev) / 2**20 if dev.type == "cuda" else None
+    return {"peak_rss_mb": float(rss_mb), "peak_cuda_mb": cuda}
 
 
 def _curve_point(r: dict[str, Any] | None) -> dict[str, Any] | None:
@@ -591,6 +605,7 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "load_scale_config",
     "make_policy",
     "make_test_env",
+    "peak_memory",
     "references",
     "run_cell",
     "scale",

@@ -29,7 +29,7 @@ CURVES_FIGURE = "scale_curves.png"
 CSV_FIELDS = (
     "case", "family", "grid_side", "cells", "num_envs", "frames", "updates", "frames_per_batch",
     "updates_per_batch", "train_seconds", "frames_per_second", "method", "mean_return", "ci95",
-    "gap_closed", "random_return", "oracle_return", "interruptions_per_episode",
+    "gap_closed", "random_return", "oracle_return", "interruptions_per_episode", "peak_rss_mb",
 )  # fmt: skip
 
 
@@ -78,6 +78,7 @@ def format_table(metrics: dict[str, Any]) -> str:
         "per cell: mean return +- 95% CI (windy: -steps, and in brackets the gap closed, "
         "(R - random) / (oracle - random); Wargus: items per episode)",
         f"{'case':<14} {'N':>5} {'frames':>8} {'updates':>7} {'train s':>8} {'frames/s':>9} "
+        f"{'peak MB':>7} "
         + " ".join(f"{m:>21}" for m in METHODS)
         + f" {'random':>8} {'oracle':>8}",
     ]
@@ -97,7 +98,7 @@ def format_table(metrics: dict[str, Any]) -> str:
         lines.append(
             f"{c['case']:<14} {c['num_envs']:>5} {c['frames']:>8} {c['updates']:>7} "
             f"{c['train_seconds']:8.1f} "
-            f"{c['frames_per_second'] or 0:9.0f} "
+            f"{c['frames_per_second'] or 0:9.0f} {c.get('peak_rss_mb') or 0:7.0f} "
             + " ".join(cols)
             + f" {ref['random']['mean_return']:8.2f} "
             + (f"{orc['mean_return']:8.2f}" if orc else f"{'n/a':>8}")
