@@ -425,11 +425,11 @@ class SparseWindyOracle:
         (windy options end only at the goal) ``o_run = argmax_o Q_mu(s, o)`` (line 4); at every
         later step line 6, ``Q_hat(s, o_run) < max_q Q_mu(s, q)``, switches to that argmax
         (lines 7-8); then ``a = pi^{o_run}(s)`` (line 11). The comparison is strict, as in
-        ``controllers/interruption.py``, and an interruption is counted whenever line 6 holds, even
-        when mu_bar picks the running option again (the controllers' ``interrupted``); the
-        oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them. Horizon-step returns by backward induction over
-        steps-to-go, expected over ``instances`` (default: the training distribution) by
-        :meth:`quadrature`, as :meth:`expected_return`.
+        ``controllers/interruption.py``, and an interruption is counted whenever line 6 holds,
+        even when mu_bar picks the running option again (the controllers' ``interrupted``); the
+        oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them.
+        Horizon-step returns by backward induction over steps-to-go, expected over ``instances``
+        (default: the training distribution) by :meth:`quadrature`, as :meth:`expected_return`.
 
         Args:
             policies: ``(O, S)`` greedy option policies (exact or learnt).
