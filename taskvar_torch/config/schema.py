@@ -94,8 +94,8 @@ class TrainConfig:
     """Adam learning rate."""
     lr_end: float | None = None
     """Final Adam learning rate: linear decay from train.lr at lr_decay_start_frames to lr_end at
-    total_frames, so the last updates average out the minibatch noise that flips near-tied
-    greedy actions (docs/scale.md); null: a constant lr."""
+    total_frames (measured at 51x51 in docs/scale.md: it did not make every head's final greedy
+    policy reliable); null: a constant lr."""
     lr_decay_start_frames: int = 0
     """Frames after which the learning rate starts decaying to lr_end (lr_end set only)."""
     batch_size: int = 256
