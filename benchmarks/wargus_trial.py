@@ -19,9 +19,11 @@ trial are printed). Prints the CPU seconds per trial of each path, their ratio, 
 (wall, once per process: Inductor compiles in worker processes whose CPU ``process_time`` does not
 see), where the new path's time goes, and the projected wall time of the full protocol
 (``configs/wargus.yaml``: runs x trials, one repetition per process on 2 cores). Single-threaded.
-``--torchrl`` adds the TorchRL reference loops (EnvBase + transforms, per-trial tests).
+``--torchrl`` adds the TorchRL reference loops (EnvBase + transforms, per-trial tests);
+``--bf16`` a third agent, the new path with the learner's matmuls in bfloat16
+(``train.matmul_dtype=bfloat16``).
 
-    python benchmarks/wargus_trial.py --trials 6 [--eager] [--torchrl] [overrides ...]
+    python benchmarks/wargus_trial.py --trials 6 [--eager] [--torchrl] [--bf16] [overrides ...]
 """
 
 from __future__ import annotations
@@ -157,6 +159,11 @@ def main() -> None:
     )
     p.add_argument("--eager", action="store_true", help="new path with train.compile=false")
     p.add_argument("--torchrl", action="store_true", help="also time the TorchRL loops")
+    p.add_argument(
+        "--bf16",
+        action="store_true",
+        help="also time the new path with train.matmul_dtype=bfloat16 (the learner's matmuls)",
+    )
     p.add_argument("overrides", nargs="*")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -165,6 +172,13 @@ def main() -> None:
     new_cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, compile=not args.eager))
     clock: dict = defaultdict(float)
     old, new = Path(old_cfg, stacked=False), Path(new_cfg, stacked=True, clock=clock)
+    paths = [new, old]
+    if args.bf16:
+        bf16_cfg = dataclasses.replace(
+            new_cfg, train=dataclasses.replace(new_cfg.train, matmul_dtype="bfloat16")
+        )
+        bf16 = Path(bf16_cfg, stacked=True)
+        paths.append(bf16)
     if args.torchrl:
         k = cfg.experiment.test_episodes_per_trial
         ref_env, ref_agent, ref_policy = build(old_cfg, torchrl=True)
@@ -176,7 +190,7 @@ def main() -> None:
         on = trial >= args.warmup
         if trial == args.warmup:
             clock.clear()
-        for path in (old, new) if trial % 2 else (new, old):
+        for path in paths[::-1] if trial % 2 else paths:  # alternate: load hits all alike
             path.trial(on)
         if args.torchrl:
             t = time.process_time()
@@ -185,6 +199,8 @@ def main() -> None:
             ref_s += (time.process_time() - t) * on
     old.test(args.trials)
     test_new = new.test(args.trials)
+    if args.bf16:
+        bf16.test(args.trials)
     n = args.trials
     x = cfg.experiment
     compiled = new.agent.learner.losses is not new.agent.learner.loss.losses
@@ -207,6 +223,12 @@ def main() -> None:
         f"{old.seconds / max(old.frames, 1) / max(new.seconds / max(new.frames, 1), 1e-12):.2f}x "
         "per frame (the agents drift apart: compiled losses differ in the last bits)"
     )
+    if args.bf16:
+        print(
+            f"  new path, learner matmuls in bfloat16 (train.matmul_dtype)   {bf16.seconds / n:6.3f}"
+            f"   {bf16.frames / n:.0f} frames, {bf16.updates / n:.0f} updates per trial; "
+            f"ratio new / bfloat16 {new.seconds / max(bf16.seconds, 1e-9):.2f}x per trial"
+        )
     if compiled:
         print(
             f"  compile (the new path's first env step, action and update): "
@@ -222,7 +244,10 @@ def main() -> None:
     if new.updates:
         print(f"  per gradient update: {clock['gradient updates'] / new.updates * 1e3:.1f} ms")
     trials = x.runs * x.trials
-    for name, path, extra in (("old", old, 0.0), ("new", new, new.compile_wall if compiled else 0)):
+    projected = [("old", old, 0.0), ("new", new, new.compile_wall if compiled else 0)]
+    if args.bf16:
+        projected.append(("bfloat16", bf16, bf16.compile_wall if compiled else 0))
+    for name, path, extra in projected:
         wall = (trials * path.seconds / n + x.runs * extra) / CORES
         print(
             f"  projected {x.runs} x {x.trials} protocol on {CORES} cores, {name} path: "

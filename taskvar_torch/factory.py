@@ -400,6 +400,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         mu_bar_temperature=mu_bar_temperature(t),
         max_value_estimator=t.max_value_estimator,
         max_value_instances=t.max_value_instances,
+        matmul_dtype=t.matmul_dtype,
     )
     return MultiHeadLearner(
         MultiHeadLoss(heads, subtasks, settings).to(cfg.device),

@@ -385,6 +385,34 @@ def test_compiled_learner_matches_eager(windy):
         torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
 
 
+def test_bfloat16_matmuls_match_float32_losses(windy):
+    """train.matmul_dtype=bfloat16: the network passes run their matmuls in bfloat16 (autocast),
+    every loss stays float32 and within bfloat16 rounding of the float32 losses; the weights stay
+    float32 and move; an unknown dtype is refused in one line naming the allowed values."""
+    cfg, env, subtasks = windy
+    batch = random_batch(env)
+    learners = {}
+    for dtype in ("float32", "bfloat16"):
+        torch.manual_seed(0)
+        heads = build_heads(cfg, env, subtasks)
+        loss = MultiHeadLoss(heads, subtasks, LossSettings(matmul_dtype=dtype))
+        learners[dtype] = MultiHeadLearner(loss)
+    before = [p.detach().clone() for p in learners["bfloat16"].heads.parameters()]
+    a, b = learners["float32"].update(batch), learners["bfloat16"].update(batch)
+    assert set(a.keys()) == set(b.keys())
+    for k in a.keys():
+        assert b[k].dtype == torch.float32
+        torch.testing.assert_close(b[k], a[k], rtol=2e-2, atol=2e-3)
+        assert not torch.equal(b[k], a[k])  # the matmuls really ran in bfloat16
+    after = list(learners["bfloat16"].heads.parameters())
+    assert all(p.dtype == torch.float32 for p in after)
+    assert any(not torch.equal(p, q) for p, q in zip(before, after))
+    with pytest.raises(ValueError, match=r"matmul_dtype must be one of \['bfloat16', 'float32'\]"):
+        MultiHeadLoss(learners["float32"].heads, subtasks, LossSettings(matmul_dtype="half"))
+    with pytest.raises(ValueError, match="train.matmul_dtype must be one of"):
+        load_config(CONFIG, ["train.matmul_dtype=float16"])
+
+
 def test_compiled_learner_falls_back_to_eager(windy, monkeypatch):
     cfg, env, subtasks = windy
     heads = build_heads(cfg, env, subtasks)

@@ -30,3 +30,4 @@ ROBUSTNESS_UNTIL = ("episode", "termination")  # mirrors heads/robustness.py
 HIERARCHY_DESCENTS = ("normalised", "raw")  # mirrors controllers/hierarchy.py
 COMPOSED_REWARDS = ("env", "sum")  # mirrors subtasks/wargus.py
 COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector
+MATMUL_DTYPES = ("bfloat16", "float32")  # mirrors heads/learner.py MATMUL_DTYPES

@@ -190,6 +190,12 @@ class TrainConfig:
     loop the behaviour policy's choices and the Wargus dynamics step (the same bits). Cheaper
     trials after a compile of 20-30 s per process (docs/benchmarks.md); falls back to eager, with a
     warning, where compiling fails."""
+    matmul_dtype: str = "float32"
+    """Precision of the learner's network passes (float32 | bfloat16): bfloat16 runs the matmuls
+    of every head's forward passes and their backward under ``torch.autocast`` (weights, optimiser
+    and losses stay float32; the heads' values are cast back to float32 before any target or
+    loss). Acting and evaluation always run float32. ~1.8x faster matmuls on a CPU with AVX-512
+    BF16 (docs/benchmarks.md); changes the learnt weights (not bit-equal to float32)."""
     checkpoint_every: int = 50_000
     """Save a checkpoint every this many frames; 0: only the final one."""
     log_every: int = 5_000

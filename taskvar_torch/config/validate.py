@@ -21,6 +21,7 @@ from taskvar_torch.config.choices import (
     FAMILIES,
     HEAD_NETWORKS,
     HIERARCHY_DESCENTS,
+    MATMUL_DTYPES,
     MAX_VALUE_ESTIMATORS,
     METHODS,
     MU_BAR_MODES,
@@ -152,6 +153,7 @@ def _check_train(cfg: Config, fam: Family) -> None:
         )
     _one_of("train.switching", t.switching, SWITCHING_MODES)
     _one_of("train.max_value_estimator", t.max_value_estimator, MAX_VALUE_ESTIMATORS)
+    _one_of("train.matmul_dtype", t.matmul_dtype, MATMUL_DTYPES)
     _at_least("train.max_value_instances", t.max_value_instances, 1)
     if t.max_value_estimator == "instance" and fam.instance_dim is None:
         raise ValueError(

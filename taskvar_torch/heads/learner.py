@@ -57,6 +57,8 @@ from taskvar_torch.heads.switching import consistent_with_option, mu_bar_probs, 
 from taskvar_torch.subtasks.base import Subtasks
 
 _NEEDS = {"switching": ("options",), "max_value": ("options", "switching")}
+MATMUL_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+"""``LossSettings.matmul_dtype`` -> the dtype the network passes run their matmuls in."""
 
 
 @dataclass(frozen=True)
@@ -73,6 +75,7 @@ class LossSettings:
     root_policy: str = "option"  # the hierarchy root's pi: its option head, or "averaging"
     max_value_estimator: str = "expectile"  # or "instance" (heads/max_value.py)
     max_value_instances: int = 64  # |Z| of the instance estimator's max
+    matmul_dtype: str = "float32"  # or "bfloat16": the network passes under torch.autocast
 
 
 def _unique_params(module: nn.Module) -> TensorDictParams:
@@ -163,6 +166,11 @@ class MultiHeadLoss(LossModule):
                     "max_value_estimator='instance' needs a max-value head with an instance "
                     "critic (heads/max_value.py make_max_value_head(..., instance_dim=F))"
                 )
+        if settings.matmul_dtype not in MATMUL_DTYPES:
+            raise ValueError(
+                f"matmul_dtype must be one of {sorted(MATMUL_DTYPES)}, "
+                f"got {settings.matmul_dtype!r}"
+            )
         if tuple(heads.option_names) != tuple(subtasks.names):
             raise ValueError(
                 f"heads.option_names {heads.option_names} differ from subtasks.names {subtasks.names}"
@@ -257,8 +265,14 @@ class MultiHeadLoss(LossModule):
         and out (what :class:`MultiHeadLearner` compiles with ``compile=True``)."""
         s = self.settings
         far_obs = batch.nstep.observation if batch.nstep is not None else None
-        cur, nxt, nxt_target, far, far_target = self._head_outputs(
-            batch.observation, batch.next_observation, far_obs
+        obs = batch.observation
+        dtype = MATMUL_DTYPES[s.matmul_dtype]
+        # matmul_dtype=bfloat16: the network passes (and so their backward) under autocast, every
+        # head's values back in float32 before any target or loss
+        with torch.autocast(obs.device.type, dtype=dtype, enabled=dtype != torch.float32):
+            outputs = self._head_outputs(obs, batch.next_observation, far_obs)
+        cur, nxt, nxt_target, far, far_target = (
+            {k: v.float() for k, v in out.items()} for out in outputs
         )
 
         losses: dict[str, torch.Tensor] = {}
