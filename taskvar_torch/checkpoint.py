@@ -434,9 +434,23 @@ def load_checkpoint(
     return data
 
 
+EVAL_HEADS = "eval_heads"
+"""``models`` entry of a training checkpoint with ``train.eval_ema_tau``: the Polyak-averaged
+heads that evaluation reads (:func:`evaluation_heads_key`); ``"heads"`` holds the online ones."""
+
+
+def evaluation_heads_key(bundle: dict[str, Any]) -> str:
+    """The ``models`` entry evaluation reads: :data:`EVAL_HEADS` where the bundle has one (a run
+    with ``train.eval_ema_tau``), else ``"heads"``."""
+    return EVAL_HEADS if EVAL_HEADS in bundle.get("models", {}) else "heads"
+
+
 def require_finite_heads(bundle: dict[str, Any], path: str | os.PathLike) -> None:
-    """:class:`CheckpointError` when a checkpoint's heads hold a NaN or infinite value."""
-    heads = bundle.get("models", {}).get("heads", {})
+    """:class:`CheckpointError` when a checkpoint's heads (and :data:`EVAL_HEADS`, where it has
+    them) hold a NaN or infinite value."""
+    models = bundle.get("models", {})
+    heads = dict(models.get("heads", {}))
+    heads.update({f"{EVAL_HEADS}.{k}": v for k, v in models.get(EVAL_HEADS, {}).items()})
     bad = [
         k
         for k, v in heads.items()

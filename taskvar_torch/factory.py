@@ -29,6 +29,7 @@ from torchrl.envs import EnvBase
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
+    evaluation_heads_key,
     load_checkpoint,
     load_state_dicts,
     make_bundle,
@@ -339,7 +340,7 @@ def _heads_of(
         env = make_env(cfg, num_envs=1)
         spec = HeadSpec.of(cfg, env, make_subtasks(cfg, env))
     heads = build_heads(cfg, spec)
-    load_state_dicts(bundle, models={"heads": heads})
+    load_state_dicts(bundle, models={evaluation_heads_key(bundle): heads})
     return heads.eval(), cfg
 
 
@@ -410,6 +411,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         target_tau=t.target_tau,
         target_period=t.target_period,
         compile=t.compile,
+        eval_ema_tau=t.eval_ema_tau,
     )
 
 

@@ -52,6 +52,7 @@ from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
+    EVAL_HEADS,
     RUNTIME_KEYS,
     CheckpointError,
     config_differences,
@@ -184,6 +185,8 @@ def _non_finite(learner: MultiHeadLearner) -> list[str]:
             if isinstance(v, torch.Tensor)
         ],
     }
+    if learner.eval_heads is not learner.heads:  # train.eval_ema_tau
+        groups[EVAL_HEADS] = list(learner.eval_heads.state_dict().values())
     names, flags = [], []
     for name, tensors in groups.items():
         finite = [torch.isfinite(t).all() for t in tensors if t.is_floating_point()]
@@ -327,7 +330,7 @@ def _train_loop(
                 pbar.close()
                 final = out / "final.pt"  # a first signal from here on: the run ends normally
                 run.save(final)
-                write_heads(out / HEADS_NAME, run.learner.heads, cfg, run.counters)
+                write_heads(out / HEADS_NAME, run.learner.eval_heads, cfg, run.counters)
             except KeyboardInterrupt:
                 raise KeyboardInterrupt(
                     f"aborted by a second signal; nothing written, "
@@ -443,7 +446,7 @@ class _Run:
             seconds = time.perf_counter() - start_time
             write_heads(
                 self.out / HEADS_SNAPSHOTS / f"heads_{frames:09d}.pt",
-                self.learner.heads,
+                self.learner.eval_heads,
                 self.cfg,
                 {**self.counters, "seconds": seconds},
             )
@@ -472,7 +475,7 @@ class _Run:
         single = not collects_in_workers(self.cfg)  # else the env states live in the workers
         return make_bundle(
             self.cfg,
-            models={"heads": learner.heads, "targets": learner.loss.target_heads},
+            models=_models(learner),
             optimizers={"adam": learner.optimizer},
             counters=dict(self.counters),
             rng=rng_state({"replay": self.replay_generator}),
@@ -486,6 +489,16 @@ class _Run:
             stats={k: v.clone() for k, v in self.stats.items()},
             heads_spec=learner.heads.spec.to_dict(),
         )
+
+
+def _models(learner: MultiHeadLearner) -> dict[str, torch.nn.Module]:
+    """The networks of a training checkpoint: the online heads, their targets and, with
+    ``train.eval_ema_tau``, the Polyak-averaged ``eval_heads`` evaluation reads
+    (:func:`~taskvar_torch.factory.load_heads`)."""
+    models = {"heads": learner.heads, "targets": learner.loss.target_heads}
+    if learner.eval_heads is not learner.heads:
+        models[EVAL_HEADS] = learner.eval_heads
+    return models
 
 
 def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
@@ -528,11 +541,7 @@ def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
         },
     )
     if bundle is not None:
-        load_state_dicts(
-            bundle,
-            models={"heads": heads, "targets": learner.loss.target_heads},
-            optimizers={"adam": learner.optimizer},
-        )
+        load_state_dicts(bundle, models=_models(learner), optimizers={"adam": learner.optimizer})
         learner.load_state_dict(
             {
                 **bundle["learner"],

@@ -190,3 +190,70 @@ def test_lr_schedule_decays_linearly_to_lr_end(tmp_path):
     for bad in ("train.lr_end=0.5", "train.lr_end=0", "train.lr_decay_start_frames=-1"):
         with pytest.raises(ValueError, match=bad.split("=")[0]):
             load_config(CONFIG, [bad])
+
+
+def test_eval_ema_tau_bundles_hold_the_polyak_average(tmp_path):
+    """``train.eval_ema_tau``: the learner's eval_heads follow ``ema <- ema + tau (online - ema)``
+    after every update; final.pt keeps the online heads (for resuming) and the average
+    (``eval_heads``), which ``load_heads``, heads.pt and the heads_every snapshots hold; resuming
+    continues the average bit for bit; bad values and wargus-fig4 are refused in one line."""
+    tau = 0.25
+    cfg = load_config(
+        CONFIG, [*TINY, f"train.eval_ema_tau={tau}", "train.heads_every=1000", "seed=3"]
+    )
+    learner = T.make_learner(cfg, *_heads_and_subtasks(cfg))
+    online = [p.detach().clone() for p in learner.heads.parameters()]
+    ema = [p.clone() for p in online]  # starts at the initial weights
+    assert all(torch.equal(e, p) for e, p in zip(ema, learner.eval_heads.parameters()))
+    batch = _windy_batch(cfg)
+    for _ in range(3):
+        learner.update(batch)
+        ema = [e + tau * (p.detach() - e) for e, p in zip(ema, learner.heads.parameters())]
+    for e, p in zip(ema, learner.eval_heads.parameters()):
+        torch.testing.assert_close(p, e, rtol=1e-6, atol=1e-7)
+        assert not p.requires_grad
+
+    straight = train(cfg, tmp_path / "straight", progress=False)
+    bundle = load_checkpoint(straight["final"])
+    assert set(bundle["models"]) == {"heads", "targets", "eval_heads"}
+    online_sd, ema_sd = bundle["models"]["heads"], bundle["models"]["eval_heads"]
+    assert any(not torch.equal(online_sd[k], ema_sd[k]) for k in online_sd)
+    for path in (straight["final"], tmp_path / "straight" / "heads.pt"):
+        heads, _ = load_heads(path)
+        for k, v in heads.state_dict().items():
+            assert torch.equal(v, ema_sd[k]), (path, k)
+    snapshot, _ = load_heads(tmp_path / "straight" / "heads" / "heads_000001000.pt")
+    half = load_checkpoint(tmp_path / "straight" / "checkpoint_000001000.pt")
+    assert all(
+        torch.equal(v, half["models"]["eval_heads"][k]) for k, v in snapshot.state_dict().items()
+    )
+    resumed = train(
+        None,
+        tmp_path / "resumed",
+        resume=tmp_path / "straight" / "checkpoint_000001000.pt",
+        progress=False,
+    )
+    assert_same(load_checkpoint(resumed["final"])["models"], bundle["models"])
+
+    for bad in ("train.eval_ema_tau=0", "train.eval_ema_tau=1.5"):
+        with pytest.raises(ValueError, match=r"train.eval_ema_tau must be in \(0, 1\] or null"):
+            load_config(CONFIG, [bad])
+    from taskvar_torch.experiments.wargus_fig4 import default_config_path, wargus_fig4
+
+    wcfg = load_config(default_config_path(), ["train.eval_ema_tau=0.01"], quick=True)
+    with pytest.raises(ValueError, match="wargus-fig4 tests the live heads"):
+        wargus_fig4(wcfg, tmp_path / "fig4", progress=False)
+    assert not (tmp_path / "fig4").exists()
+
+
+def _heads_and_subtasks(cfg):
+    env = T.make_env(cfg)
+    subtasks = T.make_subtasks(cfg, env)
+    return T.build_heads(cfg, env, subtasks), subtasks
+
+
+def _windy_batch(cfg, B: int = 32):
+    """B raw transitions of random actions, as the replay buffer holds them."""
+    env = T.make_env(cfg)
+    td = env.rollout(B // env.num_envs + 5, break_when_any_done=False).reshape(-1)[:B]
+    return td

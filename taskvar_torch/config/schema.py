@@ -190,6 +190,13 @@ class TrainConfig:
     loop the behaviour policy's choices and the Wargus dynamics step (the same bits). Cheaper
     trials after a compile of 20-30 s per process (docs/benchmarks.md); falls back to eager, with a
     warning, where compiling fails."""
+    eval_ema_tau: float | None = None
+    """Polyak averaging of the weights for evaluation: the learner keeps an exponential moving
+    average of every head's weights (``ema <- ema + tau (online - ema)`` after each update) and
+    the evaluation bundles (``heads.pt``, ``train.heads_every`` snapshots, what ``taskvar eval``
+    and the experiments load from ``final.pt``) hold it; training acts and bootstraps with the
+    online weights. null: off (the online weights are evaluated). Against the greedy-policy loops
+    a single noisy weight snapshot can make (docs/scale.md)."""
     matmul_dtype: str = "float32"
     """Precision of the learner's network passes (float32 | bfloat16): bfloat16 runs the matmuls
     of every head's forward passes and their backward under ``torch.autocast`` (weights, optimiser

@@ -154,6 +154,8 @@ def _check_train(cfg: Config, fam: Family) -> None:
     _one_of("train.switching", t.switching, SWITCHING_MODES)
     _one_of("train.max_value_estimator", t.max_value_estimator, MAX_VALUE_ESTIMATORS)
     _one_of("train.matmul_dtype", t.matmul_dtype, MATMUL_DTYPES)
+    if t.eval_ema_tau is not None and not 0.0 < t.eval_ema_tau <= 1.0:
+        raise ValueError(f"train.eval_ema_tau must be in (0, 1] or null, got {t.eval_ema_tau}")
     _at_least("train.max_value_instances", t.max_value_instances, 1)
     if t.max_value_estimator == "instance" and fam.instance_dim is None:
         raise ValueError(

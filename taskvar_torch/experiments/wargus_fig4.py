@@ -393,6 +393,11 @@ def wargus_fig4(
     (without it such a folder is refused).
     """
     FAMILIES["wargus"].require(cfg, "wargus-fig4")
+    if cfg.train.eval_ema_tau is not None:
+        raise ValueError(
+            f"train.eval_ema_tau={cfg.train.eval_ema_tau}: wargus-fig4 tests the live heads after "
+            "every trial (paper §3.5.1), it has no averaged weights to test; set it to null"
+        )
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     out = Path(out_dir)

@@ -16,7 +16,8 @@ network calls per head instead of three, one backward and one optimiser step for
 losses accumulated on the device (no host sync per step).
 
 :class:`MultiHeadLearner` adds the optimiser (fused Adam over every head, gradient norm clipped per head),
-the target updater (TorchRL ``SoftUpdate`` with a foreach step, or ``HardUpdate``), and
+the target updater (TorchRL ``SoftUpdate`` with a foreach step, or ``HardUpdate``), optionally a
+Polyak average of the weights for evaluation (``eval_ema_tau``), and
 device-side loss sums for logging (:meth:`MultiHeadLearner.pop_losses`); with ``compile=True``
 (``train.compile``) the losses and their backward run through ``torch.compile``
 (:class:`CompiledLosses`).
@@ -430,6 +431,10 @@ class MultiHeadLearner:
             gradient clipping, optimiser and target steps stay eager. Same losses up to float
             rounding (Inductor fuses the elementwise ops); falls back to eager, with a warning,
             where compiling fails.
+        eval_ema_tau: keep :attr:`eval_heads`, a Polyak average of the heads' weights (``ema <-
+            ema + tau (online - ema)`` after every update, starting from the initial weights):
+            what evaluation reads (``train.eval_ema_tau``); ``None``: :attr:`eval_heads` is
+            :attr:`heads` itself.
 
     Examples:
         >>> learner = MultiHeadLearner(loss, lr=1e-3)  # doctest: +SKIP
@@ -447,6 +452,7 @@ class MultiHeadLearner:
         target_tau: float = 0.01,
         target_period: int = 500,
         compile: bool = False,
+        eval_ema_tau: float | None = None,
     ):
         self.loss = loss
         self.losses = CompiledLosses(loss) if compile else loss.losses
@@ -467,6 +473,14 @@ class MultiHeadLearner:
             raise ValueError(
                 f"target_update must be one of ['hard', 'soft'], got {target_update!r}"
             )
+        self.eval_ema_tau = eval_ema_tau
+        self.eval_heads = self.heads  # the weights evaluation reads
+        if eval_ema_tau is not None:
+            if not 0.0 < eval_ema_tau <= 1.0:
+                raise ValueError(f"eval_ema_tau must be in (0, 1] or None, got {eval_ema_tau}")
+            self.eval_heads = copy.deepcopy(self.heads).requires_grad_(False)
+            self._ema = list(self.eval_heads.parameters())
+            self._ema_source = list(self.heads.parameters())
         self.num_updates = 0
         self._loss_sum: TensorDict | None = None  # device-side sums since the last pop_losses
         self._loss_count = 0
@@ -484,6 +498,9 @@ class MultiHeadLearner:
                 clip_grad_norm_per_group(self._groups, self.max_grad_norm)
         self.optimizer.step()
         self.target_updater.step()
+        if self.eval_ema_tau is not None:
+            with torch.no_grad():
+                torch._foreach_lerp_(self._ema, self._ema_source, self.eval_ema_tau)
         losses = TensorDict(losses, batch_size=[]).detach()
         self._loss_sum = losses.clone() if self._loss_sum is None else self._loss_sum.add_(losses)
         self._loss_count += 1
