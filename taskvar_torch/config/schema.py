@@ -201,8 +201,9 @@ class TrainConfig:
     """Precision of the learner's network passes (float32 | bfloat16): bfloat16 runs the matmuls
     of every head's forward passes and their backward under ``torch.autocast`` (weights, optimiser
     and losses stay float32; the heads' values are cast back to float32 before any target or
-    loss). Acting and evaluation always run float32. ~1.8x faster matmuls on a CPU with AVX-512
-    BF16 (docs/benchmarks.md); changes the learnt weights (not bit-equal to float32)."""
+    loss). Acting and evaluation always run float32. ~1.7x faster matmuls on a CPU with AVX-512
+    BF16, 1.1-1.2x faster training (docs/benchmarks.md); changes what is learnt: at windy 51x51 the
+    rounding is of the order of the near-ties that decide some heads (docs/scale.md)."""
     checkpoint_every: int = 50_000
     """Save a checkpoint every this many frames; 0: only the final one."""
     log_every: int = 5_000
