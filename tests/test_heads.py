@@ -413,6 +413,25 @@ def test_bfloat16_matmuls_match_float32_losses(windy):
         load_config(CONFIG, ["train.matmul_dtype=float16"])
 
 
+def test_eval_ema_tau_averages_the_weights_after_every_update(windy):
+    """``eval_ema_tau``: the learner's eval_heads start at the initial weights and follow ``ema <-
+    ema + tau (online - ema)`` after every update, without gradients."""
+    cfg, env, subtasks = windy
+    tau = 0.25
+    learner = MultiHeadLearner(
+        MultiHeadLoss(build_heads(cfg, env, subtasks), subtasks, LossSettings()), eval_ema_tau=tau
+    )
+    ema = [p.detach().clone() for p in learner.heads.parameters()]  # the initial weights
+    assert all(torch.equal(e, p) for e, p in zip(ema, learner.eval_heads.parameters()))
+    batch = random_batch(env)
+    for _ in range(3):
+        learner.update(batch)
+        ema = [e + tau * (p.detach() - e) for e, p in zip(ema, learner.heads.parameters())]
+    for e, p in zip(ema, learner.eval_heads.parameters()):
+        torch.testing.assert_close(p, e, rtol=1e-6, atol=1e-7)
+        assert not p.requires_grad
+
+
 def test_compiled_learner_falls_back_to_eager(windy, monkeypatch):
     cfg, env, subtasks = windy
     heads = build_heads(cfg, env, subtasks)
