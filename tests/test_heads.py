@@ -500,3 +500,27 @@ def test_first_visit_steps_equal_one_visit_per_step():
         ref = torch.stack([a.visit(obs[t], action[t]) for t in range(T)])
         assert torch.equal(b.visit_steps(obs, action), ref)
         assert torch.equal(a.seen, b.seen)
+
+
+def test_first_visit_batch_equals_a_clear_and_visit_per_step():
+    """FirstVisitFilter's batch pass (episodes starting inside the batch) equals, step by step,
+    clearing the flags of new episodes and one visit: masks and flags, with hash collisions."""
+    g = torch.Generator().manual_seed(1)
+    N, D = 9, 3
+    a, b = FirstVisitFilter(N, D, buckets=32), FirstVisitFilter(N, D, buckets=32)
+    kept = []
+    for T in (1, 5, 23, 40):  # consecutive batches: flags carry over
+        obs = torch.randint(0, 3, (N, T, D), generator=g).float()
+        action = torch.randint(0, 2, (N, T), generator=g)
+        is_init = torch.rand(N, T, generator=g) < 0.15
+        ref = torch.empty(N, T, dtype=torch.bool)
+        for t in range(T):
+            a.seen[is_init[:, t]] = False
+            ref[:, t] = a.visit(obs[:, t], action[:, t])
+        batch = TensorDict(
+            {keys.OBSERVATION: obs, keys.ACTION: action, "is_init": is_init.unsqueeze(-1)}, [N, T]
+        )
+        assert torch.equal(b(batch), ref)
+        assert torch.equal(a.seen, b.seen)
+        kept.append(ref.flatten())
+    assert 0 < torch.cat(kept).float().mean() < 1  # revisits dropped, first visits kept

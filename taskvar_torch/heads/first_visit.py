@@ -62,16 +62,13 @@ class FirstVisitFilter(nn.Module):
 
     @torch.no_grad()
     def forward(self, batch: TensorDictBase) -> torch.Tensor:
-        """``(N, T)`` bool mask of first visits in a collector batch ``(N, T)`` (updates the flags)."""
+        """``(N, T)`` bool mask of first visits in a collector batch ``(N, T)`` (updates the flags;
+        ``is_init`` starts new episodes). :meth:`visit_steps` of the batch's steps at once."""
         obs = batch.get(keys.OBSERVATION)  # (N, T, D)
         action = batch.get(keys.ACTION)  # (N, T)
         is_init = batch.get("is_init").reshape(action.shape)  # (N, T) new episode at step t
-        N, T = action.shape
-        keep = torch.empty(N, T, dtype=torch.bool, device=action.device)
-        for t in range(T):
-            self.seen.masked_fill_(is_init[:, t].unsqueeze(-1), False)  # new episodes
-            keep[:, t] = self.visit(obs[:, t], action[:, t])
-        return keep
+        keep = self.visit_steps(obs.transpose(0, 1), action.t(), is_init.t())  # (T, N)
+        return keep.t()
 
     @torch.no_grad()
     def visit(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
@@ -85,25 +82,40 @@ class FirstVisitFilter(nn.Module):
         return keep
 
     @torch.no_grad()
-    def visit_steps(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    def visit_steps(
+        self, obs: torch.Tensor, action: torch.Tensor, is_init: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """:meth:`visit` of ``T`` consecutive steps at once: ``(T, N)`` first-visit mask of
-        observations ``(T, N, D)`` and actions ``(T, N)`` (no episode starts among them).
+        observations ``(T, N, D)`` and actions ``(T, N)``; ``is_init`` ``(T, N)``: a new episode
+        starts at that step (its flags cleared first; ``None``: no episode starts among them).
 
-        Equal to ``T`` calls of :meth:`visit` in step order: a pair is kept where its bucket was
-        not flagged before these steps and no earlier step of the same environment hashed to it.
-        One hash of all ``T N`` pairs and a sort, instead of ``T`` calls.
+        Equal to ``T`` calls of :meth:`visit` in step order, each after clearing the flags of the
+        environments whose episode starts there (masks and flags; tested): a pair is kept where
+        it is the earliest of its (environment, episode, bucket) among these steps and, in an
+        episode that began before them, its bucket was not flagged already. One hash of all
+        ``T N`` pairs and a sort, instead of ``T`` calls and ``T`` clears of the ``N x buckets``
+        flags.
         """
         T, N = action.shape
         h = self._hash(obs.reshape(T * N, -1), action.reshape(-1)).view(T, N)  # (T, N)
         rows = torch.arange(N, device=obs.device).expand(T, N)
-        new = ~self.seen[rows, h]  # (T, N) not flagged before these steps
-        key = (rows * self.buckets + h).reshape(-1)  # step-major: earlier steps first
+        if is_init is None:
+            ep = torch.zeros(T, N, dtype=torch.int64, device=obs.device)
+        else:
+            ep = is_init.to(torch.int64).cumsum(0)  # (T, N) 0: the episode running before
+        new = (ep > 0) | ~self.seen[rows, h]  # (T, N) not flagged before (within its episode)
+        key = ((rows * (T + 1) + ep) * self.buckets + h).reshape(-1)  # step-major: earlier first
         order = torch.sort(key, stable=True).indices  # equal keys stay in step order
         sorted_key = key[order]
         first = torch.ones_like(sorted_key, dtype=torch.bool)
-        first[1:] = sorted_key[1:] != sorted_key[:-1]  # the earliest step of each (env, bucket)
+        first[1:] = sorted_key[1:] != sorted_key[:-1]  # the earliest step of each key
         earliest = torch.empty_like(first).scatter_(0, order, first).view(T, N)
-        self.seen[rows, h] = True
+        if is_init is not None:  # the flags left are those of each environment's last episode
+            self.seen[ep[-1] > 0] = False
+            last = ep == ep[-1:]  # (T, N) steps of the episode running at the end
+            self.seen[rows[last], h[last]] = True
+        else:
+            self.seen[rows, h] = True
         return new & earliest
 
     def clear(self) -> None:
