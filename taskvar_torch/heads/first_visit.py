@@ -111,7 +111,8 @@ class FirstVisitFilter(nn.Module):
         first[1:] = sorted_key[1:] != sorted_key[:-1]  # the earliest step of each key
         earliest = torch.empty_like(first).scatter_(0, order, first).view(T, N)
         if is_init is not None:  # the flags left are those of each environment's last episode
-            self.seen[ep[-1] > 0] = False
+            started = (ep[-1] > 0).nonzero().squeeze(-1)  # environments with a new episode
+            self.seen.index_fill_(0, started, False)  # their rows only (a mask would sweep all)
             last = ep == ep[-1:]  # (T, N) steps of the episode running at the end
             self.seen[rows[last], h[last]] = True
         else:
