@@ -11,6 +11,7 @@ and actions from TorchRL's ``Collector`` with a random policy. Runs alternate an
 compared, so a loaded machine slows both alike. Single-threaded by default.
 
     python benchmarks/first_visit.py [--config configs/windy_xl.yaml] [--batches 20] [--threads 1]
+        [overrides ...]
 """
 
 from __future__ import annotations
@@ -32,7 +33,7 @@ def per_step(f: FirstVisitFilter, batch) -> torch.Tensor:
     """The filter's batch pass as it was: a clear and a visit per step."""
     obs, action = batch.get(keys.OBSERVATION), batch.get(keys.ACTION)
     is_init = batch.get("is_init").reshape(action.shape)
-    keep = torch.empty(action.shape, dtype=torch.bool)
+    keep = torch.empty(action.shape, dtype=torch.bool, device=action.device)
     for t in range(action.shape[1]):
         f.seen.masked_fill_(is_init[:, t].unsqueeze(-1), False)
         keep[:, t] = f.visit(obs[:, t], action[:, t])
@@ -45,9 +46,10 @@ def main() -> None:
     ap.add_argument("--batches", type=int, default=20, help="collector batches")
     ap.add_argument("--repeats", type=int, default=5, help="alternating timed passes")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("overrides", nargs="*", help="config overrides (e.g. device=cuda)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    cfg = load_config(args.config)
+    cfg = load_config(args.config, args.overrides)
     env = make_training_env(cfg)
     collector = make_collector(cfg, env, None, cfg.train.frames_per_batch * args.batches)
     batches = [b.select(keys.OBSERVATION, keys.ACTION, "is_init").clone() for b in collector]
