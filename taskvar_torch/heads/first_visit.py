@@ -99,24 +99,25 @@ class FirstVisitFilter(nn.Module):
         T, N = action.shape
         h = self._hash(obs.reshape(T * N, -1), action.reshape(-1)).view(T, N)  # (T, N)
         rows = torch.arange(N, device=obs.device).expand(T, N)
-        if is_init is None:
-            ep = torch.zeros(T, N, dtype=torch.int64, device=obs.device)
-        else:
+        new = ~self.seen[rows, h]  # (T, N) not flagged before these steps
+        seg = rows  # (T, N) the (environment, episode) segment of each step
+        if is_init is not None:
             ep = is_init.to(torch.int64).cumsum(0)  # (T, N) 0: the episode running before
-        new = (ep > 0) | ~self.seen[rows, h]  # (T, N) not flagged before (within its episode)
-        key = ((rows * (T + 1) + ep) * self.buckets + h).reshape(-1)  # step-major: earlier first
+            new |= ep > 0  # an episode started here has no flags yet
+            seg = rows * (T + 1) + ep
+        key = (seg * self.buckets + h).reshape(-1)  # step-major: earlier steps first
         order = torch.sort(key, stable=True).indices  # equal keys stay in step order
         sorted_key = key[order]
         first = torch.ones_like(sorted_key, dtype=torch.bool)
         first[1:] = sorted_key[1:] != sorted_key[:-1]  # the earliest step of each key
         earliest = torch.empty_like(first).scatter_(0, order, first).view(T, N)
-        if is_init is not None:  # the flags left are those of each environment's last episode
+        if is_init is None:
+            self.seen[rows, h] = True
+        else:  # the flags left are those of each environment's last episode
             started = (ep[-1] > 0).nonzero().squeeze(-1)  # environments with a new episode
             self.seen.index_fill_(0, started, False)  # their rows only (a mask would sweep all)
             last = ep == ep[-1:]  # (T, N) steps of the episode running at the end
             self.seen[rows[last], h[last]] = True
-        else:
-            self.seen[rows, h] = True
         return new & earliest
 
     def clear(self) -> None:
