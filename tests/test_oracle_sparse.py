@@ -8,7 +8,12 @@ import torch
 
 from taskvar_torch.envs.windy import make_layout
 from taskvar_torch.oracle import WindyOracle
-from taskvar_torch.oracle.sparse import SparseWindyOracle
+from taskvar_torch.oracle.sparse import (
+    SparseKernel,
+    SparseWindyOracle,
+    expect_planes,
+    outcome_planes,
+)
 
 LAYOUTS = ["default", "middle_exits", make_layout(9, 9, num_exits=3, wind_cells_per_exit=2)]
 
@@ -36,6 +41,27 @@ def test_sparse_matches_dense(layout):
         sparse.evaluate_kernel(sparse.kernel(p, d), sparse._env_reward(sparse.kernel(p, d)), pol),
         atol=1e-8,
     )
+
+
+@pytest.mark.parametrize("K", [1, 2])
+def test_expect_planes_is_the_gather_and_sum_bit_for_bit(K):
+    # the chains' expectation, one gather per outcome, against gathering every outcome and
+    # summing over them (the formula it replaces): the same bits for one or two outcomes
+    g = torch.Generator().manual_seed(K)
+    B, S, A = 3, 50, 4
+    V = torch.randn(B, S, dtype=torch.float64, generator=g)
+    succ = torch.randint(0, S, (B, S, A, K), generator=g)
+    prob = torch.rand(B, S, A, K, dtype=torch.float64, generator=g)
+    prob = prob / prob.sum(-1, keepdim=True)
+    summed = (V.gather(1, succ.reshape(B, -1)).view(B, S, A, K) * prob).sum(-1)
+    assert torch.equal(expect_planes(V, *outcome_planes(succ, prob)).view(B, S, A), summed)
+    assert torch.equal(SparseKernel(succ, prob).expect(V), summed)
+    # the mean MDP's five outcomes keep the summed path
+    o = SparseWindyOracle("default")
+    k = o.mean_kernel
+    V1 = torch.randn(1, o.S, dtype=torch.float64, generator=g)
+    ref = (V1.gather(1, k.succ.reshape(1, -1)).view(k.succ.shape) * k.prob).sum(-1)
+    assert torch.equal(k.expect(V1), ref)
 
 
 def test_sparse_objectives_and_errors():
