@@ -8,7 +8,8 @@ step gathered every outcome into ``(B, n, K)`` and summed over the last dim (the
 reference below, the formula as it was); now it gathers one contiguous plane per outcome and adds
 them (:func:`~taskvar_torch.oracle.sparse.expect_planes`): the same bits for ``K <= 2`` (checked
 here on every step, and in ``tests/test_oracle_sparse.py``). The chains are the real ones: the
-layout of ``--config``, its exact option policies and mu_bar, one quadrature chunk of instances.
+layout of ``--config``, the options controller's chains with its exact option policies (no
+interruption), one quadrature chunk of instances.
 Runs alternate and the medians are compared. Single-threaded by default; ``--report`` also times
 the whole head report of an untrained bundle (new path only).
 

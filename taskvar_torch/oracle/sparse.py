@@ -64,7 +64,7 @@ class SparseKernel:
 
     def expect(self, V: Tensor) -> Tensor:
         """``E[V(s')] (B, S, A)`` for values ``V (B, S)``."""
-        if self.K <= 2:  # one gather per outcome (expect_planes: the same bits, ~6x faster)
+        if self.K <= 2:  # one gather per outcome (expect_planes: the same bits, faster)
             if self._planes is None:
                 self._planes = outcome_planes(self.succ, self.prob)
             return expect_planes(V, *self._planes).view(self.B, self.S, self.A)
@@ -505,8 +505,9 @@ def outcome_planes(succ: Tensor, prob: Tensor) -> tuple[list[Tensor], list[Tenso
 def expect_planes(V: Tensor, succ: Sequence[Tensor], prob: Sequence[Tensor]) -> Tensor:
     """``sum_j prob_j * V[succ_j]`` ``(B, n)`` for values ``V (B, S)``: one gather per outcome,
     accumulated in outcome order. For ``K <= 2`` outcomes this is bit-equal to gathering all
-    outcomes and ``sum(-1)`` over them (a reduction over a last dim of size 2 is slow on the
-    CPU: ~6x at the 101x101 chains' shapes; tests/test_oracle_sparse.py)."""
+    outcomes and ``sum(-1)`` over them (tests/test_oracle_sparse.py), and faster on the CPU, where
+    a reduction over a last dim of size 2 is slow (docs/benchmarks.md, "The exact oracle's chain
+    step")."""
     out = V.gather(1, succ[0]).mul_(prob[0])
     for s, p in zip(succ[1:], prob[1:]):
         out.add_(V.gather(1, s).mul_(p))
