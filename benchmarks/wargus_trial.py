@@ -21,9 +21,11 @@ see), where the new path's time goes, and the projected wall time of the full pr
 (``configs/wargus.yaml``: runs x trials, one repetition per process on 2 cores). Single-threaded.
 ``--torchrl`` adds the TorchRL reference loops (EnvBase + transforms, per-trial tests);
 ``--bf16`` a third agent, the new path with the learner's matmuls in bfloat16
-(``train.matmul_dtype=bfloat16``).
+(``train.matmul_dtype=bfloat16``); ``--hidden 64,64`` one more, the new path with narrower
+networks (``heads.hidden``; docs/benchmarks.md).
 
-    python benchmarks/wargus_trial.py --trials 6 [--eager] [--torchrl] [--bf16] [overrides ...]
+    python benchmarks/wargus_trial.py --trials 6 [--eager] [--torchrl] [--bf16] [--hidden W,W]
+        [overrides ...]
 """
 
 from __future__ import annotations
@@ -164,6 +166,11 @@ def main() -> None:
         action="store_true",
         help="also time the new path with train.matmul_dtype=bfloat16 (the learner's matmuls)",
     )
+    p.add_argument(
+        "--hidden",
+        default=None,
+        help="also time the new path with these hidden widths (heads.hidden), e.g. 64,64",
+    )
     p.add_argument("overrides", nargs="*")
     args = p.parse_args()
     torch.set_num_threads(1)
@@ -179,6 +186,13 @@ def main() -> None:
         )
         bf16 = Path(bf16_cfg, stacked=True)
         paths.append(bf16)
+    if args.hidden:
+        widths = [int(w) for w in args.hidden.split(",")]
+        narrow_cfg = dataclasses.replace(
+            new_cfg, heads=dataclasses.replace(new_cfg.heads, hidden=tuple(widths))
+        )
+        narrow = Path(narrow_cfg, stacked=True)
+        paths.append(narrow)
     if args.torchrl:
         k = cfg.experiment.test_episodes_per_trial
         ref_env, ref_agent, ref_policy = build(old_cfg, torchrl=True)
@@ -201,6 +215,8 @@ def main() -> None:
     test_new = new.test(args.trials)
     if args.bf16:
         bf16.test(args.trials)
+    if args.hidden:
+        narrow.test(args.trials)
     n = args.trials
     x = cfg.experiment
     compiled = new.agent.learner.losses is not new.agent.learner.loss.losses
@@ -229,6 +245,12 @@ def main() -> None:
             f"   {bf16.frames / n:.0f} frames, {bf16.updates / n:.0f} updates per trial; "
             f"ratio new / bfloat16 {new.seconds / max(bf16.seconds, 1e-9):.2f}x per trial"
         )
+    if args.hidden:
+        print(
+            f"  new path, heads.hidden=[{args.hidden}]                    {narrow.seconds / n:6.3f}"
+            f"   {narrow.frames / n:.0f} frames, {narrow.updates / n:.0f} updates per trial; "
+            f"ratio new / narrow {new.seconds / max(narrow.seconds, 1e-9):.2f}x per trial"
+        )
     if compiled:
         print(
             f"  compile (the new path's first env step, action and update): "
@@ -247,6 +269,8 @@ def main() -> None:
     projected = [("old", old, 0.0), ("new", new, new.compile_wall if compiled else 0)]
     if args.bf16:
         projected.append(("bfloat16", bf16, bf16.compile_wall if compiled else 0))
+    if args.hidden:
+        projected.append((f"hidden {args.hidden}", narrow, narrow.compile_wall if compiled else 0))
     for name, path, extra in projected:
         wall = (trials * path.seconds / n + x.runs * extra) / CORES
         print(
