@@ -96,6 +96,10 @@ def test_metrics_have_every_method_and_key(results):
     assert trace["steps"] > 0
     assert sum(trace["per_subtask"].values()) == pytest.approx(1.0)
     assert m["timing"]["wall_seconds"] > 0
+    cpu = m["timing"]["cpu_seconds_per_trial"]  # where a trial's CPU goes
+    assert list(cpu) == list(fig4.PHASES)
+    assert all(v >= 0 for v in cpu.values())
+    assert cpu["learning_loop"] > 0 and cpu["test"] > 0
     assert m["protocol"]["seeds"] == [0, 1]
 
 

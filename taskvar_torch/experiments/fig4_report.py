@@ -72,6 +72,14 @@ def format_table(metrics: dict[str, Any]) -> str:
             f"wall time {tm['wall_seconds']:.1f} s ({tm['seconds_per_trial']:.2f} s per trial); "
             "paper: hierarchy ~100 trials to 90%, averaging > 350"
         )
+    if "cpu_seconds_per_trial" in tm:
+        lines.append(
+            "CPU s per trial: "
+            + ", ".join(
+                f"{k.replace('_', ' ')} {v:.3f}" for k, v in tm["cpu_seconds_per_trial"].items()
+            )
+            + f" (total {sum(tm['cpu_seconds_per_trial'].values()):.3f})"
+        )
     return "\n".join(lines)
 
 

@@ -24,6 +24,7 @@ choices, the dynamics step and the learner's losses through ``torch.compile``
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Sequence
 from typing import Any
 
@@ -64,17 +65,21 @@ class LifelongAgent:
     frames: int = 0
     pending: int = 0  # frames stored since the last update phase
     updates: int = 0
+    update_seconds: float = 0.0  # CPU seconds (``time.process_time``) spent in gradient updates
 
 
 def learn_due(agent: LifelongAgent, t: Any) -> None:
     """``train.updates_per_batch`` updates for every ``train.frames_per_batch`` frames played (after
-    ``train.init_random_frames``), each on one shared sample for every head."""
+    ``train.init_random_frames``), each on one shared sample for every head; their CPU time
+    (sampling included) is added to ``agent.update_seconds``."""
     while agent.pending >= t.frames_per_batch:
         agent.pending -= t.frames_per_batch
         if agent.frames >= t.init_random_frames and len(agent.buffer) >= t.batch_size:
+            start = time.process_time()
             for _ in range(t.updates_per_batch):
                 agent.learner.update(agent.buffer.sample())
                 agent.updates += 1
+            agent.update_seconds += time.process_time() - start
 
 
 # --------------------------------------------------------------------------------------------

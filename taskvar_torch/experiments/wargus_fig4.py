@@ -117,6 +117,11 @@ from taskvar_torch.train import (
 )
 
 TEST_GROUP = 25  # trials whose test phases run side by side (run_repetition)
+PHASES = ("learning_loop", "updates", "calibration", "test")
+"""Where a repetition's CPU time goes (``metrics.json`` ``timing.cpu_seconds_per_trial``): the
+learning phases' loop (behaviour, dynamics, replay writes), the gradient updates (replay samples
+included), the hierarchy's calibration and the heads' snapshot after each trial, the test phases
+(compiles, with ``train.compile``, fall in the phase that first runs the compiled code)."""
 
 
 def default_config_path() -> Path:
@@ -235,7 +240,8 @@ def run_repetition(
     Returns:
         ``items``, ``interruptions`` and ``item_lost`` ``(T, M)``, ``control_steps`` ``(T, O)``,
         ``learn_items``,
-        ``frames``, ``updates`` ``(T,)``, ``option_names``, ``seconds``.
+        ``frames``, ``updates`` ``(T,)``, ``option_names``, ``seconds`` (wall) and
+        ``cpu_seconds``: this process's CPU seconds per phase (:data:`PHASES`).
     """
     x = cfg.experiment
     seed = repetition_seed(cfg, rep)
@@ -267,8 +273,10 @@ def run_repetition(
         snapshots: list[list[torch.Tensor]] = []  # frozen heads of trials not tested yet
         calibrations: list[RobustnessCalibration | None] = []  # and their hierarchy thresholds
         hier = controllers[METHODS.index("hierarchy")]
+        cpu = dict.fromkeys(PHASES, 0.0)
 
         def test_pending() -> None:
+            tick = time.process_time()
             env = make_test_env(cfg, k, seed, first_trial=len(rows["items"]), trials=len(snapshots))
             if group == 1 and calibrations[0] is not None:
                 hier.calibration = calibrations[0]
@@ -278,14 +286,20 @@ def run_repetition(
                     rows[key].append(v)
             snapshots.clear()
             calibrations.clear()
+            cpu["test"] += time.process_time() - tick
 
         for trial in range(x.trials):
+            tick, before = time.process_time(), agent.update_seconds
             learned = learning_phase(agent, learn_env)
+            cpu["updates"] += agent.update_seconds - before
+            cpu["learning_loop"] += time.process_time() - tick - (agent.update_seconds - before)
             for key, v in learned.items():
                 rows[key].append(v)
             updates.append(agent.updates)
+            tick = time.process_time()
             snapshots.append(policy.head_values.snapshot() if group > 1 else [])
             calibrations.append(trial_calibration(agent))
+            cpu["calibration"] += time.process_time() - tick
             if len(snapshots) >= group:
                 test_pending()
             if on_trial is not None:
@@ -309,6 +323,7 @@ def run_repetition(
     result["option_names"] = list(agent.heads.option_names)
     result["option_depths"] = hierarchy_depths(agent.subtasks.hierarchy, agent.heads.option_names)
     result["seconds"] = time.perf_counter() - start
+    result["cpu_seconds"] = cpu
     return result
 
 
@@ -436,6 +451,12 @@ def wargus_fig4(
         "repetition_seconds": [r["seconds"] for r in results],
         "frames_per_repetition": [int(r["frames"].sum()) for r in results],
         "updates_per_repetition": [int(r["updates"][-1]) for r in results],
+        # where a trial's CPU goes, per phase, over every repetition and trial
+        "cpu_seconds_per_trial": {
+            phase: sum(r["cpu_seconds"][phase] for r in results)
+            / max(cfg.experiment.runs * cfg.experiment.trials, 1)
+            for phase in PHASES
+        },
     }
     learn = np.stack([r["learn_items"] for r in results])  # (R, T)
     metrics["learning_items"] = {
@@ -453,6 +474,7 @@ __all__ = [  # the protocol, then the names of fig4_trial, side_by_side, snapsho
     # fig4_report it re-exports
     "EXPERIMENT",
     "METHODS",
+    "PHASES",
     "TEST_GROUP",
     "default_config_path",
     "hierarchy_depths",
