@@ -286,6 +286,15 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="wargus-fig4: run the repetitions in N processes (default 1: sequentially)",
     )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="windy-fig2, scale: torch CPU threads (default 1, as the documented timings; the "
+        "large grids' learner gains from 2 free cores, docs/scale.md); wargus-fig4 runs one "
+        "thread per --workers process",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
     p.add_argument(
         "--no-plots", action="store_true", help="write no PNGs (taskvar plot DIR draws them later)"
@@ -297,13 +306,10 @@ def _experiment_run(args: argparse.Namespace) -> int:
 
     if args.name == "wargus-fig4":
         return _wargus_fig4_run(args)
+    _set_threads(args)  # default 1: small MLPs, more threads only contend on a shared CPU
     if args.name == "scale":
         return _scale_run(args)
-    import torch
-
     from taskvar_torch.experiments.windy_fig2 import windy_fig2
-
-    torch.set_num_threads(1)  # small MLPs: more threads only contend on a shared CPU (see train)
 
     config_path, overrides = _split_config_and_overrides(args.items)
     if args.checkpoint is not None:
@@ -354,6 +360,11 @@ def _wargus_fig4_run(args: argparse.Namespace) -> int:
     if args.checkpoint is not None:
         raise ValueError(
             "wargus-fig4 learns from scratch (lifelong protocol); --checkpoint is not used"
+        )
+    if args.threads != 1:
+        raise ValueError(
+            f"--threads {args.threads}: wargus-fig4 runs one thread per process (small batches; "
+            "2 threads under contention ran 10x slower); use --workers N to use more cores"
         )
     config_path, overrides = _split_config_and_overrides(args.items)
     default = experiment(args.name).default_config_path()
@@ -435,8 +446,6 @@ def _sweep_run(args: argparse.Namespace) -> int:
 
 
 def _scale_run(args: argparse.Namespace) -> int:
-    import torch
-
     from taskvar_torch.experiments.scale import default_config_path, load_scale_config, scale
 
     if args.checkpoint is not None:
@@ -446,7 +455,6 @@ def _scale_run(args: argparse.Namespace) -> int:
     config_path, overrides = _split_config_and_overrides(args.items)
     cfg = load_scale_config(config_path or default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
-    torch.set_num_threads(1)  # timings are single-threaded (see docs/scale.md)
     scale(
         cfg,
         out,
