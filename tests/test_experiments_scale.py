@@ -164,3 +164,20 @@ def test_strict_config_errors(override, match):
 def test_cli_rejects_checkpoint(tmp_path, capsys):
     assert main(["experiment", "scale", "--checkpoint", "x.pt", "--out", str(tmp_path)]) == 2
     assert "--checkpoint is not used" in capsys.readouterr().err
+
+
+def test_cli_threads(tmp_path, capsys):
+    """--threads N sets the torch threads the cells train with (recorded in metrics.json); bad
+    values and wargus-fig4 (one thread per --workers process) are refused."""
+    try:
+        out = tmp_path / "t2"
+        args = ["experiment", "scale", "--quick", "--threads", "2", "--out", str(out)]
+        one_cell = [*TINY, "only=[windy-5x5]", f"num_envs=[{NUM_ENVS[0]}]"]
+        assert main([*args, "--no-progress", "--no-plots", *one_cell]) == 0
+        assert json.loads((out / "metrics.json").read_text())["threads"] == 2
+    finally:
+        torch.set_num_threads(1)
+    assert main(["experiment", "scale", "--threads", "0", "--out", str(tmp_path / "t0")]) == 2
+    assert "--threads must be >= 1, got 0" in capsys.readouterr().err
+    assert main(["experiment", "wargus-fig4", "--threads", "2", "--out", str(tmp_path / "w")]) == 2
+    assert "use --workers N" in capsys.readouterr().err
