@@ -50,10 +50,15 @@ def replay_state(buffer: ReplayBuffer) -> dict[str, Any]:
     """The buffer's filled rows (in storage order) and its writer's cursor, as plain data.
 
     Sampling draws from the trainer's own generator, whose state is saved with the other RNGs.
+    The rows are a copy when the buffer is partly filled: ``buffer[:n]`` views a storage
+    allocated at full capacity, and ``torch.save`` writes a view's whole storage.
     """
     n = len(buffer)
+    data = buffer[:n] if n else None
+    if data is not None and n < buffer.storage.max_size:
+        data = data.clone()
     return {
-        "data": buffer[:n].to_dict() if n else {},
+        "data": data.to_dict() if n else {},
         "size": n,
         "writer": buffer.writer.state_dict(),
     }

@@ -151,6 +151,10 @@ def test_final_bundle_reloads_the_trained_heads(tmp_path):
     ]
     bundle = load_checkpoint(tmp_path / "final.pt")
     assert bundle["replay"]["size"] > 0 and bundle["counters"]["updates"] > 0
+    # a partly filled replay is saved as its rows, not its whole preallocated storage
+    n, obs = bundle["replay"]["size"], bundle["replay"]["data"][keys.OBSERVATION]
+    assert n < cfg.train.buffer_size and obs.shape[0] == n
+    assert obs.untyped_storage().nbytes() == obs.numel() * obs.element_size()
     heads, cfg2 = load_heads(tmp_path / "final.pt")
     assert cfg2 == cfg
     for name, t in heads.state_dict().items():
