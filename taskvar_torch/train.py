@@ -219,6 +219,7 @@ def train(
     overrides: Sequence[str] = (),
     progress: bool = True,
     overwrite: bool = False,
+    keep_replay: bool = True,
 ) -> dict[str, Any]:
     """Train every head of ``cfg``'s family; write logs, checkpoints and ``out_dir/final.pt``.
 
@@ -232,6 +233,9 @@ def train(
         overrides: ``key.sub=value`` applied to the checkpoint's config when ``cfg`` is ``None``.
         progress: show a tqdm progress bar.
         overwrite: remove the run already in ``out_dir`` (config, checkpoints, logs) first.
+        keep_replay: ``False``: ``final.pt`` holds no replay buffer (up to ~1.3 GB at the scaled
+            configs' 1M rows; the bundle still evaluates, :func:`load_heads`, but cannot be
+            resumed); periodic checkpoints always hold it.
 
     Returns:
         ``{"final": path, "frames": int, "updates": int, "seconds": float, "last_log": dict}``.
@@ -260,6 +264,11 @@ def train(
     check_device(cfg.device)
     workers = cfg.collector.num_workers
     remote = collects_in_workers(cfg)
+    if bundle is not None and "replay" not in bundle:
+        raise CheckpointError(
+            f"cannot resume {str(resume)!r}: it holds no replay buffer (written with "
+            "keep_replay=False); it can be evaluated, not continued"
+        )
     if bundle is not None and remote:
         raise CheckpointError(
             f"cannot resume {str(resume)!r}: exact resume needs collector.num_workers=1 and "
@@ -279,7 +288,7 @@ def train(
         started = True
 
     try:
-        return _train_loop(cfg, out, bundle, resume, progress, on_start)
+        return _train_loop(cfg, out, bundle, resume, progress, on_start, keep_replay)
     except BaseException:
         if not started:
             folder.abandon()  # a run that never started leaves nothing behind
@@ -295,6 +304,7 @@ def _train_loop(
     resume: str | os.PathLike | None,
     progress: bool,
     on_start: Any,
+    keep_replay: bool = True,
 ) -> dict[str, Any]:
     """:func:`train` once its inputs are checked and ``out`` is held: build the run (or restore it
     from ``bundle``), then, batch by batch until ``train.total_frames``, store the transitions
@@ -329,7 +339,7 @@ def _train_loop(
                         last_log = row
                 pbar.close()
                 final = out / "final.pt"  # a first signal from here on: the run ends normally
-                run.save(final)
+                run.save(final, replay=keep_replay)
                 write_heads(out / HEADS_NAME, run.learner.eval_heads, cfg, run.counters)
             except KeyboardInterrupt:
                 raise KeyboardInterrupt(
@@ -461,13 +471,13 @@ class _Run:
             raise _interrupted(stop.signum, self.last_checkpoint, self.out, self.counters, remote)
         return row
 
-    def save(self, path: Path) -> None:
-        """Write the whole run state (:meth:`bundle`) to ``path``; a non-finite model is never
-        written."""
+    def save(self, path: Path, replay: bool = True) -> None:
+        """Write the whole run state (:meth:`bundle`) to ``path`` (``replay=False``: without the
+        replay buffer); a non-finite model is never written."""
         _require_finite(self.learner, self.counters["frames"], self.last_checkpoint)
-        save_checkpoint(path, self.bundle())
+        save_checkpoint(path, self.bundle(replay))
 
-    def bundle(self) -> dict[str, Any]:
+    def bundle(self, replay: bool = True) -> dict[str, Any]:
         """The checkpoint of the run: every head, target and optimiser, the learner's counters,
         replay, first-visit filter, statistics and RNG, and (one collector process) the env's
         simulator state and the collector's carried tensordict."""
@@ -479,7 +489,7 @@ class _Run:
             optimizers={"adam": learner.optimizer},
             counters=dict(self.counters),
             rng=rng_state({"replay": self.replay_generator}),
-            replay=replay_state(self.buffer),
+            replay=replay_state(self.buffer) if replay else None,
             learner={
                 k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
             },

@@ -140,6 +140,26 @@ def test_cli_help(command, capsys):
         assert "--resume" in text and "train.total_frames" in text
 
 
+def test_final_bundle_without_replay_evaluates_but_does_not_resume(tmp_path):
+    """keep_replay=False (the scale experiment's cells): final.pt without the replay buffer, the
+    same heads, smaller; resuming from it is refused."""
+    cfg = load_config(CONFIG, [*TINY, "train.total_frames=600", "train.checkpoint_every=0"])
+    train(cfg, tmp_path / "with", progress=False)
+    train(cfg, tmp_path / "without", progress=False, keep_replay=False)
+    with_replay = load_checkpoint(tmp_path / "with" / "final.pt")
+    bundle = load_checkpoint(tmp_path / "without" / "final.pt")
+    assert "replay" not in bundle and with_replay["replay"]["size"] > 0
+    for name, t in with_replay["models"]["heads"].items():
+        assert torch.equal(t, bundle["models"]["heads"][name]), name
+    heads, _ = load_heads(tmp_path / "without" / "final.pt")
+    assert (tmp_path / "without" / "final.pt").stat().st_size < (
+        tmp_path / "with" / "final.pt"
+    ).stat().st_size
+    with pytest.raises(CheckpointError, match="holds no replay buffer"):
+        train(None, tmp_path / "again", resume=tmp_path / "without" / "final.pt", progress=False)
+    assert not (tmp_path / "again").exists()
+
+
 def test_final_bundle_reloads_the_trained_heads(tmp_path):
     cfg = load_config(CONFIG, [*TINY, "train.total_frames=600", "train.checkpoint_every=0"])
     train(cfg, tmp_path, progress=False)

@@ -418,7 +418,10 @@ def run_cell(
 
     ccfg = case_config(cfg, case, num_envs)
     cell_dir = out / "cells" / f"{case.name}-n{num_envs}"
-    result = train(ccfg, cell_dir, progress=False, overwrite=overwrite)
+    # final.pt is deleted after evaluation unless kept: then it needs no replay buffer (~1.3 GB)
+    result = train(
+        ccfg, cell_dir, progress=False, overwrite=overwrite, keep_replay=cfg.keep_checkpoints
+    )
     heads, _ = load_heads(result["final"], device=ccfg.device)
     if not cfg.keep_checkpoints:
         Path(result["final"]).unlink(missing_ok=True)
