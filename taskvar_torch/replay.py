@@ -54,14 +54,13 @@ def replay_state(buffer: ReplayBuffer) -> dict[str, Any]:
     allocated at full capacity, and ``torch.save`` writes a view's whole storage.
     """
     n = len(buffer)
-    data = buffer[:n] if n else None
-    if data is not None and n < buffer.storage.max_size:
-        data = data.clone()
-    return {
-        "data": data.to_dict() if n else {},
-        "size": n,
-        "writer": buffer.writer.state_dict(),
-    }
+    data = {}
+    if n:
+        rows = buffer[:n]
+        if n < buffer.storage.max_size:
+            rows = rows.clone()
+        data = rows.to_dict()
+    return {"data": data, "size": n, "writer": buffer.writer.state_dict()}
 
 
 def load_replay_state(buffer: ReplayBuffer, state: dict[str, Any]) -> None:

@@ -291,8 +291,9 @@ def run_repetition(
         for trial in range(x.trials):
             tick, before = time.process_time(), agent.update_seconds
             learned = learning_phase(agent, learn_env)
-            cpu["updates"] += agent.update_seconds - before
-            cpu["learning_loop"] += time.process_time() - tick - (agent.update_seconds - before)
+            spent = agent.update_seconds - before
+            cpu["updates"] += spent
+            cpu["learning_loop"] += time.process_time() - tick - spent
             for key, v in learned.items():
                 rows[key].append(v)
             updates.append(agent.updates)
