@@ -7,14 +7,19 @@ the training seconds and their ratio to the baseline's (same seed), each head's 
 its exact optimum (``*``: within 2%), how many heads are within 2%, mu_bar's agreement at the
 start cells, the exact return of the learnt options controller and the learnt interruption
 condition's agreement with the exact one (``--no-max-value`` skips it); then, per variant, the share
-of heads within 2% over the seeds. Runs one after the other in this process (``--threads``
-torch threads), so their seconds are comparable when nothing else runs.
+of heads within 2% over the seeds. ``--snapshots K`` also saves the heads K times during training
+(``train.heads_every``) and reports each snapshot's heads (without the interruption condition): the
+first snapshot with every head within 2% is the time to a learnt bundle. Runs one after the other
+in this process (``--threads`` torch threads), so their seconds are comparable when nothing else
+runs.
 
 Usage::
 
     python benchmarks/time_to_bundle.py --config configs/windy_xl.yaml --seeds 0,1,2
     python benchmarks/time_to_bundle.py --config configs/windy_xl.yaml \\
         --variant shipped= --variant lr-decay=train.lr_end=0.0001,train.lr_decay_start_frames=2000000
+    python benchmarks/time_to_bundle.py --config configs/windy_xl.yaml --snapshots 6 \
+        --variant uniform= --variant per-option=train.replay_sampling=per_option
     python benchmarks/time_to_bundle.py --quick      # a smoke run: 5x5 layout, 3k frames
 """
 
@@ -26,11 +31,12 @@ from pathlib import Path
 
 import torch
 
+from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.scale import sparse_oracle
 from taskvar_torch.factory import load_heads
 from taskvar_torch.oracle.head_report import head_report
-from taskvar_torch.train import train
+from taskvar_torch.train import HEADS_SNAPSHOTS, train
 
 QUICK = ["train.total_frames=3000", "train.init_random_frames=500", "train.eps_decay_frames=1500"]
 
@@ -45,22 +51,41 @@ def parse_variant(text: str) -> tuple[str, list[str]]:
     return name, [o for o in rest.split(",") if o]
 
 
-def run_once(config: str, overrides: list[str], seed: int, max_value: bool = True) -> dict:
-    """Train one variant and seed in a scratch folder; its training seconds and head report."""
-    cfg = load_config(config, [*overrides, f"seed={seed}", "train.checkpoint_every=0"])
+def run_once(
+    config: str, overrides: list[str], seed: int, max_value: bool = True, snapshots: int = 0
+) -> dict:
+    """Train one variant and seed in a scratch folder; its training seconds and head report, and
+    with ``snapshots > 0`` the reports of that many snapshots of the heads along the way."""
+    extra = ["train.checkpoint_every=0"]
+    cfg = load_config(config, [*overrides, f"seed={seed}", *extra])
+    if snapshots > 0:
+        extra.append(f"train.heads_every={max(cfg.train.total_frames // snapshots, 1)}")
+        cfg = load_config(config, [*overrides, f"seed={seed}", *extra])
     if cfg.family != "windy":
         raise SystemExit(f"--config must be a windy config (exact oracle), got family {cfg.family}")
+    oracle = sparse_oracle(cfg)
+    along = []
     with tempfile.TemporaryDirectory() as tmp:
-        result = train(cfg, Path(tmp) / "run", progress=False)
+        result = train(cfg, Path(tmp) / "run", progress=False, keep_replay=False)
         heads, _ = load_heads(result["final"], device=cfg.device)
-    report = head_report(
-        heads, sparse_oracle(cfg), cfg.env.obs_encoding, cfg.env.patch_radius, max_value
-    )
+        for path in sorted((Path(tmp) / "run" / HEADS_SNAPSHOTS).glob("heads_*.pt")):
+            snap, _ = load_heads(path, device=cfg.device)
+            r = measure(snap, cfg, oracle, False)
+            counters = load_checkpoint(path)["counters"]
+            r["frames"], r["seconds"] = int(counters["frames"]), float(counters["seconds"])
+            along.append(r)
+    final = measure(heads, cfg, oracle, max_value)
+    final.update(seconds=float(result["seconds"]), frames=int(result["frames"]), snapshots=along)
+    return final
+
+
+def measure(heads, cfg, oracle, max_value: bool) -> dict:
+    """Each head's gap to its exact optimum, the heads within 2%, mu_bar's agreement, the options
+    controller's exact return and (``max_value``) the interruption condition's agreement."""
+    report = head_report(heads, oracle, cfg.env.obs_encoding, cfg.env.patch_radius, max_value)
     gaps = {"averaging": report["averaging"]}
     gaps.update(report.get("options", {}))
     return {
-        "seconds": float(result["seconds"]),
-        "frames": int(result["frames"]),
         "gaps": gaps,
         "within": sum(g["within_2pct"] for g in gaps.values()),
         "mu_bar": report["mu_bar"]["start_agreement"] if "mu_bar" in report else float("nan"),
@@ -68,6 +93,13 @@ def run_once(config: str, overrides: list[str], seed: int, max_value: bool = Tru
         "optimum": report["averaging"]["optimal_return"],
         "condition": report.get("interruption_condition", {}).get("agreement", float("nan")),
     }
+
+
+def gap_line(gaps: dict) -> str:
+    """``head gap`` for each head, ``*`` where within 2%."""
+    return ", ".join(
+        f"{h} {g['rel_gap']:.3f}" + ("*" if g["within_2pct"] else "") for h, g in gaps.items()
+    )
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -81,6 +113,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument("--seeds", default="0", help="comma-separated seeds (default 0)")
     ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    ap.add_argument(
+        "--snapshots",
+        type=int,
+        default=0,
+        help="also report the heads saved this many times during training (default 0: none)",
+    )
     ap.add_argument("--quick", action="store_true", help="5x5 windy.yaml, 3k frames: a smoke run")
     ap.add_argument(
         "--no-max-value",
@@ -98,13 +136,17 @@ def main(argv: list[str] | None = None) -> None:
     share: dict[str, list[int]] = {}
     for name, overrides in variants:
         for seed in seeds:
-            r = run_once(config, [*extra, *overrides], seed, not args.no_max_value)
+            r = run_once(config, [*extra, *overrides], seed, not args.no_max_value, args.snapshots)
+            for snap in r["snapshots"]:
+                print(
+                    f"{name:<12} seed {seed}, {snap['frames']} frames ({snap['seconds']:.0f} s): "
+                    f"{gap_line(snap['gaps'])}; {snap['within']}/{len(snap['gaps'])} within 2%; "
+                    f"mu_bar {snap['mu_bar']:.2f}; options controller {snap['controller']:.2f}",
+                    flush=True,
+                )
             base_seconds.setdefault(seed, r["seconds"])
             share.setdefault(name, []).append(r["within"])
-            heads = ", ".join(
-                f"{h} {g['rel_gap']:.3f}" + ("*" if g["within_2pct"] else "")
-                for h, g in r["gaps"].items()
-            )
+            heads = gap_line(r["gaps"])
             print(
                 f"{name:<12} seed {seed}: {r['frames']} frames in {r['seconds']:.1f} s "
                 f"(x{r['seconds'] / base_seconds[seed]:.2f} of {variants[0][0]}); {heads}; "

@@ -1,10 +1,12 @@
 """The replay of raw transitions the heads learn from (docs/design.md, Training the heads).
 
-One uniform ``ReplayBuffer`` over ``LazyTensorStorage`` holds raw transitions (observation, action,
+One ``ReplayBuffer`` over ``LazyTensorStorage`` holds raw transitions (observation, action,
 reward, the subtasks' integer state keys, ``next``), so every head's target is computed from the
-same sample (paper §3.2: intra-option learning from one stream of experience). Its sampling draws
-from the trainer's own generator only, and :func:`replay_state` / :func:`load_replay_state` save
-and restore it exactly for resume.
+same sample (paper §3.2: intra-option learning from one stream of experience). It samples
+uniformly (``train.replay_sampling = "uniform"``) or in equal shares per behaviour mode
+(``"per_option"``, :class:`PerOptionSampler`). Sampling draws from the trainer's own generator
+only and is a function of the stored rows and that generator, so :func:`replay_state` /
+:func:`load_replay_state` save and restore it exactly for resume.
 """
 
 from __future__ import annotations
@@ -15,19 +17,103 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler
+from torchrl.data.replay_buffers.samplers import Sampler
 
 from taskvar_torch import keys
 from taskvar_torch.config import Config
 
 EPISODE_REWARD = "episode_reward"  # RewardSum's running return
+REPLAY_SAMPLINGS = ("uniform", "per_option")
+"""``train.replay_sampling``: uniform over the buffer, or equal shares per behaviour mode."""
+MODE_KEY = "behaviour"  # the behaviour mode of a transition (heads/behaviour.py BEHAVIOUR)
+
+
+class PerOptionSampler(Sampler):
+    """Every sample in equal shares from each behaviour mode present in the buffer.
+
+    A transition's mode is the behaviour that played it (``"behaviour"``: -1 the averaging
+    policy, ``o >= 0`` option ``o``; heads/behaviour.py). The behaviour picks options by mu_bar, so
+    an option mu_bar does not prefer runs few episodes and its own trajectories (what its n-step
+    targets and its initiation states come from) are rare in a uniform sample. This sampler
+    splits each sample of ``B`` rows over the ``P`` modes present, row ``i`` from mode
+    ``i mod P`` (so the shares differ by at most one row), uniformly within the mode.
+
+    The rows grouped by mode are recomputed after each write (one stable sort of the mode column,
+    ~6 ms per million rows here), so sampling depends on the stored rows and the buffer's
+    generator only: a buffer refilled by :func:`load_replay_state` samples as the saved one.
+
+    Examples:
+        >>> rb = ReplayBuffer(storage=LazyTensorStorage(100), sampler=PerOptionSampler())
+        >>> _ = rb.extend(TensorDict({"behaviour": torch.tensor([-1] * 9 + [2])}, [10]))
+        >>> (rb.sample(4)["behaviour"] == 2).sum().item()  # half the rows from option 2's
+        2
+    """
+
+    def __init__(self, mode_key: str = MODE_KEY):
+        super().__init__()
+        self.mode_key = mode_key
+        self._groups: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+
+    def extend(self, index: torch.Tensor) -> None:
+        self._groups = None
+
+    def add(self, index: int) -> None:
+        self._groups = None
+
+    def _empty(self) -> None:
+        self._groups = None
+
+    def _group_rows(self, storage: Any) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Storage indices sorted by mode, and each present mode's row count and first position."""
+        n = len(storage)
+        modes = storage.get(slice(0, n)).get(self.mode_key).reshape(n)
+        if bool((modes < -1).any()):
+            raise ValueError(
+                f"replay rows have {self.mode_key!r} < -1; modes are -1 or option >= 0"
+            )
+        shifted = modes + 1  # 0 averaging, 1 + o option o
+        counts = torch.bincount(shifted)
+        order = torch.argsort(shifted.to(torch.int32), stable=True)
+        present = counts.nonzero().squeeze(1)
+        starts = torch.cumsum(counts, 0) - counts
+        return order, counts[present], starts[present]
+
+    def sample(self, storage: Any, batch_size: int) -> tuple[torch.Tensor, dict]:
+        if len(storage) == 0:
+            raise RuntimeError("Cannot sample from an empty storage.")
+        if self._groups is None:
+            self._groups = self._group_rows(storage)
+        order, counts, starts = self._groups
+        group = torch.arange(batch_size, device=order.device) % counts.numel()
+        u = torch.rand(batch_size, generator=self._rng, dtype=torch.float64)
+        offset = (u.to(order.device) * counts[group]).long().minimum(counts[group] - 1)
+        return order[starts[group] + offset], {}
+
+    def state_dict(self) -> dict[str, Any]:
+        return {}  # a function of the stored rows
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        self._groups = None
+
+    def dumps(self, path: Any) -> None:  # nothing beyond the storage
+        pass
+
+    def loads(self, path: Any) -> None:
+        self._groups = None
 
 
 def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
-    """Uniform replay of raw transitions; sampling draws from ``generator`` only."""
+    """Replay of raw transitions, sampled as ``train.replay_sampling`` says (uniform, or
+    :class:`PerOptionSampler`); sampling draws from ``generator`` only."""
     t = cfg.train
+    if t.replay_sampling not in REPLAY_SAMPLINGS:
+        raise ValueError(
+            f"train.replay_sampling must be one of {list(REPLAY_SAMPLINGS)}, "
+            f"got {t.replay_sampling!r}"
+        )
     return ReplayBuffer(
         storage=LazyTensorStorage(t.buffer_size, device=cfg.device),
-        sampler=RandomSampler(),
+        sampler=RandomSampler() if t.replay_sampling == "uniform" else PerOptionSampler(),
         batch_size=t.batch_size,
         generator=generator,
     )
@@ -73,6 +159,8 @@ def load_replay_state(buffer: ReplayBuffer, state: dict[str, Any]) -> None:
 
 __all__ = [
     "EPISODE_REWARD",
+    "REPLAY_SAMPLINGS",
+    "PerOptionSampler",
     "load_replay_state",
     "make_replay_buffer",
     "raw_transitions",

@@ -26,6 +26,7 @@ from taskvar_torch.config.choices import (
     METHODS,
     MU_BAR_MODES,
     OPTION_INPUTS,
+    REPLAY_SAMPLINGS,
     ROBUSTNESS_TARGETS,
     ROBUSTNESS_THRESHOLDS,
     ROBUSTNESS_UNTIL,
@@ -142,6 +143,7 @@ def _check_train(cfg: Config, fam: Family) -> None:
     _at_least("train.eps_decay_frames", t.eps_decay_frames, 0)
     _within("train.option_behaviour_prob", t.option_behaviour_prob, 0.0, 1.0)
     _within("train.option_coverage", t.option_coverage, 0.0, 1.0)
+    _one_of("train.replay_sampling", t.replay_sampling, REPLAY_SAMPLINGS)
     if t.n_step < 1:
         raise ValueError(f"train.n_step must be >= 1, got {t.n_step}")
     _one_of("train.target_update", t.target_update, TARGET_UPDATES)
