@@ -1,0 +1,91 @@
+"""Training throughput of config variants, side by side in one run (docs/scale.md).
+
+The real :func:`~taskvar_torch.train.train` of a family config (default ``configs/windy_xxl.yaml``,
+the 101x101 family, cut to ``--frames``) for each variant (``NAME=key.sub=value,...``; the first
+is the baseline), in alternating rounds (A, B, A, B, ...) so that machine load hits every variant
+alike. The rate is read from the run's own log rows (``logs/scalars/seconds.csv``) from the
+second row on, so it leaves out the start-up and, with ``train.compile``, most of the compile.
+Prints each run's frames per second, then each variant's median rate and its ratio to the
+baseline's.
+
+Usage::
+
+    python benchmarks/train_variants.py --threads 2 \\
+        --variant eager= --variant compiled=train.compile=true
+    python benchmarks/train_variants.py --threads 2 \\
+        --variant 16x256= --variant 8x512=train.batch_size=512,train.updates_per_batch=8
+
+The variants change what is learnt (except where they only change speed): this measures speed
+only; ``benchmarks/time_to_bundle.py`` measures the heads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import statistics
+import tempfile
+from pathlib import Path
+
+import torch
+
+from taskvar_torch.config import load_config
+from taskvar_torch.train import train
+
+
+def parse_variant(text: str) -> tuple[str, list[str]]:
+    """``NAME=key.sub=value,key.sub=value`` (or ``NAME=``) -> ``(NAME, [overrides])``."""
+    name, sep, rest = text.partition("=")
+    if not sep or not name:
+        raise argparse.ArgumentTypeError(
+            f"--variant must be NAME=key.sub=value,... (or NAME= for none), got {text!r}"
+        )
+    return name, [o for o in rest.split(",") if o]
+
+
+def steady_rate(config: str, overrides: list[str]) -> tuple[float, int]:
+    """Train in a scratch folder; frames per second between its first and last log rows, and the
+    frames between them."""
+    cfg = load_config(config, [*overrides, "train.checkpoint_every=0"])
+    with tempfile.TemporaryDirectory() as tmp:
+        train(cfg, Path(tmp) / "run", progress=False, keep_replay=False)
+        with open(Path(tmp) / "run" / "logs" / "scalars" / "seconds.csv") as f:
+            rows = [(int(frames), float(s)) for frames, s in csv.reader(f)]
+    if len(rows) < 3:
+        raise SystemExit("too few log rows: raise --frames or lower train.log_every")
+    (f0, s0), (f1, s1) = rows[1], rows[-1]
+    return (f1 - f0) / (s1 - s0), f1 - f0
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--config", default="configs/windy_xxl.yaml")
+    ap.add_argument("--frames", type=int, default=600_000, help="train.total_frames of each run")
+    ap.add_argument("--rounds", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
+    ap.add_argument(
+        "--variant",
+        action="append",
+        type=parse_variant,
+        required=True,
+        help="NAME=key.sub=value,... (repeatable; the first is the baseline)",
+    )
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    rates: dict[str, list[float]] = {name: [] for name, _ in args.variant}
+    for r in range(args.rounds):
+        for name, overrides in args.variant:
+            rate, frames = steady_rate(
+                args.config, [f"train.total_frames={args.frames}", *overrides]
+            )
+            rates[name].append(rate)
+            print(f"round {r}: {name:<12} {rate:8.0f} frames/s over {frames} frames", flush=True)
+    base = statistics.median(rates[args.variant[0][0]])
+    print(f"{args.config}, {args.frames} frames, {args.threads} thread(s), {args.rounds} rounds:")
+    for name, values in rates.items():
+        med = statistics.median(values)
+        print(f"  {name:<12} median {med:8.0f} frames/s, x{med / base:.2f} of {args.variant[0][0]}")
+
+
+if __name__ == "__main__":
+    main()
