@@ -28,19 +28,10 @@ import tempfile
 from pathlib import Path
 
 import torch
+from time_to_bundle import parse_variant  # benchmarks/ is the script's folder on sys.path
 
 from taskvar_torch.config import load_config
 from taskvar_torch.train import train
-
-
-def parse_variant(text: str) -> tuple[str, list[str]]:
-    """``NAME=key.sub=value,key.sub=value`` (or ``NAME=``) -> ``(NAME, [overrides])``."""
-    name, sep, rest = text.partition("=")
-    if not sep or not name:
-        raise argparse.ArgumentTypeError(
-            f"--variant must be NAME=key.sub=value,... (or NAME= for none), got {text!r}"
-        )
-    return name, [o for o in rest.split(",") if o]
 
 
 def steady_rate(config: str, overrides: list[str]) -> tuple[float, int]:

@@ -5,6 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 from tensordict import TensorDict
+from test_train import CONFIG
+from test_train import TINY as TINY_TRAIN  # tests/ is on sys.path (rootdir import mode)
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from taskvar_torch.checkpoint import load_checkpoint
@@ -13,19 +15,7 @@ from taskvar_torch.replay import PerOptionSampler, load_replay_state, replay_sta
 from taskvar_torch.train import train
 
 torch.set_num_threads(1)
-CONFIG = "configs/windy.yaml"
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=2000",
-    "train.checkpoint_every=1000",
-    "train.log_every=500",
-    "train.init_random_frames=300",
-    "train.batch_size=32",
-    "train.updates_per_batch=2",
-    "train.buffer_size=5000",
-    "train.replay_sampling=per_option",
-]
+TINY = [*TINY_TRAIN, "train.replay_sampling=per_option"]  # test_train's tiny windy run
 
 
 def buffer(modes: list[int], capacity: int = 1000, seed: int = 0) -> ReplayBuffer:
