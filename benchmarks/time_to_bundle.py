@@ -26,6 +26,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import tempfile
 from pathlib import Path
 
@@ -56,11 +57,10 @@ def run_once(
 ) -> dict:
     """Train one variant and seed in a scratch folder; its training seconds and head report, and
     with ``snapshots > 0`` the reports of that many snapshots of the heads along the way."""
-    extra = ["train.checkpoint_every=0"]
-    cfg = load_config(config, [*overrides, f"seed={seed}", *extra])
+    cfg = load_config(config, [*overrides, f"seed={seed}", "train.checkpoint_every=0"])
     if snapshots > 0:
-        extra.append(f"train.heads_every={max(cfg.train.total_frames // snapshots, 1)}")
-        cfg = load_config(config, [*overrides, f"seed={seed}", *extra])
+        every = max(cfg.train.total_frames // snapshots, 1)
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, heads_every=every))
     if cfg.family != "windy":
         raise SystemExit(f"--config must be a windy config (exact oracle), got family {cfg.family}")
     oracle = sparse_oracle(cfg)

@@ -21,11 +21,10 @@ from torchrl.data.replay_buffers.samplers import Sampler
 
 from taskvar_torch import keys
 from taskvar_torch.config import Config
+from taskvar_torch.config.choices import REPLAY_SAMPLINGS
+from taskvar_torch.heads.behaviour import BEHAVIOUR
 
 EPISODE_REWARD = "episode_reward"  # RewardSum's running return
-REPLAY_SAMPLINGS = ("uniform", "per_option")
-"""``train.replay_sampling``: uniform over the buffer, or equal shares per behaviour mode."""
-MODE_KEY = "behaviour"  # the behaviour mode of a transition (heads/behaviour.py BEHAVIOUR)
 
 
 class PerOptionSampler(Sampler):
@@ -49,7 +48,7 @@ class PerOptionSampler(Sampler):
         2
     """
 
-    def __init__(self, mode_key: str = MODE_KEY):
+    def __init__(self, mode_key: str = BEHAVIOUR):
         super().__init__()
         self.mode_key = mode_key
         self._groups: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
@@ -105,12 +104,7 @@ class PerOptionSampler(Sampler):
 def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
     """Replay of raw transitions, sampled as ``train.replay_sampling`` says (uniform, or
     :class:`PerOptionSampler`); sampling draws from ``generator`` only."""
-    t = cfg.train
-    if t.replay_sampling not in REPLAY_SAMPLINGS:
-        raise ValueError(
-            f"train.replay_sampling must be one of {list(REPLAY_SAMPLINGS)}, "
-            f"got {t.replay_sampling!r}"
-        )
+    t = cfg.train  # replay_sampling is one of REPLAY_SAMPLINGS (checked when the config is made)
     return ReplayBuffer(
         storage=LazyTensorStorage(t.buffer_size, device=cfg.device),
         sampler=RandomSampler() if t.replay_sampling == "uniform" else PerOptionSampler(),

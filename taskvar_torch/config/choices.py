@@ -31,4 +31,4 @@ HIERARCHY_DESCENTS = ("normalised", "raw")  # mirrors controllers/hierarchy.py
 COMPOSED_REWARDS = ("env", "sum")  # mirrors subtasks/wargus.py
 COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector
 MATMUL_DTYPES = ("bfloat16", "float32")  # mirrors heads/learner.py MATMUL_DTYPES
-REPLAY_SAMPLINGS = ("uniform", "per_option")  # mirrors taskvar_torch/replay.py
+REPLAY_SAMPLINGS = ("uniform", "per_option")  # taskvar_torch/replay.py make_replay_buffer
