@@ -450,3 +450,73 @@ def taxi_instances(spec: str | TaxiInstances | dict) -> TaxiInstances:
     raise ValueError(
         f"instances must be a name {list(TaxiInstances.NAMES)}, a dict or TaxiInstances"
     )
+
+
+def render_ansi(
+    state: int,
+    rainy_probability: float | None = None,
+    fickle_probability: float | None = None,
+    last_action: int | None = None,
+) -> str:
+    """Taxi-v4's map as plain text: ``T`` the empty taxi, ``P`` the taxi with the passenger
+    aboard, a waiting passenger's location in lower case; a header names the passenger, the
+    destination and (when given) the instance, a footer the last action, as Taxi-v4 does.
+
+    Examples:
+        >>> print(render_ansi(encode(2, 2, 0, 1)).splitlines()[3])
+        | : :T: : |
+    """
+    row, col, pas, dest = decode(int(state))
+    out = [list(line) for line in MAP]
+    if pas < IN_TAXI:
+        pr, pc = LOCS[pas]
+        out[1 + pr][2 * pc + 1] = out[1 + pr][2 * pc + 1].lower()
+    out[1 + row][2 * col + 1] = "P" if pas == IN_TAXI else "T"
+    where = "in taxi" if pas == IN_TAXI else LOC_NAMES[pas]
+    head = f"passenger: {where}, destination: {LOC_NAMES[dest]}"
+    if rainy_probability is not None:
+        head += f" | rainy_probability={rainy_probability:.2f}"
+    if fickle_probability is not None:
+        head += f" fickle_probability={fickle_probability:.2f}"
+    foot = "" if last_action is None else f"  ({ACTIONS[int(last_action)].capitalize()})"
+    return head + "\n" + "\n".join("".join(line) for line in out) + "\n" + foot + "\n"
+
+
+_LOC_COLOURS = ((220, 60, 60), (60, 180, 60), (230, 200, 40), (60, 90, 220))
+CELL_PX = 32
+
+
+def render_rgb(state: int, cell_px: int = CELL_PX) -> np.ndarray:
+    """``(5*px, 5*px, 3)`` uint8 image: locations tinted in their colour, the destination framed,
+    walls as dark bars, the passenger a disc, the taxi a yellow square (dark centre when full).
+
+    Examples:
+        >>> render_rgb(encode(2, 2, 0, 1)).shape
+        (160, 160, 3)
+    """
+    row, col, pas, dest = decode(int(state))
+    px = cell_px
+    img = np.full((NUM_ROWS * px, NUM_COLS * px, 3), 245, dtype=np.uint8)
+    for k, (r, c) in enumerate(LOCS):
+        tile = img[r * px : (r + 1) * px, c * px : (c + 1) * px]
+        tile[:] = (np.array(_LOC_COLOURS[k]) * 0.35 + 245 * 0.65).astype(np.uint8)
+        if k == dest:
+            b = max(px // 10, 1)
+            tile[:b], tile[-b:], tile[:, :b], tile[:, -b:] = (_LOC_COLOURS[k],) * 4
+    yy, xx = np.mgrid[0:px, 0:px]
+    c0 = (px - 1) / 2
+    disc = (yy - c0) ** 2 + (xx - c0) ** 2 <= (0.22 * px) ** 2
+    if pas < IN_TAXI:
+        r, c = LOCS[pas]
+        img[r * px : (r + 1) * px, c * px : (c + 1) * px][disc] = (120, 40, 160)
+    m = px // 5
+    taxi = img[row * px + m : (row + 1) * px - m, col * px + m : (col + 1) * px - m]
+    taxi[:] = (250, 190, 0)
+    if pas == IN_TAXI:
+        taxi[m : -m or None, m : -m or None] = (120, 40, 160)
+    for r in range(NUM_ROWS):
+        for c in range(NUM_COLS - 1):
+            if MAP[1 + r][2 * c + 2] == "|":
+                img[r * px : (r + 1) * px, (c + 1) * px - 2 : (c + 1) * px + 2] = (40, 40, 50)
+    img[::px, :] = img[:, ::px] = (200, 200, 200)
+    return img
