@@ -169,6 +169,8 @@ class TaxiModel:
             passenger is aboard in ``s`` and the taxi's position changes).
         fickle_targets: (S, 3) int64, ``s'`` with its destination replaced by each of the three
             other destinations (ascending), the states a fired fickle rule leads to.
+        next_flat, reward_flat, done_flat, fickle_targets_flat, fickle_fires_flat: flat copies
+            for one-gather lookups (``fickle_fires_flat`` is ``fickle_moves[s, next[s, a, k]]``).
         np_*: numpy copies for the single-environment Gymnasium path.
 
     Examples:
@@ -195,6 +197,9 @@ class TaxiModel:
         self.fickle_moves = torch.as_tensor(moves, device=self.device)
         self.fickle_targets = torch.as_tensor(targets, **t)
         self.fickle_targets_flat = self.fickle_targets.reshape(-1).contiguous()
+        # fickle_fires_flat[(s * A + a) * 3 + k]: the rule fires on outcome k of (s, a)
+        fires_sak = np.take_along_axis(moves, nxt.reshape(NUM_STATES, -1), 1)  # (S, A * 3)
+        self.fickle_fires_flat = torch.as_tensor(fires_sak.reshape(-1).copy(), device=self.device)
         self.num_states, self.num_actions = NUM_STATES, NUM_ACTIONS
 
 
@@ -263,13 +268,11 @@ def step(
         ((1, 0, 4, 0), -1.0, False, False)
     """
     sa = torch.add(action, state, alpha=NUM_ACTIONS)  # (N,)
-    nxt = model.next_flat.index_select(0, torch.add(outcome, sa, alpha=NUM_OUTCOMES))  # (N,)
+    sao = torch.add(outcome, sa, alpha=NUM_OUTCOMES)  # (N,)
+    nxt = model.next_flat.index_select(0, sao)  # (N,)
     reward = model.reward_flat.index_select(0, sa)  # (N,)
     terminated = model.done_flat.index_select(0, sa)  # (N,)
-    # fires: passenger aboard at the start (state's passenger digit) and the position changed
-    aboard = (state // NUM_LOCS) % (NUM_LOCS + 1) == IN_TAXI
-    moved = (state // (NUM_LOCS * (NUM_LOCS + 1))) != (nxt // (NUM_LOCS * (NUM_LOCS + 1)))
-    fire = armed & aboard & moved  # (N,)
+    fire = model.fickle_fires_flat.index_select(0, sao).logical_and_(armed)  # (N,)
     fired = model.fickle_targets_flat.index_select(0, torch.add(redraw, nxt, alpha=3))  # (N,)
     nxt = torch.where(fire, fired, nxt)
     return nxt, reward, terminated, armed & ~fire
@@ -463,7 +466,7 @@ def render_ansi(
     destination and (when given) the instance, a footer the last action, as Taxi-v4 does.
 
     Examples:
-        >>> print(render_ansi(encode(2, 2, 0, 1)).splitlines()[3])
+        >>> print(render_ansi(encode(2, 2, 0, 1)).splitlines()[4])
         | : :T: : |
     """
     row, col, pas, dest = decode(int(state))

@@ -163,6 +163,7 @@ class TaxiEnv(BatchedFamilyEnv):
         )
         counters = (*self.instances.counters, _C_START, _C_ARMED)
         self._reset_counters = torch.tensor(counters, device=self.device).unsqueeze(-1)  # (C, 1)
+        self._pair = torch.tensor([[0], [1]], dtype=torch.int32, device=self.device)  # (2, 1)
         self._make_specs()
         self._set_seed(seed)
 
@@ -252,11 +253,11 @@ class TaxiEnv(BatchedFamilyEnv):
         if self.validate_actions and bool(((action < 0) | (action >= taxi.NUM_ACTIONS)).any()):
             bad = action[(action < 0) | (action >= taxi.NUM_ACTIONS)][0].item()
             raise ValueError(f"action must be in [0, {taxi.NUM_ACTIONS - 1}], got {bad}")
-        counter = self._t * 2
-        u = rng.draw_bits_i32(self._key32, counter).bitwise_right_shift_(8).bitwise_and_(0xFFFFFF)
-        outcome = (u >= self._thr_intended).to(torch.int64) + (u >= self._thr_left)  # (N,)
-        v = rng.draw_bits_i32(self._key32, counter + 1).bitwise_right_shift_(8)
-        redraw = (v.bitwise_and_(0xFFFFFF) * 3).bitwise_right_shift_(24).to(torch.int64)  # (N,)
+        counters = torch.add(self._pair, self._t, alpha=2)  # (2, N): 2t rain, 2t + 1 redraw
+        bits = rng.draw_bits_i32(self._key32, counters).bitwise_right_shift_(8)
+        u, v = bits.bitwise_and_(0xFFFFFF)  # (N,) each, uniform on [0, 2^24)
+        outcome = (u >= self._thr_intended).to(torch.int64).add_(u >= self._thr_left)  # (N,)
+        redraw = v.mul(3).bitwise_right_shift_(24).to(torch.int64)  # (N,) uniform in {0, 1, 2}
         state, reward, terminated, armed = taxi.step(
             self.model, self._state, action, outcome, self._armed, redraw
         )
