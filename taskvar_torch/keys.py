@@ -36,6 +36,10 @@ RUNNING_OPTION = "running_option"
 HIERARCHY_LEVEL = "hierarchy_level"
 INTERRUPTED = "interrupted"
 
+# Option controllers' input besides the heads (option-first (O, B) inside the kernels): s_t is in
+# option o's initiation set I_o (Subtasks.initiation), the options mu_bar may pick (paper §3.2).
+INITIABLE = "initiable"
+
 # Hierarchy inputs besides the heads (option-first inside the kernels): where each option can take
 # control (Subtasks.startable), and per-row calibrated thresholds / scales of the robustness critics.
 STARTABLE = "startable"

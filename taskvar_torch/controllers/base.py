@@ -114,11 +114,59 @@ def option_first(x: Tensor) -> Tensor:
     return x.movedim(0, -1)
 
 
-def sample_categorical(probs: Tensor, u: Tensor) -> Tensor:
-    """Index ``k`` with ``cdf[k-1] <= u < cdf[k]`` for ``probs (K, B)`` and uniforms ``u (B,)``."""
+def any0(mask: Tensor) -> Tensor:
+    """``any`` over dim 0 of a bool ``mask (K, ...)``, elementwise over the batch (as :func:`argmax0`)."""
+    K = mask.shape[0]
+    if K > _LOOP_MAX:
+        return mask.any(0)
+    out = mask[0]
+    for k in range(1, K):
+        out = out | mask[k]
+    return out
+
+
+def last_true0(mask: Tensor) -> Tensor:
+    """The highest ``k`` with ``mask[k]`` over dim 0 of a bool ``mask (K, B)`` (0 where none)."""
+    K = mask.shape[0]
+    if K > _LOOP_MAX:
+        ks = torch.arange(K, device=mask.device).view(K, *([1] * (mask.dim() - 1)))
+        return (mask * ks).amax(0)
+    out = torch.zeros(mask.shape[1:], dtype=torch.int64, device=mask.device)
+    for k in range(1, K):
+        out = torch.where(mask[k], k, out)
+    return out
+
+
+def sample_categorical(probs: Tensor, u: Tensor, allowed: Tensor | None = None) -> Tensor:
+    """Index ``k`` with ``cdf[k-1] <= u < cdf[k]`` for ``probs (K, B)`` and uniforms ``u (B,)``.
+
+    A ``u`` at or past the rounded total (``cdf[-1] < 1``) returns the last index; with ``allowed``
+    ``(K, B)`` bool (``probs`` zero elsewhere), the last allowed one, so a draw is always allowed.
+    """
     cdf = probs.cumsum(0)  # (K, B)
     k = (cdf <= u.to(cdf.dtype)).sum(0)
-    return k.clamp(max=probs.shape[0] - 1)
+    if allowed is None:
+        return k.clamp(max=probs.shape[0] - 1)
+    return torch.minimum(k, last_true0(allowed))
+
+
+def defines_initiation(subtasks: Subtasks | None) -> bool:
+    """Whether ``subtasks`` define initiation sets (override :meth:`Subtasks.initiation`).
+
+    Subtasks that only give termination (the base class raises) are initiable everywhere.
+    """
+    return subtasks is not None and type(subtasks).initiation is not Subtasks.initiation
+
+
+def first_argmax_where(values: Sequence[float], allowed: Sequence[bool] | None) -> int:
+    """Python-scalar argmax over the ``allowed`` entries, the lowest index on ties; -1 if none."""
+    if allowed is None:
+        return first_argmax(values)
+    idx = -1
+    for k, ok in enumerate(allowed):
+        if ok and (idx < 0 or values[k] > values[idx]):
+            idx = k
+    return idx
 
 
 ROOT_POLICIES = ("averaging", "option")  # the composed root's pi: greedy in Q_avg, or its own head
@@ -241,8 +289,12 @@ class Controller(TensorDictModuleBase):
 
     Args:
         heads: the head bundle (networks or the oracle's tables).
-        subtasks: options' termination ``beta(s)`` (``Subtasks.termination``); ``None``: options
-            run until the episode ends (the windy exits terminate only there).
+        subtasks: options' termination ``beta(s)`` (``Subtasks.termination``) and, for the option
+            controllers (``reads_initiation``), initiation sets ``I_o`` (``Subtasks.initiation``,
+            read through :meth:`extra_inputs` as ``initiable``): mu_bar only picks an option whose
+            I_o holds s_t, and where none does the averaging head acts (then the bundle needs it).
+            ``None``: options run until the episode ends (the windy exits terminate only there)
+            and may start anywhere.
         seed: seed of the controller's own ``torch.Generator`` (softmax mu_bar draws only).
         root_policy: the policy of the composition hierarchy's root option (``hierarchy`` or
             ``subtasks.hierarchy``): ``"option"`` (its own option head) or ``"averaging"`` (the
@@ -255,6 +307,7 @@ class Controller(TensorDictModuleBase):
     required_heads: tuple[str, ...] = ()
     trace_keys: tuple[str, ...] = ()
     stateful: bool = True
+    reads_initiation: bool = False  # option picks honour I_o (options, interruption)
 
     def __init__(
         self,
@@ -276,10 +329,19 @@ class Controller(TensorDictModuleBase):
             self.root_index = list(heads.option_names).index(tree.root)
             if "averaging" not in self.required_heads:
                 self.required_heads = ("averaging", *self.required_heads)
+        # the option controllers with initiation sets: where no option is initiable the averaging
+        # policy acts (the fallback of InterruptionController), so they need its head
+        self.honours_initiation = self.reads_initiation and defines_initiation(subtasks)
+        if self.honours_initiation and "averaging" not in self.required_heads:
+            self.required_heads = ("averaging", *self.required_heads)
         missing = [h for h in self.required_heads if not heads.has(h)]
         if missing:
+            why = ""
+            if self.honours_initiation and "averaging" in missing:
+                why = " (the averaging head acts where no option is initiable)"
             raise ValueError(
-                f"controller {self.name!r} needs head(s) {missing}; the bundle has {list(heads.heads)}"
+                f"controller {self.name!r} needs head(s) {missing}{why}; the bundle has "
+                f"{list(heads.heads)}"
             )
         self.heads = heads
         self.subtasks = subtasks
@@ -479,7 +541,9 @@ class GymnasiumPolicy:
 
     ``reset()`` at each episode start, then ``action = policy(obs, info)``. The carried state and
     the last decision traces are kept in ``self.state`` / ``self.trace``. Uses the controller's
-    real-time scalar path (:meth:`Controller.act_one`).
+    real-time scalar path (:meth:`Controller.act_one`); the controller's ``subtasks`` read their
+    termination and initiation sets from the same inputs (so give ``width`` when they read
+    ``cell``).
 
     Args:
         controller: any :class:`Controller`.

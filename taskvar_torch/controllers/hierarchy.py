@@ -206,7 +206,10 @@ def hierarchy_decide_of(
     10) only considers components that can take control at s_t (``startable``; a composed node
     none of whose components can keeps control itself) and compares them by raw R (the paper) or by
     the normalised margin ``(R - loc) / scale`` (``loc`` / ``scale``: common scale across
-    components).
+    components). ``startable`` is not checked where control moves up or starts: the root takes
+    control at the episode start (the full task) and a parent regains it (lines 1-3) by resuming
+    a subtask it started, so a component enters only through the descent, within its initiation
+    set. The hierarchy needs no averaging fallback: some node always holds control.
 
     Returns ``action``, ``option`` (the subtask that acts: the next running subtask),
     ``hierarchy_level`` (its depth, 0 = root) and ``interrupted`` (control left a running subtask

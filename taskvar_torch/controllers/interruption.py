@@ -7,12 +7,15 @@ from collections.abc import Mapping
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 
 from taskvar_torch import keys
 from taskvar_torch.controllers.base import (
     Controller,
+    any0,
     argmax0,
     first_argmax,
+    first_argmax_where,
     max0,
     option_first,
     sample_categorical,
@@ -30,6 +33,8 @@ def interruption_decide_of(
     terminated: Tensor | None = None,  # (B,) bool beta_{o_run}(s_t) = 1
     mu: Tensor | None = None,  # (O, B) softmax mu_bar(s_t, .); None: greedy mu_bar
     u: Tensor | None = None,  # (B,) uniforms for drawing o ~ mu_bar (softmax only)
+    initiable: Tensor | None = None,  # (O, B) bool s_t in I_o; None: every option everywhere
+    q_avg: Tensor | None = None,  # (A, B) Q_avg(s_t, a): acts where no option is initiable
 ) -> dict[str, Tensor]:
     """One step of Algorithm 1 for a batch (option-first inputs).
 
@@ -40,9 +45,24 @@ def interruption_decide_of(
       when the draw returns the same option;
     - line 11: ``a_t = argmax_a Q_{o_run}(s_t, a)``.
 
-    Returns ``action``, ``option`` (the new o_run) and ``interrupted``, each ``(B,)``.
+    With ``initiable`` (the initiation sets ``I_o`` at s_t, paper §3.2) mu_bar ranges over the
+    initiable options only: line 4's argmax, line 7's draw (``mu`` must then be the softmax over
+    them, zero elsewhere: :func:`masked_mu_bar`) and line 6's ``V^{mu_bar}(s_t)`` (the max, or the
+    renormalised mu_bar's average, over initiable options). A running option is not checked
+    against its I_o (it continues outside it until beta or line 6). Where no option is
+    initiable: a running option continues (nothing to interrupt to: line 6 does not fire), and line
+    4 has no option to pick, so the averaging policy acts (``argmax_a Q_avg(s_t, a)``, ``q_avg``
+    needed) with ``option = -1``: o_run stays empty and line 4 is tried again at the next step.
+
+    Returns ``action``, ``option`` (the new o_run, -1 for the averaging fallback) and
+    ``interrupted``, each ``(B,)``.
     """
-    best = argmax0(q_mu)  # (B,) line 4
+    some = None
+    q_pick = q_mu
+    if initiable is not None:
+        some = any0(initiable)  # (B,) some option can start at s_t
+        q_pick = torch.where(initiable, q_mu, float("-inf"))  # mu_bar over I only
+    best = argmax0(q_pick)  # (B,) line 4
     empty = running < 0  # (B,)
     if terminated is not None:
         empty = empty | terminated
@@ -50,17 +70,38 @@ def interruption_decide_of(
         option = torch.where(empty, best, running)
         interrupted = torch.zeros_like(empty)
     else:
-        v = max0(q_mu) if mu is None else (mu * q_mu).sum(0)  # (B,) V^{mu_bar}(s_t)
+        # (B,) V^{mu_bar}(s_t) (-inf where none is initiable with a greedy mu_bar: never below)
+        v = max0(q_pick) if mu is None else (mu * q_mu).sum(0)
         below = select0(q_hat, running.clamp(min=0)) < v  # (B,) line 6
         if mu is None:
             option = torch.where(empty | below, best, running)
             interrupted = below & ~empty
         else:
             interrupted = below & ~empty
-            drawn = sample_categorical(mu, u)  # line 7
+            if some is not None:
+                interrupted = interrupted & some
+            drawn = sample_categorical(mu, u, initiable)  # line 7
             option = torch.where(empty, best, torch.where(interrupted, drawn, running))
-    action = argmax0(select0(q_opt, option))  # (B,) line 11
+    if some is None:
+        action = argmax0(select0(q_opt, option))  # (B,) line 11
+    else:
+        if q_avg is None:
+            raise ValueError("initiable needs q_avg: the averaging policy acts where none is")
+        fallback = empty > some  # (B,) empty & ~some: line 4 with no initiable option
+        q_act = torch.where(fallback, q_avg, select0(q_opt, option))  # (A, B): pi^{o_run} or Q_avg
+        action = argmax0(q_act)  # (B,) line 11
+        option = torch.where(fallback, -1, option)
     return {"action": action, "option": option, keys.INTERRUPTED: interrupted}
+
+
+def masked_mu_bar(q_mu: Tensor, temperature: float, initiable: Tensor | None) -> Tensor:
+    """Softmax mu_bar ``(O, B)`` over dim 0 of ``Q_mu / T``, renormalised over the ``initiable``
+    options (zero elsewhere); where none is initiable, over every option (finite, never drawn)."""
+    logits = q_mu / temperature
+    if initiable is not None:
+        allowed = initiable | ~any0(initiable)  # (O, B)
+        logits = logits.masked_fill(~allowed, float("-inf"))
+    return torch.softmax(logits, dim=0)
 
 
 def interruption_decide(
@@ -71,25 +112,35 @@ def interruption_decide(
     terminated: Tensor | None = None,  # (B,)
     mu: Tensor | None = None,  # (B, O)
     u: Tensor | None = None,  # (B,)
+    initiable: Tensor | None = None,  # (B, O)
+    q_avg: Tensor | None = None,  # (B, A)
 ) -> dict[str, Tensor]:
     """:func:`interruption_decide_of` for head outputs in the bundle layout (batch first)."""
+    of = lambda x: None if x is None else option_first(x)  # noqa: E731
     return interruption_decide_of(
         option_first(q_opt),
         option_first(q_mu),
-        None if q_hat is None else option_first(q_hat),
+        of(q_hat),
         running,
         terminated,
-        None if mu is None else option_first(mu),
+        of(mu),
         u,
+        of(initiable),
+        of(q_avg),
     )
 
 
 class InterruptionController(Controller):
     """Options with offline interruption (Algorithm 1): reads Q_o, Q_mu and Q_hat heads only.
 
-    Writes ``action``, ``option`` (the option that ran), ``interrupted`` (line 6 fired) and
-    ``("next", "running_option")``. A softmax mu_bar (``heads.softmax_temperature``) draws from the
-    controller's own seeded generator.
+    Writes ``action``, ``option`` (the option that ran, -1 when the averaging head acted),
+    ``interrupted`` (line 6 fired) and ``("next", "running_option")``. A softmax mu_bar
+    (``heads.softmax_temperature``) draws from the controller's own seeded generator.
+
+    With ``subtasks`` that define initiation sets, mu_bar picks and draws only among the options
+    initiable at s_t (``initiable``, read by :meth:`extra_inputs`), and line 6's V^{mu_bar} ranges
+    over them; where none is initiable and an option must be picked, the averaging head acts and
+    the option is -1 (:func:`interruption_decide_of`). The bundle then needs the averaging head.
 
     Examples:
         >>> oracle = WindyOracle("whole_column_windy", train_instances="south")
@@ -104,42 +155,69 @@ class InterruptionController(Controller):
     required_heads = ("options", "switching", "max_value")
     trace_keys = (keys.OPTION, keys.INTERRUPTED)
     interrupt = True
+    reads_initiation = True
 
     def _softmax(self) -> bool:
         return self.interrupt and self.heads.softmax_temperature is not None
+
+    def extra_inputs(self, td: TensorDictBase) -> dict[str, Tensor]:
+        """``initiable`` ``(B, O)`` bool (``Subtasks.initiation``) when the subtasks define it."""
+        if not self.honours_initiation:
+            return {}
+        return {keys.INITIABLE: self.subtasks.initiation(td)}
 
     def decide_of(
         self, values: Mapping[str, Tensor], running: Tensor, terminated: Tensor | None
     ) -> dict[str, Tensor]:
         q_mu = values[keys.OPTION_VALUE]  # (O, B)
+        initiable = values.get(keys.INITIABLE)  # (O, B) or None
         mu = u = None
         if self._softmax():
-            mu = torch.softmax(q_mu / self.heads.softmax_temperature, dim=0)  # (O, B)
+            mu = masked_mu_bar(q_mu, self.heads.softmax_temperature, initiable)  # (O, B)
             g = self.generator(q_mu.device)
             u = torch.rand(q_mu.shape[1], generator=g, device=q_mu.device, dtype=q_mu.dtype)
         q_hat = values[keys.MAX_VALUE] if self.interrupt else None
+        q_avg = values.get(keys.ACTION_VALUE) if initiable is not None else None
         return interruption_decide_of(
-            values[keys.OPTION_ACTION_VALUE], q_mu, q_hat, running, terminated, mu, u
+            values[keys.OPTION_ACTION_VALUE],
+            q_mu,
+            q_hat,
+            running,
+            terminated,
+            mu,
+            u,
+            initiable,
+            q_avg,
         )
 
     def decide_scalar(
         self, values: Mapping[str, list], running: int, terminated: bool
     ) -> dict[str, Any]:
         q_mu = values[keys.OPTION_VALUE]  # [O]
-        best = first_argmax(q_mu)
+        init = values.get(keys.INITIABLE)  # [O] bool or None: I_o at s_t
+        best = first_argmax_where(q_mu, init)  # -1: no option is initiable
         interrupted = False
         if running < 0 or terminated:
+            if best < 0:  # line 4 has no option: the averaging policy acts
+                return {
+                    "action": first_argmax(values[keys.ACTION_VALUE]),
+                    "option": -1,
+                    keys.INTERRUPTED: False,
+                }
             option = best  # line 4
-        elif not self.interrupt:
+        elif not self.interrupt or best < 0:  # no interruption, or no option to interrupt to
             option = running
         else:
+            allowed = range(len(q_mu)) if init is None else [k for k, ok in enumerate(init) if ok]
+            mu = [0.0] * len(q_mu)  # mu_bar over the initiable options
             if self._softmax():
                 T = self.heads.softmax_temperature
-                m = max(q_mu)
-                w = [math.exp((q - m) / T) for q in q_mu]
-                z = sum(w)
-                mu = [x / z for x in w]
-                v = sum(p * q for p, q in zip(mu, q_mu))
+                m = max(q_mu[k] for k in allowed)
+                w = {k: math.exp((q_mu[k] - m) / T) for k in allowed}
+                z = sum(w.values())
+                for k in allowed:
+                    mu[k] = w[k] / z
+                v = sum(mu[k] * q_mu[k] for k in allowed)
             else:
                 v = q_mu[best]
             interrupted = values[keys.MAX_VALUE][running] < v  # line 6
@@ -147,9 +225,9 @@ class InterruptionController(Controller):
             if interrupted:
                 if self._softmax():
                     u = float(torch.rand(1, generator=self.generator(torch.device("cpu"))))
-                    option, acc = len(mu) - 1, 0.0
-                    for k, pk in enumerate(mu):
-                        acc += pk
+                    option, acc = allowed[-1], 0.0
+                    for k in allowed:
+                        acc += mu[k]
                         if acc > u:
                             option = k
                             break

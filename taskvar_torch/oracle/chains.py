@@ -77,7 +77,7 @@ class ControllerChains:
             return self._averaging_chain(t)
         if name in ("options", "interruption"):
             return self._option_chain(t, heads, subtasks, interrupt=name == "interruption")
-        return self._hierarchy_chain(t, heads, hierarchy, tau)
+        return self._hierarchy_chain(t, heads, hierarchy, tau, subtasks)
 
     def _averaging_chain(self, t: dict[str, Tensor]) -> dict[str, Tensor]:
         """The averaging policy (paper §3.1) as a one-state chain: greedy in ``action_value``."""
@@ -103,11 +103,29 @@ class ControllerChains:
         next_state = torch.arange(1, O + 1, device=self.device)
         return act, decision, fires, next_state
 
+    def _initiation_table(
+        self, subtasks: Subtasks | None, method: str = "initiation"
+    ) -> Tensor | None:
+        """``(S, O)`` bool ``subtasks.<method>`` at every cell (``initiation``: I_o; ``startable``:
+        where o can take control in the hierarchy), or None where the subtasks define no
+        initiation sets (then every option may start everywhere)."""
+        if subtasks is None or type(subtasks).initiation is Subtasks.initiation:
+            return None
+        cells = torch.arange(self.S, device=self.device)
+        return getattr(subtasks, method)(self._cells_td(cells)).to(torch.bool)
+
     def _option_chain(
         self, t: dict[str, Tensor], heads: Heads, subtasks: Subtasks | None, interrupt: bool
     ) -> dict[str, Tensor]:
         """Options: the option greedy in ``option_value`` at the start and at termination
-        (Algorithm 1 line 4); with ``interrupt``, also Algorithm 1's interruption (lines 6-8)."""
+        (Algorithm 1 line 4); with ``interrupt``, also Algorithm 1's interruption (lines 6-8).
+
+        With ``subtasks`` that define initiation sets, mu_bar ranges over the options initiable at
+        s (line 4's argmax, line 6's ``V^{mu_bar}(s)``, line 7's distribution renormalised over
+        them). Where none is: line 6 does not fire, and where line 4 must pick, the averaging
+        policy acts and the carried state stays empty: the chain then has ``N = O + 1`` columns,
+        the last one ``argmax_a Q_avg(s, a)`` with ``z' = 0``.
+        """
         S = self.S
         act, decision, fires, next_state = self._empty_option_chain(t)
         O = act.shape[1]  # noqa: E741
@@ -115,15 +133,28 @@ class ControllerChains:
         mu = heads.mu_bar(q_mu).to(torch.float64)  # (S, O)
         v = (heads.mu_bar(q_mu) * q_mu).sum(-1)  # (S,)
         best = q_mu.argmax(-1)  # (S,) line 4
+        init = self._initiation_table(subtasks)  # (S, O) or None
+        none = torch.zeros(S, dtype=torch.bool, device=self.device)
+        if init is not None:  # mu_bar over the initiable options only
+            none = ~init.any(-1)  # (S,)
+            q_in = q_mu.masked_fill(~init, float("-inf"))  # (S, O)
+            best = q_in.argmax(-1)
+            mu_in = heads.mu_bar(q_in).masked_fill(none.unsqueeze(-1), 0.0)  # (S, O) renormalised
+            mu = mu_in.to(torch.float64)
+            v = (mu_in * q_mu).sum(-1)  # (S,) (unused where none is initiable)
+            # the fallback column: the averaging policy acts, o_run stays empty
+            act = torch.cat([act, t[keys.ACTION_VALUE].argmax(-1, keepdim=True)], 1)  # (S, O + 1)
+            decision = torch.cat([decision, torch.zeros_like(decision[..., :1])], -1)
+            next_state = torch.cat([next_state, torch.zeros_like(next_state[:1])])
         beta = torch.zeros(S, O, dtype=torch.bool, device=self.device)
         if subtasks is not None:
             beta = subtasks.termination(self._cells_td(torch.arange(S, device=self.device)))
         for s in range(S):
             for z in range(O + 1):
                 if z == 0 or bool(beta[s, z - 1]):
-                    decision[s, z, best[s]] = 1.0
-                elif interrupt and bool(t[keys.MAX_VALUE][s, z - 1] < v[s]):
-                    decision[s, z] = mu[s]  # lines 6-8
+                    decision[s, z, O if bool(none[s]) else best[s]] = 1.0  # line 4 / fallback
+                elif interrupt and not bool(none[s]) and bool(t[keys.MAX_VALUE][s, z - 1] < v[s]):
+                    decision[s, z, :O] = mu[s]  # lines 6-8
                     fires[s, z] = True
                 else:
                     decision[s, z, z - 1] = 1.0
@@ -135,8 +166,15 @@ class ControllerChains:
         heads: Heads,
         hierarchy: Hierarchy | None,
         tau: float | None,
+        subtasks: Subtasks | None = None,
     ) -> dict[str, Tensor]:
-        """Algorithm 2 (hierarchical search), literally, with greedy option policies."""
+        """Algorithm 2 (hierarchical search), literally, with greedy option policies.
+
+        With ``subtasks`` (a hierarchy controller that honours them), as that controller: a
+        running subtask whose termination holds hands control to its parent first, and the descent
+        (line 10) only considers components that can take control at s (``Subtasks.startable``:
+        in I_q and not terminated); a composed node none of whose components can keeps control.
+        """
         S = self.S
         act, decision, fires, next_state = self._empty_option_chain(t)
         O = act.shape[1]  # noqa: E741
@@ -144,6 +182,14 @@ class ControllerChains:
             raise ValueError("the hierarchy controller needs a hierarchy and tau")
         names = list(heads.option_names)
         rob = t[keys.ROBUSTNESS]  # (S, O, A)
+        can = self._initiation_table(subtasks, "startable")  # (S, O) or None
+        beta = torch.zeros(S, O, dtype=torch.bool, device=self.device)
+        if subtasks is not None:
+            beta = subtasks.termination(self._cells_td(torch.arange(S, device=self.device)))
+
+        def parent_of(o: int) -> int | None:
+            p = hierarchy.parent(names[o])
+            return None if p is None else names.index(p)
 
         def search(s: int, o_run: int, p: int | None) -> int:
             """HierarchicalSearch(K, o_run, p, tau, s): the option whose action is returned."""
@@ -151,6 +197,8 @@ class ControllerChains:
                 return p
             a = int(act[s, o_run])  # line 5
             kids = [names.index(k) for k in hierarchy.components(names[o_run])]
+            if can is not None:
+                kids = [k for k in kids if bool(can[s, k])]
             if not kids or float(rob[s, o_run, a]) > tau:  # line 6
                 return o_run
             q_star = max(kids, key=lambda q: (float(rob[s, q, a]), -q))  # line 10 (first on ties)
@@ -160,10 +208,12 @@ class ControllerChains:
         for s in range(S):
             for z in range(O + 1):
                 o_run = root if z == 0 else z - 1
-                parent = hierarchy.parent(names[o_run])
-                n = search(s, o_run, None if parent is None else names.index(parent))
+                ended = z > 0 and bool(beta[s, z - 1])
+                if ended and parent_of(o_run) is not None:  # control returns up the tree
+                    o_run = parent_of(o_run)
+                n = search(s, o_run, parent_of(o_run))
                 decision[s, z, n] = 1.0
-                fires[s, z] = z > 0 and n != z - 1
+                fires[s, z] = z > 0 and n != z - 1 and not ended
         return {"decision": decision, "action": act, "next_state": next_state, "fires": fires}
 
     def controller_return(
