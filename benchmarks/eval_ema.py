@@ -27,8 +27,8 @@ from pathlib import Path
 import torch
 
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments.scale import sparse_oracle
 from taskvar_torch.factory import load_heads
+from taskvar_torch.families import windy_sparse_oracle as sparse_oracle
 from taskvar_torch.heads import learner as learner_module
 from taskvar_torch.oracle.head_report import head_report
 from taskvar_torch.train import train

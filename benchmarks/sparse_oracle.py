@@ -25,8 +25,8 @@ import time
 import torch
 
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments.scale import sparse_oracle
 from taskvar_torch.factory import build_heads, make_env, make_subtasks
+from taskvar_torch.families import windy_sparse_oracle as sparse_oracle
 from taskvar_torch.oracle.head_report import head_report
 from taskvar_torch.oracle.sparse import expect_planes, outcome_planes
 

@@ -34,8 +34,8 @@ import torch
 
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments.scale import sparse_oracle
 from taskvar_torch.factory import load_heads
+from taskvar_torch.families import windy_sparse_oracle as sparse_oracle
 from taskvar_torch.oracle.head_report import head_report
 from taskvar_torch.train import HEADS_SNAPSHOTS, train
 

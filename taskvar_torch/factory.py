@@ -404,7 +404,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         matmul_dtype=t.matmul_dtype,
     )
     return MultiHeadLearner(
-        MultiHeadLoss(heads, subtasks, settings).to(cfg.device),
+        MultiHeadLoss(heads, subtasks, settings, family(cfg).instance_features).to(cfg.device),
         lr=t.lr,
         max_grad_norm=t.max_grad_norm,
         target_update=t.target_update,

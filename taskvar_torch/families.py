@@ -1,21 +1,32 @@
-"""The family registry: what each task family brings, in one place (docs/design.md, Adding a family).
+"""The family registry: what each task family brings, behind one public contract (docs/families.md).
 
 A family is a distribution over MDPs sharing states and actions (paper §2): its batched env, its
-options (subtasks), its named instance distributions and what the heads can use of it. Everything
-that depends on the family reads :data:`FAMILIES` (or :func:`family`) instead of testing the
-family's name, so a new family is one :class:`Family` entry plus its env and subtasks modules.
+options (subtasks), its named instance and test distributions, and what the heads, the exact oracle
+and the experiments can use of it. Everything that depends on the family reads the registry
+(:func:`family`) instead of testing the family's name, so a new family needs no edit of the package:
+
+- :func:`register_family` adds one from code in the same process;
+- the entry-point group ``taskvar_torch.families`` adds those of any installed package (the way
+  Gymnasium and pytest find plugins), so the installed ``taskvar`` command sees them; an entry
+  point names a :class:`Family` or a callable returning one;
+- :func:`check_family` checks the contract and names what is missing in one line.
+
+The built-in families use the same door: windy and Wargus are registered below with
+:func:`register_family`, Taxi through the package's own entry point (``taskvar_torch/taxi.py``).
 
 Examples:
     >>> family("windy").experiment
     'windy-fig2'
-    >>> sorted(FAMILIES)
-    ['wargus', 'windy']
+    >>> sorted(FAMILIES)[:2]
+    ['taxi', 'wargus']
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+import importlib.metadata
+import warnings
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -27,14 +38,18 @@ from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, wargus_inst
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.envs.windy_env import OBS_ENCODINGS, WindyGridEnv
 from taskvar_torch.heads.networks import PatchLayout
-from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM
+from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, windy_instance_features
 from taskvar_torch.subtasks.base import Subtasks
 from taskvar_torch.subtasks.wargus import WargusSubtasks
 from taskvar_torch.subtasks.windy import WindySubtasks
 
-if TYPE_CHECKING:  # the config imports this registry to validate family keys
+if TYPE_CHECKING:  # type hints only: the config package reads this registry, never the reverse
     from taskvar_torch.config import Config, EnvConfig
 
+ENTRY_POINT_GROUP = "taskvar_torch.families"
+"""The entry-point group an installed package registers its families under (docs/families.md)."""
+BUILTIN = ("windy", "wargus", "taxi")
+"""The package's own families; another family of one of these names is refused."""
 GENERATED = "generated"
 """``env.layout`` value that builds the grid from ``env.height``/``env.width``/... (make_layout)."""
 _GENERATOR_KEYS = ("height", "width", "num_exits", "wall_col", "wind_cells_per_exit")
@@ -60,51 +75,92 @@ class TestDistribution:
     overrides: tuple[str, ...] = ()
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Family:
     """One task family: how to build its env and options from a config, and what it supports.
 
+    The first five attributes are required; the rest are optional capabilities (``None``: the
+    family does not offer it, and the commands that need it say so in one line). docs/families.md
+    has the contract the env and the subtasks must honour, and a walk-through.
+
     Attributes:
         name: the config's ``family`` value.
-        experiment: the family's figure experiment (``taskvar experiment NAME``).
+        env_class: the batched TorchRL env (a ``BatchedFamilyEnv``); its constructor takes
+            ``num_envs``, ``seed``, ``instances``, ``index_offset``, ``noise_seed`` and
+            ``validate_actions`` besides what ``env_kwargs`` gives.
         env_kwargs: config -> keyword arguments of ``env_class`` for the training env.
-        env_class: the batched TorchRL env (``envs/``).
-        subtasks: (config, env) -> the family's options (``subtasks/``).
+        subtasks: (config, env) -> the family's options (a :class:`Subtasks`).
         instance_names: the named instance distributions (``env.instances``, ``eval.test``).
-        validate: checks the family's own ``env`` keys; raises a one-line ``ValueError``.
-        grid_side: config -> the grid's side length.
-        cells: config -> the number of cells (states of the agent's position).
-        observation: config -> the observation encoding's name.
-        instance_dim: features of the hidden instance the heads may read offline
-            (``train.max_value_estimator=instance``); ``None``: not supported.
-        conv_patch: config -> the observation's patch layout (``heads.network=conv``); ``None``:
-            not supported.
-        option_inputs: the subtasks define per-option input features
-            (``heads.option_inputs=subtask``).
-        exact_oracle: small instances have exact values (``oracle/``).
+        config_class: the family's own env keys, a frozen dataclass read under
+            ``env.<name>`` (strictly: a misspelt key is a one-line error naming it; its
+            ``__post_init__`` range errors start with the field's name). ``None``: no own keys.
+        validate: extra checks of a config of this family; raises a one-line ``ValueError``.
         tests: the named test distributions (``taskvar eval --test``), the first the default.
         instance_fields: an instance distribution (name, dict or object) -> its fields as a dict,
             for ``--shift env.instances.FIELD=...``; ``None``: the instances cannot be shifted.
         make_instances: fields -> an instance distribution (raises a one-line ``ValueError``).
+        shift_aliases: extra ``env.instances.FIELD`` names ``make_instances`` accepts (windy's
+            ``p``: one wind strength for the band).
+        instance_dim: features of the hidden instance the heads may read offline
+            (``train.max_value_estimator=instance``), computed by ``instance_features``.
+        instance_features: a tensordict of transitions -> ``(B, instance_dim)`` features of
+            their ``("instance", ...)`` entries.
+        oracle: config -> the family's exact oracle for that env, or ``None`` where it has none
+            (too large, another encoding). It offers the windy oracle's interface
+            (docs/families.md): ``instance_keys``, ``controller_return``, ``averaging_policy``.
+        oracle_summary: (heads, config) -> lines comparing the learnt heads with the exact oracle
+            (printed after ``taskvar train``); ``None``: nothing printed.
+        averaging_optimum: config -> the exact mean-MDP averaging policy ``(cells,)`` over
+            ``cell``, the scale experiment's reference (also for grids too large for ``oracle``).
+        head_report: (config, heads, with_max_value) -> every head against exact values (the
+            scale experiment's ``head_report``).
+        experiment: the family's figure experiment (``taskvar experiment NAME``, sweeps).
+        grid_side: config -> the grid's side length (the scale experiment's tables).
+        cells: config -> the number of positions of the agent.
+        observation: config -> the observation encoding's name.
+        conv_patch: config -> the observation's patch layout (``heads.network=conv``).
+        option_inputs: the subtasks define per-option input features
+            (``heads.option_inputs=subtask``).
+        description: one line for listings.
     """
 
     name: str
-    experiment: str
-    env_kwargs: Callable[[Config], dict[str, Any]]
     env_class: type[EnvBase]
+    env_kwargs: Callable[[Config], dict[str, Any]]
     subtasks: Callable[[Config, EnvBase], Subtasks]
     instance_names: tuple[str, ...]
-    validate: Callable[[Config], None]
-    grid_side: Callable[[Config], int]
-    cells: Callable[[Config], int]
-    observation: Callable[[Config], str]
-    instance_dim: int | None = None
-    conv_patch: Callable[[Config], PatchLayout] | None = None
-    option_inputs: bool = False
-    exact_oracle: bool = False
+    config_class: type | None = None
+    validate: Callable[[Config], None] | None = None
     tests: dict[str, TestDistribution] = dataclasses.field(default_factory=dict)
     instance_fields: Callable[[Any], dict[str, Any]] | None = None
     make_instances: Callable[[dict[str, Any]], Any] | None = None
+    shift_aliases: tuple[str, ...] = ()
+    instance_dim: int | None = None
+    instance_features: Callable[[Any], Any] | None = None
+    oracle: Callable[[Config], Any] | None = None
+    oracle_summary: Callable[[Any, Config], list[str]] | None = None
+    averaging_optimum: Callable[[Config], Any] | None = None
+    head_report: Callable[..., dict[str, Any]] | None = None
+    experiment: str | None = None
+    grid_side: Callable[[Config], int] | None = None
+    cells: Callable[[Config], int] | None = None
+    observation: Callable[[Config], str] | None = None
+    conv_patch: Callable[[Config], PatchLayout] | None = None
+    option_inputs: bool = False
+    description: str = ""
+
+    @property
+    def exact_oracle(self) -> bool:
+        """Whether the family brings an exact oracle (``oracle``)."""
+        return self.oracle is not None
+
+    def env_config(self, cfg: Config) -> Any:
+        """The family's own keys of ``cfg`` (``cfg.env.<name>``; defaults when the config was
+        built without them); ``None`` for a family without ``config_class``."""
+        if self.config_class is None:
+            return None
+        section = getattr(cfg.env, self.name, None)
+        return self.config_class() if section is None else section
 
     def make_env(
         self,
@@ -120,8 +176,8 @@ class Family:
         """The family's batched env of ``cfg`` (no transforms). ``None`` keeps the config's value
         (``env.num_envs``, ``seed``, ``env.instances``); ``index_offset`` is the global index of
         sub-environment 0 in the keyed streams (envs with offsets 0, n, 2n... are disjoint slices
-        of one env of the summed size); ``noise_seed`` (windy) keys the gusts apart from the
-        instances."""
+        of one env of the summed size); ``noise_seed`` keys the per-step noise apart from the
+        instances (common random numbers for paired episodes)."""
         kw = self.env_kwargs(cfg)
         kw["index_offset"] = int(index_offset)
         if num_envs is not None:
@@ -140,6 +196,17 @@ class Family:
         """Refuse a config of another family for ``what`` (an experiment or command)."""
         if cfg.family != self.name:
             raise ValueError(f"{what} needs family={self.name!r}, got family={cfg.family!r}")
+
+    def needs(self, capability: str, what: str) -> Any:
+        """The optional attribute ``capability``, or a one-line ``ValueError`` saying that
+        ``what`` needs it and this family does not bring it."""
+        value = getattr(self, capability)
+        if value is None or value == {}:
+            raise ValueError(
+                f"{what} needs a family with {capability!r}; family {self.name!r} has none "
+                "(docs/families.md)"
+            )
+        return value
 
 
 # --------------------------------------------------------------------------------------------
@@ -191,7 +258,7 @@ def windy_env_kwargs(cfg: Config) -> dict[str, Any]:
     Examples:
         >>> env = WindyGridEnv(**windy_env_kwargs(cfg))  # doctest: +SKIP
     """
-    FAMILIES["windy"].require(cfg, "windy_env_kwargs")
+    family("windy").require(cfg, "windy_env_kwargs")
     e = cfg.env
     return {
         "num_envs": e.num_envs,
@@ -260,6 +327,78 @@ def _windy_make_instances(fields: dict[str, Any]) -> WindyInstances:
     if isinstance(fields.get("directions"), str):
         fields["directions"] = tuple(d for d in fields["directions"].split("+") if d)
     return windy_instances(fields)
+
+
+def _windy_oracle(cfg: Config) -> Any:
+    """The exact oracle of a small one-hot windy layout (docs/oracle.md), else ``None``."""
+    if cfg.env.obs_encoding != "onehot":
+        return None
+    layout = windy_layout(cfg.env)
+    if layout.num_cells > EXACT_ORACLE_CELLS:
+        return None
+    from taskvar_torch.oracle.windy import WindyOracle
+
+    return WindyOracle(
+        layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon, train_instances=cfg.env.instances
+    )
+
+
+def windy_sparse_oracle(cfg: Config) -> Any:
+    """The exact oracle of a windy layout at any size (oracle/sparse.py)."""
+    from taskvar_torch.oracle.sparse import SparseWindyOracle
+
+    return SparseWindyOracle(
+        windy_layout(cfg.env),
+        gamma=cfg.train.gamma,
+        horizon=cfg.env.horizon,
+        train_instances=cfg.env.instances,
+        device=cfg.device,
+    )
+
+
+def _windy_averaging_optimum(cfg: Config) -> Any:
+    """The mean-MDP optimal averaging policy ``(cells,)``: dense on small layouts, successor
+    tables beyond (the scale experiment's reference)."""
+    oracle = _windy_oracle(cfg) if windy_layout(cfg.env).num_cells <= EXACT_ORACLE_CELLS else None
+    if oracle is None:
+        oracle = windy_sparse_oracle(cfg)
+    return oracle.averaging_policy()
+
+
+def _windy_head_report(cfg: Config, heads: Any, with_max_value: bool = True) -> dict[str, Any]:
+    """Every head against the exact values at any size (oracle/head_report.py)."""
+    from taskvar_torch.oracle.head_report import head_report
+
+    return head_report(
+        heads,
+        windy_sparse_oracle(cfg),
+        cfg.env.obs_encoding,
+        cfg.env.patch_radius,
+        with_max_value=with_max_value,
+    )
+
+
+def _windy_summary(heads: Any, cfg: Config) -> list[str]:
+    """The learnt heads beside the exact oracle on the training instances (docs/oracle.md)."""
+    oracle = _windy_oracle(cfg)
+    if oracle is None:
+        return []
+    from taskvar_torch.heads.validate import compare_with_oracle
+
+    r = compare_with_oracle(heads.cpu(), oracle)
+    lines = [
+        "learnt heads vs exact oracle (expected returns: training instances, uniform start):",
+        f"  averaging policy  {r['averaging_return']:8.3f}   oracle {r['oracle_averaging_return']:8.3f}",
+    ]
+    for name, a, b in zip(heads.option_names, r["option_returns"], r["oracle_option_returns"]):
+        lines.append(f"  option {name:<10} {a:8.3f}   oracle {b:8.3f}")
+    lines += [
+        f"  mu_bar agreement            {r['mu_bar_agreement']:.3f} on {r['mu_bar_cells']} cells",
+        f"  max |Q_hat - oracle|        {r['max_value_error']:.3f}",
+        f"  interruption agreement      {r['interruption_agreement']:.3f} on "
+        f"{r['interruption_pairs']} (cell, option) pairs",
+    ]
+    return lines
 
 
 WINDY_TESTS = {
@@ -354,9 +493,167 @@ def _validate_wargus(cfg: Config) -> None:
 # --------------------------------------------------------------------------------------------
 # the registry
 
-FAMILIES: dict[str, Family] = {
-    "windy": Family(
+
+def _entry_points() -> list[importlib.metadata.EntryPoint]:
+    """The ``taskvar_torch.families`` entry points of every installed distribution.
+
+    Every copy of a distribution's metadata is read, not only the first on ``sys.path`` (which
+    ``importlib.metadata.entry_points`` keeps): a stale ``*.egg-info`` left in a source checkout
+    would otherwise hide the installed package's entry points when run from that folder.
+    """
+    seen, out = set(), []
+    for dist in importlib.metadata.distributions():
+        for ep in dist.entry_points:
+            if ep.group == ENTRY_POINT_GROUP and (ep.name, ep.value) not in seen:
+                seen.add((ep.name, ep.value))
+                out.append(ep)
+    return out
+
+
+class _Registry(Mapping):
+    """Every family by name: the ones registered in this process and, loaded at the first lookup,
+    those of installed packages' ``taskvar_torch.families`` entry points."""
+
+    def __init__(self) -> None:
+        self._families: dict[str, Family] = {}
+        self._entry_points_loaded = False
+        self.broken: dict[str, str] = {}
+        """Entry points that failed to load: name -> the one-line reason (warned once)."""
+
+    def _load_entry_points(self) -> None:
+        if self._entry_points_loaded:
+            return
+        self._entry_points_loaded = True
+        for ep in _entry_points():
+            if ep.name in self._families:
+                continue
+            try:
+                obj = ep.load()
+                fam = obj if isinstance(obj, Family) else obj()
+                if not isinstance(fam, Family):
+                    raise TypeError(f"it gives {type(fam).__name__}, not a Family")
+                if fam.name != ep.name:
+                    raise ValueError(
+                        f"the entry point is named {ep.name!r}, its family {fam.name!r}"
+                    )
+                _check_declaration(fam)
+            except Exception as e:  # a broken plugin must not break the other families
+                reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                self.broken[ep.name] = f"entry point {ep.value!r}: {reason}"
+                warnings.warn(
+                    f"taskvar_torch: family {ep.name!r} from {ep.value!r} could not be loaded: "
+                    f"{reason}",
+                    stacklevel=2,
+                )
+                continue
+            self._families[fam.name] = fam
+
+    def __getitem__(self, name: str) -> Family:
+        if name not in self._families:
+            self._load_entry_points()
+        return self._families[name]
+
+    def __iter__(self) -> Iterator[str]:
+        self._load_entry_points()
+        return iter(dict(self._families))
+
+    def __len__(self) -> int:
+        self._load_entry_points()
+        return len(self._families)
+
+    def __contains__(self, name: object) -> bool:
+        if name not in self._families:
+            self._load_entry_points()
+        return name in self._families
+
+    def __repr__(self) -> str:
+        return f"FAMILIES({sorted(self)})"
+
+
+FAMILIES = _Registry()
+"""Every family, by its config name (a read-only mapping; add with :func:`register_family`)."""
+
+
+def _check_declaration(fam: Family) -> None:
+    """What :func:`register_family` checks without building anything: one-line errors."""
+    if not isinstance(fam.name, str) or not fam.name.isidentifier():
+        raise ValueError(f"family name must be an identifier such as 'taxi', got {fam.name!r}")
+    if not (isinstance(fam.env_class, type) and issubclass(fam.env_class, EnvBase)):
+        raise ValueError(f"family {fam.name!r}: env_class must be a torchrl EnvBase subclass")
+    for attr in ("env_kwargs", "subtasks"):
+        if not callable(getattr(fam, attr)):
+            raise ValueError(f"family {fam.name!r}: {attr} must be callable")
+    if not fam.instance_names or not all(isinstance(n, str) for n in fam.instance_names):
+        raise ValueError(f"family {fam.name!r}: instance_names must name at least one distribution")
+    if fam.config_class is not None:
+        cls = fam.config_class
+        params = getattr(cls, "__dataclass_params__", None)
+        if params is None or not params.frozen:
+            raise ValueError(
+                f"family {fam.name!r}: config_class must be a frozen dataclass (env.{fam.name}.*)"
+            )
+        try:
+            cls()
+        except Exception as e:
+            raise ValueError(
+                f"family {fam.name!r}: config_class() must build with its defaults: {e}"
+            ) from None
+    if (fam.instance_dim is None) != (fam.instance_features is None):
+        raise ValueError(
+            f"family {fam.name!r}: instance_dim and instance_features go together (both or none)"
+        )
+    for name, dist in fam.tests.items():
+        if not isinstance(dist, TestDistribution):
+            raise ValueError(f"family {fam.name!r}: tests[{name!r}] must be a TestDistribution")
+
+
+def register_family(fam: Family, *, replace: bool = False) -> Family:
+    """Add ``fam`` to the registry, so every command, experiment and controller can use it.
+
+    Args:
+        fam: the family (see :class:`Family` and docs/families.md for the contract).
+        replace: replace a family of the same name registered earlier (never a built-in one).
+
+    Returns:
+        ``fam``.
+
+    Raises:
+        ValueError: in one line, a declaration that breaks the contract, a name of a built-in
+            family, or a name already taken (without ``replace``).
+
+    Examples:
+        >>> register_family(Family(name="corridor", env_class=CorridorEnv, ...))  # doctest: +SKIP
+    """
+    if not isinstance(fam, Family):
+        raise ValueError(f"register_family takes a Family, got {type(fam).__name__}")
+    _check_declaration(fam)
+    existing = FAMILIES._families.get(fam.name)
+    if existing is not None and existing is not fam:
+        if fam.name in BUILTIN:
+            raise ValueError(f"family {fam.name!r} is built in; choose another name")
+        if not replace:
+            raise ValueError(
+                f"family {fam.name!r} is already registered; pass replace=True to replace it"
+            )
+    FAMILIES._families[fam.name] = fam
+    return fam
+
+
+def family(cfg_or_name: Config | str) -> Family:
+    """The registry entry of a config (its ``family``) or of a family name."""
+    name = cfg_or_name if isinstance(cfg_or_name, str) else cfg_or_name.family
+    if name not in FAMILIES:
+        broken = FAMILIES.broken.get(name)
+        if broken:
+            raise ValueError(f"family {name!r} is installed but could not be loaded: {broken}")
+        raise ValueError(f"family must be one of {sorted(FAMILIES)}, got {name!r}")
+    return FAMILIES[name]
+
+
+register_family(
+    Family(
         name="windy",
+        description="windy gridworlds: wind strength and direction hidden (paper §3.3.1)",
         experiment="windy-fig2",
         env_kwargs=windy_env_kwargs,
         env_class=WindyGridEnv,
@@ -367,15 +664,23 @@ FAMILIES: dict[str, Family] = {
         cells=lambda cfg: windy_layout(cfg.env).num_cells,
         observation=lambda cfg: cfg.env.obs_encoding,
         instance_dim=WINDY_INSTANCE_DIM,
+        instance_features=windy_instance_features,
         conv_patch=_windy_patch,
         option_inputs=True,
-        exact_oracle=True,
+        oracle=_windy_oracle,
+        oracle_summary=_windy_summary,
+        averaging_optimum=_windy_averaging_optimum,
+        head_report=_windy_head_report,
         tests=WINDY_TESTS,
         instance_fields=_windy_fields,
         make_instances=_windy_make_instances,
-    ),
-    "wargus": Family(
+        shift_aliases=("p",),
+    )
+)
+register_family(
+    Family(
         name="wargus",
+        description="Wargus resource gathering: item and patrol hidden (paper §3.5)",
         experiment="wargus-fig4",
         env_kwargs=_wargus_env_kwargs,
         env_class=WargusEnv,
@@ -389,25 +694,20 @@ FAMILIES: dict[str, Family] = {
         tests=WARGUS_TESTS,
         instance_fields=_wargus_fields,
         make_instances=_wargus_make_instances,
-    ),
-}
-"""Every family, by its config name."""
-
-
-def family(cfg_or_name: Config | str) -> Family:
-    """The registry entry of a config (its ``family``) or of a family name."""
-    name = cfg_or_name if isinstance(cfg_or_name, str) else cfg_or_name.family
-    if name not in FAMILIES:
-        raise ValueError(f"family must be one of {sorted(FAMILIES)}, got {name!r}")
-    return FAMILIES[name]
+    )
+)
 
 
 __all__ = [
+    "BUILTIN",
+    "ENTRY_POINT_GROUP",
     "FAMILIES",
     "GENERATED",
     "Family",
     "TestDistribution",
     "family",
+    "register_family",
     "windy_env_kwargs",
+    "windy_sparse_oracle",
     "windy_layout",
 ]

@@ -38,12 +38,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tqdm.auto import tqdm
 
 from taskvar_torch.config import Config, load_config
 from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import family
+from taskvar_torch.progress import progress_bar
 from taskvar_torch.train import TrainingDiverged
 
 BACKENDS = ("local", "ray")
@@ -207,7 +207,7 @@ def _run_local(
 ) -> list[dict[str, Any]]:
     return [
         run_point(cfg, out, quick, plots, overwrite)
-        for cfg, out in tqdm(jobs, disable=not progress, desc="sweep", unit="point")
+        for cfg, out in progress_bar(jobs, disable=not progress, desc="sweep", unit="point")
     ]
 
 
@@ -243,7 +243,7 @@ def _run_ray(
         task = ray.remote(num_cpus=1)(run_point)
         refs = [task.remote(cfg, out, quick, plots, overwrite) for cfg, out in jobs]
         pending = list(refs)
-        with tqdm(total=len(refs), disable=not progress, desc="sweep", unit="point") as bar:
+        with progress_bar(total=len(refs), disable=not progress, desc="sweep", unit="point") as bar:
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
                 bar.update(len(done))
@@ -290,6 +290,8 @@ def sweep(
     _check_backend(backend, address, workers)
     points = expand_points(items)
     cfgs = load_point_configs(config, points, quick=quick)
+    for c in cfgs:  # every point runs its family's figure experiment (Family.experiment)
+        family(c).needs("experiment", "taskvar sweep")
     if backend == "ray":
         try:
             import ray  # noqa: F401  (fail before any work)

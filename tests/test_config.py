@@ -28,6 +28,7 @@ from taskvar_torch.config import (
     windy_env_kwargs,
     windy_layout,
 )
+from taskvar_torch.config.schema import config_schema
 from taskvar_torch.envs import WindyGridEnv
 from taskvar_torch.experiments import fig4_metrics, windy_fig2
 from taskvar_torch.experiments import scale as scale_experiment
@@ -105,6 +106,7 @@ def test_configs_folder_has_the_spec_files():
         "windy_xl.yaml",
         "wargus.yaml",
         "wargus_large.yaml",
+        "taxi.yaml",
     ):
         assert required in names
 
@@ -118,7 +120,7 @@ def test_every_config_file_loads_strictly(path: Path):
     assert quick.experiment.runs <= cfg.experiment.runs
     # the file's keys are exactly schema keys, and they round-trip
     raw = OmegaConf.to_container(OmegaConf.load(path))
-    schema = set(_flat_keys(config_to_dict(Config())))
+    schema = set(_flat_keys(config_to_dict(config_schema(cfg.family)(family=cfg.family))))
     assert set(_flat_keys(raw)) <= schema
     assert config_from_dict(config_to_dict(cfg)) == cfg
 
@@ -265,7 +267,7 @@ def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
 @pytest.mark.parametrize(
     "override, parts",
     [
-        ("family=atari", ["family must be one of ['wargus', 'windy']", "'atari'"]),
+        ("family=atari", ["family must be one of [", "'taxi', 'wargus', 'windy'", "'atari'"]),
         ("train.switching=hybrid", ["train.switching must be one of ['intra']"]),
         ("train.mu_bar=eps", ["train.mu_bar must be one of ['greedy', 'softmax']"]),
         ("train.target_update=polyak", ["train.target_update must be one of ['hard', 'soft']"]),

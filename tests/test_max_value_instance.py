@@ -16,7 +16,8 @@ from taskvar_torch.config import load_config
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead, instance_max_value_loss
 from taskvar_torch.heads.networks import head_network
-from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, instance_features, relabel
+from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, relabel
+from taskvar_torch.heads.relabel import windy_instance_features as instance_features
 from taskvar_torch.train import build_heads, load_heads, make_env, make_subtasks, train
 
 torch.set_num_threads(1)
@@ -63,7 +64,7 @@ def test_instance_features_are_p_and_one_hot_direction(windy):
 
 def test_head_target_is_the_max_over_the_samples_instances(windy):
     _, env, subtasks = windy
-    batch = relabel(batch_with_instances(env), subtasks)
+    batch = relabel(batch_with_instances(env), subtasks, instance_features=instance_features)
     B, O = batch.initiation.shape  # noqa: E741
     critic = ReadP(O)
     mu = torch.full((B, O), 1.0 / O)
@@ -83,7 +84,7 @@ def test_head_target_is_the_max_over_the_samples_instances(windy):
 
 def test_critic_target_bootstraps_in_the_transitions_own_instance(windy):
     _, env, subtasks = windy
-    batch = relabel(batch_with_instances(env), subtasks)
+    batch = relabel(batch_with_instances(env), subtasks, instance_features=instance_features)
     B, O = batch.initiation.shape  # noqa: E741
     critic = ReadP(O)
     mu = torch.full((B, O), 1.0 / O)
@@ -102,9 +103,11 @@ def test_critic_loss_trains_the_critic_and_head_loss_only_the_gap(windy):
     heads = build_heads(cfg, env, subtasks)
     net = head_network(heads.heads["max_value"])
     assert isinstance(net, OptimismGapHead) and net.critic is not None
-    loss = MultiHeadLoss(heads, subtasks, LossSettings(max_value_estimator="instance"))
+    loss = MultiHeadLoss(
+        heads, subtasks, LossSettings(max_value_estimator="instance"), instance_features
+    )
     td = batch_with_instances(env)
-    batch = relabel(td, subtasks)
+    batch = relabel(td, subtasks, instance_features=instance_features)
     cur, *_ = loss._head_outputs(batch.observation, batch.next_observation)
     B, O = batch.initiation.shape  # noqa: E741
     mu = torch.full((B, O), 1.0 / O)
@@ -136,7 +139,9 @@ def test_instance_estimator_needs_instances_and_a_critic(windy):
     cfg, env, subtasks = windy
     batch = batch_with_instances(env).exclude(keys.INSTANCE)
     heads = build_heads(cfg, env, subtasks)
-    loss = MultiHeadLoss(heads, subtasks, LossSettings(max_value_estimator="instance"))
+    loss = MultiHeadLoss(
+        heads, subtasks, LossSettings(max_value_estimator="instance"), instance_features
+    )
     with pytest.raises(ValueError, match="hidden instance"):
         loss(batch)
     expectile = ["env.num_envs=4", "train.max_value_estimator=expectile"]

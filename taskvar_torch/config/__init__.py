@@ -26,7 +26,6 @@ from taskvar_torch.config.choices import (
     ACTIVATIONS,
     COLLECTOR_BACKENDS,
     COMPOSED_REWARDS,
-    FAMILIES,
     HEAD_NETWORKS,
     HIERARCHY_DESCENTS,
     MAX_VALUE_ESTIMATORS,
@@ -60,7 +59,7 @@ from taskvar_torch.config.schema import (
     TrainConfig,
     WargusConfig,
 )
-from taskvar_torch.families import GENERATED, family, windy_env_kwargs, windy_layout
+from taskvar_torch.families import FAMILIES, GENERATED, family, windy_env_kwargs, windy_layout
 from taskvar_torch.io import atomic_write
 
 __all__ = [

@@ -8,14 +8,11 @@ importing the other.
 
 from __future__ import annotations
 
-from taskvar_torch.families import FAMILIES as _REGISTRY
-
 METHODS = ("averaging", "options", "interruption", "hierarchy")
 """The paper's four controllers, in its order: averaging (§3.1), options (§3.2), interruption
 (Algorithm 1), hierarchy (Algorithm 2). The experiments iterate them in this order; the windy
 Figure 2 takes all but hierarchy (experiments/windy_fig2.py)."""
 
-FAMILIES = tuple(sorted(_REGISTRY))  # the family registry's names (taskvar_torch/families.py)
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
 HEAD_NETWORKS = ("mlp", "conv")  # taskvar_torch/heads/networks.py NETWORKS
 OPTION_INPUTS = ("full", "subtask")
@@ -32,3 +29,4 @@ COMPOSED_REWARDS = ("env", "sum")  # mirrors subtasks/wargus.py
 COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector
 MATMUL_DTYPES = ("bfloat16", "float32")  # mirrors heads/learner.py MATMUL_DTYPES
 REPLAY_SAMPLINGS = ("uniform", "per_option")  # taskvar_torch/replay.py make_replay_buffer
+LOGGERS = ("csv", "mlflow", "tensorboard", "wandb")  # taskvar_torch/train.py RunLoggers

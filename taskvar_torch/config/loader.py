@@ -34,7 +34,7 @@ from typing import Any, TypeVar
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from taskvar_torch.config.schema import Config
+from taskvar_torch.config.schema import Config, config_schema
 from taskvar_torch.io import atomic_write
 
 T = TypeVar("T")
@@ -296,7 +296,10 @@ def load_strict(
             line naming the dotted key.
     """
     path = Path(path)
-    node = _merge(schema, _structured(schema), _read_yaml(path), f"in {path}")
+    data = _read_yaml(path)
+    if schema is Config:  # a family with its own env keys extends the schema (config_schema)
+        schema = config_schema(_family_named(data.get("family", None), overrides))
+    node = _merge(schema, _structured(schema), data, f"in {path}")
     cfg = _to_object(schema, node, f"in {path}")
     if quick_overrides is not None and quick:
         node = _apply_overrides(schema, node, quick_overrides(cfg), "quick override")
@@ -338,10 +341,23 @@ def load_config(
     )
 
 
+def _family_named(family: Any, overrides: Sequence[str] = ()) -> str | None:
+    """The ``family`` a config will have: the last ``family=NAME`` override, else ``family``."""
+    if isinstance(overrides, str):
+        overrides = [overrides]
+    for item in overrides:
+        key, sep, value = str(item).partition("=")
+        if sep and key.strip() == "family":
+            family = value.strip()
+    return family if isinstance(family, str) else None
+
+
 def apply_overrides(cfg: T, overrides: Sequence[str]) -> T:
     """``cfg`` (any config dataclass) with ``key.sub=value`` overrides applied (same strict
     errors)."""
     schema = type(cfg)
+    if isinstance(cfg, Config):
+        schema = config_schema(_family_named(cfg.family, overrides))
     node = _merge(schema, _structured(schema), OmegaConf.structured(cfg), "config")
     return _to_object(schema, _apply_overrides(schema, node, overrides), "with overrides")
 
@@ -367,6 +383,8 @@ def config_from_dict(
     :func:`config_to_dict` output (same errors as YAML)."""
     if not isinstance(d, Mapping):
         raise ValueError(f"config ({source}) must be a mapping, got {type(d).__name__}")
+    if schema is Config:
+        schema = config_schema(_family_named(d.get("family")))
     try:
         data = OmegaConf.create(dict(d))
     except OmegaConfBaseException as e:

@@ -9,6 +9,7 @@ registry (``Family.validate``, taskvar_torch/families.py); the other family's ke
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -18,9 +19,9 @@ from taskvar_torch.config.choices import (
     ACTIVATIONS,
     COLLECTOR_BACKENDS,
     COMPOSED_REWARDS,
-    FAMILIES,
     HEAD_NETWORKS,
     HIERARCHY_DESCENTS,
+    LOGGERS,
     MATMUL_DTYPES,
     MAX_VALUE_ESTIMATORS,
     METHODS,
@@ -68,7 +69,7 @@ def _validate(cfg: Config) -> None:
     The sections are checked in schema order (top level and env, heads, train, collector, eval
     and experiment), so the first bad key of a config is the one reported.
     """
-    _one_of("family", cfg.family, FAMILIES)
+    fam = family(cfg)  # a one-line error naming the registered families
     try:
         torch.device(cfg.device)
     except (RuntimeError, ValueError) as e:
@@ -76,12 +77,30 @@ def _validate(cfg: Config) -> None:
             f"device must be a torch device such as 'cpu' or 'cuda:0', got {cfg.device!r}"
         ) from e
     _at_least("env.num_envs", cfg.env.num_envs, 1)
-    fam = family(cfg)
-    fam.validate(cfg)  # the family's own keys; the other family's are never read
+    _check_family_section(cfg, fam)
+    _one_of("env.instances", cfg.env.instances, fam.instance_names)
+    if fam.validate is not None:
+        fam.validate(cfg)  # the family's own checks; another family's keys are never read
     _check_heads(cfg, fam)
     _check_train(cfg, fam)
     _check_collector(cfg)
     _check_eval_and_experiment(cfg)
+
+
+def _check_family_section(cfg: Config, fam: Family) -> None:
+    """``env.<family>.*``: the family's own keys, range-checked by its ``config_class``."""
+    section = fam.env_config(cfg)
+    if section is None:
+        return
+    cls = fam.config_class
+    values = {f.name: getattr(section, f.name) for f in dataclasses.fields(cls)}
+    try:
+        cls(**values)
+    except (TypeError, ValueError) as e:
+        msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        first = msg.split(" ", 1)[0].rstrip(":")
+        sep = "." if first in values else ": "
+        raise ValueError(f"env.{fam.name}{sep}{msg}") from None
 
 
 def _check_heads(cfg: Config, fam: Family) -> None:
@@ -159,6 +178,7 @@ def _check_train(cfg: Config, fam: Family) -> None:
     if t.eval_ema_tau is not None and not 0.0 < t.eval_ema_tau <= 1.0:
         raise ValueError(f"train.eval_ema_tau must be in (0, 1] or null, got {t.eval_ema_tau}")
     _at_least("train.max_value_instances", t.max_value_instances, 1)
+    _one_of("train.logger", t.logger, LOGGERS)
     if t.max_value_estimator == "instance" and fam.instance_dim is None:
         raise ValueError(
             "train.max_value_estimator='instance' needs instance features "

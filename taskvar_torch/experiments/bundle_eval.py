@@ -22,7 +22,6 @@ from typing import Any
 import numpy as np
 import torch
 from torchrl.envs import TransformedEnv
-from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.config import METHODS, Config
@@ -39,9 +38,10 @@ from taskvar_torch.factory import (
     make_subtasks,
     training_states,
 )
-from taskvar_torch.families import EXACT_ORACLE_CELLS, family, windy_layout
+from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads
-from taskvar_torch.oracle import WindyOracle, exact_returns
+from taskvar_torch.oracle import exact_episode_returns
+from taskvar_torch.progress import progress_bar
 from taskvar_torch.subtasks.base import Subtasks
 
 METRICS_NAME = "metrics.json"
@@ -87,14 +87,11 @@ def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) ->
         )
 
 
-def _exact_oracle(cfg: Config, point: EvalPoint) -> WindyOracle | None:
-    """The exact oracle of a test point, where the family has one and the layout is small."""
-    if not family(cfg).exact_oracle or point.cfg.env.obs_encoding != "onehot":
-        return None
-    layout = windy_layout(point.cfg.env)
-    if layout.num_cells > EXACT_ORACLE_CELLS:
-        return None
-    return WindyOracle(layout, gamma=cfg.train.gamma, horizon=point.cfg.env.horizon)
+def _exact_oracle(cfg: Config, point: EvalPoint) -> Any:
+    """The exact oracle of a test point, where the family brings one (``Family.oracle``) and it
+    covers the point's env (windy: small one-hot layouts)."""
+    fam = family(cfg)
+    return None if fam.oracle is None else fam.oracle(point.cfg)
 
 
 def play(
@@ -201,7 +198,9 @@ def eval_bundle(
         _check_fits(point, heads, point_subtasks[-1], probe)
     if out_dir is not None:
         refuse_existing_results(Path(out_dir), overwrite, "taskvar eval")
-    bar = tqdm(total=len(points) * len(methods) * int(episodes), disable=not progress, desc="eval")
+    bar = progress_bar(
+        total=len(points) * len(methods) * int(episodes), disable=not progress, desc="eval"
+    )
     rows: list[dict[str, Any]] = []
     results = []
     for point, subtasks in zip(points, point_subtasks):
@@ -212,9 +211,10 @@ def eval_bundle(
             r = play(ctrl, point, int(episodes), seed, bs, noise_seed, bar)
             per_method[m] = summarise(r, heads.option_names, m)
             if oracle is not None:
-                exact = exact_returns(
-                    oracle, ctrl, point.cfg, r["instance_p"], r["instance_direction"], r["start"]
-                )
+                instance = {
+                    k[len("instance_") :]: v for k, v in r.items() if k.startswith("instance_")
+                }
+                exact = exact_episode_returns(oracle, ctrl, point.cfg, instance, r["start"])
                 per_method[m]["exact_mean_return"] = float(np.mean(exact, dtype=np.float64))
                 r["exact_return"] = exact
             rows += _csv_rows(point, m, r)

@@ -50,7 +50,6 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules import RandomPolicy
-from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import load_checkpoint
@@ -62,7 +61,6 @@ from taskvar_torch.config import (
     load_config,
     load_strict,
     save_config_yaml,
-    windy_layout,
 )
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
@@ -83,10 +81,8 @@ from taskvar_torch.experiments.scale_report import (
     plot_results,
 )
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
-from taskvar_torch.families import EXACT_ORACLE_CELLS, family
-from taskvar_torch.oracle import WindyOracle
-from taskvar_torch.oracle.head_report import head_report
-from taskvar_torch.oracle.sparse import SparseWindyOracle
+from taskvar_torch.families import family
+from taskvar_torch.progress import progress_bar
 from taskvar_torch.train import HEADS_SNAPSHOTS, train
 
 TEST_SEED_OFFSET = 1000
@@ -288,9 +284,16 @@ def case_frames(cfg: ScaleConfig, case: ScaleCase) -> int:
 # evaluation on fresh test instances
 
 
+def _family_figure(cfg: Config, name: str) -> Any:
+    """A family's table figure (``grid_side``, ``cells``, ``observation``), ``None`` if it has
+    none."""
+    f = getattr(family(cfg), name)
+    return None if f is None else f(cfg)
+
+
 def grid_side(cfg: Config) -> int:
     """The grid's side length (windy: max of height and width; Wargus: ``size``)."""
-    return family(cfg).grid_side(cfg)
+    return _family_figure(cfg, "grid_side")
 
 
 def make_test_env(cfg: Config, num_envs: int, seed: int, index_offset: int = 0) -> EnvBase:
@@ -321,20 +324,9 @@ def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None,
 
     if name == "random":
         return RandomPolicy(env.action_spec)
-    if name == "oracle_averaging":  # dense on small layouts, successor tables beyond
-        layout = windy_layout(cfg.env)
-        oracle = (
-            WindyOracle(
-                layout,
-                gamma=cfg.train.gamma,
-                horizon=cfg.env.horizon,
-                train_instances=cfg.env.instances,
-                device=cfg.device,
-            )
-            if layout.num_cells <= EXACT_ORACLE_CELLS
-            else sparse_oracle(cfg)
-        )
-        return TensorDictModule(TablePolicy(oracle.averaging_policy()), [keys.CELL], [keys.ACTION])
+    if name == "oracle_averaging":  # the family's exact mean-MDP averaging policy over cell
+        table = family(cfg).needs("averaging_optimum", "the oracle_averaging reference")(cfg)
+        return TensorDictModule(TablePolicy(table.to(cfg.device)), [keys.CELL], [keys.ACTION])
     return make_method_controller(cfg, name, heads, subtasks)
 
 
@@ -379,10 +371,11 @@ def evaluate(
 
 
 def references(cfg: Config, episodes: int, batch_size: int) -> dict[str, Any]:
-    """The random policy and (windy) the oracle's averaging optimum on the same test episodes."""
+    """The random policy and, where the family brings one (``Family.averaging_optimum``), the
+    exact mean-MDP averaging optimum on the same test episodes."""
     t0 = time.perf_counter()
     refs: dict[str, Any] = {"random": evaluate(cfg, "random", episodes, batch_size)}
-    if family(cfg).exact_oracle:
+    if family(cfg).averaging_optimum is not None:
         refs["oracle_averaging"] = evaluate(cfg, "oracle_averaging", episodes, batch_size)
         refs["oracle_note"] = (
             "mean-MDP optimal averaging policy (exact value iteration, paper "
@@ -390,7 +383,7 @@ def references(cfg: Config, episodes: int, batch_size: int) -> dict[str, Any]:
         )
     else:
         refs["oracle_averaging"] = None
-        refs["oracle_note"] = "no exact oracle for Wargus"
+        refs["oracle_note"] = f"no exact oracle for the {cfg.family} family"
     refs["seconds"] = time.perf_counter() - t0
     return refs
 
@@ -442,28 +435,22 @@ def run_cell(
         }
     )
     report = None
-    if cfg.head_report and family(ccfg).exact_oracle:
-        report = head_report(
-            heads,
-            sparse_oracle(ccfg),
-            ccfg.env.obs_encoding,
-            ccfg.env.patch_radius,
-            with_max_value=cfg.head_report_max_value,
-        )
+    if cfg.head_report and family(ccfg).head_report is not None:
+        report = family(ccfg).head_report(ccfg, heads, with_max_value=cfg.head_report_max_value)
     secs = float(result["seconds"])
     return {
         **peak_memory(ccfg.device),
         "case": case.name,
         "family": ccfg.family,
         "grid_side": grid_side(ccfg),
-        "cells": family(ccfg).cells(ccfg),
+        "cells": _family_figure(ccfg, "cells"),
         "num_envs": int(num_envs),
         "frames": int(result["frames"]),
         "updates": int(result["updates"]),
         "frames_per_batch": ccfg.train.frames_per_batch,
         "updates_per_batch": ccfg.train.updates_per_batch,
         "hidden": list(ccfg.heads.hidden),
-        "obs_encoding": family(ccfg).observation(ccfg),
+        "obs_encoding": _family_figure(ccfg, "observation"),
         "train_seconds": secs,
         "frames_per_second": result["frames"] / secs if secs > 0 else None,
         "eval_seconds": time.perf_counter() - t0,
@@ -519,17 +506,6 @@ def learning_curve(
     return points
 
 
-def sparse_oracle(ccfg: Config) -> SparseWindyOracle:
-    """The exact oracle of a windy cell at any size (oracle/sparse.py)."""
-    return SparseWindyOracle(
-        windy_layout(ccfg.env),
-        gamma=ccfg.train.gamma,
-        horizon=ccfg.env.horizon,
-        train_instances=ccfg.env.instances,
-        device=ccfg.device,
-    )
-
-
 def scale(
     cfg: ScaleConfig,
     out_dir: str | os.PathLike,
@@ -554,7 +530,7 @@ def scale(
     cases = cfg.selected()
     refs: dict[str, Any] = {}
     cells: list[dict[str, Any]] = []
-    bar = tqdm(
+    bar = progress_bar(
         total=len(cases) * len(cfg.num_envs), disable=not progress, desc="scale", unit="cell"
     )
     for case in cases:
@@ -582,7 +558,7 @@ def scale(
             "return": "undiscounted test return (windy: -steps to the goal; Wargus: items collected)",
             "ci95": "half-width of a normal-approximation 95% confidence interval of the mean",
             "gap_closed": "(R - R_random) / (R_oracle_averaging - R_random) on the same episodes",
-            "hierarchy": "n/a for windy (no composition hierarchy in the family)",
+            "hierarchy": "n/a for a family without a composition hierarchy (windy, taxi)",
         },
     }
     write_csv(out / CSV_NAME, csv_rows(metrics), CSV_FIELDS)

@@ -9,7 +9,8 @@ the family (``families.py``: ``Family.tests``, listed in docs/evaluation.md) and
   error naming it);
 - ``env.instances.FIELD=VALUE``: a field of the instance distribution (windy: ``p`` for one wind
   strength, ``p_low``, ``p_high``, ``directions`` as ``north+south``; Wargus: ``seeds`` as
-  ``0+1+2``), validated by the family's instance class;
+  ``0+1+2``; Taxi: ``rainy_probability``...), its value read as YAML reads a scalar (a number,
+  ``true``/``false``, else the string), validated by the family's ``make_instances``;
 - ``KEY=V1,V2,V3`` sweeps one key: one test point per value (the shift curve).
 
 Examples:
@@ -24,11 +25,12 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import yaml
+
 from taskvar_torch.config import Config, apply_overrides
 from taskvar_torch.families import Family, family
 
 INSTANCE_PREFIX = "env.instances."
-FLOAT_FIELDS = ("p", "p_low", "p_high")
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,11 @@ def parse_shift(item: str) -> Shift:
 
 def _test_distribution(fam: Family, test: str | None) -> tuple[str, Any]:
     names = list(fam.tests)
+    if not names:
+        raise ValueError(
+            f"family {fam.name!r} names no test distributions (Family.tests), so its bundles "
+            "cannot be evaluated (docs/families.md)"
+        )
     name = names[0] if test is None else test
     if name not in fam.tests:
         raise ValueError(f"--test must be one of {names} for a {fam.name} bundle, got {test!r}")
@@ -82,22 +89,27 @@ def _apply(fam: Family, cfg: Config, fields: dict[str, Any], key: str, value: st
         return cfg, _instance_fields(fam, value, key)
     if key.startswith(INSTANCE_PREFIX):
         name = key[len(INSTANCE_PREFIX) :]
-        allowed = sorted({*fields, "p"} if "p_low" in fields else fields)
-        if fam.make_instances is None or name not in allowed:
+        allowed = sorted({*fields, *fam.shift_aliases})
+        if fam.make_instances is None:
+            raise ValueError(f"--shift {key}: family {fam.name!r} instances cannot be shifted")
+        if name not in allowed:
             raise ValueError(
                 f"--shift {key}: {fam.name} instance fields are {allowed}, got {name!r}"
             )
-        try:
-            v: Any = float(value) if name in FLOAT_FIELDS else value
-        except ValueError:
-            raise ValueError(f"--shift {key} must be a number, got {value!r}") from None
-        if name == "p":  # one wind strength replaces the band
-            fields = {k: f for k, f in fields.items() if k not in ("p_low", "p_high")}
-        return cfg, {**fields, name: v}
+        return cfg, {**fields, name: _scalar(value)}
     try:
         return apply_overrides(cfg, [f"{key}={value}"]), fields
     except ValueError as e:
         raise ValueError(f"--shift {key}={value}: {e}") from None
+
+
+def _scalar(value: str) -> Any:
+    """``value`` as YAML reads a scalar: int, float, bool or null, else the string itself."""
+    try:
+        v = yaml.safe_load(value)
+    except yaml.YAMLError:
+        return value
+    return v if isinstance(v, (int, float, bool)) or v is None else value
 
 
 def _instance_fields(fam: Family, spec: Any, key: str = "--test") -> dict[str, Any]:

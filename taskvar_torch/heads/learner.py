@@ -46,7 +46,7 @@ from taskvar_torch.heads.max_value import (
 )
 from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
 from taskvar_torch.heads.options import option_greedy_actions, options_loss
-from taskvar_torch.heads.relabel import Transitions, relabel
+from taskvar_torch.heads.relabel import InstanceFeatures, Transitions, relabel
 from taskvar_torch.heads.robustness import (
     ROBUSTNESS_TARGETS,
     ROBUSTNESS_UNTIL,
@@ -108,6 +108,8 @@ class MultiHeadLoss(LossModule):
         heads: the online heads (trained in place).
         subtasks: the family's options, used to relabel transitions.
         settings: discounts, double-Q, expectile level, mu_bar temperature.
+        instance_features: the family's features of the hidden instance (``Family
+            .instance_features``), read offline by the ``instance`` max-value estimator only.
 
     Returns (``forward``): a ``TensorDict`` of scalar losses ``loss_<head>`` for the heads present.
 
@@ -116,8 +118,15 @@ class MultiHeadLoss(LossModule):
         >>> loss(buffer.sample())["loss_averaging"]  # doctest: +SKIP
     """
 
-    def __init__(self, heads: Heads, subtasks: Subtasks, settings: LossSettings):
+    def __init__(
+        self,
+        heads: Heads,
+        subtasks: Subtasks,
+        settings: LossSettings,
+        instance_features: InstanceFeatures | None = None,
+    ):
         super().__init__()
+        self.instance_features = instance_features
         for name, needs in _NEEDS.items():
             missing = [n for n in needs if heads.has(name) and not heads.has(n)]
             if missing:
@@ -259,7 +268,12 @@ class MultiHeadLoss(LossModule):
 
     def relabel(self, tensordict: TensorDictBase) -> Transitions:
         """The sampled batch relabelled for every head (:func:`relabel`)."""
-        return relabel(tensordict, self.subtasks, robustness=self.heads.has("robustness"))
+        return relabel(
+            tensordict,
+            self.subtasks,
+            robustness=self.heads.has("robustness"),
+            instance_features=self.instance_features,
+        )
 
     def losses(self, batch: Transitions) -> dict[str, torch.Tensor]:
         """Every head's loss ``{"loss_<head>": scalar}`` on a relabelled batch: plain tensors in

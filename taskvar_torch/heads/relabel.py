@@ -9,6 +9,7 @@ each capability's robustness reward (paper §3.4.3). Computed once per sample, s
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -63,13 +64,19 @@ WINDY_DIRECTIONS = 4  # north, south, east, west (envs/windy.py DIRECTIONS)
 WINDY_INSTANCE_DIM = 1 + WINDY_DIRECTIONS  # (p, one_hot(direction))
 
 
-def instance_features(td: TensorDictBase) -> torch.Tensor | None:
-    """``(B, F)`` features of each transition's hidden instance, or ``None`` if the batch has none.
+InstanceFeatures = Callable[[TensorDictBase], torch.Tensor]
+"""A family's ``instance_features``: transitions ``(B,)`` -> ``(B, F)`` features of their hidden
+``("instance", ...)`` entries (families.py, ``Family.instance_features``)."""
+
+
+def windy_instance_features(td: TensorDictBase) -> torch.Tensor | None:
+    """``(B, F)`` features of each windy transition's hidden instance, or ``None`` if the batch has
+    none: ``(p, one_hot(direction))``, F = 5, from ``("instance", "p")`` and
+    ``("instance", "direction")``, which the trainer keeps in the replay only for the ``instance``
+    max-value estimator.
 
     Only the instance-conditioned max-value critic reads them (offline, privileged: Definition 1's
-    max is over *instances*; ``taskvar_torch/heads/max_value.py``); no controller ever does. Windy:
-    ``(p, one_hot(direction))``, F = 5, from ``("instance", "p")`` and ``("instance", "direction")``,
-    which the trainer keeps in the replay only for that estimator.
+    max is over *instances*; ``taskvar_torch/heads/max_value.py``); no controller ever does.
     """
     if (keys.INSTANCE, "p") not in td.keys(True, True):
         return None
@@ -79,8 +86,15 @@ def instance_features(td: TensorDictBase) -> torch.Tensor | None:
     return torch.cat([p, one_hot], dim=-1)
 
 
-def relabel(td: TensorDictBase, subtasks: Subtasks, robustness: bool = False) -> Transitions:
-    """Relabel a sampled batch ``td`` (B,) of raw transitions for every head."""
+def relabel(
+    td: TensorDictBase,
+    subtasks: Subtasks,
+    robustness: bool = False,
+    instance_features: InstanceFeatures | None = None,
+) -> Transitions:
+    """Relabel a sampled batch ``td`` (B,) of raw transitions for every head; with
+    ``instance_features`` (the family's), also the hidden instance's features where the batch
+    holds the ``("instance", ...)`` entries."""
     nxt = td.get(keys.NEXT)
     terminated = nxt.get(keys.TERMINATED).reshape(-1).to(torch.float32)  # (B,)
     nstep = None
@@ -109,6 +123,10 @@ def relabel(td: TensorDictBase, subtasks: Subtasks, robustness: bool = False) ->
         beta_next=subtasks.termination(nxt).to(torch.float32),
         subtask_reward=subtasks.reward(td).to(torch.float32),
         robustness_reward=subtasks.robustness_reward(td).to(torch.float32) if robustness else None,
-        instance=instance_features(td),
+        instance=(
+            instance_features(td)
+            if instance_features is not None and keys.INSTANCE in td.keys()
+            else None
+        ),
         nstep=nstep,
     )

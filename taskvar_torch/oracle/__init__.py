@@ -84,7 +84,12 @@ from taskvar_torch.oracle.chains import (
     ControllerChains,
     discounted_chain_values,
 )
-from taskvar_torch.oracle.learnt import exact_returns, firing_values, learnt_vs_oracle_by_start
+from taskvar_torch.oracle.learnt import (
+    exact_episode_returns,
+    exact_returns,
+    firing_values,
+    learnt_vs_oracle_by_start,
+)
 from taskvar_torch.oracle.mdp import TIE_ATOL, gauss_legendre, greedy, snap_ties, solve_mdp
 from taskvar_torch.oracle.replay import ReplayReference
 from taskvar_torch.oracle.tables import TableLookup, table_heads
@@ -98,6 +103,7 @@ __all__ = [
     "TableLookup",
     "WindyOracle",
     "discounted_chain_values",
+    "exact_episode_returns",
     "exact_returns",
     "firing_values",
     "gauss_legendre",

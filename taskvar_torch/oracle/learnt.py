@@ -21,6 +21,40 @@ from taskvar_torch.envs import windy
 from taskvar_torch.oracle.chains import discounted_chain_values
 
 
+def exact_episode_returns(
+    oracle,
+    ctrl: Controller,
+    cfg: Config,
+    instance: dict[str, np.ndarray],
+    start: np.ndarray,
+    chunk: int = 2000,
+) -> np.ndarray:
+    """Exact expected horizon-step return of ``ctrl`` (learnt heads) per (instance, start) episode.
+
+    ``oracle`` is a family's exact oracle (``Family.oracle``, docs/families.md): its
+    ``instance_keys`` name the ``("instance", key)`` fields its ``controller_return(ctrl, *fields,
+    start=None, obs_encoding=...)`` takes, each an array of the episodes' values in ``instance``;
+    ``start`` holds each episode's first ``cell``.
+    """
+    names = tuple(oracle.instance_keys)
+    missing = [k for k in names if k not in instance]
+    if missing:
+        raise ValueError(f"exact returns need the episodes' instance fields {list(names)}")
+    out = []
+    for lo in range(0, len(start), chunk):
+        sl = slice(lo, lo + chunk)
+        fields = []
+        for k in names:
+            v = torch.as_tensor(np.asarray(instance[k])[sl])
+            fields.append(v.to(torch.float64) if v.is_floating_point() else v.to(torch.int64))
+        V = oracle.controller_return(  # (B, S)
+            ctrl, *fields, start=None, obs_encoding=getattr(cfg.env, "obs_encoding", "onehot")
+        )
+        idx = torch.as_tensor(start[sl], dtype=torch.int64).unsqueeze(-1)
+        out.append(V.gather(1, idx.to(V.device)).squeeze(-1).cpu().numpy())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
 def exact_returns(
     oracle,
     ctrl: Controller,
@@ -30,20 +64,10 @@ def exact_returns(
     start: np.ndarray,
     chunk: int = 2000,
 ) -> np.ndarray:
-    """Exact expected horizon-step return of ``ctrl`` (learnt heads) per (instance, start) episode."""
-    out = []
-    for lo in range(0, len(p), chunk):
-        sl = slice(lo, lo + chunk)
-        V = oracle.controller_return(  # (B, S)
-            ctrl,
-            torch.as_tensor(p[sl], dtype=torch.float64),
-            torch.as_tensor(direction[sl], dtype=torch.int64),
-            start=None,
-            obs_encoding=cfg.env.obs_encoding,
-        )
-        idx = torch.as_tensor(start[sl], dtype=torch.int64).unsqueeze(-1)
-        out.append(V.gather(1, idx).squeeze(-1).numpy())
-    return np.concatenate(out) if out else np.zeros(0)
+    """:func:`exact_episode_returns` of windy episodes (wind ``p`` and ``direction`` arrays)."""
+    return exact_episode_returns(
+        oracle, ctrl, cfg, {"p": p, "direction": direction}, start, chunk=chunk
+    )
 
 
 def firing_values(

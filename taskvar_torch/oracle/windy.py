@@ -83,6 +83,9 @@ class WindyOracle(ControllerChains, ReplayReference):
         device: torch device of the tables.
     """
 
+    instance_keys = ("p", "direction")
+    """The ``("instance", key)`` fields :meth:`controller_return` takes, in order (docs/families.md)."""
+
     def __init__(
         self,
         model_or_layout: windy.WindyModel | windy.WindyLayout | str = "default",

@@ -12,6 +12,10 @@ from tensordict import TensorDictBase
 class Hierarchy:
     """A composition hierarchy as data (paper §3.4.2, Figure 3): a tree of option names.
 
+    A tree, not a graph: Algorithm 2 returns control to the running option's parent, so a
+    component shared by several composed options (MAXQ's Navigate under Get and Put) is refused;
+    give each parent its own copy of the option.
+
     ``children[o]`` are the components of the composed subtask ``o``; options without children are
     the leaves ("primitive options" of Algorithm 2). Control starts at ``root``.
 
@@ -30,7 +34,12 @@ class Hierarchy:
         while stack:
             o = stack.pop()
             if o in seen:
-                raise ValueError(f"hierarchy is not a tree: option {o!r} appears twice")
+                raise ValueError(
+                    f"hierarchy must be a tree: option {o!r} is reached twice from the root "
+                    "(a component shared by two composed options, or a cycle); Algorithm 2 hands "
+                    "control back to the running option's parent, which a shared component does "
+                    f"not determine: give each parent its own copy (e.g. {o + '_1'!r}, {o + '_2'!r})"
+                )
             seen.add(o)
             stack.extend(self.children.get(o, ()))
         unknown = sorted(set(self.children) - seen)

@@ -1,0 +1,169 @@
+"""``check_family``: does a family honour the contract every command relies on (docs/families.md)?
+
+It builds the family's env and options from a default config of the family and checks, in order:
+the declaration (:func:`~taskvar_torch.families.register_family`'s checks), the env's specs at N=1
+and N>1 (``torchrl.envs.utils.check_env_specs``), the hidden ``("instance", ...)`` entry beside
+(never inside) the observation, keyed seeding that does not depend on how the batch is split
+(``index_offset``), the horizon, the subtasks' shapes, the instance features, and every named test
+distribution. The first miss is a one-line ``ValueError`` that names it.
+
+Examples:
+    >>> from taskvar_torch import check_family, family
+    >>> check_family(family("windy"))
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict import TensorDictBase
+from torchrl.envs.utils import check_env_specs
+
+from taskvar_torch import keys
+from taskvar_torch.config.schema import config_schema
+from taskvar_torch.families import Family, _check_declaration
+from taskvar_torch.subtasks.base import Subtasks
+
+_STEPS = 24  # steps of the batch-split and subtask checks
+
+
+def _fail(fam: Family, what: str) -> ValueError:
+    return ValueError(f"family {fam.name!r}: {what} (docs/families.md)")
+
+
+def _actions(t: int, index: torch.Tensor, num_actions: int) -> torch.Tensor:
+    """A deterministic action per sub-environment that depends on its global index only."""
+    return (index * 7 + t * 3) % num_actions
+
+
+def _rollout(env, steps: int, offset: int) -> list[TensorDictBase]:
+    """``steps`` steps of ``env`` (auto-reset), actions keyed by the global sub-env index."""
+    n = env.batch_size[0]
+    index = torch.arange(n, device=env.device) + offset
+    num_actions = int(env.action_spec.space.n)
+    td = env.reset()
+    out = []
+    for t in range(steps):
+        td.set(keys.ACTION, _actions(t, index, num_actions).reshape(env.action_spec.shape))
+        stepped, td = env.step_and_maybe_reset(td)
+        out.append(stepped.clone())
+    return out
+
+
+def check_family(fam: Family, num_envs: int = 4) -> None:
+    """Check that ``fam`` honours the family contract; a one-line ``ValueError`` names the first
+    thing missing or wrong.
+
+    Args:
+        fam: the family, registered or not (an unregistered one is registered for the check's
+            duration, since its default config is built through the registry; its name must be
+            free).
+        num_envs: the batch size of the N>1 checks (at least 2).
+
+    Raises:
+        ValueError: one line naming the first part of the contract ``fam`` misses.
+    """
+    from taskvar_torch.families import FAMILIES, register_family
+
+    _check_declaration(fam)
+    if "train" not in fam.instance_names:
+        raise _fail(fam, "instance_names must include 'train' (the default of env.instances)")
+    registered = FAMILIES._families.get(fam.name)
+    if registered is not None and registered is not fam:
+        raise _fail(fam, "another family of this name is registered; check that one instead")
+    temporary = registered is None
+    if temporary:
+        register_family(fam)
+    try:
+        _check(fam, max(2, int(num_envs)))
+    finally:
+        if temporary:
+            FAMILIES._families.pop(fam.name, None)
+
+
+def _check(fam: Family, n: int) -> None:
+    try:
+        cfg = config_schema(fam.name)(family=fam.name)
+    except ValueError as e:
+        raise _fail(fam, f"its default config is refused: {e}") from None
+    # specs at N=1 and N>1
+    for size in (1, n):
+        try:
+            env = fam.make_env(cfg, size, seed=0)
+        except Exception as e:
+            raise _fail(fam, f"env_class(**env_kwargs(cfg)) failed at num_envs={size}: {e}") from e
+        if tuple(env.batch_size) != (size,):
+            raise _fail(fam, f"the env's batch_size must be ({size},), got {tuple(env.batch_size)}")
+        try:
+            check_env_specs(env, seed=None)
+        except Exception as e:
+            msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise _fail(fam, f"check_env_specs fails at num_envs={size}: {msg}") from None
+    # the observation and the hidden instance
+    td = env.reset()
+    if keys.OBSERVATION not in td.keys():
+        raise _fail(fam, f"the env must write {keys.OBSERVATION!r}")
+    if (
+        not isinstance(td.get(keys.INSTANCE, None), TensorDictBase)
+        or td.get(keys.INSTANCE).is_empty()
+    ):
+        raise _fail(fam, f"the env must write the hidden instance under ({keys.INSTANCE!r}, ...)")
+    obs = td.get(keys.OBSERVATION)
+    if obs.dim() != 2 or not obs.is_floating_point():
+        raise _fail(fam, f"{keys.OBSERVATION!r} must be float (N, D), got {tuple(obs.shape)}")
+    # the horizon
+    horizon = getattr(env, "horizon", None)
+    if not isinstance(horizon, int) or horizon < 1:
+        raise _fail(fam, f"the env must have an int .horizon >= 1, got {horizon!r}")
+    # keyed seeding: sub-envs 1.. of a batch equal a batch starting at index_offset=1
+    whole = _rollout(fam.make_env(cfg, n, seed=3), _STEPS, 0)
+    part = _rollout(fam.make_env(cfg, n - 1, seed=3, index_offset=1), _STEPS, 1)
+    for t, (a, b) in enumerate(zip(whole, part)):
+        for key in (keys.OBSERVATION, (keys.NEXT, keys.OBSERVATION), (keys.NEXT, keys.REWARD)):
+            if not torch.equal(a.get(key)[1:], b.get(key)):
+                raise _fail(
+                    fam,
+                    f"{key} at step {t} changes with the batch split: sub-environment i must draw "
+                    "from the key (seed, index_offset + i) alone",
+                )
+    # the subtasks: names and shapes on a transition batch
+    subtasks = fam.subtasks(cfg, env)
+    if not isinstance(subtasks, Subtasks) or not subtasks.names:
+        raise _fail(fam, "subtasks(cfg, env) must return a Subtasks with at least one option")
+    batch = torch.stack(whole, 0).reshape(-1)  # (steps * n,)
+    B, O = batch.shape[0], subtasks.num_options  # noqa: E741
+    for what, value, dtype in (
+        ("initiation", subtasks.initiation(batch), torch.bool),
+        ("termination", subtasks.termination(batch.get(keys.NEXT)), torch.bool),
+        ("reward", subtasks.reward(batch), None),
+    ):
+        if tuple(value.shape) != (B, O) or (dtype is not None and value.dtype != dtype):
+            raise _fail(
+                fam,
+                f"Subtasks.{what} must be ({B}, {O})"
+                + (" bool" if dtype else "")
+                + f", got {tuple(value.shape)} {value.dtype}",
+            )
+    if subtasks.hierarchy is not None:
+        unknown = sorted(set(subtasks.hierarchy.options) - set(subtasks.names))
+        if unknown:
+            raise _fail(fam, f"the hierarchy names options that do not exist: {unknown}")
+    # the instance features
+    if fam.instance_features is not None:
+        z = fam.instance_features(batch)
+        if z is None or tuple(z.shape) != (B, fam.instance_dim):
+            got = None if z is None else tuple(z.shape)
+            raise _fail(fam, f"instance_features must give ({B}, {fam.instance_dim}), got {got}")
+    # the named test distributions build their envs
+    if not fam.tests:
+        raise _fail(fam, "tests must name at least one test distribution (taskvar eval --test)")
+    from taskvar_torch.experiments.shift import shift_points
+
+    for name in fam.tests:
+        try:
+            for point in shift_points(cfg, name):
+                fam.make_env(point.cfg, 1, seed=0, instances=point.instances).reset()
+        except Exception as e:
+            raise _fail(fam, f"test distribution {name!r} does not build: {e}") from None
+
+
+__all__ = ["check_family"]
