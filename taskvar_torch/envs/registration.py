@@ -8,6 +8,7 @@ from taskvar_torch.envs.windy import make_layout
 
 _WINDY = "taskvar_torch.envs.windy_gym:WindyGridGymEnv"
 _WARGUS = "taskvar_torch.envs.wargus_gym:WargusGymEnv"
+_TAXI = "taskvar_torch.envs.taxi_gym:TaxiGymEnv"
 
 
 def _map(layout) -> str:
@@ -28,6 +29,7 @@ ENV_IDS: dict[str, tuple[str, dict]] = {
     ),
     "taskvar/Wargus-v0": (_WARGUS, {}),
     "taskvar/Wargus-Large-v0": (_WARGUS, {"size": 64, "num_patrols": 3, "horizon": 1000}),
+    "taskvar/Taxi-v0": (_TAXI, {}),
 }
 
 
