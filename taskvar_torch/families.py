@@ -28,7 +28,7 @@ import importlib.metadata
 import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from torchrl.envs import EnvBase
 
@@ -43,8 +43,11 @@ from taskvar_torch.subtasks.base import Subtasks
 from taskvar_torch.subtasks.wargus import WargusSubtasks
 from taskvar_torch.subtasks.windy import WindySubtasks
 
-if TYPE_CHECKING:  # type hints only: the config package reads this registry, never the reverse
-    from taskvar_torch.config import Config, EnvConfig
+Config = Any
+"""A :class:`taskvar_torch.config.Config` (not imported: the config package reads this registry,
+never the reverse)."""
+EnvConfig = Any
+"""Its ``env`` section, :class:`taskvar_torch.config.EnvConfig`."""
 
 ENTRY_POINT_GROUP = "taskvar_torch.families"
 """The entry-point group an installed package registers its families under (docs/families.md)."""

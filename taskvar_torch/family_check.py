@@ -19,7 +19,7 @@ from tensordict import TensorDictBase
 from torchrl.envs.utils import check_env_specs
 
 from taskvar_torch import keys
-from taskvar_torch.config.schema import config_schema
+from taskvar_torch.config.loader import config_schema
 from taskvar_torch.families import Family, _check_declaration
 from taskvar_torch.subtasks.base import Subtasks
 

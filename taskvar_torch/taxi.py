@@ -117,9 +117,12 @@ def _make_instances(fields: dict[str, Any]) -> TaxiInstances:
 
 
 def _oracle(cfg: Any) -> Any:
-    """The exact oracle (``oracle/taxi.py``): every Taxi env is small enough."""
+    """The exact oracle (``oracle/taxi.py``) of a one-hot Taxi config (its tables are read at
+    every state through the one-hot observation), else ``None``."""
     from taskvar_torch.oracle.taxi import TaxiOracle
 
+    if _section(cfg).obs_encoding != "onehot":
+        return None
     return TaxiOracle(
         gamma=cfg.train.gamma,
         horizon=_section(cfg).horizon,
@@ -129,13 +132,39 @@ def _oracle(cfg: Any) -> Any:
 
 
 def _averaging_optimum(cfg: Any) -> torch.Tensor:
-    return _oracle(cfg).averaging_policy()
+    from taskvar_torch.oracle.taxi import TaxiOracle
+
+    return TaxiOracle(gamma=cfg.train.gamma, train_instances=cfg.env.instances).averaging_policy()
 
 
-def _summary(heads: Any, cfg: Any) -> list[str]:
-    from taskvar_torch.oracle.taxi import compare_with_oracle
+def oracle_summary(heads: Any, cfg: Any) -> list[str]:
+    """Every learnt controller's exact expected return on the training instances beside the same
+    controller on the oracle's own tables and the per-instance optimum (printed after training)."""
+    oracle = _oracle(cfg)
+    if oracle is None:
+        return []
+    from taskvar_torch.factory import make_method_controller
+    from taskvar_torch.subtasks.taxi import TaxiSubtasks
 
-    return compare_with_oracle(heads.cpu(), _oracle(cfg), _section(cfg).obs_encoding)
+    heads = heads.cpu()
+    dist = cfg.env.instances
+    lines = [
+        f"exact expected returns on the training instances ({dist}), Taxi-v4 starts:",
+        f"  {'method':<13} {'learnt':>8} {'oracle':>8} {'fires/ep':>9}",
+    ]
+    for m in ("averaging", "options", "interruption"):
+        ctrl = make_method_controller(cfg, m, heads, TaxiSubtasks())
+        learnt = float(oracle.controller_expected_return(ctrl, dist))
+        best = float(oracle.controller_expected_return(m, dist))
+        fires = (
+            ""
+            if m != "interruption"
+            else f"{float(oracle.controller_expected_return(ctrl, dist, count_fires=True)):9.3f}"
+        )
+        lines.append(f"  {m:<13} {learnt:8.3f} {best:8.3f} {fires}")
+    optimum = float(oracle.expected_optimal_return(dist))
+    lines.append(f"  per-instance optimum (knows q and f): {optimum:8.3f}")
+    return lines
 
 
 TESTS = {
@@ -175,7 +204,7 @@ def family() -> Family:
         instance_dim=INSTANCE_DIM,
         instance_features=instance_features,
         oracle=_oracle,
-        oracle_summary=_summary,
+        oracle_summary=oracle_summary,
         averaging_optimum=_averaging_optimum,
         grid_side=lambda cfg: 5,
         cells=lambda cfg: 25,
@@ -183,4 +212,12 @@ def family() -> Family:
     )
 
 
-__all__ = ["INSTANCE_DIM", "NAME", "TESTS", "TaxiConfig", "family", "instance_features"]
+__all__ = [
+    "INSTANCE_DIM",
+    "NAME",
+    "TESTS",
+    "TaxiConfig",
+    "family",
+    "instance_features",
+    "oracle_summary",
+]

@@ -28,7 +28,7 @@ from taskvar_torch.config import (
     windy_env_kwargs,
     windy_layout,
 )
-from taskvar_torch.config.schema import config_schema
+from taskvar_torch.config.loader import config_schema
 from taskvar_torch.envs import WindyGridEnv
 from taskvar_torch.experiments import fig4_metrics, windy_fig2
 from taskvar_torch.experiments import scale as scale_experiment

@@ -43,6 +43,7 @@ from taskvar_torch.config.help import config_help, field_docs
 from taskvar_torch.config.loader import (
     apply_overrides,
     config_from_dict,
+    config_schema,
     config_to_dict,
     config_to_yaml,
     load_config,
@@ -92,6 +93,7 @@ __all__ = [
     "atomic_write",
     "config_from_dict",
     "config_help",
+    "config_schema",
     "config_to_dict",
     "config_to_yaml",
     "family",

@@ -25,21 +25,78 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import functools
 import os
 import typing
 from collections.abc import Callable, Mapping, Sequence
+from dataclasses import field, fields
 from pathlib import Path
 from typing import Any, TypeVar
 
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from taskvar_torch.config.schema import Config, config_schema
+from taskvar_torch.config.schema import Config, EnvConfig
+from taskvar_torch.families import FAMILIES
 from taskvar_torch.io import atomic_write
 
 T = TypeVar("T")
 
 _LIST_ITEM = "a list is set whole (e.g. {key}=[...]); its items cannot be set one by one"
+
+
+# --------------------------------------------------------------------------------------------
+# families that bring their own env keys (env.<family name>)
+
+
+def config_schema(family_name: str | None = None) -> type[Config]:
+    """The :class:`Config` schema of a config of family ``family_name``: :class:`Config` itself,
+    or, for a family with its own keys (``Family.config_class``, docs/families.md), a subclass
+    whose ``env`` holds them under ``env.<family name>``, loaded as strictly as the rest (a
+    misspelt key is a one-line error naming it).
+
+    Only the config's own family adds its section, so a windy config's dict is the same whichever
+    families are installed. The subclass is made once per (family, class) and pickles as its dict.
+    """
+    if family_name is None or family_name not in FAMILIES:
+        return Config
+    fam = FAMILIES[family_name]
+    if fam.config_class is None or family_name in {f.name for f in fields(EnvConfig)}:
+        return Config
+    return _schema_with_section(family_name, fam.config_class)
+
+
+@functools.cache
+def _schema_with_section(name: str, section_class: type) -> type[Config]:
+    """``Config`` whose ``env`` has the field ``name: section_class`` (range checks deferred to
+    the validation, which names ``env.<name>.<field>``, as for ``env.wargus``)."""
+    unchecked = dataclasses.make_dataclass(
+        section_class.__name__,
+        [],
+        bases=(section_class,),
+        frozen=True,
+        namespace={"__post_init__": lambda self: None, "__module__": section_class.__module__},
+    )
+    env_class = dataclasses.make_dataclass(
+        "EnvConfig",
+        [(name, unchecked, field(default_factory=unchecked))],
+        bases=(EnvConfig,),
+        frozen=True,
+        namespace={"__module__": __name__},
+    )
+    return dataclasses.make_dataclass(
+        "Config",
+        [("env", env_class, field(default_factory=env_class))],
+        bases=(Config,),
+        frozen=True,
+        namespace={"__module__": __name__, "__reduce__": _reduce_config},
+    )
+
+
+def _reduce_config(cfg: Config) -> tuple:
+    """Pickle a family-section config as its dict (the class is made at run time): it is rebuilt,
+    and validated, where the same family is registered (an entry point, or the same import)."""
+    return config_from_dict, (config_to_dict(cfg), "a pickled config")
 
 
 # --------------------------------------------------------------------------------------------

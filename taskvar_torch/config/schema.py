@@ -11,9 +11,7 @@ choice checks of :mod:`taskvar_torch.config.validate`; files and overrides are l
 
 from __future__ import annotations
 
-import dataclasses
-import functools
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 from taskvar_torch.config.validate import _validate
@@ -311,61 +309,3 @@ class Config:
 
     def __post_init__(self):
         _validate(self)
-
-
-# --------------------------------------------------------------------------------------------
-# families that bring their own env keys (env.<family name>)
-
-
-def config_schema(family_name: str | None = None) -> type[Config]:
-    """The :class:`Config` schema of a config of family ``family_name``: :class:`Config` itself,
-    or, for a family with its own keys (``Family.config_class``, docs/families.md), a subclass
-    whose ``env`` holds them under ``env.<family name>``, loaded as strictly as the rest (a
-    misspelt key is a one-line error naming it).
-
-    Only the config's own family adds its section, so a windy config's dict is the same whichever
-    families are installed. The subclass is made once per (family, class) and pickles as its dict.
-    """
-    from taskvar_torch.families import FAMILIES
-
-    if family_name is None or family_name not in FAMILIES:
-        return Config
-    fam = FAMILIES[family_name]
-    if fam.config_class is None or family_name in {f.name for f in fields(EnvConfig)}:
-        return Config
-    return _schema_with_section(family_name, fam.config_class)
-
-
-@functools.cache
-def _schema_with_section(name: str, section_class: type) -> type[Config]:
-    """``Config`` whose ``env`` has the field ``name: section_class`` (range checks deferred to
-    the validation, which names ``env.<name>.<field>``, as for ``env.wargus``)."""
-    unchecked = dataclasses.make_dataclass(
-        section_class.__name__,
-        [],
-        bases=(section_class,),
-        frozen=True,
-        namespace={"__post_init__": lambda self: None, "__module__": section_class.__module__},
-    )
-    env_class = dataclasses.make_dataclass(
-        "EnvConfig",
-        [(name, unchecked, field(default_factory=unchecked))],
-        bases=(EnvConfig,),
-        frozen=True,
-        namespace={"__module__": __name__},
-    )
-    return dataclasses.make_dataclass(
-        "Config",
-        [("env", env_class, field(default_factory=env_class))],
-        bases=(Config,),
-        frozen=True,
-        namespace={"__module__": __name__, "__reduce__": _reduce_config},
-    )
-
-
-def _reduce_config(cfg: Config) -> tuple:
-    """Pickle a family-section config as its dict (the class is made at run time): it is rebuilt,
-    and validated, where the same family is registered (an entry point, or the same import)."""
-    from taskvar_torch.config.loader import config_from_dict, config_to_dict
-
-    return config_from_dict, (config_to_dict(cfg), "a pickled config")

@@ -109,6 +109,9 @@ class TaxiOracle(ControllerChains):
         device: torch device of the tables.
     """
 
+    instance_keys = ("rainy_probability", "fickle_probability")
+    """The ``("instance", key)`` fields :meth:`controller_return` takes, in order (docs/families.md)."""
+
     def __init__(
         self,
         gamma: float = 0.99,
