@@ -35,6 +35,7 @@ Examples:
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import os
 import time
 import warnings
@@ -47,8 +48,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import BaseCollector, Collector
 from torchrl.data import ReplayBuffer
 from torchrl.envs import TransformedEnv
-from torchrl.record.loggers import CSVLogger
-from tqdm.auto import tqdm
+from torchrl.record.loggers import Logger, get_logger
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
@@ -93,6 +93,7 @@ from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import MultiHeadLearner
 from taskvar_torch.heads.nstep import nstep_returns
+from taskvar_torch.progress import progress_bar
 from taskvar_torch.replay import (  # noqa: F401  (importable from here too)
     EPISODE_REWARD,
     load_replay_state,
@@ -231,7 +232,7 @@ def train(
             checkpoint's frame) or ``overwrite`` is set; a second run on the same folder is refused.
         resume: a checkpoint written by this function to continue from, exactly.
         overrides: ``key.sub=value`` applied to the checkpoint's config when ``cfg`` is ``None``.
-        progress: show a tqdm progress bar.
+        progress: show a progress bar (plain lines when stderr is not a terminal).
         overwrite: remove the run already in ``out_dir`` (config, checkpoints, logs) first.
         keep_replay: ``False``: ``final.pt`` holds no replay buffer (up to ~1.3 GB at the scaled
             configs' 1M rows; the bundle still evaluates, :func:`load_heads`, but cannot be
@@ -262,6 +263,7 @@ def train(
     if cfg is None:
         raise ValueError("train needs a config (or a checkpoint to resume)")
     check_device(cfg.device)
+    check_logger(cfg.train.logger)
     workers = cfg.collector.num_workers
     remote = collects_in_workers(cfg)
     if bundle is not None and "replay" not in bundle:
@@ -318,13 +320,17 @@ def _train_loop(
         run.collector = make_collector(
             cfg, run.env, run.behaviour, max(t.total_frames - run.counters["frames"], 0)
         )
-    pbar = None
+    pbar = loggers = None
     try:  # shut the worker processes down on any exit
         if bundle is not None:  # after the collector's own reset and policy probe
             _restore_collection(run, bundle, resume)
-        logger = CSVLogger(exp_name="logs", log_dir=str(out))
-        pbar = tqdm(
-            total=t.total_frames, initial=run.counters["frames"], disable=not progress, unit="frame"
+        loggers = RunLoggers(t.logger, out)
+        pbar = progress_bar(
+            total=t.total_frames,
+            initial=run.counters["frames"],
+            disable=not progress,
+            desc="train",
+            unit="frame",
         )
         start_time, last_log = time.perf_counter(), {}
         on_start()
@@ -334,7 +340,7 @@ def _train_loop(
                     frames_before = run.store(batch)
                     run.learn()
                     pbar.update(min(batch.numel(), max(pbar.total - pbar.n, 0)))  # ends at total
-                    row = run.report(frames_before, stop, logger, pbar, start_time)
+                    row = run.report(frames_before, stop, loggers, pbar, start_time)
                     if row is not None:
                         last_log = row
                 pbar.close()
@@ -349,6 +355,8 @@ def _train_loop(
     finally:
         if pbar is not None:
             pbar.close()  # before any message: the bar's last line does not run into it
+        if loggers is not None:
+            loggers.close()  # TensorBoard, W&B and MLflow write their last rows here
         run.collector.shutdown()
         torch.set_num_threads(threads)  # MultiSyncCollector.shutdown adds num_workers threads
     return {
@@ -427,8 +435,8 @@ class _Run:
         self,
         frames_before: int,
         stop: _StopSignals,
-        logger: CSVLogger,
-        pbar: tqdm,
+        logger: RunLoggers,
+        pbar: Any,
         start_time: float,
     ) -> dict[str, float] | None:
         """After a batch: the log row (one host sync) when ``train.log_every`` frames were crossed
@@ -583,6 +591,54 @@ def _restore_collection(run: _Run, bundle: dict[str, Any], resume: str | os.Path
         run.last_checkpoint = Path(resume)
 
 
+LOGGER_EXTRAS = ("tensorboard", "wandb", "mlflow")
+"""``train.logger`` values beyond ``csv``: each needs the package (and pip extra) of its name."""
+
+
+def check_logger(kind: str) -> None:
+    """Raise a one-line ``ValueError`` naming the extra when ``train.logger``'s package is
+    missing (checked before a run writes anything)."""
+    if kind in LOGGER_EXTRAS and not _installed(kind):
+        raise ValueError(
+            f"train.logger={kind} needs the {kind} package: pip install 'taskvar-torch[{kind}]'"
+        )
+
+
+def _installed(package: str) -> bool:
+    """Whether ``package`` can be imported (found, not imported)."""
+    return importlib.util.find_spec(package) is not None
+
+
+class RunLoggers:
+    """Where a run's log rows go, every logger built by TorchRL's ``get_logger``: always the CSV
+    files ``out/logs/scalars/<name>.csv`` (one ``frame,value`` row per log row; a resume cuts them
+    back to its checkpoint), and with ``train.logger`` = tensorboard, wandb or mlflow the same
+    scalars at the same frames to that logger too: TensorBoard event files in
+    ``out/logs/tensorboard``, a W&B run saved under ``out/logs`` (``WANDB_PROJECT``,
+    ``WANDB_MODE=offline`` as usual), an MLflow run in the file store ``out/logs/mlruns``."""
+
+    def __init__(self, kind: str, out: Path) -> None:
+        check_logger(kind)
+        logs = out / "logs"
+        self.loggers: list[Logger] = [get_logger("csv", str(out), "logs")]
+        if kind == "tensorboard":
+            self.loggers.append(get_logger("tensorboard", str(logs), "tensorboard"))
+        elif kind == "wandb":
+            self.loggers.append(get_logger("wandb", str(logs), out.resolve().name))
+        elif kind == "mlflow":
+            self.loggers.append(get_logger("mlflow", str(logs / "mlruns"), out.resolve().name))
+
+    def log_scalar(self, name: str, value: float, step: int) -> None:
+        """Log ``value`` of scalar ``name`` at frame ``step`` to every logger."""
+        for logger in self.loggers:
+            logger.log_scalar(name, value, step=step)
+
+    def close(self) -> None:
+        """Flush and close every logger (TensorBoard, W&B and MLflow write their last rows)."""
+        for logger in self.loggers:
+            logger.close()
+
+
 def _crossed(before: int, after: int, every: int) -> bool:
     """Whether a multiple of ``every`` lies in ``(before, after]`` (``every = 0``: never)."""
     return every > 0 and after // every > before // every
@@ -593,11 +649,12 @@ def _log_row(
     stats: dict[str, torch.Tensor],
     behaviour: BehaviourPolicy,
     counters: dict[str, int],
-    logger: CSVLogger,
+    logger: RunLoggers,
     start_time: float,
     last_checkpoint: Path | None = None,
 ) -> dict[str, float]:
-    """Write one CSV row per scalar; raise :class:`TrainingDiverged` on a non-finite loss."""
+    """Log one row (a value per scalar, to every logger); raise :class:`TrainingDiverged` on a
+    non-finite loss."""
     try:
         row = learner.pop_losses()
     except FloatingPointError as e:
@@ -623,11 +680,14 @@ def _log_row(
 __all__ = [
     "CheckpointError",
     "LOCK_NAME",
+    "LOGGER_EXTRAS",
     "RunFolder",
+    "RunLoggers",
     "TrainingDiverged",
     "TrainingInterrupted",
     "build_heads",
     "check_device",
+    "check_logger",
     "check_output_folder",
     "collects_in_workers",
     "epsilon_at",

@@ -62,7 +62,6 @@ import numpy as np
 import torch
 import torch.multiprocessing as mp
 from torchrl.envs import TransformedEnv
-from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
@@ -108,6 +107,7 @@ from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.heads.snapshots import HeadValues
+from taskvar_torch.progress import progress_bar
 from taskvar_torch.train import (
     build_heads,
     make_env,
@@ -354,7 +354,7 @@ def run_repetitions(
 ) -> list[dict[str, Any]]:
     """Every repetition, sequentially (``workers = 1``) or in ``workers`` spawned processes."""
     reps = cfg.experiment.runs
-    bar = tqdm(
+    bar = progress_bar(
         total=reps * cfg.experiment.trials, disable=not progress, desc=EXPERIMENT, unit="trial"
     )
     results: dict[int, dict[str, Any]] = {}

@@ -42,7 +42,6 @@ from typing import Any
 
 import numpy as np
 from torchrl.envs import TransformedEnv
-from tqdm.auto import tqdm
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import load_checkpoint
@@ -81,6 +80,7 @@ from taskvar_torch.oracle import (  # the exact maths; also importable from this
     firing_values,
     learnt_vs_oracle_by_start,
 )
+from taskvar_torch.progress import progress_bar
 from taskvar_torch.train import (
     check_device,
     check_output_folder,
@@ -294,7 +294,7 @@ def run_distribution(
     fire_parts: dict[str, list[np.ndarray]] = {}
     width = windy_layout(cfg.env).width
     ctrls = {m: build_controller(m, heads, cfg) for m in METHODS} if oracle is not None else {}
-    bar = tqdm(
+    bar = progress_bar(
         total=runs * episodes * (len(METHODS) + 1), disable=not progress, desc=desc, unit="ep"
     )
     for run in range(runs):
@@ -365,7 +365,7 @@ def windy_fig2(
         out_dir: results folder (created).
         checkpoint: a bundle written by ``train.train``; skips training (its config's env and
             heads are used, ``cfg``'s experiment and eval sizes).
-        progress: tqdm progress bars.
+        progress: progress bars (taskvar_torch/progress.py: plain lines away from a terminal).
         quick: recorded in ``metrics.json`` (the config already holds the quick overrides).
         plots: draw the PNGs (``False``: skip them, e.g. in sweeps; ``taskvar plot DIR`` draws
             them later from the folder).
