@@ -117,17 +117,16 @@ def _make_instances(fields: dict[str, Any]) -> TaxiInstances:
 
 
 def _oracle(cfg: Any) -> Any:
-    """The exact oracle (``oracle/taxi.py``) of a one-hot Taxi config (its tables are read at
-    every state through the one-hot observation), else ``None``."""
+    """The exact oracle (``oracle/taxi.py``): 500 states, any encoding (learnt heads are read at
+    every state through their observation)."""
     from taskvar_torch.oracle.taxi import TaxiOracle
 
-    if _section(cfg).obs_encoding != "onehot":
-        return None
     return TaxiOracle(
         gamma=cfg.train.gamma,
         horizon=_section(cfg).horizon,
         train_instances=cfg.env.instances,
         mu_temperature=cfg.train.mu_bar_temperature if cfg.train.mu_bar == "softmax" else None,
+        obs_encoding=_section(cfg).obs_encoding,
     )
 
 

@@ -406,8 +406,10 @@ class _Run:
         raw = raw_transitions(batch, keep_instance=t.max_value_estimator == "instance")  # (N*T,)
         if t.first_visit:
             raw = raw[self.first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
-        self.buffer.extend(raw)
-        counters["stored"] += raw.numel()
+        stored = raw.batch_size[0]  # (TensorDict.numel() of an empty batch is 1, not 0)
+        if stored:  # else every transition a repeat (a greedy loop): nothing new to store
+            self.buffer.extend(raw)
+        counters["stored"] += stored
         done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
         ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
         by_options = done & (batch.get(BEHAVIOUR) >= 0)

@@ -34,7 +34,8 @@ def exact_episode_returns(
     ``oracle`` is a family's exact oracle (``Family.oracle``, docs/families.md): its
     ``instance_keys`` name the ``("instance", key)`` fields its ``controller_return(ctrl, *fields,
     start=None, obs_encoding=...)`` takes, each an array of the episodes' values in ``instance``;
-    ``start`` holds each episode's first ``cell``.
+    ``start`` holds each episode's first ``cell``. Learnt heads are read in the oracle's
+    ``obs_encoding`` where it has one, else the config's ``env.obs_encoding``.
     """
     names = tuple(oracle.instance_keys)
     missing = [k for k in names if k not in instance]
@@ -47,9 +48,8 @@ def exact_episode_returns(
         for k in names:
             v = torch.as_tensor(np.asarray(instance[k])[sl])
             fields.append(v.to(torch.float64) if v.is_floating_point() else v.to(torch.int64))
-        V = oracle.controller_return(  # (B, S)
-            ctrl, *fields, start=None, obs_encoding=getattr(cfg.env, "obs_encoding", "onehot")
-        )
+        encoding = getattr(oracle, "obs_encoding", None) or cfg.env.obs_encoding
+        V = oracle.controller_return(ctrl, *fields, start=None, obs_encoding=encoding)  # (B, S)
         idx = torch.as_tensor(start[sl], dtype=torch.int64).unsqueeze(-1)
         out.append(V.gather(1, idx.to(V.device)).squeeze(-1).cpu().numpy())
     return np.concatenate(out) if out else np.zeros(0)

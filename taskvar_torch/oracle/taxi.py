@@ -78,6 +78,7 @@ from torch import nn
 from taskvar_torch import keys
 from taskvar_torch.envs import taxi
 from taskvar_torch.envs.taxi import TaxiInstances, taxi_instances
+from taskvar_torch.envs.taxi_env import observation_table
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle.chains import CONTROLLER_NAMES, ControllerChains
 from taskvar_torch.oracle.mdp import TIE_ATOL, gauss_legendre, greedy, snap_ties, solve_mdp
@@ -107,6 +108,8 @@ class TaxiOracle(ControllerChains):
         quad_nodes: Gauss-Legendre nodes in q (default ``ceil(horizon / 2)``: exact for returns).
         tol: certified error of the iterative solves.
         device: torch device of the tables.
+        obs_encoding: the observation learnt heads read (``envs/taxi_env.py``), used where a
+            controller's heads are tabulated at every state.
     """
 
     instance_keys = ("rainy_probability", "fickle_probability")
@@ -124,6 +127,7 @@ class TaxiOracle(ControllerChains):
         quad_nodes: int | None = None,
         tol: float = 1e-10,
         device: torch.device | str = "cpu",
+        obs_encoding: str = "onehot",
     ):
         if not 0.0 <= gamma < 1.0:
             raise ValueError(f"gamma must be in [0, 1), got {gamma}")
@@ -134,6 +138,7 @@ class TaxiOracle(ControllerChains):
                 f"fickle_weights must be one of {list(FICKLE_WEIGHTS)}, got {fickle_weights!r}"
             )
         self.device = torch.device(device)
+        self.obs_encoding = obs_encoding
         self.model = taxi.TaxiModel(self.device)
         self.gamma, self.horizon, self.tol = float(gamma), int(horizon), float(tol)
         self.train_instances = taxi_instances(train_instances)
@@ -673,11 +678,11 @@ class TaxiOracle(ControllerChains):
         )
 
     def observation_td(self, obs_encoding: str = "onehot") -> TensorDict:
-        """A ``(S,)`` tensordict of every Taxi state: ``cell`` and the one-hot ``observation``."""
-        if obs_encoding != "onehot":
-            raise ValueError(f"Taxi observations are one-hot, got obs_encoding={obs_encoding!r}")
+        """A ``(S,)`` tensordict of every Taxi state: ``cell`` and its ``observation`` in
+        ``obs_encoding`` (``envs/taxi_env.py``: onehot or factored), so learnt heads are read at
+        every state."""
         cells = torch.arange(self.S, device=self.device)
-        obs = torch.eye(self.S, dtype=torch.float32, device=self.device)
+        obs = torch.as_tensor(observation_table(obs_encoding), device=self.device)
         return TensorDict(
             {keys.CELL: cells, keys.OBSERVATION: obs}, batch_size=[self.S], device=self.device
         )
@@ -704,7 +709,7 @@ class TaxiOracle(ControllerChains):
         if heads is None:
             heads = self.heads()
         subtasks = self.subtasks if subtasks is None else subtasks
-        t = self.tabulate(heads, kwargs.get("obs_encoding", "onehot"))
+        t = self.tabulate(heads, kwargs.get("obs_encoding") or self.obs_encoding)
         if name == "averaging":
             return self._averaging_chain(t)
         return self._initiation_chain(t, heads, subtasks, interrupt=name == "interruption")
@@ -822,6 +827,20 @@ class TaxiOracle(ControllerChains):
                 V = V + fz
         return V
 
+    def _chain_values_by_rain(
+        self, q: Tensor, f: Tensor, chain: dict[str, Tensor], count_fires: bool = False
+    ) -> Tensor:
+        """:meth:`_chain_values` for many instances at the cost of their distinct rain values:
+        a chain's value is affine in f (the redraw happens at most once an episode, with
+        probability f), so it is solved at f = 0 and f = 1 per distinct q and interpolated."""
+        uq, inv = torch.unique(q, return_inverse=True)  # (U,), (B,)
+        if 2 * uq.numel() >= q.numel():
+            return self._chain_values(q, f, chain, count_fires)
+        ends = torch.cat([torch.zeros_like(uq), torch.ones_like(uq)])
+        V = self._chain_values(uq.repeat(2), ends, chain, count_fires)  # (2U, X, Z)
+        V0, V1 = V[: uq.numel()][inv], V[uq.numel() :][inv]  # (B, X, Z)
+        return V0 + f.view(-1, 1, 1) * (V1 - V0)
+
     def controller_return(
         self, controller: Any, q: Any, f: Any, start: Any = None, **kwargs: Any
     ) -> Tensor:
@@ -832,7 +851,7 @@ class TaxiOracle(ControllerChains):
         ``kwargs``: ``heads``, ``subtasks``, ``obs_encoding`` for a named controller."""
         qt, ft, scalar = self._instances_arg(q, f)
         chain = self.controller_chain(controller, **kwargs)
-        V = self._chain_values(qt, ft, chain)[..., 0]  # (B, X)
+        V = self._chain_values_by_rain(qt, ft, chain)[..., 0]  # (B, X)
         out = self._select_start(V[:, self.S :], start)  # episodes start pending
         return out[0] if scalar else out
 

@@ -1,0 +1,107 @@
+"""The Taxi family end to end, through the public door only (docs/taxi.md): its entry point, its
+own ``env.taxi`` keys, shifts of its instance fields, training and ``taskvar eval`` with the exact
+oracle's figures, and options that never start outside their initiation sets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import TransformedEnv
+
+from taskvar_torch import keys
+from taskvar_torch.config import load_config
+from taskvar_torch.envs.taxi_env import TaxiEnv
+from taskvar_torch.experiments.bundle_eval import eval_bundle
+from taskvar_torch.experiments.shift import parse_shift, shift_points
+from taskvar_torch.factory import load_heads, make_method_controller
+from taskvar_torch.families import FAMILIES, family
+from taskvar_torch.oracle.taxi import TaxiOracle
+from taskvar_torch.subtasks.taxi import TaxiSubtasks
+from taskvar_torch.train import train
+
+torch.set_num_threads(1)
+CONFIG = "configs/taxi.yaml"
+TINY = [
+    "env.num_envs=16",
+    "train.total_frames=3000",
+    "train.frames_per_batch=256",
+    "train.init_random_frames=1000",
+    "train.eps_decay_frames=2000",
+    "train.updates_per_batch=2",
+    "train.checkpoint_every=0",
+    "train.log_every=3000",
+]
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory):
+    out = tmp_path_factory.mktemp("taxi")
+    result = train(load_config(CONFIG, TINY), out, progress=False)
+    return result["final"]
+
+
+def test_taxi_comes_through_the_entry_point_with_its_own_keys():
+    fam = family("taxi")
+    assert "taxi" in FAMILIES and fam.config_class is not None
+    assert FAMILIES._families["taxi"] is fam  # loaded from the package's own entry point
+    cfg = load_config(CONFIG, ["env.taxi.obs_encoding=factored", "env.taxi.horizon=50"])
+    env = fam.make_env(cfg, 2)
+    assert isinstance(env, TaxiEnv) and env.horizon == 50
+    assert env.reset()[keys.OBSERVATION].shape == (2, 19)
+    with pytest.raises(ValueError, match=r"env\.taxi\.obs_encoding must be one of"):
+        load_config(CONFIG, ["env.taxi.obs_encoding=pixels"])
+
+
+def test_shifts_pin_the_rain_and_the_passenger():
+    cfg = load_config(CONFIG)
+    points = shift_points(cfg, "dry", [parse_shift("env.instances.rainy_probability=0.6,1.0")])
+    assert [(p.instances.rain_share, p.instances.q_low) for p in points] == [(1.0, 0.6), (0.0, 1.0)]
+    (point,) = shift_points(cfg, "train", [parse_shift("env.instances.fickle_probability=1")])
+    assert (point.instances.fickle_share, point.instances.f_low) == (1.0, 1.0)
+
+
+@pytest.mark.slow
+def test_eval_all_methods_prints_the_exact_oracle_beside_the_sampled_returns(bundle):
+    metrics = eval_bundle(bundle, method="all", episodes=200, test="fickle", progress=False)
+    per = metrics["points"][0]["methods"]
+    assert set(per) == {"averaging", "options", "interruption"}
+    for m, r in per.items():
+        # the sampled mean return within 4 standard errors of the exact expectation of the same
+        # 200 episodes (each episode's instance and start, exact over the rain and the redraw)
+        assert (
+            abs(r["mean_return"] - r["exact_mean_return"])
+            <= 4 * r["mean_return_ci95"] / 1.96 + 1e-6
+        ), m
+
+
+@pytest.mark.parametrize("method", ["options", "interruption"])
+def test_no_option_starts_outside_its_initiation_set(bundle, method):
+    heads, cfg = load_heads(bundle)
+    subtasks = TaxiSubtasks()
+    for name, heads_of in (("learnt", heads), ("oracle", None)):
+        if heads_of is None:
+            heads_of = TaxiOracle(horizon=200).heads(keys.OBSERVATION, dtype=torch.float32)
+        ctrl = make_method_controller(cfg, method, heads_of, subtasks)
+        env = TransformedEnv(TaxiEnv(64, instances="storm", seed=5), ctrl.primer())
+        td = env.rollout(120, ctrl, break_when_any_done=False)
+        started = td[keys.OPTION] != td[keys.RUNNING_OPTION]  # (N, T) a new option took over
+        init = subtasks.initiation(td)  # (N, T, O)
+        opt = td[keys.OPTION]
+        ok = init.gather(-1, opt.clamp(min=0).unsqueeze(-1)).squeeze(-1) | (opt < 0)
+        assert bool(started.any()), name
+        assert bool(ok[started].all()), f"{name}: an option started outside its initiation set"
+
+
+def test_the_oracle_heads_make_interruption_pay_on_fickle_passengers():
+    """Exact, not sampled: on very fickle passengers the options controller keeps driving to the
+    old destination, interruption drops it (one firing per redraw) and matches the averaging
+    policy (docs/taxi.md)."""
+    oracle = TaxiOracle(horizon=200)
+    ret = {m: float(oracle.controller_expected_return(m, "fickle")) for m in ("averaging",
+           "options", "interruption")}  # fmt: skip
+    assert ret["interruption"] > ret["options"] + 5.0
+    assert abs(ret["interruption"] - ret["averaging"]) < 0.05
+    fires = float(oracle.controller_expected_return("interruption", "fickle", count_fires=True))
+    assert 0.8 <= fires <= 1.0  # E f over U[0.8, 1.0] = 0.9 redraws per episode
+    assert np.isfinite(list(ret.values())).all()
