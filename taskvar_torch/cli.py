@@ -203,6 +203,8 @@ def _eval_run(args: argparse.Namespace) -> int:
     _set_threads(args)
     test = None if args.test is None else _test_name(args.test)
     shifts = [parse_shift(s) for s in args.shift]  # one-line errors before any loading
+    if args.batch_size is not None and args.batch_size < 1:  # 0 would fall back to the config's
+        raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.out is not None:
         from taskvar_torch.train import check_output_folder
 

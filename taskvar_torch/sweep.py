@@ -44,7 +44,7 @@ from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
-from taskvar_torch.train import TrainingDiverged
+from taskvar_torch.train import TrainingDiverged, check_output_folder
 
 BACKENDS = ("local", "ray")
 """Config family -> the experiment each sweep point runs (as ``taskvar experiment NAME``)."""
@@ -298,6 +298,7 @@ def sweep(
         except ImportError:
             raise ValueError(RAY_MISSING) from None
     out = Path(out_dir).resolve()  # Ray workers need not share this process's working folder
+    check_output_folder(out)  # a file, or under one, or read-only: one line before any run
     refuse_existing_results(out, overwrite, "taskvar sweep")
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(cfg, str(out / p.name)) for cfg, p in zip(cfgs, points)]

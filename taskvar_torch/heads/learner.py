@@ -482,7 +482,11 @@ class MultiHeadLearner:
         if target_update == "soft":
             self.target_updater = ForeachSoftUpdate(loss, tau=target_tau)
         elif target_update == "hard":
-            self.target_updater = HardUpdate(loss, value_network_update_interval=target_period)
+            if target_period < 1:
+                raise ValueError(f"target_period must be >= 1, got {target_period}")
+            # TorchRL's HardUpdate copies when its counter, counting 0, 1, ..., reaches the
+            # interval, i.e. every interval + 1 steps: interval P - 1 copies at updates P, 2P, ...
+            self.target_updater = HardUpdate(loss, value_network_update_interval=target_period - 1)
         else:
             raise ValueError(
                 f"target_update must be one of ['hard', 'soft'], got {target_update!r}"

@@ -11,28 +11,10 @@ The transitions come from any behaviour (off-policy), so all options learn from 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
-from tensordict.nn import TensorDictModule
 
-from taskvar_torch import keys
-from taskvar_torch.heads.networks import make_head
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.targets import bootstrap_value, masked_mean
-
-
-def make_options_head(
-    obs_dim: int,
-    num_options: int,
-    num_actions: int,
-    hidden: Sequence[int] = (64, 64),
-    activation: str = "relu",
-) -> TensorDictModule:
-    """``observation (B, D) -> option_action_value (B, O, A)``."""
-    return make_head(
-        keys.OPTION_ACTION_VALUE, obs_dim, (num_options, num_actions), hidden, activation
-    )
 
 
 def option_greedy_actions(q_options: torch.Tensor) -> torch.Tensor:

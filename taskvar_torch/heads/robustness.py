@@ -46,27 +46,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
-from tensordict.nn import TensorDictModule
 
-from taskvar_torch import keys
-from taskvar_torch.heads.networks import make_head
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.targets import bootstrap_value, masked_mean
 from taskvar_torch.subtasks.base import Hierarchy
 
 ROBUSTNESS_TARGETS = ("greedy", "option")  # next action of the TD target: argmax R_o, or pi^o
 ROBUSTNESS_UNTIL = ("episode", "termination")  # the critic's horizon: the episode, or beta_o
-
-
-def make_robustness_head(
-    obs_dim: int,
-    num_options: int,
-    num_actions: int,
-    hidden: Sequence[int] = (64, 64),
-    activation: str = "relu",
-) -> TensorDictModule:
-    """``observation (B, D) -> robustness (B, O, A)``."""
-    return make_head(keys.ROBUSTNESS, obs_dim, (num_options, num_actions), hidden, activation)
 
 
 def component_matrix(names: Sequence[str], hierarchy: Hierarchy | None) -> torch.Tensor:

@@ -17,23 +17,11 @@ goal, so Q_mu(s, o) is the value of pi^o averaged over the training instances.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-
 import torch
-from tensordict.nn import TensorDictModule
 
-from taskvar_torch import keys
-from taskvar_torch.heads.networks import make_head
 from taskvar_torch.heads.options import option_greedy_actions
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.targets import masked_mean
-
-
-def make_switching_head(
-    obs_dim: int, num_options: int, hidden: Sequence[int] = (64, 64), activation: str = "relu"
-) -> TensorDictModule:
-    """``observation (B, D) -> option_value (B, O)``."""
-    return make_head(keys.OPTION_VALUE, obs_dim, num_options, hidden, activation)
 
 
 def mu_bar_probs(
