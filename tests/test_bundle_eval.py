@@ -50,6 +50,7 @@ def _rows(path):
         return list(csv.DictReader(f))
 
 
+@pytest.mark.slow
 def test_a_wargus_bundle_evaluates_every_method_on_paired_episodes(bundles, tmp_path):
     m = eval_bundle(
         bundles["wargus"] / "final.pt",

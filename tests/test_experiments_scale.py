@@ -35,6 +35,7 @@ def quick_run(tmp_path_factory):
     return out, json.loads((out / "metrics.json").read_text())
 
 
+@pytest.mark.slow
 def test_quick_run_writes_files_and_sane_metrics(quick_run):
     out, m = quick_run
     for name in FILES:
@@ -100,6 +101,7 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
     } == {"n/a"}
 
 
+@pytest.mark.slow
 def test_plot_regenerates_figure(quick_run, capsys):
     out, _ = quick_run
     (out / "scale.png").unlink()
@@ -127,6 +129,7 @@ def test_evaluation_is_paired_and_deterministic():
     assert o["mean_return"] > a["mean_return"]
 
 
+@pytest.mark.slow
 def test_case_config_keeps_updates_per_frame():
     cfg = scale.load_scale_config(
         scale.default_config_path(), ["total_frames=100000", "updates_per_frame=null"]
@@ -166,6 +169,7 @@ def test_cli_rejects_checkpoint(tmp_path, capsys):
     assert "--checkpoint is not used" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_threads(tmp_path, capsys):
     """--threads N sets the torch threads the cells train with (recorded in metrics.json); bad
     values and wargus-fig4 (one thread per --workers process) are refused."""

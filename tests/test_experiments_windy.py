@@ -77,6 +77,7 @@ def _cli(argv: list[str], capsys) -> tuple[int, str, str]:
 # ---- end to end -------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_quick_experiment_writes_every_file(results):
     for name in (
         "config.yaml",
@@ -96,6 +97,7 @@ def test_quick_experiment_writes_every_file(results):
     assert {r["direction"] for r in rows if r["distribution"] == "south_only"} == {"south"}
 
 
+@pytest.mark.slow
 def test_metrics_have_every_key_and_fractions_in_unit_interval(results):
     m = json.loads((results / "metrics.json").read_text())
     for section in (m, m["south_only"]):
@@ -123,6 +125,7 @@ def test_metrics_have_every_key_and_fractions_in_unit_interval(results):
         assert -100.0 <= r["learnt"] <= -1.0 and -100.0 <= r["oracle_optimum"] <= -1.0
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "method,test,key", [("interruption", "test", None), ("averaging", "south", "south_only")]
 )
@@ -159,6 +162,7 @@ def test_eval_reproduces_the_experiment(results, tmp_path, capsys, method, test,
     assert np.isfinite(ev["mean_return_ci95"])
 
 
+@pytest.mark.slow
 def test_plot_regenerates_the_figures(results, capsys):
     paths = [results / f for f in (*wf.FIGURES.values(), wf.HEATMAP)]
     for p in paths:
@@ -172,6 +176,7 @@ def test_plot_regenerates_the_figures(results, capsys):
 # ---- bad input: one line, non-zero exit ---------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "argv,needle",
     [

@@ -117,7 +117,7 @@ class _BadSubtasks(corridor.CorridorSubtasks):
         ({"env_class": _SplitDependentEnv}, "changes with the batch split"),
         ({"env_class": _NoInstanceEnv}, "check_env_specs fails|hidden instance"),
         (
-            {"subtasks": lambda cfg, env: _BadSubtasks(env.length)},
+            {"subtasks": lambda cfg, env: _BadSubtasks(env.length, env.horizon)},
             r"Subtasks\.initiation must be",
         ),
         ({"tests": {}}, "tests must name at least one test distribution"),

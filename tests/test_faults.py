@@ -122,6 +122,7 @@ def reference(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
 # ---- SIGKILL, then resume: equal to the uninterrupted run ----------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     "fault, frame, resume_from",
     [
@@ -151,6 +152,7 @@ def test_sigkill_then_resume_equals_the_uninterrupted_run(
 # ---- SIGINT / SIGTERM --------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault, status", [("int", 130), ("term", 143)])
 def test_signal_writes_a_checkpoint_and_the_resume_line(tmp_path, reference, fault, status):
     out = tmp_path / "run"
@@ -170,6 +172,7 @@ def test_signal_writes_a_checkpoint_and_the_resume_line(tmp_path, reference, fau
     assert_equals_reference(out, reference[0])
 
 
+@pytest.mark.slow
 def test_second_sigint_during_the_write_aborts_without_a_partial_file(tmp_path):
     out = tmp_path / "run"
     r = taskvar("train", CONFIG, "--out", str(out), *TINY, fault="int-int-in-write", frame=1300)
@@ -188,6 +191,7 @@ def test_second_sigint_during_the_write_aborts_without_a_partial_file(tmp_path):
 # ---- NaN weights are never written -------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("frame, group", [(2000, "heads"), (3000, "optimizer")])
 def test_nan_weights_are_never_written(tmp_path, monkeypatch, frame, group):
 
@@ -221,6 +225,7 @@ def test_nan_weights_are_never_written(tmp_path, monkeypatch, frame, group):
         assert all(torch.isfinite(v).all() for v in bundle["models"][name].values())
 
 
+@pytest.mark.slow
 def test_eval_and_resume_refuse_a_bundle_with_non_finite_heads(reference, tmp_path, capsys):
     bundle = load_checkpoint(reference[0] / "final.pt")
     bundle.pop("format"), bundle.pop("format_version")
@@ -254,6 +259,7 @@ def _copy_run(src: Path, dst: Path) -> Path:
     return dst
 
 
+@pytest.mark.slow
 def test_a_folder_holding_a_run_is_refused_and_left_as_it_was(reference, tmp_path, capsys):
     out = _copy_run(reference[0], tmp_path / "run")
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
@@ -263,6 +269,7 @@ def test_a_folder_holding_a_run_is_refused_and_left_as_it_was(reference, tmp_pat
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
 
 
+@pytest.mark.slow
 def test_overwrite_removes_the_old_run_first(reference, tmp_path, capsys):
     out = _copy_run(reference[0], tmp_path / "run")
     (out / ".final.pt.0123456789ab.tmp").write_bytes(b"left by a SIGKILL")
@@ -323,6 +330,7 @@ def test_bad_input_is_one_line_and_leaves_nothing(tmp_path, capsys, case, needle
     assert sorted(p.name for p in tmp_path.iterdir()) == inputs
 
 
+@pytest.mark.slow
 def test_experiment_checkpoint_mismatches_are_refused_before_any_work(reference, tmp_path, capsys):
     wargus = load_config(ROOT / "configs" / "wargus.yaml")
     save_checkpoint(tmp_path / "wargus.pt", make_bundle(wargus, models={}))
@@ -339,6 +347,7 @@ def test_experiment_checkpoint_mismatches_are_refused_before_any_work(reference,
         assert not out.exists()
 
 
+@pytest.mark.slow
 def test_eval_test_names(reference, tmp_path, capsys):
     ckpt = str(reference[0] / "final.pt")
     argv = ["eval", "--checkpoint", ckpt, "--episodes", "5", "--no-progress", "--out"]
@@ -355,6 +364,7 @@ def test_eval_test_names(reference, tmp_path, capsys):
 # ---- a quiet main job ----------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_train_output_has_no_third_party_noise(reference):
     r = reference[1]
     text = r.stdout + r.stderr

@@ -360,6 +360,7 @@ def _spec(n: int):
     return Categorical(4, shape=(n,), dtype=torch.int64)
 
 
+@pytest.mark.slow
 def test_compiled_learner_matches_eager(windy):
     """train.compile: the compiled losses (forward and backward) give the eager losses and
     weights within float rounding, update after update (averaging and options heads: a small

@@ -36,6 +36,7 @@ def read_csv_scalars(folder: Path) -> dict[str, list[tuple[int, float]]]:
     return out
 
 
+@pytest.mark.slow
 def test_tensorboard_events_hold_the_csv_scalars_and_the_log_has_no_carriage_returns(tmp_path):
     pytest.importorskip("tensorboard")
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator

@@ -159,6 +159,7 @@ def test_config_rejects_the_instance_estimator_without_instance_features():
         load_config("configs/wargus.yaml", ["train.max_value_estimator=instance"])
 
 
+@pytest.mark.slow
 def test_a_fresh_instance_checkpoint_loads_with_its_critic(tmp_path):
     cfg = load_config(
         "configs/windy.yaml",

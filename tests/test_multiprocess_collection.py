@@ -92,6 +92,7 @@ def run_with(tmp_path_factory):
     return run
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_two_collector_workers_act_with_the_learners_latest_weights(backend, run_with):
     cfg, out, result = run_with(backend)
@@ -124,6 +125,7 @@ def test_two_collector_workers_act_with_the_learners_latest_weights(backend, run
         train(None, out.parent / f"resumed-{backend}", resume=result["final"], progress=False)
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not HAS_RAY, reason="no Ray")
 def test_ray_actors_collect_exactly_what_the_worker_processes_collect(run_with):
     """Same slices, seeds and synced weights: Collector(backend="ray") on a local Ray gives the

@@ -193,6 +193,7 @@ def test_episode_return_of_a_policy_that_never_arrives_is_minus_horizon(oracle):
     assert float(oracle.episode_return(west, 0.5, "north", start=(2, 0))) == -100.0
 
 
+@pytest.mark.slow
 def test_mean_mdp_optimal_value_from_each_start_cell_matches_monte_carlo(oracle):
     """Acceptance: exact expected return of pi_bar over p~U[0,1], dir in {N,S}, per start
     cell, against 20000 independent WindyGridEnv episodes per cell, within 4 standard errors."""
@@ -286,6 +287,7 @@ def test_visit_probability_matches_monte_carlo_in_a_fixed_instance(wcw):
     assert (got - want).abs().max() < 0.03, (got - want).abs().max()
 
 
+@pytest.mark.slow
 def test_learnt_fixed_points_beat_the_mean_mdp_options_on_whole_column_windy(wcw):
     """Fixed-instance episodes, not the mean MDP: the exit options a first-visit Q-learner reaches
     (and the best Markov options for E_m[V^{m, pi}]) avoid the windy column, 1.5 steps better."""

@@ -80,6 +80,7 @@ def test_bad_modes_and_bad_config_values_are_refused():
         load_config(CONFIG, ["train.replay_sampling=stratified"])
 
 
+@pytest.mark.slow
 def test_training_with_it_resumes_bit_for_bit(tmp_path):
     cfg = load_config(CONFIG, TINY)
     train(cfg, tmp_path / "straight", progress=False)

@@ -182,6 +182,7 @@ def local_sweep(ray_session, tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_local_sweep_writes_each_point_folder_and_the_summary(local_sweep):
     out = local_sweep
     for name in ("seed=0", "seed=1"):
@@ -204,6 +205,7 @@ def test_local_sweep_writes_each_point_folder_and_the_summary(local_sweep):
     assert _point_metrics(out / "seed=0") != _point_metrics(out / "seed=1")
 
 
+@pytest.mark.slow
 def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_path, capsys):
     pytest.importorskip("ray")
     rows = sweep(
@@ -239,6 +241,7 @@ def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_
     ]
 
 
+@pytest.mark.slow
 def test_a_wargus_config_sweeps_the_wargus_figure_4_experiment(tmp_path):
     tiny = [
         "experiment.runs=1",

@@ -65,6 +65,7 @@ def read_scalars(folder: Path) -> dict[str, list[tuple[int, str]]]:
     return out
 
 
+@pytest.mark.slow
 def test_2k_frames_equal_1k_then_resume_in_a_new_process_for_1k(tmp_path):
     straight, resumed = tmp_path / "straight", tmp_path / "resumed"
     r = taskvar("train", CONFIG, "--out", str(straight), *TINY)
@@ -89,6 +90,7 @@ def test_2k_frames_equal_1k_then_resume_in_a_new_process_for_1k(tmp_path):
         assert any(row[0] > 1000 for row in rows) and rows == lb[name], name
 
 
+@pytest.mark.slow
 def test_resume_refuses_a_changed_config(tmp_path):
     train(load_config(CONFIG, [*TINY, "train.total_frames=1000"]), tmp_path / "a", progress=False)
     ckpt = tmp_path / "a" / "final.pt"
@@ -140,6 +142,7 @@ def test_cli_help(command, capsys):
         assert "--resume" in text and "train.total_frames" in text
 
 
+@pytest.mark.slow
 def test_final_bundle_without_replay_evaluates_but_does_not_resume(tmp_path):
     """keep_replay=False (the scale experiment's cells): final.pt without the replay buffer, the
     same heads, smaller; resuming from it is refused."""
@@ -193,6 +196,7 @@ def test_train_re_exports_the_split_modules():
             assert name in T.__all__, name
 
 
+@pytest.mark.slow
 def test_lr_schedule_decays_linearly_to_lr_end(tmp_path):
     """``train.lr_end``: lr until ``lr_decay_start_frames``, then linear to ``lr_end`` at
     ``total_frames``; the saved optimiser ends at lr_end; bad values are refused in one line."""
@@ -216,6 +220,7 @@ def test_lr_schedule_decays_linearly_to_lr_end(tmp_path):
             load_config(CONFIG, [bad])
 
 
+@pytest.mark.slow
 def test_eval_ema_tau_bundles_hold_the_polyak_average(tmp_path):
     """``train.eval_ema_tau``: final.pt keeps the online heads (for resuming) and the average
     (``eval_heads``), which ``load_heads``, heads.pt and the heads_every snapshots hold; resuming

@@ -161,6 +161,7 @@ def test_render_modes_return_right_type_and_shape():
 # ------------------------------------------------------------------------ determinism and seeding
 
 
+@pytest.mark.slow
 def test_batched_equals_looped_for_1000_random_steps():
     N, T = 4, 1000
     actions = _actions(T, N, seed=5)

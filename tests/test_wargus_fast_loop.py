@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 from torchrl.envs import InitTracker, TransformedEnv
 
@@ -63,6 +64,7 @@ def _plain(tested: dict) -> dict:
     return {k: v.tolist() for k, v in tested.items()}
 
 
+@pytest.mark.slow
 def test_fast_trials_equal_torchrl_trials():
     """Learning phases (replay rows, updates, weights, global RNG) and test phases run later side
     by side on frozen heads equal the TorchRL loops trial by trial."""
@@ -115,6 +117,7 @@ def test_head_values_equal_each_head_alone():
         assert torch.equal(twice[head.out_keys[0]], alone), name
 
 
+@pytest.mark.slow
 def test_run_repetition_same_for_any_test_group(tmp_path):
     """Testing 2 trials side by side (then 1 left over) gives every trial's own episodes."""
     cfg = load_config(fig4.default_config_path(), [*SMALL, "experiment.trials=3"])
@@ -125,6 +128,7 @@ def test_run_repetition_same_for_any_test_group(tmp_path):
     assert one["control_steps"].sum() > 0
 
 
+@pytest.mark.slow
 def test_behaviour_stacked_and_compiled_equal_each_head_alone():
     """The behaviour policy reads its heads from one stacked pass (HeadValues), and with
     compile=True (train.compile) runs it and its choices compiled: same actions, modes and global
@@ -164,6 +168,7 @@ def test_behaviour_stacked_and_compiled_equal_each_head_alone():
     assert policies[1]._compiled.failed is None
 
 
+@pytest.mark.slow
 def test_compiled_dynamics_equal_eager():
     """train.compile: step_all through the compiled dynamics gives the eager step's bits."""
     kw = dict(size=10, sight=4, shoot_range=2, patrol_speed=0.8, hit_prob=0.9, horizon=60)

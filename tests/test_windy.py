@@ -79,6 +79,7 @@ def test_observation_never_contains_the_instance():
     np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_batched_equals_looped_1000_steps():
     n, steps = 6, 1000
     gen = torch.Generator().manual_seed(0)
