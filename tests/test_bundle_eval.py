@@ -74,6 +74,7 @@ def test_a_wargus_bundle_evaluates_every_method_on_paired_episodes(bundles, tmp_
     assert "hierarchy" in format_table(m) and "fast_patrol" in format_table(m)
 
 
+@pytest.mark.slow
 def test_windy_shift_curve_with_exact_values_and_paired_instances(bundles, tmp_path):
     m = eval_bundle(
         bundles["windy"] / "final.pt",

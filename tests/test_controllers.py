@@ -194,6 +194,7 @@ def test_batched_decisions_equal_a_per_environment_loop(name):
             assert scalar[k] == batched[k][i].item(), ("scalar", k, i)
 
 
+@pytest.mark.slow
 def test_batched_rollout_equals_single_environment_rollouts():
     oracle = WindyOracle("whole_column_windy", train_instances="south")
     ctrl = InterruptionController(oracle.heads(), oracle.subtasks)

@@ -433,6 +433,7 @@ def test_eval_ema_tau_averages_the_weights_after_every_update(windy):
         assert not p.requires_grad
 
 
+@pytest.mark.slow
 def test_compiled_learner_falls_back_to_eager(windy, monkeypatch):
     cfg, env, subtasks = windy
     heads = build_heads(cfg, env, subtasks)

@@ -103,6 +103,7 @@ def test_resume_refuses_a_changed_config(tmp_path):
     assert result["frames"] == 1200
 
 
+@pytest.mark.slow
 def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
     # lr = 1e30: the first Adam steps overflow the weights, the losses become inf/NaN
     cfg = load_config(CONFIG, [*TINY, "train.init_random_frames=1100", "train.lr=1e30"])
