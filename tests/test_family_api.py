@@ -173,9 +173,17 @@ def test_the_outside_family_installs_and_the_installed_command_runs_it(tmp_path)
     curve, export)."""
     source = tmp_path / "corridor"  # a copy: the build writes its egg-info beside the sources
     shutil.copytree(EXAMPLE, source, ignore=shutil.ignore_patterns("build", "*.egg-info"))
-    pip = [sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--no-build-isolation"]
-    done = subprocess.run([*pip, str(source)], capture_output=True, text=True, timeout=300)
+    pip = [sys.executable, "-m", "pip"]
+    install = [*pip, "install", "-q", "--no-deps", "--no-build-isolation", str(source)]
+    done = subprocess.run(install, capture_output=True, text=True, timeout=300)
     assert done.returncode == 0, done.stderr[-2000:]
+    try:
+        _run_the_installed_command(tmp_path)
+    finally:  # leave the venv as it was: no stale copy of the example behind
+        subprocess.run([*pip, "uninstall", "-q", "-y", "taskvar-corridor"], timeout=300)
+
+
+def _run_the_installed_command(tmp_path: Path) -> None:
     taskvar = Path(sys.executable).with_name("taskvar")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
 

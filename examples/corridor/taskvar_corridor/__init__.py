@@ -169,12 +169,14 @@ class CorridorEnv(BatchedFamilyEnv):
 
 
 class CorridorSubtasks(Subtasks):
-    """``west`` and ``east``: walk to that end; initiable everywhere but there; -1 per step."""
+    """``west`` and ``east``: walk to that end; initiable everywhere but there; -1 per step, and
+    ``-horizon`` more where the episode ends at the other end (an option is credited with reaching
+    *its* end only, not with the goal the instance happened to put elsewhere)."""
 
     names = ("west", "east")
 
-    def __init__(self, length: int):
-        self.length = int(length)
+    def __init__(self, length: int, horizon: int):
+        self.length, self.horizon = int(length), int(horizon)
 
     def _ends(self, td: TensorDictBase) -> torch.Tensor:
         cell = td.get(keys.CELL)
@@ -187,7 +189,10 @@ class CorridorSubtasks(Subtasks):
         return self._ends(td)
 
     def reward(self, td: TensorDictBase) -> torch.Tensor:
-        return torch.full((*td.batch_size, 2), -1.0, device=td.device)
+        nxt = td.get(keys.NEXT)
+        ended = nxt.get(keys.TERMINATED).reshape(*td.batch_size, 1)  # (B, 1) the goal reached
+        elsewhere = ended & ~self._ends(nxt)  # (B, 2) at the other option's end
+        return -1.0 - self.horizon * elsewhere.to(torch.float32)
 
 
 def _section(cfg: Any) -> CorridorConfig:
@@ -213,7 +218,7 @@ def family() -> Family:
             "seed": cfg.seed,
             "device": cfg.device,
         },
-        subtasks=lambda cfg, env: CorridorSubtasks(env.length),
+        subtasks=lambda cfg, env: CorridorSubtasks(env.length, env.horizon),
         instance_names=CorridorInstances.NAMES,
         config_class=CorridorConfig,
         tests={
