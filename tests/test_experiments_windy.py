@@ -260,6 +260,7 @@ def test_discounted_chain_values_match_policy_evaluation():
     torch.testing.assert_close(V, want, atol=1e-8, rtol=0)
 
 
+@pytest.mark.slow
 def test_distribution_metrics_count_firings_and_check_theorem1():
     # A max-value head lowered by 3 makes Algorithm 1 fire; every firing is checked.
     cfg, oracle, heads = _oracle_setup(max_value_shift=3.0)

@@ -96,6 +96,7 @@ def test_bad_option_inputs_are_one_line_errors():
         assert "\n" not in msg and all(p in msg for p in parts), msg
 
 
+@pytest.mark.slow
 def test_tiny_training_run_and_checkpoint_round_trip(tmp_path):
     cfg = load_config(WARGUS, TINY)
     env = make_env(cfg, num_envs=1)

@@ -174,6 +174,7 @@ def test_batched_equals_looped_for_1000_random_steps():
         assert torch.equal(sroot, broot[:, i : i + 1])
 
 
+@pytest.mark.slow
 def test_same_seed_same_trajectory_different_seeds_differ():
     actions = _actions(200, 8, seed=3)
     a, _ = _run(WargusEnv(8, seed=4, **SMALL), actions)
@@ -345,6 +346,7 @@ def test_item_respawns_on_pickup():
     assert data[wargus.PICKED].sum() > 10
 
 
+@pytest.mark.slow
 def test_item_lost_is_the_event_seen_then_unseen_without_a_pickup():
     # on a long batched rollout with auto-resets: item_lost(s') == seen(s) & ~seen(s') & no pickup,
     # and False on every reset
