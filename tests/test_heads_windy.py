@@ -19,7 +19,7 @@ from taskvar_torch.oracle import WindyOracle
 from taskvar_torch.train import load_heads, train
 
 torch.set_num_threads(1)
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]  # a 4-min fixture under load
 
 BUDGET = ["train.total_frames=40000", "train.eps_decay_frames=20000", "train.checkpoint_every=0"]
 
