@@ -260,6 +260,8 @@ def save_checkpoint(path: str | os.PathLike, bundle: Mapping[str, Any]) -> Path:
     Raises:
         CheckpointError: the bundle holds something other than plain data, or has no config; the
             file at ``path`` (if any) is left untouched and no temporary file remains.
+        OSError: the write failed (disk full, ``EFBIG``), its ``filename`` set to ``path``; the
+            file at ``path`` (if any) is left untouched and no temporary file remains.
     """
     path = Path(path)
     if not isinstance(bundle, Mapping):
@@ -279,8 +281,46 @@ def save_checkpoint(path: str | os.PathLike, bundle: Mapping[str, Any]) -> Path:
         _check_plain(data, "bundle")
     except CheckpointError as e:
         raise CheckpointError(f"cannot save {str(path)!r}: {e}") from None
-    atomic_write(path, lambda f: torch.save(data, f))
+    try:
+        atomic_write(path, lambda f: _torch_save(data, f))
+    except OSError as e:  # disk full, file too large: path keeps its old content, no temp file
+        if e.filename is None and e.errno is not None:  # the CLI's line names it: cannot use PATH
+            e.filename = str(path)
+        raise
     return path
+
+
+class _WriteErrors:
+    """A file's ``write`` and ``flush`` that keep the first ``OSError`` raised: torch's zip writer
+    turns it into an opaque ``RuntimeError`` ("unexpected pos ..."), :func:`_torch_save` raises it
+    again."""
+
+    def __init__(self, f: Any) -> None:
+        self.f, self.error = f, None
+
+    def write(self, b: Any) -> int:
+        try:
+            return self.f.write(b)
+        except OSError as e:
+            self.error = self.error or e
+            raise
+
+    def flush(self) -> None:
+        self.f.flush()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.f, name)
+
+
+def _torch_save(data: Any, f: Any) -> None:
+    """``torch.save(data, f)``; a failed write raises its ``OSError`` (ENOSPC, EFBIG, EIO)."""
+    sink = _WriteErrors(f)
+    try:
+        torch.save(data, sink)
+    except RuntimeError:
+        if sink.error is not None:
+            raise sink.error from None
+        raise
 
 
 # --------------------------------------------------------------------------------------------
@@ -432,6 +472,29 @@ def load_checkpoint(
                 f"{wanted!r}{more}"
             )
     return data
+
+
+RESUME_ENTRIES = ("models", "optimizers", "counters", "rng", "learner", "first_visit", "stats")
+"""Bundle entries a training checkpoint needs to be resumed (``replay`` aside: the trainer names
+a bundle written without it); ``env`` and ``carrier`` may be ``None`` (multi-process collection)
+but must be present."""
+
+
+def require_entries(
+    bundle: Mapping[str, Any],
+    path: str | os.PathLike,
+    entries: Sequence[str] = (*RESUME_ENTRIES, "env", "carrier"),
+    purpose: str = "resumed",
+) -> None:
+    """:class:`CheckpointError` (one line) naming the ``entries`` missing from ``bundle``: a
+    damaged or hand-edited file, or a bundle of another kind (``heads.pt`` cannot be resumed)."""
+    missing = [k for k in entries if k not in bundle]
+    if missing:
+        raise CheckpointError(
+            f"checkpoint {str(path)!r} cannot be {purpose}: it has no "
+            f"{', '.join(map(repr, missing))} entr{'y' if len(missing) == 1 else 'ies'} (not a "
+            "training checkpoint, or an edited one)"
+        )
 
 
 EVAL_HEADS = "eval_heads"

@@ -409,6 +409,12 @@ def _sweep_arguments(p: argparse.ArgumentParser) -> None:
         help="points write no PNGs (faster; taskvar plot DIR/<point> draws them later)",
     )
     _overwrite_argument(p, "DIR (the sweep and its points)")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a sweep already in DIR (e.g. killed part-way): points whose folder holds "
+        "metrics.json and the same config.yaml are kept, the others run (docs/sweeps.md)",
+    )
 
 
 def _sweep_run(args: argparse.Namespace) -> int:
@@ -425,6 +431,7 @@ def _sweep_run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         plots=not args.no_plots,
         overwrite=args.overwrite,
+        resume=args.resume,
     )
     return 0
 

@@ -17,6 +17,13 @@ Backends (:data:`BACKENDS`):
 A point's numbers depend only on its config (every random stream is seeded from ``cfg.seed``), so
 both backends give the same metrics.
 
+Resuming (``resume=True``, ``taskvar sweep ... --resume``): a sweep killed part-way is rerun with
+the same ``--out``; a point is complete when its folder holds ``metrics.json`` and its
+``config.yaml`` equals the config the sweep would run (:func:`completed_points`). Complete points
+are kept (their metrics read back for the summary), the others run again from scratch (a killed
+point's partial folder is replaced). A point folder holding results of another config is refused.
+Without ``resume`` or ``overwrite`` a folder already holding a sweep is refused.
+
 Examples:
     >>> points = expand_points(["seed=0,1", "train.lr=0.002"])
     >>> [p.name for p in points]
@@ -29,6 +36,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import json
 import os
 import re
 import time
@@ -38,8 +46,9 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from omegaconf import OmegaConf
 
-from taskvar_torch.config import Config, load_config
+from taskvar_torch.config import Config, config_to_dict, load_config
 from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import family
@@ -50,6 +59,9 @@ BACKENDS = ("local", "ray")
 """Config family -> the experiment each sweep point runs (as ``taskvar experiment NAME``)."""
 RAY_MISSING = 'taskvar sweep --backend ray needs Ray: pip install "taskvar-torch[distributed]"'
 SUMMARY_CSV, SUMMARY_JSON, POINT_LOG = "summary.csv", "summary.json", "output.txt"
+RAY_RETRIES = 1
+"""Ray backend: a point whose worker process dies is run again this many times, then recorded as
+failed (its summary row's ``error``; the sweep goes on)."""
 
 
 @dataclass(frozen=True)
@@ -218,7 +230,6 @@ def _run_ray(
     address: str | None,
     workers: int | None,
     plots: bool,
-    overwrite: bool,
 ) -> list[dict[str, Any]]:
     try:
         import ray  # optional dependency (the distributed extra): imported only on the ray backend
@@ -240,17 +251,32 @@ def _run_ray(
                 first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
                 raise ValueError(f"--address {address!r}: {first}") from None
     try:
-        task = ray.remote(num_cpus=1)(run_point)
-        refs = [task.remote(cfg, out, quick, plots, overwrite) for cfg, out in jobs]
+        # A task whose worker dies (killed, out of memory, node lost) is retried RAY_RETRIES
+        # times; the sweep refused non-empty point folders up front (or was told to overwrite or
+        # resume), so what a retry finds in its folder is its own killed attempt: overwrite.
+        task = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(run_point)
+        refs = [task.remote(cfg, out, quick, plots, True) for cfg, out in jobs]
         pending = list(refs)
         with progress_bar(total=len(refs), disable=not progress, desc="sweep", unit="point") as bar:
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
                 bar.update(len(done))
-        return ray.get(refs)
+        return [_ray_result(ray, ref) for ref in refs]
     finally:
         if started:
             ray.shutdown()
+
+
+def _ray_result(ray: Any, ref: Any) -> dict[str, Any]:
+    """A task's result; a task whose worker died on every try is a failed point (its error)."""
+    try:
+        return ray.get(ref)
+    except ray.exceptions.RayTaskError:  # the point itself raised: as on the local backend
+        raise
+    except ray.exceptions.RayError as e:  # WorkerCrashedError, OutOfMemoryError, NodeDiedError...
+        text = str(e).strip()
+        first = text.splitlines()[0] if text else ""
+        return {"error": f"{type(e).__name__}: {first}".rstrip(": "), "seconds": None}
 
 
 def sweep(
@@ -264,6 +290,7 @@ def sweep(
     progress: bool = True,
     plots: bool = True,
     overwrite: bool = False,
+    resume: bool = False,
 ) -> list[dict[str, Any]]:
     """Run every point of the sweep, write ``summary.csv`` / ``summary.json``, print the table.
 
@@ -278,16 +305,23 @@ def sweep(
         progress: a progress bar over completed points.
         plots: each point draws its PNGs (``False``: skipped, about half of a small windy point's
             time; ``taskvar plot out_dir/<point>`` draws them later).
-        overwrite: replace a sweep (and its points) already in ``out_dir``; without it such a
-            folder is refused.
+        overwrite: replace a sweep (and its points) already in ``out_dir``; without it (or
+            ``resume``) such a folder is refused.
+        resume: keep the points already complete in ``out_dir`` (:func:`completed_points`), run
+            the others (a partial point folder is replaced).
 
     Returns:
         The summary rows (one per point).
 
     Raises:
-        ValueError: one line, for an unknown backend or key, an empty value, a missing Ray.
+        ValueError: one line, for an unknown backend or key, an empty value, a missing Ray, a
+            folder already holding a sweep (without ``overwrite`` or ``resume``).
     """
     _check_backend(backend, address, workers)
+    if resume and overwrite:
+        raise ValueError(
+            "--resume keeps the completed points and --overwrite replaces them: give one of them"
+        )
     points = expand_points(items)
     cfgs = load_point_configs(config, points, quick=quick)
     for c in cfgs:  # every point runs its family's figure experiment (Family.experiment)
@@ -299,15 +333,24 @@ def sweep(
             raise ValueError(RAY_MISSING) from None
     out = Path(out_dir).resolve()  # Ray workers need not share this process's working folder
     check_output_folder(out)  # a file, or under one, or read-only: one line before any run
-    refuse_existing_results(out, overwrite, "taskvar sweep")
+    done = completed_points(out, points, cfgs) if resume else {}
+    if not resume:
+        _refuse_existing_sweep(out, points, overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    jobs = [(cfg, str(out / p.name)) for cfg, p in zip(cfgs, points)]
+    todo = [i for i in range(len(points)) if i not in done]
+    jobs = [(cfgs[i], str(out / points[i].name)) for i in todo]
+    if done:
+        print(f"resuming {out}: {len(done)} of {len(points)} points complete, running {len(todo)}")
     t0 = time.perf_counter()
+    # a resumed point's partial folder (a killed run) is replaced: overwrite
     if backend == "local":
-        results = _run_local(jobs, quick, progress, plots, overwrite)
+        ran = _run_local(jobs, quick, progress, plots, overwrite or resume)
     else:
-        results = _run_ray(jobs, quick, progress, address, workers, plots, overwrite)
+        ran = _run_ray(jobs, quick, progress, address, workers, plots)
     wall = time.perf_counter() - t0
+    results = [done[i] if i in done else None for i in range(len(points))]
+    for i, r in zip(todo, ran):
+        results[i] = r
     rows = _summary_rows(points, results)
     fields = list(dict.fromkeys(k for row in rows for k in row))
     write_csv(out / SUMMARY_CSV, rows, fields)
@@ -327,8 +370,9 @@ def sweep(
                 "overrides": list(p.overrides),
                 "seconds": r["seconds"],
                 "error": r.get("error"),
+                "kept": i in done,  # complete before this run (resume)
             }
-            for p, r in zip(points, results)
+            for i, (p, r) in enumerate(zip(points, results))
         ],
         "rows": rows,
     }
@@ -339,6 +383,70 @@ def sweep(
         f"{out / SUMMARY_JSON}"
     )
     return rows
+
+
+def completed_points(
+    out: Path, points: Sequence[SweepPoint], cfgs: Sequence[Config]
+) -> dict[int, dict[str, Any]]:
+    """The points already complete in ``out``: ``{index: {"metrics": ..., "seconds": ...}}``.
+
+    A point is complete when ``out/<point>/metrics.json`` exists and ``out/<point>/config.yaml``
+    equals the point's config. A point folder without ``metrics.json`` (a killed run) is not
+    complete.
+
+    Raises:
+        ValueError: a point folder holds results (``metrics.json``) of another config, or an
+            unreadable ``metrics.json`` / ``config.yaml``.
+    """
+    done: dict[int, dict[str, Any]] = {}
+    for i, (p, cfg) in enumerate(zip(points, cfgs)):
+        folder = out / p.name
+        if not (folder / "metrics.json").is_file():
+            continue
+        try:
+            saved = OmegaConf.to_container(OmegaConf.load(folder / "config.yaml"))
+            metrics = json.loads((folder / "metrics.json").read_text())
+        except Exception as e:  # a missing or damaged file: not this sweep's complete point
+            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            raise ValueError(
+                f"--resume: point folder {str(folder)!r} holds metrics.json but its config.yaml "
+                f"or metrics.json cannot be read ({first}); remove the folder or use --overwrite"
+            ) from None
+        wanted = config_to_dict(cfg)
+        if saved != wanted:
+            key = _first_difference(saved, wanted)
+            raise ValueError(
+                f"--resume: point folder {str(folder)!r} holds results of another config "
+                f"({key} differs); this is not the same sweep: use --overwrite or another --out"
+            )
+        seconds = metrics.get("wall_seconds", (metrics.get("timing") or {}).get("wall_seconds"))
+        done[i] = {"metrics": metrics, "seconds": seconds}
+    return done
+
+
+def _first_difference(a: Any, b: Any, prefix: str = "") -> str:
+    """The first dotted key whose value differs between two nested dicts."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in list(a) + [k for k in b if k not in a]:
+            if a.get(k, "<absent>") != b.get(k, "<absent>"):
+                return _first_difference(a.get(k), b.get(k), f"{prefix}{k}.")
+    return prefix.rstrip(".") or "config"
+
+
+def _refuse_existing_sweep(out: Path, points: Sequence[SweepPoint], overwrite: bool) -> None:
+    """One line when ``out`` already holds a sweep (its summary, or a point folder with files) or
+    an experiment's results."""
+    if overwrite or not out.is_dir():
+        return
+    found = [n for n in (SUMMARY_JSON, SUMMARY_CSV) if (out / n).exists()]
+    found += [p.name for p in points if (out / p.name).is_dir() and any((out / p.name).iterdir())]
+    if found:
+        raise ValueError(
+            f"--out {str(out)!r} already holds results ({', '.join(found[:4])}"
+            f"{', ...' if len(found) > 4 else ''}); continue the sweep with --resume (complete "
+            "points are kept), replace it with --overwrite, or choose another --out"
+        )
+    refuse_existing_results(out, overwrite, "taskvar sweep")
 
 
 def _check_backend(backend: str, address: str | None, workers: int | None) -> None:

@@ -59,6 +59,7 @@ from taskvar_torch.checkpoint import (
     load_checkpoint,
     load_state_dicts,
     make_bundle,
+    require_entries,
     require_finite_heads,
     rng_state,
     save_checkpoint,
@@ -271,6 +272,8 @@ def train(
             f"cannot resume {str(resume)!r}: it holds no replay buffer (written with "
             "keep_replay=False); it can be evaluated, not continued"
         )
+    if bundle is not None:
+        require_entries(bundle, resume)  # a damaged or edited bundle: one line, not a KeyError
     if bundle is not None and remote:
         raise CheckpointError(
             f"cannot resume {str(resume)!r}: exact resume needs collector.num_workers=1 and "
