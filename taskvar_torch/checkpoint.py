@@ -56,6 +56,7 @@ RUNTIME_KEYS = (
     "train.total_frames",
     "train.checkpoint_every",
     "train.log_every",
+    "train.logger",
     "eval",
     "experiment",
 )

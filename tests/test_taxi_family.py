@@ -75,6 +75,7 @@ def test_eval_all_methods_prints_the_exact_oracle_beside_the_sampled_returns(bun
         ), m
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["options", "interruption"])
 def test_no_option_starts_outside_its_initiation_set(bundle, method):
     heads, cfg = load_heads(bundle)
@@ -93,6 +94,7 @@ def test_no_option_starts_outside_its_initiation_set(bundle, method):
         assert bool(ok[started].all()), f"{name}: an option started outside its initiation set"
 
 
+@pytest.mark.slow
 def test_the_oracle_heads_make_interruption_pay_on_fickle_passengers():
     """Exact, not sampled: on very fickle passengers the options controller keeps driving to the
     old destination, interruption drops it (one firing per redraw) and matches the averaging

@@ -261,3 +261,21 @@ def test_eval_ema_tau_bundles_hold_the_polyak_average(tmp_path):
     with pytest.raises(ValueError, match="wargus-fig4 tests the live heads"):
         wargus_fig4(wcfg, tmp_path / "fig4", progress=False)
     assert not (tmp_path / "fig4").exists()
+
+
+@pytest.mark.slow
+def test_a_checkpoint_written_before_train_logger_existed_resumes(tmp_path):
+    """A checkpoint whose config has no ``train.logger`` (written before the key existed) still
+    resumes, and the logger may change on resume (it is a runtime key)."""
+    from taskvar_torch.checkpoint import save_checkpoint
+
+    train(load_config(CONFIG, [*TINY, "train.total_frames=1000"]), tmp_path / "a", progress=False)
+    bundle = load_checkpoint(tmp_path / "a" / "final.pt")
+    del bundle["config"]["train"]["logger"]
+    old = save_checkpoint(
+        tmp_path / "old.pt", {k: v for k, v in bundle.items() if not k.startswith("format")}
+    )
+    result = train(
+        None, tmp_path / "b", resume=old, overrides=["train.total_frames=1200"], progress=False
+    )
+    assert result["frames"] == 1200
