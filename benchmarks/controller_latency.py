@@ -19,7 +19,7 @@ B=16384.
 
 Usage::
 
-    python benchmarks/controller_latency.py [--batch 16384] [--repeats 7]
+    python benchmarks/controller_latency.py [--batch 16384] [--repeats 7] [--quick]
 """
 
 from __future__ import annotations
@@ -106,7 +106,12 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--iters1", type=int, default=2000, help="calls per repeat at B=1")
     parser.add_argument("--itersB", type=int, default=200, help="calls per repeat at large B")
+    parser.add_argument(
+        "--quick", action="store_true", help="B=256, 1 repeat, few calls (smoke run)"
+    )
     args = parser.parse_args()
+    if args.quick:
+        args.batch, args.repeats, args.iters1, args.itersB = 256, 1, 20, 5
     torch.set_num_threads(1)
     torch.manual_seed(0)
     B = args.batch

@@ -138,6 +138,7 @@ def bench_collector(n_envs: int, seconds: float, device: torch.device, improved:
     )
     it = iter(collector)
     next(it)
+    sync(device)
     frames, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         batch = next(it)
@@ -152,6 +153,7 @@ def bench_fast(n_envs: int, seconds: float, device: torch.device) -> float:
     env = WindyGridEnv(num_envs=n_envs, seed=0, validate_actions=False, device=device)
     policy = _RandomPolicy(n_envs, device)
     batch = env.rollout_fast(policy, STEPS_PER_BATCH, compact_obs=True)
+    sync(device)
     frames, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
         batch = env.rollout_fast(policy, STEPS_PER_BATCH, compact_obs=True, out=batch)
@@ -188,12 +190,21 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--threads", default="1,2", help="torch thread counts, one run each")
+    ap.add_argument(
+        "--threads", default=None, help="torch thread counts, one run each (default 1,2)"
+    )
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--quick", action="store_true", help="short timings (smoke run)")
-    ap.add_argument("--sizes", default="1,1024,16384,262144", help="N values for (b)")
-    ap.add_argument("--collector-n", default="16384", help="N values for (c), comma-separated")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="short timings; 1 thread, N=1,1024 and 1024 for (c) unless given (smoke run)",
+    )
+    ap.add_argument("--sizes", default=None, help="N values for (b) (default 1,1024,16384,262144)")
+    ap.add_argument("--collector-n", default=None, help="N values for (c) (default 16384)")
     args = ap.parse_args()
+    args.threads = args.threads or ("1" if args.quick else "1,2")
+    args.sizes = args.sizes or ("1,1024" if args.quick else "1,1024,16384,262144")
+    args.collector_n = args.collector_n or ("1024" if args.quick else "16384")
     device = torch.device(args.device)
     secs = 0.3 if args.quick else 2.0
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")

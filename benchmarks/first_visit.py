@@ -11,7 +11,7 @@ and actions from TorchRL's ``Collector`` with a random policy. Runs alternate an
 compared, so a loaded machine slows both alike. Single-threaded by default.
 
     python benchmarks/first_visit.py [--config configs/windy_xl.yaml] [--batches 20] [--threads 1]
-        [overrides ...]
+        [--quick] [overrides ...]
 """
 
 from __future__ import annotations
@@ -27,6 +27,12 @@ from taskvar_torch import keys
 from taskvar_torch.collection import make_collector, make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.heads.first_visit import FirstVisitFilter
+
+
+def sync(device: torch.device | str) -> None:
+    """Wait for ``device``'s queued kernels before a timer is read (CUDA runs asynchronously)."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def per_step(f: FirstVisitFilter, batch) -> torch.Tensor:
@@ -46,8 +52,13 @@ def main() -> None:
     ap.add_argument("--batches", type=int, default=20, help="collector batches")
     ap.add_argument("--repeats", type=int, default=5, help="alternating timed passes")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument(
+        "--quick", action="store_true", help="5x5 windy.yaml, 2 batches, 1 pass (smoke run)"
+    )
     ap.add_argument("overrides", nargs="*", help="config overrides (e.g. device=cuda)")
     args = ap.parse_args()
+    if args.quick:
+        args.config, args.batches, args.repeats = "configs/windy.yaml", 2, 1
     torch.set_num_threads(args.threads)
     cfg = load_config(args.config, args.overrides)
     env = make_training_env(cfg)
@@ -61,8 +72,10 @@ def main() -> None:
         a = FirstVisitFilter(N, D, device=cfg.device)
         b = copy.deepcopy(a)
         for name, f, run in (("per step", a, per_step), ("one pass", b, lambda f, x: f(x))):
+            sync(cfg.device)
             start = time.perf_counter()
             masks = [run(f, x) for x in batches]
+            sync(cfg.device)
             times[name].append((time.perf_counter() - start) / len(batches))
             if name == "per step":
                 ref = masks

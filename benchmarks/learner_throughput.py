@@ -13,7 +13,8 @@ batch 256, single-threaded by default. One *update* trains every head once; samp
 transitions read. Runs alternate (a, b, a, b, ...) and the medians are compared, so a loaded
 machine slows both alike. Target: (a) >= 1.5x (b).
 
-Usage: ``python benchmarks/learner_throughput.py [--threads 1] [--seconds 3] [--repeats 3]``.
+Usage: ``python benchmarks/learner_throughput.py [--threads 1] [--seconds 3] [--repeats 3]
+[--quick]``.
 """
 
 from __future__ import annotations
@@ -54,7 +55,8 @@ def fill_buffer(cfg, frames: int):
         env, policy, frames_per_batch=1024, total_frames=frames, track_traj_ids=False
     )
     for batch in collector:
-        buffer.extend(raw_transitions(batch))
+        # as the trainer: the ``instance`` max-value estimator's critic reads the hidden instance
+        buffer.extend(raw_transitions(batch, cfg.train.max_value_estimator == "instance"))
     collector.shutdown()
     return buffer, env, subtasks
 
@@ -135,7 +137,12 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=3.0, help="per timed run")
     parser.add_argument("--repeats", type=int, default=3, help="alternating runs of each")
     parser.add_argument("--frames", type=int, default=20_480, help="replay transitions")
+    parser.add_argument(
+        "--quick", action="store_true", help="2k transitions, one 0.2 s run each (smoke run)"
+    )
     args = parser.parse_args()
+    if args.quick:
+        args.seconds, args.repeats, args.frames = 0.2, 1, 2048
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
 

@@ -69,6 +69,7 @@ def bench_collect(n_envs: int, workers: int, steps: int, batches: int, device: s
     collector = make_collector(cfg, env, behaviour, total_frames=-1)
     it = iter(collector)
     next(it)  # warm-up batch
+    sync(device)
     startup = time.perf_counter() - t0
     frames, t0 = 0, time.perf_counter()
     for _ in range(batches):
@@ -110,6 +111,7 @@ def bench_train(n_envs: int, workers: int, batches: int, updates: int, device: s
     with tempfile.TemporaryDirectory() as out:
         t0 = time.perf_counter()
         train(cfg, out, progress=False)
+        sync(device)
         wall = time.perf_counter() - t0
         rows = (Path(out) / "logs" / "scalars" / "seconds.csv").read_text().split()
     (f0, s0), (f1, s1) = [[float(x) for x in row.split(",")] for row in (rows[0], rows[-1])]
@@ -135,7 +137,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    ap.add_argument("--workers", default="1,2", help="collector process counts W")
+    ap.add_argument(
+        "--workers", default=None, help="collector process counts W (default 1,2; --quick: 1)"
+    )
     ap.add_argument("--sizes", default="256,4096,16384", help="env.num_envs values N")
     ap.add_argument("--threads", type=int, default=1, help="torch threads per process")
     ap.add_argument("--device", default="cpu")
@@ -147,10 +151,16 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=16, help="(a) steps per sub-env per batch")
     ap.add_argument("--batches", type=int, default=5, help="timed batches, (a) and (b)")
     ap.add_argument("--updates", type=int, default=8, help="(b) gradient steps per batch")
-    ap.add_argument("--quick", action="store_true", help="small sizes, 2 batches (smoke run)")
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="N=64, W=1 (unless --workers is given), 2 batches (smoke run)",
+    )
     args = ap.parse_args()
     if args.quick:
-        args.sizes, args.batches, args.steps = "64,256", 2, 4
+        args.sizes, args.batches, args.steps = "64", 2, 4
+    # W > 1 starts processes (~15 s each on this machine): --quick runs W=1 unless told
+    args.workers = args.workers or ("1" if args.quick else "1,2")
     torch.set_num_threads(args.threads)
     workers = [int(w) for w in args.workers.split(",")]
     sizes = [int(n) for n in args.sizes.split(",")]

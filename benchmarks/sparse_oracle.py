@@ -14,6 +14,7 @@ Runs alternate and the medians are compared. Single-threaded by default; ``--rep
 the whole head report of an untrained bundle (new path only).
 
     python benchmarks/sparse_oracle.py [--config configs/windy_xxl.yaml] [--steps 50] [--report]
+        [--quick]
 """
 
 from __future__ import annotations
@@ -29,6 +30,12 @@ from taskvar_torch.factory import build_heads, make_env, make_subtasks
 from taskvar_torch.families import windy_sparse_oracle as sparse_oracle
 from taskvar_torch.oracle.head_report import head_report
 from taskvar_torch.oracle.sparse import expect_planes, outcome_planes
+
+
+def sync(device: torch.device | str) -> None:
+    """Wait for ``device``'s queued kernels before a timer is read (CUDA runs asynchronously)."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
 
 
 def gather_sum(V: torch.Tensor, flat: torch.Tensor, prob: torch.Tensor) -> torch.Tensor:
@@ -47,8 +54,13 @@ def main() -> None:
     )
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--report", action="store_true", help="also time the whole head report")
+    ap.add_argument(
+        "--quick", action="store_true", help="5x5 windy.yaml, 5 steps, 1 pass (smoke run)"
+    )
     ap.add_argument("overrides", nargs="*", help="config overrides (e.g. device=cuda)")
     args = ap.parse_args()
+    if args.quick:
+        args.config, args.steps, args.repeats = "configs/windy.yaml", 5, 1
     torch.set_num_threads(args.threads)
     cfg = load_config(args.config, args.overrides)
     oracle = sparse_oracle(cfg)
@@ -70,6 +82,7 @@ def main() -> None:
     for _ in range(args.repeats):
         for name in times:
             V, outs = V0, []
+            sync(oracle.device)
             start = time.perf_counter()
             for _ in range(args.steps):
                 if name == "gather + sum":
@@ -77,6 +90,7 @@ def main() -> None:
                 else:
                     V = expect_planes(V, *planes).sub_(1.0)
                 outs.append(V)
+            sync(oracle.device)
             times[name].append((time.perf_counter() - start) / args.steps)
             if name == "gather + sum":
                 ref = outs
@@ -92,8 +106,10 @@ def main() -> None:
     if args.report:
         env = make_env(cfg, num_envs=1, seed=cfg.seed)
         heads = build_heads(cfg, env, make_subtasks(cfg, env))
+        sync(oracle.device)
         start = time.perf_counter()
         head_report(heads, oracle, cfg.env.obs_encoding, cfg.env.patch_radius)
+        sync(oracle.device)
         print(f"  head report of an untrained bundle: {time.perf_counter() - start:.1f} s")
 
 

@@ -10,7 +10,7 @@ not over the sums, on the CPUs measured so far; the check says so for this one).
 Usage::
 
     python benchmarks/train_threads.py [--config configs/windy_xl.yaml] [--frames 300000]
-        [--rounds 2] [--threads 1,2] [overrides ...]
+        [--rounds 2] [--threads 1,2] [--quick] [overrides ...]
 
 Only meaningful with the cores otherwise idle: a second thread on a busy core only contends.
 """
@@ -26,6 +26,15 @@ import torch
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.train import train
+
+# --quick: the 5x5 family, a few hundred updates (a smoke run)
+QUICK = [
+    "train.init_random_frames=512",
+    "train.eps_decay_frames=1024",
+    "train.updates_per_batch=4",
+    "train.checkpoint_every=0",
+    "train.log_every=256",
+]
 
 
 def run(cfg, threads: int) -> tuple[float, dict[str, torch.Tensor]]:
@@ -43,10 +52,16 @@ def main() -> None:
     p.add_argument("--frames", type=int, default=300_000, help="train.total_frames of each run")
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--threads", default="1,2", help="thread counts, the first is the baseline")
+    p.add_argument(
+        "--quick", action="store_true", help="5x5 windy.yaml, 2k frames, 1 round (smoke run)"
+    )
     p.add_argument("overrides", nargs="*")
     args = p.parse_args()
+    extra = []
+    if args.quick:
+        args.config, args.frames, args.rounds, extra = "configs/windy.yaml", 2048, 1, QUICK
     counts = [int(t) for t in args.threads.split(",")]
-    cfg = load_config(args.config, [f"train.total_frames={args.frames}", *args.overrides])
+    cfg = load_config(args.config, [f"train.total_frames={args.frames}", *extra, *args.overrides])
     seconds: dict[int, list[float]] = {t: [] for t in counts}
     heads: dict[int, dict[str, torch.Tensor]] = {}
     for r in range(args.rounds):

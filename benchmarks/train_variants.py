@@ -14,6 +14,7 @@ Usage::
         --variant eager= --variant compiled=train.compile=true
     python benchmarks/train_variants.py --threads 2 \\
         --variant 16x256= --variant 8x512=train.batch_size=512,train.updates_per_batch=8
+    python benchmarks/train_variants.py --quick   # a smoke run: 5x5 layout, 2k frames, one variant
 
 The variants change what is learnt (except where they only change speed): this measures speed
 only; ``benchmarks/time_to_bundle.py`` measures the heads.
@@ -32,6 +33,15 @@ from time_to_bundle import parse_variant  # benchmarks/ is the script's folder o
 
 from taskvar_torch.config import load_config
 from taskvar_torch.train import train
+
+# --quick: the 5x5 family, a few hundred updates (a smoke run)
+QUICK = [
+    "train.init_random_frames=512",
+    "train.eps_decay_frames=1024",
+    "train.updates_per_batch=4",
+    "train.checkpoint_every=0",
+    "train.log_every=256",
+]
 
 
 def steady_rate(config: str, overrides: list[str]) -> tuple[float, int]:
@@ -58,16 +68,26 @@ def main(argv: list[str] | None = None) -> None:
         "--variant",
         action="append",
         type=parse_variant,
-        required=True,
         help="NAME=key.sub=value,... (repeatable; the first is the baseline)",
     )
+    ap.add_argument(
+        "--quick",
+        action="store_true",
+        help="5x5 windy.yaml, 2k frames, 1 round, variant base= unless given (smoke run)",
+    )
     args = ap.parse_args(argv)
+    extra = []
+    if args.quick:
+        args.config, args.frames, args.rounds, extra = "configs/windy.yaml", 2048, 1, QUICK
+        args.variant = args.variant or [("base", [])]
+    if not args.variant:
+        ap.error("--variant is required (or --quick)")
     torch.set_num_threads(args.threads)
     rates: dict[str, list[float]] = {name: [] for name, _ in args.variant}
     for r in range(args.rounds):
         for name, overrides in args.variant:
             rate, frames = steady_rate(
-                args.config, [f"train.total_frames={args.frames}", *overrides]
+                args.config, [f"train.total_frames={args.frames}", *extra, *overrides]
             )
             rates[name].append(rate)
             print(f"round {r}: {name:<12} {rate:8.0f} frames/s over {frames} frames", flush=True)

@@ -25,7 +25,9 @@ see), where the new path's time goes, and the projected wall time of the full pr
 networks (``heads.hidden``; docs/benchmarks.md).
 
     python benchmarks/wargus_trial.py --trials 6 [--eager] [--torchrl] [--bf16] [--hidden W,W]
-        [overrides ...]
+        [--quick] [overrides ...]
+
+``--quick``: a smoke run (1 trial, no warm-up, eager, a 16x16 grid, short episodes, few envs).
 """
 
 from __future__ import annotations
@@ -45,6 +47,16 @@ from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.train import make_env
 
 CORES = 2  # this project's machine
+QUICK = [  # --quick: a smoke run, first (the command line's overrides come after)
+    "env.wargus.size=16",
+    "env.wargus.horizon=40",
+    "experiment.learning_episodes_per_trial=4",
+    "experiment.test_episodes_per_trial=2",
+    "train.init_random_frames=8",
+    "train.batch_size=32",
+    "train.frames_per_batch=8",
+    "heads.hidden=[32,32]",
+]
 
 
 def build(cfg, torchrl: bool = False, stacked: bool = True, seed: int = 0):
@@ -68,15 +80,23 @@ def build(cfg, torchrl: bool = False, stacked: bool = True, seed: int = 0):
     return env, agent, policy
 
 
-def timed(obj, name: str, clock: dict, label: str) -> None:
+def sync(device: torch.device | str) -> None:
+    """Wait for ``device``'s queued kernels before a clock is read (CUDA runs asynchronously)."""
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def timed(obj, name: str, clock: dict, label: str, device: torch.device | str = "cpu") -> None:
     """Wrap ``obj.name`` to add its CPU time to ``clock[label]``."""
     f = getattr(obj, name)
 
     def wrapper(*a, **kw):
+        sync(device)
         t = time.process_time()
         try:
             return f(*a, **kw)
         finally:
+            sync(device)
             clock[label] += time.process_time() - t
 
     setattr(obj, name, wrapper)
@@ -104,7 +124,7 @@ class Path:
                 (a.buffer, "sample", "replay sample"),
                 (a.learner, "update", "gradient updates"),
             ):
-                timed(obj, name, clock, label)
+                timed(obj, name, clock, label, cfg.device)
         a = self.agent
         for obj, name in ((self.env, "step_all"), (a.behaviour, "forward"), (a.learner, "update")):
             self._time_first_call(obj, name)
@@ -115,8 +135,10 @@ class Path:
         f = getattr(obj, name)
 
         def first(*a, **kw):
+            sync(self.cfg.device)
             w = time.perf_counter()
             out = f(*a, **kw)
+            sync(self.cfg.device)
             self.compile_wall += time.perf_counter() - w
             setattr(obj, name, f)
             return out
@@ -124,14 +146,18 @@ class Path:
         setattr(obj, name, first)
 
     def trial(self, on: bool) -> None:
-        a, u = self.agent, self.agent.updates
+        a, u, device = self.agent, self.agent.updates, self.cfg.device
+        sync(device)
         t = time.process_time()
         learned = fig4.learning_phase(a, self.env)
+        sync(device)
         c = time.process_time()
         self.calibrations.append(fig4.trial_calibration(a))
+        sync(device)
         if self.clock is not None:
             self.clock["calibration"] += time.process_time() - c
         self.snapshots.append(self.policy.head_values.snapshot())
+        sync(device)
         self.seconds += (time.process_time() - t) * on
         self.frames += learned["frames"] * on
         self.updates += (a.updates - u) * on
@@ -139,6 +165,7 @@ class Path:
     def test(self, trials: int) -> float:
         """Test every trial played, TEST_GROUP side by side; CPU seconds per timed trial."""
         k = self.cfg.experiment.test_episodes_per_trial
+        sync(self.cfg.device)
         t = time.process_time()
         n = len(self.snapshots)
         for g in range(0, n, fig4.TEST_GROUP):
@@ -148,6 +175,7 @@ class Path:
             )
             env = fig4.make_test_env(self.cfg, k, 0, g, len(snaps))
             fig4.test_trials(self.policy, env, k, snaps, cals)
+        sync(self.cfg.device)
         s = (time.process_time() - t) / n
         self.seconds += s * trials
         return s
@@ -171,10 +199,13 @@ def main() -> None:
         default=None,
         help="also time the new path with these hidden widths (heads.hidden), e.g. 64,64",
     )
+    p.add_argument("--quick", action="store_true", help="1 eager trial, tiny sizes (smoke run)")
     p.add_argument("overrides", nargs="*")
     args = p.parse_args()
+    if args.quick:
+        args.trials, args.warmup, args.eager = 1, 0, True
     torch.set_num_threads(1)
-    cfg = load_config(fig4.default_config_path(), args.overrides)
+    cfg = load_config(fig4.default_config_path(), [*(QUICK if args.quick else []), *args.overrides])
     old_cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, compile=False))
     new_cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, compile=not args.eager))
     clock: dict = defaultdict(float)
@@ -207,9 +238,11 @@ def main() -> None:
         for path in paths[::-1] if trial % 2 else paths:  # alternate: load hits all alike
             path.trial(on)
         if args.torchrl:
+            sync(cfg.device)
             t = time.process_time()
             fig4.learning_phase_torchrl(ref_agent, ref_env)
             fig4.test_phase_torchrl(ref_policy, ref_test_env, k)
+            sync(cfg.device)
             ref_s += (time.process_time() - t) * on
     old.test(args.trials)
     test_new = new.test(args.trials)

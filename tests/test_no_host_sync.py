@@ -4,7 +4,10 @@ Without a GPU, the pure step functions are run on the ``meta`` device: meta tens
 and dtypes but no data, so any host synchronisation hidden in a step (``.item()``, ``bool(t)``,
 ``.tolist()``, data-dependent shapes such as ``nonzero`` or boolean-mask indexing) raises instead
 of silently copying to the host. On CUDA the same property is checked by
-``torch.cuda.set_sync_debug_mode("error")`` in ``benchmarks/`` where a GPU is lent.
+``torch.cuda.set_sync_debug_mode("error")`` in ``benchmarks/no_host_sync.py`` (env steps,
+controllers' batched decisions, learner updates; exits 1 on a sync), which
+``tests/test_benchmarks.py`` runs with ``--quick``: the real check where a GPU is lent, a skip
+line without one.
 """
 
 from __future__ import annotations
