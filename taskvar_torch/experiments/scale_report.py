@@ -168,6 +168,20 @@ COLOURS = {
     "oracle_averaging": "black",
 }
 FAMILY_STYLE = {"windy": dict(ls="-", marker="o"), "wargus": dict(ls="--", marker="s")}
+UNITS = {"windy": "return (-steps)", "wargus": "items per episode"}
+_OTHER_STYLES = (dict(ls=":", marker="^"), dict(ls="-.", marker="D"), dict(ls=":", marker="v"))
+
+
+def family_style(fam: str) -> dict[str, Any]:
+    """Line style of a family's curves (another family: one of a few more, by its name)."""
+    if fam in FAMILY_STYLE:
+        return FAMILY_STYLE[fam]
+    return _OTHER_STYLES[sum(map(ord, fam)) % len(_OTHER_STYLES)]
+
+
+def unit(fam: str) -> str:
+    """The axis label of a family's returns."""
+    return UNITS.get(fam, "return")
 
 
 def plot_results(out_dir: str | os.PathLike) -> list[Path]:
@@ -181,7 +195,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     metrics = json.loads((out / METRICS_NAME).read_text())
     cells, refs = metrics["cells"], metrics["references"]
     ns = sorted({c["num_envs"] for c in cells})
-    families = [f for f in ("windy", "wargus") if any(c["family"] == f for c in cells)]
+    families = list(dict.fromkeys(c["family"] for c in cells))  # in the order of the cases
     plt = _pyplot()
     fig, axes = plt.subplots(
         2,
@@ -194,12 +208,11 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     shade = {n: cmap(i / max(len(ns) - 1, 1) * 0.85) for i, n in enumerate(ns)}
     _plot_training_time(axes[0, 0], cells, families, ns, shade, metrics["total_frames"])
     _plot_throughput(axes[1, 0], cells, refs, ns)
+    letters = "bcdefghijklmnopqrstuvwxyz"
     for j, fam in enumerate(families, start=1):
-        unit = "items per episode" if fam == "wargus" else "return (-steps)"
-        _plot_vs_grid_side(
-            axes[0, j], cells, refs, metrics["methods"], fam, ns[-1], "bc"[j - 1], unit
-        )
-        _plot_vs_num_envs(axes[1, j], cells, refs, metrics["methods"], fam, ns, "ef"[j - 1], unit)
+        top, bottom = letters[j - 1], letters[len(families) + j - 1]
+        _plot_vs_grid_side(axes[0, j], cells, refs, metrics["methods"], fam, ns[-1], top, unit(fam))
+        _plot_vs_num_envs(axes[1, j], cells, refs, metrics["methods"], fam, ns, bottom, unit(fam))
     for ax in axes.flat:
         ax.grid(alpha=0.3)
         if ax.has_data():
@@ -225,7 +238,7 @@ def plot_curves(metrics: dict[str, Any], path: Path) -> Path:
     )
     for j, c in enumerate(cells):
         ref = metrics["references"][c["case"]]
-        unit = "items per episode" if c["family"] == "wargus" else "return (-steps)"
+        label = unit(c["family"])
         for i, (x_key, x_label) in enumerate(
             (("frames", "training frames"), ("seconds", "training s"))
         ):
@@ -254,7 +267,7 @@ def plot_curves(metrics: dict[str, Any], path: Path) -> Path:
                     ax.axhline(
                         r["mean_return"], ls=":", color=COLOURS[name], label=name.replace("_", " ")
                     )
-            ax.set(xlabel=x_label, ylabel=unit, title=f"{c['case']} N={c['num_envs']}")
+            ax.set(xlabel=x_label, ylabel=label, title=f"{c['case']} N={c['num_envs']}")
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
     fig.suptitle("Scaled-up grids: learning curves (test return of each method)", fontsize=11)
@@ -279,7 +292,7 @@ def _plot_training_time(
                     [c["train_seconds"] for c in sel],
                     color=shade[n],
                     label=f"{fam} N={n}",
-                    **FAMILY_STYLE[fam],
+                    **family_style(fam),
                 )
     ax.set(
         xlabel="grid side",
@@ -298,7 +311,7 @@ def _plot_throughput(ax, cells: list[dict], refs: dict[str, Any], ns: list[int])
                 [c["num_envs"] for c in sel],
                 [c["frames_per_second"] or np.nan for c in sel],
                 label=case,
-                **FAMILY_STYLE[sel[0]["family"]],
+                **family_style(sel[0]["family"]),
             )
     ax.set(
         xlabel="parallel environments N",
