@@ -107,3 +107,34 @@ def test_the_oracle_heads_make_interruption_pay_on_fickle_passengers():
     fires = float(oracle.controller_expected_return("interruption", "fickle", count_fires=True))
     assert 0.8 <= fires <= 1.0  # E f over U[0.8, 1.0] = 0.9 redraws per episode
     assert np.isfinite(list(ret.values())).all()
+
+
+@pytest.mark.slow
+def test_learnt_option_controllers_reach_the_exact_optimum_on_dry_instances(tmp_path):
+    """A learning test against the exact oracle, with its bound stated: 80k frames on classic
+    (dry) Taxi with a learning rate of 0.002, the shipped config otherwise (the expectile max-value
+    head, cheaper; nothing fires without a fickle passenger). Chosen on dry training instances:
+    at 0.001 the option heads are not yet there at 80k frames. The options (MAXQ's navigation, pickup and dropoff) learn first:
+    the options and interruption controllers are within 1% of the exact optimum (7.930 per
+    episode) in expectation over Taxi-v4's starts. The flat averaging head needs ~300k frames
+    (measured: 6.553 at 160k, 6.060 against 6.129 at 300k on the training distribution,
+    docs/taxi.md), too long for the suite."""
+    cfg = load_config(
+        CONFIG,
+        [
+            "env.instances=dry",
+            "train.total_frames=80000",
+            "train.eps_decay_frames=40000",
+            "train.max_value_estimator=expectile",
+            "train.lr=0.002",
+            "train.checkpoint_every=0",
+        ],
+    )
+    heads, cfg = load_heads(train(cfg, tmp_path, progress=False)["final"])
+    oracle = TaxiOracle(train_instances="dry", obs_encoding=cfg.env.taxi.obs_encoding)
+    best = float(oracle.expected_optimal_return("dry"))
+    assert abs(best - 7.93) < 1e-3
+    for method in ("options", "interruption"):
+        ctrl = make_method_controller(cfg, method, heads, TaxiSubtasks())
+        got = float(oracle.controller_expected_return(ctrl, "dry"))
+        assert got >= best - 0.01 * abs(best), (method, got, best)
