@@ -9,7 +9,8 @@ sub-environment ``i`` of every method's env has the same seed and global index, 
 same instance, start and random streams (paired episodes, ``rng.py``). Each test point
 (``experiments/shift.py``) gives mean return with a 95% CI, interruptions per episode and the
 control split per option; on small windy layouts also the exact expected return of each learnt
-controller given each episode's instance and start (``oracle/``), beside the sampled one.
+controller given each episode's instance and start (``oracle/``), beside the sampled one, and
+its regret against the exact per-instance optimum (an agent that knows the instance).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from taskvar_torch.factory import (
 from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle import exact_episode_returns
+from taskvar_torch.oracle.learnt import optimal_episode_returns
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -205,6 +207,7 @@ def eval_bundle(
     results = []
     for point, subtasks in zip(points, point_subtasks):
         oracle = _exact_oracle(cfg, point)
+        optimum, rows_have_optimum = None, False  # exact per-instance optimum per episode
         per_method = {}
         for m in methods:
             ctrl = make_method_controller(point.cfg, m, heads, subtasks, calibration=calibration)
@@ -217,6 +220,14 @@ def eval_bundle(
                 exact = exact_episode_returns(oracle, ctrl, point.cfg, instance, r["start"])
                 per_method[m]["exact_mean_return"] = float(np.mean(exact, dtype=np.float64))
                 r["exact_return"] = exact
+                if optimum is None and hasattr(oracle, "optimal_return"):  # paired episodes
+                    optimum = optimal_episode_returns(oracle, instance, r["start"])
+                if optimum is not None:
+                    mean, ci = mean_ci95(torch.as_tensor(optimum - exact, dtype=torch.float64))
+                    per_method[m].update(regret_mean=float(mean), regret_ci95=ci)
+                    if not rows_have_optimum:
+                        r["optimum_return"] = optimum  # once per episode (the first method)
+                        rows_have_optimum = True
             rows += _csv_rows(point, m, r)
         results.append({"shift": point.label, "value": point.value, "methods": per_method})
     bar.close()
@@ -249,7 +260,11 @@ CSV_FIELDS = ("shift", "method", "episode", "return", "length", "interruptions")
 
 
 def _csv_rows(point: EvalPoint, method: str, r: dict[str, np.ndarray]) -> list[dict[str, Any]]:
-    extra = [k for k in r if k.startswith("instance_") or k in ("start", "exact_return")]
+    extra = [
+        k
+        for k in r
+        if k.startswith("instance_") or k in ("start", "exact_return", "optimum_return")
+    ]
     return [
         {
             "shift": point.label,
@@ -314,8 +329,9 @@ def plot_eval(metrics: dict[str, Any], path: Path) -> Path:
 
 
 def format_table(metrics: dict[str, Any]) -> str:
-    """The methods side by side per test point: mean return +- 95% CI (exact where known),
-    interruptions per episode and the control split."""
+    """The methods side by side per test point: mean return +- 95% CI (exact where known, and
+    the regret against the exact per-instance optimum +- its 95% CI), interruptions per episode
+    and the control split."""
     lines = [
         f"{metrics['family']} bundle {metrics['checkpoint']}: test {metrics['test']} "
         f"({metrics['test_description']}), {metrics['episodes']} paired episodes, seed "
@@ -328,15 +344,21 @@ def format_table(metrics: dict[str, Any]) -> str:
         if p["shift"]:
             lines.append(f"{p['shift']}:")
         lines.append(
-            f"  {'method':<13} {'mean return':>12} {'+-95%':>8} {'exact':>9} {'interr./ep':>10}  control"
+            f"  {'method':<13} {'mean return':>12} {'+-95%':>8} {'exact':>9} {'regret':>16} "
+            f"{'interr./ep':>10}  control"
         )
         for m, r in p["methods"].items():
             exact = f"{r['exact_mean_return']:9.3f}" if "exact_mean_return" in r else f"{'':>9}"
+            regret = (
+                f"{r['regret_mean']:8.3f} +-{r['regret_ci95']:5.3f}"
+                if "regret_mean" in r
+                else f"{'':>16}"
+            )
             inter = r.get("interruptions_per_episode")
             inter_s = f"{inter:10.2f}" if inter is not None else f"{'':>10}"
             control = " ".join(f"{k} {v:.0%}" for k, v in r.get("control", {}).items())
             lines.append(
-                f"  {m:<13} {r['mean_return']:12.3f} {r['mean_return_ci95']:8.3f} {exact} "
+                f"  {m:<13} {r['mean_return']:12.3f} {r['mean_return_ci95']:8.3f} {exact} {regret} "
                 f"{inter_s}  {control}"
             )
     return "\n".join(lines)

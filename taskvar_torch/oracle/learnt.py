@@ -55,6 +55,39 @@ def exact_episode_returns(
     return np.concatenate(out) if out else np.zeros(0)
 
 
+def optimal_episode_returns(
+    oracle, instance: dict[str, np.ndarray], start: np.ndarray, chunk: int = 500
+) -> np.ndarray:
+    """Exact expected horizon-step return of the per-instance optimal policy per (instance, start)
+    episode: an agent that knows the instance (the ceiling regret is measured against,
+    docs/evaluation.md; paper §3.3.1's returns).
+
+    Mirrors :func:`exact_episode_returns`: ``oracle.optimal_return(*fields, start=None)`` gives
+    ``(B, S)`` for the ``instance_keys`` fields. Distinct instances are solved once (a finite test
+    set, a dry Taxi), in chunks of ``chunk`` instances.
+    """
+    names = tuple(oracle.instance_keys)
+    missing = [k for k in names if k not in instance]
+    if missing:
+        raise ValueError(f"optimal returns need the episodes' instance fields {list(names)}")
+    cols = [np.asarray(instance[k]) for k in names]
+    uniq, inv = np.unique(
+        np.stack([c.astype(np.float64) for c in cols], 1), axis=0, return_inverse=True
+    )
+    inv = inv.reshape(-1)
+    out = np.zeros(len(start))
+    start = np.asarray(start, dtype=np.int64)
+    for lo in range(0, len(uniq), chunk):
+        fields = []
+        for j, c in enumerate(cols):
+            v = torch.as_tensor(uniq[lo : lo + chunk, j])
+            fields.append(v if c.dtype.kind == "f" else v.to(torch.int64))
+        V = oracle.optimal_return(*fields, start=None).cpu().numpy()  # (b, S)
+        sel = (inv >= lo) & (inv < lo + chunk)
+        out[sel] = V[inv[sel] - lo, start[sel]]
+    return out
+
+
 def exact_returns(
     oracle,
     ctrl: Controller,

@@ -435,6 +435,28 @@ class WindyOracle(ControllerChains, ReplayReference):
         out = self._select_start(V, start)
         return out[0] if scalar else out
 
+    def optimal_return(self, p: Any, direction: Any, start: Any = None) -> Tensor:
+        """Exact per-instance optimal ``horizon``-step undiscounted return ``(B, S)``: an agent
+        that knows ``(p, direction)`` (the ceiling of regret, docs/evaluation.md; paper §3.3.1's
+        return). Backward induction with a max over actions at every steps-to-go, so the optimum
+        is over all policies, time-dependent ones included (not the discounted-optimal greedy
+        policy of :meth:`optimal_q`): it bounds every controller's :meth:`controller_return`.
+        Same dynamics as :func:`windy.transition_tensors`, read from the ``move``/``push`` tables
+        (``O(B S A)`` a step). ``start`` as in :meth:`episode_return`."""
+        pt, d, scalar = self._instances_arg(p, direction)
+        m = self.model
+        moved = m.move  # (S, A)
+        gust = m.push[moved.unsqueeze(0), d.view(-1, 1, 1)]  # (B, S, A)
+        pp = pt.view(-1, 1, 1)
+        goal = self.is_goal.view(1, -1)
+        B = pt.numel()
+        V = torch.zeros(B, self.S, dtype=torch.float64, device=self.device)
+        for _ in range(self.horizon):
+            nxt = (1.0 - pp) * V[:, moved] + pp * V.gather(1, gust.reshape(B, -1)).view_as(gust)
+            V = torch.where(goal, 0.0, (nxt - 1.0).max(-1).values)
+        out = self._select_start(V, start)
+        return out[0] if scalar else out
+
     def mean_mdp_return(self, policy: Tensor, start: Any = None) -> Tensor:
         """Exact ``horizon``-step return of a policy in the mean MDP (instance redrawn every step)."""
         P, R = self.mean_mdp()

@@ -1,0 +1,130 @@
+"""Regret against the exact per-instance optimum (issue 31, item 3; docs/evaluation.md): the
+oracles' ``optimal_return`` (windy and Taxi, one interface), ``optimal_episode_returns`` and the
+``regret_*`` keys, ``optimum_return`` column and ``regret`` table column of ``taskvar eval``."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch
+
+from taskvar_torch import keys
+from taskvar_torch.config import load_config
+from taskvar_torch.envs import windy
+from taskvar_torch.experiments.bundle_eval import _exact_oracle, eval_bundle, format_table
+from taskvar_torch.experiments.shift import shift_points
+from taskvar_torch.factory import make_method_controller
+from taskvar_torch.oracle.learnt import exact_episode_returns, optimal_episode_returns
+from taskvar_torch.oracle.mdp import greedy
+from taskvar_torch.oracle.taxi import TaxiOracle
+from taskvar_torch.oracle.windy import WindyOracle
+from taskvar_torch.subtasks.taxi import TaxiSubtasks
+from taskvar_torch.train import train
+
+torch.set_num_threads(1)
+TINY = [
+    "env.num_envs=4",
+    "train.frames_per_batch=100",
+    "train.total_frames=300",
+    "train.checkpoint_every=0",
+    "train.log_every=300",
+    "train.init_random_frames=100",
+    "train.batch_size=16",
+    "train.updates_per_batch=1",
+    "train.buffer_size=1000",
+]
+
+
+@pytest.mark.parametrize("layout", ["default", "whole_column_windy"])
+def test_the_windy_optimum_bounds_every_controller_exactly(layout):
+    oracle = WindyOracle(layout, train_instances="south" if layout != "default" else "train")
+    g = torch.Generator().manual_seed(0)
+    p = torch.rand(64, generator=g, dtype=torch.float64)
+    d = torch.randint(0, 2, (64,), generator=g)
+    best = oracle.optimal_return(p, d)  # (B, S)
+    assert best.shape == (64, oracle.S)
+    P, R = windy.transition_tensors(oracle.model, p[:8], d[:8])  # dense backward induction
+    V = torch.zeros(8, oracle.S, dtype=torch.float64)
+    for _ in range(oracle.horizon):
+        V = (R + torch.einsum("bsat,bt->bsa", P, V)).max(-1).values
+    assert torch.allclose(best[:8], V, atol=1e-12, rtol=0)
+    for name in ("averaging", "options", "interruption"):
+        assert float((best - oracle.controller_return(name, p, d)).min()) >= -1e-9, name
+    greedy_pi = greedy(oracle.optimal_q(p, d))  # the discounted-optimal stationary policy
+    for b in range(4):
+        ret = oracle.episode_return(greedy_pi[b], p[b], int(d[b]))
+        assert float((best[b] - ret).min()) >= -1e-9
+    assert float(oracle.optimal_return(0.3, "north", start=(0, 0))) < 0
+
+
+def test_taxi_regret_with_the_oracles_own_heads_on_fickle():
+    """docs/taxi.md: on `fickle` interruption 9.280 = the optimum 9.280, options 2.080 (regret
+    7.2). Every Taxi-v4 start at E f = 0.9 (dry: returns affine in f there, so exact)."""
+    oracle = TaxiOracle(horizon=200)
+    cfg = load_config("configs/taxi.yaml")
+    starts = oracle.start_cells.numpy()
+    inst = {
+        "rainy_probability": np.ones(starts.size, np.float32),
+        "fickle_probability": np.full(starts.size, 0.9, np.float32),
+    }
+    best = optimal_episode_returns(oracle, inst, starts)
+    assert abs(best.mean() - 9.280) < 5e-4
+    heads = oracle.heads(keys.OBSERVATION, dtype=torch.float32)
+    regret = {}
+    for m in ("options", "interruption"):
+        ctrl = make_method_controller(cfg, m, heads, TaxiSubtasks())
+        exact = exact_episode_returns(oracle, ctrl, cfg, inst, starts)
+        assert (best - exact).min() >= -1e-9, m
+        regret[m] = float((best - exact).mean())
+    assert abs(regret["interruption"]) < 5e-4
+    assert abs(regret["options"] - 7.2) < 5e-3
+
+
+@pytest.fixture(scope="module")
+def windy_bundle(tmp_path_factory):
+    d = tmp_path_factory.mktemp("windy")
+    train(load_config("configs/windy.yaml", TINY), d, progress=False)
+    return d / "final.pt"
+
+
+def test_eval_reports_regret_per_method_and_episode(windy_bundle, tmp_path):
+    m = eval_bundle(windy_bundle, "all", "south", episodes=200, out_dir=tmp_path, progress=False)
+    per = m["points"][0]["methods"]
+    with open(tmp_path / "episodes.csv") as f:
+        rows = list(csv.DictReader(f))
+    optimum = {r["episode"]: float(r["optimum_return"]) for r in rows if r["optimum_return"]}
+    assert len(optimum) == 200  # once per episode
+    for name, r in per.items():
+        assert {"regret_mean", "regret_ci95"} <= set(r)
+        regret = [
+            optimum[x["episode"]] - float(x["exact_return"]) for x in rows if x["method"] == name
+        ]
+        assert min(regret) >= -1e-9, name  # the optimum is at least every controller, exactly
+        assert abs(np.mean(regret) - r["regret_mean"]) < 1e-9
+    assert "regret" in format_table(m).splitlines()[1]
+    one = eval_bundle(windy_bundle, "options", "south", episodes=20, progress=False)
+    assert one["regret_mean"] >= -1e-9 and "regret_ci95" in one
+
+
+def test_no_regret_without_an_oracle():
+    """Wargus brings no oracle, nor do windy layouts too large for it: no optimum to compare."""
+    for config in ("configs/wargus.yaml", "configs/windy_large.yaml"):
+        cfg = load_config(config)
+        (point,) = shift_points(cfg, None, [])
+        assert _exact_oracle(cfg, point) is None, config
+    row = {"mean_return": 1.0, "mean_return_ci95": 0.1, "mean_length": 5.0}
+    table = format_table(
+        {
+            "family": "wargus",
+            "checkpoint": "x",
+            "test": "nominal",
+            "test_description": "",
+            "episodes": 1,
+            "seed": 0,
+            "shifts": [],
+            "points": [{"shift": None, "methods": {"averaging": row}}],
+        }
+    )
+    assert "regret" in table.splitlines()[1] and "nan" not in table
