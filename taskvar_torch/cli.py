@@ -190,6 +190,13 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--batch-size", type=int, metavar="N", help="episodes per batch (eval.batch_size)"
     )
+    p.add_argument(
+        "--exact",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="exact per-episode returns and regret where the family has an exact oracle; default: "
+        "where they are cheap (Taxi: few distinct rain values); --exact always, --no-exact never",
+    )
     p.add_argument("--out", metavar="DIR", help="write DIR/metrics.json, episodes.csv, eval.png")
     _overwrite_argument(p, "DIR")
     _threads_argument(p)
@@ -217,6 +224,7 @@ def _eval_run(args: argparse.Namespace) -> int:
         episodes=args.episodes,
         seed=args.seed,
         batch_size=args.batch_size,
+        exact=args.exact,
         out_dir=args.out,
         progress=not args.no_progress,
         overwrite=args.overwrite,

@@ -12,7 +12,7 @@ from torchrl.envs import TransformedEnv
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
 from taskvar_torch.envs.taxi_env import TaxiEnv
-from taskvar_torch.experiments.bundle_eval import eval_bundle
+from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.experiments.shift import parse_shift, shift_points
 from taskvar_torch.factory import load_heads, make_method_controller
 from taskvar_torch.families import FAMILIES, family
@@ -82,9 +82,9 @@ def test_no_option_starts_outside_its_initiation_set(bundle, method):
     subtasks = TaxiSubtasks()
     for name, heads_of in (("learnt", heads), ("oracle", None)):
         if heads_of is None:
-            heads_of = TaxiOracle(horizon=200).heads(keys.OBSERVATION, dtype=torch.float32)
+            heads_of = TaxiOracle(horizon=200).heads(keys.CELL, dtype=torch.float32)
         ctrl = make_method_controller(cfg, method, heads_of, subtasks)
-        env = TransformedEnv(TaxiEnv(64, instances="storm", seed=5), ctrl.primer())
+        env = TransformedEnv(family(cfg).make_env(cfg, 64, instances="storm"), ctrl.primer())
         td = env.rollout(120, ctrl, break_when_any_done=False)
         started = td[keys.OPTION] != td[keys.RUNNING_OPTION]  # (N, T) a new option took over
         init = subtasks.initiation(td)  # (N, T, O)
@@ -138,3 +138,17 @@ def test_learnt_option_controllers_reach_the_exact_optimum_on_dry_instances(tmp_
         ctrl = make_method_controller(cfg, method, heads, TaxiSubtasks())
         got = float(oracle.controller_expected_return(ctrl, "dry"))
         assert got >= best - 0.01 * abs(best), (method, got, best)
+
+
+@pytest.mark.slow
+def test_eval_skips_costly_exact_returns_unless_asked(bundle):
+    """Continuous rain makes every episode its own chain solve: by default ``taskvar eval``
+    skips the exact column there (and says so), ``exact=False`` never computes it, and dry
+    instances (one rain value) always get it."""
+    metrics = eval_bundle(bundle, method="averaging", episodes=200, test="train", progress=False)
+    assert "exact_mean_return" not in metrics and "too many distinct" in metrics["exact_skipped"]
+    assert "too many distinct" in format_table(metrics)
+    dry = eval_bundle(bundle, method="averaging", episodes=40, test="dry", progress=False)
+    assert "exact_mean_return" in dry and "exact_skipped" not in dry
+    off = eval_bundle(bundle, "averaging", episodes=40, test="dry", progress=False, exact=False)
+    assert "exact_mean_return" not in off and "exact_skipped" not in off

@@ -96,6 +96,19 @@ def _exact_oracle(cfg: Config, point: EvalPoint) -> Any:
     return None if fam.oracle is None else fam.oracle(point.cfg)
 
 
+def _affordable(oracle: Any, instance: dict[str, np.ndarray]) -> bool:
+    """Whether the oracle's exact returns of these episodes are cheap: the distinct instances it
+    would solve (``oracle.exact_solves(*fields)``, else the distinct field tuples) within its
+    ``max_exact_solves`` (no such attribute: always)."""
+    limit = getattr(oracle, "max_exact_solves", None)
+    if limit is None:
+        return True
+    fields = [np.asarray(instance[k]) for k in oracle.instance_keys]
+    count = getattr(oracle, "exact_solves", None)
+    n = count(*fields) if count is not None else len(np.unique(np.stack(fields, 1), axis=0))
+    return n <= limit
+
+
 def play(
     ctrl: Controller,
     point: EvalPoint,
@@ -172,13 +185,19 @@ def eval_bundle(
     progress: bool = True,
     plots: bool = True,
     overwrite: bool = False,
+    exact: bool | None = None,
 ) -> dict[str, Any]:
     """Evaluate the bundle at ``checkpoint`` with ``method`` (``all``, one, or a comma list) on
     the named test distribution ``test`` (``None``: the family's first) with ``shifts``
     (``KEY=V`` or ``KEY=V1,V2,..``: a shift curve); no retraining. ``seed`` defaults to the bundle's
     ``seed + 1`` (the first test run of the experiments). Writes ``metrics.json``,
     ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given (a folder already holding
-    results is refused unless ``overwrite``); returns the metrics."""
+    results is refused unless ``overwrite``); returns the metrics.
+
+    ``exact``: the exact per-episode returns and regret where the family has an oracle; ``None``
+    (default): where they are cheap (an oracle may bound the distinct instances it solves per
+    point, ``max_exact_solves``: Taxi's with continuous rain cost seconds each), else skipped with
+    a note (``metrics.json`` ``exact_skipped``); ``True``: always; ``False``: never."""
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
@@ -205,25 +224,27 @@ def eval_bundle(
     )
     rows: list[dict[str, Any]] = []
     results = []
+    skipped: list[str] = []
     for point, subtasks in zip(points, point_subtasks):
-        oracle = _exact_oracle(cfg, point)
+        oracle = _exact_oracle(cfg, point) if exact is not False else None
         optimum, rows_have_optimum = None, False  # exact per-instance optimum per episode
         per_method = {}
         for m in methods:
             ctrl = make_method_controller(point.cfg, m, heads, subtasks, calibration=calibration)
             r = play(ctrl, point, int(episodes), seed, bs, noise_seed, bar)
             per_method[m] = summarise(r, heads.option_names, m)
+            instance = {k[len("instance_") :]: v for k, v in r.items() if k.startswith("instance_")}
+            if oracle is not None and exact is None and not _affordable(oracle, instance):
+                skipped.append(point.label or test_name)
+                oracle = None
             if oracle is not None:
-                instance = {
-                    k[len("instance_") :]: v for k, v in r.items() if k.startswith("instance_")
-                }
-                exact = exact_episode_returns(oracle, ctrl, point.cfg, instance, r["start"])
-                per_method[m]["exact_mean_return"] = float(np.mean(exact, dtype=np.float64))
-                r["exact_return"] = exact
+                exact_r = exact_episode_returns(oracle, ctrl, point.cfg, instance, r["start"])
+                per_method[m]["exact_mean_return"] = float(np.mean(exact_r, dtype=np.float64))
+                r["exact_return"] = exact_r
                 if optimum is None and hasattr(oracle, "optimal_return"):  # paired episodes
                     optimum = optimal_episode_returns(oracle, instance, r["start"])
                 if optimum is not None:
-                    mean, ci = mean_ci95(torch.as_tensor(optimum - exact, dtype=torch.float64))
+                    mean, ci = mean_ci95(torch.as_tensor(optimum - exact_r, dtype=torch.float64))
                     per_method[m].update(regret_mean=float(mean), regret_ci95=ci)
                     if not rows_have_optimum:
                         r["optimum_return"] = optimum  # once per episode (the first method)
@@ -233,6 +254,11 @@ def eval_bundle(
     bar.close()
     metrics = _metrics(checkpoint, cfg, test_name, shifts, methods, seed, noise_seed, episodes)
     metrics["points"] = results
+    if skipped:
+        metrics["exact_skipped"] = (
+            f"exact returns not computed for {sorted(set(skipped))}: too many distinct instances "
+            "for the oracle (taskvar eval --exact computes them anyway, slowly)"
+        )
     if len(points) == 1 and len(methods) == 1:  # the keys of a one-method evaluation
         metrics.update({"method": methods[0], **results[0]["methods"][methods[0]]})
     if out_dir is not None:
@@ -361,6 +387,8 @@ def format_table(metrics: dict[str, Any]) -> str:
                 f"  {m:<13} {r['mean_return']:12.3f} {r['mean_return_ci95']:8.3f} {exact} {regret} "
                 f"{inter_s}  {control}"
             )
+    if "exact_skipped" in metrics:
+        lines.append(f"  ({metrics['exact_skipped']})")
     return "\n".join(lines)
 
 

@@ -114,6 +114,16 @@ class TaxiOracle(ControllerChains):
 
     instance_keys = ("rainy_probability", "fickle_probability")
     """The ``("instance", key)`` fields :meth:`controller_return` takes, in order (docs/families.md)."""
+    max_exact_solves = 32
+    """``taskvar eval`` computes per-episode exact returns by default only for episodes with at
+    most this many distinct rain values (each costs a chain solve of ~0.2-0.5 s per method;
+    ``taskvar eval --exact`` computes them anyway)."""
+
+    @staticmethod
+    def exact_solves(q: Any, f: Any) -> int:
+        """The chain solves per controller for episodes with these instances (distinct q: the
+        values are affine in f, :meth:`_chain_values_by_rain`)."""
+        return int(np.unique(np.asarray(q)).size)
 
     def __init__(
         self,
