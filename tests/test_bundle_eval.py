@@ -168,6 +168,7 @@ def test_returns_change_where_the_shift_must_change_them(bundles):
     )
 
 
+@pytest.mark.slow
 def test_eval_refuses_a_folder_holding_results_and_checks_points_first(bundles, tmp_path, capsys):
     ckpt = str(bundles["windy"] / "final.pt")
     argv = [

@@ -176,6 +176,7 @@ def test_train_out_where_even_root_cannot_write_is_a_one_line_error(tmp_path, ca
     assert "choose another --out" in err
 
 
+@pytest.mark.slow
 def test_train_out_locked_by_another_run_is_a_one_line_error(tmp_path, capsys):
     """A folder held by another run (its ``.taskvar.lock`` flock-ed) is refused in one line
     naming the holder's pid; once released, the same folder trains."""

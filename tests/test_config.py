@@ -426,6 +426,7 @@ def test_failed_config_write_keeps_previous_file(tmp_path: Path, monkeypatch):
     assert [p.name for p in tmp_path.iterdir()] == ["config.yaml"]
 
 
+@pytest.mark.slow
 def test_scale_config_file_loads_strictly():
 
     assert isinstance(load_scale_config(SCALE_CONFIG), ScaleConfig)

@@ -391,12 +391,14 @@ test_names = st.one_of(
 @given(
     st.one_of(st.text(JUNK_CHARS, max_size=30), shift_item("windy", ["p", "p_low", "directions"]))
 )
+@pytest.mark.slow
 def test_parse_shift_is_a_shift_or_one_line(item):
     s = one_line(parse_shift, item)
     if s is not None:
         assert s.key.startswith("env.") and s.values and all(s.values)
 
 
+@pytest.mark.slow
 @examples(1500)
 @given(family_name, st.one_of(test_names, st.sampled_from(["train", "south"]).flatmap(typo)))
 def test_test_names_are_points_or_one_line(base_configs, fam, name):
@@ -405,6 +407,7 @@ def test_test_names_are_points_or_one_line(base_configs, fam, name):
         assert len(points) == 1 and name in (None, *family(base_configs[fam]).tests)
 
 
+@pytest.mark.slow
 @examples(300)
 @given(shift_case(), test_names)
 def test_shift_points_are_points_or_one_line(base_configs, case, test):

@@ -59,6 +59,7 @@ def test_the_windy_optimum_bounds_every_controller_exactly(layout):
     assert float(oracle.optimal_return(0.3, "north", start=(0, 0))) < 0
 
 
+@pytest.mark.slow
 def test_taxi_regret_with_the_oracles_own_heads_on_fickle():
     """docs/taxi.md: on `fickle` interruption 9.280 = the optimum 9.280, options 2.080 (regret
     7.2). Every Taxi-v4 start at E f = 0.9 (dry: returns affine in f there, so exact)."""

@@ -173,6 +173,7 @@ def assert_close_to(freq: np.ndarray, p: np.ndarray, n: int) -> None:
     assert (np.abs(freq - p) <= tol).all(), np.argwhere(np.abs(freq - p) > tol)
 
 
+@pytest.mark.slow
 def test_fickle_passenger_follows_gymnasium_step_in_distribution():
     """Gymnasium's own ``step`` (many seeds) and TaxiEnv both match the exact event law: redraw
     frequency, the step it happens on (never on the pickup or a blocked move), which new

@@ -93,6 +93,7 @@ def test_fickle_dynamics_agree_with_gymnasiums_step_in_distribution(oracle):
     assert (p > 0).sum() > 6  # the redraw and the rain both show
 
 
+@pytest.mark.slow
 def test_returns_are_affine_in_f_and_bounded_by_the_optimum(short):
     oracle = short
     q = torch.tensor([0.75, 1.0], dtype=torch.float64)
@@ -107,6 +108,7 @@ def test_returns_are_affine_in_f_and_bounded_by_the_optimum(short):
     assert bool((inf >= opt - 1e-9).all())
 
 
+@pytest.mark.slow
 def test_expected_return_over_points_is_the_mean_of_the_instances(oracle):
     dist = TaxiInstances(points=((0.8, 0.0), (1.0, 0.5)))
     got = oracle.controller_expected_return("interruption", dist)
