@@ -364,3 +364,17 @@ def test_hierarchy_descends_only_to_startable_components():
     chain = WindyOracle().controller_chain(ctrl)  # the oracle's search honours them too
     assert torch.equal(opt, chain["decision"].reshape(S * Z, 4).argmax(-1))
     assert torch.equal(td[keys.INTERRUPTED], chain["fires"].reshape(-1))
+
+
+def test_subtasks_initiable_everywhere_skip_the_mask_and_its_fallback():
+    """Wargus options start anywhere (``initiable_everywhere``): no mask is read and the option
+    controllers need no averaging head; windy's and Taxi's initiation sets are read."""
+    from taskvar_torch.controllers.base import defines_initiation
+    from taskvar_torch.subtasks.taxi import TaxiSubtasks
+    from taskvar_torch.subtasks.wargus import WargusSubtasks
+
+    wargus = WargusSubtasks()
+    td = TensorDict({"item_seen": torch.zeros(5, dtype=torch.bool)}, [5])
+    assert bool(wargus.initiation(td).all())  # the declaration holds
+    assert not defines_initiation(wargus) and defines_initiation(TaxiSubtasks())
+    assert not defines_initiation(None)

@@ -153,9 +153,14 @@ def sample_categorical(probs: Tensor, u: Tensor, allowed: Tensor | None = None) 
 def defines_initiation(subtasks: Subtasks | None) -> bool:
     """Whether ``subtasks`` define initiation sets (override :meth:`Subtasks.initiation`).
 
-    Subtasks that only give termination (the base class raises) are initiable everywhere.
+    Subtasks that only give termination (the base class raises), or that declare
+    ``initiable_everywhere`` (Wargus), are initiable everywhere: no mask to read.
     """
-    return subtasks is not None and type(subtasks).initiation is not Subtasks.initiation
+    return (
+        subtasks is not None
+        and not subtasks.initiable_everywhere
+        and type(subtasks).initiation is not Subtasks.initiation
+    )
 
 
 def first_argmax_where(values: Sequence[float], allowed: Sequence[bool] | None) -> int:

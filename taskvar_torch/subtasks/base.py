@@ -94,6 +94,9 @@ class Subtasks:
 
     names: tuple[str, ...] = ()
     hierarchy: Hierarchy | None = None
+    initiable_everywhere: bool = False
+    """Every option's initiation set is the whole state space: the option controllers then skip
+    the initiation mask and its averaging fallback (the same decisions, less work a step)."""
 
     @property
     def num_options(self) -> int:

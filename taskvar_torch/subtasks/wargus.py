@@ -113,6 +113,7 @@ class WargusSubtasks(Subtasks):
 
     names = (TG, FE, TG_FE)
     hierarchy = Hierarchy(root=TG_FE, children={TG_FE: (TG, FE)})
+    initiable_everywhere = True  # :meth:`initiation` is all True
 
     def __init__(
         self,
