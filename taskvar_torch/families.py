@@ -58,6 +58,14 @@ GENERATED = "generated"
 _GENERATOR_KEYS = ("height", "width", "num_exits", "wall_col", "wind_cells_per_exit")
 EXACT_ORACLE_CELLS = 400
 """Windy layouts up to this many cells get the exact oracle in reports (docs/oracle.md)."""
+HELDOUT_SEED = 7_000_000
+"""First seed of the sealed held-out range ``[HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE)``
+(docs/claims.md): no config, doc, test or tuning script names a seed in it
+(``tests/test_heldout.py`` checks), so no design choice was ever made on its episodes. Windy and
+Taxi play their test distribution under env seed ``HELDOUT_SEED + run``; Wargus plays the
+instance seeds of the range."""
+HELDOUT_SIZE = 300
+"""Seeds in the sealed range: Wargus's held-out instances, and the most held-out runs."""
 
 
 @dataclass(frozen=True)
@@ -69,6 +77,8 @@ class TestDistribution:
         description: what it shifts, in one line (docs/evaluation.md lists them all).
         instances: a named instance distribution or the fields of one (a dict).
         overrides: config overrides of ``env`` keys (``key=value``), validated like a config.
+        seed: a sealed test seed (``HELDOUT_SEED``): ``taskvar eval`` plays under it and refuses
+            another ``--seed``; ``None``: the evaluation's seed (the bundle's ``seed + 1``).
     """
 
     __test__ = False  # not a pytest test class
@@ -76,6 +86,7 @@ class TestDistribution:
     description: str
     instances: Any = "train"
     overrides: tuple[str, ...] = ()
+    seed: int | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -422,6 +433,10 @@ WINDY_TESTS = {
         "another 5x5 layout: wind in the whole column before the wall (training winds)",
         overrides=("env.layout=whole_column_windy",),
     ),
+    "heldout": TestDistribution(
+        "sealed held-out episodes: the training distribution under the held-out seed",
+        seed=HELDOUT_SEED,
+    ),
 }
 """Windy test distributions (docs/evaluation.md); the layouts need a bundle of the same size."""
 
@@ -452,6 +467,8 @@ def _wargus_make_instances(fields: dict[str, Any]) -> WargusInstances:
     return wargus_instances(fields)
 
 
+HELDOUT_SEEDS = tuple(range(HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE))
+"""Wargus's sealed held-out instance seeds (the whole held-out range)."""
 WARGUS_TESTS = {
     "nominal": TestDistribution(
         "the nominal test instances (seeds 0-4: Figure 4's test episodes)", "nominal"
@@ -479,6 +496,11 @@ WARGUS_TESTS = {
     "large_grid": TestDistribution(
         "a 64x64 grid (paper 32x32; the observation is size-independent)",
         overrides=("env.wargus.size=64",),
+    ),
+    "heldout": TestDistribution(
+        f"sealed held-out instances: {HELDOUT_SIZE} instance seeds of the held-out range, cycled",
+        {"seeds": HELDOUT_SEEDS},
+        seed=HELDOUT_SEED,
     ),
 }
 """Wargus test distributions (docs/evaluation.md), fresh instances unless stated."""
@@ -706,6 +728,9 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "FAMILIES",
     "GENERATED",
+    "HELDOUT_SEED",
+    "HELDOUT_SEEDS",
+    "HELDOUT_SIZE",
     "Family",
     "TestDistribution",
     "family",

@@ -31,7 +31,7 @@ from tensordict import TensorDictBase
 from taskvar_torch import keys
 from taskvar_torch.envs.taxi import TaxiInstances, taxi_instances
 from taskvar_torch.envs.taxi_env import OBS_ENCODINGS, TaxiEnv
-from taskvar_torch.families import Family, TestDistribution
+from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution
 
 NAME = "taxi"
 INSTANCE_DIM = 3
@@ -181,6 +181,10 @@ TESTS = {
     "storm": TestDistribution("heavy rain and a very fickle passenger together", "storm"),
     "gymnasium": TestDistribution(
         "Taxi-v4's own rainy fickle instance (q = 0.8, f = 0.3)", "gymnasium"
+    ),
+    "heldout": TestDistribution(
+        "sealed held-out episodes: the training distribution under the held-out seed",
+        seed=HELDOUT_SEED,
     ),
 }
 """Taxi test distributions (docs/taxi.md)."""

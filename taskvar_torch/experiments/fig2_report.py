@@ -97,7 +97,12 @@ def format_table(metrics: dict[str, Any]) -> str:
             f"{s['fraction_worse']:7.1%} {s['mean_difference']:+9.3f} +- {ci_txt:<6}"
         )
 
-    for dist, m in (("train", metrics), ("south_only", metrics.get("south_only"))):
+    dists = (
+        ("train", metrics),
+        ("south_only", metrics.get("south_only")),
+        ("heldout", metrics.get("heldout")),  # the sealed held-out seeds (training winds)
+    )
+    for dist, m in dists:
         if not m:
             continue
         line(dist, "interruption - averaging (sampled, paired)", m)
@@ -118,7 +123,7 @@ def format_table(metrics: dict[str, Any]) -> str:
         )
     never = [
         d
-        for d, m in (("train", metrics), ("south_only", metrics.get("south_only")))
+        for d, m in dists
         if m
         and not (m.get("theorem1") or {}).get("firings", 0)
         and not m.get("interruptions_per_episode")

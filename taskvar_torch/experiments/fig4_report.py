@@ -65,6 +65,16 @@ def format_table(metrics: dict[str, Any]) -> str:
             f"{t90:>11}{m.get('trials_to_90pct_of_max', '-'):>9}"
             f"{m['interruptions_per_episode']:>12.2f}"
         )
+    held = metrics.get("heldout")
+    if held:  # the sealed held-out instances, beside the nominal seeds
+        lines.append(
+            f"held-out ({held['instances']['count']} sealed instances), mean items all trials / "
+            "first half: "
+            + ", ".join(
+                f"{name} {m['mean_over_trials']['mean']:.3f} / {m['mean_first_half']['mean']:.3f}"
+                for name, m in held["methods"].items()
+            )
+        )
     h = metrics["hierarchy_trace"]["all_trials"]["per_subtask"]
     lines.append("hierarchy control: " + ", ".join(f"{o} {v:.1%}" for o, v in h.items()))
     if "wall_seconds" in tm:

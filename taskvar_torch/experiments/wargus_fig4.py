@@ -21,7 +21,11 @@ shared between repetitions):
       averaging (greedy Q_avg), options (mu_bar + option policies run to termination),
       interruption (Algorithm 1, max-value heads) and hierarchy (Algorithm 2, robustness critics,
       ``tau = train.robustness_tau``) -- all 4 x K episodes side by side in one batched env;
-      score = items collected per test episode.
+      score = items collected per test episode;
+   c. **held-out test**, beside the nominal one: the same K x 4 episodes on the sealed held-out
+      instance seeds (:data:`~taskvar_torch.families.HELDOUT_SEEDS`, K fresh ones per trial,
+      cycled; :func:`make_heldout_test_env`), the same heads and calibration. Test episodes draw
+      nothing from the global stream, so the nominal scores are those of a run without it.
 
 The repetitions' per-trial test scores then go to the metrics
 (:mod:`taskvar_torch.experiments.fig4_metrics`: ``metrics.json``'s final scores, trials to 90% and
@@ -41,8 +45,9 @@ also re-exported here; it describes how they are made fast (docs/benchmarks.md).
 heads.
 
 Writes ``config.yaml``, ``rep{r}/final.pt`` (every head, loadable by ``taskvar eval``),
-``per_trial.csv`` (rep, trial, method, items, interruptions), ``metrics.json``, ``fig4.png``;
-prints a table.
+``per_trial.csv`` (rep, trial, method, items, interruptions), ``per_trial_heldout.csv`` (the same
+on the held-out instances), ``metrics.json`` (the held-out figures under ``heldout``),
+``fig4.png``; prints a table.
 
 Examples:
     >>> cfg = load_config(default_config_path(), quick=True)  # doctest: +SKIP
@@ -102,7 +107,7 @@ from taskvar_torch.experiments.fig4_trial import (
 )
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.factory import calibrate, make_method_controller, replay_states
-from taskvar_torch.families import FAMILIES
+from taskvar_torch.families import FAMILIES, HELDOUT_SEEDS
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.robustness import RobustnessCalibration
@@ -117,6 +122,10 @@ from taskvar_torch.train import (
 )
 
 TEST_GROUP = 25  # trials whose test phases run side by side (run_repetition)
+HELDOUT_CSV = "per_trial_heldout.csv"
+"""The held-out test phases' rows (``per_trial.csv``'s columns)."""
+HELDOUT_KEYS = ("items", "interruptions", "control_steps", "item_lost")
+"""What a held-out test phase records per trial (``run_repetition``'s ``heldout_*``)."""
 PHASES = ("learning_loop", "updates", "calibration", "test")
 """Where a repetition's CPU time goes (``metrics.json`` ``timing.cpu_seconds_per_trial``): the
 learning phases' loop (behaviour, dynamics, replay writes), the gradient updates (replay samples
@@ -184,6 +193,24 @@ def make_test_env(
     seeds = nominal_seeds(k)
     rows = tuple(
         seeds[(j + first_trial + g) % k] for g in range(trials) for _ in METHODS for j in range(k)
+    )
+    return make_env(
+        cfg, len(rows), seed=seed, instances=WargusInstances(seeds=rows), validate_actions=False
+    )
+
+
+def make_heldout_test_env(
+    cfg: Config, k: int, seed: int, first_trial: int = 0, trials: int = 1
+) -> WargusEnv:
+    """:func:`make_test_env` on the sealed held-out instances: episode ``j`` of trial ``t`` plays
+    ``HELDOUT_SEEDS[(t k + j) % len(HELDOUT_SEEDS)]``, the same seed for every method (paired), so
+    the trials walk through every held-out instance in turn."""
+    n = len(HELDOUT_SEEDS)
+    rows = tuple(
+        HELDOUT_SEEDS[((first_trial + g) * k + j) % n]
+        for g in range(trials)
+        for _ in METHODS
+        for j in range(k)
     )
     return make_env(
         cfg, len(rows), seed=seed, instances=WargusInstances(seeds=rows), validate_actions=False
@@ -267,6 +294,7 @@ def run_repetition(
                 "item_lost",
                 "learn_items",
                 "frames",
+                *(f"heldout_{k_}" for k_ in HELDOUT_KEYS),
             )
         }
         updates: list[int] = []
@@ -284,6 +312,14 @@ def run_repetition(
             for tested in tested_all:
                 for key, v in tested.items():
                     rows[key].append(v)
+            env = make_heldout_test_env(
+                cfg, k, seed, first_trial=len(rows["heldout_items"]), trials=len(snapshots)
+            )
+            for tested in test_trials(
+                policy, env, k, snapshots if group > 1 else None, calibrations
+            ):
+                for key in HELDOUT_KEYS:
+                    rows[f"heldout_{key}"].append(tested[key])
             snapshots.clear()
             calibrations.clear()
             cpu["test"] += time.process_time() - tick
@@ -326,6 +362,39 @@ def run_repetition(
     result["seconds"] = time.perf_counter() - start
     result["cpu_seconds"] = cpu
     return result
+
+
+def heldout_summary(held: dict[str, np.ndarray], first: dict[str, Any]) -> dict[str, Any]:
+    """``metrics.json``'s ``heldout``: :func:`summarise` of the held-out test phases (the same
+    keys as the nominal figures at the top level), and which instances they played."""
+    m = summarise(
+        held["items"],
+        held["interruptions"],
+        held["control_steps"],
+        first["option_names"],
+        first["option_depths"],
+        held["item_lost"],
+    )
+    m.pop("experiment")
+    m["definitions"]["score"] = "items collected per held-out test episode"
+    T = held["items"].shape[1]
+    for i, name in enumerate(METHODS):  # the claims' figures (taskvar report), per repetition
+        m["methods"][name]["mean_first_half"] = mean_over_trials(
+            held["items"][:, :, i], max(T // 2, 1)
+        )
+        m["methods"][name]["trials_to_90pct_of_max_per_rep"] = [
+            trials_to_fraction_of_max(curve) for curve in held["items"][:, :, i]
+        ]
+    m["definitions"]["mean_first_half"] = "mean_over_trials over trials 1..T/2"
+    m["definitions"]["trials_to_90pct_of_max_per_rep"] = (
+        "trials_to_90pct_of_max of each repetition's own curve"
+    )
+    m["instances"] = {
+        "first_seed": HELDOUT_SEEDS[0],
+        "count": len(HELDOUT_SEEDS),
+        "order": "trial t, episode j plays seed (t K + j) mod count (every method the same)",
+    }
+    return m
 
 
 def hierarchy_depths(hierarchy: Any, option_names: Sequence[str]) -> list[int]:
@@ -433,6 +502,9 @@ def wargus_fig4(
     metrics = summarise(
         items, inter, control, results[0]["option_names"], results[0]["option_depths"], lost
     )
+    held = {k: np.stack([r[f"heldout_{k}"] for r in results]) for k in HELDOUT_KEYS}
+    write_csv(out / HELDOUT_CSV, csv_rows(held["items"], held["interruptions"]), CSV_FIELDS)
+    metrics["heldout"] = heldout_summary(held, results[0])
     metrics["protocol"] = {
         "repetitions": cfg.experiment.runs,
         "trials": cfg.experiment.trials,
@@ -482,6 +554,10 @@ __all__ = [  # the protocol, then the names of fig4_trial, side_by_side, snapsho
     "make_agent",
     "make_test_controllers",
     "make_test_env",
+    "make_heldout_test_env",
+    "heldout_summary",
+    "HELDOUT_CSV",
+    "HELDOUT_KEYS",
     "nominal_seeds",
     "repetition_seed",
     "run_repetition",

@@ -8,6 +8,8 @@ The protocol, top to bottom (:func:`windy_fig2`):
    pushes south) and each of R runs (seed ``cfg.seed + 1 + run``), play E test episodes with
    every method on *paired* rollouts: envs with the same seed give each method the same instance,
    start cell and gust stream per episode (common random numbers, ``rng.py``);
+   The same again on the sealed held-out episodes (``heldout``: training winds under the seeds
+   ``HELDOUT_SEED + run``, :func:`heldout_seed`), reported beside the nominal ones;
 4. the *null* curve: averaging against itself with an independent gust stream (``noise_seed=1``,
    same instances and starts) -- what "no worse" looks like for two equally good policies;
 5. the *exact* figure (layouts small enough for the oracle): per episode, the exact expected
@@ -71,7 +73,7 @@ from taskvar_torch.experiments.fig2_report import (
     read_csv_columns,
 )
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
-from taskvar_torch.families import EXACT_ORACLE_CELLS, FAMILIES
+from taskvar_torch.families import EXACT_ORACLE_CELLS, FAMILIES, HELDOUT_SEED, HELDOUT_SIZE
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle import (  # the exact maths; also importable from this module
     WindyOracle,
@@ -93,6 +95,9 @@ from taskvar_torch.train import (
 
 DISTRIBUTIONS = {"train": "train", "south_only": "south"}
 """metrics.json key -> test instance distribution (``train``: the training distribution)."""
+HELDOUT = {"heldout": "train"}
+"""metrics.json key -> the sealed held-out test: the training distribution under the held-out
+seeds (:func:`heldout_seed`; ``taskvar eval --test heldout`` replays its run 0)."""
 NULL_NOISE_SEED = 1
 """Gust-stream salt of the null comparison's second averaging rollout (same instances, starts)."""
 EXACT_MAX_CELLS = EXACT_ORACLE_CELLS
@@ -109,6 +114,14 @@ def default_config_path() -> Path:
 def test_seed(cfg: Config, run: int) -> int:
     """Seed of test run ``run``: ``cfg.seed + 1 + run`` (never the training seed)."""
     return int(cfg.seed) + 1 + int(run)
+
+
+def heldout_seed(cfg: Config, run: int) -> int:
+    """Seed of held-out run ``run``: ``HELDOUT_SEED + run``, in the sealed range whatever the
+    training seed (every training seed's heads play the same held-out episodes)."""
+    if not 0 <= int(run) < HELDOUT_SIZE:
+        raise ValueError(f"experiment.runs must be at most {HELDOUT_SIZE} (the held-out seeds)")
+    return HELDOUT_SEED + int(run)
 
 
 # --------------------------------------------------------------------------------------------
@@ -281,8 +294,10 @@ def run_distribution(
     oracle=None,
     progress: bool = True,
     desc: str = "",
+    seed_of: Any = test_seed,
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
     """Every method on R paired runs of E episodes of one test distribution; metrics and CSV rows.
+    Run ``r`` plays seed ``seed_of(cfg, r)`` (:func:`test_seed`; :func:`heldout_seed`).
 
     Per run: :func:`play_run`, the exact returns of each learnt controller (with ``oracle``),
     :func:`episode_columns`, the run's summary and CSV rows; then the pooled columns go to
@@ -298,7 +313,7 @@ def run_distribution(
         total=runs * episodes * (len(METHODS) + 1), disable=not progress, desc=desc, unit="ep"
     )
     for run in range(runs):
-        seed = test_seed(cfg, run)
+        seed = seed_of(cfg, run)
         r, null = play_run(heads, cfg, instances, seed, episodes, bar)
         base = r["averaging"]
         ex = {}
@@ -377,6 +392,7 @@ def windy_fig2(
     """
 
     FAMILIES["windy"].require(cfg, "windy-fig2")
+    heldout_seed(cfg, cfg.experiment.runs - 1)  # every held-out run has a sealed seed
     out = Path(out_dir)
     heads, tcfg = _check_inputs(cfg, out, checkpoint, overwrite)
     out.mkdir(parents=True, exist_ok=True)
@@ -414,6 +430,13 @@ def windy_fig2(
             metrics.update(m)
         else:
             metrics[key] = m
+    for key, instances in HELDOUT.items():  # the sealed held-out episodes, beside the nominal
+        m, rows = run_distribution(
+            heads, cfg, instances, runs, episodes, oracle, progress, key, heldout_seed
+        )
+        all_rows += rows
+        metrics[key] = m
+        metrics[key]["seeds"] = [heldout_seed(cfg, r) for r in range(runs)]
     metrics["oracle_by_start"] = learnt_vs_oracle_by_start(heads, oracle)
     metrics["train_seconds"] = train_seconds
     metrics["eval_seconds"] = time.perf_counter() - eval_t0
@@ -512,12 +535,14 @@ def eval_checkpoint(
 __all__ = [  # the protocol, then the names of fig2_metrics, fig2_report and oracle it re-exports
     "DISTRIBUTIONS",
     "EXACT_MAX_CELLS",
+    "HELDOUT",
     "NULL_NOISE_SEED",
     "build_controller",
     "default_config_path",
     "episode_columns",
     "eval_checkpoint",
     "evaluate",
+    "heldout_seed",
     "make_eval_env",
     "make_oracle",
     "play_run",
