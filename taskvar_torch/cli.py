@@ -76,9 +76,27 @@ def _train_arguments(p: argparse.ArgumentParser) -> None:
         help="continue exactly from a checkpoint of a previous run (its config is used; only "
         "runtime keys such as train.total_frames may be overridden)",
     )
+    p.add_argument(
+        "--seeds",
+        type=_seed_count,
+        metavar="N",
+        help="N independent training runs (seeds seed .. seed + N - 1) in one batched learner, "
+        "written as DIR/seed<k>/ bundles (the config key train.seeds)",
+    )
     _overwrite_argument(p, "DIR")
     _threads_argument(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _seed_count(text: str) -> int:
+    """``--seeds``: a positive integer, else argparse's one-line error."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return n
 
 
 def _train_epilog() -> str:
@@ -95,6 +113,10 @@ def _train_run(args: argparse.Namespace) -> int:
     config_path, overrides = _split_config_and_overrides(args.items)
     if config_path is None and args.resume is None:
         raise ValueError("give a CONFIG file (e.g. configs/windy.yaml) or --resume PATH")
+    if getattr(args, "seeds", None) is not None:
+        if args.resume is not None:
+            raise ValueError("--seeds starts a new batch; --resume continues the checkpoint's own")
+        overrides = [*overrides, f"train.seeds={args.seeds}"]
     cfg = load_config(config_path, overrides) if config_path is not None else None
     result = train(
         cfg,
@@ -104,6 +126,15 @@ def _train_run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         overwrite=args.overwrite,
     )
+    if "seeds" in result:  # train.seeds > 1: one bundle per seed
+        print(
+            f"trained {len(result['seeds'])} seeds, {result['updates']} updates on "
+            f"{result['frames']} frames each, in {result['seconds']:.1f} s; bundles: "
+            + ", ".join(str(p) for p in result["seeds"])
+        )
+        for path in result["seeds"]:
+            _print_oracle_summary(path)
+        return 0
     print(
         f"trained {result['updates']} updates on {result['frames']} frames in "
         f"{result['seconds']:.1f} s; final bundle: {result['final']}"

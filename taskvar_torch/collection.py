@@ -58,7 +58,7 @@ def collects_in_workers(cfg: Config) -> bool:
 
 
 def make_collector(
-    cfg: Config, env: EnvBase, behaviour: BehaviourPolicy, total_frames: int
+    cfg: Config, env: EnvBase, behaviour: BehaviourPolicy, total_frames: int, seeds: int = 1
 ) -> BaseCollector:
     """The experience collector of ``cfg.collector``.
 
@@ -66,7 +66,8 @@ def make_collector(
     ``MultiSyncCollector`` over :func:`make_worker_env` slices, acting with a copy of
     ``behaviour`` whose weights live in shared memory; the trainer refreshes them with
     ``collector.update_policy_weights_(behaviour)``. Worker processes use as many threads as
-    this one.
+    this one. ``seeds`` (``train.seeds``): ``env`` holds every seed's sub-envs, and a batch is
+    ``train.frames_per_batch`` frames per seed (one process only).
     """
     t = cfg.train
     workers = cfg.collector.num_workers
@@ -76,7 +77,7 @@ def make_collector(
         return Collector(
             env,
             behaviour,
-            frames_per_batch=t.frames_per_batch,
+            frames_per_batch=t.frames_per_batch * seeds,
             total_frames=total_frames,
             track_traj_ids=False,
         )

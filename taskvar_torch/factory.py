@@ -29,6 +29,7 @@ from torchrl.envs import EnvBase
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
+    CheckpointError,
     evaluation_heads_key,
     load_checkpoint,
     load_state_dicts,
@@ -331,6 +332,12 @@ def _heads_of(
     """The heads and config of a loaded checkpoint ``bundle`` (read from ``path``)."""
     require_finite_heads(bundle, path)
     cfg = config_from_dict(bundle["config"], f"checkpoint {path}")
+    if cfg.train.seeds > 1:
+        raise CheckpointError(
+            f"{str(path)!r} holds a batch of {cfg.train.seeds} training runs (train.seeds): "
+            f"evaluate one of them, {str(Path(path).parent / 'seed0' / 'final.pt')!r} ... "
+            f"seed{cfg.train.seeds - 1}/final.pt"
+        )
     if device is not None:
         cfg = dataclasses.replace(cfg, device=str(device))
     check_device(cfg.device)

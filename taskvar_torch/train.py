@@ -91,9 +91,11 @@ from taskvar_torch.factory import (  # noqa: F401  (the factories stay importabl
     write_heads,
 )
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
+from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import MultiHeadLearner
 from taskvar_torch.heads.nstep import nstep_returns
+from taskvar_torch.heads.seeds import split_seed, stack_seeds
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.replay import (  # noqa: F401  (importable from here too)
     EPISODE_REWARD,
@@ -199,14 +201,37 @@ def _non_finite(learner: MultiHeadLearner) -> list[str]:
     return [n for n, good in zip(names, ok) if not good]
 
 
-def _require_finite(learner: MultiHeadLearner, frames: int, last: Path | None) -> None:
+def _non_finite_seeds(learner: MultiHeadLearner, seeds: int) -> list[int]:
+    """Which runs of a ``train.seeds`` batch hold a NaN or infinite weight, target or optimiser
+    value (every such tensor is seed-major along its first dimension: heads/seeds.py)."""
+    tensors = [
+        *learner.heads.state_dict().values(),
+        *learner.loss.target_heads.state_dict().values(),
+        *(v for st in learner.optimizer.state.values() for v in st.values()),
+    ]
+    flags = [
+        torch.isfinite(t.reshape(seeds, -1)).all(1)
+        for t in tensors
+        if isinstance(t, torch.Tensor) and t.is_floating_point() and t.dim() > 0
+    ]
+    ok = torch.stack(flags).all(0).tolist()  # (S,), one sync
+    return [k for k, good in enumerate(ok) if not good]
+
+
+def _require_finite(
+    learner: MultiHeadLearner, frames: int, last: Path | None, cfg: Config | None = None
+) -> None:
     """:class:`TrainingDiverged` when a weight or optimiser value is not finite: such a model is
-    never written."""
+    never written (a ``train.seeds`` batch: the message names the seeds that diverged)."""
     bad = _non_finite(learner)
     if bad:
+        which = ""
+        if cfg is not None and cfg.train.seeds > 1:
+            seeds = [cfg.seed + k for k in _non_finite_seeds(learner, cfg.train.seeds)]
+            which = f" of seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}"
         raise TrainingDiverged(
-            f"non-finite values in the {' and '.join(bad)} at frame {frames}: training diverged "
-            f"(lower train.lr?); nothing written, {_last_checkpoint_note(last)}"
+            f"non-finite values in the {' and '.join(bad)}{which} at frame {frames}: training "
+            f"diverged (lower train.lr?); nothing written, {_last_checkpoint_note(last)}"
         )
 
 
@@ -255,6 +280,14 @@ def train(
     bundle = None
     if resume is not None:
         bundle = load_checkpoint(resume, expected_config=cfg)
+        member = bundle.get("batch_member")
+        if isinstance(member, dict):
+            raise CheckpointError(
+                f"{str(resume)!r} is seed index {member.get('seed_index')} of a "
+                f"{member.get('seeds')}-seed batch: it evaluates, it does not resume alone; "
+                f"resume the batch from {str(Path(resume).resolve().parent.parent)!r}'s "
+                "checkpoint_*.pt or final.pt"
+            )
         require_finite_heads(bundle, resume)
         if cfg is None:
             cfg = apply_overrides(
@@ -321,7 +354,11 @@ def _train_loop(
     with warnings.catch_warnings():  # TorchRL's note that the last batch may pass total_frames
         warnings.filterwarnings("ignore", message=r"total_frames \(\d+\) is not exactly divisible")
         run.collector = make_collector(
-            cfg, run.env, run.behaviour, max(t.total_frames - run.counters["frames"], 0)
+            cfg,
+            run.env,
+            run.behaviour,
+            max(t.total_frames - run.counters["frames"], 0) * t.seeds,
+            seeds=t.seeds,
         )
     pbar = loggers = None
     try:  # shut the worker processes down on any exit
@@ -342,14 +379,18 @@ def _train_loop(
                 for batch in run.collector:
                     frames_before = run.store(batch)
                     run.learn()
-                    pbar.update(min(batch.numel(), max(pbar.total - pbar.n, 0)))  # ends at total
+                    per_seed = batch.numel() // t.seeds
+                    pbar.update(min(per_seed, max(pbar.total - pbar.n, 0)))  # ends at total
                     row = run.report(frames_before, stop, loggers, pbar, start_time)
                     if row is not None:
                         last_log = row
                 pbar.close()
                 final = out / "final.pt"  # a first signal from here on: the run ends normally
                 run.save(final, replay=keep_replay)
-                write_heads(out / HEADS_NAME, run.learner.eval_heads, cfg, run.counters)
+                if t.seeds == 1:
+                    write_heads(out / HEADS_NAME, run.learner.eval_heads, cfg, run.counters)
+                else:  # the batch's final.pt resumes; each seed<k>/ evaluates
+                    seed_finals = run.write_seed_bundles()
             except KeyboardInterrupt:
                 raise KeyboardInterrupt(
                     f"aborted by a second signal; nothing written, "
@@ -362,13 +403,16 @@ def _train_loop(
             loggers.close()  # TensorBoard, W&B and MLflow write their last rows here
         run.collector.shutdown()
         torch.set_num_threads(threads)  # MultiSyncCollector.shutdown adds num_workers threads
-    return {
+    result = {
         "final": final,
         "frames": run.counters["frames"],
         "updates": run.counters["updates"],
         "seconds": time.perf_counter() - start_time,
         "last_log": last_log,
     }
+    if t.seeds > 1:
+        result["seeds"] = seed_finals
+    return result
 
 
 @dataclasses.dataclass
@@ -381,13 +425,18 @@ class _Run:
     env: TransformedEnv
     learner: MultiHeadLearner
     behaviour: BehaviourPolicy
-    buffer: ReplayBuffer
+    buffers: list[ReplayBuffer]  # one per seed (train.seeds), sampled with its own generator
     first_visit: FirstVisitFilter
-    replay_generator: torch.Generator
-    counters: dict[str, int]
+    replay_generators: list[torch.Generator]
+    counters: dict[str, int]  # frames: per seed (every seed steps the same number)
     stats: dict[str, torch.Tensor]  # device-side episode statistics since the last log row
     collector: BaseCollector | None = None
     last_checkpoint: Path | None = None  # the newest periodic checkpoint in ``out``
+
+    @property
+    def seeds(self) -> int:
+        """How many independent runs this one is (``train.seeds``)."""
+        return len(self.buffers)
 
     def store(self, batch: TensorDictBase) -> int:
         """Replay ``batch``'s raw transitions (first visits only with ``train.first_visit``) and
@@ -399,20 +448,25 @@ class _Run:
         if collects_in_workers(self.cfg):
             batch = batch.exclude("collector")  # MultiSyncCollector's trajectory ids
         counters, stats = self.counters, self.stats
+        S = self.seeds
         frames_before = counters["frames"]
-        counters["frames"] += batch.numel()
+        counters["frames"] += batch.numel() // S  # per seed
         counters["batches"] += 1
         if t.n_step > 1:  # multi-step windows, within this batch (heads/nstep.py)
             batch = nstep_returns(
                 batch.copy(), self.learner.loss.subtasks, t.gamma, t.n_step, BEHAVIOUR
             )  # a shallow copy: the collector's own batch is left as it was
-        raw = raw_transitions(batch, keep_instance=t.max_value_estimator == "instance")  # (N*T,)
-        if t.first_visit:
-            raw = raw[self.first_visit(batch).reshape(-1)]  # one sample per (s, a) per episode
-        stored = raw.batch_size[0]  # (TensorDict.numel() of an empty batch is 1, not 0)
-        if stored:  # else every transition a repeat (a greedy loop): nothing new to store
-            self.buffer.extend(raw)
-        counters["stored"] += stored
+        keep = self.first_visit(batch) if t.first_visit else None  # (N, T): first visits
+        n = batch.shape[0] // S  # seed s owns sub-envs [s n, (s + 1) n) (set_seed_blocks)
+        for s, buffer in enumerate(self.buffers):
+            rows = batch if S == 1 else batch[s * n : (s + 1) * n]
+            raw = raw_transitions(rows, keep_instance=t.max_value_estimator == "instance")
+            if keep is not None:  # one sample per (s, a) per episode
+                raw = raw[(keep if S == 1 else keep[s * n : (s + 1) * n]).reshape(-1)]
+            stored = raw.batch_size[0]  # (TensorDict.numel() of an empty batch is 1, not 0)
+            if stored:  # else every transition a repeat (a greedy loop): nothing new to store
+                buffer.extend(raw)
+            counters["stored"] += stored
         done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)  # (N, T)
         ret = batch.get((keys.NEXT, EPISODE_REWARD)).squeeze(-1)  # (N, T)
         by_options = done & (batch.get(BEHAVIOUR) >= 0)
@@ -420,17 +474,28 @@ class _Run:
         stats["episodes"] += done.sum()
         stats["return_sum_options"] += (ret * by_options).sum()
         stats["episodes_options"] += by_options.sum()
+        if S > 1:  # each seed's own training return (its sub-envs' rows)
+            stats["seed_return_sum"] += (ret * done).reshape(S, -1).sum(1)
+            stats["seed_episodes"] += done.reshape(S, -1).sum(1)
         return frames_before
+
+    def sample(self) -> TensorDictBase:
+        """One replay sample for the learner: each seed's buffer sampled with its own generator,
+        concatenated seed-major (``S`` groups of ``train.batch_size`` rows)."""
+        if self.seeds == 1:
+            return self.buffers[0].sample()
+        return torch.cat([b.sample() for b in self.buffers])
 
     def learn(self) -> None:
         """Every head from one shared sample per update, ``train.updates_per_batch`` updates once
         past ``train.init_random_frames``; then the exploration rate for the frames played, and
         the new weights and epsilon to the collector workers before their next batch."""
         t = self.cfg.train
-        if self.counters["frames"] >= t.init_random_frames and len(self.buffer) >= t.batch_size:
+        filled = min(len(b) for b in self.buffers)
+        if self.counters["frames"] >= t.init_random_frames and filled >= t.batch_size:
             self.learner.set_lr(lr_at(self.counters["frames"], t))
             for _ in range(t.updates_per_batch):
-                self.learner.update(self.buffer.sample())
+                self.learner.update(self.sample())
                 self.counters["updates"] += 1
         self.behaviour.set_epsilon(epsilon_at(self.counters["frames"], t))
         if collects_in_workers(self.cfg):
@@ -463,16 +528,18 @@ class _Run:
                 logger,
                 start_time,
                 self.last_checkpoint,
+                self.cfg.seed,
             )
             pbar.set_postfix({k: f"{v:.3g}" for k, v in row.items() if k.startswith("loss")})
         if _crossed(frames_before, frames, t.heads_every) and not is_last:  # learning curves
             seconds = time.perf_counter() - start_time
-            write_heads(
-                self.out / HEADS_SNAPSHOTS / f"heads_{frames:09d}.pt",
-                self.learner.eval_heads,
-                self.cfg,
-                {**self.counters, "seconds": seconds},
-            )
+            for folder, heads, cfg in self.runs(self.learner.eval_heads):
+                write_heads(
+                    folder / HEADS_SNAPSHOTS / f"heads_{frames:09d}.pt",
+                    heads,
+                    cfg,
+                    {**self.counters, "seconds": seconds},
+                )
         if (checkpoint_now or stop_now) and not is_last:
             path = self.out / f"checkpoint_{frames:09d}.pt"
             self.save(path)
@@ -487,8 +554,49 @@ class _Run:
     def save(self, path: Path, replay: bool = True) -> None:
         """Write the whole run state (:meth:`bundle`) to ``path`` (``replay=False``: without the
         replay buffer); a non-finite model is never written."""
-        _require_finite(self.learner, self.counters["frames"], self.last_checkpoint)
+        _require_finite(self.learner, self.counters["frames"], self.last_checkpoint, self.cfg)
         save_checkpoint(path, self.bundle(replay))
+
+    def runs(self, heads: Heads) -> list[tuple[Path, Heads, Config]]:
+        """``(folder, heads, config)`` of each run: ``out`` itself for one seed, else
+        ``out/seed<k>`` with seed ``k``'s heads cut out of ``heads`` (heads/seeds.py) and its
+        single-seed config (``seed + k``, ``train.seeds = 1``)."""
+        if self.seeds == 1:
+            return [(self.out, heads, self.cfg)]
+        spec = self.learner.heads.spec
+        out = []
+        for k in range(self.seeds):
+            cfg_k = seed_config(self.cfg, k)
+            one = split_seed(heads, k, build_heads(cfg_k, spec))
+            one.spec = spec
+            out.append((self.out / f"seed{k}", one.eval(), cfg_k))
+        return out
+
+    def write_seed_bundles(self) -> list[Path]:
+        """Each seed's ``seed<k>/`` in today's single-seed layout: ``config.yaml``, ``final.pt``
+        (its online and, with ``train.eval_ema_tau``, evaluation heads; marked as a member of
+        this batch: it evaluates, it does not resume alone) and ``heads.pt``."""
+        learner = self.learner
+        online = self.runs(learner.heads)
+        evals = self.runs(learner.eval_heads) if learner.eval_heads is not learner.heads else None
+        finals = []
+        for k, (folder, heads, cfg_k) in enumerate(online):
+            folder.mkdir(parents=True, exist_ok=True)
+            save_config_yaml(cfg_k, folder / "config.yaml")
+            models = {"heads": heads}
+            if evals is not None:
+                models[EVAL_HEADS] = evals[k][1]
+            bundle = make_bundle(
+                cfg_k,
+                models=models,
+                counters=dict(self.counters),
+                rng={},
+                heads_spec=learner.heads.spec.to_dict(),
+                batch_member={"seed_index": k, "seeds": self.seeds},
+            )
+            finals.append(save_checkpoint(folder / "final.pt", bundle))
+            write_heads(folder / HEADS_NAME, models.get(EVAL_HEADS, heads), cfg_k, self.counters)
+        return finals
 
     def bundle(self, replay: bool = True) -> dict[str, Any]:
         """The checkpoint of the run: every head, target and optimiser, the learner's counters,
@@ -501,8 +609,8 @@ class _Run:
             models=_models(learner),
             optimizers={"adam": learner.optimizer},
             counters=dict(self.counters),
-            rng=rng_state({"replay": self.replay_generator}),
-            replay=replay_state(self.buffer) if replay else None,
+            rng=rng_state(_replay_rngs(self.replay_generators)),
+            replay=_replay_states(self.buffers) if replay else None,
             learner={
                 k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
             },
@@ -512,6 +620,26 @@ class _Run:
             stats={k: v.clone() for k, v in self.stats.items()},
             heads_spec=learner.heads.spec.to_dict(),
         )
+
+
+def seed_config(cfg: Config, k: int) -> Config:
+    """Seed ``k`` of a ``train.seeds`` batch as a single-seed config: ``seed + k``, one seed."""
+    return dataclasses.replace(
+        cfg, seed=cfg.seed + k, train=dataclasses.replace(cfg.train, seeds=1)
+    )
+
+
+def _replay_rngs(generators: list[torch.Generator]) -> dict[str, torch.Generator]:
+    """The replay generators by checkpoint name: ``replay`` (seed 0, as a one-seed run names
+    it), then ``replay1``, ``replay2``..."""
+    return {("replay" if k == 0 else f"replay{k}"): g for k, g in enumerate(generators)}
+
+
+def _replay_states(buffers: list[ReplayBuffer]) -> dict[str, Any]:
+    """The replay entry of a checkpoint: one buffer's state, or ``{"seeds": [...]}``."""
+    if len(buffers) == 1:
+        return replay_state(buffers[0])
+    return {"seeds": [replay_state(b) for b in buffers]}
 
 
 def _models(learner: MultiHeadLearner) -> dict[str, torch.nn.Module]:
@@ -528,12 +656,32 @@ def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
     """Everything from the config, seeded (the networks' initialisation draws from the global
     torch stream, in this order), then overwritten with ``bundle``'s state when resuming."""
     t = cfg.train
+    S = t.seeds
     torch.manual_seed(cfg.seed)
-    replay_generator = torch.Generator(device="cpu").manual_seed(cfg.seed + 1)
+    replay_generators = [
+        torch.Generator(device="cpu").manual_seed(cfg.seed + k + 1) for k in range(S)
+    ]
     workers = cfg.collector.num_workers
-    env = make_training_env(cfg, num_envs=cfg.env.num_envs // workers)  # workers > 1: specs only
+    env = make_training_env(cfg, num_envs=cfg.env.num_envs * S // workers)  # workers > 1: specs
     subtasks = make_subtasks(cfg, env.base_env)
-    heads = build_heads(cfg, env, subtasks)
+    if S == 1:
+        heads = build_heads(cfg, env, subtasks)
+    else:  # seed k's networks initialised as its one-seed run's, then stacked (heads/seeds.py)
+        if not hasattr(env.base_env, "set_seed_blocks"):
+            raise ValueError(
+                f"train.seeds={S} needs a family env with set_seed_blocks (envs/batched.py "
+                f"BatchedFamilyEnv); {type(env.base_env).__name__} has none"
+            )
+        env.base_env.set_seed_blocks([cfg.seed + k for k in range(S)])
+        runs = []
+        for k in range(S):
+            cfg_k = seed_config(cfg, k)
+            torch.manual_seed(cfg_k.seed)
+            one_env = make_training_env(cfg_k)
+            runs.append(build_heads(cfg_k, one_env, make_subtasks(cfg_k, one_env.base_env)))
+        heads = stack_seeds(runs)
+        heads.spec = runs[0].spec
+        torch.manual_seed(cfg.seed)  # exploration: one stream for the batch
     learner = make_learner(cfg, heads, subtasks)
     behaviour = BehaviourPolicy(
         heads,
@@ -543,25 +691,29 @@ def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
         root_policy=t.hierarchy_root_policy,
         option_coverage=t.option_coverage,
     )
-    buffer = make_replay_buffer(cfg, replay_generator)
+    buffers = [make_replay_buffer(cfg, g) for g in replay_generators]
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
-    first_visit = FirstVisitFilter(cfg.env.num_envs, obs_dim, device=cfg.device)
+    first_visit = FirstVisitFilter(cfg.env.num_envs * S, obs_dim, device=cfg.device)
+    stats = {
+        "return_sum": torch.zeros((), device=cfg.device),
+        "episodes": torch.zeros((), device=cfg.device),
+        "return_sum_options": torch.zeros((), device=cfg.device),
+        "episodes_options": torch.zeros((), device=cfg.device),
+    }
+    if S > 1:
+        stats["seed_return_sum"] = torch.zeros(S, device=cfg.device)
+        stats["seed_episodes"] = torch.zeros(S, device=cfg.device)
     run = _Run(
         cfg=cfg,
         out=out,
         env=env,
         learner=learner,
         behaviour=behaviour,
-        buffer=buffer,
+        buffers=buffers,
         first_visit=first_visit,
-        replay_generator=replay_generator,
+        replay_generators=replay_generators,
         counters={"frames": 0, "updates": 0, "batches": 0, "stored": 0},
-        stats={
-            "return_sum": torch.zeros((), device=cfg.device),
-            "episodes": torch.zeros((), device=cfg.device),
-            "return_sum_options": torch.zeros((), device=cfg.device),
-            "episodes_options": torch.zeros((), device=cfg.device),
-        },
+        stats=stats,
     )
     if bundle is not None:
         load_state_dicts(bundle, models=_models(learner), optimizers={"adam": learner.optimizer})
@@ -572,7 +724,9 @@ def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
                 "optimizer": bundle["optimizers"]["adam"],
             }
         )
-        load_replay_state(buffer, bundle["replay"])
+        replays = bundle["replay"]["seeds"] if S > 1 else [bundle["replay"]]
+        for buffer, state in zip(buffers, replays):
+            load_replay_state(buffer, state)
         first_visit.load_state_dict(bundle["first_visit"])
         run.counters.update(bundle["counters"])
         run.stats = {k: v.to(cfg.device) for k, v in bundle["stats"].items()}
@@ -588,7 +742,7 @@ def _restore_collection(run: _Run, bundle: dict[str, Any], resume: str | os.Path
     _collector_carrier(run.collector).update(
         TensorDict(bundle["carrier"], batch_size=run.env.batch_size)
     )
-    set_rng_state(bundle["rng"], {"replay": run.replay_generator})
+    set_rng_state(bundle["rng"], _replay_rngs(run.replay_generators))
     _restore_logs(Path(resume).parent, run.out, run.counters["frames"])
     if Path(resume).parent.resolve() == run.out.resolve() and Path(resume).name.startswith(
         "checkpoint_"
@@ -657,16 +811,28 @@ def _log_row(
     logger: RunLoggers,
     start_time: float,
     last_checkpoint: Path | None = None,
+    first_seed: int = 0,
 ) -> dict[str, float]:
     """Log one row (a value per scalar, to every logger); raise :class:`TrainingDiverged` on a
     non-finite loss."""
+    seeds = learner.loss.seeds
     try:
         row = learner.pop_losses()
     except FloatingPointError as e:
+        which = ""
+        if seeds > 1:
+            bad = [first_seed + k for k in _non_finite_seeds(learner, seeds)]
+            if bad:
+                which = f" (non-finite weights in seed{'s' if len(bad) > 1 else ''} "
+                which += f"{', '.join(map(str, bad))})"
         raise TrainingDiverged(
-            f"{e}; stopped at frame {counters['frames']}, {_last_checkpoint_note(last_checkpoint)}"
+            f"{e}{which}; stopped at frame {counters['frames']}, "
+            f"{_last_checkpoint_note(last_checkpoint)}"
         ) from None
-    s = {k: float(v) for k, v in stats.items()}  # host sync, once per row
+    if seeds > 1:  # the learner's losses add the seeds' own: log their mean
+        row = {k: v / seeds for k, v in row.items()}
+    per_seed = {k: stats[k].tolist() for k in ("seed_return_sum", "seed_episodes") if k in stats}
+    s = {k: float(v) for k, v in stats.items() if k not in per_seed}  # host sync, once per row
     for v in stats.values():
         v.zero_()
     if s["episodes"] > 0:
@@ -674,6 +840,10 @@ def _log_row(
     if s["episodes_options"] > 0:
         row["episode_return_options"] = s["return_sum_options"] / s["episodes_options"]
     row["episodes"] = s["episodes"]
+    if per_seed:  # train.seeds > 1: each seed's own training return
+        for k, (r, n) in enumerate(zip(per_seed["seed_return_sum"], per_seed["seed_episodes"])):
+            if n > 0:
+                row[f"episode_return_seed{k}"] = r / n
     row["epsilon"] = behaviour.epsilon
     row["updates"] = float(counters["updates"])
     row["seconds"] = time.perf_counter() - start_time

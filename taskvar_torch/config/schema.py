@@ -188,6 +188,10 @@ class TrainConfig:
     the full task, paper §3.4.2) or sum (TG's plus FE's subtask rewards)."""
     max_grad_norm: float | None = 10.0
     """Gradient-norm clipping; null disables it."""
+    seeds: int = 1
+    """Independent training runs in one batched learner (``taskvar train --seeds N``): seeds
+    ``seed, seed + 1, ..., seed + N - 1``, each with its own env instances, initial weights,
+    replay, optimiser state and targets, written as ``seed<k>/`` bundles (docs/seeds.md)."""
     compile: bool = False
     """torch.compile the hot paths (taskvar_torch/compiling.py): the learner's losses, forward and
     backward of every head (the same losses up to float rounding), and in the wargus-fig4 learning

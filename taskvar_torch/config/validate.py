@@ -193,6 +193,19 @@ def _check_train(cfg: Config, fam: Family) -> None:
     _at_least("train.checkpoint_every", t.checkpoint_every, 0)
     _at_least("train.log_every", t.log_every, 1)
     _at_least("train.heads_every", t.heads_every, 0)
+    if isinstance(t.seeds, bool) or not isinstance(t.seeds, int) or t.seeds < 1:
+        raise ValueError(f"train.seeds must be an integer >= 1, got {t.seeds!r}")
+    if t.seeds > 1 and (cfg.collector.num_workers > 1 or cfg.collector.backend == "ray"):
+        raise ValueError(
+            f"train.seeds={t.seeds} runs in one collector process: set collector.num_workers=1 "
+            f"and collector.backend=process (got {cfg.collector.num_workers} and "
+            f"{cfg.collector.backend!r})"
+        )
+    if t.seeds > 1 and cfg.heads.network != "mlp":
+        raise ValueError(
+            f"train.seeds={t.seeds} needs heads.network=mlp (the conv trunk has no seed axis), "
+            f"got {cfg.heads.network!r}"
+        )
 
 
 def _check_collector(cfg: Config) -> None:

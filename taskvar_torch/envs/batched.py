@@ -9,6 +9,8 @@ whole-batch ``where``.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite
@@ -44,6 +46,19 @@ class BatchedFamilyEnv(EnvBase):
         self._base_key = rng.sub_env_key(seed, index)  # (N,)
         self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
         self._seed = seed
+
+    def set_seed_blocks(self, seeds: Sequence[int]) -> None:
+        """Split the ``N`` sub-environments into ``S = len(seeds)`` equal blocks, block ``s``
+        drawing exactly what an env of ``N / S`` sub-environments seeded ``seeds[s]`` draws:
+        sub-env ``s N / S + i`` keys from ``(seeds[s], index_offset + i)`` (``taskvar train
+        --seeds``: one batched env for every run). Call it before the first reset."""
+        S = len(seeds)
+        if S < 1 or self.num_envs % S:
+            raise ValueError(f"{self.num_envs} sub-environments do not split into {S} seeds")
+        n = self.num_envs // S
+        index = torch.arange(n, device=self.device) + self.index_offset
+        self._base_key = torch.cat([rng.sub_env_key(int(sd), index) for sd in seeds])
+        self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
 
     def _next_episodes(
         self, tensordict: TensorDictBase | None, started: bool

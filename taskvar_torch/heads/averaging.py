@@ -18,7 +18,7 @@ from tensordict.nn import TensorDictModule
 from taskvar_torch import keys
 from taskvar_torch.heads.networks import make_head
 from taskvar_torch.heads.relabel import Transitions
-from taskvar_torch.heads.targets import bootstrap_value
+from taskvar_torch.heads.targets import bootstrap_value, group_mean
 
 
 def make_averaging_head(
@@ -51,4 +51,4 @@ def averaging_loss(
                 q_far, q_far_target, double_q
             )
             target = torch.where(w.averaging_rows, far, target)
-    return (q_taken - target).pow(2).mean()
+    return group_mean((q_taken - target).pow(2), batch.seeds)

@@ -26,6 +26,7 @@ device-side loss sums for logging (:meth:`MultiHeadLearner.pop_losses`); with ``
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -54,6 +55,7 @@ from taskvar_torch.heads.robustness import (
     parent_closure,
     robustness_loss,
 )
+from taskvar_torch.heads.seeds import num_seeds
 from taskvar_torch.heads.switching import consistent_with_option, mu_bar_probs, switching_loss
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -198,6 +200,9 @@ class MultiHeadLoss(LossModule):
         self.target_heads_params = _unique_params(self.target_heads)
         self.stack = _shared_stack(heads.heads)  # StackedMLP of every head, or None
         self.target_stack = _shared_stack(self.target_heads)
+        self.seeds = num_seeds(heads)  # S independent runs' heads (heads/seeds.py), usually 1
+        if self.seeds > 1 and self.stack is None:
+            raise ValueError("a bundle of several seeds needs its heads in one StackedMLP")
         self.register_buffer(
             "components", component_matrix(subtasks.names, subtasks.hierarchy), persistent=False
         )
@@ -217,8 +222,14 @@ class MultiHeadLoss(LossModule):
         if self.stack is not None:  # fused: one batched pass for every head
             out = self.stack(obs)  # (K, B, max_out), with gradient
             with torch.no_grad():  # s' values are only read detached: no backward through them
-                out_ahead = self.stack(ahead)  # (K, B or 2B, max_out)
-                target_ahead = self.target_stack(ahead)
+                if self.seeds > 1 and far_obs is not None:  # keep each pass's rows seed-major
+                    out_ahead = torch.cat([self.stack(next_obs), self.stack(far_obs)], 1)
+                    target_ahead = torch.cat(
+                        [self.target_stack(next_obs), self.target_stack(far_obs)], 1
+                    )
+                else:
+                    out_ahead = self.stack(ahead)  # (K, B or 2B, max_out)
+                    target_ahead = self.target_stack(ahead)
             outs = {
                 "cur": out,
                 "next": out_ahead[:, :B],
@@ -267,13 +278,17 @@ class MultiHeadLoss(LossModule):
         return TensorDict(self.losses(self.relabel(tensordict)), batch_size=[])
 
     def relabel(self, tensordict: TensorDictBase) -> Transitions:
-        """The sampled batch relabelled for every head (:func:`relabel`)."""
-        return relabel(
+        """The sampled batch relabelled for every head (:func:`relabel`); a bundle of ``S`` seeds
+        (heads/seeds.py) reads it as ``S`` seed-major groups of rows (``Transitions.seeds``)."""
+        batch = relabel(
             tensordict,
             self.subtasks,
             robustness=self.heads.has("robustness"),
             instance_features=self.instance_features,
         )
+        if self.seeds > 1:
+            batch = dataclasses.replace(batch, seeds=self.seeds)
+        return batch
 
     def losses(self, batch: Transitions) -> dict[str, torch.Tensor]:
         """Every head's loss ``{"loss_<head>": scalar}`` on a relabelled batch: plain tensors in

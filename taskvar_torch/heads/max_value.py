@@ -150,7 +150,7 @@ def max_value_loss(
     with torch.no_grad():
         cont = continuation_value(q_hat_next_target, mu_bar_next, batch.beta_next)  # (B, O)
         target = batch.reward.unsqueeze(-1) + gamma * (1.0 - batch.terminated).unsqueeze(-1) * cont
-    return masked_mean(expectile_loss(q_hat, target, level), consistent)
+    return masked_mean(expectile_loss(q_hat, target, level), consistent, batch.seeds)
 
 
 def instance_max_value_loss(
@@ -165,7 +165,8 @@ def instance_max_value_loss(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The ``instance`` estimator's two losses (scalars): the critic's intra-option TD loss in each
     transition's own instance, and the head's regression on ``max_{z in Z} C_target(s, o | z)``
-    over ``Z`` = the instances of the sample's first ``num_instances`` transitions (Definition 1).
+    over ``Z`` = the instances of the sample's first ``num_instances`` transitions (Definition 1;
+    with ``batch.seeds = S``, of each run's own rows).
     """
     if batch.instance is None:
         raise ValueError(
@@ -179,11 +180,13 @@ def instance_max_value_loss(
         c_next = critic_target(torch.cat([batch.next_observation, z], -1))  # (B, O)
         cont = continuation_value(c_next, mu_bar_next, batch.beta_next)  # (B, O)
         y = batch.reward.unsqueeze(-1) + gamma * (1.0 - batch.terminated).unsqueeze(-1) * cont
-        zs = z[: min(int(num_instances), B)]  # (M, F) seen training instances
-        M = zs.shape[0]
+        S = batch.seeds  # each run's Z from its own rows (heads/seeds.py)
+        zs = z.view(S, B // S, -1)[:, : min(int(num_instances), B // S)]  # (S, M, F) seen ones
+        M = zs.shape[1]
         obs = batch.observation.unsqueeze(1).expand(B, M, -1)  # (B, M, D)
-        grid = critic_target(torch.cat([obs, zs.unsqueeze(0).expand(B, M, -1)], -1))  # (B, M, O)
+        zs = zs.unsqueeze(1).expand(S, B // S, M, -1).reshape(B, M, -1)  # row b: its run's Z
+        grid = critic_target(torch.cat([obs, zs], -1))  # (B, M, O)
         q_max = grid.max(1).values  # (B, O): max over instances of Q^{z, mu_bar}(s, o)
-    loss_critic = masked_mean((c - y).pow(2), consistent)
-    loss_hat = masked_mean((q_hat - q_max).pow(2), batch.initiation)
+    loss_critic = masked_mean((c - y).pow(2), consistent, batch.seeds)
+    loss_hat = masked_mean((q_hat - q_max).pow(2), batch.initiation, batch.seeds)
     return loss_critic, loss_hat

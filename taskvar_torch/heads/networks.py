@@ -74,7 +74,15 @@ class StackedMLP(nn.Module):
     the member sees only the observation features its row keeps (``heads.option_inputs=subtask``:
     each option's policy sees its subtask's features). It is a non-persistent buffer, rebuilt from
     the config, so checkpoints are the same with or without it.
+
+    ``seeds`` (``S``, set by :func:`taskvar_torch.heads.seeds.stack_seeds`; 1 otherwise): the
+    stack holds ``S`` independent copies of its ``K`` members, seed-major (parameters ``(S K,
+    d_in, d_out)``), and every call reads its rows as ``S`` equal seed-major groups, group ``s``
+    through copy ``s`` (``taskvar train --seeds``: each training run's rows meet its own weights
+    only). With ``S = 1`` every method runs exactly the code it ran before seeds existed.
     """
+
+    seeds: int = 1
 
     def __init__(
         self,
@@ -120,7 +128,11 @@ class StackedMLP(nn.Module):
         return h * self.input_mask[lo:hi].view(hi - lo, *(1,) * (x.dim() - 1), x.shape[-1])
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """All members: ``(M, in_dim) -> (K, M, max_out)``."""
+        """All members: ``(M, in_dim) -> (K, M, max_out)`` (``seeds = S``: rows in ``S``
+        seed-major groups, each through its own copy)."""
+        if self.seeds > 1:
+            out = self.forward_snapshots(x)  # (S, K, M / S, max_out)
+            return out.transpose(0, 1).reshape(self.num_members, x.shape[0], out.shape[-1])
         return self._layers(self.member_inputs(x))
 
     def _layers(self, h: torch.Tensor) -> torch.Tensor:
@@ -135,6 +147,10 @@ class StackedMLP(nn.Module):
     def forward_one(self, x: torch.Tensor, k: int) -> torch.Tensor:
         """Member ``k``: ``(..., in_dim) -> (..., out_sizes[k])``."""
         batch = x.shape[:-1]
+        if self.seeds > 1:  # (S, 1, M / S, max_out): each seed's rows through its own member k
+            out = self.forward_snapshots(x.reshape(-1, x.shape[-1]), members=(k, k + 1))
+            out = out.reshape(-1, out.shape[-1])
+            return out[:, : self.out_sizes[k]].reshape(*batch, self.out_sizes[k])
         if self.input_mask is not None:
             x = x * self.input_mask[k]
         out = self._layers_one(x.reshape(-1, x.shape[-1]), k)  # (M, max_out)
@@ -170,14 +186,18 @@ class StackedMLP(nn.Module):
         through copy ``g``. ``None``: the live weights (``G = 1``; equal to :meth:`forward`).
         Member ``(g, k)`` is one ``baddbmm`` batch entry, the matmul ``forward_one`` does for it
         (same values; the same bits where the BLAS gives an entry the same bits in any batch, as
-        for the Wargus heads: ``heads/snapshots.py``).
+        for the Wargus heads: ``heads/snapshots.py``). A stack of ``seeds = S`` runs its live
+        weights as ``G = S`` copies (its seeds); it takes no ``params``.
         """
         n = len(self.weights)
         lo, hi = members or (0, self.num_members)
         K = hi - lo
         if params is None:
-            ws = [w.unsqueeze(0) for w in self.weights]  # (1, K, d_in, d_out)
-            bs = [b.unsqueeze(0) for b in self.biases]  # (1, K, 1, d_out)
+            S = self.seeds  # (S, K, d_in, d_out), (S, K, 1, d_out): seed-major members
+            ws = [w.view(S, -1, *w.shape[1:]) for w in self.weights]
+            bs = [b.view(S, -1, *b.shape[1:]) for b in self.biases]
+        elif self.seeds > 1:
+            raise ValueError("a stack of several seeds runs its own weights only (params=None)")
         else:
             ws, bs = list(params[:n]), list(params[n:])  # (G, K, d_in, d_out), (G, K, 1, d_out)
         if K != self.num_members:

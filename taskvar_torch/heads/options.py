@@ -49,4 +49,4 @@ def options_loss(
                 q_far, q_far_target, double_q
             )
             target = torch.where(w.option_rows, far, target)
-    return masked_mean((q_taken - target).pow(2), batch.initiation)
+    return masked_mean((q_taken - target).pow(2), batch.initiation, batch.seeds)

@@ -35,6 +35,7 @@ class Transitions:
     robustness_reward: torch.Tensor | None  # (B, O) or None when the family has no robustness
     instance: torch.Tensor | None = None  # (B, F) hidden instance features, or None (see below)
     nstep: NStep | None = None  # multi-step window quantities (heads/nstep.py), or None
+    seeds: int = 1  # S: the rows are S equal seed-major groups, one per run (heads/seeds.py)
 
 
 @dataclass

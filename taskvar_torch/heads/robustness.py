@@ -107,7 +107,7 @@ def robustness_loss(
         if until_termination:
             cont = cont * (1.0 - batch.beta_next)  # (B, O)
         target = batch.robustness_reward + gamma * cont * v_next
-    return masked_mean((r_taken - target).pow(2), mask)
+    return masked_mean((r_taken - target).pow(2), mask, batch.seeds)
 
 
 @dataclass(frozen=True)

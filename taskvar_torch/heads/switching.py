@@ -73,4 +73,4 @@ def switching_loss(
     with torch.no_grad():
         cont = continuation_value(q_mu_next_target, mu_bar_next, batch.beta_next)  # (B, O)
         target = batch.reward.unsqueeze(-1) + gamma * (1.0 - batch.terminated).unsqueeze(-1) * cont
-    return masked_mean((q_mu - target).pow(2), consistent)
+    return masked_mean((q_mu - target).pow(2), consistent, batch.seeds)

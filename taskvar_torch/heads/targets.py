@@ -21,14 +21,28 @@ def bootstrap_value(
     return q_next_target.max(-1).values
 
 
-def masked_mean(loss: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+def masked_mean(loss: torch.Tensor, mask: torch.Tensor, seeds: int = 1) -> torch.Tensor:
     """Per-column mean of ``loss`` (B, K) over rows where ``mask`` (B, K), summed over columns.
 
     Each column is one head's own loss (an option, a critic), averaged over its own transitions, so
     the sum has the gradient of K separate learners. Columns without transitions contribute 0.
+    ``seeds = S``: the rows are ``S`` seed-major groups (independent runs, heads/seeds.py), each
+    averaged on its own, and the ``S`` sums added (each run's gradient is its own loss's).
     """
     mask = mask.to(loss.dtype)
+    if seeds > 1:
+        B = loss.shape[0]
+        num = (loss * mask).reshape(seeds, B // seeds, -1).sum(1)  # (S, K)
+        den = mask.reshape(seeds, B // seeds, -1).sum(1).clamp_min(1.0)
+        return (num / den).sum()
     return ((loss * mask).sum(0) / mask.sum(0).clamp_min(1.0)).sum()
+
+
+def group_mean(loss: torch.Tensor, seeds: int = 1) -> torch.Tensor:
+    """Mean of ``loss`` (B,); ``seeds = S``: the sum of the means of its ``S`` seed-major groups."""
+    if seeds > 1:
+        return loss.reshape(seeds, -1).mean(1).sum()
+    return loss.mean()
 
 
 def expectile_loss(pred: torch.Tensor, target: torch.Tensor, level: float) -> torch.Tensor:

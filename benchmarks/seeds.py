@@ -1,0 +1,125 @@
+"""Seeds as a batch dimension: ``taskvar train --seeds N`` against one seed, side by side.
+
+For each case (a config and a frame budget) and each N in ``--seeds`` (default 1, 5, 10), one
+child process runs the real :func:`~taskvar_torch.train.train` with ``train.seeds=N`` (one torch
+thread) and reports its wall time, its CPU time and its peak resident memory; the cases and Ns are
+interleaved over ``--repeats`` rounds so that load on the machine hits them alike, and the medians
+are printed with the ratios that matter: N seeds' wall over one seed's (the goal: 5 seeds in <= 2x
+one seed's wall) and wall, CPU and memory per seed.
+
+Replay buffers are the memory: each seed has its own ``train.buffer_size`` rows, allocated at
+full size on the first write (TorchRL ``LazyTensorStorage``), so peak RSS grows by one buffer per
+seed (printed as ``MB/seed``, the increase over one seed divided by N - 1).
+
+Usage::
+
+    python benchmarks/seeds.py                # windy 5x5 (50k frames), windy 51x51 and Wargus
+                                              # 32x32 training (shorter budgets), N = 1, 5, 10
+    python benchmarks/seeds.py --cases windy5 --seeds 1,5 --repeats 3
+    python benchmarks/seeds.py --quick        # a smoke run: windy 5x5, 2k frames, N = 1, 2
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CASES = {
+    "windy5": ("configs/windy.yaml", []),  # the shipped 50k-frame budget
+    "windy51": ("configs/windy_xl.yaml", ["train.total_frames=60000"]),
+    "wargus32": ("configs/wargus.yaml", ["train.total_frames=40000"]),
+}
+QUICK = [
+    "train.total_frames=2000",
+    "train.init_random_frames=512",
+    "train.frames_per_batch=128",
+    "env.num_envs=8",
+]
+
+
+def child(config: str, overrides: list[str], seeds: int) -> dict:
+    """One training run in this process; its wall and CPU seconds and peak RSS (MB)."""
+    import torch
+
+    from taskvar_torch.config import load_config
+    from taskvar_torch.train import train
+
+    torch.set_num_threads(1)
+    cfg = load_config(str(ROOT / config), [*overrides, f"train.seeds={seeds}"])
+    with tempfile.TemporaryDirectory() as tmp:
+        wall0, cpu0 = time.perf_counter(), time.process_time()
+        train(cfg, Path(tmp) / "run", progress=False, keep_replay=False)
+        wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KB -> MB (Linux)
+    return {"wall": wall, "cpu": cpu, "rss": rss}
+
+
+def measure(config: str, overrides: list[str], seeds: int) -> dict:
+    """:func:`child` in a fresh process (its own peak RSS)."""
+    here = str(Path(__file__).parent)
+    code = (
+        f"import json, sys; sys.path.insert(0, {here!r}); from seeds import child; "
+        f"print('RESULT', json.dumps(child({config!r}, {overrides!r}, {seeds})))"
+    )
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env
+    )
+    if out.returncode != 0:
+        raise RuntimeError(f"seeds={seeds} {config} failed:\n{out.stderr[-2000:]}")
+    line = next(x for x in out.stdout.splitlines() if x.startswith("RESULT "))
+    return json.loads(line[len("RESULT ") :])
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--cases", default=",".join(CASES), help=f"comma list of {list(CASES)}")
+    p.add_argument("--seeds", default="1,5,10", help="comma list of seed counts (1 first)")
+    p.add_argument("--repeats", type=int, default=1, help="interleaved rounds (medians)")
+    p.add_argument("--quick", action="store_true", help="smoke run: windy 5x5, 2k frames, N=1,2")
+    p.add_argument("--device", default="cpu", help="device key of every run (e.g. cuda)")
+    args = p.parse_args(argv)
+    cases = {k: (c, [*o, f"device={args.device}"]) for k, (c, o) in CASES.items()}
+    cases = {k: cases[k] for k in args.cases.split(",")}
+    counts = [int(n) for n in args.seeds.split(",")]
+    if args.quick:
+        cases = {"windy5-quick": ("configs/windy.yaml", [*QUICK, f"device={args.device}"])}
+        counts = [1, 2]
+    if counts[0] != 1:
+        raise SystemExit("--seeds must start with 1 (the baseline)")
+    print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    runs: dict[tuple[str, int], list[dict]] = {}
+    for _ in range(args.repeats):
+        for name, (config, overrides) in cases.items():
+            for n in counts:
+                runs.setdefault((name, n), []).append(measure(config, overrides, n))
+    print(
+        f"{'case':<14}{'N':>4}{'wall s':>9}{'x 1 seed':>10}{'wall/seed':>11}{'cpu/seed':>10}"
+        f"{'RSS MB':>9}{'MB/seed':>9}"
+    )
+    for name in cases:
+        base = {k: statistics.median(r[k] for r in runs[(name, 1)]) for k in ("wall", "rss")}
+        for n in counts:
+            m = {
+                k: statistics.median(r[k] for r in runs[(name, n)]) for k in ("wall", "cpu", "rss")
+            }
+            per_mb = (m["rss"] - base["rss"]) / (n - 1) if n > 1 else float("nan")
+            print(
+                f"{name:<14}{n:>4}{m['wall']:>9.1f}{m['wall'] / base['wall']:>10.2f}"
+                f"{m['wall'] / n:>11.2f}{m['cpu'] / n:>10.2f}{m['rss']:>9.0f}{per_mb:>9.0f}"
+            )
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

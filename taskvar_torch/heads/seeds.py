@@ -1,0 +1,155 @@
+"""Seeds as a batch dimension: ``S`` independent training runs' heads as one bundle.
+
+Every head of a run is a member of one :class:`~taskvar_torch.heads.networks.StackedMLP` (the
+learner's fused pass). :func:`stack_seeds` concatenates ``S`` runs' stacks along the member axis,
+seed-major, and marks the result ``seeds = S``: every pass then reads its rows as ``S`` equal
+seed-major groups, group ``s`` through run ``s``'s weights only (``StackedMLP.forward_snapshots``
+with the seeds as its weight copies). The instance estimator's critic (a plain MLP,
+``heads/max_value.py``) becomes a one-member stack of ``S`` seeds the same way. So one optimiser
+step on the sum of the ``S`` runs' losses is ``S`` independent steps: Adam, the per-member gradient
+clip and the target and Polyak updates are elementwise or per member, and each run's loss reads its
+own rows only (``Transitions.seeds``, ``heads/targets.py`` ``group_mean``).
+
+:func:`split_seed` cuts run ``s`` back out into a bundle of today's single-seed layout, what
+``taskvar train --seeds N`` writes as ``seed<k>/`` (docs/seeds.md).
+
+Examples:
+    >>> batch = stack_seeds([build_heads(cfg, env, sub) for _ in range(5)])  # doctest: +SKIP
+    >>> one = split_seed(batch, 2, build_heads(cfg, env, sub))  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import copy
+from collections.abc import Sequence
+
+import torch
+from torch import nn
+
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.max_value import OptimismGapHead
+from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
+
+
+def _stacks(heads: Heads) -> list[StackedMLP]:
+    """The :class:`StackedMLP` s of a bundle's heads, each once (in head order)."""
+    seen: dict[int, StackedMLP] = {}
+    for module in heads.modules():
+        if isinstance(module, StackedMLP):
+            seen.setdefault(id(module), module)
+    return list(seen.values())
+
+
+def _critic(heads: Heads) -> nn.Module | None:
+    """The instance estimator's critic inside the max-value head, or ``None``."""
+    if not heads.has("max_value"):
+        return None
+    net = head_network(heads.heads["max_value"])
+    return net.critic if isinstance(net, OptimismGapHead) else None
+
+
+def _linears(mlp: nn.Module) -> list[nn.Linear]:
+    return [m for m in mlp.modules() if isinstance(m, nn.Linear)]
+
+
+def _activation(mlp: nn.Module) -> str:
+    """The activation name of a plain MLP (its first non-linear layer)."""
+    from taskvar_torch.heads.networks import ACTIVATIONS
+
+    for m in mlp.modules():
+        for name, cls in ACTIVATIONS.items():
+            if type(m) is cls:
+                return name
+    raise ValueError(f"no known activation in {type(mlp).__name__}")
+
+
+def _seeded_critic(critics: Sequence[nn.Module]) -> StackedHead:
+    """``S`` plain MLP critics ``(..., D + F) -> (..., O)`` as one member of a ``seeds = S`` stack."""
+    layers = [_linears(c) for c in critics]
+    first = layers[0]
+    stack = StackedMLP(
+        first[0].in_features,
+        [first[-1].out_features],
+        hidden=[lin.out_features for lin in first[:-1]],
+        activation=_activation(critics[0]),
+    ).to(first[0].weight.device)
+    with torch.no_grad():
+        for i in range(len(first)):
+            stack.weights[i] = nn.Parameter(torch.stack([ls[i].weight.t() for ls in layers]))
+            stack.biases[i] = nn.Parameter(torch.stack([ls[i].bias.unsqueeze(0) for ls in layers]))
+    stack.seeds = len(critics)
+    return StackedHead(stack, 0, (first[-1].out_features,))
+
+
+def stack_seeds(bundles: Sequence[Heads]) -> Heads:
+    """One bundle running ``S = len(bundles)`` independent runs' heads (same config) at once.
+
+    Rows fed to the result are ``S`` equal seed-major groups (run ``s``'s environments or its
+    replay sample), group ``s`` meeting run ``s``'s weights only.
+
+    Raises:
+        ValueError: heads not stored in one :class:`StackedMLP` (``heads.network=conv``), or
+            bundles of different shapes.
+    """
+    if not bundles:
+        raise ValueError("stack_seeds needs at least one bundle")
+    out = copy.deepcopy(bundles[0])  # the module tree once: shared stacks stay shared
+    if len(bundles) == 1:
+        return out
+    per_run = [_stacks(b) for b in bundles]
+    targets = _stacks(out)
+    if any(type(st) is not StackedMLP for st in targets):
+        raise ValueError(
+            "train.seeds > 1 needs heads.network=mlp (the conv trunk has no seed axis yet)"
+        )
+    with torch.no_grad():
+        for j, stack in enumerate(targets):
+            runs = [stacks[j] for stacks in per_run]
+            for i in range(len(stack.weights)):
+                stack.weights[i] = nn.Parameter(torch.cat([r.weights[i] for r in runs]))
+                stack.biases[i] = nn.Parameter(torch.cat([r.biases[i] for r in runs]))
+            stack.seeds = len(bundles)
+    critic = _critic(out)
+    if critic is not None:
+        head_network(out.heads["max_value"]).critic = _seeded_critic([_critic(b) for b in bundles])
+    stacked = {id(p) for st in _stacks(out) for p in st.parameters()}
+    loose = [n for n, p in out.named_parameters() if id(p) not in stacked]
+    if loose:
+        raise ValueError(f"train.seeds > 1: parameters outside a stacked network: {loose[:3]}")
+    out.seeds = len(bundles)
+    return out
+
+
+def split_seed(batch: Heads, s: int, template: Heads) -> Heads:
+    """Run ``s`` of a :func:`stack_seeds` bundle, copied into ``template`` (a fresh single-seed
+    bundle of the same config, e.g. ``build_heads``), which is returned."""
+    S = int(getattr(batch, "seeds", 1))
+    if not 0 <= s < S:
+        raise ValueError(f"seed index must be in [0, {S}), got {s}")
+    with torch.no_grad():
+        for src, dst in zip(_stacks_without_critic(batch), _stacks(template)):
+            for i in range(len(dst.weights)):
+                dst.weights[i].copy_(src.weights[i].view(S, -1, *src.weights[i].shape[1:])[s])
+                dst.biases[i].copy_(src.biases[i].view(S, -1, *src.biases[i].shape[1:])[s])
+        critic = _critic(template)
+        if critic is not None:
+            seeded = _critic(batch).stack
+            for i, lin in enumerate(_linears(critic)):
+                lin.weight.copy_(seeded.weights[i][s].t())
+                lin.bias.copy_(seeded.biases[i][s, 0])
+    return template
+
+
+def _stacks_without_critic(heads: Heads) -> list[StackedMLP]:
+    """:func:`_stacks` minus the seeded critic's one-member stack (a plain MLP when unseeded)."""
+    critic = _critic(heads)
+    skip = id(critic.stack) if isinstance(critic, StackedHead) else None
+    return [st for st in _stacks(heads) if id(st) != skip]
+
+
+def num_seeds(heads: Heads) -> int:
+    """How many runs a bundle holds (1 unless made by :func:`stack_seeds`)."""
+    return int(getattr(heads, "seeds", 1))
+
+
+__all__ = ["num_seeds", "split_seed", "stack_seeds"]
