@@ -206,7 +206,8 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
         "--test",
         default=None,
         help="named test distribution of the bundle's family (docs/evaluation.md; windy: train, "
-        "south, north, calm, stormy, ...; Wargus: nominal, train, fast_patrol, more_patrols, ...); "
+        "south, north, calm, stormy, ...; Wargus: nominal, train, fast_patrol, more_patrols, ...; "
+        "heldout: the sealed held-out episodes); "
         "default: the family's first (windy train, Wargus nominal)",
     )
     p.add_argument(
@@ -523,6 +524,51 @@ def _export_run(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# taskvar report
+
+
+def _report_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "dirs",
+        nargs="+",
+        metavar="DIR",
+        help="results folders of taskvar experiment (windy-fig2, wargus-fig4, scale) or taskvar "
+        "eval --out, or folders of seed<k>/ results folders (one training seed each)",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="FILE",
+        help="the claims page (docs/claims.md); its performance profiles go to "
+        "img/<FILE stem>-profile.png beside it",
+    )
+    p.add_argument(
+        "--readme",
+        metavar="FILE",
+        help="also replace the Results table between <!-- report:results:start --> and "
+        "<!-- report:results:end --> in FILE (README.md)",
+    )
+    p.add_argument(
+        "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an --out page or profile PNG that taskvar report did not write",
+    )
+
+
+def _report_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.experiments.report import CLAIMS, write_report
+
+    written, report = write_report(args.dirs, args.out, args.readme, args.reps, args.overwrite)
+    for c in report.claims:
+        print(f"{CLAIMS[c.key][0]} [{c.group}]: {c.verdict} ({c.reason})")
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
 # registry and entry point
 
 COMMANDS: dict[str, Command] = {
@@ -572,6 +618,16 @@ COMMANDS: dict[str, Command] = {
         description="(Re)draw the PNG figures of a results folder.",
         add_arguments=_plot_arguments,
         run=_plot_run,
+    ),
+    "report": Command(
+        help="regenerate the paper's claims page and the README's Results table from results",
+        description="Read results folders (many training seeds), aggregate them with rliable on "
+        "the sealed held-out instances and write the claims page (the paper's figure, ours with "
+        "its 95% CI, a verdict), its performance profiles and, with --readme, the README's "
+        "Results table (docs/evaluation.md#taskvar-report).\n\n"
+        "  taskvar report results/fig2-seeds results/fig4 --out docs/claims.md --readme README.md",
+        add_arguments=_report_arguments,
+        run=_report_run,
     ),
 }
 """Subcommands by name; add an entry to add a command."""

@@ -1,0 +1,243 @@
+"""``taskvar report`` (experiments/report.py) on synthetic results folders whose answers are known:
+each verdict follows the data (a clear lead reproduces a claim, a tie does not), the figures are
+the per-seed numbers' own means, the README changes between its markers only, and every kind of
+bad input is one line that writes nothing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from taskvar_torch import cli
+from taskvar_torch.checkpoint import make_bundle, save_checkpoint
+from taskvar_torch.experiments import report
+
+METHODS = ("averaging", "options", "interruption", "hierarchy")
+START, END = report.README_START, report.README_END
+README = f"# x\n\nintro\n\n## Results\n\n{START}\nold table\n{END}\n\ntail\n"
+REPS = "100"  # bootstrap resamples: enough for the clear-cut answers below, and fast
+
+
+def _write(folder: Path, metrics: dict, config: dict | None) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "metrics.json").write_text(json.dumps(metrics))
+    if config is not None:
+        (folder / "config.yaml").write_text(yaml.safe_dump(config))
+    return folder
+
+
+def fig4_folder(
+    folder: Path, seeds, levels: dict, trials: int = 40, rise: dict | None = None, size: int = 12
+):
+    """A Wargus Figure 4 folder: method ``m``'s held-out curve rises linearly to ``levels[m]`` by
+    trial ``rise[m]`` and stays there (plus small per-seed noise)."""
+    rng = np.random.default_rng(seeds[0])
+    rise = rise or dict.fromkeys(METHODS, trials // 4)
+    methods = {}
+    for m in METHODS:
+        t = np.arange(1, trials + 1)
+        curve = levels[m] * np.minimum(t / rise[m], 1.0)
+        per_rep = curve + rng.normal(0, 0.01, (len(seeds), trials))
+        methods[m] = {"curve_per_rep": per_rep.tolist()}
+    metrics = {
+        "experiment": "wargus-fig4",
+        "protocol": {"seeds": list(seeds)},
+        "heldout": {"methods": methods},
+    }
+    cfg = {"seed": seeds[0], "env": {"wargus": {"size": size}}, "experiment": {"trials": trials}}
+    return _write(folder, metrics, cfg)
+
+
+def fig2_folder(folder: Path, seed: int, no_worse: float, better: float, layout="default"):
+    held = {
+        "fraction_no_worse": no_worse,
+        "fraction_better": better,
+        "fraction_no_worse_null": 0.85,
+        "mean_difference": better - (1 - no_worse),
+        "mean_return": {m: {"mean": -6.0 + 0.1 * seed} for m in METHODS[:3]},
+    }
+    cfg = {"seed": seed, "env": {"layout": layout}}
+    return _write(folder, {"experiment": "windy-fig2", "heldout": held}, cfg)
+
+
+def eval_folder(folder: Path, seed: int, ranges: dict, test: str = "heldout") -> Path:
+    """A ``taskvar eval`` shift curve of 3 points; method ``m`` spans ``ranges[m]``, with the
+    bundle (a config-only checkpoint) of training seed ``seed``."""
+    ckpt = folder / "bundle.pt"
+    folder.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(ckpt, make_bundle({"seed": seed, "family": "windy"}, models={}))
+    points = [
+        {"methods": {m: {"mean_return": -6.0 - r * i / 2 + 0.01 * seed} for m, r in ranges.items()}}
+        for i in range(3)
+    ]
+    metrics = {
+        "experiment": "eval",
+        "checkpoint": str(ckpt),
+        "family": "windy",
+        "test": test,
+        "shifts": ["env.instances.p=0.0,0.5,1.0"],
+        "methods": list(ranges),
+        "episodes": 100,
+        "points": points,
+    }
+    return _write(folder, metrics, None)
+
+
+def _run(argv, capsys):
+    try:
+        rc = cli.main(["report", *argv, "--reps", REPS])
+    except SystemExit as e:
+        rc = e.code
+    cap = capsys.readouterr()
+    return rc, cap.out, cap.err
+
+
+@pytest.mark.slow  # ~15 s: five groups' bootstraps (rliable's Mann-Whitney per resample)
+def test_verdicts_follow_the_data(tmp_path, capsys):
+    lead = {"averaging": 1.0, "options": 1.5, "interruption": 2.0, "hierarchy": 2.5}
+    fast = {"averaging": 30, "options": 20, "interruption": 15, "hierarchy": 5}
+    fig4_folder(tmp_path / "lead", range(5), lead, rise=fast)
+    tie = dict.fromkeys(METHODS, 1.0)
+    for k in range(5):  # a seed<k>/ layout; every method the same curve
+        fig4_folder(tmp_path / "tie" / f"seed{k}", [10 + k], tie, size=16)
+    for k in range(5):
+        fig2_folder(tmp_path / "fig2" / f"seed{k}", k, no_worse=0.9, better=0.1)
+        fig2_folder(tmp_path / "fig2tie" / f"seed{k}", k, 1.0, 0.0, layout="whole_column_windy")
+        eval_folder(tmp_path / "eval" / f"seed{k}", k, {"averaging": 50.0, "options": 5.0})
+    readme = tmp_path / "README.md"
+    readme.write_text(README)
+    out = tmp_path / "docs" / "claims.md"
+    dirs = [str(tmp_path / d) for d in ("lead", "tie", "fig2", "fig2tie", "eval")]
+    rc, stdout, err = _run([*dirs, "--out", str(out), "--readme", str(readme)], capsys)
+    assert rc == 0, err
+    verdicts = {
+        line.split("]: ")[0]: line.split("]: ")[1].split(" ")[0]
+        for line in stdout.splitlines()
+        if "]: " in line
+    }
+
+    def verdict(claim: str, group: str) -> str:
+        return verdicts[f"{report.CLAIMS[claim][0]} [{group}"]
+
+    assert verdict("fig4_order", "wargus-fig4, 12x12, 40 trials") == "reproduced"
+    assert verdict("fig4_speed", "wargus-fig4, 12x12, 40 trials") == "reproduced"
+    assert verdict("fig4_order", "wargus-fig4, 16x16, 40 trials") == "not"  # a tie: neither
+    assert verdict("fig4_speed", "wargus-fig4, 16x16, 40 trials") == "not"
+    assert verdict("fig2", "windy-fig2, layout default") == "reproduced"
+    assert verdict("fig2", "windy-fig2, layout whole_column_windy") == "partly"  # a tie, not a gain
+    premise = [v for k, v in verdicts.items() if k.startswith("§3.2")]
+    assert premise == ["reproduced"]
+    page = out.read_text()
+    assert page.splitlines()[0] == report.GENERATED
+    assert page.count("| **reproduced** |") == 4 and "| **partly** |" in page
+    png = out.parent / "img" / "claims-profile.png"
+    assert png.is_file() and report._ours_png(png)
+    text = readme.read_text()
+    assert text.startswith("# x\n\nintro\n\n## Results\n\n" + report.README_START)
+    assert text.endswith(report.README_END + "\n\ntail\n") and "old table" not in text
+    assert text.count("| windy-fig2, layout default |") == 1
+
+
+def test_a_rerun_replaces_its_own_files_only(tmp_path, capsys):
+    for k in range(5):
+        fig2_folder(tmp_path / "fig2" / f"seed{k}", k, no_worse=0.9, better=0.1)
+    readme = tmp_path / "README.md"
+    readme.write_text(README)
+    out = tmp_path / "claims.md"
+    argv = [str(tmp_path / "fig2"), "--out", str(out), "--readme", str(readme)]
+    assert _run(argv, capsys)[0] == 0
+    first = readme.read_text()
+    assert "old table" not in first and first.count(START) == 1
+    assert _run(argv, capsys)[0] == 0  # its own page and PNG: replaced, the README block again
+    assert readme.read_text() == first
+    png = tmp_path / "img" / "claims-profile.png"
+    png.write_bytes(b"someone's picture")
+    rc, _, err = _run(argv, capsys)
+    assert rc == 2 and "was not written by taskvar report" in err
+    assert png.read_bytes() == b"someone's picture"
+
+
+def test_figures_are_the_per_seed_numbers(tmp_path):
+    levels = {"averaging": 1.0, "options": 1.2, "interruption": 1.2, "hierarchy": 1.6}
+    folder = fig4_folder(tmp_path / "f", range(6), levels, trials=20)
+    groups = report.collect([str(folder)])
+    (order, speed), _, _ = report._fig4(groups[0], 200)
+    curves = json.loads((folder / "metrics.json").read_text())["heldout"]["methods"]
+    first = {m: np.asarray(curves[m]["curve_per_rep"])[:, :10].mean(1) for m in METHODS}
+    want = float(np.mean(first["hierarchy"] - first["averaging"]))
+    assert f"hierarchy - averaging {want:+.3f}" in order.ours
+    assert order.verdict == "partly"  # interruption = options (a tie) breaks the chain
+    assert "interruption vs options: level" in order.reason or "tied" in order.reason
+
+
+def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], str]]:
+    levels = dict.fromkeys(METHODS, 1.0)
+    (tmp_path / "empty").mkdir()
+    fig4_folder(tmp_path / "four", range(4), levels)
+    for k in range(5):
+        fig4_folder(tmp_path / "mixed" / f"seed{k}", [k], levels, trials=40 if k < 4 else 50)
+    fig4_folder(tmp_path / "a", range(5), levels)
+    fig4_folder(tmp_path / "b", range(3, 8), levels)
+    (tmp_path / "sweep").mkdir()
+    (tmp_path / "sweep" / "metrics.json").write_text(json.dumps({"experiment": "sweep"}))
+    for k in range(5):
+        eval_folder(tmp_path / "nobundle" / f"seed{k}", k, {"averaging": 1.0, "options": 1.0})
+        (tmp_path / "nobundle" / f"seed{k}" / "bundle.pt").unlink()
+    old = tmp_path / "old"
+    fig4_folder(old, range(5), levels)
+    m = json.loads((old / "metrics.json").read_text())
+    del m["heldout"]
+    (old / "metrics.json").write_text(json.dumps(m))
+    return {
+        "not a folder": ([str(tmp_path / "missing")], "is not a folder"),
+        "no metrics": ([str(tmp_path / "empty")], "is not a results folder"),
+        "another kind": ([str(tmp_path / "sweep")], "is not a results folder of"),
+        "few seeds": ([str(tmp_path / "four")], "4 training seed(s)"),
+        "mixed configs": ([str(tmp_path / "mixed")], "different configs as one claim"),
+        "seed twice": ([str(tmp_path / "a"), str(tmp_path / "b")], "appears twice"),
+        "no bundle": ([str(tmp_path / "nobundle")], "is not there"),
+        "no held-out": ([str(old)], "without held-out scores"),
+    }
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "not a folder",
+        "no metrics",
+        "another kind",
+        "few seeds",
+        "mixed configs",
+        "seed twice",
+        "no bundle",
+        "no held-out",
+        "no markers",
+        "foreign page",
+    ],
+)
+def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, case):
+    cases = _bad_inputs(tmp_path)
+    readme = tmp_path / "README.md"
+    readme.write_text(README)
+    out = tmp_path / "docs" / "claims.md"
+    good = str(tmp_path / "a")
+    if case == "no markers":
+        readme.write_text("# x\n\nno markers here\n")
+        dirs, needle = [good], "must hold"
+    elif case == "foreign page":
+        out.parent.mkdir(parents=True)
+        out.write_text("# my own notes\n")
+        dirs, needle = [good], "was not written by taskvar report"
+    else:
+        dirs, needle = cases[case]
+    before = readme.read_text()
+    rc, _, err = _run([*dirs, "--out", str(out), "--readme", str(readme)], capsys)
+    assert rc == 2
+    assert len(err.strip().splitlines()) == 1 and needle in err, err
+    assert readme.read_text() == before
+    assert not (out.parent / "img").exists()
+    assert case == "foreign page" or not out.exists()
