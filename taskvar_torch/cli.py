@@ -198,8 +198,10 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--method",
         default="interruption",
-        help="all, or one or a comma list of averaging, options, interruption, hierarchy; every "
-        "method plays the same paired episodes (default: interruption)",
+        help="all, or one or a comma list of averaging, options, interruption, hierarchy, "
+        "recurrent, informed (the last two where DIR/recurrent.pt, DIR/informed.pt exist: "
+        "taskvar train-baselines); every method plays the same paired episodes (default: "
+        "interruption)",
     )
     p.add_argument("--episodes", type=int, default=1000, help="test episodes (default 1000)")
     p.add_argument(
@@ -569,6 +571,130 @@ def _report_run(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
+# taskvar train-baselines (issue 31: docs/memory.md)
+
+
+def _train_baselines_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="[CONFIG] [key.sub=value ...]",
+        help="YAML config (default: DIR/config.yaml of the bundle in --out), then config "
+        "overrides and baseline settings (baseline.hidden=64, baseline.slice_len=8, "
+        "baseline.lr=0.001, baseline.mlp=64+64, baseline.updates_per_batch, baseline.target_tau)",
+    )
+    p.add_argument(
+        "--out", required=True, metavar="DIR", help="bundle folder (beside final.pt) or a new one"
+    )
+    p.add_argument(
+        "--method",
+        default="all",
+        help="recurrent, informed or all (default; informed only where the family gives instance "
+        "features)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace DIR/<method>.pt if it exists")
+    _threads_argument(p)
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _train_baselines_run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from taskvar_torch.config import load_config
+    from taskvar_torch.heads.recurrent import (
+        BASELINES,
+        BaselineSettings,
+        baseline_path,
+        informed_features,
+    )
+    from taskvar_torch.run_folder import check_output_folder
+    from taskvar_torch.train_recurrent import train_baseline
+
+    _set_threads(args)
+    items = list(args.items)
+    settings = BaselineSettings.from_overrides(
+        [i[len("baseline.") :] for i in items if i.startswith("baseline.")]
+    )
+    config_path, overrides = _split_config_and_overrides(
+        [i for i in items if not i.startswith("baseline.")]
+    )
+    if config_path is None:
+        config_path = str(Path(args.out) / "config.yaml")
+        if not Path(config_path).is_file():
+            raise ValueError(f"give a CONFIG file: {args.out!r} holds no config.yaml")
+    if args.method not in (*BASELINES, "all"):
+        raise ValueError(f"--method must be one of {[*BASELINES, 'all']}, got {args.method!r}")
+    check_output_folder(args.out)
+    cfg = load_config(config_path, overrides)
+    methods = list(BASELINES) if args.method == "all" else [args.method]
+    if "informed" in methods:
+        try:
+            informed_features(cfg)
+        except ValueError as e:
+            if args.method != "all":
+                raise
+            print(f"taskvar train-baselines: skipping informed: {e}", file=sys.stderr)
+            methods.remove("informed")
+    for m in methods:
+        dest = baseline_path(Path(args.out) / "final.pt", m)
+        if dest.exists() and not args.overwrite:
+            raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
+    for m in methods:
+        r = train_baseline(cfg, m, args.out, settings, progress=not args.no_progress)
+        print(
+            f"trained {m}: {r['updates']} updates on {r['frames']} frames in {r['seconds']:.1f} s "
+            f"(mean training return of the last tenth {r['mean_train_return']:.3f}); "
+            f"wrote {r['path']}"
+        )
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+# taskvar report
+
+
+def _report_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "dirs",
+        nargs="+",
+        metavar="DIR",
+        help="results folders of taskvar experiment (windy-fig2, wargus-fig4, scale) or taskvar "
+        "eval --out, or folders of seed<k>/ results folders (one training seed each)",
+    )
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="FILE",
+        help="the claims page (docs/claims.md); its performance profiles go to "
+        "img/<FILE stem>-profile.png beside it",
+    )
+    p.add_argument(
+        "--readme",
+        metavar="FILE",
+        help="also replace the Results table between <!-- report:results:start --> and "
+        "<!-- report:results:end --> in FILE (README.md)",
+    )
+    p.add_argument(
+        "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an --out page or profile PNG that taskvar report did not write",
+    )
+
+
+def _report_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.experiments.report import CLAIMS, write_report
+
+    written, report = write_report(args.dirs, args.out, args.readme, args.reps, args.overwrite)
+    for c in report.claims:
+        print(f"{CLAIMS[c.key][0]} [{c.group}]: {c.verdict} ({c.reason})")
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
 # registry and entry point
 
 COMMANDS: dict[str, Command] = {
@@ -589,6 +715,16 @@ COMMANDS: dict[str, Command] = {
         "  taskvar eval --checkpoint runs/windy/final.pt --method all --shift env.instances.p=0.2,0.5,0.8",
         add_arguments=_eval_arguments,
         run=_eval_run,
+    ),
+    "train-baselines": Command(
+        help="train the recurrent and informed baselines beside a bundle (docs/memory.md)",
+        description="Train a recurrent Q-network (TorchRL GRUModule, SliceSampler, double DQN) and "
+        "an instance-informed Q-network (the learnt ceiling) with the config's frame budget, "
+        "written as DIR/recurrent.pt and DIR/informed.pt; taskvar eval --method all plays them "
+        "beside the paper's methods.\n\n"
+        "  taskvar train-baselines configs/windy.yaml --out runs/windy --method all",
+        add_arguments=_train_baselines_arguments,
+        run=_train_baselines_run,
     ),
     "experiment": Command(
         help="run one of the paper's experiments (windy-fig2, wargus-fig4, scale)",

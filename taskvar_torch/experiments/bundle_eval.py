@@ -27,6 +27,11 @@ from torchrl.envs import TransformedEnv
 from taskvar_torch import keys
 from taskvar_torch.config import METHODS, Config
 from taskvar_torch.controllers import Controller
+from taskvar_torch.experiments.baselines import (
+    available_baselines,
+    load_baselines,
+    missing_baseline_error,
+)
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
@@ -41,6 +46,7 @@ from taskvar_torch.factory import (
 )
 from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.recurrent import BASELINES
 from taskvar_torch.oracle import exact_episode_returns
 from taskvar_torch.oracle.learnt import optimal_episode_returns
 from taskvar_torch.progress import progress_bar
@@ -51,23 +57,36 @@ CSV_NAME = "episodes.csv"
 PNG_NAME = "eval.png"
 
 
-def parse_methods(spec: str, subtasks: Subtasks, heads: Heads) -> list[str]:
-    """``all``, one method or a comma list -> the methods, in the paper's order. ``all`` is every
-    method the bundle supports (the hierarchy needs a composition hierarchy and robustness
-    critics); naming an unsupported or unknown one is a one-line error."""
+def parse_methods(
+    spec: str,
+    subtasks: Subtasks,
+    heads: Heads,
+    baselines: Sequence[str] = (),
+    checkpoint: str | os.PathLike = "final.pt",
+) -> list[str]:
+    """``all``, one method or a comma list -> the methods, in the paper's order, then the
+    ``baselines`` (docs/memory.md) whose files sit beside ``checkpoint``. ``all`` is every method
+    the bundle supports (the hierarchy needs a composition hierarchy and robustness critics);
+    naming an unsupported or unknown one is a one-line error."""
     can_compose = subtasks.hierarchy is not None and heads.has("robustness")
+    paper = [m for m in METHODS if m != "hierarchy" or can_compose]
     if spec == "all":
-        return [m for m in METHODS if m != "hierarchy" or can_compose]
+        return paper + [m for m in BASELINES if m in baselines]
     names = [m.strip() for m in spec.split(",") if m.strip()]
     for m in names:
-        if m not in METHODS:
-            raise ValueError(f"--method must be 'all' or among {list(METHODS)}, got {m!r}")
+        if m not in METHODS and m not in BASELINES:
+            raise ValueError(
+                f"--method must be 'all' or among {list(METHODS) + list(BASELINES)}, got {m!r}"
+            )
+        if m in BASELINES and m not in baselines:
+            supported = paper + [b for b in BASELINES if b in baselines]
+            raise missing_baseline_error(checkpoint, m, supported)
     if "hierarchy" in names and not can_compose:
         raise ValueError(
             "method 'hierarchy' needs robustness heads and a composition hierarchy, which this "
             "bundle does not have; use averaging, options or interruption"
         )
-    return [m for m in METHODS if m in names]
+    return [m for m in (*METHODS, *BASELINES) if m in names]
 
 
 def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:
@@ -86,6 +105,18 @@ def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) ->
         raise ValueError(
             f"{where} has options {list(subtasks.names)}; the bundle's are "
             f"{list(heads.option_names)}"
+        )
+
+
+def _check_baseline_fits(point: EvalPoint, ctrl: Any, subtasks: Subtasks) -> None:
+    """A baseline's network must fit the test point's observations and actions."""
+    env = make_env(point.cfg, 1, instances=point.instances)
+    got = (int(env.observation_spec[keys.OBSERVATION].shape[-1]), int(env.action_spec.space.n))
+    want = (ctrl.spec.obs_dim, ctrl.spec.num_actions)
+    if got != want:
+        raise ValueError(
+            f"{point.label or 'the test distribution'} gives observations of {got[0]} values and "
+            f"{got[1]} actions; the {ctrl.name} baseline was trained on {want[0]} and {want[1]}"
         )
 
 
@@ -122,8 +153,9 @@ def play(
     per-episode ``return``, ``length``, ``interruptions``, the instance fields and, for option
     controllers, ``steps_<o>`` (steps option ``o`` held control)."""
     parts: dict[str, list[np.ndarray]] = {}
-    O = len(ctrl.heads.option_names)  # noqa: E741
-    trace = (keys.OPTION,) if ctrl.name != "averaging" else ()
+    option_level = ctrl.name not in ("averaging", *BASELINES)  # baselines: no options
+    O = len(ctrl.heads.option_names) if option_level else 0  # noqa: E741
+    trace = (keys.OPTION,) if option_level else ()
     for lo in range(0, int(episodes), batch_size):
         n = min(batch_size, int(episodes) - lo)
         base = make_env(
@@ -206,11 +238,11 @@ def eval_bundle(
     points = shift_points(cfg, test, shifts)  # every input error before any episode is played
     test_name = test if test is not None else next(iter(fam.tests))
     train_subtasks = make_subtasks(cfg, make_env(cfg, 1))
-    methods = parse_methods(method, train_subtasks, heads)
-    sealed = fam.tests[test_name].seed  # a held-out distribution plays its sealed seed only
-    if sealed is not None and seed is not None and int(seed) != sealed:
-        raise ValueError(f"--test {test_name} plays its sealed held-out seed; drop --seed {seed}")
-    seed = (int(cfg.seed) + 1 if sealed is None else sealed) if seed is None else int(seed)
+    methods = parse_methods(
+        method, train_subtasks, heads, available_baselines(checkpoint), checkpoint
+    )
+    baselines = load_baselines(checkpoint, methods, cfg)  # recurrent, informed (docs/memory.md)
+    seed = int(cfg.seed) + 1 if seed is None else int(seed)
     bs = int(batch_size or cfg.eval.batch_size)
     calibration = None  # the hierarchy's thresholds: on the bundle's *training* distribution
     if "hierarchy" in methods and cfg.train.robustness_threshold == "calibrated":
@@ -233,14 +265,33 @@ def eval_bundle(
         optimum, rows_have_optimum = None, False  # exact per-instance optimum per episode
         per_method = {}
         for m in methods:
-            ctrl = make_method_controller(point.cfg, m, heads, subtasks, calibration=calibration)
+            if m in baselines:
+                _check_baseline_fits(point, baselines[m], subtasks)
+                ctrl = baselines[m]
+            else:
+                ctrl = make_method_controller(
+                    point.cfg, m, heads, subtasks, calibration=calibration
+                )
             r = play(ctrl, point, int(episodes), seed, bs, noise_seed, bar)
-            per_method[m] = summarise(r, heads.option_names, m)
+            per_method[m] = summarise(r, heads.option_names, "averaging" if m in baselines else m)
             instance = {k[len("instance_") :]: v for k, v in r.items() if k.startswith("instance_")}
             if oracle is not None and exact is None and not _affordable(oracle, instance):
                 skipped.append(point.label or test_name)
                 oracle = None
-            if oracle is not None:
+            if oracle is not None and m in baselines:  # not memoryless: regret of the sample
+                if optimum is None and hasattr(oracle, "optimal_return"):
+                    optimum = optimal_episode_returns(oracle, instance, r["start"])
+                if optimum is not None:
+                    mean, ci = mean_ci95(
+                        torch.as_tensor(optimum - r["return"], dtype=torch.float64)
+                    )
+                    per_method[m].update(
+                        regret_mean=float(mean), regret_ci95=ci, regret_sampled=True
+                    )
+                    if not rows_have_optimum:
+                        r["optimum_return"] = optimum
+                        rows_have_optimum = True
+            elif oracle is not None:
                 exact_r = exact_episode_returns(oracle, ctrl, point.cfg, instance, r["start"])
                 per_method[m]["exact_mean_return"] = float(np.mean(exact_r, dtype=np.float64))
                 r["exact_return"] = exact_r
@@ -390,6 +441,14 @@ def format_table(metrics: dict[str, Any]) -> str:
                 f"  {m:<13} {r['mean_return']:12.3f} {r['mean_return_ci95']:8.3f} {exact} {regret} "
                 f"{inter_s}  {control}"
             )
+    sampled = sorted(
+        {m for p in metrics["points"] for m, r in p["methods"].items() if r.get("regret_sampled")}
+    )
+    if sampled:
+        lines.append(
+            f"  ({', '.join(sampled)}: not memoryless, so no exact value; regret = exact optimum "
+            "minus the sampled return of the same episode)"
+        )
     if "exact_skipped" in metrics:
         lines.append(f"  ({metrics['exact_skipped']})")
     return "\n".join(lines)
