@@ -526,51 +526,6 @@ def _export_run(args: argparse.Namespace) -> int:
 
 
 # --------------------------------------------------------------------------------------------
-# taskvar report
-
-
-def _report_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "dirs",
-        nargs="+",
-        metavar="DIR",
-        help="results folders of taskvar experiment (windy-fig2, wargus-fig4, scale) or taskvar "
-        "eval --out, or folders of seed<k>/ results folders (one training seed each)",
-    )
-    p.add_argument(
-        "--out",
-        required=True,
-        metavar="FILE",
-        help="the claims page (docs/claims.md); its performance profiles go to "
-        "img/<FILE stem>-profile.png beside it",
-    )
-    p.add_argument(
-        "--readme",
-        metavar="FILE",
-        help="also replace the Results table between <!-- report:results:start --> and "
-        "<!-- report:results:end --> in FILE (README.md)",
-    )
-    p.add_argument(
-        "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"
-    )
-    p.add_argument(
-        "--overwrite",
-        action="store_true",
-        help="replace an --out page or profile PNG that taskvar report did not write",
-    )
-
-
-def _report_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.experiments.report import CLAIMS, write_report
-
-    written, report = write_report(args.dirs, args.out, args.readme, args.reps, args.overwrite)
-    for c in report.claims:
-        print(f"{CLAIMS[c.key][0]} [{c.group}]: {c.verdict} ({c.reason})")
-    print("wrote " + ", ".join(str(p) for p in written))
-    return 0
-
-
-# --------------------------------------------------------------------------------------------
 # taskvar train-baselines (issue 31: docs/memory.md)
 
 
