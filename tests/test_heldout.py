@@ -1,0 +1,143 @@
+"""The sealed held-out split (families.HELDOUT_SEED, issue 33): no file outside the package names
+a seed of its range (this test is the one file that may), and ``taskvar eval --test heldout``
+plays exactly the sealed episodes, paired across methods, under no other seed."""
+
+from __future__ import annotations
+
+import csv
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from taskvar_torch import cli
+from taskvar_torch.config import load_config
+from taskvar_torch.envs.wargus import NOMINAL_SEEDS
+from taskvar_torch.experiments.bundle_eval import eval_bundle
+from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SEEDS, HELDOUT_SIZE
+from taskvar_torch.train import train
+
+torch.set_num_threads(1)
+ROOT = Path(__file__).resolve().parents[1]
+SCANNED = ("configs", "tests", "scripts", "docs", "notebooks", "benchmarks", "examples")
+"""Every folder a choice could be made or recorded in (the package itself declares the range)."""
+TEXT = {".py", ".md", ".yaml", ".yml", ".ipynb", ".txt", ".toml", ".cfg", ".sh", ".json", ".csv"}
+NUMBER = re.compile(r"(?<![\d_,.])\d{1,3}(?:[_,]?\d{3})+(?![\d_])|(?<![\d_,.])\d+(?![\d_])")
+
+
+def held_out_numbers(text: str) -> list[str]:
+    """The integers of ``text`` (digits, optionally grouped by ``_`` or ``,``) in the range."""
+    hits = []
+    for m in NUMBER.finditer(text):
+        value = int(m.group().replace("_", "").replace(",", ""))
+        if HELDOUT_SEED <= value < HELDOUT_SEED + HELDOUT_SIZE:
+            hits.append(m.group())
+    return hits
+
+
+def test_the_scan_finds_the_range_in_every_spelling():
+    text = "seeds 7000000, 7_000_123 and 7,000,299; not 7000300, 17000000, 6999999 or 0.7000001"
+    assert held_out_numbers(text) == ["7000000", "7_000_123", "7,000,299"]
+
+
+def test_no_config_doc_test_or_script_names_a_held_out_seed():
+    me = Path(__file__).resolve()
+    found = []
+    for folder in SCANNED:
+        for path in sorted((ROOT / folder).rglob("*")):
+            if path == me or not path.is_file() or path.suffix not in TEXT:
+                continue
+            if any(part in (".ipynb_checkpoints", "__pycache__") for part in path.parts):
+                continue
+            hits = held_out_numbers(path.read_text(encoding="utf-8", errors="replace"))
+            if hits:
+                found.append(f"{path.relative_to(ROOT)}: {hits[:3]}")
+    assert not found, found
+
+
+def test_the_held_out_range_is_disjoint_from_the_nominal_and_config_seeds():
+    assert not set(HELDOUT_SEEDS) & set(NOMINAL_SEEDS)
+    for cfg_path in sorted((ROOT / "configs").glob("*.yaml")):
+        text = cfg_path.read_text()
+        seed = re.search(r"^seed:\s*(\d+)", text, re.M)
+        s = int(seed.group(1)) if seed else 0
+        # training seed, test runs seed + 1 + run, the scale test seed + 1000: far below the range
+        assert s + 1000 + HELDOUT_SIZE < HELDOUT_SEED, cfg_path
+    for fam in ("windy", "wargus", "taxi"):  # every family declares it, under the sealed seed
+        assert FAMILIES[fam].tests["heldout"].seed == HELDOUT_SEED
+
+
+TINY = [
+    "env.num_envs=4",
+    "train.frames_per_batch=100",
+    "train.total_frames=300",
+    "train.checkpoint_every=0",
+    "train.log_every=300",
+    "train.init_random_frames=100",
+    "train.batch_size=16",
+    "train.updates_per_batch=1",
+    "train.buffer_size=1000",
+]
+
+
+@pytest.fixture(scope="module")
+def bundles(tmp_path_factory):
+    out = {}
+    for name, extra in (("wargus", ["env.wargus.horizon=40"]), ("windy", [])):
+        d = tmp_path_factory.mktemp(name)
+        train(load_config(f"configs/{name}.yaml", [*TINY, *extra]), d, progress=False)
+        out[name] = d / "final.pt"
+    return out
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_wargus_heldout_plays_the_sealed_instances_paired(bundles, tmp_path):
+    m = eval_bundle(
+        bundles["wargus"], "all", "heldout", episodes=6, out_dir=tmp_path, progress=False
+    )
+    assert m["seed"] == HELDOUT_SEED and m["test"] == "heldout"
+    rows = _rows(tmp_path / "episodes.csv")
+    per_method: dict[str, list[int]] = {}
+    for r in rows:
+        per_method.setdefault(r["method"], []).append(int(r["instance_seed"]))
+    assert set(per_method) == {"averaging", "options", "interruption", "hierarchy"}
+    for seeds in per_method.values():  # paired, and the range's first six instances in order
+        assert seeds == list(HELDOUT_SEEDS[:6])
+
+
+def test_windy_heldout_is_the_training_distribution_under_the_sealed_seed(
+    bundles, tmp_path, capsys
+):
+    def episodes(test: str, seed: int | None, name: str) -> list[tuple[str, str, str]]:
+        out = tmp_path / name
+        eval_bundle(
+            bundles["windy"],
+            "averaging,options",
+            test,
+            episodes=40,
+            seed=seed,
+            out_dir=out,
+            plots=False,
+            progress=False,
+        )
+        rows = _rows(out / "episodes.csv")
+        by_method = {}
+        for r in rows:
+            by_method.setdefault(r["method"], []).append(
+                (r["instance_p"], r["instance_direction"], r["start"])
+            )
+        assert by_method["averaging"] == by_method["options"]  # paired
+        return by_method["averaging"]
+
+    held = episodes("heldout", None, "held")
+    assert held == episodes("train", HELDOUT_SEED, "same")  # the training winds, sealed seed
+    assert held != episodes("train", None, "nominal")  # not the nominal test episodes
+    argv = ["eval", "--checkpoint", str(bundles["windy"]), "--test", "heldout", "--seed", "3"]
+    assert cli.main([*argv, "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "sealed held-out seed" in err
