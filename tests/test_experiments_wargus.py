@@ -12,6 +12,7 @@ import pytest
 import torch
 from torchrl.envs import InitTracker, TransformedEnv
 
+from taskvar_torch import keys
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import side_by_side
@@ -223,4 +224,99 @@ def test_taskvar_eval_runs_every_method_on_a_repetition_bundle(results, tmp_path
         m["test"] == "fast_patrol"
         and (out / "episodes.csv").is_file()
         and (out / "eval.png").is_file()
+    )
+
+
+# ---- relations a wrong implementation would break (issue 33, item 5) ---------------------------
+
+
+def _trailing_mean(x: list[float], w: int) -> list[float]:
+    return [
+        sum(x[max(0, i - w + 1) : i + 1]) / len(x[max(0, i - w + 1) : i + 1]) for i in range(len(x))
+    ]
+
+
+def _recompute(rows: list[dict[str, str]]) -> dict[str, dict[str, float]]:
+    """Each method's figures from ``per_trial.csv``'s rows, by plain loops (not fig4_metrics)."""
+    out = {}
+    for name in fig4.METHODS:
+        mine = [r for r in rows if r["method"] == name]
+        reps = sorted({int(r["rep"]) for r in mine})
+        trials = sorted({int(r["trial"]) for r in mine})
+        items = {(int(r["rep"]), int(r["trial"])): float(r["items"]) for r in mine}
+        curve = [sum(items[rep, t] for rep in reps) / len(reps) for t in trials]
+        n_final = max(1, math.ceil(0.1 * len(trials)))
+        final = sum(curve[-n_final:]) / n_final
+        smooth = _trailing_mean(curve, max(1, len(trials) // 20))
+        t90 = next((i + 1 for i, v in enumerate(smooth) if v >= 0.9 * final), len(trials))
+        per_rep = [sum(items[rep, t] for t in trials) / len(trials) for rep in reps]
+        inter = [float(r["interruptions"]) for r in mine]
+        out[name] = {
+            "curve_mean": curve,
+            "final_score": final,
+            "trials_to_90pct": t90,
+            "mean_over_trials": sum(per_rep) / len(per_rep),
+            "interruptions_per_episode": sum(inter) / len(inter),
+        }
+    return out
+
+
+@pytest.mark.parametrize(
+    "csv_name, block", [("per_trial.csv", None), ("per_trial_heldout.csv", "heldout")]
+)
+def test_metrics_recomputed_from_the_csv_equal_metrics_json(results, csv_name, block):
+    m = json.loads((results / "metrics.json").read_text())
+    m = m if block is None else m[block]
+    rows = list(csv.DictReader((results / csv_name).open()))
+    assert len(rows) == REPS * TRIALS * len(fig4.METHODS)
+    for name, want in _recompute(rows).items():
+        got = m["methods"][name]
+        assert got["curve_mean"] == pytest.approx(want["curve_mean"], rel=1e-12, abs=1e-12)
+        assert got["final_score"] == pytest.approx(want["final_score"], rel=1e-12, abs=1e-12)
+        assert got["trials_to_90pct"] == want["trials_to_90pct"]
+        assert got["mean_over_trials"]["mean"] == pytest.approx(want["mean_over_trials"], abs=1e-12)
+        assert got["interruptions_per_episode"] == pytest.approx(
+            want["interruptions_per_episode"], abs=1e-12
+        )
+
+
+def test_held_out_test_phases_play_sealed_instances_paired_and_apart_from_nominal():
+    from taskvar_torch.families import HELDOUT_SEEDS
+
+    cfg = load_config(fig4.default_config_path(), TINY)
+    k, trials = 5, len(HELDOUT_SEEDS) // 5
+    env = fig4.make_heldout_test_env(cfg, k, seed=0, first_trial=0, trials=trials)
+    seeds = env.reset()["instance", "seed"].view(trials, len(fig4.METHODS), k)
+    assert (seeds == seeds[:, :1]).all()  # every method plays the same instances (paired)
+    assert sorted(seeds[:, 0].flatten().tolist()) == list(HELDOUT_SEEDS)  # each sealed one once
+    nominal = fig4.make_test_env(cfg, k, seed=0, trials=2).reset()["instance", "seed"]
+    assert not set(nominal.tolist()) & set(HELDOUT_SEEDS)
+
+
+def test_the_hierarchy_hands_fe_exactly_the_states_with_a_patrol_in_sight(results):
+    """With the root never robust (tau huge), Algorithm 2's descent must give FE every state
+    where a patrol is in sight and TG every other: the control split is that indicator."""
+    from taskvar_torch.envs.wargus import PATROL_SEEN
+    from taskvar_torch.experiments.evaluation import run_episodes
+    from taskvar_torch.factory import make_method_controller
+    from taskvar_torch.heads.robustness import RobustnessCalibration
+
+    heads, cfg = load_heads(results / "rep0" / "final.pt")
+    env = make_env(cfg, 24, seed=5, instances="train", validate_actions=False)
+    subtasks = fig4.make_subtasks(cfg, env)
+    O = len(heads.option_names)  # noqa: E741
+    cal = RobustnessCalibration(torch.full((O,), 1e6), torch.ones(O))
+    ctrl = make_method_controller(cfg, "hierarchy", heads, subtasks, calibration=cal)
+    out = run_episodes(
+        TransformedEnv(env, ctrl.primer()), ctrl, trace_keys=(keys.OPTION, PATROL_SEEN)
+    )
+    alive = out["trace", "alive"]
+    option = out["trace", keys.OPTION][alive]
+    seen = out["trace", PATROL_SEEN][alive].bool()
+    fe, tg = heads.option_names.index("FE"), heads.option_names.index("TG")
+    assert seen.any() and (~seen).any()  # both kinds of state occur
+    assert torch.equal(option == fe, seen) and torch.equal(option == tg, ~seen)
+    split = torch.bincount(option, minlength=O).double() / option.numel()
+    assert float(split.sum()) == pytest.approx(1.0) and float(split[fe]) == pytest.approx(
+        float(seen.double().mean())
     )
