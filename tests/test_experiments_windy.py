@@ -92,8 +92,8 @@ def test_quick_experiment_writes_every_file(results):
     assert load_config(results / "config.yaml").experiment.runs == RUNS
     with open(results / "episodes.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == len(wf.DISTRIBUTIONS) * RUNS * EPISODES
-    assert {r["distribution"] for r in rows} == set(wf.DISTRIBUTIONS)
+    assert len(rows) == (len(wf.DISTRIBUTIONS) + len(wf.HELDOUT)) * RUNS * EPISODES
+    assert {r["distribution"] for r in rows} == set(wf.DISTRIBUTIONS) | set(wf.HELDOUT)
     assert {r["direction"] for r in rows if r["distribution"] == "south_only"} == {"south"}
 
 
@@ -295,3 +295,59 @@ def test_windy_fig2_re_exports_the_split_modules():
         for name in module.__all__:
             assert getattr(wf, name) is getattr(module, name), (module.__name__, name)
             assert name in wf.__all__, name
+
+
+# ---- relations a wrong implementation would break (issue 33, item 5) ---------------------------
+
+MARGIN = 30.0
+"""The learnt averaging policy beats the uniformly random one on the held-out episodes by at least
+this much return: random loses ~58 steps on the 5x5 layout, the mean-MDP optimum ~5.9, so 30 is
+over half the gap (the tiny 2048-frame bundle reaches the optimum from every start)."""
+
+
+@pytest.mark.slow
+def test_learnt_averaging_beats_random_by_a_margin_on_held_out(results):
+    from torchrl.modules import RandomPolicy
+
+    from taskvar_torch.experiments.evaluation import run_episodes
+    from taskvar_torch.families import HELDOUT_SEED
+
+    m = json.loads((results / "metrics.json").read_text())
+    cfg = load_config(results / "config.yaml")
+    env = wf.make_eval_env(cfg, "train", EPISODES, HELDOUT_SEED)  # held-out run 0's episodes
+    torch.manual_seed(0)
+    random = float(run_episodes(env, RandomPolicy(env.action_spec))["return"].double().mean())
+    learnt = m["heldout"]["per_run"][0]["mean_return"]["averaging"]
+    assert learnt - random >= MARGIN, (learnt, random)
+
+
+@pytest.mark.slow
+def test_metrics_recomputed_from_episodes_csv_equal_metrics_json(results):
+    from taskvar_torch.families import HELDOUT_SEED
+
+    m = json.loads((results / "metrics.json").read_text())
+    with open(results / "episodes.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    for dist in (*wf.DISTRIBUTIONS, *wf.HELDOUT):
+        block = m if dist == "train" else m[dist]
+        mine = [r for r in rows if r["distribution"] == dist]
+        col = {k: np.array([float(r[k]) for r in mine]) for k in mine[0] if k.startswith("return")}
+        diff = col["return_interruption"] - col["return_averaging"]
+        null = col["return_averaging"] - col["return_averaging_null"]  # averaging - its rerun
+        assert block["fraction_no_worse"] == pytest.approx(float(np.mean(diff >= 0)), abs=1e-12)
+        assert block["fraction_better"] == pytest.approx(float(np.mean(diff > 0)), abs=1e-12)
+        assert block["mean_difference"] == pytest.approx(float(diff.mean()), abs=1e-9)
+        assert block["fraction_no_worse_null"] == pytest.approx(
+            float(np.mean(null >= 0)), abs=1e-12
+        )
+        for name in ("averaging", "options", "interruption"):
+            want = float(col[f"return_{name}"].mean())
+            assert block["mean_return"][name]["mean"] == pytest.approx(want, abs=1e-9)
+        seeds = {(int(r["run"]), int(r["seed"])) for r in mine}
+        base = HELDOUT_SEED if dist in wf.HELDOUT else int(m["seeds"][0])
+        assert seeds == {(run, base + run) for run in range(RUNS)}
+    held = [
+        (r["p"], r["direction"], r["start_row"]) for r in rows if r["distribution"] == "heldout"
+    ]
+    train = [(r["p"], r["direction"], r["start_row"]) for r in rows if r["distribution"] == "train"]
+    assert held != train  # other episodes than the nominal test runs'
