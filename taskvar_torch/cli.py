@@ -715,7 +715,7 @@ COMMANDS: dict[str, Command] = {
         description="Read results folders (many training seeds), aggregate them with rliable on "
         "the sealed held-out instances and write the claims page (the paper's figure, ours with "
         "its 95% CI, a verdict), its performance profiles and, with --readme, the README's "
-        "Results table (docs/evaluation.md#taskvar-report).\n\n"
+        "Results table (docs/report.md).\n\n"
         "  taskvar report results/fig2-seeds results/fig4 --out docs/claims.md --readme README.md",
         add_arguments=_report_arguments,
         run=_report_run,

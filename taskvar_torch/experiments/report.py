@@ -1,6 +1,5 @@
 """``taskvar report``: the paper's claims and the README's Results table, regenerated from results
-folders by one command (issue 33; docs/claims.md is its output, docs/evaluation.md#taskvar-report
-its guide).
+folders by one command (issue 33; docs/claims.md is its output, docs/report.md its guide).
 
 It reads results folders -- ``taskvar experiment windy-fig2`` / ``wargus-fig4`` / ``scale`` and
 ``taskvar eval --out`` folders, each holding ``metrics.json``, or a folder of ``seed<k>/`` results
