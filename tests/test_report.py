@@ -241,3 +241,41 @@ def test_bad_input_is_one_line_and_writes_nothing(tmp_path, capsys, case):
     assert readme.read_text() == before
     assert not (out.parent / "img").exists()
     assert case == "foreign page" or not out.exists()
+
+
+def test_scale_rows_aggregate_the_gap_over_seeds_and_windy_cells(tmp_path):
+    from scipy.stats import trim_mean
+
+    gaps = {}
+    for k in range(5):
+        cells = []
+        for case, n, g in (("windy-5x5", 16, 1.0), ("windy-25x25", 16, 0.6 + 0.05 * k)):
+            gaps.setdefault(case, []).append(g)
+            methods = {m: {"mean_return": -6.0, "gap_closed": g} for m in METHODS[:3]}
+            cells.append({"case": case, "family": "windy", "num_envs": n, "methods": methods})
+        wargus = {m: {"mean_return": 2.0, "gap_closed": None} for m in METHODS}
+        cells.append(
+            {"case": "wargus-32x32", "family": "wargus", "num_envs": 16, "methods": wargus}
+        )
+        _write(
+            tmp_path / "scale" / f"seed{k}",
+            {"experiment": "scale", "cells": cells},
+            {"seed": k, "only": ["windy-5x5", "windy-25x25", "wargus-32x32"]},
+        )
+    rows = report.build_report([str(tmp_path / "scale")], reps=100).rows
+    assert len(rows) == 1 and rows[0][2] == 5
+    want = trim_mean(np.array([gaps["windy-25x25"], gaps["windy-5x5"]]).T, 0.25, axis=None)
+    assert f"averaging {want:.2f} [" in rows[0][1]
+    assert "hierarchy" not in rows[0][1]  # no windy cell has it
+
+
+def test_a_capability_that_fails_everywhere_is_unaffected_not_robust(tmp_path):
+    for k in range(5):
+        folder = eval_folder(tmp_path / "e" / f"seed{k}", k, {"averaging": 50.0, "options": 0.0})
+        m = json.loads((folder / "metrics.json").read_text())
+        for p in m["points"]:
+            p["methods"]["options"]["mean_return"] = -100.0  # the same failure at every point
+        (folder / "metrics.json").write_text(json.dumps(m))
+    (claim,) = report.build_report([str(tmp_path / "e")], reps=100).claims
+    assert claim.key == "premise" and claim.verdict == "partly"
+    assert "fail everywhere" in claim.reason

@@ -77,7 +77,10 @@ RULES = {
     f"above 0 and the means' ratio is at least {SPEED_RATIO:g}; partly: the CI above 0 with a "
     "smaller ratio; not: otherwise",
     "premise": "reproduced: averaging's range minus the options controller's range over the shift "
-    "curve has a paired CI above 0; not: a CI at or below 0; partly: otherwise",
+    "curve has a paired CI above 0 and the options controller is not worse than averaging over the "
+    "curve (paired mean difference CI reaching 0 or above; a policy that fails everywhere is "
+    "unaffected, not robust); partly: the smaller range without that, or a range CI across 0; "
+    "not: a range CI at or below 0",
 }
 """How each verdict is decided (printed on the claims page). Every CI is the mean's 95%
 stratified-bootstrap CI over training seeds."""
@@ -505,7 +508,12 @@ def _eval(g: Group, reps: int) -> tuple[Claim | None, str, dict[str, Any]]:
             "averaging - options"
         ]
         lo, hi = d["mean_ci95"]
-        verdict = "reproduced" if lo > 0 else ("not" if hi <= 0 else "partly")
+        level = {m: scores[m].mean(1) for m in ("averaging", "options")}
+        worse = aggregate.paired_differences(level, [("options", "averaging")], reps)[
+            "options - averaging"
+        ]
+        fails = worse["mean_ci95"][1] < 0  # options clearly worse over the whole curve
+        verdict = "not" if hi <= 0 else ("reproduced" if lo > 0 and not fails else "partly")
         rng = aggregate.interval_estimates(spread, reps)
         claim = Claim(
             "premise",
@@ -513,8 +521,14 @@ def _eval(g: Group, reps: int) -> tuple[Claim | None, str, dict[str, Any]]:
             f"range of mean return over the curve: options {_ci(rng['options'])} vs averaging "
             f"{_ci(rng['averaging'])} ({len(g.seeds)} seeds)",
             verdict,
-            f"averaging - options range {_ci(d, '+.3f')}, paired; the options controller composes "
-            "the capabilities, so this tests them composed, not alone",
+            f"averaging - options range {_ci(d, '+.3f')}, paired"
+            + (
+                f"; but options are worse over the curve ({_ci(worse, '+.3f')} per episode): "
+                "unaffected because they fail everywhere"
+                if fails and lo > 0
+                else ""
+            )
+            + "; the options controller composes the capabilities, so this tests them composed",
             [f"mean return per point and seed: {headline}"],
         )
     return claim, headline, scores
