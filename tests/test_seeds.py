@@ -222,3 +222,17 @@ def test_a_diverging_batch_names_the_seed_and_writes_nothing(tmp_path):
             next(k for k in load_checkpoint(ckpt)["models"]["heads"] if k.endswith("weights.0"))
         ]
     ).all()
+
+
+def test_seeds_with_nstep_first_visit_and_per_option_replay(tmp_path):
+    cfg = _cfg(
+        "train.seeds=2",
+        "train.n_step=3",
+        "train.first_visit=true",
+        "train.replay_sampling=per_option",
+    )
+    result = train(cfg, tmp_path / "run", progress=False)
+    assert result["updates"] > 0
+    for path in result["seeds"]:
+        heads, c = load_heads(path)
+        assert c.train.n_step == 3 and c.train.seeds == 1
