@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import os
+import re
 from pathlib import Path
 
 import nbformat
@@ -80,6 +82,37 @@ def test_windy_interruption_notebook_executes(tmp_path):
     )
     assert (tmp_path / "run" / "fig2" / "metrics.json").is_file()
     assert _images(nb) >= 2  # Figure 2 and the heat-map, inline
+    metrics = json.loads((tmp_path / "run" / "fig2" / "metrics.json").read_text())
+    assert _printed_fig2_rows_match(text, metrics) >= 8  # the printed table, number by number
+
+
+FIG2_ROW = re.compile(
+    r"^(train|south_only|heldout)\s+(.+?)\s+(\d+\.\d)%\s+(\d+\.\d)%\s+(\d+\.\d)%\s+"
+    r"([+-]\d+\.\d{3})",
+    re.M,
+)
+FIG2_BLOCKS = {
+    "interruption - averaging (sampled, paired)": None,
+    "null: averaging - averaging (indep. gusts)": "null",
+    "interruption - averaging (exact, learnt)": "exact",
+    "options - averaging (sampled, paired)": "options_vs_averaging",
+    "interruption - options (sampled, paired)": "interruption_vs_options",
+}
+
+
+def _printed_fig2_rows_match(text: str, metrics: dict) -> int:
+    """Every Figure 2 row the notebook printed equals metrics.json's figures to the printed
+    digits; returns the rows checked."""
+    checked = 0
+    for dist, name, no_worse, better, worse, diff in FIG2_ROW.findall(text):
+        block = metrics if dist == "train" else metrics[dist]
+        s = block if FIG2_BLOCKS[name] is None else block[FIG2_BLOCKS[name]]
+        assert float(no_worse) == pytest.approx(100 * s["fraction_no_worse"], abs=0.051), name
+        assert float(better) == pytest.approx(100 * s["fraction_better"], abs=0.051), name
+        assert float(worse) == pytest.approx(100 * s["fraction_worse"], abs=0.051), name
+        assert float(diff) == pytest.approx(s["mean_difference"], abs=0.00051), name
+        checked += 1
+    return checked
 
 
 @pytest.mark.slow
