@@ -457,6 +457,12 @@ def _sweep_arguments(p: argparse.ArgumentParser) -> None:
         help="continue a sweep already in DIR (e.g. killed part-way): points whose folder holds "
         "metrics.json and the same config.yaml are kept, the others run (docs/sweeps.md)",
     )
+    p.add_argument(
+        "--no-batch-seeds",
+        action="store_true",
+        help="train every point alone (default: points differing only in consecutive seeds "
+        "train as one train.seeds=k run in DIR/batches/, docs/sweeps.md)",
+    )
 
 
 def _sweep_run(args: argparse.Namespace) -> int:
@@ -474,6 +480,7 @@ def _sweep_run(args: argparse.Namespace) -> int:
         plots=not args.no_plots,
         overwrite=args.overwrite,
         resume=args.resume,
+        batch_seeds=not args.no_batch_seeds,
     )
     return 0
 

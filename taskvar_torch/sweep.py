@@ -17,6 +17,15 @@ Backends (:data:`BACKENDS`):
 A point's numbers depend only on its config (every random stream is seeded from ``cfg.seed``), so
 both backends give the same metrics.
 
+Seed batches (``batch_seeds=True``, the default; ``--no-batch-seeds`` turns it off): points whose
+configs differ only in ``seed``, with consecutive seeds, are trained as *one* run with
+``train.seeds = k`` (the batched trainer, docs/seeds.md) in ``OUT/batches/<name>/``; each point
+then evaluates its seed's bundle: ``OUT/<point>/train`` is a relative symlink to the batch's
+``seed<i>/`` folder, so the point holds the same files and keys as an unbatched one
+(:func:`seed_batches`). This needs an experiment that evaluates a given bundle (windy-fig2's
+``checkpoint``; wargus-fig4 trains in its own loop) and a config the batched trainer takes; other
+points, and seeds that are not consecutive, run one by one (a printed note says why).
+
 Resuming (``resume=True``, ``taskvar sweep ... --resume``): a sweep killed part-way is rerun with
 the same ``--out``; a point is complete when its folder holds ``metrics.json`` and its
 ``config.yaml`` equals the config the sweep would run (:func:`completed_points`). Complete points
@@ -35,30 +44,35 @@ Examples:
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import inspect
 import itertools
 import json
 import os
 import re
+import shutil
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 from omegaconf import OmegaConf
 
-from taskvar_torch.config import Config, config_to_dict, load_config
+from taskvar_torch.config import Config, apply_overrides, config_to_dict, load_config
 from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
-from taskvar_torch.train import TrainingDiverged, check_output_folder
+from taskvar_torch.train import TrainingDiverged, check_output_folder, train
 
 BACKENDS = ("local", "ray")
 """Config family -> the experiment each sweep point runs (as ``taskvar experiment NAME``)."""
 RAY_MISSING = 'taskvar sweep --backend ray needs Ray: pip install "taskvar-torch[distributed]"'
 SUMMARY_CSV, SUMMARY_JSON, POINT_LOG = "summary.csv", "summary.json", "output.txt"
+BATCHES = "batches"
+"""``OUT/batches/<name>/``: the training run of a seed batch (``train.seeds = k``)."""
 RAY_RETRIES = 1
 """Ray backend: a point whose worker process dies is run again this many times, then recorded as
 failed (its summary row's ``error``; the sweep goes on)."""
@@ -160,11 +174,17 @@ def load_point_configs(
 
 
 def run_point(
-    cfg: Config, out_dir: str, quick: bool = False, plots: bool = True, overwrite: bool = False
+    cfg: Config,
+    out_dir: str,
+    quick: bool = False,
+    plots: bool = True,
+    overwrite: bool = False,
+    checkpoint: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
     """Run ``cfg``'s family experiment into ``out_dir``; its printed table goes to ``output.txt``.
 
-    ``plots=False`` skips the experiment's PNGs (``taskvar plot out_dir`` draws them later).
+    ``plots=False`` skips the experiment's PNGs (``taskvar plot out_dir`` draws them later);
+    ``checkpoint``: evaluate this bundle instead of training (a seed batch's, :func:`run_batch`).
 
     Returns:
         ``{"metrics": metrics.json's dict, "seconds": wall time}``; a diverged run returns
@@ -174,16 +194,191 @@ def run_point(
     torch.set_num_threads(1)  # one core per point (the heads are small MLPs)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    if checkpoint is None and (out / "train").is_symlink():
+        (out / "train").unlink()  # a killed batched attempt's link: this point now trains alone
     t0 = time.perf_counter()
+    options = {} if checkpoint is None else {"checkpoint": checkpoint}
     with open(out / POINT_LOG, "w") as log, contextlib.redirect_stdout(log):
         try:
             metrics = experiment(family(cfg).experiment).call(
-                cfg, out, workers=1, progress=False, quick=quick, plots=plots, overwrite=overwrite
+                cfg,
+                out,
+                workers=1,
+                progress=False,
+                quick=quick,
+                plots=plots,
+                overwrite=overwrite,
+                **options,
             )
         except TrainingDiverged as e:
             print(f"error: {e}")
             return {"error": f"TrainingDiverged: {e}", "seconds": time.perf_counter() - t0}
     return {"metrics": metrics, "seconds": time.perf_counter() - t0}
+
+
+# --------------------------------------------------------------------------------------------
+# seed batches: points that differ only in the seed, trained as one ``train.seeds = k`` run
+
+
+@dataclass(frozen=True)
+class Job:
+    """What one worker runs: sweep points (indices), their configs and folders; with ``batch`` (a
+    folder) the points are consecutive seeds of one config, trained once (:func:`run_batch`)."""
+
+    points: tuple[int, ...]
+    cfgs: tuple[Config, ...] = field(repr=False)
+    outs: tuple[str, ...]
+    batch: str | None = None
+
+
+def batch_refusal(cfg: Config) -> str | None:
+    """Why points of ``cfg`` cannot be trained as one seed batch (``None``: they can): the
+    family's experiment must evaluate a given bundle (``checkpoint``) and the batched trainer
+    must take the config (``train.seeds = 1`` now, one collector process, an MLP trunk)."""
+    exp = experiment(family(cfg).experiment)
+    if "checkpoint" not in inspect.signature(exp.function("run")).parameters:
+        return f"{exp.name} trains in its own loop, not with taskvar train"
+    if cfg.train.seeds != 1:
+        return f"each point is already a batch (train.seeds={cfg.train.seeds})"
+    try:
+        apply_overrides(cfg, ["train.seeds=2"])
+    except ValueError as e:
+        return str(e).strip().splitlines()[0]
+    return None
+
+
+def seed_batches(
+    points: Sequence[SweepPoint], cfgs: Sequence[Config], todo: Sequence[int]
+) -> tuple[list[list[int]], list[str]]:
+    """The seed batches among the points ``todo``: lists of >= 2 point indices whose configs are
+    equal but for ``seed`` and whose seeds are consecutive (sorted: ``seed, seed + 1, ...``, the
+    batched trainer's rule), and one note for each group of such points that is not (or not
+    wholly) batched, saying why."""
+    groups: dict[str, list[int]] = {}
+    for i in todo:
+        key = json.dumps(config_to_dict(dataclasses.replace(cfgs[i], seed=0)), sort_keys=True)
+        groups.setdefault(key, []).append(i)
+    batches, notes = [], []
+    for idx in groups.values():
+        if len(idx) < 2:
+            continue
+        names = ", ".join(points[i].name for i in idx)
+        why = batch_refusal(cfgs[idx[0]])
+        if why is not None:
+            notes.append(f"seed batches: points {names} run one by one: {why}")
+            continue
+        runs: list[list[int]] = []
+        for i in sorted(idx, key=lambda i: cfgs[i].seed):
+            if runs and cfgs[i].seed == cfgs[runs[-1][-1]].seed + 1:
+                runs[-1].append(i)
+            else:
+                runs.append([i])
+        batches += [r for r in runs if len(r) > 1]
+        if len(runs) > 1:
+            seeds = ", ".join(str(cfgs[i].seed) for i in sorted(idx, key=lambda i: cfgs[i].seed))
+            notes.append(
+                f"seed batches: seeds {seeds} (points {names}) are not consecutive: "
+                f"{sum(len(r) > 1 for r in runs)} batch(es) of consecutive seeds, "
+                f"{sum(len(r) == 1 for r in runs)} point(s) trained alone"
+            )
+    return batches, notes
+
+
+def batch_name(points: Sequence[SweepPoint], cfgs: Sequence[Config], idx: Sequence[int]) -> str:
+    """Folder name of a batch: its first point's swept values with ``seed=<first>-<last>``."""
+    values = {k: v for k, v in points[idx[0]].values.items() if k != "seed"}
+    values["seed"] = f"{cfgs[idx[0]].seed}-{cfgs[idx[-1]].seed}"
+    return point_name(values)
+
+
+def plan_jobs(
+    points: Sequence[SweepPoint],
+    cfgs: Sequence[Config],
+    todo: Sequence[int],
+    out: Path,
+    batch_seeds: bool = True,
+) -> tuple[list[Job], list[str]]:
+    """The jobs running the points ``todo`` (in the order of their first point): a seed batch
+    each (with ``batch_seeds``, :func:`seed_batches`), one job per other point; and the notes."""
+    batches, notes = seed_batches(points, cfgs, todo) if batch_seeds else ([], [])
+    batched = {i for b in batches for i in b}
+    jobs = [
+        Job(tuple(b), tuple(cfgs[i] for i in b), tuple(str(out / points[i].name) for i in b),
+            str(out / BATCHES / batch_name(points, cfgs, b)))
+        for b in batches
+    ] + [
+        Job((i,), (cfgs[i],), (str(out / points[i].name),)) for i in todo if i not in batched
+    ]  # fmt: skip
+    return sorted(jobs, key=lambda j: min(j.points)), notes
+
+
+def run_job(
+    job: Job, quick: bool = False, plots: bool = True, overwrite: bool = False
+) -> list[dict[str, Any]]:
+    """Run one job: its one point (:func:`run_point`) or its seed batch (:func:`run_batch`);
+    one result per point."""
+    if job.batch is None:
+        return [run_point(c, o, quick, plots, overwrite) for c, o in zip(job.cfgs, job.outs)]
+    return run_batch(job.cfgs, job.outs, job.batch, quick, plots, overwrite)
+
+
+def run_batch(
+    cfgs: Sequence[Config],
+    outs: Sequence[str],
+    batch_dir: str,
+    quick: bool = False,
+    plots: bool = True,
+    overwrite: bool = False,
+) -> list[dict[str, Any]]:
+    """Train the points ``cfgs`` (consecutive seeds of one config) as one ``train.seeds = k`` run
+    in ``batch_dir`` (its printed lines in ``output.txt`` there), then run each point's
+    experiment on its seed's bundle: ``outs[i]/train`` becomes a relative symlink to
+    ``batch_dir/seed<i>``, so the point folder reads as an unbatched one.
+
+    Each point's ``metrics.json`` gains ``train_batch`` (the batch folder relative to the point,
+    its seeds and the point's index); its ``train_seconds`` is its share of the batch's training
+    time (the batch's / k) and ``wall_seconds`` (and the summary's seconds) add that share.
+    """
+    torch.set_num_threads(1)
+    n, batch = len(cfgs), Path(batch_dir)
+    bcfg = apply_overrides(cfgs[0], [f"train.seeds={n}"])
+    batch.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    with open(batch / POINT_LOG, "w") as log, contextlib.redirect_stdout(log):
+        try:
+            result = train(bcfg, batch, progress=False, overwrite=overwrite)
+        except TrainingDiverged as e:
+            print(f"error: {e}")
+            error = {"error": f"TrainingDiverged: {e}", "seconds": (time.perf_counter() - t0) / n}
+            for out in outs:
+                Path(out).mkdir(parents=True, exist_ok=True)
+                (Path(out) / POINT_LOG).write_text(f"error: {e} (seed batch {batch})\n")
+            return [dict(error) for _ in outs]
+    share, wall_share = float(result["seconds"]) / n, (time.perf_counter() - t0) / n
+    results = []
+    for k, (cfg, out, bundle) in enumerate(zip(cfgs, outs, result["seeds"])):
+        point = Path(out)
+        point.mkdir(parents=True, exist_ok=True)
+        link = point / "train"
+        if link.is_symlink() or link.is_file():
+            link.unlink()
+        elif link.is_dir():  # an unbatched run of this point (--overwrite or --resume)
+            shutil.rmtree(link)
+        link.symlink_to(os.path.relpath(Path(bundle).parent, point), target_is_directory=True)
+        r = run_point(cfg, out, quick, plots, overwrite, checkpoint=link / "final.pt")
+        if "metrics" in r:
+            m = r["metrics"]
+            m["train_seconds"] = share
+            m["wall_seconds"] = float(m.get("wall_seconds", 0.0)) + wall_share
+            m["train_batch"] = {
+                "folder": os.path.relpath(batch, point),
+                "seeds": n,
+                "seed_index": k,
+            }
+            write_json(point / "metrics.json", m)
+        r["seconds"] += wall_share
+        results.append(r)
+    return results
 
 
 def headline(metrics: dict[str, Any]) -> dict[str, Any]:
@@ -215,16 +410,20 @@ def headline(metrics: dict[str, Any]) -> dict[str, Any]:
 
 
 def _run_local(
-    jobs: list[tuple[Config, str]], quick: bool, progress: bool, plots: bool, overwrite: bool
+    jobs: list[Job], quick: bool, progress: bool, plots: bool, overwrite: bool
 ) -> list[dict[str, Any]]:
-    return [
-        run_point(cfg, out, quick, plots, overwrite)
-        for cfg, out in progress_bar(jobs, disable=not progress, desc="sweep", unit="point")
-    ]
+    results = []
+    with progress_bar(
+        total=sum(len(j.points) for j in jobs), disable=not progress, desc="sweep", unit="point"
+    ) as bar:
+        for job in jobs:
+            results += run_job(job, quick, plots, overwrite)
+            bar.update(len(job.points))
+    return results
 
 
 def _run_ray(
-    jobs: list[tuple[Config, str]],
+    jobs: list[Job],
     quick: bool,
     progress: bool,
     address: str | None,
@@ -254,21 +453,29 @@ def _run_ray(
         # A task whose worker dies (killed, out of memory, node lost) is retried RAY_RETRIES
         # times; the sweep refused non-empty point folders up front (or was told to overwrite or
         # resume), so what a retry finds in its folder is its own killed attempt: overwrite.
-        task = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(run_point)
-        refs = [task.remote(cfg, out, quick, plots, True) for cfg, out in jobs]
+        task = ray.remote(num_cpus=1, max_retries=RAY_RETRIES)(run_job)
+        refs = [task.remote(job, quick, plots, True) for job in jobs]
+        size = {ref: len(job.points) for ref, job in zip(refs, jobs)}
         pending = list(refs)
-        with progress_bar(total=len(refs), disable=not progress, desc="sweep", unit="point") as bar:
+        with progress_bar(
+            total=sum(size.values()), disable=not progress, desc="sweep", unit="point"
+        ) as bar:
             while pending:
                 done, pending = ray.wait(pending, num_returns=1)
-                bar.update(len(done))
-        return [_ray_result(ray, ref) for ref in refs]
+                bar.update(sum(size[r] for r in done))
+        results = []
+        for ref, job in zip(refs, jobs):
+            r = _ray_result(ray, ref)  # a crashed job: the same failed row for each of its points
+            results += r if isinstance(r, list) else [dict(r) for _ in job.points]
+        return results
     finally:
         if started:
             ray.shutdown()
 
 
-def _ray_result(ray: Any, ref: Any) -> dict[str, Any]:
-    """A task's result; a task whose worker died on every try is a failed point (its error)."""
+def _ray_result(ray: Any, ref: Any) -> list[dict[str, Any]] | dict[str, Any]:
+    """A task's results (one per point); a task whose worker died on every try is a failed point
+    (its error: one dict)."""
     try:
         return ray.get(ref)
     except ray.exceptions.RayTaskError:  # the point itself raised: as on the local backend
@@ -291,6 +498,7 @@ def sweep(
     plots: bool = True,
     overwrite: bool = False,
     resume: bool = False,
+    batch_seeds: bool = True,
 ) -> list[dict[str, Any]]:
     """Run every point of the sweep, write ``summary.csv`` / ``summary.json``, print the table.
 
@@ -309,6 +517,8 @@ def sweep(
             ``resume``) such a folder is refused.
         resume: keep the points already complete in ``out_dir`` (:func:`completed_points`), run
             the others (a partial point folder is replaced).
+        batch_seeds: train the points that differ only in (consecutive) seeds as one batched run
+            (:func:`seed_batches`, ``OUT/batches/``); ``False``: every point trains alone.
 
     Returns:
         The summary rows (one per point).
@@ -338,9 +548,17 @@ def sweep(
         _refuse_existing_sweep(out, points, overwrite)
     out.mkdir(parents=True, exist_ok=True)
     todo = [i for i in range(len(points)) if i not in done]
-    jobs = [(cfgs[i], str(out / points[i].name)) for i in todo]
+    jobs, notes = plan_jobs(points, cfgs, todo, out, batch_seeds)
     if done:
         print(f"resuming {out}: {len(done)} of {len(points)} points complete, running {len(todo)}")
+    for note in notes:
+        print(note)
+    batches = [j for j in jobs if j.batch is not None]
+    if batches:
+        print(
+            f"seed batches: {len(batches)} training run(s) for {sum(len(j.points) for j in batches)}"
+            f" points in {out / BATCHES} (--no-batch-seeds: one run per point)"
+        )
     t0 = time.perf_counter()
     # a resumed point's partial folder (a killed run) is replaced: overwrite
     if backend == "local":
@@ -349,7 +567,7 @@ def sweep(
         ran = _run_ray(jobs, quick, progress, address, workers, plots)
     wall = time.perf_counter() - t0
     results = [done[i] if i in done else None for i in range(len(points))]
-    for i, r in zip(todo, ran):
+    for i, r in zip([i for j in jobs for i in j.points], ran):
         results[i] = r
     rows = _summary_rows(points, results)
     fields = list(dict.fromkeys(k for row in rows for k in row))
@@ -360,6 +578,7 @@ def sweep(
         "backend": backend,
         "quick": bool(quick),
         "plots": bool(plots),
+        "batch_seeds": bool(batch_seeds),
         "items": list(items),
         "wall_seconds": wall,
         "points": [
@@ -371,6 +590,7 @@ def sweep(
                 "seconds": r["seconds"],
                 "error": r.get("error"),
                 "kept": i in done,  # complete before this run (resume)
+                "batch": ((r.get("metrics") or {}).get("train_batch") or {}).get("folder"),
             }
             for i, (p, r) in enumerate(zip(points, results))
         ],
@@ -440,6 +660,8 @@ def _refuse_existing_sweep(out: Path, points: Sequence[SweepPoint], overwrite: b
         return
     found = [n for n in (SUMMARY_JSON, SUMMARY_CSV) if (out / n).exists()]
     found += [p.name for p in points if (out / p.name).is_dir() and any((out / p.name).iterdir())]
+    if (out / BATCHES).is_dir() and any((out / BATCHES).iterdir()):
+        found.append(BATCHES)
     if found:
         raise ValueError(
             f"--out {str(out)!r} already holds results ({', '.join(found[:4])}"

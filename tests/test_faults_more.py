@@ -266,7 +266,9 @@ def test_a_killed_sweep_resumes_keeping_its_complete_points(tmp_path, capsys):
     kills = tmp_path / "kills"
     kills.mkdir()
     argv = ["sweep", WINDY, "--backend", "local", "--quick", "--out", str(out), "--no-progress"]
-    argv += ["--no-plots", "seed=0,1", *SWEEP_TINY]
+    # --no-batch-seeds: each point trains in its own run, which the fault kills (a seed batch
+    # trains both seeds in one run, tests/test_sweep_seeds.py)
+    argv += ["--no-plots", "--no-batch-seeds", "seed=0,1", *SWEEP_TINY]
     r = taskvar(tmp_path, *argv, FAULT="kill", KILL_SEEDS="1", KILL_DIR=str(kills))
     assert r.returncode == -signal.SIGKILL, r.stderr[-3000:]
     assert (out / "seed=0" / "metrics.json").is_file()  # the first point completed
@@ -322,7 +324,7 @@ def test_a_ray_worker_killed_in_a_point_is_retried_or_reported(tmp_path):
     kills = tmp_path / "kills"
     kills.mkdir()
     argv = ["sweep", WINDY, "--backend", "ray", "--workers", "2", "--quick", "--out", str(out)]
-    argv += ["--no-progress", "--no-plots", "seed=0,1", *SWEEP_TINY]
+    argv += ["--no-progress", "--no-plots", "--no-batch-seeds", "seed=0,1", *SWEEP_TINY]
     r = taskvar(tmp_path, *argv, FAULT="kill", KILL_SEEDS="0,1", KILL_ONCE="0", KILL_DIR=str(kills))
     assert r.returncode == 0, r.stderr[-3000:]
     assert len((kills / "seed=0").read_text().split()) == 1

@@ -24,6 +24,15 @@ Writes ``config.yaml`` (this experiment's config), ``cells/<case>-n<N>/`` (the t
 config; ``final.pt`` only with ``keep_checkpoints``), ``scale.csv`` (one row per cell and method),
 ``metrics.json``, ``scale.png``; prints a table. ``taskvar plot OUT`` redraws ``scale.png``.
 
+Seeds (``seeds = k > 1``): each cell is trained *once* with ``train.seeds = k`` (the batched
+trainer, docs/seeds.md: training seeds ``seed .. seed + k - 1``, bundles in
+``cells/<case>-n<N>/seed<i>/``) and every seed's bundle is evaluated on the same test episodes.
+A cell's existing keys (``methods``, ``curve``, ``heads``) are then seed ``seed``'s run (the
+learning curve and the exact head report of seed 0 only: per seed they would cost k times the
+evaluation); new keys hold the rest: ``seeds``, ``per_seed`` (every seed's methods) and
+``over_seeds`` (each method's mean return over the seeds with rliable's stratified-bootstrap 95%
+CI, :func:`over_seeds`); ``scale.csv`` gets a ``seed`` column and one row per seed.
+
 This module is the config, the protocol and the references; the report (``scale.csv``'s rows,
 the table, ``scale.png``) is :mod:`taskvar_torch.experiments.scale_report`, whose public names are
 re-exported here.
@@ -73,8 +82,11 @@ from taskvar_torch.experiments.scale_report import (
     FAMILY_STYLE,
     FIGURE,
     METRICS_NAME,
+    SEED_FIELD,
+    csv_fields,
     csv_rows,
     format_heads,
+    format_seeds,
     format_table,
     is_results_folder,
     plot_curves,
@@ -83,10 +95,12 @@ from taskvar_torch.experiments.scale_report import (
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
 from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
-from taskvar_torch.train import HEADS_SNAPSHOTS, train
+from taskvar_torch.train import HEADS_SNAPSHOTS, seed_config, train
 
 TEST_SEED_OFFSET = 1000
 """Test episodes use env seed ``seed + TEST_SEED_OFFSET`` (never a training seed)."""
+SEED_CI_REPS = 2000
+"""Bootstrap replications of :func:`over_seeds`' 95% CIs (rliable's default; ~0.5-2 s a method)."""
 
 
 # --------------------------------------------------------------------------------------------
@@ -115,6 +129,10 @@ class ScaleConfig:
     """An override shown in the error for a malformed one (a class constant, not a config key)."""
     seed: int = 0
     """Seed of every cell's training (cfg.seed); test episodes use seed + 1000."""
+    seeds: int = 1
+    """Training seeds per cell: ``seed .. seed + seeds - 1``, trained at once by the batched
+    trainer (``train.seeds``, docs/seeds.md), each evaluated on the same test episodes; > 1 adds
+    per-seed results and their aggregate over seeds to every cell (``per_seed``, ``over_seeds``)."""
     total_frames: int = 100_000
     """Training frames per cell (the same budget for every case and num_envs)."""
     init_random_fraction: float = 0.1
@@ -153,6 +171,8 @@ class ScaleConfig:
     def __post_init__(self):
         if self.total_frames < 1:
             raise ValueError(f"total_frames must be >= 1, got {self.total_frames}")
+        if isinstance(self.seeds, bool) or not isinstance(self.seeds, int) or self.seeds < 1:
+            raise ValueError(f"seeds must be an integer >= 1, got {self.seeds!r}")
         for name in ("init_random_fraction", "eps_decay_fraction"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
@@ -256,6 +276,7 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
         base,
         [
             f"seed={cfg.seed}",
+            f"train.seeds={cfg.seeds}",
             f"env.num_envs={n}",
             f"train.total_frames={total}",
             f"train.init_random_frames={int(cfg.init_random_fraction * total)}",
@@ -407,25 +428,42 @@ def run_cell(
     refs: dict[str, Any],
     overwrite: bool = False,
 ) -> dict[str, Any]:
-    """Train one (case, num_envs) cell with the real trainer, time it, evaluate every method."""
+    """Train one (case, num_envs) cell with the real trainer, time it, evaluate every method.
+
+    With ``cfg.seeds > 1`` the cell's ``train.seeds`` runs train at once and each seed's bundle is
+    evaluated on the same test episodes (``per_seed``, ``over_seeds``); ``methods``, the learning
+    curve and the head report are seed ``cfg.seed``'s (the first of the batch)."""
 
     ccfg = case_config(cfg, case, num_envs)
+    ecfg = seed_config(ccfg, 0)  # seed `seed` as one run: the test episodes of every seed
     cell_dir = out / "cells" / f"{case.name}-n{num_envs}"
     # final.pt is deleted after evaluation unless kept: then it needs no replay buffer (~1.3 GB)
     result = train(
         ccfg, cell_dir, progress=False, overwrite=overwrite, keep_replay=cfg.keep_checkpoints
     )
-    heads, _ = load_heads(result["final"], device=ccfg.device)
+    finals = [Path(p) for p in result.get("seeds", [result["final"]])]
+    seed_heads = [load_heads(p, device=ccfg.device)[0] for p in finals]
     if not cfg.keep_checkpoints:
-        Path(result["final"]).unlink(missing_ok=True)
+        for p in {Path(result["final"]), *finals}:
+            p.unlink(missing_ok=True)
     t0 = time.perf_counter()
-    methods = {m: evaluate(ccfg, m, cfg.eval_episodes, cfg.eval_batch_size, heads) for m in METHODS}
     rand = refs["random"]["mean_return"]
     orc = refs["oracle_averaging"]["mean_return"] if refs["oracle_averaging"] else None
-    for r in methods.values():
-        if r is not None:
-            r["gap_closed"] = gap_closed(r["mean_return"], rand, orc)
-    curve = learning_curve(cfg, ccfg, cell_dir, rand, orc)
+    per_seed = []
+    for heads in seed_heads:
+        methods = {
+            m: evaluate(ecfg, m, cfg.eval_episodes, cfg.eval_batch_size, heads) for m in METHODS
+        }
+        for r in methods.values():
+            if r is not None:
+                r["gap_closed"] = gap_closed(r["mean_return"], rand, orc)
+        per_seed.append(methods)
+    methods, heads = per_seed[0], seed_heads[0]
+    curve = learning_curve(cfg, ecfg, finals[0].parent, rand, orc)
+    for other in finals[1:]:  # seed 0's curve only (each point evaluates every method)
+        if not cfg.keep_checkpoints:
+            for path in (other.parent / HEADS_SNAPSHOTS).glob("heads_*.pt"):
+                path.unlink(missing_ok=True)
     curve.append(
         {
             "frames": int(result["frames"]),
@@ -436,9 +474,9 @@ def run_cell(
     )
     report = None
     if cfg.head_report and family(ccfg).head_report is not None:
-        report = family(ccfg).head_report(ccfg, heads, with_max_value=cfg.head_report_max_value)
+        report = family(ccfg).head_report(ecfg, heads, with_max_value=cfg.head_report_max_value)
     secs = float(result["seconds"])
-    return {
+    cell = {
         **peak_memory(ccfg.device),
         "case": case.name,
         "family": ccfg.family,
@@ -458,6 +496,52 @@ def run_cell(
         "curve": curve,
         "heads": report,
     }
+    if cfg.seeds > 1:  # new keys only: with one seed the cell is what it always was
+        seeds = [ccfg.seed + k for k in range(cfg.seeds)]
+        cell["seeds"] = seeds
+        cell["frames_per_second_all_seeds"] = (
+            result["frames"] * cfg.seeds / secs if secs > 0 else None
+        )
+        cell["per_seed"] = [{"seed": s, "methods": m} for s, m in zip(seeds, per_seed)]
+        cell["over_seeds"] = over_seeds(per_seed, rand, orc)
+    return cell
+
+
+def over_seeds(
+    per_seed: Sequence[dict[str, Any]], random_ret: float, oracle_ret: float | None
+) -> dict[str, dict[str, Any] | None]:
+    """Each method's mean test return per seed (``per_seed[i][method]["mean_return"]``, same
+    episodes for every seed), aggregated over the seeds with rliable
+    (:func:`taskvar_torch.experiments.aggregate.interval_estimates`: one task, the seeds as runs):
+    ``mean_return`` with ``mean_ci95`` = [lo, hi] (stratified bootstrap, percentile), the IQM with
+    its CI, the per-seed means (``returns``) and the gap closed by the mean and by the CI's ends;
+    ``None`` where the method does not apply."""
+    from taskvar_torch.experiments.aggregate import interval_estimates
+
+    scores = {
+        m: [[s[m]["mean_return"]] for s in per_seed]
+        for m in METHODS
+        if all(s.get(m) is not None for s in per_seed)
+    }
+    est = interval_estimates(scores, reps=SEED_CI_REPS) if scores else {}
+    out: dict[str, dict[str, Any] | None] = {}
+    for m in METHODS:
+        if m not in est:
+            out[m] = None
+            continue
+        e = est[m]
+        gaps = [gap_closed(x, random_ret, oracle_ret) for x in e["mean_ci95"]]
+        out[m] = {
+            "seeds": e["runs"],
+            "returns": [row[0] for row in scores[m]],
+            "mean_return": e["mean"],
+            "mean_ci95": e["mean_ci95"],
+            "iqm_return": e["iqm"],
+            "iqm_ci95": e["iqm_ci95"],
+            "gap_closed": gap_closed(e["mean"], random_ret, oracle_ret),
+            "gap_closed_ci95": None if gaps[0] is None else sorted(gaps),
+        }
+    return out
 
 
 def peak_memory(device: str | torch.device) -> dict[str, float | None]:
@@ -561,7 +645,14 @@ def scale(
             "hierarchy": "n/a for a family without a composition hierarchy (windy, taxi)",
         },
     }
-    write_csv(out / CSV_NAME, csv_rows(metrics), CSV_FIELDS)
+    if cfg.seeds > 1:  # new keys only: with one seed metrics.json is what it always was
+        metrics["seeds"] = cfg.seeds
+        metrics["notes"]["over_seeds"] = (
+            "per cell: methods, curve and heads are seed `seed`'s run; per_seed holds every "
+            "seed's methods on the same test episodes, over_seeds each method's mean over the "
+            "seeds with rliable's stratified-bootstrap 95% CI [lo, hi] (mean_ci95)"
+        )
+    write_csv(out / CSV_NAME, csv_rows(metrics), csv_fields(metrics))
     write_json(out / METRICS_NAME, metrics)
     if plots:  # else ``taskvar plot DIR`` draws it from the folder
         plot_results(out)
@@ -572,6 +663,7 @@ def scale(
 
 __all__ = [  # the config and the protocol, then the names of scale_report it re-exports
     "METHODS",
+    "SEED_CI_REPS",
     "TEST_SEED_OFFSET",
     "ScaleCase",
     "ScaleConfig",
@@ -584,6 +676,7 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "load_scale_config",
     "make_policy",
     "make_test_env",
+    "over_seeds",
     "peak_memory",
     "references",
     "run_cell",
@@ -597,8 +690,11 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "FAMILY_STYLE",
     "FIGURE",
     "METRICS_NAME",
+    "SEED_FIELD",
+    "csv_fields",
     "csv_rows",
     "format_heads",
+    "format_seeds",
     "format_table",
     "is_results_folder",
     "plot_curves",

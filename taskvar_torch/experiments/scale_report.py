@@ -31,17 +31,32 @@ CSV_FIELDS = (
     "updates_per_batch", "train_seconds", "frames_per_second", "method", "mean_return", "ci95",
     "gap_closed", "random_return", "oracle_return", "interruptions_per_episode", "peak_rss_mb",
 )  # fmt: skip
+SEED_FIELD = "seed"
+"""``scale.csv``'s column of the training seed, after ``num_envs``: only with ``seeds`` > 1."""
+
+
+def csv_fields(metrics: dict[str, Any]) -> tuple[str, ...]:
+    """``scale.csv``'s columns: :data:`CSV_FIELDS`, with :data:`SEED_FIELD` after ``num_envs``
+    when the cells hold several seeds (``per_seed``)."""
+    if not any(c.get("per_seed") for c in metrics["cells"]):
+        return CSV_FIELDS
+    i = CSV_FIELDS.index("num_envs") + 1
+    return (*CSV_FIELDS[:i], SEED_FIELD, *CSV_FIELDS[i:])
 
 
 def csv_rows(metrics: dict[str, Any]) -> list[dict[str, Any]]:
-    """One row per (cell, method), references in every row."""
+    """One row per (cell, method), references in every row; a cell with several seeds
+    (``per_seed``) gives one row per (cell, seed, method) with its ``seed``."""
     rows = []
     for c in metrics["cells"]:
         ref = metrics["references"][c["case"]]
         orc = ref["oracle_averaging"]
-        for m in METHODS:
-            r = c["methods"].get(m)
+        runs = c.get("per_seed") or [{"seed": None, "methods": c["methods"]}]
+        for run, m in ((run, m) for run in runs for m in METHODS):
+            r = run["methods"].get(m)
             row = {k: c[k] for k in CSV_FIELDS if k in c}
+            if run["seed"] is not None:
+                row[SEED_FIELD] = run["seed"]
             row.update(
                 method=m,
                 random_return=ref["random"]["mean_return"],
@@ -103,9 +118,38 @@ def format_table(metrics: dict[str, Any]) -> str:
             + f" {ref['random']['mean_return']:8.2f} "
             + (f"{orc['mean_return']:8.2f}" if orc else f"{'n/a':>8}")
         )
+    lines += format_seeds(metrics)
     lines += format_heads(metrics)
     lines.append(f"wall time {metrics['wall_seconds']:.0f} s, {metrics['threads']} torch thread(s)")
     return "\n".join(lines)
+
+
+def format_seeds(metrics: dict[str, Any]) -> list[str]:
+    """Lines of each cell's aggregate over its training seeds (``over_seeds``; cells with one
+    seed have none): each method's mean return over the seeds with its 95% CI [lo, hi] (rliable's
+    stratified bootstrap) and, in brackets, the gap closed by the mean."""
+    cells = [c for c in metrics["cells"] if c.get("over_seeds")]
+    if not cells:
+        return []
+    lines = [
+        "Over the training seeds (the table above is the first seed's run): each method's mean "
+        "return over the seeds [95% CI of that mean, stratified bootstrap] (gap closed)"
+    ]
+    for c in cells:
+        seeds = c["seeds"]
+        parts = []
+        for m in METHODS:
+            r = c["over_seeds"].get(m)
+            if r is None:
+                parts.append(f"{m} n/a")
+                continue
+            lo, hi = r["mean_ci95"]
+            gap = "" if r["gap_closed"] is None else f" ({r['gap_closed']:.2f})"
+            parts.append(f"{m} {r['mean_return']:.2f} [{lo:.2f}, {hi:.2f}]{gap}")
+        lines.append(
+            f"{c['case']:<14} {c['num_envs']:>5}  seeds {seeds[0]}-{seeds[-1]}: " + ", ".join(parts)
+        )
+    return lines
 
 
 def format_heads(metrics: dict[str, Any]) -> list[str]:
@@ -424,8 +468,11 @@ __all__ = [
     "FAMILY_STYLE",
     "FIGURE",
     "METRICS_NAME",
+    "SEED_FIELD",
+    "csv_fields",
     "csv_rows",
     "format_heads",
+    "format_seeds",
     "format_table",
     "is_results_folder",
     "plot_curves",
