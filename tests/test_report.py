@@ -142,6 +142,7 @@ def test_verdicts_follow_the_data(tmp_path, capsys):
     assert text.count("| windy-fig2, layout default |") == 1
 
 
+@pytest.mark.slow  # 4-8 s: three reports (rliable's first import lands here)
 def test_a_rerun_replaces_its_own_files_only(tmp_path, capsys):
     for k in range(5):
         fig2_folder(tmp_path / "fig2" / f"seed{k}", k, no_worse=0.9, better=0.1)
