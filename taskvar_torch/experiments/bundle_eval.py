@@ -242,7 +242,10 @@ def eval_bundle(
         method, train_subtasks, heads, available_baselines(checkpoint), checkpoint
     )
     baselines = load_baselines(checkpoint, methods, cfg)  # recurrent, informed (docs/memory.md)
-    seed = int(cfg.seed) + 1 if seed is None else int(seed)
+    sealed = fam.tests[test_name].seed  # a held-out distribution plays its sealed seed only
+    if sealed is not None and seed is not None and int(seed) != sealed:
+        raise ValueError(f"--test {test_name} plays its sealed held-out seed; drop --seed {seed}")
+    seed = (int(cfg.seed) + 1 if sealed is None else sealed) if seed is None else int(seed)
     bs = int(batch_size or cfg.eval.batch_size)
     calibration = None  # the hierarchy's thresholds: on the bundle's *training* distribution
     if "hierarchy" in methods and cfg.train.robustness_threshold == "calibrated":
