@@ -280,3 +280,30 @@ def test_a_capability_that_fails_everywhere_is_unaffected_not_robust(tmp_path):
     (claim,) = report.build_report([str(tmp_path / "e")], reps=100).claims
     assert claim.key == "premise" and claim.verdict == "partly"
     assert "fail everywhere" in claim.reason
+
+
+def test_a_scale_folder_of_several_seeds_counts_each(tmp_path):
+    per_seed = [
+        {
+            "seed": k,
+            "methods": {m: {"mean_return": -6.0, "gap_closed": 0.5 + 0.1 * k} for m in METHODS[:3]},
+        }
+        for k in range(5)
+    ]
+    cell = {
+        "case": "windy-5x5",
+        "family": "windy",
+        "num_envs": 16,
+        "methods": per_seed[0]["methods"],
+        "seeds": list(range(5)),
+        "per_seed": per_seed,
+    }
+    _write(
+        tmp_path / "s",
+        {"experiment": "scale", "seeds": 5, "cells": [cell]},
+        {"seed": 0, "seeds": 5},
+    )
+    (g,) = report.collect([str(tmp_path / "s")])
+    assert g.seeds == [0, 1, 2, 3, 4]
+    (row,) = report.build_report([str(tmp_path / "s")], reps=100).rows
+    assert "averaging 0.70 [" in row[1]  # the IQM of 0.5 ... 0.9

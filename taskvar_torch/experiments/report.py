@@ -217,6 +217,9 @@ def load_result(folder: str | os.PathLike) -> Result:
         if kind == "wargus-fig4":  # one repetition per training seed
             seeds = tuple(int(s) for s in metrics.get("protocol", {}).get("seeds", ()))
             config.setdefault("experiment", {}).pop("runs", None)
+        elif kind == "scale" and int(metrics.get("seeds", 1)) > 1:  # seeds=k: k seeds a cell
+            seeds = tuple(int(config.get("seed", 0)) + k for k in range(int(metrics["seeds"])))
+            config.pop("seeds", None)
         else:
             seeds = (int(config.get("seed", 0)),)
     config.pop("seed", None)
@@ -534,24 +537,33 @@ def _eval(g: Group, reps: int) -> tuple[Claim | None, str, dict[str, Any]]:
     return claim, headline, scores
 
 
+def _scale_seeds(metrics: dict[str, Any]) -> list[dict[str, dict[str, float]]]:
+    """One ``{cell: {method: score}}`` per training seed of a scale folder (``per_seed`` where the
+    experiment ran ``seeds > 1``, else the cell's own methods); the score is the gap closed on
+    windy cells, the mean return elsewhere."""
+    n = max(len(c.get("per_seed") or [None]) for c in metrics.get("cells", [])) or 1
+    out: list[dict[str, dict[str, float]]] = [{} for _ in range(n)]
+    for c in metrics.get("cells", []):
+        runs = [ps["methods"] for ps in c["per_seed"]] if c.get("per_seed") else [c["methods"]]
+        for k, methods in enumerate(runs):
+            for m, v in (methods or {}).items():
+                if v:
+                    score = (
+                        v.get("gap_closed") if c.get("family") == "windy" else v.get("mean_return")
+                    )
+                    out[k].setdefault(f"{c['case']}-n{c['num_envs']}", {})[m] = _num(score)
+    return out
+
+
 def _scale(g: Group, reps: int) -> str:
-    cells: dict[str, dict[str, list[float]]] = {}
-    for r in g.results:
-        for c in r.metrics.get("cells", []):
-            for m, v in (c.get("methods") or {}).items():
-                if not v:
-                    continue
-                name = f"{c['case']}-n{c['num_envs']}"
-                score = v.get("gap_closed") if c.get("family") == "windy" else v.get("mean_return")
-                cells.setdefault(m, {}).setdefault(name, []).append(_num(score))
+    seeds = [row for r in g.results for row in _scale_seeds(r.metrics)]
+    windy = sorted({cell for row in seeds for cell in row if cell.startswith("windy")})
+    methods = [m for m in PAPER_METHODS if all(m in row.get(c, {}) for row in seeds for c in windy)]
     parts = []
-    for m, per_cell in cells.items():
-        windy = {k: v for k, v in per_cell.items() if k.startswith("windy")}
-        n = {len(v) for v in windy.values()}
-        if windy and n == {len(g.seeds)}:
-            mat = np.array([windy[k] for k in sorted(windy)]).T  # (seeds, cells)
-            e = aggregate.interval_estimates({m: mat}, reps)[m]
-            parts.append(f"{m} {_ci(e, '.2f', 'iqm')}")
+    for m in methods if windy else []:
+        mat = np.array([[row[c][m] for c in windy] for row in seeds])  # (seeds, cells)
+        e = aggregate.interval_estimates({m: mat}, reps)[m]
+        parts.append(f"{m} {_ci(e, '.2f', 'iqm')}")
     return "gap to the exact optimum closed, windy cells (IQM over seeds x cells): " + (
         ", ".join(parts) or "no windy cells"
     )
