@@ -16,6 +16,7 @@ Usage::
     python benchmarks/seeds.py                # windy 5x5 (50k frames), windy 51x51 and Wargus
                                               # 32x32 training (shorter budgets), N = 1, 5, 10
     python benchmarks/seeds.py --cases windy5 --seeds 1,5 --repeats 3
+    python benchmarks/seeds.py --cases windy5,wargus32 --seeds 1,5 train.total_frames=20000
     python benchmarks/seeds.py --quick        # a smoke run: windy 5x5, 2k frames, N = 1, 2
 """
 
@@ -88,6 +89,9 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--repeats", type=int, default=1, help="interleaved rounds (medians)")
     p.add_argument("--quick", action="store_true", help="smoke run: windy 5x5, 2k frames, N=1,2")
     p.add_argument("--device", default="cpu", help="device key of every run (e.g. cuda)")
+    p.add_argument(
+        "overrides", nargs="*", help="key.sub=value for every case (e.g. train.total_frames=20000)"
+    )
     args = p.parse_args(argv)
     cases = {k: (c, [*o, f"device={args.device}"]) for k, (c, o) in CASES.items()}
     cases = {k: cases[k] for k in args.cases.split(",")}
@@ -99,10 +103,16 @@ def main(argv: list[str] | None = None) -> None:
         raise SystemExit("--seeds must start with 1 (the baseline)")
     print(f"load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     runs: dict[tuple[str, int], list[dict]] = {}
-    for _ in range(args.repeats):
+    for r in range(args.repeats):
         for name, (config, overrides) in cases.items():
             for n in counts:
-                runs.setdefault((name, n), []).append(measure(config, overrides, n))
+                m = measure(config, [*overrides, *args.overrides], n)
+                runs.setdefault((name, n), []).append(m)
+                print(
+                    f"  round {r}: {name} N={n}: wall {m['wall']:.1f} s, cpu {m['cpu']:.1f} s, "
+                    f"peak RSS {m['rss']:.0f} MB (load {os.getloadavg()[0]:.2f})",
+                    flush=True,
+                )
     print(
         f"{'case':<14}{'N':>4}{'wall s':>9}{'x 1 seed':>10}{'wall/seed':>11}{'cpu/seed':>10}"
         f"{'RSS MB':>9}{'MB/seed':>9}"
