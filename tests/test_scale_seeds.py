@@ -118,6 +118,12 @@ def test_csv_has_a_row_per_seed_and_the_aggregate_is_over_the_seeds(two_seeds):
         assert min(returns) - 1e-9 <= lo <= agg["mean_return"] <= hi <= max(returns) + 1e-9
         assert agg["gap_closed"] == pytest.approx((agg["mean_return"] - rand) / (orc - rand))
     assert "Over the training seeds" in scale.format_table(m)
+    # the figure's final returns are the means over the seeds, with their bootstrap CI
+    mean, (below, above) = scale.final_return(c, "averaging")
+    agg = c["over_seeds"]["averaging"]
+    assert mean == agg["mean_return"]
+    assert [mean - below, mean + above] == pytest.approx(agg["mean_ci95"])
+    assert [p.name for p in scale.plot_results(out)] == ["scale.png", "scale_curves.png"]
 
 
 @pytest.mark.slow

@@ -31,7 +31,8 @@ A cell's existing keys (``methods``, ``curve``, ``heads``) are then seed ``seed`
 learning curve and the exact head report of seed 0 only: per seed they would cost k times the
 evaluation); new keys hold the rest: ``seeds``, ``per_seed`` (every seed's methods) and
 ``over_seeds`` (each method's mean return over the seeds with rliable's stratified-bootstrap 95%
-CI, :func:`over_seeds`); ``scale.csv`` gets a ``seed`` column and one row per seed.
+CI, :func:`over_seeds`); ``scale.csv`` gets a ``seed`` column and one row per seed; the printed
+table adds each cell's aggregate, and ``scale.png``'s final-return panels draw it.
 
 This module is the config, the protocol and the references; the report (``scale.csv``'s rows,
 the table, ``scale.png``) is :mod:`taskvar_torch.experiments.scale_report`, whose public names are
@@ -85,6 +86,7 @@ from taskvar_torch.experiments.scale_report import (
     SEED_FIELD,
     csv_fields,
     csv_rows,
+    final_return,
     format_heads,
     format_seeds,
     format_table,
@@ -693,6 +695,7 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "SEED_FIELD",
     "csv_fields",
     "csv_rows",
+    "final_return",
     "format_heads",
     "format_seeds",
     "format_table",

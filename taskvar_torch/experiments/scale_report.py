@@ -231,7 +231,9 @@ def unit(fam: str) -> str:
 def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     """(Re)draw ``scale.png`` from ``metrics.json``: (a) training time vs grid side per num_envs,
     (b, c) final return per method vs grid side (windy, Wargus; at the largest num_envs, references
-    dashed), (d) frames/s vs num_envs per case, (e, f) final return per method vs num_envs."""
+    dashed), (d) frames/s vs num_envs per case, (e, f) final return per method vs num_envs; with
+    several seeds per cell (b, c, e, f) are means over the seeds (:func:`final_return`), the
+    learning curves seed ``seed``'s."""
 
     out = Path(out_dir)
     if not is_results_folder(out):
@@ -261,7 +263,12 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
         ax.grid(alpha=0.3)
         if ax.has_data():
             ax.legend(fontsize=7)
-    fig.suptitle("Scaled-up grids: training cost and final performance", fontsize=11)
+    seeds = metrics.get("seeds")
+    fig.suptitle(
+        "Scaled-up grids: training cost and final performance"
+        + (f" (mean over {seeds} training seeds, 95% CI)" if seeds else ""),
+        fontsize=11,
+    )
     path = save_figure(fig, out / FIGURE)
     plt.close(fig)
     paths = [path]
@@ -367,6 +374,21 @@ def _plot_throughput(ax, cells: list[dict], refs: dict[str, Any], ns: list[int])
     _num_envs_ticks(ax, ns)
 
 
+def final_return(cell: dict[str, Any], method: str) -> tuple[float, tuple[float, float]] | None:
+    """A cell's final return of ``method`` and its 95% CI as (below, above) error bars: over the
+    training seeds where the cell has several (``over_seeds``: their mean, bootstrap CI), else the
+    cell's run (CI over the test episodes); ``None`` where the method does not apply."""
+    agg = (cell.get("over_seeds") or {}).get(method)
+    if agg is not None:
+        lo, hi = agg["mean_ci95"]
+        return agg["mean_return"], (agg["mean_return"] - lo, hi - agg["mean_return"])
+    r = cell["methods"].get(method)
+    if r is None:
+        return None
+    err = r["ci95"] or 0.0
+    return r["mean_return"], (err, err)
+
+
 def _plot_vs_grid_side(
     ax,
     cells: list[dict],
@@ -378,20 +400,21 @@ def _plot_vs_grid_side(
     unit: str,
 ) -> None:
     """Panel (b) or (c): one family's final return per method vs grid side at ``n_max`` envs
-    (95% CI bars), the random and oracle references dotted."""
+    (95% CI bars; cells with several seeds: the mean over them, :func:`final_return`), the random
+    and oracle references dotted."""
     sel = sorted(
         (c for c in cells if c["family"] == fam and c["num_envs"] == n_max),
         key=lambda c: c["grid_side"],
     )
     x = [c["grid_side"] for c in sel]
     for m in methods:
-        pts = [(xx, c["methods"].get(m)) for xx, c in zip(x, sel)]
+        pts = [(xx, final_return(c, m)) for xx, c in zip(x, sel)]
         pts = [(xx, r) for xx, r in pts if r is not None]
         if pts:
             ax.errorbar(
                 [p[0] for p in pts],
-                [p[1]["mean_return"] for p in pts],
-                yerr=[p[1]["ci95"] or 0.0 for p in pts],
+                [p[1][0] for p in pts],
+                yerr=np.array([p[1][1] for p in pts], dtype=float).T,
                 color=COLOURS[m],
                 marker="o",
                 capsize=3,
@@ -433,12 +456,12 @@ def _plot_vs_num_envs(
     ):
         sel = sorted((c for c in cells if c["case"] == case), key=lambda c: c["num_envs"])
         for m in methods:
-            pts = [(c["num_envs"], c["methods"].get(m)) for c in sel]
+            pts = [(c["num_envs"], final_return(c, m)) for c in sel]
             pts = [(n, r) for n, r in pts if r is not None]
             if pts:
                 ax.plot(
                     [p[0] for p in pts],
-                    [p[1]["mean_return"] for p in pts],
+                    [p[1][0] for p in pts],
                     marker=".",
                     ls=styles[k % len(styles)],
                     color=COLOURS[m],
@@ -471,6 +494,7 @@ __all__ = [
     "SEED_FIELD",
     "csv_fields",
     "csv_rows",
+    "final_return",
     "format_heads",
     "format_seeds",
     "format_table",
