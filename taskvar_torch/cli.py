@@ -603,10 +603,11 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
             raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
     for m in methods:
         r = train_baseline(cfg, m, args.out, settings, progress=not args.no_progress)
+        last = r["mean_train_return"]
+        last_s = "no episode ended" if last != last else f"{last:.3f}"  # NaN: none ended
         print(
             f"trained {m}: {r['updates']} updates on {r['frames']} frames in {r['seconds']:.1f} s "
-            f"(mean training return of the last tenth {r['mean_train_return']:.3f}); "
-            f"wrote {r['path']}"
+            f"(mean training return of the last tenth: {last_s}); wrote {r['path']}"
         )
     return 0
 
