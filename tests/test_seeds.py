@@ -124,6 +124,7 @@ def test_split_seed_is_the_run_it_came_from():
         split_seed(batch, 3, runs[0])
 
 
+@pytest.mark.slow  # trains (2-10 s on the shared 2-core CPU)
 def test_train_seeds_writes_a_bundle_per_seed_that_evaluates(tmp_path):
     cfg = _cfg("train.seeds=2", "train.eval_ema_tau=0.05")
     result = train(cfg, tmp_path / "run", progress=False)
@@ -154,6 +155,7 @@ def test_train_seeds_writes_a_bundle_per_seed_that_evaluates(tmp_path):
     assert more["frames"] == 768 and len(more["seeds"]) == 2
 
 
+@pytest.mark.slow  # trains (2-10 s on the shared 2-core CPU)
 def test_one_seed_batch_is_todays_run(tmp_path):
     cfg = _cfg()
     a = train(cfg, tmp_path / "a", progress=False)
@@ -196,6 +198,7 @@ def test_seeds_into_a_folder_holding_a_run_is_refused(tmp_path):
         train(_cfg("train.seeds=2"), tmp_path / "run", progress=False)
 
 
+@pytest.mark.slow  # trains (2-10 s on the shared 2-core CPU)
 def test_a_diverging_batch_names_the_seed_and_writes_nothing(tmp_path):
     cfg = _cfg("train.seeds=2", "train.checkpoint_every=320")
     from taskvar_torch import train as train_module
@@ -224,6 +227,7 @@ def test_a_diverging_batch_names_the_seed_and_writes_nothing(tmp_path):
     ).all()
 
 
+@pytest.mark.slow  # trains (2-10 s on the shared 2-core CPU)
 def test_seeds_with_nstep_first_visit_and_per_option_replay(tmp_path):
     cfg = _cfg(
         "train.seeds=2",
