@@ -60,8 +60,8 @@ def load_baselines(
             continue
         path = baseline_path(checkpoint, m)
         ctrl, bcfg = load_baseline(path, device=cfg.device)
-        same_env = dataclasses.replace(bcfg.env, num_envs=cfg.env.num_envs) == cfg.env
-        if bcfg.family != cfg.family or not same_env:
+        trained_on = (bcfg.family, dataclasses.replace(bcfg.env, num_envs=cfg.env.num_envs))
+        if trained_on != (cfg.family, cfg.env):
             raise ValueError(
                 f"{str(path)!r} was trained on another env than the bundle ({bcfg.family}, "
                 f"env differs); train it again with: {train_command(checkpoint, m)}"
