@@ -109,6 +109,35 @@ def test_eval_reports_regret_per_method_and_episode(windy_bundle, tmp_path):
     assert one["regret_mean"] >= -1e-9 and "regret_ci95" in one
 
 
+def test_regret_by_the_hidden_parameter_is_recomputed_from_the_episodes(windy_bundle, tmp_path):
+    m = eval_bundle(windy_bundle, "all", "train", episodes=240, out_dir=tmp_path, progress=False)
+    data = m["regret_by_instance"]
+    assert data["field"] == "p" and len(data["groups"]) == 8
+    assert (tmp_path / "regret.png").exists() and "regret.png" in m["figures"]
+    with open(tmp_path / "episodes.csv") as f:
+        rows = list(csv.DictReader(f))
+    optimum = {r["episode"]: float(r["optimum_return"]) for r in rows if r["optimum_return"]}
+    first = [r for r in rows if r["method"] == m["methods"][0]]
+    p = np.array([float(r["instance_p"]) for r in first])
+    edges = np.quantile(p, np.linspace(0, 1, 9))
+    for name, d in data["methods"].items():
+        mine = {r["episode"]: r for r in rows if r["method"] == name}
+        for g, (lo, hi) in enumerate(zip(edges[:-1], edges[1:])):
+            inside = [
+                r["episode"]
+                for r in first
+                if lo <= float(r["instance_p"]) and (float(r["instance_p"]) < hi or g == 7)
+            ]
+            want = np.mean([optimum[e] - float(mine[e]["exact_return"]) for e in inside])
+            assert abs(d["mean"][g] - want) < 1e-9, (name, g)
+        assert d["sampled"] is False
+    # the groups' episode-weighted mean is the method's overall regret
+    sizes = np.histogram(p, edges)[0]
+    for name, d in data["methods"].items():
+        overall = np.dot(sizes, d["mean"]) / sizes.sum()
+        assert abs(overall - m["points"][0]["methods"][name]["regret_mean"]) < 1e-9
+
+
 def test_no_regret_without_an_oracle():
     """Wargus brings no oracle, nor do windy layouts too large for it: no optimum to compare."""
     for config in ("configs/wargus.yaml", "configs/windy_large.yaml"):

@@ -34,6 +34,8 @@ from taskvar_torch.experiments.baselines import (
 )
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.regret_plots import PNG_NAME as REGRET_PNG
+from taskvar_torch.experiments.regret_plots import plot_regret, regret_by_instance
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
@@ -366,9 +368,18 @@ def _write(out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]], plots
     out.mkdir(parents=True, exist_ok=True)
     fields = list(CSV_FIELDS) + sorted({k for r in rows for k in r} - set(CSV_FIELDS))
     write_csv(out / CSV_NAME, rows, fields)
+    regret = None
+    if len(metrics["points"]) == 1:  # where each method loses, by the hidden parameter
+        regret = regret_by_instance(rows, metrics["methods"])
+        if regret is not None:
+            metrics["regret_by_instance"] = regret
     if plots:
         plot_eval(metrics, out / PNG_NAME)
         metrics["figures"] = [PNG_NAME]  # relative to the folder
+        if regret is not None:
+            title = f"{metrics['family']}: test {metrics['test']}"
+            plot_regret(regret, out / REGRET_PNG, title)
+            metrics["figures"].append(REGRET_PNG)
     write_json(out / METRICS_NAME, metrics)
 
 
