@@ -17,7 +17,7 @@ Usage::
                                               # 32x32 training (shorter budgets), N = 1, 5, 10
     python benchmarks/seeds.py --cases windy5 --seeds 1,5 --repeats 3
     python benchmarks/seeds.py --cases windy5,wargus32 --seeds 1,5 train.total_frames=20000
-    python benchmarks/seeds.py --quick        # a smoke run: windy 5x5, 2k frames, N = 1, 2
+    python benchmarks/seeds.py --quick        # a smoke run: windy 5x5, 768 frames, N = 1, 2
 """
 
 from __future__ import annotations
@@ -41,10 +41,11 @@ CASES = {
     "wargus32": ("configs/wargus.yaml", ["train.total_frames=40000"]),
 }
 QUICK = [
-    "train.total_frames=2000",
-    "train.init_random_frames=512",
+    "train.total_frames=768",
+    "train.init_random_frames=256",
     "train.frames_per_batch=128",
-    "env.num_envs=8",
+    "train.updates_per_batch=4",
+    "env.num_envs=4",
 ]
 
 
@@ -87,7 +88,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--cases", default=",".join(CASES), help=f"comma list of {list(CASES)}")
     p.add_argument("--seeds", default="1,5,10", help="comma list of seed counts (1 first)")
     p.add_argument("--repeats", type=int, default=1, help="interleaved rounds (medians)")
-    p.add_argument("--quick", action="store_true", help="smoke run: windy 5x5, 2k frames, N=1,2")
+    p.add_argument("--quick", action="store_true", help="smoke run: windy 5x5, 768 frames, N=1,2")
     p.add_argument("--device", default="cpu", help="device key of every run (e.g. cuda)")
     p.add_argument(
         "overrides", nargs="*", help="key.sub=value for every case (e.g. train.total_frames=20000)"
