@@ -28,7 +28,7 @@ from torch import nn
 
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.max_value import OptimismGapHead
-from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
+from taskvar_torch.heads.networks import ACTIVATIONS, StackedHead, StackedMLP, head_network
 
 
 def _stacks(heads: Heads) -> list[StackedMLP]:
@@ -54,8 +54,6 @@ def _linears(mlp: nn.Module) -> list[nn.Linear]:
 
 def _activation(mlp: nn.Module) -> str:
     """The activation name of a plain MLP (its first non-linear layer)."""
-    from taskvar_torch.heads.networks import ACTIVATIONS
-
     for m in mlp.modules():
         for name, cls in ACTIVATIONS.items():
             if type(m) is cls:
