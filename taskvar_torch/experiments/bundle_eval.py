@@ -36,6 +36,13 @@ from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.experiments.plots import _pyplot, save_figure
 from taskvar_torch.experiments.regret_plots import PNG_NAME as REGRET_PNG
 from taskvar_torch.experiments.regret_plots import plot_regret, regret_by_instance
+from taskvar_torch.experiments.regret_steps import PNG_NAME as STEPS_PNG
+from taskvar_torch.experiments.regret_steps import (
+    episode_step_regret,
+    plot_regret_by_step,
+    regret_by_step,
+    supports_step_regret,
+)
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
@@ -150,14 +157,18 @@ def play(
     batch_size: int,
     noise_seed: int | None = None,
     progress: Any = None,
+    steps: bool = False,
 ) -> dict[str, np.ndarray]:
     """Play ``episodes`` episodes (global indices ``0..episodes-1``) of ``point`` with ``ctrl``;
     per-episode ``return``, ``length``, ``interruptions``, the instance fields and, for option
-    controllers, ``steps_<o>`` (steps option ``o`` held control)."""
+    controllers, ``steps_<o>`` (steps option ``o`` held control). ``steps``: also each step's
+    ``step_cell``, ``step_action`` and ``step_alive`` ``(episodes, horizon)`` (per-step regret)."""
     parts: dict[str, list[np.ndarray]] = {}
     option_level = ctrl.name not in ("averaging", *BASELINES)  # baselines: no options
     O = len(ctrl.heads.option_names) if option_level else 0  # noqa: E741
     trace = (keys.OPTION,) if option_level else ()
+    if steps:
+        trace += (keys.CELL, keys.ACTION)
     for lo in range(0, int(episodes), batch_size):
         n = min(batch_size, int(episodes) - lo)
         base = make_env(
@@ -178,11 +189,16 @@ def play(
                 got[f"instance_{k}"] = v
         if "start" in out.keys():
             got["start"] = out["start"]
-        if trace:
-            tr = out["trace"]
+        tr = out["trace"] if trace else None
+        if option_level:
             opt = torch.where(tr["alive"], tr[keys.OPTION], torch.full_like(tr[keys.OPTION], -1))
             for o in range(O):
                 got[f"steps_{o}"] = (opt == o).sum(-1)
+        if steps:  # padded to the horizon: batches end at different steps
+            pad = int(base.horizon) - tr["alive"].shape[-1]
+            got["step_alive"] = torch.nn.functional.pad(tr["alive"], (0, pad), value=False)
+            for name, k in (("step_cell", keys.CELL), ("step_action", keys.ACTION)):
+                got[name] = torch.nn.functional.pad(tr[k], (0, pad))
         for k, v in got.items():
             parts.setdefault(k, []).append(v.detach().cpu().numpy())
         if progress is not None:
@@ -264,11 +280,15 @@ def eval_bundle(
     )
     rows: list[dict[str, Any]] = []
     results = []
+    by_step = None  # per-step regret (one test point, an oracle with step_regret)
     skipped: list[str] = []
     for point, subtasks in zip(points, point_subtasks):
         oracle = _exact_oracle(cfg, point) if exact is not False else None
         optimum, rows_have_optimum = None, False  # exact per-instance optimum per episode
         per_method = {}
+        steps = len(points) == 1 and supports_step_regret(oracle)  # regret against the step
+        step_gaps: dict[str, np.ndarray] = {}
+        step_alive: dict[str, np.ndarray] = {}
         for m in methods:
             if m in baselines:
                 _check_baseline_fits(point, baselines[m], subtasks)
@@ -277,7 +297,8 @@ def eval_bundle(
                 ctrl = make_method_controller(
                     point.cfg, m, heads, subtasks, calibration=calibration
                 )
-            r = play(ctrl, point, int(episodes), seed, bs, noise_seed, bar)
+            r = play(ctrl, point, int(episodes), seed, bs, noise_seed, bar, steps=steps)
+            traced = [r.pop(k, None) for k in ("step_cell", "step_action", "step_alive")]
             per_method[m] = summarise(r, heads.option_names, "averaging" if m in baselines else m)
             instance = {k[len("instance_") :]: v for k, v in r.items() if k.startswith("instance_")}
             if oracle is not None and exact is None and not _affordable(oracle, instance):
@@ -308,8 +329,15 @@ def eval_bundle(
                     if not rows_have_optimum:
                         r["optimum_return"] = optimum  # once per episode (the first method)
                         rows_have_optimum = True
+            if steps and oracle is not None:  # V*(s_t) - Q*(s_t, a_t) in the episode's instance
+                step_gaps[m] = episode_step_regret(oracle, instance, *traced)
+                step_alive[m] = traced[2]
             rows += _csv_rows(point, m, r)
         results.append({"shift": point.label, "value": point.value, "methods": per_method})
+        if optimum is not None:  # the ceiling: an agent that knows the instance
+            results[-1]["optimum_mean_return"] = float(np.mean(optimum, dtype=np.float64))
+        if step_gaps:
+            by_step = regret_by_step(step_gaps, step_alive)
     bar.close()
     metrics = _metrics(checkpoint, cfg, test_name, shifts, methods, seed, noise_seed, episodes)
     metrics["points"] = results
@@ -318,6 +346,8 @@ def eval_bundle(
             f"exact returns not computed for {sorted(set(skipped))}: too many distinct instances "
             "for the oracle (taskvar eval --exact computes them anyway, slowly)"
         )
+    if by_step is not None:
+        metrics["regret_by_step"] = by_step
     if len(points) == 1 and len(methods) == 1:  # the keys of a one-method evaluation
         metrics.update({"method": methods[0], **results[0]["methods"][methods[0]]})
     if out_dir is not None:
@@ -376,10 +406,13 @@ def _write(out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]], plots
     if plots:
         plot_eval(metrics, out / PNG_NAME)
         metrics["figures"] = [PNG_NAME]  # relative to the folder
+        title = f"{metrics['family']}: test {metrics['test']}"
         if regret is not None:
-            title = f"{metrics['family']}: test {metrics['test']}"
             plot_regret(regret, out / REGRET_PNG, title)
             metrics["figures"].append(REGRET_PNG)
+        if "regret_by_step" in metrics:
+            plot_regret_by_step(metrics["regret_by_step"], out / STEPS_PNG, title)
+            metrics["figures"].append(STEPS_PNG)
     write_json(out / METRICS_NAME, metrics)
 
 
@@ -454,6 +487,11 @@ def format_table(metrics: dict[str, Any]) -> str:
             lines.append(
                 f"  {m:<13} {r['mean_return']:12.3f} {r['mean_return_ci95']:8.3f} {exact} {regret} "
                 f"{inter_s}  {control}"
+            )
+        if "optimum_mean_return" in p:
+            lines.append(
+                f"  {'optimum':<13} {'':>12} {'':>8} {p['optimum_mean_return']:9.3f} "
+                f"{0.0:8.3f}{'':>8}   (exact per-instance optimum: knows the instance)"
             )
     sampled = sorted(
         {m for p in metrics["points"] for m, r in p["methods"].items() if r.get("regret_sampled")}

@@ -457,6 +457,53 @@ class WindyOracle(ControllerChains, ReplayReference):
         out = self._select_start(V, start)
         return out[0] if scalar else out
 
+    def step_regret(
+        self, p: Any, direction: Any, cells: Any, actions: Any, alive: Any = None
+    ) -> Tensor:
+        """Instantaneous regret ``(B, T)`` of the actions played in ``B`` episodes, one instance
+        each: ``V*_{H-t}(s_t) - Q*_{H-t}(s_t, a_t)`` at step ``t`` (``H = horizon``, the
+        per-instance optimum's values with ``H - t`` steps to go, as :meth:`optimal_return`), 0
+        where ``alive`` (default all) is false. ``cells``, ``actions``: ``(B, T)``, ``T <= H``.
+
+        By the performance-difference identity an episode's sum over steps is, in expectation over
+        the gusts, its regret against the per-instance optimum (exactly so where the instance is
+        deterministic, ``p`` 0 or 1): ``optimal_return - return`` (docs/evaluation.md)."""
+        pt, d, _ = self._instances_arg(p, direction)
+        s = torch.as_tensor(cells, dtype=torch.int64, device=self.device)
+        a = torch.as_tensor(actions, dtype=torch.int64, device=self.device)
+        live = (
+            torch.ones_like(s, dtype=torch.bool)
+            if alive is None
+            else torch.as_tensor(alive, dtype=torch.bool, device=self.device)
+        )
+        B, T = s.shape
+        if pt.numel() != B or a.shape != s.shape or live.shape != s.shape:
+            raise ValueError(
+                f"step_regret needs one instance per episode and (B, T) cells, actions, alive; "
+                f"got {pt.numel()} instances, {tuple(s.shape)}, {tuple(a.shape)}, "
+                f"{tuple(live.shape)}"
+            )
+        if T > self.horizon:
+            raise ValueError(f"episodes of {T} steps exceed the oracle's horizon {self.horizon}")
+        m = self.model
+        moved = m.move  # (S, A)
+        gust = m.push[moved.unsqueeze(0), d.view(-1, 1, 1)]  # (B, S, A)
+        pp = pt.view(-1, 1, 1)
+        goal = self.is_goal.view(1, -1, 1)
+        rows = torch.arange(B, device=self.device)
+        out = torch.zeros(B, T, dtype=torch.float64, device=self.device)
+        V = torch.zeros(B, self.S, dtype=torch.float64, device=self.device)
+        for togo in range(1, self.horizon + 1):
+            nxt = (1.0 - pp) * V[:, moved] + pp * V.gather(1, gust.reshape(B, -1)).view_as(gust)
+            Q = torch.where(goal, 0.0, nxt - 1.0)  # (B, S, A), togo steps to go
+            V = Q.max(-1).values
+            t = self.horizon - togo
+            if t < T:
+                st, at = s[:, t], a[:, t]
+                gap = V[rows, st] - Q[rows, st, at]
+                out[:, t] = torch.where(live[:, t], gap, 0.0)
+        return out
+
     def mean_mdp_return(self, policy: Tensor, start: Any = None) -> Tensor:
         """Exact ``horizon``-step return of a policy in the mean MDP (instance redrawn every step)."""
         P, R = self.mean_mdp()
