@@ -135,8 +135,10 @@ def test_behaviour_stacked_and_compiled_equal_each_head_alone():
     RNG draws as running each head on its own (paper widths, 30 rows)."""
     cfg = load_config(fig4.default_config_path(), SMALL[:-1])  # heads.hidden=[128, 128]
     env, agent, _ = _agent(cfg, torchrl=False)
-    fused = agent.behaviour
-    assert fused._values is not None and fused._values.stack is not None
+    assert agent.behaviour._values is not None and agent.behaviour._values.stack is not None
+    fused = BehaviourPolicy(  # the agent's, on the global stream rather than its own generator
+        agent.heads, agent.subtasks, env.action_spec, option_prob=0.5, root_policy="averaging"
+    )
     policies = [
         BehaviourPolicy(
             agent.heads,

@@ -5,7 +5,8 @@ docs/wargus-fig4.md). The protocol around it (agent construction, repetitions, r
 * :class:`LifelongAgent` holds what one repetition learns (every head, one learner, one replay
   buffer) and its counters; :func:`learn_due` takes the gradient steps the frames played call for.
 * :func:`learning_phase`: one episode per sub-environment of the training instance distribution,
-  learning on.
+  learning on; :func:`learning_phases`: several repetitions' at once, in one loop (each still
+  learning exactly what it learns alone).
 * :func:`test_phase` / :func:`test_trials`: the nominal test episodes of every method side by side,
   learning off.
 
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -62,6 +63,7 @@ class LifelongAgent:
     buffer: Any
     replay_generator: torch.Generator
     first_visit: FirstVisitFilter
+    explore_generator: torch.Generator | None = None  # the behaviour's draws (own stream)
     frames: int = 0
     pending: int = 0  # frames stored since the last update phase
     updates: int = 0
@@ -98,46 +100,85 @@ def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
     ``is_init`` and the behaviour mode itself, and filters first visits and writes the kept
     transitions to the replay buffer once per update phase (before any sample, so the buffer
     holds the same rows in the same order). Same draws, same transitions, same updates as the
-    TorchRL loop :func:`learning_phase_torchrl` (tested equal).
+    TorchRL loop :func:`learning_phase_torchrl` (tested equal). :func:`learning_phases` with one
+    agent.
     """
-    t = agent.cfg.train
-    n = env.num_envs
+    return learning_phases([agent], env, agent.behaviour, agent.first_visit)[0]
+
+
+def learning_phases(
+    agents: Sequence[LifelongAgent],
+    env: WargusEnv,
+    behaviour: BehaviourPolicy,
+    first_visit: FirstVisitFilter,
+    on_update: Callable[[int], None] | None = None,
+) -> list[dict[str, float]]:
+    """:func:`learning_phase` of ``S = len(agents)`` repetitions at once, in one loop.
+
+    ``env``'s sub-environments are ``S`` seed-major blocks (:meth:`WargusEnv.set_seed_blocks`,
+    block ``s`` drawing what repetition ``s``'s own env draws); ``behaviour`` acts for every block
+    at once (the repetitions' heads stacked, :func:`~taskvar_torch.heads.seeds.stack_seeds`, with
+    ``generators``: block ``s`` draws from repetition ``s``'s exploration generator only), each
+    block at its own repetition's epsilon; ``first_visit`` has a row per sub-environment. Each
+    repetition keeps its own counters, replay buffer and learner: its update phases fall where its
+    own frames call for them (:func:`learn_due`), on its own samples, and ``on_update(s)`` follows
+    repetition ``s``'s update phase (to copy its new weights into the acting stack). So each
+    repetition plays and learns exactly what it does alone (tested equal); only the per-step work
+    (behaviour, dynamics, staging) is shared.
+    """
+    S = len(agents)
+    t = agents[0].cfg.train
+    N = env.num_envs
+    n = N // S
     dev = env.device
     td = env.reset_all()  # every sub-env starts a new episode with a fresh training instance
-    td.set(IS_INIT, torch.ones(n, 1, dtype=torch.bool, device=dev))
-    not_init = torch.zeros(n, 1, dtype=torch.bool, device=dev)
+    td.set(IS_INIT, torch.ones(N, 1, dtype=torch.bool, device=dev))
+    not_init = torch.zeros(N, 1, dtype=torch.bool, device=dev)
     if t.first_visit:
-        agent.first_visit.clear()
-    alive = torch.ones(n, dtype=torch.bool, device=dev)
-    items = torch.zeros(n, device=dev)
-    frames = 0
-    staged: list[TensorDictBase] = []  # transitions of this update phase, not yet in the buffer
-    masks: list[torch.Tensor] = []  # (n,) which of them to keep
+        first_visit.clear()
+    alive = torch.ones(N, dtype=torch.bool, device=dev)
+    items = torch.zeros(N, device=dev)
+    frames = [0] * S
+    staged: list[TensorDictBase] = []  # transitions of this update phase, not yet in the buffers
+    masks: list[torch.Tensor] = []  # (N,) which of them to keep
     for _ in range(env.horizon):
-        agent.behaviour.set_epsilon(epsilon_at(agent.frames, t))
-        td = agent.behaviour(td)
+        live = [int(alive.sum())] if S == 1 else alive.view(S, n).sum(1).tolist()
+        eps = [epsilon_at(a.frames, t) for a in agents]
+        if S == 1:
+            behaviour.set_epsilon(eps[0])
+        else:  # a repetition whose episodes all ended stops drawing, as it would alone
+            behaviour.set_epsilon(torch.tensor(eps, device=dev).repeat_interleave(n))
+            behaviour.set_active([k > 0 for k in live])
+        td = behaviour(td)
         action = td.get(keys.ACTION)
         nxt = env.step_all(action)
         nxt.set(IS_INIT, not_init)
         # ---- stage this step's transitions of the live episodes (first visits: at the flush) --
         staged.append(_transition(td, nxt))
         masks.append(alive)
-        n_alive = int(alive.sum())
-        agent.frames += n_alive
-        agent.pending += n_alive
-        frames += n_alive
-        items += torch.where(alive, nxt.get(keys.REWARD).reshape(n), 0.0)
-        # ---- learn: every head from one shared sample per update ----------------------------
-        if agent.pending >= t.frames_per_batch:
-            _flush(agent, staged, masks, t.first_visit)
-        learn_due(agent, t)
-        alive = alive & ~nxt.get(keys.DONE).reshape(n)
+        for s, agent in enumerate(agents):
+            agent.frames += live[s]
+            agent.pending += live[s]
+            frames[s] += live[s]
+        items += torch.where(alive, nxt.get(keys.REWARD).reshape(N), 0.0)
+        # ---- learn: each repetition, every head from one shared sample per update -----------
+        if any(a.pending >= t.frames_per_batch for a in agents):
+            _flush(agents, staged, masks, first_visit, t.first_visit)
+        for s, agent in enumerate(agents):
+            if not live[s]:
+                continue  # its phase is over: it learns nothing more until it would alone
+            before = agent.updates
+            learn_due(agent, t)
+            if on_update is not None and agent.updates != before:
+                on_update(s)
+        alive = alive & ~nxt.get(keys.DONE).reshape(N)
         if not bool(alive.any()):
             break
         nxt.set(BEHAVIOUR, td.get(BEHAVIOUR))  # carried, like step_mdp(keep_other=True)
         td = nxt
-    _flush(agent, staged, masks, t.first_visit)
-    return {"learn_items": float(items.mean()), "frames": frames}
+    _flush(agents, staged, masks, first_visit, t.first_visit)
+    per_block = items.view(S, n).mean(1).tolist()
+    return [{"learn_items": per_block[s], "frames": frames[s]} for s in range(S)]
 
 
 _HIDDEN = (keys.INSTANCE, keys.REWARD)  # never replayed / not part of a state
@@ -151,20 +192,37 @@ def _transition(td: TensorDictBase, nxt: TensorDictBase) -> TensorDictBase:
     return TensorDict._new_unsafe(root, batch_size=td.batch_size, device=td.device)
 
 
-def _flush(agent: LifelongAgent, staged: list, masks: list, first_visit: bool) -> None:
+def _flush(
+    agents: Sequence[LifelongAgent],
+    staged: list,
+    masks: list,
+    first_visit: FirstVisitFilter,
+    use_first_visit: bool,
+) -> None:
     """Write the staged transitions of live episodes (``masks``) that are kept to the replay
-    buffer (one ``extend``); ``first_visit``: first visits only, filtered here for all the staged
-    steps at once (:meth:`FirstVisitFilter.visit_steps`, equal to a visit per step)."""
+    buffers, block ``s`` of the sub-environments to ``agents[s]``'s (one ``extend`` each, in step
+    order); ``use_first_visit``: first visits only, filtered here for all the staged steps at once
+    (:meth:`FirstVisitFilter.visit_steps`, equal to a visit per step). Writing a repetition's
+    transitions before its own update phase is due changes nothing it samples: its buffer holds
+    the same rows in the same order when it next samples."""
     if not staged:
         return
     batch = torch.cat(staged)  # (T N,) step-major
     keep = torch.cat(masks)
-    if first_visit:
-        T, N = len(staged), staged[0].shape[0]
+    T, N = len(staged), staged[0].shape[0]
+    if use_first_visit:
         obs = batch.get(keys.OBSERVATION).view(T, N, -1)
-        keep = keep & agent.first_visit.visit_steps(obs, batch.get(keys.ACTION).view(T, N)).view(-1)
-    if bool(keep.any()):
-        agent.buffer.extend(batch[keep])
+        keep = keep & first_visit.visit_steps(obs, batch.get(keys.ACTION).view(T, N)).view(-1)
+    S = len(agents)
+    if S == 1:
+        if bool(keep.any()):
+            agents[0].buffer.extend(batch[keep])
+    else:
+        block = torch.arange(N, device=keep.device).div(N // S, rounding_mode="floor").repeat(T)
+        for s, agent in enumerate(agents):
+            rows = keep & (block == s)
+            if bool(rows.any()):
+                agent.buffer.extend(batch[rows])
     staged.clear()
     masks.clear()
 
@@ -310,6 +368,7 @@ __all__ = [
     "LifelongAgent",
     "learn_due",
     "learning_phase",
+    "learning_phases",
     "learning_phase_torchrl",
     "test_phase",
     "test_phase_torchrl",

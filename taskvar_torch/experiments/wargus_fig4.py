@@ -1,7 +1,7 @@
 """Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md).
 
 The protocol, top to bottom (:func:`wargus_fig4`), for each of R repetitions (own seed
-``cfg.seed + rep``, own env streams, own replay generator, own torch RNG stream; never one RNG
+``cfg.seed + rep``, own env streams, own replay and exploration generators, its networks initialised from its own seed; never one RNG
 shared between repetitions):
 
 1. the agent starts with *no prior knowledge*: fresh networks for every head (averaging, options,
@@ -35,8 +35,12 @@ module is the protocol, and re-exports the public names of those two, of
 :mod:`taskvar_torch.experiments.fig4_trial`, :mod:`taskvar_torch.controllers.side_by_side` and
 :mod:`taskvar_torch.heads.snapshots`.
 
-Repetitions run sequentially or, with ``workers > 1``, in spawned processes (one torch thread
-each); both give the same numbers (each repetition depends on its own seed only).
+Repetitions run **batched** (:func:`run_repetitions_batched`): one loop steps every repetition's
+learning episodes at once (one env, one behaviour pass over their heads stacked), while each keeps
+its own learner, replay, generators and test phases, so each repetition gives the numbers it gives
+alone (tested bit for bit). ``workers = W`` splits them into ``W`` batches in spawned processes
+(:func:`repetition_batches`); any split gives the same numbers (each repetition depends on its own
+seed only).
 
 One trial's loops (the agent's state and update rule, :func:`learning_phase`, :func:`test_phase`,
 :func:`test_trials` and their TorchRL references) are :mod:`taskvar_torch.experiments.fig4_trial`,
@@ -101,6 +105,7 @@ from taskvar_torch.experiments.fig4_trial import (
     learn_due,
     learning_phase,
     learning_phase_torchrl,
+    learning_phases,
     test_phase,
     test_phase_torchrl,
     test_trials,
@@ -111,6 +116,7 @@ from taskvar_torch.families import FAMILIES, HELDOUT_SEEDS
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.robustness import RobustnessCalibration
+from taskvar_torch.heads.seeds import load_seed, stack_seeds
 from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.train import (
@@ -121,6 +127,8 @@ from taskvar_torch.train import (
     make_subtasks,
 )
 
+EXPLORATION_OFFSET = 1 << 32
+"""A repetition's exploration generator is seeded ``seed + EXPLORATION_OFFSET``."""
 TEST_GROUP = 25  # trials whose test phases run side by side (run_repetition)
 HELDOUT_CSV = "per_trial_heldout.csv"
 """The held-out test phases' rows (``per_trial.csv``'s columns)."""
@@ -156,19 +164,38 @@ def nominal_seeds(k: int) -> tuple[int, ...]:
 # a fresh agent (paper §3.5.1: no prior knowledge), its test env and test controllers
 
 
-def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> LifelongAgent:
-    """Fresh heads, learner, behaviour policy and an empty replay buffer (seeded by ``seed``)."""
-    subtasks = make_subtasks(cfg, getattr(env, "base_env", env))
-    heads = build_heads(cfg, env, subtasks)
-    learner = make_learner(cfg, heads, subtasks)
-    behaviour = BehaviourPolicy(
+def exploration_generator(seed: int) -> torch.Generator:
+    """The behaviour's own random stream of the repetition seeded ``seed`` (option picks,
+    exploration, option episodes, epsilon-greedy actions): ``seed + EXPLORATION_OFFSET``, apart
+    from every replay generator (``seed + 1``)."""
+    return torch.Generator(device="cpu").manual_seed(int(seed) + EXPLORATION_OFFSET)
+
+
+def make_behaviour(
+    cfg: Config, heads: Any, subtasks: Any, action_spec: Any, generators: list[torch.Generator]
+) -> BehaviourPolicy:
+    """The behaviour policy of ``heads`` (one repetition's, or several stacked), drawing block
+    ``s`` of its rows from ``generators[s]``."""
+    return BehaviourPolicy(
         heads,
         subtasks,
-        env.action_spec,
+        action_spec,
         option_prob=cfg.train.option_behaviour_prob,
         root_policy=cfg.train.hierarchy_root_policy,
         compile=cfg.train.compile,
+        generators=generators,
     )
+
+
+def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> LifelongAgent:
+    """Fresh heads, learner, behaviour policy and an empty replay buffer (seeded by ``seed``:
+    the networks' initialisation from the global stream, the replay sampler and the behaviour
+    from their own generators)."""
+    subtasks = make_subtasks(cfg, getattr(env, "base_env", env))
+    heads = build_heads(cfg, env, subtasks)
+    learner = make_learner(cfg, heads, subtasks)
+    explore = exploration_generator(seed)
+    behaviour = make_behaviour(cfg, heads, subtasks, env.action_spec, [explore])
     generator = torch.Generator(device="cpu").manual_seed(seed + 1)
     obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
     return LifelongAgent(
@@ -180,6 +207,7 @@ def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> Lifel
         buffer=make_replay_buffer(cfg, generator),
         replay_generator=generator,
         first_visit=FirstVisitFilter(env.batch_size.numel(), obs_dim, device=cfg.device),
+        explore_generator=explore,
     )
 
 
@@ -245,8 +273,184 @@ def trial_calibration(agent: LifelongAgent) -> RobustnessCalibration | None:
 # one repetition
 
 
-# One function of ~90 lines on purpose: every draw of a repetition (network init, behaviour,
-# replay) and its batched test phases run inside its one ``fork_rng`` scope, in this order.
+@dataclasses.dataclass
+class _Repetition:
+    """One repetition's protocol state around its agent: its test policy, the rows recorded so
+    far, the frozen heads and calibrations of trials not tested yet, CPU seconds per phase."""
+
+    rep: int
+    seed: int
+    agent: LifelongAgent
+    learn_env: WargusEnv
+    policy: SideBySide
+    group: int
+    rows: dict[str, list]
+    updates: list[int] = dataclasses.field(default_factory=list)
+    snapshots: list[list[torch.Tensor]] = dataclasses.field(default_factory=list)
+    calibrations: list[RobustnessCalibration | None] = dataclasses.field(default_factory=list)
+    cpu: dict[str, float] = dataclasses.field(default_factory=lambda: dict.fromkeys(PHASES, 0.0))
+
+
+def _start_repetition(cfg: Config, rep: int, test_group: int) -> _Repetition:
+    """A fresh agent (paper §3.5.1), its learning env and test policy; draws the networks'
+    initialisation from the global stream seeded :func:`repetition_seed` (the caller's
+    ``fork_rng`` scope)."""
+    x = cfg.experiment
+    seed = repetition_seed(cfg, rep)
+    rep_cfg = dataclasses.replace(cfg, seed=seed)
+    torch.manual_seed(seed)
+    learn_env = make_env(rep_cfg, num_envs=x.learning_episodes_per_trial, seed=seed)
+    learn_env.validate_actions = False  # the behaviour's actions are in range by construction
+    if cfg.train.compile:  # the learning loop's dynamics too (the learner: make_agent)
+        learn_env.compile_dynamics()
+    agent = make_agent(rep_cfg, learn_env, seed)
+    policy = SideBySide(make_test_controllers(agent), x.test_episodes_per_trial)
+    keys_ = ("items", "interruptions", "control_steps", "item_lost", "learn_items", "frames")
+    rows = {k: [] for k in (*keys_, *(f"heldout_{k}" for k in HELDOUT_KEYS))}
+    group = test_group if policy.batchable else 1
+    return _Repetition(rep, seed, agent, learn_env, policy, group, rows)
+
+
+def _test_pending(cfg: Config, r: _Repetition) -> None:
+    """The nominal and held-out test phases of ``r``'s trials not tested yet, side by side."""
+    tick = time.process_time()
+    k = cfg.experiment.test_episodes_per_trial
+    hier = r.policy.controllers[METHODS.index("hierarchy")]
+    snaps = r.snapshots if r.group > 1 else None
+    if r.group == 1 and r.calibrations[0] is not None:
+        hier.calibration = r.calibrations[0]
+    first = len(r.rows["items"])
+    env = make_test_env(cfg, k, r.seed, first_trial=first, trials=len(r.snapshots))
+    for tested in test_trials(r.policy, env, k, snaps, r.calibrations):
+        for key, v in tested.items():
+            r.rows[key].append(v)
+    first = len(r.rows["heldout_items"])
+    env = make_heldout_test_env(cfg, k, r.seed, first_trial=first, trials=len(r.snapshots))
+    for tested in test_trials(r.policy, env, k, snaps, r.calibrations):
+        for key in HELDOUT_KEYS:
+            r.rows[f"heldout_{key}"].append(tested[key])
+    r.snapshots.clear()
+    r.calibrations.clear()
+    r.cpu["test"] += time.process_time() - tick
+
+
+def _end_trial(cfg: Config, r: _Repetition, learned: dict[str, float]) -> None:
+    """Record a learning phase, freeze the heads and calibrate; test when a group is full."""
+    for key, v in learned.items():
+        r.rows[key].append(v)
+    r.updates.append(r.agent.updates)
+    tick = time.process_time()
+    r.snapshots.append(r.policy.head_values.snapshot() if r.group > 1 else [])
+    r.calibrations.append(trial_calibration(r.agent))
+    r.cpu["calibration"] += time.process_time() - tick
+    if len(r.snapshots) >= r.group:
+        _test_pending(cfg, r)
+
+
+def _finish(cfg: Config, r: _Repetition, out_dir: str | os.PathLike) -> dict[str, Any]:
+    """Test what is left, save ``rep{rep}/final.pt``, return the repetition's result."""
+    if r.snapshots:
+        _test_pending(cfg, r)
+    r.rows["updates"] = r.updates
+    agent = r.agent
+    save_checkpoint(
+        Path(out_dir) / f"rep{r.rep}" / "final.pt",
+        make_bundle(
+            agent.cfg,
+            models={"heads": agent.heads, "targets": agent.learner.loss.target_heads},
+            optimizers={"adam": agent.learner.optimizer},
+            counters={
+                "frames": agent.frames,
+                "updates": agent.updates,
+                "trials": cfg.experiment.trials,
+            },
+            rng=rng_state({"replay": agent.replay_generator, "explore": agent.explore_generator}),
+            heads_spec=agent.heads.spec.to_dict(),
+        ),
+    )
+    result = {key: np.asarray(v) for key, v in r.rows.items()}
+    result["option_names"] = list(agent.heads.option_names)
+    result["option_depths"] = hierarchy_depths(agent.subtasks.hierarchy, agent.heads.option_names)
+    result["cpu_seconds"] = r.cpu
+    return result
+
+
+def run_repetitions_batched(
+    cfg: Config,
+    reps: Sequence[int],
+    out_dir: str | os.PathLike,
+    on_trial: Callable[[int, int], None] | None = None,
+    test_group: int = TEST_GROUP,
+) -> list[dict[str, Any]]:
+    """Repetitions ``reps`` of the lifelong protocol (module docstring) in one batched loop;
+    saves each ``rep{rep}/final.pt``.
+
+    Each repetition keeps its own agent (heads, learner, replay buffer and generator, exploration
+    generator, counters), its own test policy and test phases; their learning phases run as one
+    loop (:func:`learning_phases`): one env of ``len(reps) x L`` sub-environments in seed-major
+    blocks, one behaviour pass over the repetitions' heads stacked (heads/seeds.py), each block at
+    its own epsilon and drawing from its own repetition's generators, each repetition updating on
+    its own schedule, after which its new weights are copied into the acting stack. Every
+    repetition's numbers are therefore those it gives alone (tested equal), whatever it shares a
+    batch with; only the per-step work is shared.
+
+    The test phases of ``test_group`` consecutive trials run side by side after their learning
+    phases, each with a frozen copy of the heads taken at the end of its trial
+    (:func:`test_trials`): the same episodes as testing each trial at once (``test_group = 1``).
+
+    Runs inside :func:`torch.random.fork_rng`, repetition ``r``'s networks initialised from the
+    global stream seeded :func:`repetition_seed`, so the caller's stream is left untouched.
+
+    Returns, per repetition:
+        ``items``, ``interruptions`` and ``item_lost`` ``(T, M)``, ``control_steps`` ``(T, O)``,
+        ``learn_items``, ``frames``, ``updates`` ``(T,)``, ``option_names``, ``seconds`` (the
+        batch's wall) and ``cpu_seconds``: CPU seconds per phase (:data:`PHASES`; the shared
+        learning loop split evenly between the repetitions).
+    """
+    start = time.perf_counter()
+    S = len(reps)
+    with torch.random.fork_rng(devices=[]):
+        runs = [_start_repetition(cfg, rep, test_group) for rep in reps]
+        agents = [r.agent for r in runs]
+        if S == 1:
+            env, behaviour, first_visit, on_update = (
+                runs[0].learn_env,
+                agents[0].behaviour,
+                agents[0].first_visit,
+                None,
+            )
+        else:
+            env = make_env(cfg, num_envs=S * cfg.experiment.learning_episodes_per_trial)
+            env.set_seed_blocks([r.seed for r in runs])
+            env.validate_actions = False
+            if cfg.train.compile:
+                env.compile_dynamics()
+            acting = stack_seeds([a.heads for a in agents])
+            generators = [a.explore_generator for a in agents]
+            behaviour = make_behaviour(cfg, acting, agents[0].subtasks, env.action_spec, generators)
+            obs_dim = env.observation_spec[keys.OBSERVATION].shape[-1]
+            first_visit = FirstVisitFilter(env.num_envs, obs_dim, device=cfg.device)
+
+            def on_update(s: int) -> None:  # repetition s learnt: the acting stack follows
+                load_seed(acting, s, agents[s].heads)
+
+        for trial in range(cfg.experiment.trials):
+            tick, before = time.process_time(), [a.update_seconds for a in agents]
+            learned = learning_phases(agents, env, behaviour, first_visit, on_update)
+            spent = [a.update_seconds - b for a, b in zip(agents, before)]
+            loop = (time.process_time() - tick - sum(spent)) / S
+            for r, u, one in zip(runs, spent, learned):
+                r.cpu["updates"] += u
+                r.cpu["learning_loop"] += loop
+                _end_trial(cfg, r, one)
+                if on_trial is not None:
+                    on_trial(r.rep, trial)
+        results = [_finish(cfg, r, out_dir) for r in runs]
+    for result in results:
+        result["seconds"] = time.perf_counter() - start
+    return results
+
+
 def run_repetition(
     cfg: Config,
     rep: int,
@@ -254,114 +458,9 @@ def run_repetition(
     on_trial: Callable[[int, int], None] | None = None,
     test_group: int = TEST_GROUP,
 ) -> dict[str, Any]:
-    """Repetition ``rep`` of the lifelong protocol (module docstring); saves ``rep{rep}/final.pt``.
-
-    The test phases of ``test_group`` consecutive trials run side by side after their learning
-    phases, each with a frozen copy of the heads taken at the end of its trial
-    (:func:`test_trials`): the same episodes as testing each trial at once, in a batch that
-    amortises the per-step work (``test_group = 1`` tests every trial at once).
-
-    Runs inside :func:`torch.random.fork_rng` seeded with :func:`repetition_seed`, so its global
-    torch stream (network init, behaviour draws) is its own and leaves the caller's untouched.
-
-    Returns:
-        ``items``, ``interruptions`` and ``item_lost`` ``(T, M)``, ``control_steps`` ``(T, O)``,
-        ``learn_items``,
-        ``frames``, ``updates`` ``(T,)``, ``option_names``, ``seconds`` (wall) and
-        ``cpu_seconds``: this process's CPU seconds per phase (:data:`PHASES`).
-    """
-    x = cfg.experiment
-    seed = repetition_seed(cfg, rep)
-    rep_cfg = dataclasses.replace(cfg, seed=seed)
-    k = x.test_episodes_per_trial
-    start = time.perf_counter()
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)
-        learn_env = make_env(rep_cfg, num_envs=x.learning_episodes_per_trial, seed=seed)
-        learn_env.validate_actions = False  # the behaviour's actions are in range by construction
-        if cfg.train.compile:  # the learning loop's dynamics too (the learner: make_agent)
-            learn_env.compile_dynamics()
-        agent = make_agent(rep_cfg, learn_env, seed)
-        controllers = make_test_controllers(agent)
-        policy = SideBySide(controllers, k)
-        group = test_group if policy.batchable else 1
-        rows: dict[str, list] = {
-            k_: []
-            for k_ in (
-                "items",
-                "interruptions",
-                "control_steps",
-                "item_lost",
-                "learn_items",
-                "frames",
-                *(f"heldout_{k_}" for k_ in HELDOUT_KEYS),
-            )
-        }
-        updates: list[int] = []
-        snapshots: list[list[torch.Tensor]] = []  # frozen heads of trials not tested yet
-        calibrations: list[RobustnessCalibration | None] = []  # and their hierarchy thresholds
-        hier = controllers[METHODS.index("hierarchy")]
-        cpu = dict.fromkeys(PHASES, 0.0)
-
-        def test_pending() -> None:
-            tick = time.process_time()
-            env = make_test_env(cfg, k, seed, first_trial=len(rows["items"]), trials=len(snapshots))
-            if group == 1 and calibrations[0] is not None:
-                hier.calibration = calibrations[0]
-            tested_all = test_trials(policy, env, k, snapshots if group > 1 else None, calibrations)
-            for tested in tested_all:
-                for key, v in tested.items():
-                    rows[key].append(v)
-            env = make_heldout_test_env(
-                cfg, k, seed, first_trial=len(rows["heldout_items"]), trials=len(snapshots)
-            )
-            for tested in test_trials(
-                policy, env, k, snapshots if group > 1 else None, calibrations
-            ):
-                for key in HELDOUT_KEYS:
-                    rows[f"heldout_{key}"].append(tested[key])
-            snapshots.clear()
-            calibrations.clear()
-            cpu["test"] += time.process_time() - tick
-
-        for trial in range(x.trials):
-            tick, before = time.process_time(), agent.update_seconds
-            learned = learning_phase(agent, learn_env)
-            spent = agent.update_seconds - before
-            cpu["updates"] += spent
-            cpu["learning_loop"] += time.process_time() - tick - spent
-            for key, v in learned.items():
-                rows[key].append(v)
-            updates.append(agent.updates)
-            tick = time.process_time()
-            snapshots.append(policy.head_values.snapshot() if group > 1 else [])
-            calibrations.append(trial_calibration(agent))
-            cpu["calibration"] += time.process_time() - tick
-            if len(snapshots) >= group:
-                test_pending()
-            if on_trial is not None:
-                on_trial(rep, trial)
-        if snapshots:
-            test_pending()
-        rows["updates"] = updates
-        rep_dir = Path(out_dir) / f"rep{rep}"
-        save_checkpoint(
-            rep_dir / "final.pt",
-            make_bundle(
-                rep_cfg,
-                models={"heads": agent.heads, "targets": agent.learner.loss.target_heads},
-                optimizers={"adam": agent.learner.optimizer},
-                counters={"frames": agent.frames, "updates": agent.updates, "trials": x.trials},
-                rng=rng_state({"replay": agent.replay_generator}),
-                heads_spec=agent.heads.spec.to_dict(),
-            ),
-        )
-    result = {key: np.asarray(v) for key, v in rows.items()}
-    result["option_names"] = list(agent.heads.option_names)
-    result["option_depths"] = hierarchy_depths(agent.subtasks.hierarchy, agent.heads.option_names)
-    result["seconds"] = time.perf_counter() - start
-    result["cpu_seconds"] = cpu
-    return result
+    """Repetition ``rep`` of the lifelong protocol alone: :func:`run_repetitions_batched` of one
+    (module docstring; saves ``rep{rep}/final.pt``)."""
+    return run_repetitions_batched(cfg, [rep], out_dir, on_trial, test_group)[0]
 
 
 def heldout_summary(held: dict[str, np.ndarray], first: dict[str, Any]) -> dict[str, Any]:
@@ -408,42 +507,59 @@ def hierarchy_depths(hierarchy: Any, option_names: Sequence[str]) -> list[int]:
     return [depth.get(o, -1) for o in option_names]
 
 
-def _worker(cfg: Config, rep: int, out_dir: str, threads: int, queue: Any) -> None:
-    """Process entry: one repetition, progress and result through ``queue``."""
+def repetition_batches(reps: int, workers: int) -> list[list[int]]:
+    """The repetitions ``0 .. reps - 1`` in ``min(workers, reps)`` contiguous batches of sizes
+    differing by at most one (each batch one process, one batched loop)."""
+    w = max(1, min(workers, reps))
+    size, extra = divmod(reps, w)
+    out, first = [], 0
+    for i in range(w):
+        n = size + (1 if i < extra else 0)
+        out.append(list(range(first, first + n)))
+        first += n
+    return out
+
+
+def _worker(cfg: Config, reps: list[int], out_dir: str, threads: int, queue: Any) -> None:
+    """Process entry: one batch of repetitions, progress and results through ``queue``."""
     torch.set_num_threads(threads)
     try:
-        result = run_repetition(cfg, rep, out_dir, lambda r, t: queue.put(("trial", r, None)))
-        queue.put(("done", rep, result))
+        done = run_repetitions_batched(
+            cfg, reps, out_dir, lambda r, t: queue.put(("trial", r, None))
+        )
+        for rep, result in zip(reps, done):
+            queue.put(("done", rep, result))
     except BaseException as e:  # report, so the parent does not wait forever
-        queue.put(("error", rep, f"{type(e).__name__}: {e}"))
+        queue.put(("error", reps[0], f"{type(e).__name__}: {e}"))
 
 
 def run_repetitions(
     cfg: Config, out_dir: str | os.PathLike, workers: int = 1, progress: bool = True
 ) -> list[dict[str, Any]]:
-    """Every repetition, sequentially (``workers = 1``) or in ``workers`` spawned processes."""
+    """Every repetition, batched (:func:`run_repetitions_batched`): in this process
+    (``workers = 1``: one batch of all of them) or as ``workers`` batches in spawned processes
+    (:func:`repetition_batches`). Each repetition gives the same numbers either way."""
     reps = cfg.experiment.runs
     bar = progress_bar(
         total=reps * cfg.experiment.trials, disable=not progress, desc=EXPERIMENT, unit="trial"
     )
     results: dict[int, dict[str, Any]] = {}
-    if workers <= 1:
-        for rep in range(reps):
-            results[rep] = run_repetition(cfg, rep, out_dir, lambda r, t: bar.update(1))
+    batches = repetition_batches(reps, workers)
+    if len(batches) == 1:
+        done = run_repetitions_batched(cfg, batches[0], out_dir, lambda r, t: bar.update(1))
+        results = dict(zip(batches[0], done))
     else:
         ctx = mp.get_context("spawn")
         queue = ctx.Queue()
-        pending = list(range(reps))
-        running: dict[int, Any] = {}
-        threads = max(1, torch.get_num_threads() // workers)
+        threads = max(1, torch.get_num_threads() // len(batches))
+        procs = [
+            ctx.Process(target=_worker, args=(cfg, b, str(out_dir), threads, queue), daemon=True)
+            for b in batches
+        ]
         try:
-            while pending or running:
-                while pending and len(running) < workers:
-                    rep = pending.pop(0)
-                    running[rep] = ctx.Process(
-                        target=_worker, args=(cfg, rep, str(out_dir), threads, queue), daemon=True
-                    )
-                    running[rep].start()
+            for proc in procs:
+                proc.start()
+            while len(results) < reps:
                 kind, rep, payload = queue.get()
                 if kind == "trial":
                     bar.update(1)
@@ -451,10 +567,12 @@ def run_repetitions(
                     raise RuntimeError(f"repetition {rep} failed: {payload}")
                 else:
                     results[rep] = payload
-                    running.pop(rep).join()
-        finally:  # an error or Ctrl-C here stops the other repetitions too
-            for p in running.values():
-                p.terminate()
+            for proc in procs:
+                proc.join()
+        finally:  # an error or Ctrl-C here stops the other batches too
+            for proc in procs:
+                if proc.is_alive():
+                    proc.terminate()
     bar.close()
     return [results[r] for r in range(reps)]
 
@@ -560,13 +678,19 @@ __all__ = [  # the protocol, then the names of fig4_trial, side_by_side, snapsho
     "HELDOUT_KEYS",
     "nominal_seeds",
     "repetition_seed",
+    "repetition_batches",
     "run_repetition",
     "run_repetitions",
+    "run_repetitions_batched",
+    "exploration_generator",
+    "make_behaviour",
+    "EXPLORATION_OFFSET",
     "trial_calibration",
     "wargus_fig4",
     "LifelongAgent",
     "learn_due",
     "learning_phase",
+    "learning_phases",
     "learning_phase_torchrl",
     "test_phase",
     "test_phase_torchrl",

@@ -16,7 +16,10 @@ Actions are the greedy actions of the chosen head, then TorchRL's ``EGreedyModul
 by uniform ones with probability epsilon (scheduled by the trainer). The mode is carried in the
 tensordict under ``"behaviour"`` like a recurrent state: the collector keeps the policy's outputs in
 its carrier from step to step, and ``is_init`` (TorchRL ``InitTracker``) marks new episodes. Random
-draws use the global torch generator, seeded and checkpointed by the trainer.
+draws use the global torch generator, seeded and checkpointed by the trainer; or, with
+``generators``, one ``torch.Generator`` per run of a batch (the Figure 4 protocol's repetitions,
+docs/seeds.md): block ``s`` of the rows draws from ``generators[s]`` only, in the same order, so a
+run's behaviour is the same whichever runs share its batch.
 """
 
 from __future__ import annotations
@@ -58,6 +61,11 @@ class BehaviourPolicy(TensorDictModuleBase):
         stacked: read every head from one pass of their shared ``StackedMLP`` (where they have
             one: :class:`~taskvar_torch.heads.snapshots.HeadValues`, the same values); ``False``:
             run each head on its own (the slower reference, ``benchmarks/wargus_trial.py``).
+        generators: ``S`` generators, one per run: the rows are ``S`` equal blocks, block ``s``
+            drawing every random number (option picks, exploration, option episodes, the
+            epsilon-greedy replacement) from ``generators[s]``; the epsilon-greedy step is then this
+            module's own (the same rule as ``EGreedyModule``: a uniform action where a uniform draw
+            is below epsilon). ``None``: the global stream and ``EGreedyModule``.
         compile: run the heads and the choice of action and mode (everything but the random
             draws, which stay eager and in their order) through ``torch.compile``
             (``train.compile``; :class:`~taskvar_torch.compiling.Compiled`): the same bits
@@ -75,6 +83,7 @@ class BehaviourPolicy(TensorDictModuleBase):
         option_coverage: float = 0.0,
         stacked: bool = True,
         compile: bool = False,
+        generators: list[torch.Generator] | None = None,
     ):
         super().__init__()
         if not 0.0 <= option_prob <= 1.0:
@@ -102,14 +111,67 @@ class BehaviourPolicy(TensorDictModuleBase):
             HeadValues(heads, names) if stacked and HeadValues.supports(heads, names) else None
         )
         self._compiled = Compiled(self._decide_eager, "the behaviour policy") if compile else None
+        self.generators = list(generators) if generators is not None else None
+        self.active: list[bool] | None = None  # generators: blocks that draw (None: all)
+        self.num_actions = int(action_spec.n)
 
     @property
     def epsilon(self) -> float:
-        return float(self.egreedy.eps)
+        """The exploration rate (its mean where it is set per row)."""
+        return float(self.egreedy.eps.float().mean())
 
-    def set_epsilon(self, eps: float) -> None:
-        """Set the exploration rate (the trainer's schedule owns it)."""
-        self.egreedy.eps.fill_(float(eps))
+    def set_epsilon(self, eps: float | torch.Tensor) -> None:
+        """Set the exploration rate (the trainer's schedule owns it): one float, or one per row
+        (``(N,)``, e.g. each run of a batch at its own point of the schedule)."""
+        if isinstance(eps, torch.Tensor) and eps.ndim > 0:
+            self.egreedy.eps = eps.to(self.egreedy.eps.device, torch.float32)
+        else:
+            if self.egreedy.eps.ndim > 0:
+                self.egreedy.eps = torch.zeros((), device=self.egreedy.eps.device)
+            self.egreedy.eps.fill_(float(eps))
+
+    def set_active(self, active: list[bool] | None) -> None:
+        """With ``generators``: which blocks draw at the next steps (a block whose episodes have
+        all ended draws nothing, as its run alone would have stopped; its rows get zeros)."""
+        self.active = active
+
+    def _blocks(self, draw, m: int) -> list[torch.Tensor]:
+        """``draw(generator, s)`` for each active block ``s``, zeros of ``m`` rows for the others."""
+        act = self.active or [True] * len(self.generators)
+        return [
+            draw(g, s) if a else torch.zeros(m, dtype=torch.int64)
+            for s, (g, a) in enumerate(zip(self.generators, act))
+        ]
+
+    def _rand(self, n: int, device: torch.device) -> torch.Tensor:
+        """``(n,)`` uniforms: the global stream, or block ``s`` from ``generators[s]``."""
+        if self.generators is None:
+            return torch.rand(n, device=device)
+        m = n // len(self.generators)
+        blocks = self._blocks(lambda g, s: torch.rand(m, generator=g), m)
+        return torch.cat([b.to(torch.float32) for b in blocks]).to(device)
+
+    def _pick(self, allowed: torch.Tensor) -> torch.Tensor:
+        """One index per row of ``allowed`` ``(n, O)``, uniform over its nonzero entries."""
+        if self.generators is None:
+            return torch.multinomial(allowed, 1).squeeze(-1)
+        rows = allowed.cpu().chunk(len(self.generators))
+        m = rows[0].shape[0]
+        blocks = self._blocks(lambda g, s: torch.multinomial(rows[s], 1, generator=g)[:, 0], m)
+        return torch.cat(blocks).to(allowed.device)
+
+    def _explore(self, td: TensorDictBase) -> TensorDictBase:
+        """Epsilon-greedy: ``EGreedyModule``, or (``generators``) the same rule on their draws."""
+        if self.generators is None:
+            return self.egreedy(td)
+        action = td.get(keys.ACTION)
+        n = action.shape[0]
+        cond = self._rand(n, action.device) < self.egreedy.eps
+        m = n // len(self.generators)
+        draw = lambda g, s: torch.randint(self.num_actions, (m,), generator=g)  # noqa: E731
+        uniform = torch.cat(self._blocks(draw, m)).to(action.device)
+        td.set(keys.ACTION, torch.where(cond, uniform.to(action.dtype), action))
+        return td
 
     def _decide_eager(
         self,
@@ -167,13 +229,11 @@ class BehaviourPolicy(TensorDictModuleBase):
             # exploration, option episodes; then EGreedyModule's
             init = self.subtasks.initiation(td)  # (N, O) bool
             allowed = (init | ~init.any(-1, keepdim=True)).to(torch.float32)  # (N, O)
-            uniform = torch.multinomial(allowed, 1).squeeze(-1)  # (N,)
-            explore = torch.rand(N, device=obs.device) < self.egreedy.eps.clamp_min(
-                self.option_coverage
-            )
-            run_options = torch.rand(N, device=obs.device) < self.option_prob
+            uniform = self._pick(allowed)  # (N,)
+            explore = self._rand(N, obs.device) < self.egreedy.eps.clamp_min(self.option_coverage)
+            run_options = self._rand(N, obs.device) < self.option_prob
             ended = self.subtasks.termination(td)  # (N, O) bool
             action, mode = decide(obs, mode, init, is_init, uniform, explore, run_options, ended)
         td.set(keys.ACTION, action)
         td.set(BEHAVIOUR, mode)
-        return self.egreedy(td)
+        return self._explore(td)

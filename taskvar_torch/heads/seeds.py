@@ -11,7 +11,8 @@ clip and the target and Polyak updates are elementwise or per member, and each r
 own rows only (``Transitions.seeds``, ``heads/targets.py`` ``group_mean``).
 
 :func:`split_seed` cuts run ``s`` back out into a bundle of today's single-seed layout, what
-``taskvar train --seeds N`` writes as ``seed<k>/`` (docs/seeds.md).
+``taskvar train --seeds N`` writes as ``seed<k>/`` (docs/seeds.md); :func:`load_seed` copies a
+single-seed bundle's weights back in.
 
 Examples:
     >>> batch = stack_seeds([build_heads(cfg, env, sub) for _ in range(5)])  # doctest: +SKIP
@@ -138,6 +139,27 @@ def split_seed(batch: Heads, s: int, template: Heads) -> Heads:
     return template
 
 
+def load_seed(batch: Heads, s: int, run: Heads) -> Heads:
+    """Copy ``run``'s weights (a single-seed bundle of the same config) into run ``s`` of a
+    :func:`stack_seeds` bundle, in place: :func:`split_seed`'s inverse (the Figure 4 protocol's
+    acting stack follows each repetition's own learner this way). Returns ``batch``."""
+    S = int(getattr(batch, "seeds", 1))
+    if not 0 <= s < S:
+        raise ValueError(f"seed index must be in [0, {S}), got {s}")
+    with torch.no_grad():
+        for dst, src in zip(_stacks_without_critic(batch), _stacks(run)):
+            for i in range(len(src.weights)):
+                dst.weights[i].view(S, -1, *dst.weights[i].shape[1:])[s].copy_(src.weights[i])
+                dst.biases[i].view(S, -1, *dst.biases[i].shape[1:])[s].copy_(src.biases[i])
+        critic = _critic(run)
+        if critic is not None:
+            seeded = _critic(batch).stack
+            for i, lin in enumerate(_linears(critic)):
+                seeded.weights[i][s].copy_(lin.weight.t())
+                seeded.biases[i][s, 0].copy_(lin.bias)
+    return batch
+
+
 def _stacks_without_critic(heads: Heads) -> list[StackedMLP]:
     """:func:`_stacks` minus the seeded critic's one-member stack (a plain MLP when unseeded)."""
     critic = _critic(heads)
@@ -150,4 +172,4 @@ def num_seeds(heads: Heads) -> int:
     return int(getattr(heads, "seeds", 1))
 
 
-__all__ = ["num_seeds", "split_seed", "stack_seeds"]
+__all__ = ["load_seed", "num_seeds", "split_seed", "stack_seeds"]
