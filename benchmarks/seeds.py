@@ -14,10 +14,13 @@ seed (printed as ``MB/seed``, the increase over one seed divided by N - 1).
 Usage::
 
     python benchmarks/seeds.py                # windy 5x5 (50k frames), windy 51x51 and Wargus
-                                              # 32x32 training (shorter budgets), N = 1, 5, 10
+                                              # 32x32 training (shorter budgets), and Figure 4's
+                                              # repetitions batched, N = 1, 5, 10
     python benchmarks/seeds.py --cases windy5 --seeds 1,5 --repeats 3
     python benchmarks/seeds.py --cases windy5,wargus32 --seeds 1,5 train.total_frames=20000
     python benchmarks/seeds.py --quick        # a smoke run: windy 5x5, 768 frames, N = 1, 2
+    python benchmarks/seeds.py --cases fig4 --seeds 1,5   # Figure 4: 30 paper-scale trials of
+                                              # 1 repetition against 5 batched (N = seeds)
 """
 
 from __future__ import annotations
@@ -39,7 +42,11 @@ CASES = {
     "windy5": ("configs/windy.yaml", []),  # the shipped 50k-frame budget
     "windy51": ("configs/windy_xl.yaml", ["train.total_frames=60000"]),
     "wargus32": ("configs/wargus.yaml", ["train.total_frames=40000"]),
+    # Figure 4: N repetitions batched in one loop (wargus_fig4.run_repetitions_batched), the
+    # paper-scale trial (30 learning episodes, 5 x 4 test episodes, 2 x with the held-out ones)
+    "fig4": ("configs/wargus.yaml", ["experiment.trials=30"]),
 }
+FIG4 = {"fig4"}  # cases that run Figure 4 repetitions rather than taskvar train
 QUICK = [
     "train.total_frames=768",
     "train.init_random_frames=256",
@@ -49,29 +56,40 @@ QUICK = [
 ]
 
 
-def child(config: str, overrides: list[str], seeds: int) -> dict:
-    """One training run in this process; its wall and CPU seconds and peak RSS (MB)."""
+def child(config: str, overrides: list[str], seeds: int, fig4: bool = False) -> dict:
+    """One training run (``fig4``: ``seeds`` Figure 4 repetitions batched) in this process; its
+    wall and CPU seconds and peak RSS (MB)."""
     import torch
 
     from taskvar_torch.config import load_config
+    from taskvar_torch.experiments.wargus_fig4 import run_repetitions_batched
     from taskvar_torch.train import train
 
     torch.set_num_threads(1)
-    cfg = load_config(str(ROOT / config), [*overrides, f"train.seeds={seeds}"])
+    extra = [] if fig4 else [f"train.seeds={seeds}"]
+    cfg = load_config(str(ROOT / config), [*overrides, *extra])
     with tempfile.TemporaryDirectory() as tmp:
         wall0, cpu0 = time.perf_counter(), time.process_time()
-        train(cfg, Path(tmp) / "run", progress=False, keep_replay=False)
+        phases = {}
+        if fig4:  # CPU seconds per repetition and trial, per phase (wargus_fig4.PHASES)
+            done = run_repetitions_batched(cfg, list(range(seeds)), Path(tmp))
+            per = seeds * cfg.experiment.trials
+            phases = {
+                k: sum(r["cpu_seconds"][k] for r in done) / per for k in done[0]["cpu_seconds"]
+            }
+        else:
+            train(cfg, Path(tmp) / "run", progress=False, keep_replay=False)
         wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KB -> MB (Linux)
-    return {"wall": wall, "cpu": cpu, "rss": rss}
+    return {"wall": wall, "cpu": cpu, "rss": rss, "phases": phases}
 
 
-def measure(config: str, overrides: list[str], seeds: int) -> dict:
+def measure(config: str, overrides: list[str], seeds: int, fig4: bool = False) -> dict:
     """:func:`child` in a fresh process (its own peak RSS)."""
     here = str(Path(__file__).parent)
     code = (
         f"import json, sys; sys.path.insert(0, {here!r}); from seeds import child; "
-        f"print('RESULT', json.dumps(child({config!r}, {overrides!r}, {seeds})))"
+        f"print('RESULT', json.dumps(child({config!r}, {overrides!r}, {seeds}, {fig4})))"
     )
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
     out = subprocess.run(
@@ -107,11 +125,12 @@ def main(argv: list[str] | None = None) -> None:
     for r in range(args.repeats):
         for name, (config, overrides) in cases.items():
             for n in counts:
-                m = measure(config, [*overrides, *args.overrides], n)
+                m = measure(config, [*overrides, *args.overrides], n, name in FIG4)
                 runs.setdefault((name, n), []).append(m)
                 print(
                     f"  round {r}: {name} N={n}: wall {m['wall']:.1f} s, cpu {m['cpu']:.1f} s, "
-                    f"peak RSS {m['rss']:.0f} MB (load {os.getloadavg()[0]:.2f})",
+                    f"peak RSS {m['rss']:.0f} MB (load {os.getloadavg()[0]:.2f})"
+                    + "".join(f", {k} {v:.3f}" for k, v in m["phases"].items()),
                     flush=True,
                 )
     print(

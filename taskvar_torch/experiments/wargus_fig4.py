@@ -1,8 +1,8 @@
 """Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md).
 
 The protocol, top to bottom (:func:`wargus_fig4`), for each of R repetitions (own seed
-``cfg.seed + rep``, own env streams, own replay and exploration generators, its networks initialised from its own seed; never one RNG
-shared between repetitions):
+``cfg.seed + rep``, own env streams, own replay and exploration generators, networks initialised
+from its own seed; never one RNG shared between repetitions):
 
 1. the agent starts with *no prior knowledge*: fresh networks for every head (averaging, options,
    mu_bar, max-value, robustness), an empty replay buffer, epsilon = 1;
@@ -311,31 +311,68 @@ def _start_repetition(cfg: Config, rep: int, test_group: int) -> _Repetition:
     return _Repetition(rep, seed, agent, learn_env, policy, group, rows)
 
 
-def _test_pending(cfg: Config, r: _Repetition) -> None:
-    """The nominal and held-out test phases of ``r``'s trials not tested yet, side by side."""
+def _test_env(
+    make: Callable[..., WargusEnv], cfg: Config, runs: Sequence[_Repetition], first: int, G: int
+) -> WargusEnv:
+    """``make`` (:func:`make_test_env` or :func:`make_heldout_test_env`) of ``G`` trials from
+    ``first`` for every repetition of ``runs`` at once: their rows in seed-major blocks, block
+    ``s`` drawing what repetition ``s``'s own test env draws (:meth:`WargusEnv.set_seed_blocks`)."""
+    k = cfg.experiment.test_episodes_per_trial
+    if len(runs) == 1:
+        return make(cfg, k, runs[0].seed, first_trial=first, trials=G)
+    one = make(cfg, k, runs[0].seed, first_trial=first, trials=G)
+    rows = one.instances.seeds * len(runs)
+    env = make_env(
+        cfg,
+        len(rows),
+        seed=runs[0].seed,
+        instances=WargusInstances(seeds=rows),
+        validate_actions=False,
+    )
+    env.set_seed_blocks([r.seed for r in runs])
+    return env
+
+
+def _test_pending(cfg: Config, runs: Sequence[_Repetition]) -> None:
+    """The nominal and held-out test phases of the trials not tested yet, of every repetition of
+    ``runs`` (each with the same number pending) side by side in one batch: repetition ``s``'s
+    frozen heads and calibrations on its own block of rows (:func:`_test_env`), so each gets the
+    episodes it gets alone. Without snapshots (``group = 1``: the live heads) one at a time."""
     tick = time.process_time()
     k = cfg.experiment.test_episodes_per_trial
-    hier = r.policy.controllers[METHODS.index("hierarchy")]
-    snaps = r.snapshots if r.group > 1 else None
-    if r.group == 1 and r.calibrations[0] is not None:
-        hier.calibration = r.calibrations[0]
-    first = len(r.rows["items"])
-    env = make_test_env(cfg, k, r.seed, first_trial=first, trials=len(r.snapshots))
-    for tested in test_trials(r.policy, env, k, snaps, r.calibrations):
-        for key, v in tested.items():
-            r.rows[key].append(v)
-    first = len(r.rows["heldout_items"])
-    env = make_heldout_test_env(cfg, k, r.seed, first_trial=first, trials=len(r.snapshots))
-    for tested in test_trials(r.policy, env, k, snaps, r.calibrations):
-        for key in HELDOUT_KEYS:
-            r.rows[f"heldout_{key}"].append(tested[key])
-    r.snapshots.clear()
-    r.calibrations.clear()
-    r.cpu["test"] += time.process_time() - tick
+    if runs[0].group == 1 and len(runs) > 1:
+        for r in runs:
+            _test_pending(cfg, [r])
+        return
+    G = len(runs[0].snapshots)
+    policy = runs[0].policy
+    snaps = [snap for r in runs for snap in r.snapshots] if runs[0].group > 1 else None
+    cals = [c for r in runs for c in r.calibrations]
+    if runs[0].group == 1 and cals[0] is not None:
+        policy.controllers[METHODS.index("hierarchy")].calibration = cals[0]
+    first = len(runs[0].rows["items"])
+    env = _test_env(make_test_env, cfg, runs, first, G)
+    tested = test_trials(policy, env, k, snaps, cals)
+    for i, r in enumerate(runs):
+        for one in tested[i * G : (i + 1) * G]:
+            for key, v in one.items():
+                r.rows[key].append(v)
+    first = len(runs[0].rows["heldout_items"])
+    env = _test_env(make_heldout_test_env, cfg, runs, first, G)
+    tested = test_trials(policy, env, k, snaps, cals)
+    for i, r in enumerate(runs):
+        for one in tested[i * G : (i + 1) * G]:
+            for key in HELDOUT_KEYS:
+                r.rows[f"heldout_{key}"].append(one[key])
+        r.snapshots.clear()
+        r.calibrations.clear()
+    spent = (time.process_time() - tick) / len(runs)
+    for r in runs:
+        r.cpu["test"] += spent
 
 
 def _end_trial(cfg: Config, r: _Repetition, learned: dict[str, float]) -> None:
-    """Record a learning phase, freeze the heads and calibrate; test when a group is full."""
+    """Record a learning phase, freeze the heads and calibrate."""
     for key, v in learned.items():
         r.rows[key].append(v)
     r.updates.append(r.agent.updates)
@@ -343,14 +380,10 @@ def _end_trial(cfg: Config, r: _Repetition, learned: dict[str, float]) -> None:
     r.snapshots.append(r.policy.head_values.snapshot() if r.group > 1 else [])
     r.calibrations.append(trial_calibration(r.agent))
     r.cpu["calibration"] += time.process_time() - tick
-    if len(r.snapshots) >= r.group:
-        _test_pending(cfg, r)
 
 
 def _finish(cfg: Config, r: _Repetition, out_dir: str | os.PathLike) -> dict[str, Any]:
-    """Test what is left, save ``rep{rep}/final.pt``, return the repetition's result."""
-    if r.snapshots:
-        _test_pending(cfg, r)
+    """Save ``rep{rep}/final.pt``, return the repetition's result (every trial tested)."""
     r.rows["updates"] = r.updates
     agent = r.agent
     save_checkpoint(
@@ -443,8 +476,13 @@ def run_repetitions_batched(
                 r.cpu["updates"] += u
                 r.cpu["learning_loop"] += loop
                 _end_trial(cfg, r, one)
+            if len(runs[0].snapshots) >= runs[0].group:
+                _test_pending(cfg, runs)
+            for r in runs:
                 if on_trial is not None:
                     on_trial(r.rep, trial)
+        if runs[0].snapshots:
+            _test_pending(cfg, runs)
         results = [_finish(cfg, r, out_dir) for r in runs]
     for result in results:
         result["seconds"] = time.perf_counter() - start
