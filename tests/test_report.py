@@ -307,3 +307,14 @@ def test_a_scale_folder_of_several_seeds_counts_each(tmp_path):
     assert g.seeds == [0, 1, 2, 3, 4]
     (row,) = report.build_report([str(tmp_path / "s")], reps=100).rows
     assert "averaging 0.70 [" in row[1]  # the IQM of 0.5 ... 0.9
+
+
+def test_the_readme_header_does_not_call_every_row_held_out():
+    """An eval row of ``--test train`` sits in the same table as the held-out claims: the header
+    says held-out only where the row names no other test (found on the real windy tables)."""
+    rows = [("eval windy --test train", "IQM mean return (--test train, 1 point(s))", 5, "abc")]
+    table = report.results_table(report.Report([], [], rows, [], 100))
+    header = table.splitlines()[0]
+    assert "(held-out instances;" not in header
+    assert "held-out instances unless the row names another --test" in header
+    assert "| eval windy --test train |" in table

@@ -671,8 +671,8 @@ def results_table(report: Report, claims_link: str = "docs/claims.md") -> str:
     """The README's Results table (between :data:`README_START` and :data:`README_END`);
     ``claims_link``: the claims page, relative to the README."""
     lines = [
-        "| experiment | headline (held-out instances; IQM or mean [95% CI] over seeds) | "
-        "training seeds | config | claims |",
+        "| experiment | headline (IQM or mean [95% CI] over seeds; held-out instances unless the "
+        "row names another --test) | training seeds | config | claims |",
         "| --- | --- | --- | --- | --- |",
     ]
     for label, headline, n, digest in report.rows:
