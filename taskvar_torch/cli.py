@@ -308,7 +308,7 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=1,
         metavar="N",
-        help="wargus-fig4: run the repetitions in N processes (default 1: sequentially)",
+        help="wargus-fig4: split the repetitions into N batches, one process each (default 1: all in one batch)",
     )
     p.add_argument(
         "--threads",
