@@ -98,6 +98,16 @@ def parse_methods(
     return [m for m in (*METHODS, *BASELINES) if m in names]
 
 
+def episode_seed(cfg: Config, test: str, seed: int | None) -> int:
+    """The seed of the test episodes (docs/evaluation.md): ``seed``, by default the bundle's
+    ``seed + 1`` (the experiments' first test run); a held-out distribution plays its sealed seed
+    only (another ``seed`` is a one-line error)."""
+    sealed = family(cfg).tests[test].seed
+    if sealed is not None and seed is not None and int(seed) != sealed:
+        raise ValueError(f"--test {test} plays its sealed held-out seed; drop --seed {seed}")
+    return (int(cfg.seed) + 1 if sealed is None else sealed) if seed is None else int(seed)
+
+
 def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:
     """The shifted env must keep the bundle's observation, actions and options."""
     obs = int(env.observation_spec[keys.OBSERVATION].shape[-1])
@@ -147,6 +157,30 @@ def _affordable(oracle: Any, instance: dict[str, np.ndarray]) -> bool:
     count = getattr(oracle, "exact_solves", None)
     n = count(*fields) if count is not None else len(np.unique(np.stack(fields, 1), axis=0))
     return n <= limit
+
+
+def exact_regret(
+    oracle: Any,
+    ctrl: Controller,
+    cfg: Config,
+    instance: dict[str, np.ndarray],
+    start: np.ndarray,
+    optimum: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, dict[str, float] | None]:
+    """A memoryless controller's exact expected return per episode (``exact_episode_returns``)
+    and its regret against the exact per-instance optimum (docs/evaluation.md; paper §3.3.1).
+
+    ``optimum``: the episodes' exact optimal returns where already known (paired episodes: the
+    same for every method), else solved here where the oracle has ``optimal_return``. Returns
+    the exact returns, the optimum (``None`` without ``optimal_return``) and ``regret_mean`` with
+    its ``regret_ci95`` (``None`` without an optimum)."""
+    exact_r = exact_episode_returns(oracle, ctrl, cfg, instance, start)
+    if optimum is None and hasattr(oracle, "optimal_return"):
+        optimum = optimal_episode_returns(oracle, instance, start)
+    if optimum is None:
+        return exact_r, None, None
+    mean, ci = mean_ci95(torch.as_tensor(optimum - exact_r, dtype=torch.float64))
+    return exact_r, optimum, {"regret_mean": float(mean), "regret_ci95": ci}
 
 
 def play(
@@ -236,6 +270,7 @@ def eval_bundle(
     plots: bool = True,
     overwrite: bool = False,
     exact: bool | None = None,
+    by_frames: bool = False,
 ) -> dict[str, Any]:
     """Evaluate the bundle at ``checkpoint`` with ``method`` (``all``, one, or a comma list) on
     the named test distribution ``test`` (``None``: the family's first) with ``shifts``
@@ -247,7 +282,11 @@ def eval_bundle(
     ``exact``: the exact per-episode returns and regret where the family has an oracle; ``None``
     (default): where they are cheap (an oracle may bound the distinct instances it solves per
     point, ``max_exact_solves``: Taxi's with continuous rain cost seconds each), else skipped with
-    a note (``metrics.json`` ``exact_skipped``); ``True``: always; ``False``: never."""
+    a note (``metrics.json`` ``exact_skipped``); ``True``: always; ``False``: never.
+
+    ``by_frames``: also each memoryless method's exact regret on every heads snapshot of the run
+    (``train.heads_every``) on the same episodes (``experiments/regret_frames.py``): the
+    ``metrics.json`` key ``regret_by_frames``, ``regret_by_frames.csv`` and ``.png``."""
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
@@ -260,10 +299,7 @@ def eval_bundle(
         method, train_subtasks, heads, available_baselines(checkpoint), checkpoint
     )
     baselines = load_baselines(checkpoint, methods, cfg)  # recurrent, informed (docs/memory.md)
-    sealed = fam.tests[test_name].seed  # a held-out distribution plays its sealed seed only
-    if sealed is not None and seed is not None and int(seed) != sealed:
-        raise ValueError(f"--test {test_name} plays its sealed held-out seed; drop --seed {seed}")
-    seed = (int(cfg.seed) + 1 if sealed is None else sealed) if seed is None else int(seed)
+    seed = episode_seed(cfg, test_name, seed)
     bs = int(batch_size or cfg.eval.batch_size)
     calibration = None  # the hierarchy's thresholds: on the bundle's *training* distribution
     if "hierarchy" in methods and cfg.train.robustness_threshold == "calibrated":
@@ -273,6 +309,12 @@ def eval_bundle(
         probe = make_env(point.cfg, 1, instances=point.instances)
         point_subtasks.append(make_subtasks(point.cfg, probe))
         _check_fits(point, heads, point_subtasks[-1], probe)
+    if by_frames:  # its one-line refusals before any episode is played
+        from taskvar_torch.experiments.regret_frames import check_by_frames
+
+        if exact is False:
+            raise ValueError("--by-frames computes exact returns; drop --no-exact")
+        check_by_frames(checkpoint, points)
     if out_dir is not None:
         refuse_existing_results(Path(out_dir), overwrite, "taskvar eval")
     bar = progress_bar(
@@ -318,14 +360,13 @@ def eval_bundle(
                         r["optimum_return"] = optimum
                         rows_have_optimum = True
             elif oracle is not None:
-                exact_r = exact_episode_returns(oracle, ctrl, point.cfg, instance, r["start"])
+                exact_r, optimum, regret = exact_regret(
+                    oracle, ctrl, point.cfg, instance, r["start"], optimum
+                )
                 per_method[m]["exact_mean_return"] = float(np.mean(exact_r, dtype=np.float64))
                 r["exact_return"] = exact_r
-                if optimum is None and hasattr(oracle, "optimal_return"):  # paired episodes
-                    optimum = optimal_episode_returns(oracle, instance, r["start"])
-                if optimum is not None:
-                    mean, ci = mean_ci95(torch.as_tensor(optimum - exact_r, dtype=torch.float64))
-                    per_method[m].update(regret_mean=float(mean), regret_ci95=ci)
+                if regret is not None:
+                    per_method[m].update(regret)
                     if not rows_have_optimum:
                         r["optimum_return"] = optimum  # once per episode (the first method)
                         rows_have_optimum = True
@@ -350,6 +391,23 @@ def eval_bundle(
         metrics["regret_by_step"] = by_step
     if len(points) == 1 and len(methods) == 1:  # the keys of a one-method evaluation
         metrics.update({"method": methods[0], **results[0]["methods"][methods[0]]})
+    if by_frames:  # the same paired episodes, on every heads snapshot of the run
+        from taskvar_torch.experiments.regret_frames import regret_by_frames
+
+        metrics["regret_by_frames"] = regret_by_frames(
+            checkpoint,
+            method,
+            test_name,
+            shifts,
+            episodes,
+            seed,
+            noise_seed,
+            bs,
+            exact,
+            out_dir=out_dir,
+            plots=plots,
+            overwrite=True,  # out_dir: refused above if it held any
+        )
     if out_dir is not None:
         _write(Path(out_dir), metrics, rows, plots)
     return metrics
