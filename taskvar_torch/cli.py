@@ -197,11 +197,11 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--method",
-        default="interruption",
+        default=None,
         help="all, or one or a comma list of averaging, options, interruption, hierarchy, "
         "recurrent, informed (the last two where DIR/recurrent.pt, DIR/informed.pt exist: "
         "taskvar train-baselines); every method plays the same paired episodes (default: "
-        "interruption)",
+        "interruption; all with --by-frames)",
     )
     p.add_argument("--episodes", type=int, default=1000, help="test episodes (default 1000)")
     p.add_argument(
@@ -231,6 +231,14 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
         help="exact per-episode returns and regret where the family has an exact oracle; default: "
         "where they are cheap (Taxi: few distinct rain values); --exact always, --no-exact never",
     )
+    p.add_argument(
+        "--by-frames",
+        action="store_true",
+        help="also each memoryless method's exact regret against the per-instance optimum on every "
+        "heads snapshot of the run (train.heads_every=N) and the final heads, on the same paired "
+        "episodes: metrics.json regret_by_frames, DIR/regret_by_frames.csv and .png (windy, Taxi; "
+        "docs/memory.md)",
+    )
     p.add_argument("--out", metavar="DIR", help="write DIR/metrics.json, episodes.csv, eval.png")
     _overwrite_argument(p, "DIR")
     _threads_argument(p)
@@ -239,6 +247,7 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
 
 def _eval_run(args: argparse.Namespace) -> int:
     from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
+    from taskvar_torch.experiments.regret_frames import format_by_frames
     from taskvar_torch.experiments.shift import parse_shift
 
     _set_threads(args)
@@ -250,9 +259,10 @@ def _eval_run(args: argparse.Namespace) -> int:
         from taskvar_torch.train import check_output_folder
 
         check_output_folder(args.out)
+    method = args.method or ("all" if args.by_frames else "interruption")
     metrics = eval_bundle(
         args.checkpoint,
-        args.method,
+        method,
         test,
         shifts,
         episodes=args.episodes,
@@ -262,12 +272,16 @@ def _eval_run(args: argparse.Namespace) -> int:
         out_dir=args.out,
         progress=not args.no_progress,
         overwrite=args.overwrite,
+        by_frames=args.by_frames,
     )
     print(format_table(metrics))
+    if args.by_frames:
+        print(format_by_frames(metrics["regret_by_frames"]))
     if args.out is not None:
         print(
             f"wrote {args.out}/metrics.json, episodes.csv"
             + (", eval.png" if metrics.get("figures") else "")
+            + "".join(f", {f}" for f in metrics.get("regret_by_frames", {}).get("files", []))
         )
     return 0
 
