@@ -232,11 +232,12 @@ def plot_regret_by_frames(data: Mapping[str, Any], path: Path, title: str) -> Pa
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     xs = np.array([p["frames"] for p in data["points"]], dtype=np.float64)
     lows = []
-    for m in data["methods"]:
+    for i, m in enumerate(data["methods"]):  # markers and dashes: equal lines stay visible
         y = np.array([p["methods"][m]["regret_mean"] for p in data["points"]])
         ci = np.array([p["methods"][m]["regret_ci95"] for p in data["points"]], dtype=float)
         ci = np.nan_to_num(ci)  # one episode: no interval
-        (line,) = ax.plot(xs, y, marker="o", label=m)
+        style = {"marker": "osD^"[i % 4], "ls": ("-", "--", ":", "-.")[i % 4], "ms": 7 - i}
+        (line,) = ax.plot(xs, y, label=m, **style)
         ax.fill_between(xs, y - ci, y + ci, alpha=0.2, color=line.get_color())
         lows.append(float(np.min(y - ci)))
         lows.append(float(np.min(y)))
