@@ -2,7 +2,8 @@
 
 Reads the ``metrics.json`` that :func:`taskvar_torch.experiments.scale.scale` writes (per cell:
 frames, updates, training seconds, frames/s, each method's mean return with its 95% CI and the gap
-closed between the random policy and the exact averaging optimum, paper §3.1);
+closed between the random policy and the exact averaging optimum, paper §3.1; the held-out
+block beside the nominal numbers, :func:`format_heldout`);
 :func:`plot_results` redraws the figure from a results folder alone (``taskvar plot DIR``).
 
 Examples:
@@ -119,6 +120,7 @@ def format_table(metrics: dict[str, Any]) -> str:
             + (f"{orc['mean_return']:8.2f}" if orc else f"{'n/a':>8}")
         )
     lines += format_seeds(metrics)
+    lines += format_heldout(metrics)
     lines += format_heads(metrics)
     lines.append(f"wall time {metrics['wall_seconds']:.0f} s, {metrics['threads']} torch thread(s)")
     return "\n".join(lines)
@@ -148,6 +150,46 @@ def format_seeds(metrics: dict[str, Any]) -> list[str]:
             parts.append(f"{m} {r['mean_return']:.2f} [{lo:.2f}, {hi:.2f}]{gap}")
         lines.append(
             f"{c['case']:<14} {c['num_envs']:>5}  seeds {seeds[0]}-{seeds[-1]}: " + ", ".join(parts)
+        )
+    return lines
+
+
+def format_heldout(metrics: dict[str, Any]) -> list[str]:
+    """Lines of the held-out table (cells with a ``heldout`` block, docs/scale.md#held-out-instances):
+    per cell and method the nominal mean return beside the held-out one (+- 95% CI, gap closed
+    against the held-out references in brackets), then the held-out random and oracle returns."""
+    cells = [c for c in metrics["cells"] if c.get("heldout")]
+    if not cells:
+        return []
+    held = metrics["heldout"]
+    lines = [
+        f"Held-out instances (the family's sealed '{held['test']}' test, {held['episodes']} "
+        "episodes per method, the same for every method): nominal mean return | held-out mean "
+        "return +- 95% CI (gap closed)",
+        f"{'case':<14} {'N':>5} "
+        + " ".join(f"{m:>30}" for m in METHODS)
+        + f" {'random':>8} {'oracle':>8}",
+    ]
+    for c in cells:
+        ref = held["references"][c["case"]]
+        cols = []
+        for m in METHODS:
+            r, h = c["methods"].get(m), c["heldout"]["methods"].get(m)
+            if h is None:
+                cols.append(f"{'n/a':>30}")
+                continue
+            gap = h.get("gap_closed")
+            txt = f"{h['mean_return']:.2f}+-{_ci(h['ci95'])}" + (
+                f" ({gap:.2f})" if gap is not None else ""
+            )
+            nominal = "n/a" if r is None else f"{r['mean_return']:.2f}"
+            cols.append(f"{nominal + ' | ' + txt:>30}")
+        orc = ref["oracle_averaging"]
+        lines.append(
+            f"{c['case']:<14} {c['num_envs']:>5} "
+            + " ".join(cols)
+            + f" {ref['random']['mean_return']:8.2f} "
+            + (f"{orc['mean_return']:8.2f}" if orc else f"{'n/a':>8}")
         )
     return lines
 
@@ -496,6 +538,7 @@ __all__ = [
     "csv_rows",
     "final_return",
     "format_heads",
+    "format_heldout",
     "format_seeds",
     "format_table",
     "is_results_folder",
