@@ -20,6 +20,16 @@ The protocol, top to bottom (:func:`scale`), for each *case* (a family config: w
    rolled out like the methods. ``gap_closed = (R - R_random) / (R_oracle - R_random)``: 0 is
    random, 1 is the best averaging policy (interruption may exceed 1).
 
+Held-out (``heldout_episodes``, default ``eval_episodes``; 0: off): every cell also plays the same
+methods on the family's sealed held-out test distribution (``Family.tests["heldout"]``, the
+episodes of ``taskvar eval --test heldout``: windy and Taxi the training distribution under env
+seed ``HELDOUT_SEED``, Wargus the held-out instance seeds ``HELDOUT_SEEDS``, cycled), paired
+across methods, with the random policy and the exact averaging optimum (where the family has one)
+on the same held-out episodes; new keys only (:func:`heldout_block`): ``metrics["heldout"]`` (the
+distribution, its seed, the references per case) and each cell's ``heldout`` (``methods``, like
+the cell's own, and with ``seeds > 1`` ``per_seed`` and ``over_seeds``). It draws no random number
+the nominal evaluation uses (:func:`isolated_rng`), so every other value is what it was without it.
+
 Writes ``config.yaml`` (this experiment's config), ``cells/<case>-n<N>/`` (the trainer's logs and
 config; ``final.pt`` only with ``keep_checkpoints``), ``scale.csv`` (one row per cell and method),
 ``metrics.json``, ``scale.png``; prints a table. ``taskvar plot OUT`` redraws ``scale.png``.
@@ -45,16 +55,19 @@ Examples:
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
+import random
 import resource
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
+import numpy as np
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
@@ -88,12 +101,14 @@ from taskvar_torch.experiments.scale_report import (
     csv_rows,
     final_return,
     format_heads,
+    format_heldout,
     format_seeds,
     format_table,
     is_results_folder,
     plot_curves,
     plot_results,
 )
+from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
 from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
@@ -101,6 +116,9 @@ from taskvar_torch.train import HEADS_SNAPSHOTS, seed_config, train
 
 TEST_SEED_OFFSET = 1000
 """Test episodes use env seed ``seed + TEST_SEED_OFFSET`` (never a training seed)."""
+HELDOUT_TEST = "heldout"
+"""The family test distribution (``Family.tests``) the held-out block plays: the sealed instances
+(``families.HELDOUT_SEED``, docs/claims.md)."""
 SEED_CI_REPS = 2000
 """Bootstrap replications of :func:`over_seeds`' 95% CIs (rliable's default; ~0.5-2 s a method)."""
 
@@ -150,6 +168,9 @@ class ScaleConfig:
     """Test episodes per method, per cell (fresh test instances)."""
     eval_batch_size: int = 500
     """Test environments run in parallel."""
+    heldout_episodes: int | None = None
+    """Held-out test episodes per method, per cell: the family's sealed held-out distribution
+    (``taskvar eval --test heldout``), beside the nominal test; null: ``eval_episodes``; 0: off."""
     cases: list[ScaleCase] = field(default_factory=list)
     """The scaled families, smallest grid first within a family."""
     only: tuple[str, ...] = ()
@@ -192,6 +213,11 @@ class ScaleConfig:
         for name in ("eval_episodes", "eval_batch_size", "curve_episodes"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        h = self.heldout_episodes
+        if h is not None and (isinstance(h, bool) or not isinstance(h, int) or h < 0):
+            raise ValueError(
+                f"heldout_episodes must be an integer >= 0 (0: off) or null, got {h!r}"
+            )
         if not self.cases:
             raise ValueError("cases must list at least one {name, config} case")
         names = [c.name for c in self.cases]
@@ -211,6 +237,11 @@ class ScaleConfig:
     def selected(self) -> tuple[ScaleCase, ...]:
         """The cases to run (``only``, or all)."""
         return tuple(c for c in self.cases if not self.only or c.name in self.only)
+
+    def heldout_count(self) -> int:
+        """Held-out episodes per method and cell (``heldout_episodes``; null: ``eval_episodes``;
+        0: no held-out block)."""
+        return self.eval_episodes if self.heldout_episodes is None else self.heldout_episodes
 
 
 def default_config_path() -> Path:
@@ -319,16 +350,59 @@ def grid_side(cfg: Config) -> int:
     return _family_figure(cfg, "grid_side")
 
 
-def make_test_env(cfg: Config, num_envs: int, seed: int, index_offset: int = 0) -> EnvBase:
-    """The family env on fresh test instances; the same ``seed`` gives the same episodes."""
+def make_test_env(
+    cfg: Config, num_envs: int, seed: int, index_offset: int = 0, instances: Any = "test"
+) -> EnvBase:
+    """The family env on fresh test instances (or ``instances``: the held-out ones,
+    :class:`HeldoutTest`); the same ``seed`` gives the same episodes."""
     return make_env(
         cfg,
         num_envs,
         seed=seed,
         index_offset=index_offset,
-        instances="test",
+        instances=instances,
         validate_actions=False,
     )
+
+
+@dataclass(frozen=True)
+class HeldoutTest:
+    """The family's sealed held-out test distribution (``Family.tests["heldout"]``) for a cell's
+    config: the env config, the instances and the sealed env seed its episodes play
+    (docs/scale.md#held-out-instances)."""
+
+    cfg: Config
+    instances: Any
+    seed: int
+    description: str
+
+
+def heldout_test(cfg: Config) -> HeldoutTest | None:
+    """The held-out test of ``cfg``'s family, as ``taskvar eval --test heldout`` plays it (its
+    overrides and instances, :func:`taskvar_torch.experiments.shift.shift_points`; its sealed
+    seed); ``None`` where the family declares no sealed ``heldout`` distribution."""
+    dist = family(cfg).tests.get(HELDOUT_TEST)
+    if dist is None or dist.seed is None:
+        return None
+    (point,) = shift_points(cfg, HELDOUT_TEST)
+    return HeldoutTest(point.cfg, point.instances, int(dist.seed), dist.description)
+
+
+@contextlib.contextmanager
+def isolated_rng(device: str | torch.device) -> Iterator[None]:
+    """Run a block without touching the global random streams the nominal protocol draws from:
+    torch's (CPU and the device's), NumPy's and Python's states are restored on exit."""
+    dev = torch.device(device)
+    devices = []
+    if dev.type == "cuda":
+        devices = [dev.index if dev.index is not None else torch.cuda.current_device()]
+    np_state, py_state = np.random.get_state(), random.getstate()
+    try:
+        with torch.random.fork_rng(devices=devices):
+            yield
+    finally:
+        np.random.set_state(np_state)
+        random.setstate(py_state)
 
 
 class TablePolicy(nn.Module):
@@ -354,15 +428,26 @@ def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None,
 
 
 def evaluate(
-    cfg: Config, policy_name: str, episodes: int, batch_size: int, heads: Any = None
+    cfg: Config,
+    policy_name: str,
+    episodes: int,
+    batch_size: int,
+    heads: Any = None,
+    test: HeldoutTest | None = None,
 ) -> dict[str, float] | None:
     """Mean return (95% CI), length and interruptions of ``policy_name`` over ``episodes`` test
     episodes (global indices ``0..episodes-1`` at the test seed: the same for every policy).
 
+    ``test``: play the held-out test's episodes instead (:func:`heldout_test`: its config,
+    instances and sealed seed; docs/scale.md#held-out-instances).
     ``None`` where the method does not apply (hierarchy without a composition hierarchy)."""
 
-    seed = cfg.seed + TEST_SEED_OFFSET
-    probe = make_test_env(cfg, 1, seed)
+    instances: Any = "test"
+    if test is None:
+        seed = cfg.seed + TEST_SEED_OFFSET
+    else:
+        cfg, instances, seed = test.cfg, test.instances, test.seed
+    probe = make_test_env(cfg, 1, seed, instances=instances)
     subtasks = make_subtasks(cfg, probe)
     if policy_name == "hierarchy" and subtasks.hierarchy is None:
         return None
@@ -371,7 +456,7 @@ def evaluate(
     returns, lengths, inter = [], [], []
     for lo in range(0, int(episodes), int(batch_size)):
         n = min(int(batch_size), int(episodes) - lo)
-        env = make_test_env(cfg, n, seed, lo)
+        env = make_test_env(cfg, n, seed, lo, instances)
         if hasattr(policy, "primer"):
             env = TransformedEnv(env, policy.primer())
         if policy_name == "random":
@@ -393,13 +478,17 @@ def evaluate(
     return result
 
 
-def references(cfg: Config, episodes: int, batch_size: int) -> dict[str, Any]:
+def references(
+    cfg: Config, episodes: int, batch_size: int, test: HeldoutTest | None = None
+) -> dict[str, Any]:
     """The random policy and, where the family brings one (``Family.averaging_optimum``), the
-    exact mean-MDP averaging optimum on the same test episodes."""
+    exact mean-MDP averaging optimum on the same test episodes (``test``: the held-out ones)."""
     t0 = time.perf_counter()
-    refs: dict[str, Any] = {"random": evaluate(cfg, "random", episodes, batch_size)}
+    refs: dict[str, Any] = {"random": evaluate(cfg, "random", episodes, batch_size, test=test)}
     if family(cfg).averaging_optimum is not None:
-        refs["oracle_averaging"] = evaluate(cfg, "oracle_averaging", episodes, batch_size)
+        refs["oracle_averaging"] = evaluate(
+            cfg, "oracle_averaging", episodes, batch_size, test=test
+        )
         refs["oracle_note"] = (
             "mean-MDP optimal averaging policy (exact value iteration, paper "
             "§3.1), rolled out on the same test episodes"
@@ -429,12 +518,16 @@ def run_cell(
     out: Path,
     refs: dict[str, Any],
     overwrite: bool = False,
+    heldout_refs: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Train one (case, num_envs) cell with the real trainer, time it, evaluate every method.
 
     With ``cfg.seeds > 1`` the cell's ``train.seeds`` runs train at once and each seed's bundle is
     evaluated on the same test episodes (``per_seed``, ``over_seeds``); ``methods``, the learning
-    curve and the head report are seed ``cfg.seed``'s (the first of the batch)."""
+    curve and the head report are seed ``cfg.seed``'s (the first of the batch). ``heldout_refs``
+    (the case's held-out references, :func:`heldout_references`): every seed's methods on the
+    held-out episodes too, after everything else, under the new key ``heldout``
+    (:func:`heldout_block`)."""
 
     ccfg = case_config(cfg, case, num_envs)
     ecfg = seed_config(ccfg, 0)  # seed `seed` as one run: the test episodes of every seed
@@ -506,7 +599,61 @@ def run_cell(
         )
         cell["per_seed"] = [{"seed": s, "methods": m} for s, m in zip(seeds, per_seed)]
         cell["over_seeds"] = over_seeds(per_seed, rand, orc)
+    if heldout_refs is not None and cfg.heldout_count() > 0:  # new key only, after the rest
+        cell["heldout"] = heldout_block(cfg, ecfg, seed_heads, heldout_refs)
     return cell
+
+
+def heldout_references(cfg: ScaleConfig, ccfg: Config) -> dict[str, Any] | None:
+    """A case's held-out references (:func:`references` on the held-out episodes of
+    :func:`heldout_test`, ``cfg.heldout_count()`` of them) with the distribution's ``test``,
+    ``seed`` and ``description``; ``None`` where the family has no held-out test. Drawn under
+    :func:`isolated_rng`: the nominal protocol's random streams are left as they were."""
+    test = heldout_test(ccfg)
+    if test is None:
+        return None
+    n = cfg.heldout_count()
+    with isolated_rng(ccfg.device):
+        refs = references(test.cfg, n, min(n, cfg.eval_batch_size), test)
+    return {
+        "test": HELDOUT_TEST,
+        "description": test.description,
+        "seed": test.seed,
+        "episodes": n,
+        **refs,
+    }
+
+
+def heldout_block(
+    cfg: ScaleConfig, ecfg: Config, seed_heads: Sequence[Any], refs: dict[str, Any]
+) -> dict[str, Any]:
+    """A cell's ``heldout``: every method on the held-out episodes (the same episodes for every
+    method and seed: paired), shaped like the cell's own keys -- ``methods`` (seed ``seed``'s,
+    with ``gap_closed`` against the held-out references ``refs``) and, with several seeds,
+    ``per_seed`` and ``over_seeds``; ``seconds`` its evaluation time. Run under
+    :func:`isolated_rng` (docs/scale.md#held-out-instances)."""
+    t0 = time.perf_counter()
+    test = heldout_test(ecfg)
+    n = cfg.heldout_count()
+    rand = refs["random"]["mean_return"]
+    orc = refs["oracle_averaging"]["mean_return"] if refs["oracle_averaging"] else None
+    per_seed = []
+    with isolated_rng(ecfg.device):
+        for heads in seed_heads:
+            methods = {
+                m: evaluate(ecfg, m, n, min(n, cfg.eval_batch_size), heads, test) for m in METHODS
+            }
+            for r in methods.values():
+                if r is not None:
+                    r["gap_closed"] = gap_closed(r["mean_return"], rand, orc)
+            per_seed.append(methods)
+        block: dict[str, Any] = {"methods": per_seed[0]}
+        if cfg.seeds > 1:
+            seeds = [ecfg.seed + k for k in range(cfg.seeds)]
+            block["per_seed"] = [{"seed": s, "methods": m} for s, m in zip(seeds, per_seed)]
+            block["over_seeds"] = over_seeds(per_seed, rand, orc)
+    block["seconds"] = time.perf_counter() - t0
+    return block
 
 
 def over_seeds(
@@ -615,17 +762,20 @@ def scale(
     t0 = time.perf_counter()
     cases = cfg.selected()
     refs: dict[str, Any] = {}
+    held_refs: dict[str, Any] = {}
     cells: list[dict[str, Any]] = []
     bar = progress_bar(
         total=len(cases) * len(cfg.num_envs), disable=not progress, desc="scale", unit="cell"
     )
     for case in cases:
-        refs[case.name] = references(
-            case_config(cfg, case, cfg.num_envs[0]), cfg.eval_episodes, cfg.eval_batch_size
-        )
+        ccfg = case_config(cfg, case, cfg.num_envs[0])
+        refs[case.name] = references(ccfg, cfg.eval_episodes, cfg.eval_batch_size)
+        held = heldout_references(cfg, ccfg) if cfg.heldout_count() > 0 else None
+        if held is not None:
+            held_refs[case.name] = held
         for n in cfg.num_envs:
             bar.set_postfix_str(f"{case.name} N={n}")
-            cells.append(run_cell(cfg, case, n, out, refs[case.name], overwrite))
+            cells.append(run_cell(cfg, case, n, out, refs[case.name], overwrite, held))
             bar.update(1)
     bar.close()
     metrics = {
@@ -654,6 +804,17 @@ def scale(
             "seed's methods on the same test episodes, over_seeds each method's mean over the "
             "seeds with rliable's stratified-bootstrap 95% CI [lo, hi] (mean_ci95)"
         )
+    if held_refs:  # new keys only: with heldout_episodes=0 metrics.json is what it always was
+        metrics["heldout"] = {
+            "test": HELDOUT_TEST,
+            "episodes": cfg.heldout_count(),
+            "references": held_refs,
+            "note": (
+                "per cell, heldout holds every method on the family's sealed held-out test "
+                "distribution (taskvar eval --test heldout: its sealed seed, HELDOUT_SEED), the "
+                "same episodes for every method and seed; gap_closed against these references"
+            ),
+        }
     write_csv(out / CSV_NAME, csv_rows(metrics), csv_fields(metrics))
     write_json(out / METRICS_NAME, metrics)
     if plots:  # else ``taskvar plot DIR`` draws it from the folder
@@ -665,8 +826,10 @@ def scale(
 
 __all__ = [  # the config and the protocol, then the names of scale_report it re-exports
     "METHODS",
+    "HELDOUT_TEST",
     "SEED_CI_REPS",
     "TEST_SEED_OFFSET",
+    "HeldoutTest",
     "ScaleCase",
     "ScaleConfig",
     "TablePolicy",
@@ -675,6 +838,10 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "evaluate",
     "gap_closed",
     "grid_side",
+    "heldout_block",
+    "heldout_references",
+    "heldout_test",
+    "isolated_rng",
     "load_scale_config",
     "make_policy",
     "make_test_env",
@@ -697,6 +864,7 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "csv_rows",
     "final_return",
     "format_heads",
+    "format_heldout",
     "format_seeds",
     "format_table",
     "is_results_folder",
