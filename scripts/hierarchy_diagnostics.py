@@ -10,7 +10,9 @@ item; and the options controller (items, share of steps per option). For the ave
 R(root, s, a) predicted at each step vs the discounted return-to-go of the root's robustness rewards
 (gamma = ``train.robustness_gamma``) actually received along the same greedy rollout, over the
 steps where the item is seen and the patrol is not (where the root should take control), and the
-fraction of those steps with R > tau (predicted, and by the rollout). Single-threaded; a few
+fraction of those steps with R > tau (predicted, and by the rollout). Last, every option's critic
+against Monte Carlo returns of its own runs up to its termination, as its TD target is defined
+(``taskvar_torch.experiments.robustness_mc``, docs/hierarchy-critics.md). Single-threaded; a few
 seconds per 32 episodes.
 
     python scripts/hierarchy_diagnostics.py /tmp/h1/rep0/final.pt --episodes 32
@@ -27,6 +29,7 @@ from torchrl.envs import TransformedEnv
 from taskvar_torch import keys
 from taskvar_torch.envs import wargus
 from taskvar_torch.envs.wargus_env import WargusEnv
+from taskvar_torch.experiments.robustness_mc import format_report, robustness_monte_carlo
 from taskvar_torch.factory import make_method_controller
 from taskvar_torch.train import load_heads, make_subtasks
 
@@ -159,7 +162,9 @@ def main() -> None:
     ap.add_argument(
         "--keep-share", type=float, default=None, help="calibrated threshold's keep share"
     )
-    ap.add_argument("--only", default=None, help="comma list of methods to play")
+    ap.add_argument(
+        "--only", default=None, help="comma list of methods to play (robustness-mc: the MC check)"
+    )
     a = ap.parse_args()
     torch.set_num_threads(1)
     heads, cfg = load_heads(a.checkpoint)
@@ -187,6 +192,14 @@ def main() -> None:
             print(f"{method:>10}: {play(heads, cfg, method, seeds, tau)}")
     if only is None or "options" in only:
         print(f"{'options':>10}: {play_options(heads, cfg, list(seeds))}")
+    if only is None or "robustness-mc" in only:
+        print(
+            f"robustness critics vs Monte Carlo returns of their own option's runs "
+            f"(robustness_until={t.robustness_until}, gamma_R={t.robustness_gamma}, "
+            f"threshold {t.robustness_threshold}):"
+        )
+        for line in format_report(robustness_monte_carlo(heads, cfg, list(seeds))):
+            print(f"  {line}")
 
 
 if __name__ == "__main__":
