@@ -3,7 +3,8 @@
 Reads the ``metrics.json`` that :func:`taskvar_torch.experiments.scale.scale` writes (per cell:
 frames, updates, training seconds, frames/s, each method's mean return with its 95% CI and the gap
 closed between the random policy and the exact averaging optimum, paper §3.1; the held-out
-block beside the nominal numbers, :func:`format_heldout`);
+block beside the nominal numbers, :func:`format_heldout`; the baselines of docs/memory.md as
+further methods where the run trained them, :func:`report_methods`);
 :func:`plot_results` redraws the figure from a results folder alone (``taskvar plot DIR``).
 
 Examples:
@@ -36,6 +37,12 @@ SEED_FIELD = "seed"
 """``scale.csv``'s column of the training seed, after ``num_envs``: only with ``seeds`` > 1."""
 
 
+def report_methods(metrics: dict[str, Any]) -> tuple[str, ...]:
+    """The methods of the rows and columns: the paper's (:data:`METHODS`), then the baselines
+    the run trained (``metrics["baselines"]``, docs/scale.md#baselines), where it has any."""
+    return (*METHODS, *metrics.get("baselines", ()))
+
+
 def csv_fields(metrics: dict[str, Any]) -> tuple[str, ...]:
     """``scale.csv``'s columns: :data:`CSV_FIELDS`, with :data:`SEED_FIELD` after ``num_envs``
     when the cells hold several seeds (``per_seed``)."""
@@ -47,13 +54,14 @@ def csv_fields(metrics: dict[str, Any]) -> tuple[str, ...]:
 
 def csv_rows(metrics: dict[str, Any]) -> list[dict[str, Any]]:
     """One row per (cell, method), references in every row; a cell with several seeds
-    (``per_seed``) gives one row per (cell, seed, method) with its ``seed``."""
+    (``per_seed``) gives one row per (cell, seed, method) with its ``seed``; the baselines' rows
+    follow the methods' (:func:`report_methods`)."""
     rows = []
     for c in metrics["cells"]:
         ref = metrics["references"][c["case"]]
         orc = ref["oracle_averaging"]
         runs = c.get("per_seed") or [{"seed": None, "methods": c["methods"]}]
-        for run, m in ((run, m) for run in runs for m in METHODS):
+        for run, m in ((run, m) for run in runs for m in report_methods(metrics)):
             r = run["methods"].get(m)
             row = {k: c[k] for k in CSV_FIELDS if k in c}
             if run["seed"] is not None:
@@ -81,7 +89,9 @@ def csv_rows(metrics: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def format_table(metrics: dict[str, Any]) -> str:
-    """One line per cell: time, frames/s, each method's mean return (CI), the references."""
+    """One line per cell: time, frames/s, each method's mean return (CI) (the baselines' after
+    the methods', where trained: :func:`report_methods`), the references."""
+    methods = report_methods(metrics)
     budgets = sorted({int(c["frames"]) for c in metrics["cells"]}) or [metrics["total_frames"]]
     frames = (
         f"{budgets[0]} training frames per cell"
@@ -95,13 +105,13 @@ def format_table(metrics: dict[str, Any]) -> str:
         "(R - random) / (oracle - random); Wargus: items per episode)",
         f"{'case':<14} {'N':>5} {'frames':>8} {'updates':>7} {'train s':>8} {'frames/s':>9} "
         f"{'peak MB':>7} "
-        + " ".join(f"{m:>21}" for m in METHODS)
+        + " ".join(f"{m:>21}" for m in methods)
         + f" {'random':>8} {'oracle':>8}",
     ]
     for c in metrics["cells"]:
         ref = metrics["references"][c["case"]]
         cols = []
-        for m in METHODS:
+        for m in methods:
             r = c["methods"].get(m)
             if r is None:
                 cols.append(f"{'n/a':>21}")
@@ -140,7 +150,7 @@ def format_seeds(metrics: dict[str, Any]) -> list[str]:
     for c in cells:
         seeds = c["seeds"]
         parts = []
-        for m in METHODS:
+        for m in report_methods(metrics):
             r = c["over_seeds"].get(m)
             if r is None:
                 parts.append(f"{m} n/a")
@@ -162,18 +172,19 @@ def format_heldout(metrics: dict[str, Any]) -> list[str]:
     if not cells:
         return []
     held = metrics["heldout"]
+    methods = report_methods(metrics)
     lines = [
         f"Held-out instances (the family's sealed '{held['test']}' test, {held['episodes']} "
         "episodes per method, the same for every method): nominal mean return | held-out mean "
         "return +- 95% CI (gap closed)",
         f"{'case':<14} {'N':>5} "
-        + " ".join(f"{m:>30}" for m in METHODS)
+        + " ".join(f"{m:>30}" for m in methods)
         + f" {'random':>8} {'oracle':>8}",
     ]
     for c in cells:
         ref = held["references"][c["case"]]
         cols = []
-        for m in METHODS:
+        for m in methods:
             r, h = c["methods"].get(m), c["heldout"]["methods"].get(m)
             if h is None:
                 cols.append(f"{'n/a':>30}")
@@ -544,4 +555,5 @@ __all__ = [
     "is_results_folder",
     "plot_curves",
     "plot_results",
+    "report_methods",
 ]
