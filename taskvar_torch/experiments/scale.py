@@ -30,6 +30,14 @@ distribution, its seed, the references per case) and each cell's ``heldout`` (``
 the cell's own, and with ``seeds > 1`` ``per_seed`` and ``over_seeds``). It draws no random number
 the nominal evaluation uses (:func:`isolated_rng`), so every other value is what it was without it.
 
+Baselines (``baselines``, default none; docs/scale.md#baselines): each cell (each seed's bundle
+folder) also trains the listed baselines of docs/memory.md (``recurrent``, ``informed``) with
+``train_recurrent.train_baseline`` on the cell's own config and frame budget, as ``taskvar
+train-baselines`` does, and plays them on the same test episodes (and held-out ones) as new
+``methods`` entries (:func:`baseline_phase`), under :func:`isolated_rng`: the methods' values are
+unchanged. A family a listed baseline is unavailable on (``informed`` on Wargus) is refused before
+any training (:func:`check_case_baselines`).
+
 Writes ``config.yaml`` (this experiment's config), ``cells/<case>-n<N>/`` (the trainer's logs and
 config; ``final.pt`` only with ``keep_checkpoints``), ``scale.csv`` (one row per cell and method),
 ``metrics.json``, ``scale.png``; prints a table. ``taskvar plot OUT`` redraws ``scale.png``.
@@ -107,12 +115,21 @@ from taskvar_torch.experiments.scale_report import (
     is_results_folder,
     plot_curves,
     plot_results,
+    report_methods,
 )
 from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
 from taskvar_torch.families import family
+from taskvar_torch.heads.recurrent import (
+    BASELINES,
+    BaselineController,
+    BaselineSettings,
+    informed_features,
+    load_baseline,
+)
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.train import HEADS_SNAPSHOTS, seed_config, train
+from taskvar_torch.train_recurrent import train_baseline
 
 TEST_SEED_OFFSET = 1000
 """Test episodes use env seed ``seed + TEST_SEED_OFFSET`` (never a training seed)."""
@@ -171,6 +188,10 @@ class ScaleConfig:
     heldout_episodes: int | None = None
     """Held-out test episodes per method, per cell: the family's sealed held-out distribution
     (``taskvar eval --test heldout``), beside the nominal test; null: ``eval_episodes``; 0: off."""
+    baselines: tuple[str, ...] = ()
+    """Baselines (``heads.recurrent.BASELINES``: recurrent, informed; docs/memory.md) each cell
+    (and seed) also trains on its own config and frame budget and scores on the same test
+    episodes, as new ``methods`` entries (:func:`baseline_phase`); empty: none."""
     cases: list[ScaleCase] = field(default_factory=list)
     """The scaled families, smallest grid first within a family."""
     only: tuple[str, ...] = ()
@@ -217,6 +238,12 @@ class ScaleConfig:
         if h is not None and (isinstance(h, bool) or not isinstance(h, int) or h < 0):
             raise ValueError(
                 f"heldout_episodes must be an integer >= 0 (0: off) or null, got {h!r}"
+            )
+        bad = [b for b in self.baselines if b not in BASELINES]
+        if bad or len(set(self.baselines)) != len(self.baselines):
+            raise ValueError(
+                f"baselines must be distinct names among {list(BASELINES)}, got "
+                f"{list(self.baselines)}"
             )
         if not self.cases:
             raise ValueError("cases must list at least one {name, config} case")
@@ -276,9 +303,36 @@ def load_scale_config(
             p = path.parent / p
         cases.append(dataclasses.replace(c, config=str(p)))
     cfg = dataclasses.replace(cfg, cases=cases)
-    for c in cfg.selected():
-        case_config(cfg, c, cfg.num_envs[0])  # a typo in a case fails now, not after an hour
+    for c in cfg.selected():  # a typo in a case fails now, not after an hour
+        check_case_baselines(cfg, c, case_config(cfg, c, cfg.num_envs[0]))
     return cfg
+
+
+def supported_baselines(ccfg: Config) -> tuple[str, ...]:
+    """The baselines ``ccfg``'s family can train (docs/memory.md): ``recurrent`` on every family,
+    ``informed`` only where the family gives instance features (``Family.instance_features``;
+    Wargus gives none)."""
+    out = []
+    for b in BASELINES:
+        if b == "informed":
+            try:
+                informed_features(ccfg)
+            except ValueError:
+                continue
+        out.append(b)
+    return tuple(out)
+
+
+def check_case_baselines(cfg: ScaleConfig, case: ScaleCase, ccfg: Config) -> None:
+    """A one-line ``ValueError`` where ``cfg.baselines`` names a baseline ``case``'s family cannot
+    train (:func:`supported_baselines`), raised before any cell trains."""
+    ok = supported_baselines(ccfg)
+    missing = [b for b in cfg.baselines if b not in ok]
+    if missing:
+        raise ValueError(
+            f"baselines: family {ccfg.family!r} (case {case.name}) supports only {list(ok)} of "
+            f"the baselines, not {missing}; drop it from baselines or the case from only"
+        )
 
 
 def scale_config_to_dict(cfg: ScaleConfig) -> dict[str, Any]:
@@ -417,8 +471,14 @@ class TablePolicy(nn.Module):
 
 
 def make_policy(name: str, cfg: Config, heads: Any = None, subtasks: Any = None, env: Any = None):
-    """A TorchRL policy: a method's controller on ``heads``, ``random`` or ``oracle_averaging``."""
+    """A TorchRL policy: a method's controller on ``heads``, ``random`` or ``oracle_averaging``;
+    for a baseline (``recurrent``, ``informed``) ``heads`` is its trained
+    :class:`~taskvar_torch.heads.recurrent.BaselineController`, played as it is."""
 
+    if name in BASELINES:
+        if not isinstance(heads, BaselineController):
+            raise ValueError(f"the {name} baseline plays its trained controller, got {heads!r}")
+        return heads
     if name == "random":
         return RandomPolicy(env.action_spec)
     if name == "oracle_averaging":  # the family's exact mean-MDP averaging policy over cell
@@ -527,7 +587,8 @@ def run_cell(
     curve and the head report are seed ``cfg.seed``'s (the first of the batch). ``heldout_refs``
     (the case's held-out references, :func:`heldout_references`): every seed's methods on the
     held-out episodes too, after everything else, under the new key ``heldout``
-    (:func:`heldout_block`)."""
+    (:func:`heldout_block`). ``cfg.baselines``: each seed's bundle folder also trains and scores
+    them (:func:`baseline_phase`), after the methods' evaluation and before the held-out block."""
 
     ccfg = case_config(cfg, case, num_envs)
     ecfg = seed_config(ccfg, 0)  # seed `seed` as one run: the test episodes of every seed
@@ -599,9 +660,79 @@ def run_cell(
         )
         cell["per_seed"] = [{"seed": s, "methods": m} for s, m in zip(seeds, per_seed)]
         cell["over_seeds"] = over_seeds(per_seed, rand, orc)
+    seed_baselines: list[dict[str, BaselineController]] = []
+    if cfg.baselines:  # new keys only, after the methods' own (docs/scale.md#baselines)
+        folders = [p.parent for p in finals]
+        seed_baselines = baseline_phase(cfg, ccfg, ecfg, folders, cell, per_seed, rand, orc)
     if heldout_refs is not None and cfg.heldout_count() > 0:  # new key only, after the rest
-        cell["heldout"] = heldout_block(cfg, ecfg, seed_heads, heldout_refs)
+        cell["heldout"] = heldout_block(cfg, ecfg, seed_heads, heldout_refs, seed_baselines)
     return cell
+
+
+def baseline_phase(
+    cfg: ScaleConfig,
+    ccfg: Config,
+    ecfg: Config,
+    folders: Sequence[Path],
+    cell: dict[str, Any],
+    per_seed: Sequence[dict[str, Any]],
+    random_ret: float,
+    oracle_ret: float | None,
+) -> list[dict[str, BaselineController]]:
+    """Train and score a cell's baselines (``cfg.baselines``; docs/scale.md#baselines,
+    docs/memory.md); returns each seed's greedy controllers by name.
+
+    Training: for seed ``k`` of the cell, ``train_recurrent.train_baseline`` on
+    ``seed_config(ccfg, k)`` with the default ``BaselineSettings`` into that seed's bundle folder
+    (``folders[k]``, beside the heads' ``final.pt``), exactly as ``taskvar train-baselines CONFIG
+    --out FOLDER --method NAME`` does: the cell's own config, so the **same frame budget** as the
+    heads (``train.total_frames``) with their epsilon schedule, ``frames_per_batch``,
+    ``updates_per_batch`` and buffer. The bundles (``recurrent.pt``, ``informed.pt``) are removed
+    once loaded unless ``keep_checkpoints``.
+
+    Scoring: each baseline on the cell's test episodes (``evaluate`` at the test seed: the
+    methods' paired episodes), with ``gap_closed``, added to every seed's ``methods`` as a new
+    entry (so to ``cell["methods"]`` and ``per_seed``) and, with several seeds, to
+    ``over_seeds``. New keys: ``baseline_training`` (per seed and baseline: frames, updates,
+    seconds, the mean training return of the last tenth), ``baseline_train_seconds`` (their
+    total) and ``baseline_eval_seconds``. Every call runs under :func:`isolated_rng`, so the
+    methods' numbers are bit for bit those of a run without baselines."""
+    controllers: list[dict[str, BaselineController]] = []
+    training = []
+    for k, folder in enumerate(folders):
+        scfg = seed_config(ccfg, k)
+        ctrls = {}
+        for b in cfg.baselines:
+            with isolated_rng(ccfg.device):  # loading draws too: the network's initial weights
+                r = train_baseline(scfg, b, folder, BaselineSettings())
+                ctrls[b], _ = load_baseline(r["path"], device=ccfg.device)
+            if not cfg.keep_checkpoints:
+                Path(r["path"]).unlink(missing_ok=True)
+            last = r["mean_train_return"]
+            training.append(
+                {
+                    "seed": scfg.seed,
+                    "method": b,
+                    "frames": int(r["frames"]),
+                    "updates": int(r["updates"]),
+                    "train_seconds": float(r["seconds"]),
+                    "mean_train_return": None if last != last else float(last),  # NaN: none ended
+                }
+            )
+        controllers.append(ctrls)
+    t0 = time.perf_counter()
+    with isolated_rng(ecfg.device):
+        for methods, ctrls in zip(per_seed, controllers):
+            for b, ctrl in ctrls.items():
+                r = evaluate(ecfg, b, cfg.eval_episodes, cfg.eval_batch_size, ctrl)
+                r["gap_closed"] = gap_closed(r["mean_return"], random_ret, oracle_ret)
+                methods[b] = r
+        if cfg.seeds > 1:
+            cell["over_seeds"].update(over_seeds(per_seed, random_ret, oracle_ret, cfg.baselines))
+    cell["baseline_training"] = training
+    cell["baseline_train_seconds"] = sum(t["train_seconds"] for t in training)
+    cell["baseline_eval_seconds"] = time.perf_counter() - t0
+    return controllers
 
 
 def heldout_references(cfg: ScaleConfig, ccfg: Config) -> dict[str, Any] | None:
@@ -625,13 +756,19 @@ def heldout_references(cfg: ScaleConfig, ccfg: Config) -> dict[str, Any] | None:
 
 
 def heldout_block(
-    cfg: ScaleConfig, ecfg: Config, seed_heads: Sequence[Any], refs: dict[str, Any]
+    cfg: ScaleConfig,
+    ecfg: Config,
+    seed_heads: Sequence[Any],
+    refs: dict[str, Any],
+    seed_baselines: Sequence[dict[str, BaselineController]] = (),
 ) -> dict[str, Any]:
     """A cell's ``heldout``: every method on the held-out episodes (the same episodes for every
     method and seed: paired), shaped like the cell's own keys -- ``methods`` (seed ``seed``'s,
     with ``gap_closed`` against the held-out references ``refs``) and, with several seeds,
     ``per_seed`` and ``over_seeds``; ``seconds`` its evaluation time. Run under
-    :func:`isolated_rng` (docs/scale.md#held-out-instances)."""
+    :func:`isolated_rng` (docs/scale.md#held-out-instances). ``seed_baselines`` (each seed's
+    baseline controllers, :func:`baseline_phase`): played on the same episodes after the methods,
+    new entries of the same blocks."""
     t0 = time.perf_counter()
     test = heldout_test(ecfg)
     n = cfg.heldout_count()
@@ -652,29 +789,40 @@ def heldout_block(
             seeds = [ecfg.seed + k for k in range(cfg.seeds)]
             block["per_seed"] = [{"seed": s, "methods": m} for s, m in zip(seeds, per_seed)]
             block["over_seeds"] = over_seeds(per_seed, rand, orc)
+        for methods, ctrls in zip(per_seed, seed_baselines):  # after the methods': new entries
+            for b, ctrl in ctrls.items():
+                r = evaluate(ecfg, b, n, min(n, cfg.eval_batch_size), ctrl, test)
+                r["gap_closed"] = gap_closed(r["mean_return"], rand, orc)
+                methods[b] = r
+        if cfg.seeds > 1 and seed_baselines:
+            block["over_seeds"].update(over_seeds(per_seed, rand, orc, list(seed_baselines[0])))
     block["seconds"] = time.perf_counter() - t0
     return block
 
 
 def over_seeds(
-    per_seed: Sequence[dict[str, Any]], random_ret: float, oracle_ret: float | None
+    per_seed: Sequence[dict[str, Any]],
+    random_ret: float,
+    oracle_ret: float | None,
+    methods: Sequence[str] = METHODS,
 ) -> dict[str, dict[str, Any] | None]:
     """Each method's mean test return per seed (``per_seed[i][method]["mean_return"]``, same
     episodes for every seed), aggregated over the seeds with rliable
     (:func:`taskvar_torch.experiments.aggregate.interval_estimates`: one task, the seeds as runs):
     ``mean_return`` with ``mean_ci95`` = [lo, hi] (stratified bootstrap, percentile), the IQM with
     its CI, the per-seed means (``returns``) and the gap closed by the mean and by the CI's ends;
-    ``None`` where the method does not apply."""
+    ``None`` where the method does not apply. ``methods``: which entries (default the paper's; a
+    cell's baselines are aggregated in a call of their own, :func:`baseline_phase`)."""
     from taskvar_torch.experiments.aggregate import interval_estimates
 
     scores = {
         m: [[s[m]["mean_return"]] for s in per_seed]
-        for m in METHODS
+        for m in methods
         if all(s.get(m) is not None for s in per_seed)
     }
     est = interval_estimates(scores, reps=SEED_CI_REPS) if scores else {}
     out: dict[str, dict[str, Any] | None] = {}
-    for m in METHODS:
+    for m in methods:
         if m not in est:
             out[m] = None
             continue
@@ -764,6 +912,9 @@ def scale(
     refs: dict[str, Any] = {}
     held_refs: dict[str, Any] = {}
     cells: list[dict[str, Any]] = []
+    if cfg.baselines:  # a baseline a family lacks fails before any training
+        for case in cases:
+            check_case_baselines(cfg, case, case_config(cfg, case, cfg.num_envs[0]))
     bar = progress_bar(
         total=len(cases) * len(cfg.num_envs), disable=not progress, desc="scale", unit="cell"
     )
@@ -804,6 +955,13 @@ def scale(
             "seed's methods on the same test episodes, over_seeds each method's mean over the "
             "seeds with rliable's stratified-bootstrap 95% CI [lo, hi] (mean_ci95)"
         )
+    if cfg.baselines:  # new keys only: without baselines metrics.json is what it always was
+        metrics["baselines"] = list(cfg.baselines)
+        metrics["notes"]["baselines"] = (
+            "per cell, methods (and per_seed, over_seeds, heldout) also hold the listed baselines "
+            "(docs/memory.md), trained per seed on the cell's config and frame budget and played "
+            "on the same test episodes; baseline_training, baseline_train_seconds: their training"
+        )
     if held_refs:  # new keys only: with heldout_episodes=0 metrics.json is what it always was
         metrics["heldout"] = {
             "test": HELDOUT_TEST,
@@ -833,7 +991,9 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "ScaleCase",
     "ScaleConfig",
     "TablePolicy",
+    "baseline_phase",
     "case_config",
+    "check_case_baselines",
     "default_config_path",
     "evaluate",
     "gap_closed",
@@ -851,6 +1011,7 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "run_cell",
     "scale",
     "scale_config_to_dict",
+    "supported_baselines",
     "COLOURS",
     "CSV_FIELDS",
     "CSV_NAME",
@@ -870,4 +1031,5 @@ __all__ = [  # the config and the protocol, then the names of scale_report it re
     "is_results_folder",
     "plot_curves",
     "plot_results",
+    "report_methods",
 ]
