@@ -1,0 +1,288 @@
+"""The scale experiment's baselines (docs/scale.md#baselines, issue 31): with
+``baselines=[recurrent, informed]`` every cell and seed trains them on its own config and frame
+budget (``train_recurrent.train_baseline``, as ``taskvar train-baselines`` does) and plays them on
+the cell's paired test episodes and held-out ones, as new ``methods`` entries; the paper methods'
+numbers are bit for bit those of a run without baselines."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from taskvar_torch import keys
+from taskvar_torch.cli import main
+from taskvar_torch.experiments import scale
+from taskvar_torch.families import FAMILIES
+from taskvar_torch.heads.recurrent import BASELINES, BaselineSettings
+
+torch.set_num_threads(1)
+
+BASES = ["recurrent", "informed"]
+CELL = "windy-5x5-n4"
+HELD = 6  # held-out episodes per method (eval_episodes is 8)
+TINY = [  # one tiny windy cell, two seeds, a few hundred frames, short episodes
+    "num_envs=[4]",
+    "seeds=2",
+    "total_frames=200",
+    "curve_points=0",
+    "eval_episodes=8",
+    "eval_batch_size=4",
+    f"heldout_episodes={HELD}",
+    "only=[windy-5x5]",
+    "head_report=false",
+    'overrides=["heads.hidden=[32]",train.batch_size=32,env.horizon=30]',
+]
+TIMING = {  # measured times and memory: not reproducible, so not compared
+    "wall_seconds", "train_seconds", "eval_seconds", "frames_per_second", "peak_rss_mb",
+    "frames_per_second_all_seeds", "seconds",
+}  # fmt: skip
+NEW_CELL_KEYS = {"baseline_training", "baseline_train_seconds", "baseline_eval_seconds"}
+
+
+def _without_timing(x):
+    if isinstance(x, dict):
+        return {k: _without_timing(v) for k, v in x.items() if k not in TIMING}
+    if isinstance(x, list):
+        return [_without_timing(v) for v in x]
+    return x
+
+
+def _strip_baselines(x):
+    """``x`` without every baseline entry and key this feature adds."""
+    if isinstance(x, dict):
+        drop = {*BASES, "baselines", *NEW_CELL_KEYS}
+        return {k: _strip_baselines(v) for k, v in x.items() if k not in drop}
+    if isinstance(x, list):
+        return [_strip_baselines(v) for v in x]
+    return x
+
+
+def _run(out, *extra, spy=None):
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(scale, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
+        if spy is not None:
+            spy(mp)
+        argv = ["experiment", "scale", "--quick", "--out", str(out), "--no-progress", "--no-plots"]
+        assert main([*argv, *TINY, *extra]) == 0
+    return json.loads((out / "metrics.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    """The tiny run with both baselines (every episode batch played and every baseline trained
+    recorded) and the same run without them."""
+    played = []  # (env seed, policy name, instance fields, start cells) per batch of episodes
+    trained = []  # (config, method, folder, settings) per train_baseline call
+    envs = {}
+    make_test_env, run_episodes = scale.make_test_env, scale.run_episodes
+    train_baseline = scale.train_baseline
+
+    def spy(mp):
+        def made(cfg, num_envs, seed, index_offset=0, instances="test"):
+            env = make_test_env(cfg, num_envs, seed, index_offset, instances)
+            envs[id(env)] = seed
+            return env
+
+        def ran(env, policy, *args, **kwargs):
+            out = run_episodes(env, policy, *args, **kwargs)
+            seed = envs[id(getattr(env, "base_env", env))]
+            name = getattr(policy, "name", type(policy).__name__)
+            played.append((seed, name, out[keys.INSTANCE].clone(), out["start"].clone()))
+            return out
+
+        def trains(cfg, method, out_dir, settings=None, *args, **kwargs):
+            trained.append((cfg, method, out_dir, settings))
+            return train_baseline(cfg, method, out_dir, settings, *args, **kwargs)
+
+        mp.setattr(scale, "make_test_env", made)
+        mp.setattr(scale, "run_episodes", ran)
+        mp.setattr(scale, "train_baseline", trains)
+
+    on = tmp_path_factory.mktemp("baselines-on")
+    off = tmp_path_factory.mktemp("baselines-off")
+    m_on = _run(on, f"baselines=[{','.join(BASES)}]", spy=spy)
+    m_off = _run(off)
+    return {"on": (on, m_on), "off": (off, m_off), "played": played, "trained": trained}
+
+
+@pytest.mark.slow
+def test_every_cell_and_seed_has_the_baseline_entries(runs):
+    out, m = runs["on"]
+    assert m["baselines"] == BASES and m["methods"] == list(scale.METHODS)
+    assert "baselines" in m["notes"]
+    for c in m["cells"]:
+        assert list(c["methods"]) == [*scale.METHODS, *BASES]  # new entries after the methods'
+        blocks = [
+            (c["methods"], 8),
+            *((run["methods"], 8) for run in c["per_seed"]),
+            (c["heldout"]["methods"], HELD),
+            *((run["methods"], HELD) for run in c["heldout"]["per_seed"]),
+        ]
+        for methods, episodes in blocks:
+            for b in BASES:
+                r = methods[b]
+                assert r["episodes"] == episodes and r["ci95"] >= 0
+                assert -30 <= r["mean_return"] <= -1  # windy: -1 a step, 30-step episodes
+                assert set(r) == {"mean_return", "ci95", "mean_length", "episodes", "gap_closed"}
+                assert r["gap_closed"] is not None  # windy has the exact averaging optimum
+        for over in (c["over_seeds"], c["heldout"]["over_seeds"]):
+            assert list(over) == [*scale.METHODS, *BASES]
+            for b in BASES:
+                assert len(over[b]["returns"]) == 2 and over[b]["gap_closed"] is not None
+        assert [(t["seed"], t["method"]) for t in c["baseline_training"]] == [
+            (s, b) for s in c["seeds"] for b in BASES
+        ]
+        for t in c["baseline_training"]:
+            assert t["frames"] >= 200 and t["updates"] > 0 and t["train_seconds"] > 0
+        assert c["baseline_train_seconds"] == pytest.approx(
+            sum(t["train_seconds"] for t in c["baseline_training"])
+        )
+        assert c["baseline_eval_seconds"] > 0
+    for b in BASES:  # keep_checkpoints=false: the baselines' bundles are removed once read
+        assert not list(out.glob(f"cells/*/seed*/{b}.pt"))
+    table = scale.format_table(m)
+    heads = [x for x in table.splitlines() if x.startswith("case ")]
+    assert len(heads) == 2 and all("recurrent" in h and "informed" in h for h in heads)
+    seeds_lines = [x for x in table.splitlines() if "seeds 0-1:" in x]
+    assert seeds_lines and all("recurrent" in x and "informed" in x for x in seeds_lines)
+    assert "Held-out instances" in table  # its header is the second "case" line above
+    off_table = scale.format_table(runs["off"][1])
+    assert "recurrent" not in off_table and "informed" not in off_table
+    with open(out / "scale.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {(r["seed"], r["method"]) for r in rows} == {
+        (str(s), name) for s in (0, 1) for name in (*scale.METHODS, *BASES)
+    }
+
+
+@pytest.mark.slow
+def test_the_methods_numbers_are_bit_for_bit_those_of_a_run_without_baselines(runs):
+    (on, m_on), (off, m_off) = runs["on"], runs["off"]
+    assert set(m_on) - set(m_off) == {"baselines"}
+    for c_on, c_off in zip(m_on["cells"], m_off["cells"]):
+        assert set(c_on) - set(c_off) == NEW_CELL_KEYS
+    assert _without_timing(_strip_baselines(m_on)) == _without_timing(m_off)
+    with open(on / "scale.csv") as f:
+        rows_on = [r for r in csv.DictReader(f) if r["method"] not in BASES]
+    with open(off / "scale.csv") as f:
+        rows_off = list(csv.DictReader(f))
+    assert [_without_timing(r) for r in rows_on] == [_without_timing(r) for r in rows_off]
+    for k in range(2):  # the trained heads too: every bit
+        a = torch.load(on / "cells" / CELL / f"seed{k}" / "heads.pt", weights_only=False)
+        b = torch.load(off / "cells" / CELL / f"seed{k}" / "heads.pt", weights_only=False)
+        _assert_same(a, b)
+
+
+def _assert_same(a, b):
+    if isinstance(a, torch.Tensor):
+        assert torch.equal(a, b)
+    elif isinstance(a, dict):
+        assert a.keys() == b.keys()
+        for k in a:
+            if k not in TIMING:
+                _assert_same(a[k], b[k])
+    elif isinstance(a, (list, tuple)):
+        assert len(a) == len(b)
+        for x, y in zip(a, b):
+            _assert_same(x, y)
+
+
+@pytest.mark.slow
+def test_each_seed_trains_its_baselines_on_the_cells_config_and_budget(runs):
+    out, m = runs["on"]
+    cfg = scale.load_scale_config(scale.default_config_path(), TINY, quick=True)
+    ccfg = scale.case_config(cfg, cfg.selected()[0], 4)
+    trained = runs["trained"]
+    assert [(c.seed, meth) for c, meth, *_ in trained] == [(s, b) for s in (0, 1) for b in BASES]
+    for bcfg, _, folder, settings in trained:
+        k = bcfg.seed - ccfg.seed
+        assert bcfg == scale.seed_config(ccfg, k)  # the cell's own config: the heads' budget
+        assert bcfg.train.total_frames == 200
+        assert str(folder) == str(out / "cells" / CELL / f"seed{k}")  # beside the seed's bundle
+        assert settings == BaselineSettings()  # taskvar train-baselines' defaults
+
+
+@pytest.mark.slow
+def test_the_baselines_play_the_methods_paired_episodes(runs):
+    played = runs["played"]
+    nominal_seed = runs["on"][1]["test_seed"]
+    held_seed = FAMILIES["windy"].tests["heldout"].seed
+    for seed, episodes in ((nominal_seed, 8), (held_seed, HELD)):
+        by_policy: dict[str, list] = {}
+        for s, name, inst, start in played:
+            if s == seed:
+                by_policy.setdefault(name, []).append((inst, start))
+        assert {"averaging", "options", "interruption", *BASES} <= set(by_policy)
+        want = _episodes(by_policy["averaging"])
+        for b in BASES:
+            got = _episodes(by_policy[b])
+            assert len(got[0]) == 2 * episodes  # two seeds' controllers, the same episodes
+            for a, w in zip(got, want):
+                assert torch.equal(a, w), b
+
+
+def _episodes(batches):
+    """(instance fields stacked per episode, start cells) of a list of played batches."""
+    flat = [
+        torch.cat([v.reshape(len(v), -1).double() for _, v in sorted(i.items())], -1)
+        for i, _ in batches
+    ]
+    return torch.cat(flat), torch.cat([s for _, s in batches])
+
+
+def test_the_baseline_phase_leaves_the_global_random_streams_alone(tmp_path):
+    """Training and scoring the baselines draws no number from the streams the methods' evaluation
+    (or the next cell) uses: torch's, NumPy's and Python's states are as they were."""
+    import random
+
+    import numpy as np
+
+    extra = ["seeds=1", "baselines=[recurrent,informed]", "heldout_episodes=0"]
+    cfg = scale.load_scale_config(scale.default_config_path(), [*TINY, *extra], quick=True)
+    ccfg = scale.case_config(cfg, cfg.selected()[0], 4)
+    ecfg = scale.seed_config(ccfg, 0)
+    states = lambda: (torch.get_rng_state(), np.random.get_state()[1].copy(), random.getstate())  # noqa: E731
+    torch.manual_seed(3), np.random.seed(3), random.seed(3)
+    before = states()
+    cell, methods = {}, {}
+    ctrls = scale.baseline_phase(cfg, ccfg, ecfg, [tmp_path], cell, [methods], -30.0, -5.0)
+    after = states()
+    assert torch.equal(before[0], after[0]) and (before[1] == after[1]).all()
+    assert before[2] == after[2]
+    assert list(ctrls[0]) == list(methods) == BASES and len(cell["baseline_training"]) == 2
+
+
+@pytest.mark.parametrize("value", ["[x]", "[recurrent,recurrent]", "[averaging]"])
+def test_a_bad_baseline_name_is_a_one_line_error(value):
+    with pytest.raises(ValueError, match="baselines") as e:
+        scale.load_scale_config(scale.default_config_path(), [f"baselines={value}"])
+    msg = str(e.value)
+    assert "\n" not in msg and all(b in msg for b in BASELINES)
+
+
+def test_informed_on_wargus_is_a_one_line_error_before_any_training(tmp_path, monkeypatch):
+    path = scale.default_config_path()
+    with pytest.raises(ValueError, match="family 'wargus'") as e:
+        scale.load_scale_config(path, ["only=[windy-5x5,wargus-32x32]", "baselines=[informed]"])
+    assert "\n" not in str(e.value) and "['recurrent']" in str(e.value)
+    cfg = scale.load_scale_config(path, ["only=[windy-5x5,wargus-32x32]"])
+    cfg = dataclasses.replace(cfg, baselines=("recurrent", "informed"))  # past the loader
+
+    def no_training(*args, **kwargs):
+        raise AssertionError("a cell trained before the baselines were checked")
+
+    monkeypatch.setattr(scale, "train", no_training)
+    with pytest.raises(ValueError, match="family 'wargus'") as e:
+        scale.scale(cfg, tmp_path / "out", progress=False, plots=False)
+    assert "\n" not in str(e.value) and "['recurrent']" in str(e.value)
+    assert scale.load_scale_config(path, ["only=[wargus-32x32]", "baselines=[recurrent]"])
+
+
+def test_no_baselines_by_default():
+    assert scale.load_scale_config(scale.default_config_path()).baselines == ()
+    field = {f.name: f for f in dataclasses.fields(scale.ScaleConfig)}["baselines"]
+    assert field.default == ()
