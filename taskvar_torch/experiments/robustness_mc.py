@@ -208,7 +208,8 @@ def robustness_monte_carlo(
             start = alive & ~running & subtasks.startable(td)[:, o]
             runs += start.sum()
             running = running | start
-            between = q[:, avg_root].argmax(-1) if avg_root is not None else own
+            q_avg = td.get(keys.ACTION_VALUE, None)  # between o's runs: the averaging policy
+            between = q_avg.argmax(-1) if q_avg is not None else own
             action = torch.where(running, own, between)
             pred.append(rob[rows, action])
             td.set(keys.ACTION, action)
