@@ -24,15 +24,18 @@ Examples:
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib.metadata
 import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import torch
 from torchrl.envs import EnvBase
 
-from taskvar_torch.envs import windy
+from taskvar_torch import keys
+from taskvar_torch.envs import wargus, windy
 from taskvar_torch.envs.instances import WindyInstances, windy_instances
 from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, wargus_instances
 from taskvar_torch.envs.wargus_env import WargusEnv
@@ -119,6 +122,12 @@ class Family:
             (``train.max_value_estimator=instance``), computed by ``instance_features``.
         instance_features: a tensordict of transitions -> ``(B, instance_dim)`` features of
             their ``("instance", ...)`` entries.
+        informed_features: config -> ``(dim, features)``, what the ``informed`` baseline reads
+            beside the observation (docs/memory.md): ``features`` maps transitions to ``(B, dim)``
+            features of the hidden instance and state. ``None``: ``(instance_dim,
+            instance_features)``. Its own hook because its dimension may depend on the config
+            (Wargus: the item and patrol positions) and because only the baseline reads it, never
+            the ``instance`` max-value estimator (Definition 1's max over instances).
         oracle: config -> the family's exact oracle for that env, or ``None`` where it has none
             (too large, another encoding). It offers the windy oracle's interface
             (docs/families.md): ``instance_keys``, ``controller_return``, ``averaging_policy``.
@@ -151,6 +160,7 @@ class Family:
     shift_aliases: tuple[str, ...] = ()
     instance_dim: int | None = None
     instance_features: Callable[[Any], Any] | None = None
+    informed_features: Callable[[Config], tuple[int, Callable[[Any], Any]]] | None = None
     oracle: Callable[[Config], Any] | None = None
     oracle_summary: Callable[[Any, Config], list[str]] | None = None
     averaging_optimum: Callable[[Config], Any] | None = None
@@ -455,6 +465,38 @@ def _wargus_env_kwargs(cfg: Config) -> dict[str, Any]:
     }
 
 
+def wargus_state_features(td: Any, size: int, num_patrols: int, num_items: int) -> torch.Tensor:
+    """``(B, 2 * (num_items + num_patrols))``: every item's and every patrol's ``(row, col)``,
+    divided by ``size - 1`` (so in ``[0, 1]`` on a grid of that size), from the transitions'
+    ``("instance", "item_pos")`` (B, M, 2) and ``("instance", "patrol_pos")`` (B, K, 2): the
+    whole state the agent does not see (its own position is in the observation; the instance
+    seed is a random-stream key, not a feature). Read only by the ``informed`` baseline
+    (docs/memory.md); an env with other counts is a one-line ``ValueError``."""
+    items = td.get((keys.INSTANCE, wargus.ITEM_POS))
+    patrols = td.get((keys.INSTANCE, wargus.PATROL_POS))
+    want = ((int(num_items), 2), (int(num_patrols), 2))
+    if (tuple(items.shape[-2:]), tuple(patrols.shape[-2:])) != want:
+        raise ValueError(
+            f"the informed baseline reads {num_items} item(s) and {num_patrols} patrol(s); this "
+            f"env has {items.shape[-2]} and {patrols.shape[-2]}"
+        )
+    B = items.shape[0]
+    pos = torch.cat([items.reshape(B, -1), patrols.reshape(B, -1)], dim=-1)
+    return pos.to(torch.float32) / float(int(size) - 1)
+
+
+def _wargus_informed(cfg: Config) -> tuple[int, Callable[[Any], torch.Tensor]]:
+    w = cfg.env.wargus
+    dim = 2 * (int(w.num_items) + int(w.num_patrols))
+    feats = functools.partial(
+        wargus_state_features,
+        size=int(w.size),
+        num_patrols=int(w.num_patrols),
+        num_items=int(w.num_items),
+    )
+    return dim, feats
+
+
 def _wargus_fields(spec: Any) -> dict[str, Any]:
     inst = wargus_instances(spec)
     return {"seeds": None if inst.seeds is None else list(inst.seeds), "order": inst.order}
@@ -623,6 +665,8 @@ def _check_declaration(fam: Family) -> None:
             raise ValueError(
                 f"family {fam.name!r}: config_class() must build with its defaults: {e}"
             ) from None
+    if fam.informed_features is not None and not callable(fam.informed_features):
+        raise ValueError(f"family {fam.name!r}: informed_features must be callable")
     if (fam.instance_dim is None) != (fam.instance_features is None):
         raise ValueError(
             f"family {fam.name!r}: instance_dim and instance_features go together (both or none)"
@@ -715,6 +759,7 @@ register_family(
         grid_side=lambda cfg: int(cfg.env.wargus.size),
         cells=lambda cfg: int(cfg.env.wargus.size) ** 2,
         observation=lambda cfg: "wargus",
+        informed_features=_wargus_informed,
         option_inputs=True,
         tests=WARGUS_TESTS,
         instance_fields=_wargus_fields,
@@ -736,6 +781,7 @@ __all__ = [
     "family",
     "register_family",
     "windy_env_kwargs",
+    "wargus_state_features",
     "windy_sparse_oracle",
     "windy_layout",
 ]

@@ -153,6 +153,13 @@ def _check(fam: Family, n: int) -> None:
         if z is None or tuple(z.shape) != (B, fam.instance_dim):
             got = None if z is None else tuple(z.shape)
             raise _fail(fam, f"instance_features must give ({B}, {fam.instance_dim}), got {got}")
+    # the informed baseline's features (docs/memory.md)
+    if fam.informed_features is not None:
+        dim, feats = fam.informed_features(cfg)
+        z = feats(batch)
+        if z is None or tuple(z.shape) != (B, int(dim)):
+            got = None if z is None else tuple(z.shape)
+            raise _fail(fam, f"informed_features(cfg) must give ({B}, {dim}), got {got}")
     # the named test distributions build their envs
     if not fam.tests:
         raise _fail(fam, "tests must name at least one test distribution (taskvar eval --test)")

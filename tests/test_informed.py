@@ -1,16 +1,19 @@
 """The informed baseline (issue 31, docs/memory.md): the learnt ceiling reaches the exact
-per-instance optimum, reads the family's instance features, is refused where a family has none,
+per-instance optimum, reads the family's instance features, is refused where a family has none
+(Wargus's features: tests/test_informed_wargus.py),
 and ``taskvar eval --method all`` plays both baselines on the same paired episodes."""
 
 from __future__ import annotations
 
 import csv
+import dataclasses
 
 import numpy as np
 import pytest
 import torch
 from torchrl.envs import TransformedEnv
 
+from taskvar_torch import families
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
@@ -100,8 +103,19 @@ def test_instance_features_any_batch_shape():
     assert torch.equal(out[..., 0], td["instance", "p"])
 
 
-def test_taxi_features_and_wargus_unavailable():
+def test_taxi_features_and_unavailable_without_any(monkeypatch):
     dim, _ = informed_features(load_config("configs/taxi.yaml", []))
     assert dim == 3
-    with pytest.raises(ValueError, match="family 'wargus' has none, so it is unavailable"):
-        informed_features(load_config("configs/wargus.yaml", []))
+    assert (
+        informed_features(load_config("configs/wargus.yaml", []))[0] == 4
+    )  # tests/test_informed_wargus.py
+    cfg = load_config("configs/wargus.yaml", [])
+    monkeypatch.setattr(families, "family", _without_informed(families.family))
+    with pytest.raises(ValueError, match="family 'wargus' has none, so it is unavailable") as e:
+        informed_features(cfg)
+    assert "\n" not in str(e.value)
+
+
+def _without_informed(family):
+    """``family`` with the informed hook removed: a family that gives no features at all."""
+    return lambda c: dataclasses.replace(family(c), informed_features=None)

@@ -18,6 +18,7 @@ import pytest
 import torch
 from torchrl.envs import TransformedEnv
 
+from taskvar_torch import families
 from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
@@ -163,7 +164,7 @@ def test_parse_methods_names_missing_baseline(tmp_path):
         parse_methods("memory", subtasks, heads, [], ckpt)
 
 
-def test_train_baselines_cli_errors(tmp_path, capsys):
+def test_train_baselines_cli_errors(tmp_path, capsys, monkeypatch):
     from types import SimpleNamespace
 
     from taskvar_torch.cli import main
@@ -179,9 +180,12 @@ def test_train_baselines_cli_errors(tmp_path, capsys):
     assert r.returncode == 2 and "baseline.size is not a baseline setting" in r.stderr
     r = _cli("train-baselines", "--out", str(tmp_path / "new"))
     assert r.returncode == 2 and "give a CONFIG file" in r.stderr
-    r = _cli(
-        "train-baselines", "configs/wargus.yaml", "--out", str(tmp_path), "--method", "informed"
-    )
+    with monkeypatch.context() as m:  # a family with no features (every built-in has some)
+        fam = families.family
+        m.setattr(families, "family", lambda c: dataclasses.replace(fam(c), informed_features=None))
+        r = _cli(
+            "train-baselines", "configs/wargus.yaml", "--out", str(tmp_path), "--method", "informed"
+        )
     assert r.returncode == 2 and r.stderr.count("\n") == 1
     assert "family 'wargus' has none, so it is unavailable" in r.stderr
     (tmp_path / "recurrent.pt").write_bytes(b"x")

@@ -13,7 +13,7 @@ import json
 import pytest
 import torch
 
-from taskvar_torch import keys
+from taskvar_torch import families, keys
 from taskvar_torch.cli import main
 from taskvar_torch.experiments import scale
 from taskvar_torch.families import FAMILIES
@@ -264,8 +264,13 @@ def test_a_bad_baseline_name_is_a_one_line_error(value):
     assert "\n" not in msg and all(b in msg for b in BASELINES)
 
 
-def test_informed_on_wargus_is_a_one_line_error_before_any_training(tmp_path, monkeypatch):
+def test_informed_without_features_is_a_one_line_error_before_any_training(tmp_path, monkeypatch):
     path = scale.default_config_path()
+    assert scale.load_scale_config(path, ["only=[wargus-32x32]", "baselines=[informed]"])
+    fam = families.family  # below: a Wargus without features (every built-in family has some)
+    monkeypatch.setattr(
+        families, "family", lambda c: dataclasses.replace(fam(c), informed_features=None)
+    )
     with pytest.raises(ValueError, match="family 'wargus'") as e:
         scale.load_scale_config(path, ["only=[windy-5x5,wargus-32x32]", "baselines=[informed]"])
     assert "\n" not in str(e.value) and "['recurrent']" in str(e.value)

@@ -35,8 +35,8 @@ folder) also trains the listed baselines of docs/memory.md (``recurrent``, ``inf
 ``train_recurrent.train_baseline`` on the cell's own config and frame budget, as ``taskvar
 train-baselines`` does, and plays them on the same test episodes (and held-out ones) as new
 ``methods`` entries (:func:`baseline_phase`), under :func:`isolated_rng`: the methods' values are
-unchanged. A family a listed baseline is unavailable on (``informed`` on Wargus) is refused before
-any training (:func:`check_case_baselines`).
+unchanged. A family a listed baseline is unavailable on (``informed`` where the family gives no
+features) is refused before any training (:func:`check_case_baselines`).
 
 Writes ``config.yaml`` (this experiment's config), ``cells/<case>-n<N>/`` (the trainer's logs and
 config; ``final.pt`` only with ``keep_checkpoints``), ``scale.csv`` (one row per cell and method),
@@ -310,8 +310,8 @@ def load_scale_config(
 
 def supported_baselines(ccfg: Config) -> tuple[str, ...]:
     """The baselines ``ccfg``'s family can train (docs/memory.md): ``recurrent`` on every family,
-    ``informed`` only where the family gives instance features (``Family.instance_features``;
-    Wargus gives none)."""
+    ``informed`` only where the family gives features of the hidden instance
+    (``heads.recurrent.informed_features``; every built-in family does)."""
     out = []
     for b in BASELINES:
         if b == "informed":

@@ -7,9 +7,9 @@ ceiling, built from TorchRL's own modules (docs/memory.md).
   controllers (§3: no learning online), but its hidden state can infer the hidden instance from
   the trajectory (a gust, a sighting), which no memoryless controller of the paper can.
 * ``informed``: a feed-forward Q-network reading the observation *and* the family's features of
-  the hidden instance (``Family.instance_features``; windy: p and the direction, Taxi: rain and
-  fickleness). It is the learnt ceiling: the paper's averaging head (§3.1) given what the paper's
-  agent never sees.
+  the hidden instance (:func:`informed_features`; windy: p and the direction, Taxi: rain and
+  fickleness, Wargus: the full state, every item's and patrol's position). It is the learnt
+  ceiling: the paper's averaging head (§3.1) given what the paper's agent never sees.
 
 Both are greedy in their Q-values at evaluation (:class:`BaselineController`), act step by step
 on the batched env (the recurrent one resets its hidden state at every episode start through
@@ -51,7 +51,7 @@ PREV_ACTION = "prev_action"
 GRU_INPUT = "recurrent_input"
 """Key of the GRU's input: the observation and the previous action."""
 INSTANCE_FEATURES = "instance_features"
-"""Key of the informed head's instance features (``Family.instance_features``)."""
+"""Key of the informed head's instance features (:func:`informed_features`)."""
 
 _ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "silu": nn.SiLU}
 
@@ -170,9 +170,10 @@ class PreviousAction(Transform):
 
 
 class InstanceFeatures(TensorDictModuleBase):
-    """Writes ``Family.instance_features`` of the tensordict's ``("instance", ...)`` entries as
-    ``instance_features`` ``(*batch, F)`` (any batch shape; the family function sees a flat batch).
-    Only the ``informed`` baseline reads them: the hidden instance, given away on purpose."""
+    """Writes the family's informed features (:func:`informed_features`) of the tensordict's
+    ``("instance", ...)`` entries as ``instance_features`` ``(*batch, F)`` (any batch shape; the
+    family function sees a flat batch). Only the ``informed`` baseline reads them: the hidden
+    instance, given away on purpose."""
 
     def __init__(self, features: Callable[[TensorDictBase], torch.Tensor], instance_keys):
         super().__init__()
@@ -266,15 +267,21 @@ def family_instance_keys(cfg: Config) -> tuple[str, ...]:
 
 
 def informed_features(cfg: Config) -> tuple[int, Callable[[TensorDictBase], torch.Tensor]]:
-    """``(instance_dim, instance_features)`` of the config's family, or a one-line ``ValueError``
-    where the family gives none (then the informed head is unavailable)."""
+    """``(dim, features)`` the informed head reads for the config's family: its
+    ``Family.informed_features(cfg)`` (Wargus: item and patrol positions, a dimension set by the
+    config), else ``(instance_dim, instance_features)`` (windy, Taxi); a one-line ``ValueError``
+    where the family gives neither (then the informed head is unavailable)."""
     from taskvar_torch.families import family
 
     fam = family(cfg)
+    if fam.informed_features is not None:
+        dim, feats = fam.informed_features(cfg)
+        return int(dim), feats
     if fam.instance_dim is None or fam.instance_features is None:
         raise ValueError(
-            f"the informed baseline needs the family's instance features "
-            f"(Family.instance_features); family {fam.name!r} has none, so it is unavailable"
+            f"the informed baseline needs the family's features of the hidden instance "
+            f"(Family.informed_features or instance_features); family {fam.name!r} has none, so "
+            f"it is unavailable"
         )
     return int(fam.instance_dim), fam.instance_features
 
