@@ -42,6 +42,7 @@ from taskvar_torch.config.schema import Config
 from taskvar_torch.envs import wargus
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.factory import calibrate, make_subtasks, training_states
+from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -157,7 +158,7 @@ def robustness_monte_carlo(
         ``agree_ranked`` that with MC's threshold at the critic's share (module docstring).
     """
     t = cfg.train
-    if cfg.family != "wargus":
+    if family(cfg).env_class is not WargusEnv:  # it plays fixed WargusEnv instances
         raise ValueError(
             f"robustness_monte_carlo plays Wargus instances, got family {cfg.family!r}"
         )
