@@ -37,6 +37,7 @@ TINY = [
     "train.frames_per_batch=64",
     "train.buffer_size=5000",
     "heads.hidden=[32]",
+    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
 ]
 FILES = (
     "config.yaml",

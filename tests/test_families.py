@@ -28,6 +28,7 @@ TINY = [
     "train.batch_size=16",
     "train.updates_per_batch=1",
     "train.buffer_size=1000",
+    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
 ]
 
 

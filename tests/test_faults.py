@@ -42,6 +42,7 @@ TINY = [
     "train.batch_size=32",
     "train.updates_per_batch=2",
     "train.buffer_size=5000",
+    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
 ]
 
 HOOK = textwrap.dedent(

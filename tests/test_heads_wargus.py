@@ -25,6 +25,7 @@ SHORT = [
     "train.eps_decay_frames=10000",
     "train.buffer_size=50000",
     "train.checkpoint_every=0",
+    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
 ]
 
 

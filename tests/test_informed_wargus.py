@@ -42,6 +42,7 @@ TINY = [
     "env.wargus.shoot_range=1",
     "env.num_envs=16",
     "heads.hidden=[32]",
+    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
 ]
 FAST = [
     "train.total_frames=20480",

@@ -318,3 +318,26 @@ def test_the_readme_header_does_not_call_every_row_held_out():
     assert "(held-out instances;" not in header
     assert "held-out instances unless the row names another --test" in header
     assert "| eval windy --test train |" in table
+
+
+def test_two_configs_of_one_label_are_named_by_the_key_that_differs(tmp_path):
+    """Two Figure 4 folders of one grid and length but another ``train.compile`` are two claims,
+    each labelled by that key's value; a third config of the same label falls back to digests."""
+    level = {"averaging": 1.0, "options": 1.0, "interruption": 1.0, "hierarchy": 1.2}
+    for name, compile_ in (("eager", False), ("compiled", True)):
+        folder = fig4_folder(tmp_path / name, range(5), level)
+        cfg = yaml.safe_load((folder / "config.yaml").read_text())
+        cfg["train"] = {"compile": compile_}
+        (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
+    groups = report.collect([str(tmp_path / "eager"), str(tmp_path / "compiled")])
+    assert [g.label for g in groups] == [
+        "wargus-fig4, 12x12, 40 trials (train.compile=false)",
+        "wargus-fig4, 12x12, 40 trials (train.compile=true)",
+    ]
+    third = fig4_folder(tmp_path / "third", range(5), level)
+    cfg = yaml.safe_load((third / "config.yaml").read_text())
+    cfg["train"] = {"compile": False, "lr": 0.1}
+    (third / "config.yaml").write_text(yaml.safe_dump(cfg))
+    groups = report.collect([str(tmp_path / d) for d in ("eager", "compiled", "third")])
+    assert all(g.label.endswith(f"(config {g.digest})") for g in groups)
+    assert len({g.label for g in groups}) == 3

@@ -36,6 +36,7 @@ SHORT = [
     "train.updates_per_batch=16",  # 1776 updates: the critics' TD converges within the budget
     "train.robustness_gamma=0.9",  # ~10-step horizon (0.99 needs the full protocol's updates)
     "train.checkpoint_every=0",
+    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
 ]
 MAX_BIAS = 1.5  # |mean(R - MC)| for every option
 MIN_CORR = {"TG": 0.5, "TG+FE": 0.5}  # Pearson's r of R against MC (FE's is not learnt: none)

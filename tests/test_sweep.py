@@ -32,6 +32,7 @@ TINY = [  # on top of --quick: about 5 s per point, and the averaging policy alr
     "experiment.runs=1",
     "experiment.episodes_per_run=20",
     "eval.batch_size=20",
+    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
 ]
 TIMING = ("train_seconds", "eval_seconds", "wall_seconds", "checkpoint")
 

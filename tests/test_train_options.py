@@ -55,6 +55,7 @@ TINY = [  # tests/test_families.py's budget, with 2 updates per batch: 8 updates
     "train.batch_size=16",
     "train.updates_per_batch=2",
     "train.buffer_size=1000",
+    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
 ]
 
 

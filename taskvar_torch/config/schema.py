@@ -197,7 +197,8 @@ class TrainConfig:
     backward of every head (the same losses up to float rounding), and in the wargus-fig4 learning
     loop the behaviour policy's choices and the Wargus dynamics step (the same bits). Cheaper
     trials after a compile of 20-30 s per process (docs/benchmarks.md); falls back to eager, with a
-    warning, where compiling fails."""
+    warning, where compiling fails. On in ``configs/wargus.yaml`` (the Figure 4 protocol: 1.3x less
+    CPU per trial), off in its ``--quick`` overrides and the other configs."""
     eval_ema_tau: float | None = None
     """Polyak averaging of the weights for evaluation: the learner keeps an exponential moving
     average of every head's weights (``ema <- ema + tau (online - ema)`` after each update) and

@@ -253,13 +253,19 @@ def _expand(arg: str) -> list[Result]:
     return [load_result(p) for p in seeds]
 
 
-def _first_difference(a: Any, b: Any, prefix: str = "") -> str:
-    """The first dotted key where two config dicts differ (for the one-line error)."""
+def _difference(a: Any, b: Any, prefix: str = "") -> tuple[str, Any, Any]:
+    """The first dotted key where two config dicts differ, and its two values."""
     if isinstance(a, dict) and isinstance(b, dict):
         for k in sorted(set(a) | set(b)):
             if a.get(k) != b.get(k):
-                return _first_difference(a.get(k), b.get(k), f"{prefix}{k}.")
-    return f"{prefix.rstrip('.')} ({a!r} vs {b!r})"
+                return _difference(a.get(k), b.get(k), f"{prefix}{k}.")
+    return prefix.rstrip("."), a, b
+
+
+def _first_difference(a: Any, b: Any) -> str:
+    """The first dotted key where two config dicts differ (for the one-line error)."""
+    key, va, vb = _difference(a, b)
+    return f"{key} ({va!r} vs {vb!r})"
 
 
 def collect(dirs: Sequence[str]) -> list[Group]:
@@ -297,10 +303,19 @@ def collect(dirs: Sequence[str]) -> list[Group]:
                     )
                 where[s] = r.path
         g.label = _label(g)
-    labels = [g.label for g in groups]
-    for g in groups:
-        if labels.count(g.label) > 1:
-            g.label = f"{g.label} (config {g.digest})"
+    labels = []
+    for g in groups:  # a label two groups share: the key that tells two apart, else the digest
+        twins = [h for h in groups if h is not g and h.label == g.label]
+        label = g.label
+        if len(twins) == 1:
+            key, value, _ = _difference(g.config, twins[0].config)
+            value = str(value).lower() if isinstance(value, bool) else value  # as an override
+            label = f"{g.label} ({key.removeprefix('bundle.')}={value})"
+        elif twins:
+            label = f"{g.label} (config {g.digest})"
+        labels.append(label)
+    for g, label in zip(groups, labels):
+        g.label = label
     for g in groups:
         if len(g.seeds) < MIN_SEEDS:
             raise ReportError(
