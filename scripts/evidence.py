@@ -2,8 +2,9 @@
 
 For one family config: ``taskvar train CONFIG --seeds N`` (one batched learner, docs/seeds.md),
 ``taskvar train-baselines`` in each ``seed<k>/`` (the recurrent and informed baselines), then
-``taskvar eval --method all`` of each seed's bundle on each named test distribution (the same
-paired episodes for every seed: the test seed is the test's, not the training seed's), each into
+``taskvar eval --method all`` of each seed's bundle on each named test distribution (one seed's
+methods share paired episodes; eval's default test seed is each bundle's own ``seed + 1``, so
+the seeds play different episodes, but a held-out test plays its sealed seed for all), each into
 ``OUT/eval-<test>/seed<k>/``: the layout ``taskvar report`` reads. Steps already done are skipped,
 so an interrupted run continues. Finally one table per test: each method's mean return, exact
 value and regret against the exact per-instance optimum (where the family has an oracle), as the
