@@ -140,3 +140,30 @@ def test_eval_all_plays_informed_beside_the_papers_methods(wargus_informed, tmp_
     assert m["methods"][0] == "averaging" and m["methods"][-1] == "informed"
     point = m["points"][0]["methods"]
     assert point["informed"]["mean_return"] >= 0 and "regret_mean" not in point["informed"]
+
+
+def test_a_shift_the_informed_head_cannot_read_is_refused_before_any_episode(
+    wargus_informed, tmp_path, monkeypatch
+):
+    """Another item count changes the informed features' width: one line naming both widths,
+    raised with the other input checks, before the paper's methods play (nothing is written)."""
+    from taskvar_torch.experiments import bundle_eval
+
+    cfg, folder, _ = wargus_informed
+    env = make_env(cfg, 1)
+    if not (folder / "heads.pt").exists():
+        write_heads(folder / "heads.pt", build_heads(cfg, env, make_subtasks(cfg, env)), cfg)
+    played = []
+    monkeypatch.setattr(bundle_eval, "play", lambda *a, **k: played.append(a) or {})
+    with pytest.raises(ValueError) as err:
+        eval_bundle(
+            folder / "heads.pt",
+            "all",
+            shifts=["env.wargus.num_items=2"],
+            episodes=5,
+            progress=False,
+            out_dir=tmp_path / "out",
+        )
+    msg = str(err.value)
+    assert "\n" not in msg and "6 instance features" in msg and "trained on 4" in msg, msg
+    assert not played and not (tmp_path / "out").exists()

@@ -55,7 +55,7 @@ from taskvar_torch.factory import (
 )
 from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads
-from taskvar_torch.heads.recurrent import BASELINES
+from taskvar_torch.heads.recurrent import BASELINES, informed_features
 from taskvar_torch.oracle import exact_episode_returns
 from taskvar_torch.oracle.learnt import optimal_episode_returns
 from taskvar_torch.progress import progress_bar
@@ -127,16 +127,24 @@ def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) ->
         )
 
 
-def _check_baseline_fits(point: EvalPoint, ctrl: Any, subtasks: Subtasks) -> None:
-    """A baseline's network must fit the test point's observations and actions."""
-    env = make_env(point.cfg, 1, instances=point.instances)
+def _check_baseline_fits(point: EvalPoint, ctrl: Any, env: Any) -> None:
+    """A baseline's network must fit the test point's observations, actions and (``informed``)
+    instance features; ``env`` is a probe of the point."""
+    where = point.label or "the test distribution"
     got = (int(env.observation_spec[keys.OBSERVATION].shape[-1]), int(env.action_spec.space.n))
     want = (ctrl.spec.obs_dim, ctrl.spec.num_actions)
     if got != want:
         raise ValueError(
-            f"{point.label or 'the test distribution'} gives observations of {got[0]} values and "
+            f"{where} gives observations of {got[0]} values and "
             f"{got[1]} actions; the {ctrl.name} baseline was trained on {want[0]} and {want[1]}"
         )
+    if ctrl.spec.instance_dim:  # informed: e.g. a Wargus shift in the number of items
+        dim, _ = informed_features(point.cfg)
+        if dim != ctrl.spec.instance_dim:
+            raise ValueError(
+                f"{where} gives {dim} instance features; the {ctrl.name} baseline was trained "
+                f"on {ctrl.spec.instance_dim}"
+            )
 
 
 def _exact_oracle(cfg: Config, point: EvalPoint) -> Any:
@@ -309,6 +317,9 @@ def eval_bundle(
         probe = make_env(point.cfg, 1, instances=point.instances)
         point_subtasks.append(make_subtasks(point.cfg, probe))
         _check_fits(point, heads, point_subtasks[-1], probe)
+        for m in methods:
+            if m in baselines:
+                _check_baseline_fits(point, baselines[m], probe)
     if by_frames:  # its one-line refusals before any episode is played
         from taskvar_torch.experiments.regret_frames import check_by_frames
 
@@ -333,7 +344,6 @@ def eval_bundle(
         step_alive: dict[str, np.ndarray] = {}
         for m in methods:
             if m in baselines:
-                _check_baseline_fits(point, baselines[m], subtasks)
                 ctrl = baselines[m]
             else:
                 ctrl = make_method_controller(
