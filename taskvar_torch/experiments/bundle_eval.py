@@ -41,6 +41,7 @@ from taskvar_torch.experiments.regret_steps import (
     episode_step_regret,
     plot_regret_by_step,
     regret_by_step,
+    step_regret_affordable,
     supports_step_regret,
 )
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
@@ -380,6 +381,12 @@ def eval_bundle(
                     if not rows_have_optimum:
                         r["optimum_return"] = optimum  # once per episode (the first method)
                         rows_have_optimum = True
+            if (
+                steps
+                and oracle is not None
+                and not (exact or step_regret_affordable(oracle, instance))
+            ):
+                steps = False  # many distinct instances (Taxi's continuous ranges): --exact
             if steps and oracle is not None:  # V*(s_t) - Q*(s_t, a_t) in the episode's instance
                 step_gaps[m] = episode_step_regret(oracle, instance, *traced)
                 step_alive[m] = traced[2]

@@ -3,7 +3,7 @@ that knows the instance (the paper's "jump start" against memory's warm-up; issu
 docs/evaluation.md).
 
 ``taskvar eval`` traces the cell and the action of every step of every paired episode; a family's
-exact oracle with ``step_regret`` (windy) gives each step's instantaneous regret
+exact oracle with ``step_regret`` (windy, Taxi) gives each step's instantaneous regret
 ``V*_{H-t}(s_t) - Q*_{H-t}(s_t, a_t)`` under the episode's own instance (the per-instance optimum's
 values with ``H - t`` steps to go). :func:`regret_by_step` averages it per step over all episodes (an
 ended episode adds 0, so the steps' means sum to the method's mean regret, by the
@@ -29,8 +29,19 @@ TAIL = 0.01
 
 
 def supports_step_regret(oracle: Any) -> bool:
-    """Whether ``oracle`` gives per-step regret (``step_regret``; windy's, not yet Taxi's)."""
+    """Whether ``oracle`` gives per-step regret (``step_regret``: windy's and Taxi's)."""
     return oracle is not None and callable(getattr(oracle, "step_regret", None))
+
+
+def step_regret_affordable(oracle: Any, instance: Mapping[str, np.ndarray]) -> bool:
+    """Whether per-step regret of these episodes is cheap: the oracle's ``step_solves`` (its
+    backward inductions, one per distinct instance for Taxi) within its ``max_step_solves`` (no
+    such attribute, as windy's: always). ``taskvar eval --exact`` computes it anyway."""
+    limit = getattr(oracle, "max_step_solves", None)
+    if limit is None:
+        return True
+    fields = [np.asarray(instance[k]) for k in oracle.instance_keys]
+    return int(oracle.step_solves(*fields)) <= int(limit)
 
 
 def episode_step_regret(

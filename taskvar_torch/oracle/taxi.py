@@ -119,6 +119,16 @@ class TaxiOracle(ControllerChains):
     most this many distinct rain values (each costs a chain solve of ~0.2-0.5 s per method;
     ``taskvar eval --exact`` computes them anyway)."""
 
+    max_step_solves = 32
+    """``taskvar eval`` computes per-step regret (:meth:`step_regret`) by default only for episodes
+    with at most this many distinct instances (each a backward induction of ~0.1-0.3 s; ``--exact``
+    computes it anyway)."""
+
+    @staticmethod
+    def step_solves(q: Any, f: Any) -> int:
+        """The backward inductions :meth:`step_regret` runs for episodes with these instances."""
+        return int(np.unique(np.stack([np.asarray(q), np.asarray(f)], -1), axis=0).shape[0])
+
     @staticmethod
     def exact_solves(q: Any, f: Any) -> int:
         """The chain solves per controller for episodes with these instances (distinct q: the
@@ -374,6 +384,72 @@ class TaxiOracle(ControllerChains):
             V = W.max(-1).values
         out = self._select_start(self._start_mix(V, ft, informed), start)
         return out[0] if scalar else out
+
+    def step_regret(self, q: Any, f: Any, cells: Any, actions: Any, alive: Any = None) -> Tensor:
+        """Instantaneous regret ``(B, T)`` of the actions played in ``B`` episodes, one instance
+        each: ``V*_{H-t}(x_t) - Q*_{H-t}(x_t, a_t)`` at step ``t`` (``H = horizon``; the values of
+        :meth:`optimal_return` with ``H - t`` steps to go), 0 where ``alive`` (default all) is
+        false. ``cells``, ``actions``: ``(B, T)`` Taxi states and actions, ``T <= H``.
+
+        ``x_t`` is the augmented state (module docstring): pending from the start until the first
+        step that starts with the passenger aboard and moves the taxi, read off the trace itself
+        (``fickle_moves[s_t, s_{t+1}]``), so the values are those of the agent that knows (q, f)
+        but not the passenger's coin: the per-instance optimum every regret is measured against.
+        By the performance-difference identity an episode's sum over steps is, in expectation
+        over rain and the coin, its regret ``optimal_return - return`` (exactly so where both are
+        deterministic: ``q = 1`` and ``f`` 0 or 1 with no redraw, docs/evaluation.md)."""
+        qt, ft, _ = self._instances_arg(q, f)
+        s = torch.as_tensor(cells, dtype=torch.int64, device=self.device)
+        a = torch.as_tensor(actions, dtype=torch.int64, device=self.device)
+        live = (
+            torch.ones_like(s, dtype=torch.bool)
+            if alive is None
+            else torch.as_tensor(alive, dtype=torch.bool, device=self.device)
+        )
+        B, T = s.shape
+        if qt.numel() != B or a.shape != s.shape or live.shape != s.shape:
+            raise ValueError(
+                f"step_regret needs one instance per episode and (B, T) cells, actions, alive; "
+                f"got {qt.numel()} instances, {tuple(s.shape)}, {tuple(a.shape)}, "
+                f"{tuple(live.shape)}"
+            )
+        if T > self.horizon:
+            raise ValueError(f"episodes of {T} steps exceed the oracle's horizon {self.horizon}")
+        # pending (k = 1) until the first step from a passenger-aboard state that moves the taxi
+        fired = self.model.fickle_moves[s[:, :-1], s[:, 1:]]  # (B, T - 1)
+        done_before = torch.cumsum(fired.to(torch.int64), 1) > 0
+        pending = torch.cat(
+            [torch.ones(B, 1, dtype=torch.bool, device=self.device), ~done_before], 1
+        )
+        x = s + self.S * pending.to(torch.int64)  # (B, T)
+        # the optimum's values depend on the instance only: one backward induction per distinct
+        # (q, f) (a few for a test point like `gymnasium`; one per episode for a continuous range)
+        uniq, inv = torch.unique(torch.stack([qt, ft], 1), dim=0, return_inverse=True)
+        out = torch.zeros(B, T, dtype=torch.float64, device=self.device)
+        for lo in range(0, uniq.shape[0], 128):  # (128, 1000, 6, 3) float64 per step at most
+            part = uniq[lo : lo + 128]
+            mine = ((inv >= lo) & (inv < lo + part.shape[0])).nonzero().squeeze(1)  # episodes
+            out[mine] = self._step_gaps(part, inv[mine] - lo, x[mine], a[mine], live[mine])
+        return out
+
+    def _step_gaps(self, inst: Tensor, which: Tensor, x: Tensor, a: Tensor, live: Tensor) -> Tensor:
+        """:meth:`step_regret` for episodes ``(N,)`` of the instances ``inst (U, 2)`` (``which``
+        indexes them), augmented states ``x (N, T)``."""
+        U, (N, T) = inst.shape[0], x.shape
+        po = self._outcome_probs(inst[:, 0]).permute(0, 2, 1).unsqueeze(2)  # (U, 3, 1, A)
+        flat = self._succ3.permute(2, 0, 1).reshape(1, -1).expand(U, -1)  # (U, 3*X*A)
+        out = torch.zeros(N, T, dtype=torch.float64, device=self.device)
+        V = torch.zeros(U, self.X, dtype=torch.float64, device=self.device)
+        for togo in range(1, self.horizon + 1):
+            nxt = self._extend(V, inst[:, 1]).gather(1, flat).view(U, 3, self.X, self.A)
+            W = self.R_x + po[:, 0] * nxt[:, 0] + po[:, 1] * nxt[:, 1] + po[:, 2] * nxt[:, 2]
+            V = W.max(-1).values  # (U, X): togo steps to go
+            t = self.horizon - togo
+            if t < T:
+                xt = x[:, t]
+                gap = V[which, xt] - W[which, xt, a[:, t]]
+                out[:, t] = torch.where(live[:, t], gap, 0.0)
+        return out
 
     def _start_mix(self, V: Tensor, f: Tensor, informed: bool = False) -> Tensor:
         """``(B, S)`` episode-start values from augmented ``V (B, X, ...)``'s first trailing slot."""
