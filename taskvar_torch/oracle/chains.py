@@ -33,6 +33,31 @@ class ControllerChains:
     helpers.
     """
 
+    def _step_trace(
+        self, instances: int, cells: Any, actions: Any, alive: Any
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """``step_regret``'s inputs as ``(B, T)`` tensors ``(cells, actions, alive)`` on the
+        oracle's device (``alive`` None: all live), checked against ``instances`` episodes and the
+        horizon, each mismatch one line."""
+        s = torch.as_tensor(cells, dtype=torch.int64, device=self.device)
+        a = torch.as_tensor(actions, dtype=torch.int64, device=self.device)
+        live = (
+            torch.ones_like(s, dtype=torch.bool)
+            if alive is None
+            else torch.as_tensor(alive, dtype=torch.bool, device=self.device)
+        )
+        if s.dim() != 2 or instances != s.shape[0] or a.shape != s.shape or live.shape != s.shape:
+            raise ValueError(
+                f"step_regret needs one instance per episode and (B, T) cells, actions, alive; "
+                f"got {instances} instances, {tuple(s.shape)}, {tuple(a.shape)}, "
+                f"{tuple(live.shape)}"
+            )
+        if s.shape[1] > self.horizon:
+            raise ValueError(
+                f"episodes of {s.shape[1]} steps exceed the oracle's horizon {self.horizon}"
+            )
+        return s, a, live
+
     @torch.no_grad()
     def tabulate(self, heads: Heads, obs_encoding: str = "onehot") -> dict[str, Tensor]:
         """Every head's output at every cell, ``{out_key: (S, ...)}`` (heads may read cell or observation)."""

@@ -399,22 +399,8 @@ class TaxiOracle(ControllerChains):
         over rain and the coin, its regret ``optimal_return - return`` (exactly so where both are
         deterministic: ``q = 1`` and ``f`` 0 or 1 with no redraw, docs/evaluation.md)."""
         qt, ft, _ = self._instances_arg(q, f)
-        s = torch.as_tensor(cells, dtype=torch.int64, device=self.device)
-        a = torch.as_tensor(actions, dtype=torch.int64, device=self.device)
-        live = (
-            torch.ones_like(s, dtype=torch.bool)
-            if alive is None
-            else torch.as_tensor(alive, dtype=torch.bool, device=self.device)
-        )
+        s, a, live = self._step_trace(qt.numel(), cells, actions, alive)
         B, T = s.shape
-        if qt.numel() != B or a.shape != s.shape or live.shape != s.shape:
-            raise ValueError(
-                f"step_regret needs one instance per episode and (B, T) cells, actions, alive; "
-                f"got {qt.numel()} instances, {tuple(s.shape)}, {tuple(a.shape)}, "
-                f"{tuple(live.shape)}"
-            )
-        if T > self.horizon:
-            raise ValueError(f"episodes of {T} steps exceed the oracle's horizon {self.horizon}")
         # pending (k = 1) until the first step from a passenger-aboard state that moves the taxi
         fired = self.model.fickle_moves[s[:, :-1], s[:, 1:]]  # (B, T - 1)
         done_before = torch.cumsum(fired.to(torch.int64), 1) > 0

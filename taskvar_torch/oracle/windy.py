@@ -469,22 +469,8 @@ class WindyOracle(ControllerChains, ReplayReference):
         the gusts, its regret against the per-instance optimum (exactly so where the instance is
         deterministic, ``p`` 0 or 1): ``optimal_return - return`` (docs/evaluation.md)."""
         pt, d, _ = self._instances_arg(p, direction)
-        s = torch.as_tensor(cells, dtype=torch.int64, device=self.device)
-        a = torch.as_tensor(actions, dtype=torch.int64, device=self.device)
-        live = (
-            torch.ones_like(s, dtype=torch.bool)
-            if alive is None
-            else torch.as_tensor(alive, dtype=torch.bool, device=self.device)
-        )
+        s, a, live = self._step_trace(pt.numel(), cells, actions, alive)
         B, T = s.shape
-        if pt.numel() != B or a.shape != s.shape or live.shape != s.shape:
-            raise ValueError(
-                f"step_regret needs one instance per episode and (B, T) cells, actions, alive; "
-                f"got {pt.numel()} instances, {tuple(s.shape)}, {tuple(a.shape)}, "
-                f"{tuple(live.shape)}"
-            )
-        if T > self.horizon:
-            raise ValueError(f"episodes of {T} steps exceed the oracle's horizon {self.horizon}")
         m = self.model
         moved = m.move  # (S, A)
         gust = m.push[moved.unsqueeze(0), d.view(-1, 1, 1)]  # (B, S, A)
