@@ -66,7 +66,8 @@ Examples:
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections import deque
+from collections.abc import Iterator, Sequence
 from functools import cached_property
 from typing import Any
 
@@ -373,17 +374,25 @@ class TaxiOracle(ControllerChains):
         coin), from each Taxi state at the episode start (``start`` as in
         :meth:`controller_return`)."""
         qt, ft, scalar = self._instances_arg(q, f)
-        po = self._outcome_probs(qt).permute(0, 2, 1).unsqueeze(2)  # (B, 3, 1, A)
-        fr = torch.ones_like(ft) if informed else ft
-        B = qt.numel()
+        steps = self._optimal_steps(qt, torch.ones_like(ft) if informed else ft)
+        _, _, V = deque(steps, maxlen=1)[0]  # the last: horizon steps to go (earlier W dropped)
+        out = self._select_start(self._start_mix(V, ft, informed), start)
+        return out[0] if scalar else out
+
+    def _optimal_steps(self, q: Tensor, fr: Tensor) -> Iterator[tuple[int, Tensor, Tensor]]:
+        """Backward induction of the per-instance optimum over steps-to-go: yields ``(togo, W, V)``
+        for ``togo = 1 .. horizon``, ``W (B, X, A)`` the optimal values of each action with
+        ``togo`` steps to go and ``V = W.max(-1)``; ``fr (B,)``: the redraw probability of a
+        pending state (f, or 1 for the informed model)."""
+        B = q.numel()
+        po = self._outcome_probs(q).permute(0, 2, 1).unsqueeze(2)  # (B, 3, 1, A)
         flat = self._succ3.permute(2, 0, 1).reshape(1, -1).expand(B, -1)  # (B, 3*X*A)
         V = torch.zeros(B, self.X, dtype=torch.float64, device=self.device)
-        for _ in range(self.horizon):
+        for togo in range(1, self.horizon + 1):
             nxt = self._extend(V, fr).gather(1, flat).view(B, 3, self.X, self.A)
             W = self.R_x + po[:, 0] * nxt[:, 0] + po[:, 1] * nxt[:, 1] + po[:, 2] * nxt[:, 2]
             V = W.max(-1).values
-        out = self._select_start(self._start_mix(V, ft, informed), start)
-        return out[0] if scalar else out
+            yield togo, W, V
 
     def step_regret(self, q: Any, f: Any, cells: Any, actions: Any, alive: Any = None) -> Tensor:
         """Instantaneous regret ``(B, T)`` of the actions played in ``B`` episodes, one instance
@@ -396,8 +405,8 @@ class TaxiOracle(ControllerChains):
         (``fickle_moves[s_t, s_{t+1}]``), so the values are those of the agent that knows (q, f)
         but not the passenger's coin: the per-instance optimum every regret is measured against.
         By the performance-difference identity an episode's sum over steps is, in expectation
-        over rain and the coin, its regret ``optimal_return - return`` (exactly so where both are
-        deterministic: ``q = 1`` and ``f`` 0 or 1 with no redraw, docs/evaluation.md)."""
+        over rain and the coin, its regret ``optimal_return - return`` (exactly so where the
+        instance is deterministic: ``q = 1``, ``f = 0``; docs/memory.md)."""
         qt, ft, _ = self._instances_arg(q, f)
         s, a, live = self._step_trace(qt.numel(), cells, actions, alive)
         B, T = s.shape
@@ -421,15 +430,9 @@ class TaxiOracle(ControllerChains):
     def _step_gaps(self, inst: Tensor, which: Tensor, x: Tensor, a: Tensor, live: Tensor) -> Tensor:
         """:meth:`step_regret` for episodes ``(N,)`` of the instances ``inst (U, 2)`` (``which``
         indexes them), augmented states ``x (N, T)``."""
-        U, (N, T) = inst.shape[0], x.shape
-        po = self._outcome_probs(inst[:, 0]).permute(0, 2, 1).unsqueeze(2)  # (U, 3, 1, A)
-        flat = self._succ3.permute(2, 0, 1).reshape(1, -1).expand(U, -1)  # (U, 3*X*A)
+        N, T = x.shape
         out = torch.zeros(N, T, dtype=torch.float64, device=self.device)
-        V = torch.zeros(U, self.X, dtype=torch.float64, device=self.device)
-        for togo in range(1, self.horizon + 1):
-            nxt = self._extend(V, inst[:, 1]).gather(1, flat).view(U, 3, self.X, self.A)
-            W = self.R_x + po[:, 0] * nxt[:, 0] + po[:, 1] * nxt[:, 1] + po[:, 2] * nxt[:, 2]
-            V = W.max(-1).values  # (U, X): togo steps to go
+        for togo, W, V in self._optimal_steps(inst[:, 0].contiguous(), inst[:, 1].contiguous()):
             t = self.horizon - togo
             if t < T:
                 xt = x[:, t]
