@@ -94,6 +94,79 @@ def build_for_training(
     return net.to(cfg.device), spec, env
 
 
+def stored_keys(method: str) -> tuple:
+    """What the replay keeps of each transition: the step (observation, action, next reward and
+    done flags, episode starts) and, for ``recurrent``, the GRU's stored hidden state and the
+    previous actions; for ``informed``, the hidden instance its features are read from."""
+    if method == "recurrent":
+        return (*_STORE, RECURRENT_STATE, PREV_ACTION, (keys.NEXT, PREV_ACTION))
+    return (*_STORE, keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
+
+
+class BaselineLearner:
+    """A baseline's replay and update rule: ``DQNLoss(double_dqn=True, delay_value=True)`` on
+    ``net`` with ``SoftUpdate``, Adam and ``train.max_grad_norm`` clipping (module docstring).
+
+    ``recurrent``: the replay holds trajectories, sampled by ``SliceSampler`` in slices of
+    ``settings.slice_len`` within episodes (``end_key = ("next", "done")``) and the loss runs the
+    GRU in ``set_recurrent_mode(True)``; ``time_major`` (the default) stores ``(time, sub-env)``
+    batches (``LazyTensorStorage(ndim=2)``: an episode cut by a batch boundary stays contiguous),
+    else flat batches whose episodes are already contiguous (the Figure 4 protocol's,
+    ``experiments/fig4_recurrent.py``). Otherwise uniform transitions.
+    """
+
+    def __init__(
+        self,
+        net: TensorDictSequential,
+        action_spec: Any,
+        t: Any,
+        settings: BaselineSettings,
+        recurrent: bool,
+        time_major: bool = True,
+    ):
+        self.recurrent = recurrent
+        self.max_grad_norm = float(t.max_grad_norm)
+        self.loss = DQNLoss(net, action_space=action_spec, delay_value=True, double_dqn=True)
+        self.loss.make_value_estimator(gamma=float(t.gamma))
+        self.updater = SoftUpdate(self.loss, tau=float(settings.target_tau or t.target_tau))
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(settings.lr or t.lr))
+        self.updates_per_batch = int(settings.updates_per_batch or t.updates_per_batch)
+        self.device = next(net.parameters()).device
+        if recurrent:
+            L = int(settings.slice_len)
+            self.buffer = TensorDictReplayBuffer(
+                storage=LazyTensorStorage(int(t.buffer_size), ndim=2 if time_major else 1),
+                sampler=SliceSampler(
+                    slice_len=L, end_key=(keys.NEXT, keys.DONE), strict_length=False
+                ),
+                batch_size=max(L, int(t.batch_size) // L * L),
+            )
+        else:
+            self.buffer = TensorDictReplayBuffer(
+                storage=LazyTensorStorage(int(t.buffer_size)),
+                sampler=RandomSampler(),
+                batch_size=int(t.batch_size),
+            )
+
+    def update(self) -> torch.Tensor:
+        """One gradient step on one replay sample; returns the loss (detached)."""
+        sample = self.buffer.sample().to(self.device)
+        if self.recurrent:
+            # slice starts are init steps for the next-state pass too (stored hidden state)
+            nxt = (keys.NEXT, "is_init")
+            sample.set(nxt, sample.get(nxt) | sample.get("is_init"))
+            with set_recurrent_mode(True):
+                value = self.loss(sample)["loss"]
+        else:
+            value = self.loss(sample)["loss"]
+        self.optim.zero_grad(set_to_none=True)
+        value.backward()
+        torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.max_grad_norm)
+        self.optim.step()
+        self.updater.step()
+        return value.detach()
+
+
 def train_baseline(
     cfg: Config,
     method: str,
@@ -120,26 +193,8 @@ def train_baseline(
         annealing_num_steps=max(1, int(t.eps_decay_frames)),
     )
     policy = TensorDictSequential(net, explore)
-    loss = DQNLoss(net, action_space=env.action_spec, delay_value=True, double_dqn=True)
-    loss.make_value_estimator(gamma=float(t.gamma))
-    updater = SoftUpdate(loss, tau=float(settings.target_tau or t.target_tau))
-    optim = torch.optim.Adam(loss.parameters(), lr=float(settings.lr or t.lr))
-    updates_per_batch = int(settings.updates_per_batch or t.updates_per_batch)
-    if recurrent:
-        L = int(settings.slice_len)
-        buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(int(t.buffer_size), ndim=2),  # (time, sub-env)
-            sampler=SliceSampler(slice_len=L, end_key=(keys.NEXT, keys.DONE), strict_length=False),
-            batch_size=max(L, int(t.batch_size) // L * L),
-        )
-        store = (*_STORE, RECURRENT_STATE, PREV_ACTION, (keys.NEXT, PREV_ACTION))
-    else:
-        buffer = TensorDictReplayBuffer(
-            storage=LazyTensorStorage(int(t.buffer_size)),
-            sampler=RandomSampler(),
-            batch_size=int(t.batch_size),
-        )
-        store = (*_STORE, keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
+    learner = BaselineLearner(net, env.action_spec, t, settings, recurrent)
+    store = stored_keys(method)
     collector = Collector(
         env,
         policy,
@@ -162,29 +217,18 @@ def train_baseline(
         if frames > 0.9 * int(t.total_frames):
             returns.append(data.get((keys.NEXT, "episode_reward")).squeeze(-1)[done])
         batch = data.select(*store, strict=False)
-        buffer.extend(batch.transpose(0, 1).contiguous() if recurrent else batch.reshape(-1))
+        learner.buffer.extend(
+            batch.transpose(0, 1).contiguous() if recurrent else batch.reshape(-1)
+        )
         if frames >= int(t.init_random_frames):
             explore.step(n)
-            for _ in range(updates_per_batch):
-                sample = buffer.sample().to(cfg.device)
-                if recurrent:
-                    # slice starts are init steps for the next-state pass too (stored hidden state)
-                    nxt = (keys.NEXT, "is_init")
-                    sample.set(nxt, sample.get(nxt) | sample.get("is_init"))
-                    with set_recurrent_mode(True):
-                        value = loss(sample)["loss"]
-                else:
-                    value = loss(sample)["loss"]
-                optim.zero_grad(set_to_none=True)
-                value.backward()
-                torch.nn.utils.clip_grad_norm_(loss.parameters(), float(t.max_grad_norm))
-                optim.step()
-                updater.step()
+            for _ in range(learner.updates_per_batch):
+                value = learner.update()
                 updates += 1
             collector.update_policy_weights_()
         if bar is not None:
             bar.update(n)
-        if log is not None and updates and updates % 1000 < updates_per_batch:
+        if log is not None and updates and updates % 1000 < learner.updates_per_batch:
             log(f"{method}: {frames} frames, {updates} updates, loss {float(value):.4f}")
     collector.shutdown()
     if bar is not None:
@@ -206,4 +250,4 @@ def train_baseline(
     }
 
 
-__all__ = ["build_for_training", "train_baseline"]
+__all__ = ["BaselineLearner", "build_for_training", "stored_keys", "train_baseline"]

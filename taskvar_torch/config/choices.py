@@ -30,3 +30,4 @@ COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector
 MATMUL_DTYPES = ("bfloat16", "float32")  # mirrors heads/learner.py MATMUL_DTYPES
 REPLAY_SAMPLINGS = ("uniform", "per_option")  # taskvar_torch/replay.py make_replay_buffer
 LOGGERS = ("csv", "mlflow", "tensorboard", "wandb")  # taskvar_torch/train.py RunLoggers
+FIG4_BASELINES = ("recurrent",)  # experiments/fig4_recurrent.py

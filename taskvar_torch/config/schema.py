@@ -283,6 +283,9 @@ class ExperimentConfig:
     """Wargus Figure 4: learning episodes per trial."""
     test_episodes_per_trial: int = 5
     """Wargus Figure 4: nominal test episodes per trial (fixed seeds, no learning)."""
+    baselines: tuple[str, ...] = ()
+    """Wargus Figure 4: baseline agents run through the same protocol beside the paper's methods,
+    each a curve of its own (``recurrent``: docs/wargus-fig4.md#memory); default none."""
     quick_overrides: tuple[str, ...] = ()
     """key.sub=value overrides applied by load_config(..., quick=True) (smoke tests, notebooks)."""
 

@@ -19,6 +19,7 @@ from taskvar_torch.config.choices import (
     ACTIVATIONS,
     COLLECTOR_BACKENDS,
     COMPOSED_REWARDS,
+    FIG4_BASELINES,
     HEAD_NETWORKS,
     HIERARCHY_DESCENTS,
     LOGGERS,
@@ -236,3 +237,9 @@ def _check_eval_and_experiment(cfg: Config) -> None:
     for name in ("runs", "episodes_per_run", "trials", "learning_episodes_per_trial"):
         _at_least(f"experiment.{name}", getattr(x, name), 1)
     _at_least("experiment.test_episodes_per_trial", x.test_episodes_per_trial, 1)
+    bad = [b for b in x.baselines if b not in FIG4_BASELINES]
+    if bad or len(set(x.baselines)) != len(x.baselines):
+        raise ValueError(
+            f"experiment.baselines must be distinct names among {list(FIG4_BASELINES)}, got "
+            f"{list(x.baselines)}"
+        )

@@ -88,6 +88,41 @@ def trials_to_fraction(curve: np.ndarray, fraction: float = 0.9) -> tuple[int, b
     return (int(hit[0]) + 1, True) if hit.size else (int(curve.size), False)
 
 
+def method_summary(
+    items: np.ndarray,  # (R, T) mean items per test episode of one method
+    inter: np.ndarray | None = None,  # (R, T) its interruptions per test episode
+    item_lost: np.ndarray | None = None,  # (R, T) its item-lost events per test episode
+) -> dict[str, Any]:
+    """One method's entry of ``metrics.json``'s ``methods`` (definitions in the module docstring)
+    from its per-repetition, per-trial scores; ``inter`` ``None``: a method that never interrupts
+    (0), ``item_lost`` ``None``: not recorded."""
+    items = np.asarray(items, dtype=float)
+    R, T = items.shape
+    nf = final_count(T)
+    mean, std = items.mean(0), items.std(0)
+    t90, reached = trials_to_fraction(mean)
+    per_rep = [trials_to_fraction(items[r])[0] for r in range(R)]
+    out = {
+        "final_score": float(mean[-nf:].mean()),
+        "final_score_std": float(items[:, -nf:].mean(1).std()),
+        "trials_to_90pct": t90,
+        "reached_90pct": reached,
+        "trials_to_90pct_per_rep": per_rep,
+        "trials_to_90pct_std": float(np.std(per_rep)),
+        "trials_to_90pct_of_max": trials_to_fraction_of_max(mean),
+        "mean_over_trials": mean_over_trials(items),
+        "mean_first_250_trials": mean_over_trials(items, 250),
+        "interruptions_per_episode": 0.0 if inter is None else float(np.mean(inter)),
+        "curve_mean": mean.tolist(),
+        "curve_std": std.tolist(),
+        "curve_smoothed": moving_average(mean, smoothing_window(T)).tolist(),
+        "curve_per_rep": items.tolist(),
+    }
+    if item_lost is not None:
+        out["item_lost_per_episode"] = float(np.mean(item_lost))
+    return out
+
+
 def summarise(
     items: np.ndarray,  # (R, T, M) mean items per test episode
     inter: np.ndarray,  # (R, T, M) interruptions per test episode
@@ -109,27 +144,8 @@ def summarise(
     w = smoothing_window(T)
     methods = {}
     for m, name in enumerate(METHODS):
-        mean, std = items[:, :, m].mean(0), items[:, :, m].std(0)
-        t90, reached = trials_to_fraction(mean)
-        per_rep = [trials_to_fraction(items[r, :, m])[0] for r in range(R)]
-        methods[name] = {
-            "final_score": float(mean[-nf:].mean()),
-            "final_score_std": float(items[:, -nf:, m].mean(1).std()),
-            "trials_to_90pct": t90,
-            "reached_90pct": reached,
-            "trials_to_90pct_per_rep": per_rep,
-            "trials_to_90pct_std": float(np.std(per_rep)),
-            "trials_to_90pct_of_max": trials_to_fraction_of_max(mean),
-            "mean_over_trials": mean_over_trials(items[:, :, m]),
-            "mean_first_250_trials": mean_over_trials(items[:, :, m], 250),
-            "interruptions_per_episode": float(inter[:, :, m].mean()),
-            "curve_mean": mean.tolist(),
-            "curve_std": std.tolist(),
-            "curve_smoothed": moving_average(mean, w).tolist(),
-            "curve_per_rep": items[:, :, m].tolist(),
-        }
-        if item_lost is not None:
-            methods[name]["item_lost_per_episode"] = float(item_lost[:, :, m].mean())
+        lost = None if item_lost is None else item_lost[:, :, m]
+        methods[name] = method_summary(items[:, :, m], inter[:, :, m], lost)
 
     def fractions(c: np.ndarray) -> dict[str, Any]:
         total = max(float(c.sum()), 1.0)
@@ -170,6 +186,7 @@ __all__ = [
     "METHODS",
     "final_count",
     "mean_over_trials",
+    "method_summary",
     "moving_average",
     "smoothing_window",
     "summarise",

@@ -90,6 +90,14 @@ def format_table(metrics: dict[str, Any]) -> str:
             )
             + f" (total {sum(tm['cpu_seconds_per_trial'].values()):.3f})"
         )
+    for name, b in tm.get("baselines", {}).items():  # experiment.baselines: their own agents
+        lines.append(
+            f"{name} agent: CPU s per trial "
+            + ", ".join(
+                f"{k.replace('_', ' ')} {v:.3f}" for k, v in b["cpu_seconds_per_trial"].items()
+            )
+            + f" (total {sum(b['cpu_seconds_per_trial'].values()):.3f}), wall {b['wall_seconds']:.1f} s"
+        )
     return "\n".join(lines)
 
 
@@ -98,6 +106,7 @@ STYLES = {
     "averaging": dict(color="tab:green", ls="--"),
     "options": dict(color="tab:orange", ls=":"),
     "interruption": dict(color="tab:red", ls="-."),
+    "recurrent": dict(color="tab:purple", ls=(0, (5, 1, 1, 1, 1, 1))),  # experiment.baselines
 }
 
 

@@ -38,10 +38,11 @@ from torchrl.envs.utils import step_mdp
 from taskvar_torch import keys
 from taskvar_torch.config import Config
 from taskvar_torch.controllers.side_by_side import SideBySide
-from taskvar_torch.envs.wargus import ITEM_LOST
+from taskvar_torch.envs.wargus import ITEM_LOST, NOMINAL_SEEDS
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.experiments.fig4_metrics import METHODS
+from taskvar_torch.families import HELDOUT_SEEDS
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.robustness import RobustnessCalibration
@@ -86,6 +87,24 @@ def learn_due(agent: LifelongAgent, t: Any) -> None:
 
 # --------------------------------------------------------------------------------------------
 # one trial: learning phase, then test phase
+
+
+def nominal_seeds(k: int) -> tuple[int, ...]:
+    """The ``k`` fixed test instance seeds: :data:`NOMINAL_SEEDS`, extended by consecutive ints."""
+    extra = tuple(
+        range(max(NOMINAL_SEEDS) + 1, max(NOMINAL_SEEDS) + 1 + max(k - len(NOMINAL_SEEDS), 0))
+    )
+    return (NOMINAL_SEEDS + extra)[:k]
+
+
+def trial_seeds(k: int, trial: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The instance seeds of trial ``trial``'s (0-based) ``k`` test episodes, nominal and held-out:
+    episode ``j`` plays nominal seed ``nominal_seeds(k)[(j + trial) % k]`` (every seed every trial)
+    and held-out seed ``HELDOUT_SEEDS[(trial k + j) % len(HELDOUT_SEEDS)]`` (the trials walk
+    through the sealed held-out instances in turn); every method plays the same (paired)."""
+    seeds, n = nominal_seeds(k), len(HELDOUT_SEEDS)
+    nominal = tuple(seeds[(j + trial) % k] for j in range(k))
+    return nominal, tuple(HELDOUT_SEEDS[(trial * k + j) % n] for j in range(k))
 
 
 def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
@@ -366,6 +385,8 @@ def test_phase_torchrl(policy: SideBySide, env: TransformedEnv, k: int) -> dict[
 
 __all__ = [
     "LifelongAgent",
+    "nominal_seeds",
+    "trial_seeds",
     "learn_due",
     "learning_phase",
     "learning_phases",

@@ -77,7 +77,7 @@ from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
 from taskvar_torch.config import Config, save_config_yaml
 from taskvar_torch.controllers import Controller
 from taskvar_torch.controllers.side_by_side import SideBySide
-from taskvar_torch.envs.wargus import NOMINAL_SEEDS, WargusInstances
+from taskvar_torch.envs.wargus import WargusInstances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.experiments.evaluation import run_episodes  # noqa: F401  (read from here)
 from taskvar_torch.experiments.fig4_metrics import (
@@ -86,12 +86,15 @@ from taskvar_torch.experiments.fig4_metrics import (
     METHODS,
     final_count,
     mean_over_trials,
+    method_summary,
     moving_average,
     smoothing_window,
     summarise,
     trials_to_fraction,
     trials_to_fraction_of_max,
 )
+from taskvar_torch.experiments.fig4_recurrent import PHASES as RECURRENT_PHASES
+from taskvar_torch.experiments.fig4_recurrent import run_recurrent_batch
 from taskvar_torch.experiments.fig4_report import (
     CSV_FIELDS,
     STYLES,
@@ -106,9 +109,11 @@ from taskvar_torch.experiments.fig4_trial import (
     learning_phase,
     learning_phase_torchrl,
     learning_phases,
+    nominal_seeds,
     test_phase,
     test_phase_torchrl,
     test_trials,
+    trial_seeds,
 )
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.factory import calibrate, make_method_controller, replay_states
@@ -132,6 +137,10 @@ EXPLORATION_OFFSET = 1 << 32
 TEST_GROUP = 25  # trials whose test phases run side by side (run_repetition)
 HELDOUT_CSV = "per_trial_heldout.csv"
 """The held-out test phases' rows (``per_trial.csv``'s columns)."""
+BASELINES_CSV = "per_trial_baselines.csv"
+"""The baselines' test phases (``experiment.baselines``): rep, trial, method, nominal items and
+held-out items per test episode."""
+BASELINES_CSV_FIELDS = ("rep", "trial", "method", "items", "heldout_items")
 HELDOUT_KEYS = ("items", "interruptions", "control_steps", "item_lost")
 """What a held-out test phase records per trial (``run_repetition``'s ``heldout_*``)."""
 PHASES = ("learning_loop", "updates", "calibration", "test")
@@ -150,14 +159,6 @@ def default_config_path() -> Path:
 def repetition_seed(cfg: Config, rep: int) -> int:
     """Seed of repetition ``rep``: ``cfg.seed + rep`` (networks, envs, replay, exploration)."""
     return int(cfg.seed) + int(rep)
-
-
-def nominal_seeds(k: int) -> tuple[int, ...]:
-    """The ``k`` fixed test instance seeds: :data:`NOMINAL_SEEDS`, extended by consecutive ints."""
-    extra = tuple(
-        range(max(NOMINAL_SEEDS) + 1, max(NOMINAL_SEEDS) + 1 + max(k - len(NOMINAL_SEEDS), 0))
-    )
-    return (NOMINAL_SEEDS + extra)[:k]
 
 
 # --------------------------------------------------------------------------------------------
@@ -218,9 +219,8 @@ def make_test_env(
     episode ``j`` of trial ``t`` plays nominal seed ``(j + t) % k``, so every method plays all
     ``k`` seeds every trial. With ``trials = 1`` the env can be reused: its next reset is the next
     trial (the seeds cycle)."""
-    seeds = nominal_seeds(k)
     rows = tuple(
-        seeds[(j + first_trial + g) % k] for g in range(trials) for _ in METHODS for j in range(k)
+        s for g in range(trials) for _ in METHODS for s in trial_seeds(k, first_trial + g)[0]
     )
     return make_env(
         cfg, len(rows), seed=seed, instances=WargusInstances(seeds=rows), validate_actions=False
@@ -233,12 +233,8 @@ def make_heldout_test_env(
     """:func:`make_test_env` on the sealed held-out instances: episode ``j`` of trial ``t`` plays
     ``HELDOUT_SEEDS[(t k + j) % len(HELDOUT_SEEDS)]``, the same seed for every method (paired), so
     the trials walk through every held-out instance in turn."""
-    n = len(HELDOUT_SEEDS)
     rows = tuple(
-        HELDOUT_SEEDS[((first_trial + g) * k + j) % n]
-        for g in range(trials)
-        for _ in METHODS
-        for j in range(k)
+        s for g in range(trials) for _ in METHODS for s in trial_seeds(k, first_trial + g)[1]
     )
     return make_env(
         cfg, len(rows), seed=seed, instances=WargusInstances(seeds=rows), validate_actions=False
@@ -501,6 +497,38 @@ def run_repetition(
     return run_repetitions_batched(cfg, [rep], out_dir, on_trial, test_group)[0]
 
 
+def _add_baseline(
+    metrics: dict[str, Any], name: str, results: Sequence[dict[str, Any]], seconds: float
+) -> None:
+    """A baseline's curves (``experiment.baselines``) into ``metrics``: its entry beside the
+    paper's methods, nominal (``methods``) and held-out (``heldout.methods``), and its cost
+    (``timing.baselines``)."""
+    items = np.stack([r["items"] for r in results])  # (R, T)
+    held = np.stack([r["heldout_items"] for r in results])
+    metrics["methods"][name] = method_summary(items)
+    metrics["heldout"]["methods"][name] = {**method_summary(held), **heldout_extras(held)}
+    n = max(items.size, 1)
+    metrics["timing"].setdefault("baselines", {})[name] = {
+        "wall_seconds": seconds,
+        "frames_per_repetition": [int(r["frames"].sum()) for r in results],
+        "updates_per_repetition": [int(r["updates"][-1]) for r in results],
+        "cpu_seconds_per_trial": {
+            phase: sum(r["cpu_seconds"][phase] for r in results) / n for phase in RECURRENT_PHASES
+        },
+    }
+
+
+def heldout_extras(items: np.ndarray) -> dict[str, Any]:
+    """What a held-out method entry adds to :func:`method_summary` for the claims (``taskvar
+    report``), from ``items`` ``(R, T)``: the mean over the first half of the trials and each
+    repetition's trials to 90% of its own maximum."""
+    items = np.asarray(items, dtype=float)
+    return {
+        "mean_first_half": mean_over_trials(items, max(items.shape[1] // 2, 1)),
+        "trials_to_90pct_of_max_per_rep": [trials_to_fraction_of_max(c) for c in items],
+    }
+
+
 def heldout_summary(held: dict[str, np.ndarray], first: dict[str, Any]) -> dict[str, Any]:
     """``metrics.json``'s ``heldout``: :func:`summarise` of the held-out test phases (the same
     keys as the nominal figures at the top level), and which instances they played."""
@@ -514,14 +542,8 @@ def heldout_summary(held: dict[str, np.ndarray], first: dict[str, Any]) -> dict[
     )
     m.pop("experiment")
     m["definitions"]["score"] = "items collected per held-out test episode"
-    T = held["items"].shape[1]
     for i, name in enumerate(METHODS):  # the claims' figures (taskvar report), per repetition
-        m["methods"][name]["mean_first_half"] = mean_over_trials(
-            held["items"][:, :, i], max(T // 2, 1)
-        )
-        m["methods"][name]["trials_to_90pct_of_max_per_rep"] = [
-            trials_to_fraction_of_max(curve) for curve in held["items"][:, :, i]
-        ]
+        m["methods"][name].update(heldout_extras(held["items"][:, :, i]))
     m["definitions"]["mean_first_half"] = "mean_over_trials over trials 1..T/2"
     m["definitions"]["trials_to_90pct_of_max_per_rep"] = (
         "trials_to_90pct_of_max of each repetition's own curve"
@@ -558,13 +580,18 @@ def repetition_batches(reps: int, workers: int) -> list[list[int]]:
     return out
 
 
-def _worker(cfg: Config, reps: list[int], out_dir: str, threads: int, queue: Any) -> None:
+RunBatch = Callable[..., list[dict[str, Any]]]
+"""``(cfg, reps, out_dir, on_trial) -> results``: :func:`run_repetitions_batched`, or a baseline's
+(``fig4_recurrent.run_recurrent_batch``)."""
+
+
+def _worker(
+    cfg: Config, reps: list[int], out_dir: str, threads: int, queue: Any, run_batch: RunBatch
+) -> None:
     """Process entry: one batch of repetitions, progress and results through ``queue``."""
     torch.set_num_threads(threads)
     try:
-        done = run_repetitions_batched(
-            cfg, reps, out_dir, lambda r, t: queue.put(("trial", r, None))
-        )
+        done = run_batch(cfg, reps, out_dir, lambda r, t: queue.put(("trial", r, None)))
         for rep, result in zip(reps, done):
             queue.put(("done", rep, result))
     except BaseException as e:  # report, so the parent does not wait forever
@@ -572,26 +599,36 @@ def _worker(cfg: Config, reps: list[int], out_dir: str, threads: int, queue: Any
 
 
 def run_repetitions(
-    cfg: Config, out_dir: str | os.PathLike, workers: int = 1, progress: bool = True
+    cfg: Config,
+    out_dir: str | os.PathLike,
+    workers: int = 1,
+    progress: bool = True,
+    run_batch: RunBatch = run_repetitions_batched,
+    desc: str = EXPERIMENT,
 ) -> list[dict[str, Any]]:
-    """Every repetition, batched (:func:`run_repetitions_batched`): in this process
-    (``workers = 1``: one batch of all of them) or as ``workers`` batches in spawned processes
-    (:func:`repetition_batches`). Each repetition gives the same numbers either way."""
+    """Every repetition, batched (``run_batch``: :func:`run_repetitions_batched`, or a baseline's
+    agents): in this process (``workers = 1``: one batch of all of them) or as ``workers``
+    batches in spawned processes (:func:`repetition_batches`). Each repetition gives the same
+    numbers either way."""
     reps = cfg.experiment.runs
     bar = progress_bar(
-        total=reps * cfg.experiment.trials, disable=not progress, desc=EXPERIMENT, unit="trial"
+        total=reps * cfg.experiment.trials, disable=not progress, desc=desc, unit="trial"
     )
     results: dict[int, dict[str, Any]] = {}
     batches = repetition_batches(reps, workers)
     if len(batches) == 1:
-        done = run_repetitions_batched(cfg, batches[0], out_dir, lambda r, t: bar.update(1))
+        done = run_batch(cfg, batches[0], out_dir, lambda r, t: bar.update(1))
         results = dict(zip(batches[0], done))
     else:
         ctx = mp.get_context("spawn")
         queue = ctx.Queue()
         threads = max(1, torch.get_num_threads() // len(batches))
         procs = [
-            ctx.Process(target=_worker, args=(cfg, b, str(out_dir), threads, queue), daemon=True)
+            ctx.Process(
+                target=_worker,
+                args=(cfg, b, str(out_dir), threads, queue, run_batch),
+                daemon=True,
+            )
             for b in batches
         ]
         try:
@@ -649,6 +686,12 @@ def wargus_fig4(
     start = time.perf_counter()
     results = run_repetitions(cfg, out, workers=workers, progress=progress)
     wall = time.perf_counter() - start
+    baselines = {}  # the baselines' agents after the paper's (their own streams: fig4_recurrent)
+    for name in cfg.experiment.baselines:
+        tick = time.perf_counter()
+        run_batch = {"recurrent": run_recurrent_batch}[name]
+        done = run_repetitions(cfg, out, workers, progress, run_batch=run_batch, desc=name)
+        baselines[name] = (done, time.perf_counter() - tick)
 
     items = np.stack([r["items"] for r in results])  # (R, T, M)
     inter = np.stack([r["interruptions"] for r in results])  # (R, T, M)
@@ -692,6 +735,16 @@ def wargus_fig4(
         "curve_mean": learn.mean(0).tolist(),
         "curve_per_rep": learn.tolist(),
     }
+    for name, (done, seconds) in baselines.items():
+        _add_baseline(metrics, name, done, seconds)
+    if baselines:
+        rows = [
+            {"rep": r, "trial": t + 1, "method": name, "items": float(a), "heldout_items": float(b)}
+            for name, (done, _) in baselines.items()
+            for r, one in enumerate(done)
+            for t, (a, b) in enumerate(zip(one["items"], one["heldout_items"]))
+        ]
+        write_csv(out / BASELINES_CSV, rows, BASELINES_CSV_FIELDS)
     write_json(out / "metrics.json", metrics)
     if plots:  # else ``taskvar plot DIR`` draws them from the folder
         plot_results(out)
@@ -712,9 +765,13 @@ __all__ = [  # the protocol, then the names of fig4_trial, side_by_side, snapsho
     "make_test_env",
     "make_heldout_test_env",
     "heldout_summary",
+    "heldout_extras",
+    "BASELINES_CSV",
     "HELDOUT_CSV",
     "HELDOUT_KEYS",
     "nominal_seeds",
+    "trial_seeds",
+    "method_summary",
     "repetition_seed",
     "repetition_batches",
     "run_repetition",
