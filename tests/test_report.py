@@ -36,9 +36,9 @@ def fig4_folder(
     """A Wargus Figure 4 folder: method ``m``'s held-out curve rises linearly to ``levels[m]`` by
     trial ``rise[m]`` and stays there (plus small per-seed noise)."""
     rng = np.random.default_rng(seeds[0])
-    rise = rise or dict.fromkeys(METHODS, trials // 4)
+    rise = rise or dict.fromkeys(levels, trials // 4)
     methods = {}
-    for m in METHODS:
+    for m in levels:  # the paper's METHODS, and any experiment.baselines' curve
         t = np.arange(1, trials + 1)
         curve = levels[m] * np.minimum(t / rise[m], 1.0)
         per_rep = curve + rng.normal(0, 0.01, (len(seeds), trials))
@@ -173,6 +173,20 @@ def test_figures_are_the_per_seed_numbers(tmp_path):
     assert f"hierarchy - averaging {want:+.3f}" in order.ours
     assert order.verdict == "partly"  # interruption = options (a tie) breaks the chain
     assert "interruption vs options: level" in order.reason or "tied" in order.reason
+
+
+def test_fig4_baseline_curve_joins_the_evidence(tmp_path):
+    """A recurrent curve (``experiment.baselines``) is listed beside the paper's methods and in
+    the probability of improvement; the verdicts still rest on the paper's methods alone."""
+    levels = {"averaging": 1.0, "options": 1.2, "interruption": 1.4, "hierarchy": 1.6}
+    plain = fig4_folder(tmp_path / "plain", range(5), levels, trials=20)
+    both = fig4_folder(tmp_path / "both", range(5), {**levels, "recurrent": 0.5}, trials=20)
+    (order_a, speed_a), _, _ = report._fig4(report.collect([str(plain)])[0], 200)
+    (order_b, speed_b), _, profile = report._fig4(report.collect([str(both)])[0], 200)
+    assert "recurrent" not in " ".join(order_a.details)
+    assert "; recurrent IQM" in order_b.details[0] and "recurrent 0." in order_b.details[2]
+    assert "recurrent" in profile
+    assert (order_a.verdict, speed_a.verdict) == (order_b.verdict, speed_b.verdict)
 
 
 def _bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], str]]:

@@ -46,6 +46,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from taskvar_torch.config.choices import FIG4_BASELINES
 from taskvar_torch.experiments import aggregate
 from taskvar_torch.experiments.fig4_metrics import trials_to_fraction_of_max
 from taskvar_torch.io import atomic_write
@@ -421,10 +422,11 @@ def _pair(ci: Sequence[float]) -> str:
 
 def _fig4(g: Group, reps: int) -> tuple[list[Claim], str, dict[str, Any]]:
     held = [_held(r) for r in g.results]
+    extra = [m for m in FIG4_BASELINES if all(m in h["methods"] for h in held)]
     curves = {
         m: np.concatenate([np.asarray(h["methods"][m]["curve_per_rep"], dtype=float) for h in held])
-        for m in PAPER_METHODS
-    }  # (R, T) items per held-out test episode
+        for m in (*PAPER_METHODS, *extra)
+    }  # (R, T) items per held-out test episode; experiment.baselines' curves in the evidence
     T = curves["averaging"].shape[1]
     half = max(T // 2, 1)
     first = {m: c[:, :half].mean(1) for m, c in curves.items()}
@@ -459,7 +461,7 @@ def _fig4(g: Group, reps: int) -> tuple[list[Claim], str, dict[str, Any]]:
         why,
         [
             f"items per held-out episode, trials 1-{half}: "
-            + "; ".join(f"{m} {_both(level[m])}" for m in PAPER_METHODS),
+            + "; ".join(f"{m} {_both(level[m])}" for m in curves),
             "paired differences: " + "; ".join(f"{k} {_ci(v, '+.3f')}" for k, v in diffs.items()),
             "P(improvement over averaging): "
             + ", ".join(f"{m} {v['probability']:.2f} {_pair(v['ci95'])}" for m, v in poi.items()),
