@@ -15,7 +15,13 @@ Usage::
     python scripts/evidence.py configs/windy.yaml --seeds 5 --tests train,south,heldout \\
         --out results/evidence/windy
     python scripts/evidence.py configs/taxi.yaml --seeds 5 --tests train,fickle,heldout \\
-        --out results/evidence/taxi --no-baselines      # the paper's methods only
+        --out results/evidence/taxi --baselines none    # the paper's methods only
+    python scripts/evidence.py --bundles DIR/rep0 DIR/rep1 ... --tests nominal,heldout \\
+        --baselines none --out OUT                      # bundles already trained, e.g. the
+                                                        # Figure 4 protocol's (with its recurrent.pt)
+
+``--bundles`` takes bundle folders (``final.pt`` and ``config.yaml``, or a Figure 4 repetition's
+``rep{r}/``) in place of training: seed ``k`` is the ``k``-th folder, evaluated where it lies.
 """
 
 from __future__ import annotations
@@ -43,19 +49,34 @@ def taskvar(*args: str) -> None:
 def run(args: argparse.Namespace) -> Path:
     """Train, train the baselines, evaluate: whatever is not on disk yet."""
     out = Path(args.out)
-    train_dir = out / "train"
-    seeds = [train_dir / f"seed{k}" for k in range(args.seeds)]
-    if not all((s / "final.pt").exists() for s in seeds):
-        overrides = list(args.overrides)
-        taskvar(
-            "train", args.config, *overrides, "--seeds", str(args.seeds), "--out", str(train_dir)
-        )
-    if args.baselines:
-        for s in seeds:
-            missing = [m for m in ("recurrent", "informed") if not (s / f"{m}.pt").exists()]
-            if missing:
-                method = "all" if len(missing) == 2 else missing[0]
-                taskvar("train-baselines", "--out", str(s), "--method", method, "--no-progress")
+    if args.bundles:
+        seeds = [Path(b) for b in args.bundles]
+        lost = [str(s) for s in seeds if not (s / "final.pt").is_file()]
+        if lost:
+            raise SystemExit(f"--bundles: no final.pt in {', '.join(lost)}")
+    else:
+        train_dir = out / "train"
+        seeds = [train_dir / f"seed{k}" for k in range(args.seeds)]
+        if not all((s / "final.pt").exists() for s in seeds):
+            overrides = list(args.overrides)
+            taskvar(
+                "train",
+                args.config,
+                *overrides,
+                "--seeds",
+                str(args.seeds),
+                "--out",
+                str(train_dir),
+            )
+    wanted = {"all": ("recurrent", "informed"), "none": ()}.get(args.baselines, (args.baselines,))
+    for s in seeds:
+        missing = [m for m in wanted if not (s / f"{m}.pt").exists()]
+        if missing:
+            method = "all" if len(missing) == 2 else missing[0]
+            config = [str(s / "config.yaml")] if (s / "config.yaml").is_file() else []
+            taskvar(
+                "train-baselines", *config, "--out", str(s), "--method", method, "--no-progress"
+            )
     for test in args.tests:
         for k, s in enumerate(seeds):
             dest = out / f"eval-{test}" / f"seed{k}"
@@ -105,15 +126,30 @@ def table(out: Path, tests: list[str], reps: int) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("config")
+    p.add_argument("config", nargs="?", help="the family config to train (not with --bundles)")
     p.add_argument("overrides", nargs="*", help="key.sub=value config overrides")
+    p.add_argument("--bundles", nargs="+", help="bundle folders to evaluate instead of training")
     p.add_argument("--seeds", type=int, default=5)
     p.add_argument("--tests", default="train,heldout", help="comma list of test distributions")
     p.add_argument("--episodes", type=int, default=2000)
     p.add_argument("--out", required=True)
-    p.add_argument("--no-baselines", dest="baselines", action="store_false")
+    p.add_argument(
+        "--baselines",
+        default="all",
+        choices=("all", "recurrent", "informed", "none"),
+        help="the baselines each bundle trains where its file is missing (default all)",
+    )
+    p.add_argument(
+        "--no-baselines",
+        dest="baselines",
+        action="store_const",
+        const="none",
+        help="deprecated: --baselines none",
+    )
     p.add_argument("--reps", type=int, default=2000, help="bootstrap resamples")
     args = p.parse_args(argv)
+    if bool(args.config) == bool(args.bundles):
+        p.error("give a config to train or --bundles to evaluate, not both or neither")
     args.tests = args.tests.split(",")
     out = run(args)
     text = table(out, args.tests, args.reps)
