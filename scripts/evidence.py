@@ -75,7 +75,14 @@ def run(args: argparse.Namespace) -> Path:
             method = "all" if len(missing) == 2 else missing[0]
             config = [str(s / "config.yaml")] if (s / "config.yaml").is_file() else []
             taskvar(
-                "train-baselines", *config, "--out", str(s), "--method", method, "--no-progress"
+                "train-baselines",
+                *config,
+                "--out",
+                str(s),
+                "--method",
+                method,
+                "--no-progress",
+                *(f"baseline.{kv}" for kv in args.baseline_settings),
             )
     for test in args.tests:
         for k, s in enumerate(seeds):
@@ -95,6 +102,7 @@ def run(args: argparse.Namespace) -> Path:
                 "--out",
                 str(dest),
                 "--no-progress",
+                *(["--exact"] if args.exact else []),
             )
     return out
 
@@ -147,6 +155,18 @@ def main(argv: list[str] | None = None) -> None:
         help="deprecated: --baselines none",
     )
     p.add_argument("--reps", type=int, default=2000, help="bootstrap resamples")
+    p.add_argument(
+        "--baseline-settings",
+        nargs="*",
+        default=[],
+        metavar="KEY=V",
+        help="settings of the baselines trained here (taskvar train-baselines baseline.KEY=V)",
+    )
+    p.add_argument(
+        "--exact",
+        action="store_true",
+        help="exact values and regret on every test, however many distinct instances (eval --exact)",
+    )
     args = p.parse_args(argv)
     if bool(args.config) == bool(args.bundles):
         p.error("give a config to train or --bundles to evaluate, not both or neither")
