@@ -51,7 +51,10 @@ heads.
 Writes ``config.yaml``, ``rep{r}/final.pt`` (every head, loadable by ``taskvar eval``),
 ``per_trial.csv`` (rep, trial, method, items, interruptions), ``per_trial_heldout.csv`` (the same
 on the held-out instances), ``metrics.json`` (the held-out figures under ``heldout``),
-``fig4.png``; prints a table.
+``fig4.png``; prints a table. With ``experiment.baselines`` (``[recurrent]``), after the paper's
+agents, each baseline's agents run the same protocol (:mod:`~taskvar_torch.experiments.fig4_recurrent`):
+their curves join ``metrics.json`` and ``fig4.png`` beside the paper's methods, their test scores
+go to ``per_trial_baselines.csv`` and each repetition's network to ``rep{r}/recurrent.pt``.
 
 Examples:
     >>> cfg = load_config(default_config_path(), quick=True)  # doctest: +SKIP
