@@ -43,7 +43,7 @@ from taskvar_torch import keys
 from taskvar_torch.config import Config
 from taskvar_torch.envs.wargus import WargusInstances
 from taskvar_torch.experiments.evaluation import run_episodes
-from taskvar_torch.experiments.fig4_trial import trial_seeds
+from taskvar_torch.experiments.fig4_trial import repetition_seed, trial_seeds
 from taskvar_torch.heads.recurrent import (
     BaselineController,
     BaselineSettings,
@@ -171,7 +171,7 @@ def run_recurrent_repetition(
     episode), ``learn_items``, ``frames``, ``updates`` ``(T,)``, ``cpu_seconds`` per
     :data:`PHASES` and ``seconds`` (wall)."""
     start = time.perf_counter()
-    seed = int(cfg.seed) + int(rep)  # wargus_fig4.repetition_seed
+    seed = repetition_seed(cfg, rep)
     rep_cfg = dataclasses.replace(cfg, seed=seed)
     rows: dict[str, list] = {
         k: [] for k in ("items", "heldout_items", "learn_items", "frames", "updates")

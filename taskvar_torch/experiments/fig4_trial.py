@@ -89,6 +89,11 @@ def learn_due(agent: LifelongAgent, t: Any) -> None:
 # one trial: learning phase, then test phase
 
 
+def repetition_seed(cfg: Config, rep: int) -> int:
+    """Seed of repetition ``rep``: ``cfg.seed + rep`` (networks, envs, replay, exploration)."""
+    return int(cfg.seed) + int(rep)
+
+
 def nominal_seeds(k: int) -> tuple[int, ...]:
     """The ``k`` fixed test instance seeds: :data:`NOMINAL_SEEDS`, extended by consecutive ints."""
     extra = tuple(
@@ -386,6 +391,7 @@ def test_phase_torchrl(policy: SideBySide, env: TransformedEnv, k: int) -> dict[
 __all__ = [
     "LifelongAgent",
     "nominal_seeds",
+    "repetition_seed",
     "trial_seeds",
     "learn_due",
     "learning_phase",

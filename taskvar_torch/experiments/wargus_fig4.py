@@ -113,6 +113,7 @@ from taskvar_torch.experiments.fig4_trial import (
     learning_phase_torchrl,
     learning_phases,
     nominal_seeds,
+    repetition_seed,
     test_phase,
     test_phase_torchrl,
     test_trials,
@@ -157,11 +158,6 @@ def default_config_path() -> Path:
     """``configs/wargus.yaml`` of the repository (or of the working directory)."""
     here = Path(__file__).resolve().parents[2] / "configs" / "wargus.yaml"
     return here if here.is_file() else Path("configs") / "wargus.yaml"
-
-
-def repetition_seed(cfg: Config, rep: int) -> int:
-    """Seed of repetition ``rep``: ``cfg.seed + rep`` (networks, envs, replay, exploration)."""
-    return int(cfg.seed) + int(rep)
 
 
 # --------------------------------------------------------------------------------------------
