@@ -640,10 +640,9 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--out",
-        required=True,
         metavar="FILE",
         help="the claims page (docs/claims.md); its performance profiles go to "
-        "img/<FILE stem>-profile.png beside it",
+        "img/<FILE stem>-profile.png beside it (required unless --add)",
     )
     p.add_argument(
         "--readme",
@@ -659,11 +658,27 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="replace an --out page or profile PNG that taskvar report did not write",
     )
+    p.add_argument(
+        "--add",
+        action="store_true",
+        help="only add these folders' rows to the --readme Results table (a row of the same "
+        "experiment and config is replaced, the others kept) and write no claims page; for "
+        "results that score none of the paper's claims (--out: the page the rows link to, "
+        "default docs/claims.md beside the README)",
+    )
 
 
 def _report_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.experiments.report import CLAIMS, write_report
+    from taskvar_torch.experiments.report import CLAIMS, ReportError, add_rows, write_report
 
+    if args.add:
+        if args.readme is None:
+            raise ReportError("--add needs --readme FILE: the README whose Results table grows")
+        written, _ = add_rows(args.dirs, args.readme, args.out, args.reps)
+        print("wrote " + ", ".join(str(p) for p in written))
+        return 0
+    if args.out is None:
+        raise ReportError("--out FILE is required (the claims page, docs/claims.md) unless --add")
     written, report = write_report(args.dirs, args.out, args.readme, args.reps, args.overwrite)
     for c in report.claims:
         print(f"{CLAIMS[c.key][0]} [{c.group}]: {c.verdict} ({c.reason})")

@@ -355,3 +355,37 @@ def test_two_configs_of_one_label_are_named_by_the_key_that_differs(tmp_path):
     groups = report.collect([str(tmp_path / d) for d in ("eager", "compiled", "third")])
     assert all(g.label.endswith(f"(config {g.digest})") for g in groups)
     assert len({g.label for g in groups}) == 3
+
+
+def test_add_grows_the_readme_table_and_keeps_the_other_rows(tmp_path, capsys):
+    """``--add`` appends the rows of results that score no claim, replaces a row of the same
+    experiment and config where it stands on a rerun, keeps rows of results not given, writes no
+    claims page, and refuses results that score a claim."""
+    old = "| eval windy --test south | old headline | 5 | abcd1234 | - ([claims](docs/claims.md)) |"
+    head = report.results_table(report.Report([], [], [], [], 100)).splitlines()
+    readme = tmp_path / "README.md"
+    readme.write_text(README.replace("old table", "\n".join([*head, old])))
+    for k in range(5):
+        eval_folder(tmp_path / "e" / f"seed{k}", k, {"averaging": 1.0, "options": 2.0}, "train")
+    rc, out, err = _run([str(tmp_path / "e"), "--readme", str(readme), "--add"], capsys)
+    assert rc == 0, err
+    rows = readme.read_text().split(START)[1].split(END)[0].strip().splitlines()
+    assert rows[:3] == [*head, old] and len(rows) == 4
+    assert rows[3].startswith("| eval windy --test train --shift") and "averaging -6.48" in rows[3]
+    assert "([claims](docs/claims.md))" in rows[3]
+    assert readme.read_text().endswith(f"{END}\n\ntail\n")
+    assert not (tmp_path / "docs").exists()
+    for k in range(5):  # a rerun on other numbers replaces its own row, in place
+        m = json.loads((tmp_path / "e" / f"seed{k}" / "metrics.json").read_text())
+        m["points"][0]["methods"]["averaging"]["mean_return"] = -9.5
+        (tmp_path / "e" / f"seed{k}" / "metrics.json").write_text(json.dumps(m))
+    assert _run([str(tmp_path / "e"), "--readme", str(readme), "--add"], capsys)[0] == 0
+    again = readme.read_text().split(START)[1].split(END)[0].strip().splitlines()
+    assert again[:3] == rows[:3] and len(again) == 4 and again[3] != rows[3]
+    before = readme.read_text()
+    fig4_folder(tmp_path / "f4", range(5), dict.fromkeys(METHODS, 1.0))
+    rc, out, err = _run([str(tmp_path / "f4"), "--readme", str(readme), "--add"], capsys)
+    assert rc != 0 and "score the paper's claims" in err and len(err.strip().splitlines()) == 1
+    assert readme.read_text() == before
+    rc, out, err = _run([str(tmp_path / "e"), "--add"], capsys)
+    assert rc != 0 and "--add needs --readme" in err

@@ -717,6 +717,65 @@ def replace_block(text: str, block: str, where: str) -> str:
     return text[:a] + "\n" + block + "\n" + text[b:]
 
 
+def _row_key(line: str) -> tuple[str, str] | None:
+    """A Results row's (experiment label, config digest): the cells a row is known by."""
+    cells = [c.strip() for c in re.split(r"(?<!\\)\|", line.strip())]
+    if len(cells) < 6 or cells[1] in ("experiment", "---"):
+        return None
+    return cells[1], cells[4]
+
+
+def merge_rows(block: str, table: str) -> str:
+    """``table``'s rows merged into the Results table ``block``: a row of the same experiment
+    and config replaces the old one where it stands, new ones go last, the others are kept."""
+    new = {_row_key(line): line for line in table.splitlines()[2:]}
+    head = table.splitlines()[:2]
+    kept = []
+    for line in block.strip().splitlines():
+        key = _row_key(line)
+        if key is None:
+            continue
+        kept.append(new.pop(key, line))
+    return "\n".join(head + kept + list(new.values()))
+
+
+def add_rows(
+    dirs: Sequence[str],
+    readme: str | os.PathLike,
+    claims: str | os.PathLike | None = None,
+    reps: int = aggregate.REPS,
+) -> tuple[list[Path], Report]:
+    """``taskvar report --add``: add these folders' rows to the README's Results table, keeping
+    the rows of results not given (each row names its config digest), and write nothing else.
+    Refused where a folder scores one of the paper's claims: the claims page must then be
+    rewritten from every folder. ``claims``: the claims page the rows link to (default
+    ``docs/claims.md`` beside the README)."""
+    if int(reps) < 100:
+        raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
+    try:
+        text = Path(readme).read_text(encoding="utf-8")
+    except OSError as e:
+        raise ReportError(f"--readme {str(readme)!r} cannot be read ({e.strerror})") from None
+    replace_block(text, "", str(readme))
+    report = build_report(dirs, reps)
+    if report.claims:
+        scored = sorted({c.group for c in report.claims})
+        raise ReportError(
+            f"--add: {'; '.join(scored)} score the paper's claims; rerun taskvar report with "
+            "every results folder and --out docs/claims.md instead"
+        )
+    a = text.index(README_START) + len(README_START)
+    old = text[a : text.index(README_END)]
+    link = (
+        "docs/claims.md"
+        if claims is None
+        else Path(os.path.relpath(claims, Path(readme).parent)).as_posix()
+    )
+    block = merge_rows(old, results_table(report, link))
+    new_text = replace_block(text, block, str(readme)).encode()
+    return [atomic_write(Path(readme), lambda f: f.write(new_text))], report
+
+
 def profile_png(report: Report, reps: int) -> bytes | None:
     """The performance profiles, one panel per group with methods, as PNG bytes."""
     panels = [p for p in report.profiles if p[1]]
@@ -825,10 +884,12 @@ __all__ = [
     "Report",
     "ReportError",
     "Result",
+    "add_rows",
     "build_report",
     "claims_markdown",
     "collect",
     "load_result",
+    "merge_rows",
     "replace_block",
     "results_table",
     "write_report",
