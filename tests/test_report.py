@@ -389,3 +389,15 @@ def test_add_grows_the_readme_table_and_keeps_the_other_rows(tmp_path, capsys):
     assert readme.read_text() == before
     rc, out, err = _run([str(tmp_path / "e"), "--add"], capsys)
     assert rc != 0 and "--add needs --readme" in err
+
+
+def test_a_wargus_evaluation_is_labelled_by_its_grid(tmp_path):
+    for k in range(5):
+        folder = eval_folder(tmp_path / "w" / f"seed{k}", k, {"averaging": 1.0}, "train")
+        cfg = {"seed": k, "family": "wargus", "env": {"wargus": {"size": 64}}}
+        save_checkpoint(folder / "bundle.pt", make_bundle(cfg, models={}))
+        m = json.loads((folder / "metrics.json").read_text())
+        m["family"] = "wargus"
+        (folder / "metrics.json").write_text(json.dumps(m))
+    (group,) = report.collect([str(tmp_path / "w")])
+    assert group.label.startswith("eval wargus 64x64 --test train")

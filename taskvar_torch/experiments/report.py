@@ -337,7 +337,11 @@ def _label(g: Group) -> str:
         return f"scale, {', '.join(c.get('only') or ['every case'])}"
     e = c["eval"]
     shifts = f" --shift {' '.join(e['shifts'])}" if e.get("shifts") else ""
-    return f"eval {e.get('family')} --test {e.get('test')}{shifts}"
+    family = e.get("family")
+    if family == "wargus":  # the grid, as Figure 4's label names it
+        size = c.get("bundle", {}).get("env", {}).get("wargus", {}).get("size")
+        family = f"wargus {size}x{size}"
+    return f"eval {family} --test {e.get('test')}{shifts}"
 
 
 # --------------------------------------------------------------------------------------------
