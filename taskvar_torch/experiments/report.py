@@ -23,6 +23,8 @@ the nominal ones the designs were iterated on:
 
 Each claim gets the paper's figure, ours with its CI, and a verdict (``reproduced``, ``partly``,
 ``not``, or ``not measured`` where no results were given) by the rules in :data:`RULES`.
+Results that score no claim (other families' evaluations, the baselines) can also join the README's
+table alone (:func:`add_rows`, ``taskvar report --add``), the other rows kept.
 
 Bad input is one line (:class:`ReportError`, a ``ValueError``) and nothing is written: a folder
 that is not a results folder, results of different configs under one ``DIR`` (one claim), a
