@@ -340,9 +340,9 @@ def _label(g: Group) -> str:
     e = c["eval"]
     shifts = f" --shift {' '.join(e['shifts'])}" if e.get("shifts") else ""
     family = e.get("family")
-    if family == "wargus":  # the grid, as Figure 4's label names it
-        size = c.get("bundle", {}).get("env", {}).get("wargus", {}).get("size")
-        family = f"wargus {size}x{size}"
+    own = c.get("bundle", {}).get("env", {}).get(family)  # the family's own env section
+    if isinstance(own, dict) and own.get("size") is not None:  # its grid, as Figure 4's label
+        family = f"{family} {own['size']}x{own['size']}"
     return f"eval {family} --test {e.get('test')}{shifts}"
 
 
