@@ -723,6 +723,16 @@ def replace_block(text: str, block: str, where: str) -> str:
     return text[:a] + "\n" + block + "\n" + text[b:]
 
 
+def _read_readme(readme: str | os.PathLike) -> str:
+    """The README's text, checked for the Results markers before anything is computed."""
+    try:
+        text = Path(readme).read_text(encoding="utf-8")
+    except OSError as e:
+        raise ReportError(f"--readme {str(readme)!r} cannot be read ({e.strerror})") from None
+    replace_block(text, "", str(readme))
+    return text
+
+
 def _row_key(line: str) -> tuple[str, str] | None:
     """A Results row's (experiment label, config digest): the cells a row is known by."""
     cells = [c.strip() for c in re.split(r"(?<!\\)\|", line.strip())]
@@ -758,11 +768,7 @@ def add_rows(
     ``docs/claims.md`` beside the README)."""
     if int(reps) < 100:
         raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
-    try:
-        text = Path(readme).read_text(encoding="utf-8")
-    except OSError as e:
-        raise ReportError(f"--readme {str(readme)!r} cannot be read ({e.strerror})") from None
-    replace_block(text, "", str(readme))
+    text = _read_readme(readme)
     report = build_report(dirs, reps)
     if report.claims:
         scored = sorted({c.group for c in report.claims})
@@ -847,13 +853,7 @@ def write_report(
         raise ReportError(
             f"{str(png)!r} exists and was not written by taskvar report; move it or pass --overwrite"
         )
-    readme_text = None
-    if readme is not None:
-        try:
-            readme_text = Path(readme).read_text(encoding="utf-8")
-        except OSError as e:
-            raise ReportError(f"--readme {str(readme)!r} cannot be read ({e.strerror})") from None
-        replace_block(readme_text, "", str(readme))  # the markers, before any computing
+    readme_text = None if readme is None else _read_readme(readme)
     report = build_report(dirs, reps)
     image = profile_png(report, reps)
     rel = os.path.relpath(png, out.parent) if image is not None else None
