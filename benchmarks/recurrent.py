@@ -32,15 +32,15 @@ import torch
 from tensordict import TensorDict
 
 from taskvar_torch import keys
-from taskvar_torch.config import load_config
+from taskvar_torch.config import BaselineConfig, load_config
 from taskvar_torch.controllers import AveragingController
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.networks import make_head
 from taskvar_torch.heads.recurrent import (
     PREV_ACTION,
+    PREV_REWARD,
     RECURRENT_STATE,
     BaselineController,
-    BaselineSettings,
     BaselineSpec,
     make_recurrent_qnet,
 )
@@ -97,9 +97,9 @@ def latencies(B: int, iters: int, repeats: int) -> dict[str, tuple[float, float]
         ("exit_north", "exit_south"), averaging=make_head(keys.ACTION_VALUE, S, A, (64, 64))
     )
     avg = AveragingController(heads)
-    settings = BaselineSettings()
-    net, _ = make_recurrent_qnet(S, A, settings)
-    rec = BaselineController(net.eval(), BaselineSpec("recurrent", S, A, settings))
+    hidden = BaselineConfig().hidden
+    net, _ = make_recurrent_qnet(S, A, hidden, (64, 64))
+    rec = BaselineController(net.eval(), BaselineSpec("recurrent", S, A, (64, 64), hidden=hidden))
     obs = torch.zeros(B, S)
     obs[:, 3] = 1.0
     td_avg = TensorDict({keys.OBSERVATION: obs}, [B])
@@ -107,8 +107,9 @@ def latencies(B: int, iters: int, repeats: int) -> dict[str, tuple[float, float]
         {
             keys.OBSERVATION: obs,
             PREV_ACTION: torch.zeros(B, A),
+            PREV_REWARD: torch.zeros(B, 1),
             "is_init": torch.zeros(B, 1, dtype=torch.bool),
-            RECURRENT_STATE: torch.zeros(B, 1, settings.hidden),
+            RECURRENT_STATE: torch.zeros(B, 1, hidden),
         },
         [B],
     )

@@ -556,8 +556,9 @@ def _train_baselines_arguments(p: argparse.ArgumentParser) -> None:
         nargs="*",
         metavar="[CONFIG] [key.sub=value ...]",
         help="YAML config (default: DIR/config.yaml of the bundle in --out), then config "
-        "overrides and baseline settings (baseline.hidden=64, baseline.slice_len=8, "
-        "baseline.lr=0.001, baseline.mlp=64+64, baseline.updates_per_batch, baseline.target_tau)",
+        "overrides: the baselines read the heads' settings (heads.hidden, train.lr, "
+        "train.total_frames ...) and the recurrent one its own baseline.hidden, "
+        "baseline.slice_len and baseline.burn_in",
     )
     p.add_argument(
         "--out", required=True, metavar="DIR", help="bundle folder (beside final.pt) or a new one"
@@ -565,8 +566,8 @@ def _train_baselines_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--method",
         default="all",
-        help="recurrent, informed or all (default; informed only where the family gives instance "
-        "features)",
+        help="recurrent, informed or all (default: recurrent, and informed where the family "
+        "gives instance features and the heads did not train it with heads.informed)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace DIR/<method>.pt if it exists")
     _threads_argument(p)
@@ -577,23 +578,13 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from taskvar_torch.config import load_config
-    from taskvar_torch.heads.recurrent import (
-        BASELINES,
-        BaselineSettings,
-        baseline_path,
-        informed_features,
-    )
+    from taskvar_torch.heads.informed import informed_features
+    from taskvar_torch.heads.recurrent import BASELINES, baseline_path
     from taskvar_torch.run_folder import check_output_folder
-    from taskvar_torch.train_recurrent import train_baseline
+    from taskvar_torch.train_recurrent import heads_only_keys, train_baseline
 
     _set_threads(args)
-    items = list(args.items)
-    settings = BaselineSettings.from_overrides(
-        [i[len("baseline.") :] for i in items if i.startswith("baseline.")]
-    )
-    config_path, overrides = _split_config_and_overrides(
-        [i for i in items if not i.startswith("baseline.")]
-    )
+    config_path, overrides = _split_config_and_overrides(list(args.items))
     if config_path is None:
         config_path = str(Path(args.out) / "config.yaml")
         if not Path(config_path).is_file():
@@ -611,12 +602,26 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
                 raise
             print(f"taskvar train-baselines: skipping informed: {e}", file=sys.stderr)
             methods.remove("informed")
+    if args.method == "all" and "informed" in methods and cfg.heads.informed:
+        print(
+            "taskvar train-baselines: skipping informed: the heads trained it (heads.informed); "
+            "--method informed trains one apart",
+            file=sys.stderr,
+        )
+        methods.remove("informed")
     for m in methods:
         dest = baseline_path(Path(args.out) / "final.pt", m)
         if dest.exists() and not args.overwrite:
             raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
+    heads_only = heads_only_keys(cfg)
+    if heads_only:
+        print(
+            f"taskvar train-baselines: {', '.join(heads_only)} shape the heads' replay only; the "
+            "baselines take one-step targets on uniform samples",
+            file=sys.stderr,
+        )
     for m in methods:
-        r = train_baseline(cfg, m, args.out, settings, progress=not args.no_progress)
+        r = train_baseline(cfg, m, args.out, progress=not args.no_progress)
         last = r["mean_train_return"]
         last_s = "no episode ended" if last != last else f"{last:.3f}"  # NaN: none ended
         print(

@@ -41,6 +41,7 @@ from taskvar_torch.config import Config, TrainConfig, config_from_dict
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads, with_root_row
+from taskvar_torch.heads.informed import informed_features, make_informed_head
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
 from taskvar_torch.heads.networks import head_network, make_stacked_heads
@@ -208,14 +209,15 @@ def check_device(device: str | torch.device) -> None:
 class HeadSpec:
     """The constructor arguments of a head bundle beside the config (what a checkpoint records
     as ``heads_spec``, so loading needs no env): observation size, number of actions, the options'
-    names, whether there are robustness critics, and the options' input masks
-    (``heads.option_inputs=subtask``)."""
+    names, whether there are robustness critics, the options' input masks
+    (``heads.option_inputs=subtask``) and the informed head's feature width (``heads.informed``)."""
 
     obs_dim: int
     num_actions: int
     option_names: tuple[str, ...]
     robustness: bool
     option_input_mask: tuple[tuple[float, ...], ...] | None = None
+    informed_dim: int | None = None
 
     @classmethod
     def of(cls, cfg: Config, env: EnvBase, subtasks: Subtasks) -> HeadSpec:
@@ -236,6 +238,7 @@ class HeadSpec:
             option_names=tuple(subtasks.names),
             robustness=has_robustness(subtasks),
             option_input_mask=mask,
+            informed_dim=informed_features(cfg)[0] if cfg.heads.informed else None,
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -249,12 +252,14 @@ class HeadSpec:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> HeadSpec:
         mask = d.get("option_input_mask")
+        informed = d.get("informed_dim")
         return cls(
             obs_dim=int(d["obs_dim"]),
             num_actions=int(d["num_actions"]),
             option_names=tuple(d["option_names"]),
             robustness=bool(d["robustness"]),
             option_input_mask=None if mask is None else tuple(tuple(r) for r in mask),
+            informed_dim=None if informed is None else int(informed),
         )
 
 
@@ -301,6 +306,19 @@ def build_heads(cfg: Config, env: EnvBase | HeadSpec, subtasks: Subtasks | None 
         in_keys=[keys.OBSERVATION],
         out_keys=[keys.MAX_VALUE],
     )
+    if cfg.heads.informed:  # the informed baseline as one more head (its own generator)
+        if spec.informed_dim is None:
+            raise CheckpointError(
+                "heads.informed=true but the heads' spec records no informed feature width"
+            )
+        heads["informed"] = make_informed_head(
+            spec.obs_dim,
+            spec.informed_dim,
+            A,
+            tuple(cfg.heads.hidden),
+            cfg.heads.activation,
+            cfg.seed,
+        )
     bundle = Heads(spec.option_names, **heads, softmax_temperature=mu_bar_temperature(cfg.train))
     bundle.spec = spec  # what a checkpoint records beside the weights (load_heads)
     return bundle.to(cfg.device)
@@ -410,8 +428,10 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         max_value_instances=t.max_value_instances,
         matmul_dtype=t.matmul_dtype,
     )
+    informed = informed_features(cfg)[1] if cfg.heads.informed else None
+    loss = MultiHeadLoss(heads, subtasks, settings, family(cfg).instance_features, informed)
     return MultiHeadLearner(
-        MultiHeadLoss(heads, subtasks, settings, family(cfg).instance_features).to(cfg.device),
+        loss.to(cfg.device),
         lr=t.lr,
         max_grad_norm=t.max_grad_norm,
         target_update=t.target_update,

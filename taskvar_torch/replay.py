@@ -113,14 +113,19 @@ def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
     )
 
 
-def raw_transitions(batch: TensorDictBase, keep_instance: bool = False) -> TensorDictBase:
+def raw_transitions(
+    batch: TensorDictBase, keep_instance: bool = False, keep_next_instance: bool = False
+) -> TensorDictBase:
     """Flatten a collector batch ``(N, T)`` to ``(N*T,)`` raw transitions, minus what no head may read.
 
     Dropped: RewardSum's running returns, and the hidden instance (``("instance", ...)``) unless
-    ``keep_instance`` (the ``instance`` max-value estimator's critic reads the episode's instance,
-    offline only; ``next``'s copy is dropped either way: the instance is fixed along an episode).
+    ``keep_instance`` (the ``instance`` max-value estimator's critic and the informed head read
+    it, offline only); ``next``'s copy unless ``keep_next_instance`` (the informed head reads its
+    features at ``s'``: a Wargus item or patrol moves within an episode).
     """
-    drop = [(keys.NEXT, keys.INSTANCE), EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD)]
+    drop = [EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD)]
+    if not keep_next_instance:
+        drop.append((keys.NEXT, keys.INSTANCE))
     if not keep_instance:
         drop.append(keys.INSTANCE)
     return batch.exclude(*drop).reshape(-1)

@@ -35,13 +35,24 @@ from taskvar_torch.config import atomic_write
 LOCK_NAME = ".taskvar.lock"
 """Lock file of a run folder: ``flock``-ed by the run writing there (released by the kernel when
 the process dies, even by SIGKILL), holding its pid; removed when the run ends."""
-_RUN_NAMES = ("config.yaml", "final.pt", "heads.pt", "logs", "heads")
+# the baselines' bundles belong to the run they were trained beside (heads.informed, or
+# taskvar train-baselines): an overwrite removes them with it, never leaving another run's
+_RUN_NAMES = (
+    "config.yaml",
+    "final.pt",
+    "heads.pt",
+    "informed.pt",
+    "recurrent.pt",
+    "logs",
+    "heads",
+)
 _STALE_TMP = re.compile(r"^\..+\.[0-9a-f]{12}\.tmp$")  # config.atomic_write's temporary files
 
 
 def run_files(out: str | os.PathLike) -> list[Path]:
-    """What a training run left in ``out``: ``config.yaml``, ``final.pt``, ``heads.pt``,
-    ``checkpoint_*.pt``, ``logs/``, ``heads/`` (snapshots; empty when ``out`` is not a folder)."""
+    """What a training run left in ``out``: ``config.yaml``, ``final.pt``, ``heads.pt``, the
+    baselines' ``informed.pt`` and ``recurrent.pt``, ``checkpoint_*.pt``, ``logs/``, ``heads/``
+    (snapshots; empty when ``out`` is not a folder)."""
     out = Path(out)
     if not out.is_dir():
         return []

@@ -93,8 +93,10 @@ from taskvar_torch.factory import (  # noqa: F401  (the factories stay importabl
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
+from taskvar_torch.heads.informed import INFORMED
 from taskvar_torch.heads.learner import MultiHeadLearner
 from taskvar_torch.heads.nstep import nstep_returns
+from taskvar_torch.heads.recurrent import baseline_path, save_informed_head
 from taskvar_torch.heads.seeds import split_seed, stack_seeds
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.replay import (  # noqa: F401  (importable from here too)
@@ -389,6 +391,7 @@ def _train_loop(
                 run.save(final, replay=keep_replay)
                 if t.seeds == 1:
                     write_heads(out / HEADS_NAME, run.learner.eval_heads, cfg, run.counters)
+                    write_informed(out, run.learner.eval_heads, cfg, run.counters)
                 else:  # the batch's final.pt resumes; each seed<k>/ evaluates
                     seed_finals = run.write_seed_bundles()
             except KeyboardInterrupt:
@@ -460,7 +463,9 @@ class _Run:
         n = batch.shape[0] // S  # seed s owns sub-envs [s n, (s + 1) n) (set_seed_blocks)
         for s, buffer in enumerate(self.buffers):
             rows = batch if S == 1 else batch[s * n : (s + 1) * n]
-            raw = raw_transitions(rows, keep_instance=t.max_value_estimator == "instance")
+            informed = self.cfg.heads.informed  # the informed head reads z at s and s'
+            instance = t.max_value_estimator == "instance" or informed
+            raw = raw_transitions(rows, keep_instance=instance, keep_next_instance=informed)
             if keep is not None:  # one sample per (s, a) per episode
                 raw = raw[(keep if S == 1 else keep[s * n : (s + 1) * n]).reshape(-1)]
             stored = raw.batch_size[0]  # (TensorDict.numel() of an empty batch is 1, not 0)
@@ -596,6 +601,7 @@ class _Run:
             )
             finals.append(save_checkpoint(folder / "final.pt", bundle))
             write_heads(folder / HEADS_NAME, models.get(EVAL_HEADS, heads), cfg_k, self.counters)
+            write_informed(folder, models.get(EVAL_HEADS, heads), cfg_k, self.counters)
         return finals
 
     def bundle(self, replay: bool = True) -> dict[str, Any]:
@@ -619,6 +625,21 @@ class _Run:
             first_visit=self.first_visit.state_dict(),
             stats={k: v.clone() for k, v in self.stats.items()},
             heads_spec=learner.heads.spec.to_dict(),
+        )
+
+
+def write_informed(folder: Path, heads: Heads, cfg: Config, counters: dict[str, int]) -> None:
+    """``folder/informed.pt``, the informed baseline's bundle, from the bundle's informed head
+    (its evaluation weights), where the run trained one (``heads.informed``)."""
+    if heads.has(INFORMED):
+        spec = heads.spec
+        save_informed_head(
+            baseline_path(folder / "final.pt", INFORMED),
+            heads.heads[INFORMED],
+            spec.obs_dim,
+            spec.num_actions,
+            cfg,
+            counters=dict(counters),
         )
 
 

@@ -1,58 +1,84 @@
-"""Training the baselines of issue 31 (docs/memory.md): ``recurrent`` and ``informed``.
+"""Training the baselines beside a bundle (docs/memory.md): ``recurrent``, and ``informed`` for a
+bundle whose heads did not train it (``heads.informed``, :mod:`taskvar_torch.heads.informed`).
 
 Both learn with TorchRL's own pieces, on the family's batched training env (each sub-env draws a
-new hidden instance at every reset, the distribution the paper's heads train on, §2) and with the
-config's ``train.total_frames`` budget and epsilon schedule:
+new hidden instance at every reset, the distribution the paper's heads train on, §2), and read
+every setting they share with the heads from the config, so a baseline and the heads it is
+compared with differ only where they must:
 
-* a TorchRL :class:`~torchrl.collectors.Collector` over ``collection.make_training_env`` (plus, for the
-  recurrent head, the previous action and the GRU's tensordict primer), acting epsilon-greedily
-  (:class:`~torchrl.modules.EGreedyModule`, ``train.eps_start -> eps_end`` over
-  ``train.eps_decay_frames`` after ``train.init_random_frames`` at ``eps_start``);
-* ``DQNLoss(double_dqn=True, delay_value=True)`` (double Q with a target network) with
-  ``SoftUpdate``, Adam and ``train.max_grad_norm`` clipping;
-* recurrent: a replay of trajectories, ``LazyTensorStorage(ndim=2)`` holding each sub-env's
-  stream along time (dim 0, so an episode cut by a batch boundary stays contiguous), sampled by :class:`~torchrl.data.replay_buffers.SliceSampler` in slices
-  within episodes (``end_key = ("next", "done")``) that restart from the hidden state stored at
-  collection (DRQN with stored state, as R2D2); the loss runs the GRU in
-  ``set_recurrent_mode(True)``;
-* informed: a replay of transitions sampled uniformly, the network reading the instance features.
+* the budget ``train.total_frames`` and ``train.frames_per_batch``; epsilon-greedy exploration
+  (:class:`~torchrl.modules.EGreedyModule`) at the heads' schedule
+  (:func:`~taskvar_torch.train.epsilon_at`: uniform for ``train.init_random_frames``, then
+  ``eps_start -> eps_end`` by ``eps_decay_frames``); ``train.updates_per_batch`` gradient steps
+  per batch of ``train.batch_size`` rows from a replay of ``train.buffer_size``;
+* ``DQNLoss(double_dqn=train.double_q, delay_value=True)`` at ``train.gamma``, the target network
+  updated as ``train.target_update`` says (``SoftUpdate`` at ``train.target_tau``, or
+  ``HardUpdate`` every ``train.target_period``), Adam at ``train.lr`` (decayed to
+  ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.train.lr_at`), gradients clipped at
+  ``train.max_grad_norm``, and the evaluation weights a Polyak average where
+  ``train.eval_ema_tau`` is set;
+* the Q head's widths and activation ``heads.hidden``, ``heads.activation``.
+
+The heads' ``train.n_step``, ``train.first_visit`` and ``train.replay_sampling`` shape the
+heads' own replay; the baselines use one-step targets on uniform samples (a recurrent replay keeps
+whole trajectories, which first-visit filtering would cut), and say so in one line when those
+keys are set.
+
+**recurrent** (DRQN; Ni et al. 2022's recipe for a strong recurrent model-free baseline, with
+the choices made here): one GRU encoder shared by the Q-values (a value-based agent has no actor
+to separate it from); inputs the observation, the previous action and the previous reward; the
+replay holds each sub-env's stream in time order (``LazyTensorStorage(ndim=2)`` over the
+collector's ``(N, T)`` batch, whose time dimension it finds by name), sampled by
+:class:`~torchrl.data.replay_buffers.SliceSampler` in slices of ``baseline.burn_in +
+baseline.slice_len`` consecutive steps of one sub-env within one episode; each slice starts from
+the GRU state stored at collection (R2D2) and its first ``baseline.burn_in`` steps only warm the
+GRU up (no loss there), unless the slice starts an episode, whose state is exactly zero. Stored
+states and burn-in rather than zero-start full episodes: Wargus episodes run 500 steps.
+
+**informed** (a bundle whose heads did not train it): the same network as the informed head,
+on uniformly sampled transitions of its own epsilon-greedy stream.
 
 :func:`train_baseline` writes ``DIR/recurrent.pt`` or ``DIR/informed.pt``
-(``heads.recurrent.save_baseline``: atomic, plain data). Settings: ``BaselineSettings``.
+(``heads.recurrent.save_baseline``: atomic, plain data).
 """
 
 from __future__ import annotations
 
+import copy
 import os
 import time
 from pathlib import Path
 from typing import Any
 
 import torch
+from tensordict import TensorDictBase
 from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler, SliceSampler
 from torchrl.modules import EGreedyModule, set_recurrent_mode
-from torchrl.objectives import DQNLoss, SoftUpdate
+from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from taskvar_torch import keys
 from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import Config
+from taskvar_torch.heads.informed import family_instance_keys, informed_features
 from taskvar_torch.heads.recurrent import (
     BASELINES,
     PREV_ACTION,
+    PREV_REWARD,
     RECURRENT_STATE,
-    BaselineSettings,
     BaselineSpec,
-    PreviousAction,
+    PreviousStep,
     baseline_path,
-    family_instance_keys,
-    informed_features,
     make_informed_qnet,
     make_recurrent_qnet,
     save_baseline,
 )
+
+EPISODE_START = "episode_start"
+"""Stored copy of ``is_init`` (a step that starts an episode): the sampler marks every slice start
+as ``is_init``, and a slice that starts an episode needs no burn-in."""
 
 _STORE = (
     keys.OBSERVATION,
@@ -72,74 +98,119 @@ def _check_method(method: str) -> None:
         raise ValueError(f"--method must be among {list(BASELINES)} or 'all', got {method!r}")
 
 
-def build_for_training(
-    cfg: Config, method: str, settings: BaselineSettings
-) -> tuple[TensorDictSequential, BaselineSpec, Any]:
-    """The network, its spec and the training env (with the GRU primer for ``recurrent``)."""
+def build_for_training(cfg: Config, method: str) -> tuple[TensorDictSequential, BaselineSpec, Any]:
+    """The network, its spec and the training env (with the recurrent head's transforms)."""
     _check_method(method)
     env = make_training_env(cfg)
     obs_dim = int(env.observation_spec[keys.OBSERVATION].shape[-1])
     num_actions = int(env.action_spec.space.n)
-    act = cfg.heads.activation
+    act, mlp = cfg.heads.activation, tuple(cfg.heads.hidden)
     if method == "recurrent":
-        net, gru = make_recurrent_qnet(obs_dim, num_actions, settings, act)
-        env.append_transform(PreviousAction(num_actions))
+        hidden = int(cfg.baseline.hidden)
+        net, gru = make_recurrent_qnet(obs_dim, num_actions, hidden, mlp, act)
+        env.append_transform(PreviousStep(num_actions))
         env.append_transform(gru.make_tensordict_primer())
-        spec = BaselineSpec(method, obs_dim, num_actions, settings)
+        spec = BaselineSpec(method, obs_dim, num_actions, mlp, hidden=hidden)
     else:
         dim, feats = informed_features(cfg)
         ikeys = family_instance_keys(cfg)
-        net = make_informed_qnet(obs_dim, num_actions, dim, feats, ikeys, settings, act)
-        spec = BaselineSpec(method, obs_dim, num_actions, settings, dim, ikeys)
+        net = make_informed_qnet(obs_dim, num_actions, dim, feats, ikeys, mlp, act)
+        spec = BaselineSpec(
+            method, obs_dim, num_actions, mlp, instance_dim=dim, instance_keys=ikeys
+        )
     return net.to(cfg.device), spec, env
 
 
 def stored_keys(method: str) -> tuple:
     """What the replay keeps of each transition: the step (observation, action, next reward and
     done flags, episode starts) and, for ``recurrent``, the GRU's stored hidden state and the
-    previous actions; for ``informed``, the hidden instance its features are read from."""
+    previous action and reward; for ``informed``, the hidden instance its features are read from
+    (at ``s`` and ``s'``)."""
     if method == "recurrent":
-        return (*_STORE, RECURRENT_STATE, PREV_ACTION, (keys.NEXT, PREV_ACTION))
+        prev = (PREV_ACTION, PREV_REWARD, (keys.NEXT, PREV_ACTION), (keys.NEXT, PREV_REWARD))
+        return (*_STORE, RECURRENT_STATE, *prev)
     return (*_STORE, keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
 
 
+def heads_only_keys(cfg: Config) -> list[str]:
+    """The ``train`` keys set away from their defaults that shape the heads' replay only (the
+    baselines take one-step targets on uniform samples: module docstring)."""
+    t = cfg.train
+    out = []
+    if t.n_step != 1:
+        out.append(f"train.n_step={t.n_step}")
+    if t.replay_sampling != "uniform":
+        out.append(f"train.replay_sampling={t.replay_sampling}")
+    return out
+
+
+def burn_in_mask(sample: TensorDictBase, burn_in: int) -> torch.Tensor:
+    """``(R,)`` bool: the rows of a flat slice sample the recurrent loss is taken on: every row
+    from the ``burn_in``-th of its slice on, and every row of a slice that starts an episode.
+
+    Slices start where the sampler marks ``is_init`` (they never hold an episode start inside)."""
+    starts = sample.get("is_init").reshape(-1)  # (R,) slice starts
+    R = starts.shape[0]
+    first = starts.nonzero().squeeze(-1)  # (num_slices,) each slice's first row
+    slice_id = torch.cumsum(starts.long(), 0) - 1  # (R,)
+    position = torch.arange(R, device=starts.device) - first[slice_id]  # (R,)
+    from_start = sample.get(EPISODE_START).reshape(-1)[first][slice_id]  # (R,)
+    return (position >= int(burn_in)) | from_start
+
+
 class BaselineLearner:
-    """A baseline's replay and update rule: ``DQNLoss(double_dqn=True, delay_value=True)`` on
-    ``net`` with ``SoftUpdate``, Adam and ``train.max_grad_norm`` clipping (module docstring).
+    """A baseline's replay and update rule (module docstring): ``DQNLoss`` with a target network
+    on ``net``, Adam, gradient clipping and the config's target update, all from ``cfg``.
 
     ``recurrent``: the replay holds trajectories, sampled by ``SliceSampler`` in slices of
-    ``settings.slice_len`` within episodes (``end_key = ("next", "done")``) and the loss runs the
-    GRU in ``set_recurrent_mode(True)``; ``time_major`` (the default) stores ``(time, sub-env)``
-    batches (``LazyTensorStorage(ndim=2)``: an episode cut by a batch boundary stays contiguous),
-    else flat batches whose episodes are already contiguous (the Figure 4 protocol's,
-    ``experiments/fig4_recurrent.py``). Otherwise uniform transitions.
+    ``baseline.burn_in + baseline.slice_len`` within episodes (``end_key = ("next", "done")``),
+    ``max(1, train.batch_size // baseline.slice_len)`` slices a sample, and the loss runs the GRU
+    in ``set_recurrent_mode(True)`` from each slice's stored state, taken past the burn-in
+    (:func:`burn_in_mask`). ``time_major`` (the default) stores the collector's ``(N, T)``
+    batches as they come (``LazyTensorStorage(ndim=2)``), else flat batches whose episodes are
+    already whole and contiguous (the Figure 4 protocol's, ``experiments/fig4_recurrent.py``).
+    Otherwise uniform transitions of ``train.batch_size``.
     """
 
     def __init__(
         self,
         net: TensorDictSequential,
         action_spec: Any,
-        t: Any,
-        settings: BaselineSettings,
+        cfg: Config,
         recurrent: bool,
         time_major: bool = True,
     ):
+        t = cfg.train
+        self.cfg = cfg
         self.recurrent = recurrent
-        self.max_grad_norm = float(t.max_grad_norm)
-        self.loss = DQNLoss(net, action_space=action_spec, delay_value=True, double_dqn=True)
+        self.max_grad_norm = t.max_grad_norm
+        self.burn_in = int(cfg.baseline.burn_in)
+        self.loss = DQNLoss(
+            net, action_space=action_spec, delay_value=True, double_dqn=t.double_q, reduction="none"
+        )
         self.loss.make_value_estimator(gamma=float(t.gamma))
-        self.updater = SoftUpdate(self.loss, tau=float(settings.target_tau or t.target_tau))
-        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(settings.lr or t.lr))
-        self.updates_per_batch = int(settings.updates_per_batch or t.updates_per_batch)
+        if t.target_update == "soft":
+            self.updater = SoftUpdate(self.loss, tau=float(t.target_tau))
+        else:  # TorchRL's HardUpdate copies every interval + 1 steps (heads/learner.py)
+            self.updater = HardUpdate(self.loss, value_network_update_interval=t.target_period - 1)
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
+        self.updates_per_batch = int(t.updates_per_batch)
         self.device = next(net.parameters()).device
+        self.net = net
+        self.eval_net = net  # the weights evaluation reads (a Polyak average: train.eval_ema_tau)
+        if t.eval_ema_tau is not None:
+            self.eval_net = copy.deepcopy(net).requires_grad_(False)
+            self._ema = list(self.eval_net.parameters())
+            self._ema_source = list(net.parameters())
         if recurrent:
-            L = int(settings.slice_len)
+            length = self.burn_in + int(cfg.baseline.slice_len)
+            slices = max(1, int(t.batch_size) // int(cfg.baseline.slice_len))
             self.buffer = TensorDictReplayBuffer(
                 storage=LazyTensorStorage(int(t.buffer_size), ndim=2 if time_major else 1),
                 sampler=SliceSampler(
-                    slice_len=L, end_key=(keys.NEXT, keys.DONE), strict_length=False
+                    slice_len=length, end_key=(keys.NEXT, keys.DONE), strict_length=False
                 ),
-                batch_size=max(L, int(t.batch_size) // L * L),
+                batch_size=slices * length,
             )
         else:
             self.buffer = TensorDictReplayBuffer(
@@ -148,6 +219,20 @@ class BaselineLearner:
                 batch_size=int(t.batch_size),
             )
 
+    def store(self, batch: TensorDictBase) -> None:
+        """Add a batch: a collector's ``(N, T)`` batch as it comes (recurrent, ``time_major``),
+        else flat rows; the recurrent replay also keeps which steps start an episode."""
+        if self.recurrent:
+            batch = batch.set(EPISODE_START, batch.get("is_init").clone())
+        elif batch.ndim > 1:
+            batch = batch.reshape(-1)
+        self.buffer.extend(batch)
+
+    def set_lr(self, lr: float) -> None:
+        """The Adam learning rate from the next update on (the heads' schedule: ``lr_at``)."""
+        for group in self.optim.param_groups:
+            group["lr"] = lr
+
     def update(self) -> torch.Tensor:
         """One gradient step on one replay sample; returns the loss (detached)."""
         sample = self.buffer.sample().to(self.device)
@@ -155,15 +240,23 @@ class BaselineLearner:
             # slice starts are init steps for the next-state pass too (stored hidden state)
             nxt = (keys.NEXT, "is_init")
             sample.set(nxt, sample.get(nxt) | sample.get("is_init"))
+            mask = burn_in_mask(sample, self.burn_in).to(torch.float32)
             with set_recurrent_mode(True):
-                value = self.loss(sample)["loss"]
+                per_row = self.loss(sample)["loss"].reshape(-1)
+            value = (per_row * mask).sum() / mask.sum().clamp_min(1.0)
         else:
-            value = self.loss(sample)["loss"]
+            value = self.loss(sample)["loss"].mean()
         self.optim.zero_grad(set_to_none=True)
         value.backward()
-        torch.nn.utils.clip_grad_norm_(self.loss.parameters(), self.max_grad_norm)
+        if self.max_grad_norm is not None:
+            torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(self.max_grad_norm))
         self.optim.step()
         self.updater.step()
+        if self.eval_net is not self.net:
+            with torch.no_grad():
+                torch._foreach_lerp_(
+                    self._ema, self._ema_source, float(self.cfg.train.eval_ema_tau)
+                )
         return value.detach()
 
 
@@ -171,7 +264,6 @@ def train_baseline(
     cfg: Config,
     method: str,
     out_dir: str | os.PathLike,
-    settings: BaselineSettings | None = None,
     progress: bool = False,
     log: Any = None,
 ) -> dict[str, Any]:
@@ -181,19 +273,15 @@ def train_baseline(
     tenth of training, exploration included).
 
     Seeded by ``cfg.seed`` (torch's global generator and the env's keyed streams)."""
-    settings = settings or BaselineSettings()
+    from taskvar_torch.train import epsilon_at, lr_at
+
     t = cfg.train
     torch.manual_seed(int(cfg.seed))
-    net, spec, env = build_for_training(cfg, method, settings)
+    net, spec, env = build_for_training(cfg, method)
     recurrent = method == "recurrent"
-    explore = EGreedyModule(
-        env.action_spec,
-        eps_init=float(t.eps_start),
-        eps_end=float(t.eps_end),
-        annealing_num_steps=max(1, int(t.eps_decay_frames)),
-    )
+    explore = EGreedyModule(env.action_spec, eps_init=1.0, eps_end=float(t.eps_end))
     policy = TensorDictSequential(net, explore)
-    learner = BaselineLearner(net, env.action_spec, t, settings, recurrent)
+    learner = BaselineLearner(net, env.action_spec, cfg, recurrent)
     store = stored_keys(method)
     collector = Collector(
         env,
@@ -216,16 +304,13 @@ def train_baseline(
         done = data.get((keys.NEXT, keys.DONE)).squeeze(-1)
         if frames > 0.9 * int(t.total_frames):
             returns.append(data.get((keys.NEXT, "episode_reward")).squeeze(-1)[done])
-        batch = data.select(*store, strict=False)
-        learner.buffer.extend(
-            batch.transpose(0, 1).contiguous() if recurrent else batch.reshape(-1)
-        )
-        if frames >= int(t.init_random_frames):
-            explore.step(n)
+        learner.store(data.select(*store, strict=False))
+        if frames >= int(t.init_random_frames) and len(learner.buffer) >= t.batch_size:
+            learner.set_lr(lr_at(frames, t))
             for _ in range(learner.updates_per_batch):
                 value = learner.update()
                 updates += 1
-            collector.update_policy_weights_()
+        explore.eps.fill_(epsilon_at(frames, t))  # the heads' schedule (train.epsilon_at)
         if bar is not None:
             bar.update(n)
         if log is not None and updates and updates % 1000 < learner.updates_per_batch:
@@ -233,12 +318,16 @@ def train_baseline(
     collector.shutdown()
     if bar is not None:
         bar.close()
-    if not all(bool(p.isfinite().all()) for p in net.parameters()):
+    if not all(bool(p.isfinite().all()) for p in learner.eval_net.parameters()):
         raise ValueError(f"the {method} baseline diverged (non-finite weights); nothing written")
     seconds = time.perf_counter() - start
     path = baseline_path(Path(out_dir) / "final.pt", method)
     save_baseline(
-        path, net, spec, cfg, counters={"frames": frames, "updates": updates, "seconds": seconds}
+        path,
+        learner.eval_net,
+        spec,
+        cfg,
+        counters={"frames": frames, "updates": updates, "seconds": seconds},
     )
     rets = torch.cat(returns) if returns else torch.zeros(0)
     return {
@@ -250,4 +339,12 @@ def train_baseline(
     }
 
 
-__all__ = ["BaselineLearner", "build_for_training", "stored_keys", "train_baseline"]
+__all__ = [
+    "EPISODE_START",
+    "BaselineLearner",
+    "build_for_training",
+    "burn_in_mask",
+    "heads_only_keys",
+    "stored_keys",
+    "train_baseline",
+]

@@ -18,12 +18,10 @@ from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.factory import build_heads, make_env, make_subtasks, write_heads
+from taskvar_torch.heads.informed import INSTANCE_FEATURES, informed_features
 from taskvar_torch.heads.recurrent import (
-    INSTANCE_FEATURES,
-    BaselineSettings,
     BaselineSpec,
     InstanceFeatures,
-    informed_features,
     load_baseline,
     make_recurrent_qnet,
     save_baseline,
@@ -70,9 +68,9 @@ def test_eval_all_plays_baselines_on_paired_episodes(corridor_informed, tmp_path
     cfg, folder, _ = corridor_informed
     env = make_env(cfg, 1)
     write_heads(folder / "heads.pt", build_heads(cfg, env, make_subtasks(cfg, env)), cfg)
-    settings = BaselineSettings(hidden=8, mlp=(8,))
-    net, _ = make_recurrent_qnet(5, 4, settings)  # untrained: the mechanics, not the merit
-    save_baseline(folder / "recurrent.pt", net, BaselineSpec("recurrent", 5, 4, settings), cfg)
+    net, _ = make_recurrent_qnet(5, 4, hidden=8, mlp=(8,))  # untrained: the mechanics, not merit
+    spec = BaselineSpec("recurrent", 5, 4, (8,), hidden=8)
+    save_baseline(folder / "recurrent.pt", net, spec, cfg)
     m = eval_bundle(folder / "heads.pt", "all", episodes=300, progress=False, out_dir=tmp_path)
     assert m["methods"][-2:] == ["recurrent", "informed"]
     point = m["points"][0]["methods"]
@@ -104,8 +102,11 @@ def test_instance_features_any_batch_shape():
 
 
 def test_taxi_features_and_unavailable_without_any(monkeypatch):
-    dim, _ = informed_features(load_config("configs/taxi.yaml", []))
-    assert dim == 3
+    dim, feats = informed_features(load_config("configs/taxi.yaml", []))
+    assert dim == 2  # rain and fickleness, not the episode's armed draw (docs/taxi.md)
+    td = make_env(load_config("configs/taxi.yaml", ["env.instances=storm"]), 4, seed=0).reset()
+    q, f = td["instance", "rainy_probability"], td["instance", "fickle_probability"]
+    assert torch.equal(feats(td), torch.stack([1.0 - q, f], -1).float())
     assert (
         informed_features(load_config("configs/wargus.yaml", []))[0] == 4
     )  # tests/test_informed_wargus.py

@@ -25,7 +25,6 @@ from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.factory import make_env
 from taskvar_torch.heads.recurrent import (
     BaselineController,
-    BaselineSettings,
     BaselineSpec,
     load_baseline,
     make_recurrent_qnet,
@@ -64,11 +63,13 @@ def best_memoryless_value(cfg) -> float:
 
 class Forgetful(BaselineController):
     """The same network with its memory cut: before every step the hidden state is reset and
-    the previous action zeroed (as at an episode's first step), so it acts on the observation."""
+    the previous action and reward zeroed (as at an episode's first step), so it acts on the
+    observation."""
 
     def forward(self, td):
         td.set("is_init", torch.ones_like(td.get("is_init")))
         td.set("prev_action", torch.zeros_like(td.get("prev_action")))
+        td.set("prev_reward", torch.zeros_like(td.get("prev_reward")))
         return super().forward(td)
 
 
@@ -105,9 +106,8 @@ def test_recurrent_head_uses_its_memory(corridor_recurrent):
 
 def test_bundle_round_trip_weights_only(tmp_path):
     cfg = load_config(CORRIDOR, [])
-    settings = BaselineSettings(hidden=8, mlp=(8,), slice_len=4)
-    net, _ = make_recurrent_qnet(5, 4, settings)
-    spec = BaselineSpec("recurrent", 5, 4, settings)
+    net, _ = make_recurrent_qnet(5, 4, hidden=8, mlp=(8,))
+    spec = BaselineSpec("recurrent", 5, 4, (8,), hidden=8)
     path = save_baseline(tmp_path / "recurrent.pt", net, spec, cfg, counters={"frames": 1})
     raw = torch.load(path, weights_only=True)  # plain data only
     assert raw["baseline_spec"]["method"] == "recurrent"
@@ -120,6 +120,7 @@ def test_bundle_round_trip_weights_only(tmp_path):
     assert td["action"].shape == (3,) and ("next", "recurrent_state") in td.keys(True)
     td = env.step(td)
     assert torch.equal(td["next", "prev_action"].argmax(-1), td["action"])
+    assert torch.equal(td["next", "prev_reward"], td["next", "reward"])
 
 
 def test_load_refuses_other_files(tmp_path):
@@ -133,15 +134,38 @@ def test_load_refuses_other_files(tmp_path):
         load_baseline(tmp_path / "x.pt")
 
 
-def test_settings_errors():
-    with pytest.raises(ValueError, match="baseline.hiden is not a baseline setting"):
-        BaselineSettings.from_overrides(["hiden=3"])
+def test_settings_errors_and_renamed_keys():
     with pytest.raises(ValueError, match="baseline.slice_len must be >= 1"):
-        BaselineSettings.from_overrides(["slice_len=0"])
-    with pytest.raises(ValueError, match="not a valid value"):
-        BaselineSettings.from_overrides(["lr=fast"])
-    assert BaselineSettings.from_overrides(["mlp=32+16", "lr=0.01"]).mlp == (32, 16)
-    assert dataclasses.is_dataclass(BaselineSettings)
+        load_config(CORRIDOR, ["baseline.slice_len=0"])
+    with pytest.raises(ValueError, match="baseline.burn_in must be >= 0"):
+        load_config(CORRIDOR, ["baseline.burn_in=-1"])
+    with pytest.raises(ValueError, match="baseline.hiden"):
+        load_config(CORRIDOR, ["baseline.hiden=3"])
+    # the settings the baselines share with the heads are the heads' (old keys: a deprecation)
+    with pytest.warns(FutureWarning, match="baseline.mlp is deprecated.*heads.hidden"):
+        cfg = load_config(CORRIDOR, ["baseline.mlp=32+16", "baseline.lr=0.01"])
+    assert cfg.heads.hidden == (32, 16) and cfg.train.lr == 0.01
+    with pytest.raises(ValueError, match=r"baseline.mlp='32\+x' must be widths"):
+        load_config(CORRIDOR, ["baseline.mlp=32+x"])
+
+
+def test_old_bundle_spec_still_loads():
+    """A bundle written before the settings were single-sourced (``settings`` dict, no previous
+    reward) rebuilds the network it was trained as."""
+    old = {
+        "method": "recurrent",
+        "obs_dim": 5,
+        "num_actions": 4,
+        "settings": {"hidden": 64, "mlp": [64], "slice_len": 8, "lr": None},
+        "instance_dim": 0,
+        "instance_keys": [],
+    }
+    spec = BaselineSpec.from_dict(old)
+    assert (spec.hidden, spec.mlp, spec.prev_reward) == (64, (64,), False)
+    net, _ = make_recurrent_qnet(5, 4, 64, (64,), prev_reward=False)
+    gru = next(m for m in net.modules() if m.__class__.__name__ == "GRU")
+    assert gru.input_size == 5 + 4
+    assert BaselineSpec.from_dict(spec.to_dict()) == spec
 
 
 def test_parse_methods_names_missing_baseline(tmp_path):
@@ -177,7 +201,7 @@ def test_train_baselines_cli_errors(tmp_path, capsys, monkeypatch):
     assert r.returncode == 2 and r.stderr.count("\n") == 1
     assert "--method must be one of ['recurrent', 'informed', 'all']" in r.stderr
     r = _cli("train-baselines", CORRIDOR, "--out", str(tmp_path), "baseline.size=3")
-    assert r.returncode == 2 and "baseline.size is not a baseline setting" in r.stderr
+    assert r.returncode == 2 and "baseline.size" in r.stderr and r.stderr.count("\n") == 1
     r = _cli("train-baselines", "--out", str(tmp_path / "new"))
     assert r.returncode == 2 and "give a CONFIG file" in r.stderr
     with monkeypatch.context() as m:  # a family with no features (every built-in has some)

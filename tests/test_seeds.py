@@ -13,6 +13,7 @@ import torch
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import load_heads
+from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.seeds import split_seed, stack_seeds
 from taskvar_torch.train import (
     build_heads,
@@ -63,10 +64,15 @@ def test_each_seed_rows_meet_its_own_weights_and_its_losses_are_its_runs(path):
     raw = raw_transitions(td, keep_instance=True)  # seed-major rows
     n = raw.shape[0] // 3
     obs = raw["observation"]
-    for name in batch.heads:
+    for name in batch.paper_heads():
         y = batch.heads[name].module(obs)
         parts = [runs[k].heads[name].module(obs[k * n : (k + 1) * n]) for k in range(3)]
         assert torch.equal(y, torch.cat(parts)), name  # the same matmul per row: the same bits
+    z = informed_features(cfg)[1](raw)  # the informed head (heads.informed) reads the instance
+    y = batch.heads["informed"].module(obs, z)
+    rows = [slice(k * n, (k + 1) * n) for k in range(3)]
+    parts = [runs[k].heads["informed"].module(obs[r], z[r]) for k, r in enumerate(rows)]
+    torch.testing.assert_close(y, torch.cat(parts), rtol=1e-6, atol=1e-6)
     subtasks = make_subtasks(cfg, make_training_env(cfg).base_env)
     lb = make_learner(cfg, batch, subtasks).loss
     ones = [make_learner(cfg, r, subtasks).loss for r in runs]

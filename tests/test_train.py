@@ -171,6 +171,7 @@ def test_final_bundle_reloads_the_trained_heads(tmp_path):
         "config.yaml",
         "final.pt",
         "heads.pt",
+        "informed.pt",  # heads.informed (configs/windy.yaml)
         "logs",
     ]
     bundle = load_checkpoint(tmp_path / "final.pt")

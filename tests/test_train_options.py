@@ -333,3 +333,17 @@ def test_max_grad_norm_clips_every_heads_gradient_and_null_does_not(tmp_path):
     free = _grad_norms_at_step(tmp_path / "free", "null")
     assert len(free) == 8 and float(free[0].max()) > 0.01
     assert math.isclose(float(clipped[0].max()), 0.001, rel_tol=1e-3)  # it did clip
+
+
+# --------------------------------------------------------------------------------------------
+# behaviour without options
+
+
+def test_option_behaviour_prob_0_labels_every_transition_the_averaging_policys(tmp_path):
+    """With ``option_behaviour_prob=0`` every episode is the averaging policy's: every replayed
+    transition carries behaviour mode -1 (after resets too), so the per-option return log and
+    per-option sampling see no option episodes."""
+    result, _ = train_tiny(tmp_path, "train.option_behaviour_prob=0")
+    modes = load_checkpoint(result["final"])["replay"]["data"]["behaviour"]
+    assert modes.numel() > 100 and bool((modes == -1).all()), modes.unique()
+    assert not (tmp_path / "logs" / "scalars" / "episode_return_options.csv").exists()

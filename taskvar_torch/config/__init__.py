@@ -51,6 +51,7 @@ from taskvar_torch.config.loader import (
     save_config_yaml,
 )
 from taskvar_torch.config.schema import (
+    BaselineConfig,
     CollectorConfig,
     Config,
     EnvConfig,
@@ -81,6 +82,7 @@ __all__ = [
     "ROOT_POLICIES",
     "SWITCHING_MODES",
     "TARGET_UPDATES",
+    "BaselineConfig",
     "CollectorConfig",
     "Config",
     "EnvConfig",

@@ -28,6 +28,7 @@ import difflib
 import functools
 import os
 import typing
+import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import field, fields
 from pathlib import Path
@@ -307,12 +308,54 @@ def _parse_override(schema: type, item: str) -> DictConfig:
         raise ValueError(f"override {item!r} cannot be parsed: {str(e).splitlines()[0]}") from None
 
 
+RENAMED_KEYS = {
+    "baseline.mlp": "heads.hidden",
+    "baseline.lr": "train.lr",
+    "baseline.updates_per_batch": "train.updates_per_batch",
+    "baseline.target_tau": "train.target_tau",
+}
+"""Old override keys -> the key they are now (the baselines read the heads' settings: their old
+``baseline.*`` copies of them, ``taskvar train-baselines baseline.KEY=V``)."""
+
+
+def migrate_overrides(overrides: Sequence[str]) -> list[str]:
+    """``overrides`` with every renamed key (:data:`RENAMED_KEYS`) spelt as it is now, each with
+    a deprecation line (a ``FutureWarning``); ``baseline.mlp=64+64`` becomes
+    ``heads.hidden=[64,64]``. A malformed old value is a one-line ``ValueError`` naming it."""
+    out = []
+    for item in overrides:
+        key, sep, value = str(item).partition("=")
+        new = RENAMED_KEYS.get(key.strip())
+        if not sep or new is None:
+            out.append(item)
+            continue
+        if key.strip() == "baseline.mlp":
+            parts = [p.strip() for p in value.split("+") if p.strip()]
+            if not all(p.isdigit() and int(p) > 0 for p in parts):
+                raise ValueError(
+                    f"baseline.mlp={value!r} must be widths joined by '+' (e.g. 64+64); it is "
+                    "now heads.hidden, e.g. heads.hidden=[64,64]"
+                )
+            value = "[" + ",".join(parts) + "]"
+        warnings.warn(
+            f"{key.strip()} is deprecated: the baselines read the heads' setting {new}; "
+            f"use {new}={value}",
+            FutureWarning,
+            stacklevel=3,
+        )
+        out.append(f"{new}={value}")
+    return out
+
+
 def _apply_overrides(
     schema: type, node: DictConfig, overrides: Sequence[str], label: str = "override"
 ) -> DictConfig:
-    """``node`` with the overrides merged in order; an error names the override (``label``)."""
+    """``node`` with the overrides merged in order (renamed keys migrated: :func:`migrate_overrides`);
+    an error names the override (``label``)."""
     if isinstance(overrides, str):
         overrides = [overrides]
+    if schema is Config or issubclass(schema, Config):
+        overrides = migrate_overrides(overrides)
     parsed = [_parse_override(schema, item) for item in overrides]
     if not parsed:
         return node

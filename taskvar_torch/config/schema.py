@@ -82,6 +82,13 @@ class HeadsConfig:
     """full (every option's policy sees the whole observation) or subtask (wargus, mlp: each
     option's policy is its own network that sees its subtask's features only: TG the item's, FE
     the patrol's, both the agent's position; the composed root sees everything)."""
+    informed: bool = False
+    """Train the informed baseline as one more head of the learner: the averaging head's network
+    (heads.hidden, heads.activation) reading the family's features of the hidden instance beside
+    the observation, on the same samples with the same settings; written as DIR/informed.pt, the
+    learnt ceiling of ``taskvar eval --method all`` (docs/memory.md). The paper's heads are the
+    same bits with it on or off. Needs a family with instance features (windy, Taxi, Wargus);
+    with heads.network=conv it is an MLP over the whole observation."""
 
 
 @dataclass(frozen=True)
@@ -238,6 +245,24 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class BaselineConfig:
+    """The recurrent baseline's own settings (``taskvar train-baselines``; docs/memory.md). Every
+    setting it shares with the heads is read from ``heads`` and ``train``: the Q head's widths and
+    activation, gamma, lr and its schedule, batch and buffer sizes, updates per batch, the target
+    update, double Q, gradient clipping, the epsilon schedule, the frame budget and the evaluation
+    weights (``train.eval_ema_tau``)."""
+
+    hidden: int = 128
+    """GRU hidden size of the recurrent Q-network."""
+    slice_len: int = 16
+    """Steps of each replay slice the recurrent loss is taken on (one sub-env's consecutive steps,
+    within one episode)."""
+    burn_in: int = 8
+    """Steps before each slice that only warm the GRU up from the hidden state stored at
+    collection (R2D2's burn-in); a slice that starts an episode needs none (its state is zero)."""
+
+
+@dataclass(frozen=True)
 class CollectorConfig:
     """Experience collection: one process, TorchRL's MultiSyncCollector, or Ray collector actors
     (docs/design.md, Many processes and Ray actors)."""
@@ -297,7 +322,7 @@ class Config:
     override_example: ClassVar[str] = "train.lr=0.01"
     """An override shown in the error for a malformed one (a class constant, not a config key)."""
     family: str = "windy"
-    """MDP family: wargus or windy."""
+    """MDP family: a registered family's name (windy, wargus, taxi, or one of your own)."""
     seed: int = 0
     """Master seed of environments, networks and exploration."""
     device: str = "cpu"
@@ -314,6 +339,8 @@ class Config:
     """Evaluation."""
     experiment: ExperimentConfig = field(default_factory=ExperimentConfig)
     """Experiments."""
+    baseline: BaselineConfig = field(default_factory=BaselineConfig)
+    """The recurrent baseline's own settings (the rest are the heads' and train's)."""
 
     def __post_init__(self):
         _validate(self)

@@ -86,6 +86,7 @@ def _validate(cfg: Config) -> None:
     _check_train(cfg, fam)
     _check_collector(cfg)
     _check_eval_and_experiment(cfg)
+    _check_baseline(cfg)
 
 
 def _check_family_section(cfg: Config, fam: Family) -> None:
@@ -130,6 +131,20 @@ def _check_heads(cfg: Config, fam: Family) -> None:
             f"({_families_with('option_inputs')}) and heads.network='mlp', "
             f"got family={cfg.family!r}, heads.network={cfg.heads.network!r}"
         )
+    if cfg.heads.informed:
+        if fam.informed_features is None and fam.instance_features is None:
+            raise ValueError(
+                f"heads.informed=true needs a family with features of the hidden instance "
+                f"(Family.instance_features or informed_features); family {cfg.family!r} has "
+                "none: set heads.informed=false"
+            )
+
+
+def _check_baseline(cfg: Config) -> None:
+    """``baseline.*``: the recurrent baseline's own sizes."""
+    _at_least("baseline.hidden", cfg.baseline.hidden, 1)
+    _at_least("baseline.slice_len", cfg.baseline.slice_len, 1)
+    _at_least("baseline.burn_in", cfg.baseline.burn_in, 0)
 
 
 def _check_train(cfg: Config, fam: Family) -> None:

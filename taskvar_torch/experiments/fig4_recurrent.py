@@ -1,7 +1,8 @@
 """The recurrent baseline's curve in the Wargus Figure 4 protocol (docs/wargus-fig4.md#memory).
 
 With ``experiment.baselines: [recurrent]`` each repetition also runs a recurrent Q-network
-(:mod:`taskvar_torch.heads.recurrent`: DRQN, a GRU over the observation and the previous action)
+(:mod:`taskvar_torch.heads.recurrent`: DRQN, a GRU over the observation, the previous action and
+reward)
 through the same lifelong protocol as the paper's agent (paper §3.5.1), on its own:
 
 1. no prior knowledge: a fresh network, an empty replay, epsilon = 1;
@@ -14,8 +15,9 @@ through the same lifelong protocol as the paper's agent (paper §3.5.1), on its 
    ``train.init_random_frames`` were (the paper's agent takes the same number, as the frames come
    in: :func:`~taskvar_torch.experiments.fig4_trial.learn_due`). The update rule is the recurrent
    baseline's own (:class:`~taskvar_torch.train_recurrent.BaselineLearner`: TorchRL's ``DQNLoss``
-   with double Q and a soft target, ``SliceSampler`` slices from the stored hidden state), its
-   settings the defaults chosen on training instances (docs/memory.md);
+   with the heads' settings, ``SliceSampler`` slices of one episode each, from the stored hidden
+   state after a burn-in), its own settings ``baseline.*`` (docs/memory.md). The trial's episodes
+   are stored whole, one after another, so a slice never joins two of them;
 3. **test**, learning off: greedy on the trial's nominal and held-out instance seeds
    (:func:`~taskvar_torch.experiments.fig4_trial.trial_seeds`, the same the paper's methods play).
 
@@ -46,14 +48,13 @@ from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.experiments.fig4_trial import repetition_seed, trial_seeds
 from taskvar_torch.heads.recurrent import (
     BaselineController,
-    BaselineSettings,
     BaselineSpec,
     baseline_path,
     make_recurrent_qnet,
     recurrent_transforms,
     save_baseline,
 )
-from taskvar_torch.train import epsilon_at, make_env
+from taskvar_torch.train import epsilon_at, lr_at, make_env
 from taskvar_torch.train_recurrent import BaselineLearner, stored_keys
 
 RECURRENT_OFFSET = 1 << 33
@@ -84,16 +85,16 @@ def make_recurrent_agent(cfg: Config, seed: int) -> RecurrentAgent:
     """A fresh recurrent agent (paper §3.5.1: no prior knowledge) and its learning env of
     ``experiment.learning_episodes_per_trial`` sub-environments (training instances, env seed
     ``seed``); the network is initialised from torch's global generator (the caller seeds it)."""
-    settings = BaselineSettings()
     base = make_env(cfg, num_envs=cfg.experiment.learning_episodes_per_trial, seed=seed)
     base.validate_actions = False  # random actions are drawn in range
     obs_dim = int(base.observation_spec[keys.OBSERVATION].shape[-1])
     num_actions = int(base.action_spec.space.n)
-    net, gru = make_recurrent_qnet(obs_dim, num_actions, settings, cfg.heads.activation)
+    hidden, mlp = int(cfg.baseline.hidden), tuple(cfg.heads.hidden)
+    net, gru = make_recurrent_qnet(obs_dim, num_actions, hidden, mlp, cfg.heads.activation)
     net = net.to(cfg.device)
     env = TransformedEnv(base, recurrent_transforms(gru, num_actions))
-    spec = BaselineSpec("recurrent", obs_dim, num_actions, settings)
-    learner = BaselineLearner(net, env.action_spec, cfg.train, settings, True, time_major=False)
+    spec = BaselineSpec("recurrent", obs_dim, num_actions, mlp, hidden=hidden)
+    learner = BaselineLearner(net, env.action_spec, cfg, True, time_major=False)
     return RecurrentAgent(cfg, seed, spec, BaselineController(net, spec), learner, env)
 
 
@@ -131,9 +132,10 @@ def learning_phase(agent: RecurrentAgent) -> dict[str, float]:
             break
         td = step_mdp(td, keep_other=True)
     # (sub-env, time) in row-major order: each episode's live steps contiguous, ending at its done
-    agent.learner.buffer.extend(torch.stack(steps, 1)[torch.stack(masks, 1)])
+    agent.learner.store(torch.stack(steps, 1)[torch.stack(masks, 1)])
     tick = time.process_time()
     if len(agent.learner.buffer) >= t.batch_size:
+        agent.learner.set_lr(lr_at(agent.frames, t))
         for _ in range(due):
             agent.learner.update()
             agent.updates += 1
@@ -157,7 +159,8 @@ def test_phase(agent: RecurrentAgent, trial: int) -> tuple[float, float]:
         instances=WargusInstances(seeds=nominal + heldout),
         validate_actions=False,
     )
-    played = run_episodes(TransformedEnv(base, agent.controller.primer()), agent.controller)
+    ctrl = BaselineController(agent.learner.eval_net, agent.spec)  # train.eval_ema_tau's weights
+    played = run_episodes(TransformedEnv(base, ctrl.primer()), ctrl)
     items = played["return"].reshape(2, k).mean(1)
     return float(items[0]), float(items[1])
 
@@ -198,7 +201,7 @@ def run_recurrent_repetition(
                 rows[key].append(v)
             if on_trial is not None:
                 on_trial(rep, trial)
-    net = agent.controller.net
+    net = agent.learner.eval_net
     if not all(bool(p.isfinite().all()) for p in net.parameters()):
         raise ValueError(f"repetition {rep}'s recurrent agent diverged (non-finite weights)")
     save_baseline(

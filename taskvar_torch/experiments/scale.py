@@ -120,11 +120,11 @@ from taskvar_torch.experiments.scale_report import (
 from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
 from taskvar_torch.families import family
+from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.recurrent import (
     BASELINES,
     BaselineController,
-    BaselineSettings,
-    informed_features,
+    baseline_path,
     load_baseline,
 )
 from taskvar_torch.progress import progress_bar
@@ -311,7 +311,7 @@ def load_scale_config(
 def supported_baselines(ccfg: Config) -> tuple[str, ...]:
     """The baselines ``ccfg``'s family can train (docs/memory.md): ``recurrent`` on every family,
     ``informed`` only where the family gives features of the hidden instance
-    (``heads.recurrent.informed_features``; every built-in family does)."""
+    (``heads.informed.informed_features``; every built-in family does)."""
     out = []
     for b in BASELINES:
         if b == "informed":
@@ -669,6 +669,20 @@ def run_cell(
     return cell
 
 
+def _heads_informed(folder: Path) -> dict[str, Any]:
+    """The informed head the cell's heads trained (``folder/informed.pt``), in
+    ``train_baseline``'s result layout (its training is the heads')."""
+    path = baseline_path(folder / "final.pt", "informed")
+    counters = load_checkpoint(path).get("counters", {})
+    return {
+        "path": str(path),
+        "frames": int(counters.get("frames", 0)),
+        "updates": int(counters.get("updates", 0)),
+        "seconds": 0.0,
+        "mean_train_return": float("nan"),
+    }
+
+
 def baseline_phase(
     cfg: ScaleConfig,
     ccfg: Config,
@@ -683,11 +697,11 @@ def baseline_phase(
     docs/memory.md); returns each seed's greedy controllers by name.
 
     Training: for seed ``k`` of the cell, ``train_recurrent.train_baseline`` on
-    ``seed_config(ccfg, k)`` with the default ``BaselineSettings`` into that seed's bundle folder
-    (``folders[k]``, beside the heads' ``final.pt``), exactly as ``taskvar train-baselines CONFIG
-    --out FOLDER --method NAME`` does: the cell's own config, so the **same frame budget** as the
-    heads (``train.total_frames``) with their epsilon schedule, ``frames_per_batch``,
-    ``updates_per_batch`` and buffer. The bundles (``recurrent.pt``, ``informed.pt``) are removed
+    ``seed_config(ccfg, k)`` into that seed's bundle folder (``folders[k]``, beside the heads'
+    ``final.pt``), exactly as ``taskvar train-baselines CONFIG --out FOLDER --method NAME`` does:
+    the cell's own config, so the **same frame budget** and settings as the heads
+    (``train_recurrent``'s module docstring); ``informed`` where the heads trained it
+    (``heads.informed``) is their ``informed.pt``, not trained again. The bundles (``recurrent.pt``, ``informed.pt``) are removed
     once loaded unless ``keep_checkpoints``.
 
     Scoring: each baseline on the cell's test episodes (``evaluate`` at the test seed: the
@@ -704,7 +718,10 @@ def baseline_phase(
         ctrls = {}
         for b in cfg.baselines:
             with isolated_rng(ccfg.device):  # loading draws too: the network's initial weights
-                r = train_baseline(scfg, b, folder, BaselineSettings())
+                if b == "informed" and ccfg.heads.informed:  # trained with the heads
+                    r = _heads_informed(folder)
+                else:
+                    r = train_baseline(scfg, b, folder)
                 ctrls[b], _ = load_baseline(r["path"], device=ccfg.device)
             if not cfg.keep_checkpoints:
                 Path(r["path"]).unlink(missing_ok=True)

@@ -222,8 +222,9 @@ class BehaviourPolicy(TensorDictModuleBase):
         if mode is None:
             mode = torch.full((N,), -1, dtype=torch.int64, device=obs.device)
         decide = self._decide_eager if self._compiled is None else self._compiled
-        if not self.use_options:
-            action, mode = decide(obs, mode)
+        if not self.use_options:  # every episode is the averaging policy's: mode -1 always
+            action, _ = decide(obs, mode)
+            mode = torch.full((N,), -1, dtype=torch.int64, device=obs.device)
         else:
             # the random draws, in their fixed order (the networks draw nothing): uniform options,
             # exploration, option episodes; then EGreedyModule's

@@ -1,15 +1,17 @@
-"""Baselines beside the paper's methods (issue 31): a recurrent Q-network and an instance-informed
-ceiling, built from TorchRL's own modules (docs/memory.md).
+"""Baselines beside the paper's methods (docs/memory.md): a recurrent Q-network and the
+instance-informed ceiling, built from TorchRL's own modules.
 
 * ``recurrent`` (DRQN; the in-context adaptation of RL^2-style meta-RL): a TorchRL
-  :class:`~torchrl.modules.GRUModule` over the observation sequence, an MLP Q head and a
+  :class:`~torchrl.modules.GRUModule` over the observation, the previous action and the previous
+  reward (Ni et al. 2022's inputs for meta-RL), an MLP Q head of the heads' widths and a
   :class:`~torchrl.modules.QValueModule`. Its weights are frozen at test time, like the paper's
   controllers (§3: no learning online), but its hidden state can infer the hidden instance from
   the trajectory (a gust, a sighting), which no memoryless controller of the paper can.
 * ``informed``: a feed-forward Q-network reading the observation *and* the family's features of
-  the hidden instance (:func:`informed_features`; windy: p and the direction, Taxi: rain and
-  fickleness, Wargus: the full state, every item's and patrol's position). It is the learnt
-  ceiling: the paper's averaging head (§3.1) given what the paper's agent never sees.
+  the hidden instance (:func:`~taskvar_torch.heads.informed.informed_features`). It is the learnt
+  ceiling: the paper's averaging head (§3.1) given what the paper's agent never sees; trained as
+  one more head of the learner (``heads.informed``, :mod:`taskvar_torch.heads.informed`) and
+  written here as a bundle (:func:`save_informed_head`).
 
 Both are greedy in their Q-values at evaluation (:class:`BaselineController`), act step by step
 on the batched env (the recurrent one resets its hidden state at every episode start through
@@ -33,11 +35,17 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequ
 from torch import nn
 from torchrl.data import Unbounded
 from torchrl.envs import Compose, InitTracker, Transform
-from torchrl.modules import MLP, GRUModule, QValueModule
+from torchrl.modules import GRUModule, QValueModule
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint, make_bundle, save_checkpoint
 from taskvar_torch.config import Config, config_from_dict
+from taskvar_torch.heads.informed import (
+    INSTANCE_FEATURES,
+    family_instance_keys,
+    informed_features,
+)
+from taskvar_torch.heads.networks import make_mlp
 
 BASELINES = ("recurrent", "informed")
 """The baseline methods, in the order ``taskvar eval --method all`` plays them after the paper's."""
@@ -47,125 +55,62 @@ EMBED = "recurrent_embed"
 RECURRENT_STATE = "recurrent_state"
 """Key of the GRU's carried hidden state (``("next", RECURRENT_STATE)`` after a step)."""
 PREV_ACTION = "prev_action"
-"""Key of the previous action, one-hot (zeros at an episode's first step): :class:`PreviousAction`."""
+"""Key of the previous action, one-hot (zeros at an episode's first step): :class:`PreviousStep`."""
+PREV_REWARD = "prev_reward"
+"""Key of the previous reward ``(..., 1)`` (zero at an episode's first step): :class:`PreviousStep`."""
 GRU_INPUT = "recurrent_input"
-"""Key of the GRU's input: the observation and the previous action."""
-INSTANCE_FEATURES = "instance_features"
-"""Key of the informed head's instance features (:func:`informed_features`)."""
-
-_ACTIVATIONS = {"relu": nn.ReLU, "tanh": nn.Tanh, "elu": nn.ELU, "silu": nn.SiLU}
+"""Key of the GRU's input: the observation, the previous action and (by default) reward."""
 
 
-@dataclass(frozen=True)
-class BaselineSettings:
-    """Settings of both baselines (``baseline.KEY=V`` on ``taskvar train-baselines``).
-
-    The defaults were chosen on *training* instances only (the corridor of tests/test_recurrent.py
-    and configs/windy.yaml's training distribution, never a test distribution or shift); every
-    other setting (frames, batch, gamma, epsilon schedule, buffer, gradient clipping) is the
-    config's ``train`` section, the same as the paper's heads get.
-
-    Attributes:
-        hidden: GRU hidden size (recurrent).
-        mlp: hidden layers of the Q head (recurrent: after the GRU; informed: the whole network).
-        slice_len: length of the replay slices (``SliceSampler``) the recurrent head learns on;
-            slices stay within one episode and start from the hidden state stored at collection.
-        lr: Adam learning rate; ``None``: the config's ``train.lr``.
-        updates_per_batch: gradient steps per collected batch; ``None``: ``train.updates_per_batch``.
-        target_tau: Polyak rate of the target network (TorchRL ``SoftUpdate``); ``None``:
-            ``train.target_tau``.
-    """
-
-    hidden: int = 64
-    mlp: tuple[int, ...] = (64,)
-    slice_len: int = 8
-    lr: float | None = None
-    updates_per_batch: int | None = None
-    target_tau: float | None = None
-
-    def __post_init__(self) -> None:
-        if int(self.hidden) < 1:
-            raise ValueError(f"baseline.hidden must be >= 1, got {self.hidden}")
-        if int(self.slice_len) < 1:
-            raise ValueError(f"baseline.slice_len must be >= 1, got {self.slice_len}")
-        if self.lr is not None and not float(self.lr) > 0:
-            raise ValueError(f"baseline.lr must be > 0, got {self.lr}")
-        if self.updates_per_batch is not None and int(self.updates_per_batch) < 1:
-            raise ValueError(
-                f"baseline.updates_per_batch must be >= 1, got {self.updates_per_batch}"
-            )
-        if self.target_tau is not None and not 0 < float(self.target_tau) <= 1:
-            raise ValueError(f"baseline.target_tau must be in (0, 1], got {self.target_tau}")
-        if any(int(h) < 1 for h in self.mlp):
-            raise ValueError(f"baseline.mlp sizes must be >= 1, got {list(self.mlp)}")
-
-    @classmethod
-    def from_overrides(cls, items: list[str] | tuple[str, ...]) -> BaselineSettings:
-        """Settings from ``KEY=V`` strings (``hidden=32``, ``mlp=64+64``, ``lr=0.001``); an unknown
-        key or a bad value is a one-line ``ValueError``."""
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        out: dict[str, Any] = {}
-        for item in items:
-            k, sep, v = item.partition("=")
-            if not sep or k not in fields:
-                raise ValueError(
-                    f"baseline.{k} is not a baseline setting; known: "
-                    f"{', '.join('baseline.' + n for n in fields)}"
-                )
-            try:
-                if k == "mlp":
-                    out[k] = tuple(int(x) for x in v.split("+") if x)
-                elif v.lower() in ("null", "none"):
-                    out[k] = None
-                elif k in ("lr", "target_tau"):
-                    out[k] = float(v)
-                else:
-                    out[k] = int(v)
-            except ValueError:
-                raise ValueError(f"baseline.{k}={v!r} is not a valid value") from None
-        return cls(**out)
-
-
-class PreviousAction(Transform):
+class PreviousStep(Transform):
     """Env transform writing the action just taken, one-hot, as ``prev_action`` of the next step
-    (zeros after a reset, partial resets included).
+    and (``reward=True``) the reward it got as ``prev_reward`` (zeros after a reset, partial resets
+    included).
 
-    The recurrent head reads it beside the observation (as DRQN and RL^2 agents do): under
-    epsilon-greedy exploration the same observations can follow different actions, and an
-    observation alone does not say what the agent tried (on the corridor, being back at S says
-    the wind opposes the move *just made*). It is env-side, so the replay holds the action
-    actually taken, not the network's greedy one.
+    The recurrent head reads them beside the observation (as DRQN and RL^2 agents do; Ni et al.
+    2022 feed both): under epsilon-greedy exploration the same observations can follow different
+    actions, and an observation alone does not say what the agent tried (on the corridor, being
+    back at S says the wind opposes the move *just made*); a reward can tell an instance apart
+    where the observation cannot. It is env-side, so the replay holds what actually happened.
     """
 
-    def __init__(self, num_actions: int, out_key: str = PREV_ACTION):
-        super().__init__(in_keys=[keys.ACTION], out_keys=[out_key])
+    def __init__(self, num_actions: int, reward: bool = True):
+        out = [PREV_ACTION, PREV_REWARD] if reward else [PREV_ACTION]
+        super().__init__(in_keys=[keys.ACTION], out_keys=out)
         self.num_actions = int(num_actions)
+        self.reward = bool(reward)
 
     def _one_hot(self, action: torch.Tensor) -> torch.Tensor:
         return nn.functional.one_hot(action.long(), self.num_actions).to(torch.float32)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        next_tensordict.set(self.out_keys[0], self._one_hot(tensordict.get(keys.ACTION)))
+        next_tensordict.set(PREV_ACTION, self._one_hot(tensordict.get(keys.ACTION)))
+        if self.reward:
+            reward = next_tensordict.get(keys.REWARD).to(torch.float32)
+            next_tensordict.set(PREV_REWARD, reward.reshape(*next_tensordict.batch_size, 1))
         return next_tensordict
 
     def _reset(
         self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
     ) -> TensorDictBase:
-        shape = (*tensordict_reset.batch_size, self.num_actions)
-        zeros = torch.zeros(shape, device=tensordict_reset.device)
         reset = None if tensordict is None else tensordict.get("_reset", None)
-        prev = None if tensordict is None else tensordict.get(self.out_keys[0], None)
-        if reset is not None and prev is not None:  # a partial reset keeps the others' entry
-            zeros = torch.where(reset.reshape(*tensordict_reset.batch_size, 1), zeros, prev)
-        tensordict_reset.set(self.out_keys[0], zeros)
+        for key, width in zip(self.out_keys, (self.num_actions, 1)):
+            zeros = torch.zeros(
+                (*tensordict_reset.batch_size, width), device=tensordict_reset.device
+            )
+            prev = None if tensordict is None else tensordict.get(key, None)
+            if reset is not None and prev is not None:  # a partial reset keeps the others' entry
+                zeros = torch.where(reset.reshape(*tensordict_reset.batch_size, 1), zeros, prev)
+            tensordict_reset.set(key, zeros)
         return tensordict_reset
 
     def transform_observation_spec(self, observation_spec):
-        observation_spec[self.out_keys[0]] = Unbounded(
-            shape=(*observation_spec.shape, self.num_actions),
-            dtype=torch.float32,
-            device=observation_spec.device,
-        )
+        for key, width in zip(self.out_keys, (self.num_actions, 1)):
+            observation_spec[key] = Unbounded(
+                shape=(*observation_spec.shape, width),
+                dtype=torch.float32,
+                device=observation_spec.device,
+            )
         return observation_spec
 
 
@@ -189,35 +134,34 @@ class InstanceFeatures(TensorDictModuleBase):
 
 
 class _Concat(nn.Module):
-    def forward(self, obs: torch.Tensor, feats: torch.Tensor) -> torch.Tensor:
-        return torch.cat([obs, feats.to(obs.dtype)], -1)
-
-
-def _mlp(in_features: int, out_features: int, cells: tuple[int, ...], activation: str) -> nn.Module:
-    return MLP(
-        in_features=in_features,
-        out_features=out_features,
-        num_cells=list(cells),
-        activation_class=_ACTIVATIONS.get(activation, nn.ReLU),
-    )
+    def forward(self, *xs: torch.Tensor) -> torch.Tensor:
+        return torch.cat([x.to(xs[0].dtype) for x in xs], -1)
 
 
 def make_recurrent_qnet(
-    obs_dim: int, num_actions: int, settings: BaselineSettings, activation: str = "relu"
+    obs_dim: int,
+    num_actions: int,
+    hidden: int,
+    mlp: tuple[int, ...],
+    activation: str = "relu",
+    prev_reward: bool = True,
 ) -> tuple[TensorDictSequential, GRUModule]:
-    """The recurrent Q-network: ``GRUModule([observation, prev_action]) -> MLP -> QValueModule``
-    (greedy ``action`` and ``action_value``), as in TorchRL's recurrent DQN tutorial; returns the
-    policy and its GRU (the env needs ``InitTracker``, :class:`PreviousAction` and the GRU's
-    ``make_tensordict_primer()``: :func:`recurrent_transforms`)."""
+    """The recurrent Q-network: ``GRUModule([observation, prev_action, prev_reward]) -> MLP
+    (mlp widths) -> QValueModule`` (greedy ``action`` and ``action_value``), as in TorchRL's
+    recurrent DQN tutorial; returns the policy and its GRU (the env needs ``InitTracker``,
+    :class:`PreviousStep` and the GRU's ``make_tensordict_primer()``: :func:`recurrent_transforms`).
+    ``prev_reward=False``: the observation and previous action only (bundles written before the
+    reward was an input)."""
+    inputs = [keys.OBSERVATION, PREV_ACTION] + ([PREV_REWARD] if prev_reward else [])
     gru = GRUModule(
-        input_size=obs_dim + num_actions,
-        hidden_size=int(settings.hidden),
+        input_size=obs_dim + num_actions + int(prev_reward),
+        hidden_size=int(hidden),
         in_keys=[GRU_INPUT, RECURRENT_STATE],
         out_keys=[EMBED, (keys.NEXT, RECURRENT_STATE)],
     )
-    cat = TensorDictModule(_Concat(), in_keys=[keys.OBSERVATION, PREV_ACTION], out_keys=[GRU_INPUT])
+    cat = TensorDictModule(_Concat(), in_keys=inputs, out_keys=[GRU_INPUT])
     head = TensorDictModule(
-        _mlp(int(settings.hidden), num_actions, tuple(settings.mlp), activation),
+        make_mlp(int(hidden), num_actions, tuple(mlp), activation),
         in_keys=[EMBED],
         out_keys=[keys.ACTION_VALUE],
     )
@@ -225,10 +169,12 @@ def make_recurrent_qnet(
     return TensorDictSequential(cat, gru, head, qv), gru
 
 
-def recurrent_transforms(gru: GRUModule, num_actions: int) -> Compose:
+def recurrent_transforms(gru: GRUModule, num_actions: int, prev_reward: bool = True) -> Compose:
     """What the recurrent head needs on its env: episode starts (``InitTracker``), the previous
-    action and the GRU's hidden state, zeroed at every (partial) reset."""
-    return Compose(InitTracker(), PreviousAction(num_actions), gru.make_tensordict_primer())
+    action (and reward) and the GRU's hidden state, zeroed at every (partial) reset."""
+    return Compose(
+        InitTracker(), PreviousStep(num_actions, prev_reward), gru.make_tensordict_primer()
+    )
 
 
 def make_informed_qnet(
@@ -237,86 +183,71 @@ def make_informed_qnet(
     instance_dim: int,
     features: Callable[[TensorDictBase], torch.Tensor],
     instance_keys: tuple[str, ...],
-    settings: BaselineSettings,
+    mlp: tuple[int, ...],
     activation: str = "relu",
 ) -> TensorDictSequential:
-    """The informed Q-network: ``[observation, instance_features] -> MLP -> QValueModule``."""
-    net = TensorDictSequential(
+    """The informed Q-network: ``[observation, instance_features] -> MLP -> QValueModule`` (its
+    MLP has the informed head's layout: :class:`~taskvar_torch.heads.informed.InformedNet`)."""
+    return TensorDictSequential(
         InstanceFeatures(features, instance_keys),
         TensorDictModule(_Concat(), in_keys=[keys.OBSERVATION, INSTANCE_FEATURES], out_keys=["x"]),
         TensorDictModule(
-            _mlp(obs_dim + instance_dim, num_actions, tuple(settings.mlp), activation),
+            make_mlp(obs_dim + instance_dim, num_actions, tuple(mlp), activation),
             in_keys=["x"],
             out_keys=[keys.ACTION_VALUE],
         ),
         QValueModule(action_space="categorical", action_value_key=keys.ACTION_VALUE),
     )
-    return net
-
-
-def family_instance_keys(cfg: Config) -> tuple[str, ...]:
-    """The ``("instance", key)`` fields of the family's env (read from a one-env probe)."""
-    from taskvar_torch.factory import make_env
-
-    env = make_env(cfg, 1)
-    return tuple(
-        k[1]
-        for k in env.observation_spec.keys(True, True)
-        if isinstance(k, tuple) and len(k) == 2 and k[0] == keys.INSTANCE
-    )
-
-
-def informed_features(cfg: Config) -> tuple[int, Callable[[TensorDictBase], torch.Tensor]]:
-    """``(dim, features)`` the informed head reads for the config's family: its
-    ``Family.informed_features(cfg)`` (Wargus: item and patrol positions, a dimension set by the
-    config), else ``(instance_dim, instance_features)`` (windy, Taxi); a one-line ``ValueError``
-    where the family gives neither (then the informed head is unavailable)."""
-    from taskvar_torch.families import family
-
-    fam = family(cfg)
-    if fam.informed_features is not None:
-        dim, feats = fam.informed_features(cfg)
-        return int(dim), feats
-    if fam.instance_dim is None or fam.instance_features is None:
-        raise ValueError(
-            f"the informed baseline needs the family's features of the hidden instance "
-            f"(Family.informed_features or instance_features); family {fam.name!r} has none, so "
-            f"it is unavailable"
-        )
-    return int(fam.instance_dim), fam.instance_features
 
 
 @dataclass
 class BaselineSpec:
-    """What a baseline bundle records beside its weights: enough to rebuild the network."""
+    """What a baseline bundle records beside its weights: enough to rebuild the network.
+
+    Attributes:
+        method: ``recurrent`` or ``informed``.
+        obs_dim, num_actions: the family's observation width and number of actions.
+        mlp: hidden widths of the Q head (``heads.hidden``; recurrent: after the GRU).
+        hidden: GRU hidden size (``baseline.hidden``; recurrent only).
+        instance_dim, instance_keys: the informed network's feature width and the
+            ``("instance", key)`` entries they are read from (informed only).
+        prev_reward: the recurrent network reads the previous reward (bundles written before it
+            did load with ``False``).
+    """
 
     method: str
     obs_dim: int
     num_actions: int
-    settings: BaselineSettings
+    mlp: tuple[int, ...]
+    hidden: int = 0
     instance_dim: int = 0
     instance_keys: tuple[str, ...] = ()
+    prev_reward: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
-        d["settings"] = {
-            k: (list(v) if isinstance(v, tuple) else v)
-            for k, v in dataclasses.asdict(self.settings).items()
-        }
+        d["mlp"] = [int(h) for h in self.mlp]
         d["instance_keys"] = list(self.instance_keys)
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> BaselineSpec:
-        s = dict(d["settings"])
-        s["mlp"] = tuple(s.get("mlp", ()))
+        """The spec of a bundle's ``baseline_spec`` (also the layout written before settings were
+        single-sourced: ``{"settings": {"hidden", "mlp", ...}}``, no previous reward)."""
+        old = d.get("settings")
+        if isinstance(old, dict):
+            mlp, hidden, prev_reward = old.get("mlp", ()), old.get("hidden", 0), False
+        else:
+            mlp, hidden, prev_reward = d["mlp"], d.get("hidden", 0), d.get("prev_reward", True)
         return cls(
             method=str(d["method"]),
             obs_dim=int(d["obs_dim"]),
             num_actions=int(d["num_actions"]),
-            settings=BaselineSettings(**s),
+            mlp=tuple(int(h) for h in mlp),
+            hidden=int(hidden),
             instance_dim=int(d.get("instance_dim", 0)),
             instance_keys=tuple(d.get("instance_keys", ())),
+            prev_reward=bool(prev_reward),
         )
 
 
@@ -324,7 +255,9 @@ def build_baseline(spec: BaselineSpec, cfg: Config) -> TensorDictSequential:
     """The network of ``spec`` (untrained)."""
     act = cfg.heads.activation
     if spec.method == "recurrent":
-        return make_recurrent_qnet(spec.obs_dim, spec.num_actions, spec.settings, act)[0]
+        return make_recurrent_qnet(
+            spec.obs_dim, spec.num_actions, spec.hidden, spec.mlp, act, spec.prev_reward
+        )[0]
     if spec.method == "informed":
         _, feats = informed_features(cfg)
         return make_informed_qnet(
@@ -333,7 +266,7 @@ def build_baseline(spec: BaselineSpec, cfg: Config) -> TensorDictSequential:
             spec.instance_dim,
             feats,
             spec.instance_keys,
-            spec.settings,
+            spec.mlp,
             act,
         )
     raise ValueError(f"baseline method must be one of {list(BASELINES)}, got {spec.method!r}")
@@ -361,7 +294,7 @@ class BaselineController(TensorDictModuleBase):
         if self.spec.method != "recurrent":
             return Compose()
         gru = next(m for m in self.net.modules() if isinstance(m, GRUModule))
-        return recurrent_transforms(gru, self.spec.num_actions)
+        return recurrent_transforms(gru, self.spec.num_actions, self.spec.prev_reward)
 
     @torch.no_grad()
     def forward(self, td: TensorDictBase) -> TensorDictBase:
@@ -396,6 +329,29 @@ def save_baseline(
     return save_checkpoint(path, bundle)
 
 
+def save_informed_head(
+    path: str | os.PathLike,
+    informed: nn.Module,
+    obs_dim: int,
+    num_actions: int,
+    cfg: Config,
+    counters: dict[str, Any] | None = None,
+) -> Path:
+    """Write the learner's informed head (:class:`~taskvar_torch.heads.informed.InformedNet`, or
+    the ``TensorDictModule`` around it, of one run) as the ``informed`` baseline bundle ``path``:
+    the same weights in :func:`make_informed_qnet`'s network, which ``taskvar eval`` plays."""
+    net_in = informed.module if isinstance(informed, TensorDictModule) else informed
+    dim, feats = informed_features(cfg)
+    ikeys = family_instance_keys(cfg)
+    spec = BaselineSpec("informed", int(obs_dim), int(num_actions), tuple(cfg.heads.hidden))
+    spec.instance_dim, spec.instance_keys = int(dim), ikeys
+    net = make_informed_qnet(
+        spec.obs_dim, spec.num_actions, dim, feats, ikeys, spec.mlp, cfg.heads.activation
+    )
+    net[2].module.load_state_dict(net_in.mlp.state_dict())
+    return save_baseline(path, net, spec, cfg, counters)
+
+
 def load_baseline(
     path: str | os.PathLike, device: str | torch.device = "cpu"
 ) -> tuple[BaselineController, Config]:
@@ -425,18 +381,19 @@ def load_baseline(
 __all__ = [
     "BASELINES",
     "BUNDLE_NAMES",
+    "PREV_ACTION",
+    "PREV_REWARD",
+    "RECURRENT_STATE",
     "BaselineController",
-    "BaselineSettings",
     "BaselineSpec",
     "InstanceFeatures",
-    "PreviousAction",
+    "PreviousStep",
     "baseline_path",
     "build_baseline",
-    "family_instance_keys",
-    "informed_features",
     "load_baseline",
     "make_informed_qnet",
     "make_recurrent_qnet",
     "recurrent_transforms",
     "save_baseline",
+    "save_informed_head",
 ]

@@ -4,8 +4,9 @@ Every head of a run is a member of one :class:`~taskvar_torch.heads.networks.Sta
 learner's fused pass). :func:`stack_seeds` concatenates ``S`` runs' stacks along the member axis,
 seed-major, and marks the result ``seeds = S``: every pass then reads its rows as ``S`` equal
 seed-major groups, group ``s`` through run ``s``'s weights only (``StackedMLP.forward_snapshots``
-with the seeds as its weight copies). The instance estimator's critic (a plain MLP,
-``heads/max_value.py``) becomes a one-member stack of ``S`` seeds the same way. So one optimiser
+with the seeds as its weight copies). The plain MLPs outside the stack (the instance estimator's
+critic, ``heads/max_value.py``; the informed head's network, ``heads/informed.py``) each become a
+one-member stack of ``S`` seeds the same way. So one optimiser
 step on the sum of the ``S`` runs' losses is ``S`` independent steps: Adam, the per-member gradient
 clip and the target and Polyak updates are elementwise or per member, and each run's loss reads its
 own rows only (``Transitions.seeds``, ``heads/targets.py`` ``group_mean``).
@@ -28,6 +29,7 @@ import torch
 from torch import nn
 
 from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.informed import INFORMED
 from taskvar_torch.heads.max_value import OptimismGapHead
 from taskvar_torch.heads.networks import ACTIVATIONS, StackedHead, StackedMLP, head_network
 
@@ -41,12 +43,17 @@ def _stacks(heads: Heads) -> list[StackedMLP]:
     return list(seen.values())
 
 
-def _critic(heads: Heads) -> nn.Module | None:
-    """The instance estimator's critic inside the max-value head, or ``None``."""
-    if not heads.has("max_value"):
-        return None
-    net = head_network(heads.heads["max_value"])
-    return net.critic if isinstance(net, OptimismGapHead) else None
+def _loose(heads: Heads) -> list[tuple[nn.Module, str]]:
+    """The plain MLPs of a bundle outside its stack, as ``(owner, attribute)``: the instance
+    estimator's critic inside the max-value head, the informed head's network."""
+    out = []
+    if heads.has("max_value"):
+        net = head_network(heads.heads["max_value"])
+        if isinstance(net, OptimismGapHead) and net.critic is not None:
+            out.append((net, "critic"))
+    if heads.has(INFORMED):
+        out.append((head_network(heads.heads[INFORMED]), "mlp"))
+    return out
 
 
 def _linears(mlp: nn.Module) -> list[nn.Linear]:
@@ -108,9 +115,9 @@ def stack_seeds(bundles: Sequence[Heads]) -> Heads:
                 stack.weights[i] = nn.Parameter(torch.cat([r.weights[i] for r in runs]))
                 stack.biases[i] = nn.Parameter(torch.cat([r.biases[i] for r in runs]))
             stack.seeds = len(bundles)
-    critic = _critic(out)
-    if critic is not None:
-        head_network(out.heads["max_value"]).critic = _seeded_critic([_critic(b) for b in bundles])
+    per_bundle = [_loose(b) for b in bundles]
+    for j, (owner, attr) in enumerate(_loose(out)):
+        setattr(owner, attr, _seeded_critic([getattr(*loose[j]) for loose in per_bundle]))
     stacked = {id(p) for st in _stacks(out) for p in st.parameters()}
     loose = [n for n, p in out.named_parameters() if id(p) not in stacked]
     if loose:
@@ -130,10 +137,9 @@ def split_seed(batch: Heads, s: int, template: Heads) -> Heads:
             for i in range(len(dst.weights)):
                 dst.weights[i].copy_(src.weights[i].view(S, -1, *src.weights[i].shape[1:])[s])
                 dst.biases[i].copy_(src.biases[i].view(S, -1, *src.biases[i].shape[1:])[s])
-        critic = _critic(template)
-        if critic is not None:
-            seeded = _critic(batch).stack
-            for i, lin in enumerate(_linears(critic)):
+        for (owner, attr), (src_owner, src_attr) in zip(_loose(template), _loose(batch)):
+            seeded = getattr(src_owner, src_attr).stack
+            for i, lin in enumerate(_linears(getattr(owner, attr))):
                 lin.weight.copy_(seeded.weights[i][s].t())
                 lin.bias.copy_(seeded.biases[i][s, 0])
     return template
@@ -151,20 +157,20 @@ def load_seed(batch: Heads, s: int, run: Heads) -> Heads:
             for i in range(len(src.weights)):
                 dst.weights[i].view(S, -1, *dst.weights[i].shape[1:])[s].copy_(src.weights[i])
                 dst.biases[i].view(S, -1, *dst.biases[i].shape[1:])[s].copy_(src.biases[i])
-        critic = _critic(run)
-        if critic is not None:
-            seeded = _critic(batch).stack
-            for i, lin in enumerate(_linears(critic)):
+        for (owner, attr), (dst_owner, dst_attr) in zip(_loose(run), _loose(batch)):
+            seeded = getattr(dst_owner, dst_attr).stack
+            for i, lin in enumerate(_linears(getattr(owner, attr))):
                 seeded.weights[i][s].copy_(lin.weight.t())
                 seeded.biases[i][s, 0].copy_(lin.bias)
     return batch
 
 
 def _stacks_without_critic(heads: Heads) -> list[StackedMLP]:
-    """:func:`_stacks` minus the seeded critic's one-member stack (a plain MLP when unseeded)."""
-    critic = _critic(heads)
-    skip = id(critic.stack) if isinstance(critic, StackedHead) else None
-    return [st for st in _stacks(heads) if id(st) != skip]
+    """:func:`_stacks` minus the seeded one-member stacks of the loose MLPs (:func:`_loose`;
+    plain MLPs when unseeded)."""
+    loose = [getattr(owner, attr) for owner, attr in _loose(heads)]
+    skip = {id(m.stack) for m in loose if isinstance(m, StackedHead)}
+    return [st for st in _stacks(heads) if id(st) not in skip]
 
 
 def num_seeds(heads: Heads) -> int:

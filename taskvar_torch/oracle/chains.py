@@ -64,7 +64,9 @@ class ControllerChains:
         param = next(iter(heads.parameters()), None)  # heads may live on another device
         device = self.device if param is None else param.device
         td = heads(self.observation_td(obs_encoding).to(device))
-        return {HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h]).to(self.device) for h in heads.heads}
+        return {
+            HEAD_OUT_KEYS[h]: td.get(HEAD_OUT_KEYS[h]).to(self.device) for h in heads.paper_heads()
+        }
 
     def controller_chain(
         self,
