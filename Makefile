@@ -28,13 +28,13 @@ $(VENV)/.test-extras: pyproject.toml
 	$(MAKE) install-test
 
 ## demo: install everything, then on the windy corridor (configs/windy_corridor.yaml, docs/memory.md)
-## train the paper's heads and the recurrent and informed baselines (10240 frames each) and evaluate
+## train the paper's heads with the informed baseline, then the recurrent one (10240 frames each), and evaluate
 ## every method on 2000 paired episodes of the training winds: the table puts each method's return
 ## and exact value beside the exact per-instance optimum (the ceiling) and its regret; the plots go
 ## to $(DEMO)/eval. About 1.5 minutes on 2 CPU cores; a rerun replaces $(DEMO)
 demo: install
 	$(BIN)/taskvar train configs/windy_corridor.yaml --overwrite --out $(DEMO) $(DEMO_TRAIN)
-	$(BIN)/taskvar train-baselines --out $(DEMO) --method all --overwrite baseline.updates_per_batch=8
+	$(BIN)/taskvar train-baselines --out $(DEMO) --method recurrent --overwrite
 	$(BIN)/taskvar eval --checkpoint $(DEMO)/final.pt --method all --test train --episodes 2000 \
 		--overwrite --out $(DEMO)/eval
 	@echo "regret: steps per episode lost to an agent that knows the wind (exact per-instance optimum);"

@@ -51,6 +51,13 @@ def test_learning_phase_stores_whole_episodes_and_takes_the_due_updates():
     boundaries = range(t.frames_per_batch, frames + 1, t.frames_per_batch)
     due = sum(agent.learner.updates_per_batch for b in boundaries if b >= t.init_random_frames)
     assert agent.updates == due > 0
+    # its slices are trajectories: each step's observation is the step before's next one
+    for _ in range(10):
+        s = agent.learner.buffer.sample()
+        inner = ~s["is_init"].reshape(-1)[1:]  # consecutive rows of one slice
+        nxt, now = s["next", "observation"][:-1][inner], s["observation"][1:][inner]
+        assert inner.any() and torch.equal(now, nxt)
+        assert not bool(s["next", "done"].reshape(-1)[:-1][inner].any())
 
 
 @pytest.mark.slow
