@@ -182,8 +182,11 @@ def _threads_argument(p: argparse.ArgumentParser) -> None:
 def _set_threads(args: argparse.Namespace) -> None:
     import torch
 
-    if args.threads < 1:
-        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    cores = os.cpu_count() or 1
+    if not 1 <= args.threads <= cores:
+        raise ValueError(
+            f"--threads must be in [1, {cores}] (this machine's cores), got {args.threads}"
+        )
     torch.set_num_threads(args.threads)
 
 

@@ -184,7 +184,15 @@ def make_subtasks(cfg: Config, env: EnvBase) -> Subtasks:
 def check_device(device: str | torch.device) -> None:
     """A one-line ``ValueError`` when ``device`` cannot be used by this torch build on this
     machine (e.g. ``device=cuda`` with a CPU-only torch)."""
-    dev = torch.device(device)
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"device must be cpu, cuda or cuda:N, got {str(device)!r}") from None
+    if dev.type not in ("cpu", "cuda", "mps"):  # meta holds no data; xpu, hpu, lazy: untested
+        raise ValueError(
+            f"device={str(device)!r} cannot run taskvar_torch: use device=cpu"
+            + (" or device=cuda" if torch.cuda.is_available() else "")
+        )
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError(

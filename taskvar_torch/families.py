@@ -67,6 +67,10 @@ HELDOUT_SEED = 7_000_000
 (``tests/test_heldout.py`` checks), so no design choice was ever made on its episodes. Windy and
 Taxi play their test distribution under env seed ``HELDOUT_SEED + run``; Wargus plays the
 instance seeds of the range."""
+MAX_WINDY_SIDE = 4096
+"""Largest height or width of a generated windy grid (``env.layout=generated``)."""
+MAX_WINDY_CELLS = (1 << 24) - 1
+"""Most cells of a windy layout: start cells are drawn by ``rng.draw_index`` (n < 2^24)."""
 HELDOUT_SIZE = 300
 """Seeds in the sealed range: Wargus's held-out instances, and the most held-out runs."""
 
@@ -315,7 +319,23 @@ def _validate_windy(cfg: Config) -> None:
             "heads.option_inputs='subtask' on the windy family needs env.obs_encoding="
             f"'exits_patch' (each exit's offset), got env.obs_encoding={env.obs_encoding!r}"
         )
-    windy_layout(env)  # raises a ValueError naming the layout keys
+    if env.layout == GENERATED:  # the grid is built below: bound its size first
+        for k in ("height", "width"):
+            v = getattr(env, k)
+            if v is not None and not 1 <= v <= MAX_WINDY_SIDE:
+                raise ValueError(f"env.{k} must be in [1, {MAX_WINDY_SIDE}], got {v}")
+    layout = windy_layout(env)  # raises a ValueError naming the layout keys
+    if layout.num_cells > MAX_WINDY_CELLS:
+        raise ValueError(
+            f"env.layout has {layout.num_cells} cells; at most {MAX_WINDY_CELLS} (start cells are "
+            "drawn from 24-bit integers)"
+        )
+    side = max(layout.height, layout.width)
+    if env.patch_radius is not None and env.patch_radius > side:
+        raise ValueError(
+            f"env.patch_radius must be in [0, {side}] (the grid's side: a wider patch only adds "
+            f"walls), got {env.patch_radius}"
+        )
 
 
 def _windy_side(cfg: Config) -> int:
