@@ -40,6 +40,7 @@ from taskvar_torch.envs.instances import WindyInstances, windy_instances
 from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, wargus_instances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.envs.windy_env import OBS_ENCODINGS, WindyGridEnv
+from taskvar_torch.envs.windy_env import observation_size as windy_observation_size
 from taskvar_torch.heads.networks import PatchLayout
 from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, windy_instance_features
 from taskvar_torch.subtasks.base import Subtasks
@@ -145,6 +146,9 @@ class Family:
         grid_side: config -> the grid's side length (the scale experiment's tables).
         cells: config -> the number of positions of the agent.
         observation: config -> the observation encoding's name.
+        observation_size: config -> the observation's length, without building the env (the
+            memory estimate, :mod:`taskvar_torch.config.memory`); ``None``: read from a
+            one-environment env.
         conv_patch: config -> the observation's patch layout (``heads.network=conv``).
         option_inputs: the subtasks define per-option input features
             (``heads.option_inputs=subtask``).
@@ -173,6 +177,7 @@ class Family:
     grid_side: Callable[[Config], int] | None = None
     cells: Callable[[Config], int] | None = None
     observation: Callable[[Config], str] | None = None
+    observation_size: Callable[[Config], int] | None = None
     conv_patch: Callable[[Config], PatchLayout] | None = None
     option_inputs: bool = False
     description: str = ""
@@ -752,6 +757,9 @@ register_family(
         grid_side=_windy_side,
         cells=lambda cfg: windy_layout(cfg.env).num_cells,
         observation=lambda cfg: cfg.env.obs_encoding,
+        observation_size=lambda cfg: windy_observation_size(
+            windy_layout(cfg.env), cfg.env.obs_encoding, cfg.env.patch_radius
+        ),
         instance_dim=WINDY_INSTANCE_DIM,
         instance_features=windy_instance_features,
         conv_patch=_windy_patch,

@@ -79,6 +79,8 @@ from taskvar_torch.config import (
     config_from_dict,
     save_config_yaml,
 )
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.factory import (  # noqa: F401  (the factories stay importable from here)
     HEADS_NAME,
     build_heads,
@@ -297,6 +299,7 @@ def train(
     if cfg is None:
         raise ValueError("train needs a config (or a checkpoint to resume)")
     check_device(cfg.device)
+    check_memory(estimate_memory(cfg))  # before anything is allocated or written
     check_logger(cfg.train.logger)
     workers = cfg.collector.num_workers
     remote = collects_in_workers(cfg)

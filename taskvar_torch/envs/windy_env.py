@@ -19,6 +19,21 @@ _C_START = rng.RESET_COUNTER + 4
 _FLAGS = (keys.DONE, keys.TERMINATED, keys.TRUNCATED)
 
 
+def observation_size(
+    layout: windy.WindyLayout, encoding: str = "onehot", patch_radius: int = 2
+) -> int:
+    """``D``, the length of :func:`observation_table`'s rows, without building the table."""
+    coords_patch = 2 + 3 * (2 * patch_radius + 1) ** 2
+    side = max(layout.height, layout.width)
+    return {
+        "onehot": layout.num_cells,
+        "coords_patch": coords_patch,
+        "exits_patch": coords_patch + 2 * len(layout.exit_cells),
+        "rowcol_patch": coords_patch + layout.height + layout.width,
+        "fourier_patch": coords_patch + 4 * (int(np.ceil(np.log2(max(side, 2)))) + 1),
+    }[encoding]
+
+
 def observation_table(
     layout: windy.WindyLayout, encoding: str = "onehot", patch_radius: int = 2
 ) -> np.ndarray:

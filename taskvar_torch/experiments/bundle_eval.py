@@ -15,6 +15,7 @@ its regret against the exact per-instance optimum (an agent that knows the insta
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,8 +25,10 @@ import numpy as np
 import torch
 from torchrl.envs import TransformedEnv
 
-from taskvar_torch import keys
+from taskvar_torch import keys, rng
 from taskvar_torch.config import METHODS, Config
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller
 from taskvar_torch.experiments.baselines import (
     available_baselines,
@@ -103,6 +106,8 @@ def episode_seed(cfg: Config, test: str, seed: int | None) -> int:
     """The seed of the test episodes (docs/evaluation.md): ``seed``, by default the bundle's
     ``seed + 1`` (the experiments' first test run); a held-out distribution plays its sealed seed
     only (another ``seed`` is a one-line error)."""
+    if seed is not None:
+        seed = rng.check_seed(seed, "--seed")  # 32-bit keys: a larger seed is refused, not wrapped
     sealed = family(cfg).tests[test].seed
     if sealed is not None and seed is not None and int(seed) != sealed:
         raise ValueError(f"--test {test} plays its sealed held-out seed; drop --seed {seed}")
@@ -310,6 +315,11 @@ def eval_bundle(
     baselines = load_baselines(checkpoint, methods, cfg)  # recurrent, informed (docs/memory.md)
     seed = episode_seed(cfg, test_name, seed)
     bs = int(batch_size or cfg.eval.batch_size)
+    rows_kept = len(points) * len(methods) * int(episodes)  # one result row per episode
+    batch = dataclasses.replace(cfg.eval, batch_size=min(bs, int(episodes)))  # --batch-size
+    check_memory(
+        estimate_memory(dataclasses.replace(cfg, eval=batch), training=False, episodes=rows_kept)
+    )
     calibration = None  # the hierarchy's thresholds: on the bundle's *training* distribution
     if "hierarchy" in methods and cfg.train.robustness_threshold == "calibrated":
         calibration = calibrate(cfg, heads, train_subtasks, training_states(cfg, heads))

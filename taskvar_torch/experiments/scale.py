@@ -82,7 +82,7 @@ from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules import RandomPolicy
 
-from taskvar_torch import keys
+from taskvar_torch import keys, rng
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import (
     METHODS,
@@ -217,6 +217,13 @@ class ScaleConfig:
             raise ValueError(f"total_frames must be >= 1, got {self.total_frames}")
         if isinstance(self.seeds, bool) or not isinstance(self.seeds, int) or self.seeds < 1:
             raise ValueError(f"seeds must be an integer >= 1, got {self.seeds!r}")
+        top = rng.MAX_SEED - TEST_SEED_OFFSET - self.seeds  # the test episodes' seed + 1000
+        if (
+            isinstance(self.seed, bool)
+            or not isinstance(self.seed, int)
+            or not 0 <= self.seed <= top
+        ):
+            raise ValueError(f"seed must be an integer in [0, {top}], got {self.seed!r}")
         for name in ("init_random_fraction", "eps_decay_fraction"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:

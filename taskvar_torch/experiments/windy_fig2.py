@@ -48,6 +48,8 @@ from torchrl.envs import TransformedEnv
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import Config, save_config_yaml, windy_layout
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.envs.instances import WindyInstances
 from taskvar_torch.envs.windy_env import WindyGridEnv
@@ -456,6 +458,10 @@ def _check_inputs(
     """
     check_output_folder(out)
     check_device(cfg.device)
+    x = cfg.experiment  # one result row per test episode, distribution and method
+    rows = (len(DISTRIBUTIONS) + len(HELDOUT)) * x.runs * x.episodes_per_run * len(METHODS)
+    key = "experiment.episodes_per_run"
+    check_memory(estimate_memory(cfg, training=False, episodes=rows, episodes_key=key))
     heads = tcfg = None
     if checkpoint is not None:
         saved = load_checkpoint(checkpoint)["config"].get("family")
