@@ -38,6 +38,8 @@ from taskvar_torch.checkpoint import (
     save_checkpoint,
 )
 from taskvar_torch.config import Config, TrainConfig, config_from_dict
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads, with_root_row
@@ -256,6 +258,9 @@ class HeadSpec:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> HeadSpec:
+        """The spec :meth:`to_dict` wrote; a missing field or a value of the wrong type or out of
+        range is a one-line ``ValueError`` naming it (``heads_spec['obs_dim']``)."""
+        check_heads_spec(d)
         mask = d.get("option_input_mask")
         return cls(
             obs_dim=int(d["obs_dim"]),
@@ -264,6 +269,41 @@ class HeadSpec:
             robustness=bool(d["robustness"]),
             option_input_mask=None if mask is None else tuple(tuple(r) for r in mask),
         )
+
+
+def check_heads_spec(d: Any) -> None:
+    """A one-line ``ValueError`` naming the first ``heads_spec`` field that is missing, of the
+    wrong type or out of range (what :class:`HeadSpec` builds networks from)."""
+
+    def bad(key: str, what: str) -> ValueError:
+        got = d[key] if key in d else "<absent>"
+        return ValueError(f"heads_spec[{key!r}] must be {what}, got {got!r}")
+
+    if not isinstance(d, dict):
+        raise ValueError(f"heads_spec must be a dict, got {type(d).__name__}")
+    for key, high in (("obs_dim", 1 << 24), ("num_actions", 1 << 16)):
+        v = d.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= high:
+            raise bad(key, f"an integer in [1, {high}]")
+    names = d.get("option_names")
+    if not isinstance(names, (list, tuple)) or not 1 <= len(names) <= 1024:
+        raise bad("option_names", "a list of 1 to 1024 names")
+    if not all(isinstance(n, str) for n in names) or len(set(names)) != len(names):
+        raise bad("option_names", "distinct strings")
+    if not isinstance(d.get("robustness"), bool):
+        raise bad("robustness", "true or false")
+    mask = d.get("option_input_mask")
+    if mask is not None and not (
+        isinstance(mask, (list, tuple))
+        and len(mask) == len(names)
+        and all(
+            isinstance(r, (list, tuple))
+            and len(r) == d["obs_dim"]
+            and all(type(v) in (int, float) for v in r)
+            for r in mask
+        )
+    ):
+        raise bad("option_input_mask", f"null or {len(names)} rows of {d['obs_dim']} numbers")
 
 
 def build_heads(cfg: Config, env: EnvBase | HeadSpec, subtasks: Subtasks | None = None) -> Heads:
@@ -350,7 +390,12 @@ def _heads_of(
         cfg = dataclasses.replace(cfg, device=str(device))
     check_device(cfg.device)
     if isinstance(bundle.get("heads_spec"), dict):
-        spec = HeadSpec.from_dict(bundle["heads_spec"])
+        try:
+            spec = HeadSpec.from_dict(bundle["heads_spec"])
+        except ValueError as e:
+            raise CheckpointError(f"checkpoint {str(path)!r} is corrupt: {e}") from None
+        # networks of the saved sizes: refused before allocating what the machine cannot hold
+        check_memory(estimate_memory(cfg, training=False, obs_dim=spec.obs_dim))
     else:
         env = make_env(cfg, num_envs=1)
         spec = HeadSpec.of(cfg, env, make_subtasks(cfg, env))

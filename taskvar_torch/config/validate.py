@@ -208,7 +208,7 @@ def _check_train(cfg: Config, fam: Family) -> None:
     _one_of("train.robustness_until", t.robustness_until, ROBUSTNESS_UNTIL)
     _one_of("train.hierarchy_descent", t.hierarchy_descent, HIERARCHY_DESCENTS)
     _one_of("train.composed_reward", t.composed_reward, COMPOSED_REWARDS)
-    _within("train.lr", t.lr, 0.0, 1.0, open_low=True)
+    _within("train.lr", t.lr, 0.0, MAX_REAL, open_low=True)
     if t.lr_end is not None and not (math.isfinite(t.lr_end) and 0 < t.lr_end <= t.lr):
         raise ValueError(f"train.lr_end must be in (0, train.lr={t.lr}] or null, got {t.lr_end}")
     _at_least("train.lr_decay_start_frames", t.lr_decay_start_frames, 0, MAX_FRAMES)

@@ -243,6 +243,16 @@ class WindyGridEnv(BatchedFamilyEnv):
     _RUNTIME_STATE = ("_base_key", "_episode", "_key32", "_threshold", "_t", "_p", "_dir", "_cell")
     """Simulator state that changes as the env runs (saved for exact resume)."""
 
+    def state_bounds(self) -> dict[str, tuple[float, float]]:
+        return {
+            **super().state_bounds(),
+            "cell": (0, self.layout.num_cells - 1),
+            "dir": (0, len(windy.DIRECTIONS) - 1),
+            "p": (0.0, 1.0),
+            "t": (0, self.horizon),
+            "threshold": (0, 1 << 24),
+        }
+
     def _out(self, cell, p, direction, reward=None, terminated=None, truncated=None):
         td = {
             keys.OBSERVATION: self._obs_table.index_select(0, cell),
