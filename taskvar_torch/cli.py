@@ -22,6 +22,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -802,6 +803,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     name = argv[0]
     args = parsers[name].parse_intermixed_args(argv[1:])
     _quiet_third_party()
+    with _TerminateAsInterrupt():
+        return _run(name, args)
+
+
+def _run(name: str, args: argparse.Namespace) -> int:
+    """Run command ``name``; every failure is one line on stderr and an exit status: 2 for input
+    (a value, a file, a folder, memory), 128 + N for signal N, 1 with the traceback for a bug."""
     try:
         return COMMANDS[name].run(args)
     except (ValueError, CheckpointError, RuntimeError) as e:
@@ -809,16 +817,87 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"taskvar {name}: {e}", file=sys.stderr)
             return 128 + int(e.signum)
         if isinstance(e, RuntimeError) and type(e).__name__ != "TrainingDiverged":
-            raise
+            if _out_of_memory(e):
+                return _memory_error(name)
+            return _bug(name, e)
         print(f"taskvar {name}: error: {e}", file=sys.stderr)
         return 2
     except OSError as e:  # a folder or file the command cannot write or read
         where = f" {e.filename!r}" if e.filename else ""
         print(f"taskvar {name}: error: cannot use{where}: {e.strerror or e}", file=sys.stderr)
         return 2
+    except MemoryError:
+        return _memory_error(name)
     except KeyboardInterrupt as e:
-        print(f"taskvar {name}: interrupted{f': {e}' if str(e) else ''}", file=sys.stderr)
-        return 128 + signal.SIGINT
+        signum = getattr(e, "signum", signal.SIGINT)
+        text = f": {e}" if str(e) else f" by {signal.Signals(signum).name}"
+        print(f"taskvar {name}: interrupted{text}", file=sys.stderr)
+        return 128 + signum
+    except Exception as e:  # not the input's fault: a bug, reported as one
+        return _bug(name, e)
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` is torch's or the allocator's out-of-memory error."""
+    return isinstance(e, _torch_oom()) or "out of memory" in str(e).lower()
+
+
+def _torch_oom() -> type[BaseException]:
+    """``torch.OutOfMemoryError`` where torch is imported (else a class nothing raises)."""
+    torch = sys.modules.get("torch")
+    return getattr(torch, "OutOfMemoryError", MemoryError) if torch else MemoryError
+
+
+def _memory_error(name: str) -> int:
+    print(
+        f"taskvar {name}: error: out of memory: lower the sizes (env.num_envs, "
+        "train.buffer_size, heads.hidden, eval.batch_size, --episodes)",
+        file=sys.stderr,
+    )
+    return 2
+
+
+def _bug(name: str, e: BaseException) -> int:
+    """A failure that no input explains: the traceback, then one line saying it is a bug."""
+    import traceback
+
+    from taskvar_torch import __version__
+
+    traceback.print_exception(e)
+    print(
+        f"taskvar {name}: internal error ({type(e).__name__}): this is a bug in taskvar_torch "
+        f"{__version__}, not in your input; please report it to the taskvar_torch issue tracker "
+        "with the command line and the traceback above",
+        file=sys.stderr,
+    )
+    return 1
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM outside the training loop (which handles its own): unwinds like Ctrl-C, so a run
+    folder taken but not yet used is released and removed, and the command prints one line."""
+
+    signum = signal.SIGTERM
+
+
+class _TerminateAsInterrupt:
+    """While a command runs in the main thread with the default SIGTERM handler, SIGTERM raises
+    :class:`_Terminated`; the previous handler is restored after."""
+
+    def __enter__(self) -> _TerminateAsInterrupt:
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+                self._old = signal.signal(signal.SIGTERM, self._raise)
+        return self
+
+    @staticmethod
+    def _raise(signum: int, frame: object) -> None:
+        raise _Terminated
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
 
 
 def _quiet_third_party() -> None:

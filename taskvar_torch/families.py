@@ -629,8 +629,12 @@ class _Registry(Mapping):
                         f"the entry point is named {ep.name!r}, its family {fam.name!r}"
                     )
                 _check_declaration(fam)
-            except Exception as e:  # a broken plugin must not break the other families
+            except (Exception, SystemExit) as e:  # a broken plugin must not break the others
                 reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                if isinstance(e, SystemExit):  # sys.exit() on import: not the command's exit
+                    reason = f"it called sys.exit({e.code!r}) on import"
+                else:
+                    reason = f"{type(e).__name__}: {reason}"
                 self.broken[ep.name] = f"entry point {ep.value!r}: {reason}"
                 warnings.warn(
                     f"taskvar_torch: family {ep.name!r} from {ep.value!r} could not be loaded: "
