@@ -31,6 +31,7 @@ from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
     CheckpointError,
     evaluation_heads_key,
+    is_training_checkpoint,
     load_checkpoint,
     load_state_dicts,
     make_bundle,
@@ -48,6 +49,7 @@ from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
 from taskvar_torch.heads.networks import head_network, make_stacked_heads
 from taskvar_torch.heads.relabel import has_robustness
 from taskvar_torch.heads.robustness import RobustnessCalibration, calibrate_robustness
+from taskvar_torch.run_folder import check_out_path, folder_lock
 from taskvar_torch.subtasks.base import Subtasks
 
 CALIBRATION_STATES = 4096  # training states a calibration reads
@@ -416,12 +418,23 @@ def export_heads(
     :func:`load_heads`, ``taskvar eval`` and the notebooks need; the full checkpoint stays for
     resuming). ``out`` defaults to ``heads.pt`` beside ``checkpoint``; an existing file is refused
     unless ``overwrite``. Loads with ``weights_only=True`` like every bundle."""
-    dest = Path(out) if out is not None else Path(checkpoint).with_name(HEADS_NAME)
+    dest = check_out_path(out) if out is not None else Path(checkpoint).with_name(HEADS_NAME)
+    if dest.resolve() == Path(checkpoint).resolve():
+        raise ValueError(f"--out {str(dest)!r} is the checkpoint itself; choose another --out")
+    if dest.is_dir():
+        raise ValueError(f"--out {str(dest)!r} is a folder; name the file to write")
     if dest.exists() and not overwrite:
         raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
+    if dest.exists() and is_training_checkpoint(dest):  # what a resume needs: never replaced
+        raise ValueError(
+            f"--out {str(dest)!r} is a training checkpoint (it resumes; heads.pt does not): "
+            "choose another --out"
+        )
     bundle = load_checkpoint(checkpoint)  # read once: a training checkpoint holds the replay
     heads, cfg = _heads_of(bundle, checkpoint)
-    return write_heads(dest, heads, cfg, counters=bundle.get("counters"))
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    with folder_lock(dest.parent):  # not into a folder another taskvar command is writing
+        return write_heads(dest, heads, cfg, counters=bundle.get("counters"))
 
 
 def write_heads(

@@ -47,7 +47,7 @@ from taskvar_torch.experiments.regret_steps import (
     step_regret_affordable,
     supports_step_regret,
 )
-from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.results import write_csv, write_json
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
     calibrate,
@@ -63,6 +63,7 @@ from taskvar_torch.heads.recurrent import BASELINES, informed_features
 from taskvar_torch.oracle import exact_episode_returns
 from taskvar_torch.oracle.learnt import optimal_episode_returns
 from taskvar_torch.progress import progress_bar
+from taskvar_torch.run_folder import ResultsFolder, refuse_inside
 from taskvar_torch.subtasks.base import Subtasks
 
 METRICS_NAME = "metrics.json"
@@ -290,8 +291,11 @@ def eval_bundle(
     the named test distribution ``test`` (``None``: the family's first) with ``shifts``
     (``KEY=V`` or ``KEY=V1,V2,..``: a shift curve); no retraining. ``seed`` defaults to the bundle's
     ``seed + 1`` (the first test run of the experiments). Writes ``metrics.json``,
-    ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given (a folder already holding
-    results is refused unless ``overwrite``); returns the metrics.
+    ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given, like every results folder
+    (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, written in a staging folder and
+    swapped in whole; a folder already holding results is refused unless ``overwrite``, one
+    holding other files always, and so is an ``out_dir`` holding ``checkpoint``); returns the
+    metrics.
 
     ``exact``: the exact per-episode returns and regret where the family has an oracle; ``None``
     (default): where they are cheap (an oracle may bound the distinct instances it solves per
@@ -301,6 +305,37 @@ def eval_bundle(
     ``by_frames``: also each memoryless method's exact regret on every heads snapshot of the run
     (``train.heads_every``) on the same episodes (``experiments/regret_frames.py``): the
     ``metrics.json`` key ``regret_by_frames``, ``regret_by_frames.csv`` and ``.png``."""
+    if out_dir is None:
+        return _evaluate(
+            checkpoint, method, test, shifts, episodes, seed, noise_seed, batch_size, None,
+            progress, plots, exact, by_frames,
+        )  # fmt: skip
+    folder = ResultsFolder(out_dir, overwrite, "taskvar eval")
+    refuse_inside(checkpoint, folder.out, "--checkpoint")
+    folder.check()  # a one-line refusal before any loading
+    with folder as staging:  # locked; written in a staging folder, swapped in whole at the end
+        return _evaluate(
+            checkpoint, method, test, shifts, episodes, seed, noise_seed, batch_size, staging,
+            progress, plots, exact, by_frames,
+        )  # fmt: skip
+
+
+def _evaluate(
+    checkpoint: str | os.PathLike,
+    method: str,
+    test: str | None,
+    shifts: Sequence[str | Shift],
+    episodes: int,
+    seed: int | None,
+    noise_seed: int | None,
+    batch_size: int | None,
+    out_dir: Path | None,
+    progress: bool,
+    plots: bool,
+    exact: bool | None,
+    by_frames: bool,
+) -> dict[str, Any]:
+    """:func:`eval_bundle` writing into ``out_dir`` (the staging folder) when given."""
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
@@ -337,8 +372,6 @@ def eval_bundle(
         if exact is False:
             raise ValueError("--by-frames computes exact returns; drop --no-exact")
         check_by_frames(checkpoint, points)
-    if out_dir is not None:
-        refuse_existing_results(Path(out_dir), overwrite, "taskvar eval")
     bar = progress_bar(
         total=len(points) * len(methods) * int(episodes), disable=not progress, desc="eval"
     )
