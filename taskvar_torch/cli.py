@@ -410,6 +410,11 @@ def _wargus_fig4_run(args: argparse.Namespace) -> int:
             f"--threads {args.threads}: wargus-fig4 runs one thread per process (small batches; "
             "2 threads under contention ran 10x slower); use --workers N to use more cores"
         )
+    cores = os.cpu_count() or 1
+    if args.workers > cores:  # >= 1 is checked by wargus_fig4
+        raise ValueError(
+            f"--workers must be in [1, {cores}] (this machine's cores), got {args.workers}"
+        )
     config_path, overrides = _split_config_and_overrides(args.items)
     default = experiment(args.name).default_config_path()
     cfg = load_config(config_path or default, overrides, quick=args.quick)

@@ -287,10 +287,17 @@ class ResultsFolder:
     command on the same folder. Used as a context manager: commit on success, else abandon.
     """
 
-    def __init__(self, out: str | os.PathLike, overwrite: bool, command: str) -> None:
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        overwrite: bool,
+        command: str,
+        markers: tuple[str, ...] = RESULT_MARKERS,
+    ) -> None:
         self.out = check_out_path(out)
         self.overwrite = bool(overwrite)
         self.command = command
+        self.markers = markers  # entries that make a folder a results folder of this command
         self.staging: Path | None = None
         self.created = False
         self._fd: int | None = None
@@ -305,7 +312,7 @@ class ResultsFolder:
         names = ", ".join(sorted(p.name for p in entries)[:4]) + (
             ", ..." if len(entries) > 4 else ""
         )
-        if not any((out / m).is_file() for m in RESULT_MARKERS):
+        if not any(os.path.lexists(out / m) for m in self.markers):
             raise ValueError(
                 f"--out {str(out)!r} holds files that are not taskvar results ({names}); choose an "
                 f"empty or new folder ({self.command})"
@@ -390,11 +397,20 @@ class ResultsFolder:
     def __enter__(self) -> Path:
         return self.acquire()
 
-    def __exit__(self, kind: Any, *exc: Any) -> None:
+    def __exit__(self, kind: Any, error: Any, *exc: Any) -> None:
         if kind is None:
             self.commit()
-        else:
-            self.abandon()
+            return
+        self.abandon()
+        if isinstance(error, TrainingInterrupted):  # its checkpoint was in the staging folder
+            name = signal.Signals(error.signum).name
+            raise TrainingInterrupted(
+                f"interrupted by {name}; nothing written: --out {str(self.out)!r} holds what it "
+                "held before",
+                None,
+                None,
+                error.signum,
+            ) from None
 
 
 def _visible_entries(folder: Path) -> list[Path]:
