@@ -644,8 +644,10 @@ def check_optimizer_state(saved: Any, optimizer: torch.optim.Optimizer, where: s
     by_id: dict[int, torch.Tensor] = {}
     for i, (g, lg) in enumerate(zip(groups, live["param_groups"])):
         gw = f"{where}['param_groups'][{i}]"
-        check_like(g, {k: None for k in lg}, gw)
-        check_like(g["params"], lg["params"], f"{gw}['params']")
+        check_like(g, lg, gw)  # every setting of this optimizer, of its type (betas a pair...)
+        for k, v in lg.items():
+            if v is None and g[k] is not None:  # unset here (foreach): unset there too
+                raise CheckpointError(f"{gw}[{k!r}] must be None, got {g[k]!r}")
         for k, v in g.items():
             if isinstance(lg[k], float) and not (
                 type(v) in (int, float) and np.isfinite(v) and v >= 0

@@ -29,6 +29,7 @@ from dataclasses import dataclass
 from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.experiments.registry import EXPERIMENTS as _EXPERIMENTS
 from taskvar_torch.experiments.registry import experiment, experiment_of_folder
+from taskvar_torch.run_folder import check_out_path
 
 # Each subcommand imports the machinery it runs inside its own function: the experiment modules
 # share function names (default_config_path, plot_results, scale), and `taskvar --help` or a
@@ -816,6 +817,8 @@ def _run(name: str, args: argparse.Namespace) -> int:
     """Run command ``name``; every failure is one line on stderr and an exit status: 2 for input
     (a value, a file, a folder, memory), 128 + N for signal N, 1 with the traceback for a bug."""
     try:
+        if getattr(args, "out", None) is not None:  # --out '' would be the current folder
+            check_out_path(args.out)
         return COMMANDS[name].run(args)
     except (ValueError, CheckpointError, RuntimeError) as e:
         if type(e).__name__ == "TrainingInterrupted":

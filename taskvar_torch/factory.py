@@ -278,8 +278,9 @@ def check_heads_spec(d: Any) -> None:
     wrong type or out of range (what :class:`HeadSpec` builds networks from)."""
 
     def bad(key: str, what: str) -> ValueError:
-        got = d[key] if key in d else "<absent>"
-        return ValueError(f"heads_spec[{key!r}] must be {what}, got {got!r}")
+        if key not in d:
+            return ValueError(f"heads_spec has no {key!r} entry ({what})")
+        return ValueError(f"heads_spec[{key!r}] must be {what}, got {d[key]!r}")
 
     if not isinstance(d, dict):
         raise ValueError(f"heads_spec must be a dict, got {type(d).__name__}")
@@ -396,6 +397,12 @@ def _heads_of(
             spec = HeadSpec.from_dict(bundle["heads_spec"])
         except ValueError as e:
             raise CheckpointError(f"checkpoint {str(path)!r} is corrupt: {e}") from None
+        size = family(cfg).observation_size  # the config's own, where known without an env
+        if size is not None and size(cfg) != spec.obs_dim:
+            raise CheckpointError(
+                f"checkpoint {str(path)!r} is corrupt: heads_spec['obs_dim'] is {spec.obs_dim} "
+                f"but its config's observation has {size(cfg)} values"
+            )
         # networks of the saved sizes: refused before allocating what the machine cannot hold
         check_memory(estimate_memory(cfg, training=False, obs_dim=spec.obs_dim))
     else:

@@ -65,7 +65,7 @@ from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
-from taskvar_torch.run_folder import ResultsFolder, folder_lock
+from taskvar_torch.run_folder import ResultsFolder, check_out_path, folder_lock
 from taskvar_torch.train import TrainingDiverged, check_output_folder, train
 
 BACKENDS = ("local", "ray")
@@ -543,7 +543,7 @@ def sweep(
             import ray  # noqa: F401  (fail before any work)
         except ImportError:
             raise ValueError(RAY_MISSING) from None
-    out = Path(out_dir).resolve()  # Ray workers need not share this process's working folder
+    out = check_out_path(out_dir).resolve()  # Ray workers need not share this working folder
     check_output_folder(out)  # a file, or under one, or read-only: one line before any run
     done = completed_points(out, points, cfgs) if resume else {}
     markers = (SUMMARY_JSON, SUMMARY_CSV, BATCHES, *(p.name for p in points))

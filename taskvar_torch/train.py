@@ -121,6 +121,7 @@ from taskvar_torch.run_folder import (  # noqa: F401  (the run-folder names stay
     _latest_checkpoint,
     _restore_logs,
     _StopSignals,
+    check_out_path,
     check_output_folder,
     resume_command,
     run_files,
@@ -283,7 +284,7 @@ def train(
         TrainingInterrupted: SIGINT or SIGTERM; the run stopped after its current batch and wrote
             a checkpoint (a second signal aborts at once: ``KeyboardInterrupt``).
     """
-    out = Path(out_dir)
+    out = check_out_path(out_dir)  # not '': it would be the current folder
     check_output_folder(out)  # inputs first: a refused run writes nothing
     bundle = None
     if resume is not None:
@@ -770,6 +771,14 @@ def _check_resume_state(run: _Run, bundle: dict[str, Any], resume: str | os.Path
         check_like(bundle["learner"], live_learner, "learner")
         for k in ("num_updates", "loss_count"):
             check_counter(bundle["learner"][k], f"learner[{k!r}]")
+        params = sum(len(g["params"]) for g in learner.optimizer.param_groups)
+        states = len(bundle["optimizers"]["adam"]["state"])
+        want = params if bundle["learner"]["num_updates"] > 0 else 0  # every update steps all
+        if states != want:
+            raise CheckpointError(
+                f"optimizers['adam']['state'] holds {states} parameters' state, expected {want} "
+                f"after {bundle['learner']['num_updates']} updates"
+            )
         loss_sum = bundle["learner"]["loss_sum"]
         if loss_sum is not None and not (
             isinstance(loss_sum, dict)
