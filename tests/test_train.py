@@ -118,9 +118,7 @@ def test_nan_loss_stops_training_and_keeps_the_last_good_checkpoint(tmp_path):
 
 
 def test_cli_reports_divergence_in_one_line(tmp_path, capsys):
-    status = main(
-        ["train", CONFIG, "--out", str(tmp_path), *TINY, "train.lr=1e9", "--no-progress"]
-    )
+    status = main(["train", CONFIG, "--out", str(tmp_path), *TINY, "train.lr=1e9", "--no-progress"])
     err = capsys.readouterr().err.strip().splitlines()
     assert status == 2
     assert err[-1].startswith("taskvar train: error: non-finite loss")
