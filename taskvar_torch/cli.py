@@ -8,11 +8,13 @@ Hydra-style ``key.sub=value`` overrides may come before or after the options::
     taskvar train --resume runs/windy/checkpoint_000050176.pt --out runs/windy
     taskvar train --help
 
-Errors in the inputs (a misspelt config key, a foreign checkpoint, a diverged run, an ``--out``
-that cannot be used) print one line ``taskvar COMMAND: error: ...`` and exit with status 2. Ctrl-C
-(SIGINT) or SIGTERM during ``taskvar train`` stops after the current batch, writes a checkpoint
-and prints one line with the ``--resume`` command (status 130, or 143 for SIGTERM); a second
-Ctrl-C aborts at once.
+Errors in the inputs (a misspelt config key, a foreign or tampered checkpoint, a diverged run, an
+``--out`` that cannot be used, more memory than the machine has) print one line ``taskvar COMMAND:
+error: ...`` and exit with status 2. Ctrl-C (SIGINT) or SIGTERM during ``taskvar train`` stops
+after the current batch, writes a checkpoint and prints one line with the ``--resume`` command
+(status 130, or 143 for SIGTERM); a second Ctrl-C aborts at once; elsewhere either signal prints
+one line ``taskvar COMMAND: interrupted ...`` (128 + N). Any other exception is a bug in the
+package: its traceback, then one line saying so (status 1). docs/reliability.md has them all.
 """
 
 from __future__ import annotations
@@ -846,17 +848,17 @@ def _run(name: str, args: argparse.Namespace) -> int:
 
 
 def _out_of_memory(e: BaseException) -> bool:
-    """Whether ``e`` is torch's or the allocator's out-of-memory error."""
-    return isinstance(e, _torch_oom()) or "out of memory" in str(e).lower()
+    """Whether ``e`` is torch's out-of-memory error (CUDA's, or the CPU allocator's)."""
+    import torch
 
-
-def _torch_oom() -> type[BaseException]:
-    """``torch.OutOfMemoryError`` where torch is imported (else a class nothing raises)."""
-    torch = sys.modules.get("torch")
-    return getattr(torch, "OutOfMemoryError", MemoryError) if torch else MemoryError
+    text = str(e).lower()
+    return isinstance(e, torch.OutOfMemoryError) or any(
+        marker in text for marker in ("out of memory", "can't allocate memory")
+    )
 
 
 def _memory_error(name: str) -> int:
+    """The one line of an allocation that failed although the memory estimate let it pass."""
     print(
         f"taskvar {name}: error: out of memory: lower the sizes (env.num_envs, "
         "train.buffer_size, heads.hidden, eval.batch_size, --episodes)",

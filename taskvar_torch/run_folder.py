@@ -349,8 +349,8 @@ class ResultsFolder:
                 )
             for p in parent.iterdir():  # what a killed command on this folder left
                 m = _STAGING.match(p.name)
-                if m and m["name"] == out.resolve().name and p.is_dir() and not p.is_symlink():
-                    shutil.rmtree(p, ignore_errors=True)
+                if m and m["name"] == out.resolve().name and m[2] == "staging" and p.is_dir():
+                    shutil.rmtree(p, ignore_errors=True)  # (a ".replaced" one is kept: below)
             self.staging = parent / f".{out.resolve().name}.{secrets.token_hex(6)}.staging"
             self.staging.mkdir()
         except BaseException:
@@ -362,7 +362,8 @@ class ResultsFolder:
         """Swap the staging folder in for ``out`` (old results removed after), then unlock."""
         out, staging = self.out.resolve(), self.staging
         try:
-            if not _exchange(staging, out):  # no atomic exchange here: two renames
+            if not _exchange(staging, out):  # no atomic exchange here: two renames (killed
+                # between them, the old results stay in .<name>.<hex>.replaced, never removed)
                 old = staging.with_name(staging.name[: -len(".staging")] + ".replaced")
                 os.rename(out, old)
                 os.rename(staging, out)

@@ -813,6 +813,24 @@ def test_an_abandoned_results_folder_leaves_nothing_behind(tmp_path):
     assert not (tmp_path / "new" / "E").exists() and list((tmp_path / "new").iterdir()) == []
 
 
+@pytest.mark.parametrize("atomic", [True, False], ids=["renameat2", "two-renames"])
+def test_results_are_swapped_in_whole(atomic, tmp_path, monkeypatch):
+    """With the atomic exchange or without it (two renames), the folder ends up holding the new
+    results only, and nothing is left beside it."""
+    import taskvar_torch.run_folder as rf
+
+    if not atomic:
+        monkeypatch.setattr(rf, "_exchange", lambda a, b: False)
+    out = tmp_path / "E"
+    out.mkdir()
+    (out / "metrics.json").write_text("old")
+    (out / "stale.png").write_text("old")
+    with ResultsFolder(out, overwrite=True, command="taskvar eval") as staging:
+        (staging / "metrics.json").write_text("new")
+    assert fingerprint(out) == {"metrics.json": hashlib.sha256(b"new").hexdigest()}
+    assert [p.name for p in tmp_path.iterdir()] == ["E"]
+
+
 # --------------------------------------------------------------------------------------------
 # Gymnasium: reset() without a seed draws from entropy, as Gymnasium's own envs
 
