@@ -8,11 +8,13 @@ Hydra-style ``key.sub=value`` overrides may come before or after the options::
     taskvar train --resume runs/windy/checkpoint_000050176.pt --out runs/windy
     taskvar train --help
 
-Errors in the inputs (a misspelt config key, a foreign checkpoint, a diverged run, an ``--out``
-that cannot be used) print one line ``taskvar COMMAND: error: ...`` and exit with status 2. Ctrl-C
-(SIGINT) or SIGTERM during ``taskvar train`` stops after the current batch, writes a checkpoint
-and prints one line with the ``--resume`` command (status 130, or 143 for SIGTERM); a second
-Ctrl-C aborts at once.
+Errors in the inputs (a misspelt config key, a foreign or tampered checkpoint, a diverged run, an
+``--out`` that cannot be used, more memory than the machine has) print one line ``taskvar COMMAND:
+error: ...`` and exit with status 2. Ctrl-C (SIGINT) or SIGTERM during ``taskvar train`` stops
+after the current batch, writes a checkpoint and prints one line with the ``--resume`` command
+(status 130, or 143 for SIGTERM); a second Ctrl-C aborts at once; elsewhere either signal prints
+one line ``taskvar COMMAND: interrupted ...`` (128 + N). Any other exception is a bug in the
+package: its traceback, then one line saying so (status 1). docs/reliability.md has them all.
 """
 
 from __future__ import annotations
@@ -22,12 +24,14 @@ import logging
 import os
 import signal
 import sys
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.experiments.registry import EXPERIMENTS as _EXPERIMENTS
 from taskvar_torch.experiments.registry import experiment, experiment_of_folder
+from taskvar_torch.run_folder import check_out_path
 
 # Each subcommand imports the machinery it runs inside its own function: the experiment modules
 # share function names (default_config_path, plot_results, scale), and `taskvar --help` or a
@@ -182,8 +186,11 @@ def _threads_argument(p: argparse.ArgumentParser) -> None:
 def _set_threads(args: argparse.Namespace) -> None:
     import torch
 
-    if args.threads < 1:
-        raise ValueError(f"--threads must be >= 1, got {args.threads}")
+    cores = os.cpu_count() or 1
+    if not 1 <= args.threads <= cores:
+        raise ValueError(
+            f"--threads must be in [1, {cores}] (this machine's cores), got {args.threads}"
+        )
     torch.set_num_threads(args.threads)
 
 
@@ -405,6 +412,11 @@ def _wargus_fig4_run(args: argparse.Namespace) -> int:
         raise ValueError(
             f"--threads {args.threads}: wargus-fig4 runs one thread per process (small batches; "
             "2 threads under contention ran 10x slower); use --workers N to use more cores"
+        )
+    cores = os.cpu_count() or 1
+    if args.workers > cores:  # >= 1 is checked by wargus_fig4
+        raise ValueError(
+            f"--workers must be in [1, {cores}] (this machine's cores), got {args.workers}"
         )
     config_path, overrides = _split_config_and_overrides(args.items)
     default = experiment(args.name).default_config_path()
@@ -804,23 +816,103 @@ def main(argv: Sequence[str] | None = None) -> int:
     name = argv[0]
     args = parsers[name].parse_intermixed_args(argv[1:])
     _quiet_third_party()
+    with _TerminateAsInterrupt():
+        return _run(name, args)
+
+
+def _run(name: str, args: argparse.Namespace) -> int:
+    """Run command ``name``; every failure is one line on stderr and an exit status: 2 for input
+    (a value, a file, a folder, memory), 128 + N for signal N, 1 with the traceback for a bug."""
     try:
+        if getattr(args, "out", None) is not None:  # --out '' would be the current folder
+            check_out_path(args.out)
         return COMMANDS[name].run(args)
     except (ValueError, CheckpointError, RuntimeError) as e:
         if type(e).__name__ == "TrainingInterrupted":
             print(f"taskvar {name}: {e}", file=sys.stderr)
             return 128 + int(e.signum)
         if isinstance(e, RuntimeError) and type(e).__name__ != "TrainingDiverged":
-            raise
+            if _out_of_memory(e):
+                return _memory_error(name)
+            return _bug(name, e)
         print(f"taskvar {name}: error: {e}", file=sys.stderr)
         return 2
     except OSError as e:  # a folder or file the command cannot write or read
         where = f" {e.filename!r}" if e.filename else ""
         print(f"taskvar {name}: error: cannot use{where}: {e.strerror or e}", file=sys.stderr)
         return 2
+    except MemoryError:
+        return _memory_error(name)
     except KeyboardInterrupt as e:
-        print(f"taskvar {name}: interrupted{f': {e}' if str(e) else ''}", file=sys.stderr)
-        return 128 + signal.SIGINT
+        signum = getattr(e, "signum", signal.SIGINT)
+        text = f": {e}" if str(e) else f" by {signal.Signals(signum).name}"
+        print(f"taskvar {name}: interrupted{text}", file=sys.stderr)
+        return 128 + signum
+    except Exception as e:  # not the input's fault: a bug, reported as one
+        return _bug(name, e)
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` is torch's out-of-memory error (CUDA's, or the CPU allocator's)."""
+    import torch
+
+    text = str(e).lower()
+    return isinstance(e, torch.OutOfMemoryError) or any(
+        marker in text for marker in ("out of memory", "can't allocate memory")
+    )
+
+
+def _memory_error(name: str) -> int:
+    """The one line of an allocation that failed although the memory estimate let it pass."""
+    print(
+        f"taskvar {name}: error: out of memory: lower the sizes (env.num_envs, "
+        "train.buffer_size, heads.hidden, eval.batch_size, --episodes)",
+        file=sys.stderr,
+    )
+    return 2
+
+
+def _bug(name: str, e: BaseException) -> int:
+    """A failure that no input explains: the traceback, then one line saying it is a bug."""
+    import traceback
+
+    from taskvar_torch import __version__
+
+    traceback.print_exception(e)
+    print(
+        f"taskvar {name}: internal error ({type(e).__name__}): this is a bug in taskvar_torch "
+        f"{__version__}, not in your input; please report it to the taskvar_torch issue tracker "
+        "with the command line and the traceback above",
+        file=sys.stderr,
+    )
+    return 1
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM outside the training loop (which handles its own): unwinds like Ctrl-C, so a run
+    folder taken but not yet used is released and removed, and the command prints one line."""
+
+    signum = signal.SIGTERM
+
+
+class _TerminateAsInterrupt:
+    """While a command runs in the main thread with the default SIGTERM handler, SIGTERM raises
+    :class:`_Terminated`; the previous handler is restored after."""
+
+    def __enter__(self) -> _TerminateAsInterrupt:
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+                self._old = signal.signal(signal.SIGTERM, self._raise)
+        return self
+
+    @staticmethod
+    def _raise(signum: int, frame: object) -> None:
+        raise _Terminated
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
 
 
 def _quiet_third_party() -> None:

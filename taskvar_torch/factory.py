@@ -31,6 +31,7 @@ from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
     CheckpointError,
     evaluation_heads_key,
+    is_training_checkpoint,
     load_checkpoint,
     load_state_dicts,
     make_bundle,
@@ -38,6 +39,8 @@ from taskvar_torch.checkpoint import (
     save_checkpoint,
 )
 from taskvar_torch.config import Config, TrainConfig, config_from_dict
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads, with_root_row
@@ -47,6 +50,7 @@ from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
 from taskvar_torch.heads.networks import head_network, make_stacked_heads
 from taskvar_torch.heads.relabel import has_robustness
 from taskvar_torch.heads.robustness import RobustnessCalibration, calibrate_robustness
+from taskvar_torch.run_folder import check_out_path, folder_lock
 from taskvar_torch.subtasks.base import Subtasks
 
 CALIBRATION_STATES = 4096  # training states a calibration reads
@@ -185,7 +189,15 @@ def make_subtasks(cfg: Config, env: EnvBase) -> Subtasks:
 def check_device(device: str | torch.device) -> None:
     """A one-line ``ValueError`` when ``device`` cannot be used by this torch build on this
     machine (e.g. ``device=cuda`` with a CPU-only torch)."""
-    dev = torch.device(device)
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"device must be cpu, cuda or cuda:N, got {str(device)!r}") from None
+    if dev.type not in ("cpu", "cuda", "mps"):  # meta holds no data; xpu, hpu, lazy: untested
+        raise ValueError(
+            f"device={str(device)!r} cannot run taskvar_torch: use device=cpu"
+            + (" or device=cuda" if torch.cuda.is_available() else "")
+        )
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise ValueError(
@@ -251,6 +263,9 @@ class HeadSpec:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> HeadSpec:
+        """The spec :meth:`to_dict` wrote; a missing field or a value of the wrong type or out of
+        range is a one-line ``ValueError`` naming it (``heads_spec['obs_dim']``)."""
+        check_heads_spec(d)
         mask = d.get("option_input_mask")
         informed = d.get("informed_dim")
         return cls(
@@ -261,6 +276,42 @@ class HeadSpec:
             option_input_mask=None if mask is None else tuple(tuple(r) for r in mask),
             informed_dim=None if informed is None else int(informed),
         )
+
+
+def check_heads_spec(d: Any) -> None:
+    """A one-line ``ValueError`` naming the first ``heads_spec`` field that is missing, of the
+    wrong type or out of range (what :class:`HeadSpec` builds networks from)."""
+
+    def bad(key: str, what: str) -> ValueError:
+        if key not in d:
+            return ValueError(f"heads_spec has no {key!r} entry ({what})")
+        return ValueError(f"heads_spec[{key!r}] must be {what}, got {d[key]!r}")
+
+    if not isinstance(d, dict):
+        raise ValueError(f"heads_spec must be a dict, got {type(d).__name__}")
+    for key, high in (("obs_dim", 1 << 24), ("num_actions", 1 << 16)):
+        v = d.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= high:
+            raise bad(key, f"an integer in [1, {high}]")
+    names = d.get("option_names")
+    if not isinstance(names, (list, tuple)) or not 1 <= len(names) <= 1024:
+        raise bad("option_names", "a list of 1 to 1024 names")
+    if not all(isinstance(n, str) for n in names) or len(set(names)) != len(names):
+        raise bad("option_names", "distinct strings")
+    if not isinstance(d.get("robustness"), bool):
+        raise bad("robustness", "true or false")
+    mask = d.get("option_input_mask")
+    if mask is not None and not (
+        isinstance(mask, (list, tuple))
+        and len(mask) == len(names)
+        and all(
+            isinstance(r, (list, tuple))
+            and len(r) == d["obs_dim"]
+            and all(type(v) in (int, float) for v in r)
+            for r in mask
+        )
+    ):
+        raise bad("option_input_mask", f"null or {len(names)} rows of {d['obs_dim']} numbers")
 
 
 def build_heads(cfg: Config, env: EnvBase | HeadSpec, subtasks: Subtasks | None = None) -> Heads:
@@ -360,7 +411,18 @@ def _heads_of(
         cfg = dataclasses.replace(cfg, device=str(device))
     check_device(cfg.device)
     if isinstance(bundle.get("heads_spec"), dict):
-        spec = HeadSpec.from_dict(bundle["heads_spec"])
+        try:
+            spec = HeadSpec.from_dict(bundle["heads_spec"])
+        except ValueError as e:
+            raise CheckpointError(f"checkpoint {str(path)!r} is corrupt: {e}") from None
+        size = family(cfg).observation_size  # the config's own, where known without an env
+        if size is not None and size(cfg) != spec.obs_dim:
+            raise CheckpointError(
+                f"checkpoint {str(path)!r} is corrupt: heads_spec['obs_dim'] is {spec.obs_dim} "
+                f"but its config's observation has {size(cfg)} values"
+            )
+        # networks of the saved sizes: refused before allocating what the machine cannot hold
+        check_memory(estimate_memory(cfg, training=False, obs_dim=spec.obs_dim))
     else:
         env = make_env(cfg, num_envs=1)
         spec = HeadSpec.of(cfg, env, make_subtasks(cfg, env))
@@ -381,12 +443,23 @@ def export_heads(
     :func:`load_heads`, ``taskvar eval`` and the notebooks need; the full checkpoint stays for
     resuming). ``out`` defaults to ``heads.pt`` beside ``checkpoint``; an existing file is refused
     unless ``overwrite``. Loads with ``weights_only=True`` like every bundle."""
-    dest = Path(out) if out is not None else Path(checkpoint).with_name(HEADS_NAME)
+    dest = check_out_path(out) if out is not None else Path(checkpoint).with_name(HEADS_NAME)
+    if dest.resolve() == Path(checkpoint).resolve():
+        raise ValueError(f"--out {str(dest)!r} is the checkpoint itself; choose another --out")
+    if dest.is_dir():
+        raise ValueError(f"--out {str(dest)!r} is a folder; name the file to write")
     if dest.exists() and not overwrite:
         raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
+    if dest.exists() and is_training_checkpoint(dest):  # what a resume needs: never replaced
+        raise ValueError(
+            f"--out {str(dest)!r} is a training checkpoint (it resumes; heads.pt does not): "
+            "choose another --out"
+        )
     bundle = load_checkpoint(checkpoint)  # read once: a training checkpoint holds the replay
     heads, cfg = _heads_of(bundle, checkpoint)
-    return write_heads(dest, heads, cfg, counters=bundle.get("counters"))
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    with folder_lock(dest.parent):  # not into a folder another taskvar command is writing
+        return write_heads(dest, heads, cfg, counters=bundle.get("counters"))
 
 
 def write_heads(

@@ -40,6 +40,7 @@ from taskvar_torch.envs.instances import WindyInstances, windy_instances
 from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, wargus_instances
 from taskvar_torch.envs.wargus_env import WargusEnv
 from taskvar_torch.envs.windy_env import OBS_ENCODINGS, WindyGridEnv
+from taskvar_torch.envs.windy_env import observation_size as windy_observation_size
 from taskvar_torch.heads.networks import PatchLayout
 from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, windy_instance_features
 from taskvar_torch.subtasks.base import Subtasks
@@ -67,6 +68,10 @@ HELDOUT_SEED = 7_000_000
 (``tests/test_heldout.py`` checks), so no design choice was ever made on its episodes. Windy and
 Taxi play their test distribution under env seed ``HELDOUT_SEED + run``; Wargus plays the
 instance seeds of the range."""
+MAX_WINDY_SIDE = 4096
+"""Largest height or width of a generated windy grid (``env.layout=generated``)."""
+MAX_WINDY_CELLS = (1 << 24) - 1
+"""Most cells of a windy layout: start cells are drawn by ``rng.draw_index`` (n < 2^24)."""
 HELDOUT_SIZE = 300
 """Seeds in the sealed range: Wargus's held-out instances, and the most held-out runs."""
 
@@ -141,6 +146,9 @@ class Family:
         grid_side: config -> the grid's side length (the scale experiment's tables).
         cells: config -> the number of positions of the agent.
         observation: config -> the observation encoding's name.
+        observation_size: config -> the observation's length, without building the env (the
+            memory estimate, :mod:`taskvar_torch.config.memory`); ``None``: read from a
+            one-environment env.
         conv_patch: config -> the observation's patch layout (``heads.network=conv``).
         option_inputs: the subtasks define per-option input features
             (``heads.option_inputs=subtask``).
@@ -169,6 +177,7 @@ class Family:
     grid_side: Callable[[Config], int] | None = None
     cells: Callable[[Config], int] | None = None
     observation: Callable[[Config], str] | None = None
+    observation_size: Callable[[Config], int] | None = None
     conv_patch: Callable[[Config], PatchLayout] | None = None
     option_inputs: bool = False
     description: str = ""
@@ -315,7 +324,23 @@ def _validate_windy(cfg: Config) -> None:
             "heads.option_inputs='subtask' on the windy family needs env.obs_encoding="
             f"'exits_patch' (each exit's offset), got env.obs_encoding={env.obs_encoding!r}"
         )
-    windy_layout(env)  # raises a ValueError naming the layout keys
+    if env.layout == GENERATED:  # the grid is built below: bound its size first
+        for k in ("height", "width"):
+            v = getattr(env, k)
+            if v is not None and not 1 <= v <= MAX_WINDY_SIDE:
+                raise ValueError(f"env.{k} must be in [1, {MAX_WINDY_SIDE}], got {v}")
+    layout = windy_layout(env)  # raises a ValueError naming the layout keys
+    if layout.num_cells > MAX_WINDY_CELLS:
+        raise ValueError(
+            f"env.layout has {layout.num_cells} cells; at most {MAX_WINDY_CELLS} (start cells are "
+            "drawn from 24-bit integers)"
+        )
+    side = max(layout.height, layout.width)
+    if env.patch_radius is not None and env.patch_radius > side:
+        raise ValueError(
+            f"env.patch_radius must be in [0, {side}] (the grid's side: a wider patch only adds "
+            f"walls), got {env.patch_radius}"
+        )
 
 
 def _windy_side(cfg: Config) -> int:
@@ -604,8 +629,12 @@ class _Registry(Mapping):
                         f"the entry point is named {ep.name!r}, its family {fam.name!r}"
                     )
                 _check_declaration(fam)
-            except Exception as e:  # a broken plugin must not break the other families
+            except (Exception, SystemExit) as e:  # a broken plugin must not break the others
                 reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                if isinstance(e, SystemExit):  # sys.exit() on import: not the command's exit
+                    reason = f"it called sys.exit({e.code!r}) on import"
+                else:
+                    reason = f"{type(e).__name__}: {reason}"
                 self.broken[ep.name] = f"entry point {ep.value!r}: {reason}"
                 warnings.warn(
                     f"taskvar_torch: family {ep.name!r} from {ep.value!r} could not be loaded: "
@@ -732,6 +761,9 @@ register_family(
         grid_side=_windy_side,
         cells=lambda cfg: windy_layout(cfg.env).num_cells,
         observation=lambda cfg: cfg.env.obs_encoding,
+        observation_size=lambda cfg: windy_observation_size(
+            windy_layout(cfg.env), cfg.env.obs_encoding, cfg.env.patch_radius
+        ),
         instance_dim=WINDY_INSTANCE_DIM,
         instance_features=windy_instance_features,
         conv_patch=_windy_patch,

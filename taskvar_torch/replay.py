@@ -148,6 +148,37 @@ def replay_state(buffer: ReplayBuffer) -> dict[str, Any]:
     return {"data": data, "size": n, "writer": buffer.writer.state_dict()}
 
 
+def check_replay_state(
+    state: Any, rows: TensorDictBase, capacity: int, where: str = "replay"
+) -> None:
+    """:class:`~taskvar_torch.checkpoint.CheckpointError` unless ``state`` is a
+    :func:`replay_state` of a buffer of ``capacity`` rows laid out like ``rows`` (transitions of
+    the run its config builds): every key, its per-row shape and dtype, ``size`` rows of each,
+    the writer's cursor and count consistent with them."""
+    from taskvar_torch.checkpoint import CheckpointError, check_counter, check_like
+
+    check_like(state, {"data": None, "size": 0, "writer": None}, where)
+    size = check_counter(state["size"], f"{where}['size']", high=capacity)
+    data = state["data"]
+    if size == 0:
+        check_like(data, {}, f"{where}['data']")
+    else:
+        expected = {
+            k: torch.empty((size, *v.shape[1:]), dtype=v.dtype) for k, v in rows.items(True, True)
+        }
+        flat = TensorDict(expected, batch_size=[size]).to_dict()
+        check_like(data, flat, f"{where}['data']")
+    writer = state["writer"]
+    check_like(writer, {"_cursor": 0, "_write_count": 0}, f"{where}['writer']")
+    cursor = check_counter(writer["_cursor"], f"{where}['writer']['_cursor']", high=capacity)
+    count = check_counter(writer["_write_count"], f"{where}['writer']['_write_count']")
+    full = count >= capacity  # a round-robin writer: cursor = count mod capacity
+    if size != min(count, capacity) or cursor != (count % capacity if full else count):
+        raise CheckpointError(
+            f"{where} is inconsistent: size {size}, writer cursor {cursor} and count {count}"
+        )
+
+
 def load_replay_state(buffer: ReplayBuffer, state: dict[str, Any]) -> None:
     """Refill an empty buffer from :func:`replay_state`: same rows, same cursor."""
     n = int(state["size"])

@@ -14,6 +14,8 @@ Keys are uint32 values. The generic functions work on Python ints, numpy ``int64
 
 from __future__ import annotations
 
+import operator
+
 import torch
 
 MASK32 = 0xFFFFFFFF
@@ -76,9 +78,30 @@ def probability_threshold(p: torch.Tensor) -> torch.Tensor:
     return torch.ceil(p.to(torch.float64) * (1 << 24)).to(torch.int32)
 
 
+MAX_SEED = MASK32
+"""Largest seed: keys are 32 bits, so seeds are integers in ``[0, 2**32 - 1]``, each its own
+stream (a larger one is refused, never wrapped onto another seed's streams)."""
+
+
+def check_seed(seed, key: str = "seed") -> int:
+    """``seed`` as a Python int when it is an integer (not a bool) in ``[0, MAX_SEED]``, else a
+    one-line ``ValueError`` naming ``key``."""
+    try:
+        value = None if isinstance(seed, bool) else operator.index(seed)
+    except TypeError:
+        value = None
+    if value is None or not 0 <= value <= MAX_SEED:
+        raise ValueError(f"{key} must be an integer in [0, {MAX_SEED}] (2**32 - 1), got {seed!r}")
+    return value
+
+
 def sub_env_key(seed: int, index):
-    """Base key of sub-environment ``index`` under ``seed`` (``index`` is global, see ``index_offset``)."""
-    return hash32((hash32(seed & MASK32) + index * _GOLDEN) & MASK32)
+    """Base key of sub-environment ``index`` under ``seed`` (``index`` is global, see ``index_offset``).
+
+    ``seed`` is an integer in ``[0, 2**32 - 1]``: keys are 32 bits, so a larger or negative seed
+    would wrap onto another seed's streams; it is a ``ValueError`` instead.
+    """
+    return hash32((hash32(check_seed(seed)) + index * _GOLDEN) & MASK32)
 
 
 def episode_key(base_key, episode):

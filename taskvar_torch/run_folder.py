@@ -11,18 +11,27 @@ reused; an interrupted run leaves a resumable checkpoint (docs/design.md, "Train
   trainer then writes ``checkpoint_<frame>.pt`` and raises :class:`TrainingInterrupted`
   (:func:`_interrupted`) carrying the exact :func:`resume_command`.
 
-Every name is re-exported by :mod:`taskvar_torch.train`.
+The other results folders (``taskvar eval``, ``experiment``, ``sweep``) are written like it:
+:class:`ResultsFolder` locks the folder, fills a staging sibling and swaps it in whole;
+``taskvar export`` and ``report`` hold :func:`folder_lock` while they write.
+
+Every name of ``__all__`` is re-exported by :mod:`taskvar_torch.train`.
 """
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import errno
 import fcntl
 import os
 import re
+import secrets
 import shlex
 import shutil
 import signal
 import threading
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -56,8 +65,17 @@ def run_files(out: str | os.PathLike) -> list[Path]:
     out = Path(out)
     if not out.is_dir():
         return []
-    found = [out / n for n in _RUN_NAMES if (out / n).exists()]
+    found = [out / n for n in _RUN_NAMES if os.path.lexists(out / n)]  # a link, even dangling
     return found + sorted(out.glob("checkpoint_*.pt"))
+
+
+def remove_path(p: Path) -> None:
+    """Remove ``p``: a folder with its contents, a file, or a symbolic link itself (never what
+    it points to)."""
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p)
+    else:
+        p.unlink(missing_ok=True)
 
 
 def check_output_folder(path: str | os.PathLike, flag: str = "--out") -> None:
@@ -78,6 +96,89 @@ def check_output_folder(path: str | os.PathLike, flag: str = "--out") -> None:
             f"{flag} {str(path)!r} is not writable (no write access to {str(existing)!r}); "
             f"choose another {flag}"
         )
+
+
+def lock_folder(folder: Path, flag: str = "--out") -> int:
+    """``flock`` ``folder/LOCK_NAME`` (created, holding this pid) and return its descriptor; a
+    folder locked by another taskvar process is a one-line ``ValueError`` naming its pid."""
+    path = folder / LOCK_NAME
+    for _ in range(10):  # the file may be unlinked by the run that held it: take the new one
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            raise ValueError(
+                f"{flag} {str(folder)!r} is in use by another taskvar run (pid {pid}); wait "
+                f"for it to end or choose another {flag}"
+            ) from None
+        try:
+            same = os.stat(path).st_ino == os.fstat(fd).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+            return fd
+        os.close(fd)
+    raise ValueError(f"{flag} {str(folder)!r}: could not lock {LOCK_NAME}; try again")
+
+
+def unlock_folder(folder: Path, fd: int) -> None:
+    """Undo :func:`lock_folder`: remove the lock file (while still holding it), then close."""
+    try:
+        (folder / LOCK_NAME).unlink(missing_ok=True)
+    finally:
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path, flag: str = "--out") -> Iterator[None]:
+    """Hold :func:`lock_folder` on ``folder`` for a ``with`` block (``taskvar export`` and
+    ``report`` writing into a folder: refused while another taskvar command writes there)."""
+    fd = lock_folder(Path(folder), flag)
+    try:
+        yield
+    finally:
+        unlock_folder(Path(folder), fd)
+
+
+def check_out_path(path: str | os.PathLike, flag: str = "--out") -> Path:
+    """``path`` as a :class:`Path`; an empty one (``--out ''``, which would be the current
+    folder) is a one-line ``ValueError``."""
+    if not str(path).strip():
+        raise ValueError(f"{flag} is empty; name where to write (the current folder is {flag} .)")
+    return Path(path)
+
+
+def refuse_inside(source: str | os.PathLike, out: str | os.PathLike, flag: str) -> None:
+    """A one-line ``ValueError`` when ``source`` (a file the command reads) is ``out`` or lies
+    inside it: writing the results would replace or remove it."""
+    src, dest = Path(source).resolve(), Path(out).resolve()
+    if src == dest or dest in src.parents:
+        raise ValueError(
+            f"{flag} {str(source)!r} lies in --out {str(out)!r}: writing the results there would "
+            "remove it; choose another --out"
+        )
+
+
+def _holds_a_run(out: Path) -> bool:
+    """Whether the run files of ``out`` are a taskvar run's: a checkpoint, CSV logs, or a
+    ``config.yaml`` that loads as a taskvar config (what ``--overwrite`` may remove)."""
+    if any((out / n).is_file() for n in ("final.pt", "heads.pt")) or any(
+        out.glob("checkpoint_*.pt")
+    ):
+        return True
+    if (out / "logs" / "scalars").is_dir() and not (out / "logs").is_symlink():
+        return True
+    from taskvar_torch.config import load_config
+
+    try:
+        load_config(out / "config.yaml")
+    except (ValueError, OSError):
+        return False
+    return True
 
 
 def _latest_checkpoint(out: Path) -> Path | None:
@@ -110,6 +211,7 @@ class RunFolder:
 
     def acquire(self) -> RunFolder:
         out = self.out
+        check_out_path(out)
         check_output_folder(out)
         self.created = not out.exists()
         try:
@@ -127,8 +229,15 @@ class RunFolder:
             existing = run_files(out)
             continuing = self.resume is not None and self.resume.resolve().parent == out.resolve()
             if existing and self.overwrite:
+                if not _holds_a_run(out):  # e.g. --out . with a project's own config.yaml
+                    names = ", ".join(p.name for p in existing[:4])
+                    raise ValueError(
+                        f"--out {str(out)!r} holds {names} but no taskvar run (no checkpoint, "
+                        "logs or taskvar config); --overwrite removes only a run's files: "
+                        "choose another --out"
+                    )
                 for p in existing:
-                    shutil.rmtree(p) if p.is_dir() else p.unlink()
+                    remove_path(p)
             elif existing and not continuing:
                 names = ", ".join(p.name for p in existing[:4]) + (
                     ", ..." if len(existing) > 4 else ""
@@ -146,39 +255,14 @@ class RunFolder:
         return self
 
     def _lock(self) -> None:
-        path = self.out / LOCK_NAME
-        for _ in range(10):  # the file may be unlinked by the run that held it: take the new one
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                pid = os.pread(fd, 32, 0).decode(errors="replace").strip() or "unknown"
-                os.close(fd)
-                raise ValueError(
-                    f"--out {str(self.out)!r} is in use by another taskvar run (pid {pid}); wait "
-                    "for it to end or choose another --out"
-                ) from None
-            try:
-                same = os.stat(path).st_ino == os.fstat(fd).st_ino
-            except FileNotFoundError:
-                same = False
-            if same:
-                os.ftruncate(fd, 0)
-                os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-                self._fd = fd
-                return
-            os.close(fd)
-        raise ValueError(f"--out {str(self.out)!r}: could not lock {LOCK_NAME}; try again")
+        self._fd = lock_folder(self.out)
 
     def release(self) -> None:
         """Remove the lock file and unlock (the lock is held until its file is gone)."""
         if self._fd is None:
             return
-        try:
-            (self.out / LOCK_NAME).unlink(missing_ok=True)
-        finally:
-            os.close(self._fd)
-            self._fd = None
+        fd, self._fd = self._fd, None
+        unlock_folder(self.out, fd)
 
     def abandon(self) -> None:
         """After a failure before training started: leave nothing of this run behind."""
@@ -187,11 +271,193 @@ class RunFolder:
             self._remove_if_created()
         elif self.fresh:
             for p in run_files(self.out):
-                shutil.rmtree(p) if p.is_dir() else p.unlink()
+                remove_path(p)
 
     def _remove_if_created(self) -> None:
         if self.created and self.out.is_dir():
             shutil.rmtree(self.out, ignore_errors=True)
+
+
+RESULT_MARKERS = ("metrics.json", "summary.json")
+"""Files that make a folder a results folder of ``taskvar eval``, ``experiment`` or ``sweep``
+(written last, once the results are complete)."""
+_STAGING = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{12}\.(staging|replaced)$")
+
+
+class ResultsFolder:
+    """The results folder of ``taskvar eval``, ``experiment`` and ``sweep``: written like
+    ``train``'s run folder (one command at a time, never silently replaced), and swapped in whole.
+
+    :meth:`acquire` refuses an empty ``--out``, a folder holding files that are not results of a
+    taskvar command (``--out .`` in a project), and results already there unless ``overwrite``;
+    then it locks the folder (:func:`lock_folder`: a second command on it is refused) and returns
+    a new temporary sibling folder ``.<name>.<hex>.staging`` to write into. :meth:`commit` swaps
+    it for the folder (an atomic exchange where the system has one), so a reader sees the old
+    results or the new ones, never a mix; :meth:`abandon` (any failure, a signal) removes it and
+    leaves the old results whole. A killed command's staging folder is removed by the next
+    command on the same folder. Used as a context manager: commit on success, else abandon.
+    """
+
+    def __init__(
+        self,
+        out: str | os.PathLike,
+        overwrite: bool,
+        command: str,
+        markers: tuple[str, ...] = RESULT_MARKERS,
+    ) -> None:
+        self.out = check_out_path(out)
+        self.overwrite = bool(overwrite)
+        self.command = command
+        self.markers = markers  # entries that make a folder a results folder of this command
+        self.staging: Path | None = None
+        self.created = False
+        self._fd: int | None = None
+
+    def check(self) -> None:
+        """The refusals of :meth:`acquire`, without touching anything."""
+        out = self.out
+        check_output_folder(out)
+        entries = _visible_entries(out)
+        if not entries:
+            return
+        names = ", ".join(sorted(p.name for p in entries)[:4]) + (
+            ", ..." if len(entries) > 4 else ""
+        )
+        if not any(os.path.lexists(out / m) for m in self.markers):
+            raise ValueError(
+                f"--out {str(out)!r} holds files that are not taskvar results ({names}); choose an "
+                f"empty or new folder ({self.command})"
+            )
+        if not self.overwrite:
+            raise ValueError(
+                f"--out {str(out)!r} already holds results ({names}); replace them with "
+                f"--overwrite, or choose another --out ({self.command})"
+            )
+
+    def acquire(self) -> Path:
+        """Check, lock, and return the empty staging folder to write the results into."""
+        self.check()
+        out = self.out
+        self.created = not out.exists()
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+            self._fd = lock_folder(out)
+        except OSError as e:
+            self._remove_if_created()
+            raise ValueError(
+                f"cannot write in --out {str(out)!r} ({e.strerror or e}); choose another --out"
+            ) from None
+        except BaseException:
+            self._remove_if_created()
+            raise
+        try:
+            self.check()  # again, under the lock: another command may have written meanwhile
+            parent = out.resolve().parent
+            if out.resolve().stat().st_dev != parent.stat().st_dev:
+                raise ValueError(
+                    f"--out {str(out)!r} is a mount point: its results are swapped in from a "
+                    "sibling folder; choose a folder inside it"
+                )
+            for p in parent.iterdir():  # what a killed command on this folder left
+                m = _STAGING.match(p.name)
+                if m and m["name"] == out.resolve().name and m[2] == "staging" and p.is_dir():
+                    shutil.rmtree(p, ignore_errors=True)  # (a ".replaced" one is kept: below)
+            self.staging = parent / f".{out.resolve().name}.{secrets.token_hex(6)}.staging"
+            self.staging.mkdir()
+        except BaseException:
+            self.abandon()
+            raise
+        return self.staging
+
+    def commit(self) -> None:
+        """Swap the staging folder in for ``out`` (old results removed after), then unlock."""
+        out, staging = self.out.resolve(), self.staging
+        try:
+            if not _exchange(staging, out):  # no atomic exchange here: two renames (killed
+                # between them, the old results stay in .<name>.<hex>.replaced, never removed)
+                old = staging.with_name(staging.name[: -len(".staging")] + ".replaced")
+                os.rename(out, old)
+                os.rename(staging, out)
+                staging = old
+            shutil.rmtree(staging, ignore_errors=True)  # the old results and the lock file
+        finally:
+            self.staging = None
+            self._unlock()
+
+    def abandon(self) -> None:
+        """Remove the staging folder, unlock, and remove ``out`` if this command created it."""
+        if self.staging is not None:
+            shutil.rmtree(self.staging, ignore_errors=True)
+            self.staging = None
+        self._unlock()
+        self._remove_if_created()
+
+    def _unlock(self) -> None:
+        if self._fd is not None:
+            fd, self._fd = self._fd, None
+            lock = self.out / LOCK_NAME
+            try:  # after a commit the lock file went with the old folder; else remove it
+                if lock.is_file() and os.stat(lock).st_ino == os.fstat(fd).st_ino:
+                    lock.unlink()
+            finally:
+                os.close(fd)
+
+    def _remove_if_created(self) -> None:
+        if self.created and self.out.is_dir() and not _visible_entries(self.out):
+            shutil.rmtree(self.out, ignore_errors=True)
+
+    def __enter__(self) -> Path:
+        return self.acquire()
+
+    def __exit__(self, kind: Any, error: Any, *exc: Any) -> None:
+        if kind is None:
+            self.commit()
+            return
+        self.abandon()
+        if isinstance(error, TrainingInterrupted):  # its checkpoint was in the staging folder
+            name = signal.Signals(error.signum).name
+            raise TrainingInterrupted(
+                f"interrupted by {name}; nothing written: --out {str(self.out)!r} holds what it "
+                "held before",
+                None,
+                None,
+                error.signum,
+            ) from None
+
+
+def _visible_entries(folder: Path) -> list[Path]:
+    """What ``folder`` holds besides its lock file and temporary files of killed writes."""
+    if not folder.is_dir():
+        return []
+    return [
+        p
+        for p in folder.iterdir()
+        if p.name != LOCK_NAME and not _STALE_TMP.match(p.name) and not _STAGING.match(p.name)
+    ]
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Atomically exchange folders ``a`` and ``b`` (Linux ``renameat2(RENAME_EXCHANGE)``);
+    ``False`` where the system or file system has no such call (nothing changed then)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    renameat2.argtypes = [
+        ctypes.c_int,
+        ctypes.c_char_p,
+        ctypes.c_int,
+        ctypes.c_char_p,
+        ctypes.c_uint,
+    ]
+    if renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
 
 
 def _restore_logs(src: Path, out: Path, frame: int) -> None:

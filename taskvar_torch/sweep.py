@@ -65,6 +65,7 @@ from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
+from taskvar_torch.run_folder import ResultsFolder, check_out_path, folder_lock
 from taskvar_torch.train import TrainingDiverged, check_output_folder, train
 
 BACKENDS = ("local", "ray")
@@ -208,6 +209,7 @@ def run_point(
                 quick=quick,
                 plots=plots,
                 overwrite=overwrite,
+                staged=False,  # the sweep holds its folder (sweep())
                 **options,
             )
         except TrainingDiverged as e:
@@ -541,12 +543,49 @@ def sweep(
             import ray  # noqa: F401  (fail before any work)
         except ImportError:
             raise ValueError(RAY_MISSING) from None
-    out = Path(out_dir).resolve()  # Ray workers need not share this process's working folder
+    out = check_out_path(out_dir).resolve()  # Ray workers need not share this working folder
     check_output_folder(out)  # a file, or under one, or read-only: one line before any run
     done = completed_points(out, points, cfgs) if resume else {}
+    markers = (SUMMARY_JSON, SUMMARY_CSV, BATCHES, *(p.name for p in points))
+    folder = ResultsFolder(out, overwrite, "taskvar sweep", markers)
     if not resume:
         _refuse_existing_sweep(out, points, overwrite)
-    out.mkdir(parents=True, exist_ok=True)
+        folder.check()  # and a folder of other files (--out . in a project)
+    if overwrite and any(os.path.lexists(out / m) for m in markers):
+        # replaced whole: written in a staging folder, swapped in at the end (ResultsFolder)
+        with folder as staging:
+            return _sweep(
+                config, items, out, staging, points, cfgs, done, backend, quick, address,
+                workers, progress, plots, overwrite, resume, batch_seeds,
+            )  # fmt: skip
+    out.mkdir(parents=True, exist_ok=True)  # a new sweep, or --resume: in place, like train
+    with folder_lock(out):
+        return _sweep(
+            config, items, out, out, points, cfgs, done, backend, quick, address, workers,
+            progress, plots, overwrite, resume, batch_seeds,
+        )  # fmt: skip
+
+
+def _sweep(
+    config: str | os.PathLike,
+    items: Sequence[str],
+    dest: Path,
+    out: Path,
+    points: Sequence[SweepPoint],
+    cfgs: Sequence[Config],
+    done: dict[int, dict[str, Any]],
+    backend: str,
+    quick: bool,
+    address: str | None,
+    workers: int | None,
+    progress: bool,
+    plots: bool,
+    overwrite: bool,
+    resume: bool,
+    batch_seeds: bool,
+) -> list[dict[str, Any]]:
+    """:func:`sweep` once its inputs are checked, writing into ``out`` (``dest`` itself, or the
+    staging folder of ``dest``); the summary names the points' folders in ``dest``."""
     todo = [i for i in range(len(points)) if i not in done]
     jobs, notes = plan_jobs(points, cfgs, todo, out, batch_seeds)
     if done:
@@ -584,7 +623,7 @@ def sweep(
         "points": [
             {
                 "name": p.name,
-                "folder": str(out / p.name),
+                "folder": str(dest / p.name),
                 "values": p.values,
                 "overrides": list(p.overrides),
                 "seconds": r["seconds"],

@@ -28,12 +28,14 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 
-from taskvar_torch import keys
+from taskvar_torch import keys, rng
 from taskvar_torch.envs.taxi import TaxiInstances, taxi_instances
 from taskvar_torch.envs.taxi_env import OBS_ENCODINGS, TaxiEnv
 from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution
 
 NAME = "taxi"
+MAX_HORIZON = rng.RESET_COUNTER - 1
+"""Largest ``env.taxi.horizon``: step ``t`` draws from counters below ``rng.RESET_COUNTER``."""
 INSTANCE_DIM = 3
 """Features of a Taxi instance: ``(1 - rainy_probability, fickle_probability, armed)``."""
 
@@ -53,8 +55,8 @@ class TaxiConfig:
             raise ValueError(
                 f"obs_encoding must be one of {list(OBS_ENCODINGS)}, got {self.obs_encoding!r}"
             )
-        if self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {self.horizon}")
+        if not 1 <= self.horizon <= MAX_HORIZON:
+            raise ValueError(f"horizon must be in [1, {MAX_HORIZON}], got {self.horizon}")
 
 
 def _section(cfg: Any) -> TaxiConfig:

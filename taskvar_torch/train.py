@@ -55,6 +55,11 @@ from taskvar_torch.checkpoint import (
     EVAL_HEADS,
     RUNTIME_KEYS,
     CheckpointError,
+    check_counter,
+    check_counters,
+    check_like,
+    check_optimizer_state,
+    check_rng_state,
     config_differences,
     load_checkpoint,
     load_state_dicts,
@@ -79,6 +84,8 @@ from taskvar_torch.config import (
     config_from_dict,
     save_config_yaml,
 )
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.factory import (  # noqa: F401  (the factories stay importable from here)
     HEADS_NAME,
     build_heads,
@@ -101,6 +108,7 @@ from taskvar_torch.heads.seeds import split_seed, stack_seeds
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.replay import (  # noqa: F401  (importable from here too)
     EPISODE_REWARD,
+    check_replay_state,
     load_replay_state,
     make_replay_buffer,
     raw_transitions,
@@ -115,6 +123,7 @@ from taskvar_torch.run_folder import (  # noqa: F401  (the run-folder names stay
     _latest_checkpoint,
     _restore_logs,
     _StopSignals,
+    check_out_path,
     check_output_folder,
     resume_command,
     run_files,
@@ -277,7 +286,7 @@ def train(
         TrainingInterrupted: SIGINT or SIGTERM; the run stopped after its current batch and wrote
             a checkpoint (a second signal aborts at once: ``KeyboardInterrupt``).
     """
-    out = Path(out_dir)
+    out = check_out_path(out_dir)  # not '': it would be the current folder
     check_output_folder(out)  # inputs first: a refused run writes nothing
     bundle = None
     if resume is not None:
@@ -299,6 +308,7 @@ def train(
     if cfg is None:
         raise ValueError("train needs a config (or a checkpoint to resume)")
     check_device(cfg.device)
+    check_memory(estimate_memory(cfg))  # before anything is allocated or written
     check_logger(cfg.train.logger)
     workers = cfg.collector.num_workers
     remote = collects_in_workers(cfg)
@@ -351,7 +361,7 @@ def _train_loop(
     (:meth:`_Run.store`), learn (:meth:`_Run.learn`), log and checkpoint (:meth:`_Run.report`)."""
     t = cfg.train
     save_config_yaml(cfg, out / "config.yaml")
-    run = _build_run(cfg, out, bundle)
+    run = _build_run(cfg, out, bundle, resume)
     threads = torch.get_num_threads()
     with warnings.catch_warnings():  # TorchRL's note that the last batch may pass total_frames
         warnings.filterwarnings("ignore", message=r"total_frames \(\d+\) is not exactly divisible")
@@ -673,9 +683,15 @@ def _models(learner: MultiHeadLearner) -> dict[str, torch.nn.Module]:
     return models
 
 
-def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
+def _build_run(
+    cfg: Config,
+    out: Path,
+    bundle: dict[str, Any] | None,
+    resume: str | os.PathLike | None = None,
+) -> _Run:
     """Everything from the config, seeded (the networks' initialisation draws from the global
-    torch stream, in this order), then overwritten with ``bundle``'s state when resuming."""
+    torch stream, in this order), then overwritten with ``bundle``'s state (read from
+    ``resume``) when resuming, once every entry is checked against what was built."""
     t = cfg.train
     S = t.seeds
     torch.manual_seed(cfg.seed)
@@ -737,6 +753,7 @@ def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
         stats=stats,
     )
     if bundle is not None:
+        _check_resume_state(run, bundle, resume)  # every entry, before any is loaded
         load_state_dicts(bundle, models=_models(learner), optimizers={"adam": learner.optimizer})
         learner.load_state_dict(
             {
@@ -755,14 +772,84 @@ def _build_run(cfg: Config, out: Path, bundle: dict[str, Any] | None) -> _Run:
     return run
 
 
+def _check_resume_state(run: _Run, bundle: dict[str, Any], resume: str | os.PathLike) -> None:
+    """:class:`CheckpointError` (one line naming the entry and both shapes or types) unless every
+    entry a resume loads fits what the config built: the networks' tensors, the optimiser state
+    (shapes included: the fused Adam does not check them), the learner's and run's counters
+    (non-negative integers), the RNG states, the replay rows, the first-visit flags, the
+    statistics, the collector's carrier (the env state: :func:`_restore_collection`)."""
+    learner, t = run.learner, run.cfg.train
+    live_learner = {
+        k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
+    }
+    live_learner["loss_sum"] = None  # None, or each loss's running sum (checked below)
+    try:
+        check_like(
+            bundle["models"], {k: m.state_dict() for k, m in _models(learner).items()}, "models"
+        )
+        check_like(bundle["optimizers"], {"adam": None}, "optimizers")
+        check_optimizer_state(bundle["optimizers"]["adam"], learner.optimizer, "optimizers['adam']")
+        check_like(bundle["learner"], live_learner, "learner")
+        for k in ("num_updates", "loss_count"):
+            check_counter(bundle["learner"][k], f"learner[{k!r}]")
+        params = sum(len(g["params"]) for g in learner.optimizer.param_groups)
+        states = len(bundle["optimizers"]["adam"]["state"])
+        want = params if bundle["learner"]["num_updates"] > 0 else 0  # every update steps all
+        if states != want:
+            raise CheckpointError(
+                f"optimizers['adam']['state'] holds {states} parameters' state, expected {want} "
+                f"after {bundle['learner']['num_updates']} updates"
+            )
+        loss_sum = bundle["learner"]["loss_sum"]
+        if loss_sum is not None and not (
+            isinstance(loss_sum, dict)
+            and all(isinstance(v, torch.Tensor) and v.numel() == 1 for v in loss_sum.values())
+        ):
+            raise CheckpointError("learner['loss_sum'] is not a dict of scalar losses")
+        check_counters(bundle["counters"], run.counters)
+        check_rng_state(bundle["rng"], _replay_rngs(run.replay_generators))
+        batch = _probe_batch(run)  # (N, 2), as the collector gives it
+        stored = batch.copy()
+        if t.n_step > 1:  # the n-step keys, as _Run.store adds them
+            subtasks = learner.loss.subtasks
+            stored = nstep_returns(stored, subtasks, t.gamma, t.n_step, BEHAVIOUR)
+        rows = raw_transitions(stored, keep_instance=t.max_value_estimator == "instance")
+        if run.seeds == 1:
+            check_replay_state(bundle["replay"], rows, t.buffer_size)
+        else:
+            check_like(bundle["replay"], {"seeds": [None] * run.seeds}, "replay")
+            for k, state in enumerate(bundle["replay"]["seeds"]):
+                check_replay_state(state, rows, t.buffer_size, f"replay['seeds'][{k}]")
+        check_like(bundle["first_visit"], run.first_visit.state_dict(), "first_visit")
+        check_like(bundle["stats"], run.stats, "stats")
+        check_like(bundle["carrier"], batch[:, -1].exclude(keys.NEXT).to_dict(), "carrier")
+    except CheckpointError as e:
+        raise CheckpointError(
+            f"checkpoint {str(resume)!r} does not fit the run its config builds: {e}"
+        ) from None
+
+
+def _probe_batch(run: _Run) -> TensorDictBase:
+    """A collector batch ``(N, 2)`` as this run collects them: two steps of a fresh env of the
+    run's size under its behaviour policy (draws from the global torch stream, which a resume
+    restores afterwards)."""
+    probe = make_training_env(run.cfg, num_envs=run.env.batch_size[0])
+    return probe.rollout(2, policy=run.behaviour, break_when_any_done=False)
+
+
 def _restore_collection(run: _Run, bundle: dict[str, Any], resume: str | os.PathLike) -> None:
     """The checkpoint's env simulator state, collector carrier and replay RNG (after the
     collector's own reset and policy probe), and the logs up to the checkpoint, without the rows a
     stopped run wrote after it; a periodic checkpoint of ``out`` is replaced by the next one."""
-    run.env.base_env.load_state_dict(bundle["env"])
-    _collector_carrier(run.collector).update(
-        TensorDict(bundle["carrier"], batch_size=run.env.batch_size)
-    )
+    carrier = _collector_carrier(run.collector)
+    try:
+        check_like(bundle["env"], run.env.base_env.state_dict(), "env")
+        run.env.base_env.load_state_dict(bundle["env"])  # its values' ranges: one line
+    except (CheckpointError, ValueError) as e:
+        raise CheckpointError(
+            f"checkpoint {str(resume)!r} does not fit the run its config builds: {e}"
+        ) from None
+    carrier.update(TensorDict(bundle["carrier"], batch_size=run.env.batch_size))
     set_rng_state(bundle["rng"], _replay_rngs(run.replay_generators))
     _restore_logs(Path(resume).parent, run.out, run.counters["frames"])
     if Path(resume).parent.resolve() == run.out.resolve() and Path(resume).name.startswith(

@@ -9,6 +9,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -202,7 +203,9 @@ def test_each_seed_trains_its_baselines_on_the_cells_config_and_budget(runs):
         k = bcfg.seed - ccfg.seed
         assert bcfg == scale.seed_config(ccfg, k)  # the cell's own config: the heads' settings
         assert bcfg.train.total_frames == 200
-        assert str(folder) == str(out / "cells" / CELL / f"seed{k}")  # beside the seed's bundle
+        root = Path(folder).parents[2]  # out, or its staging folder beside it (ResultsFolder)
+        assert Path(folder) == root / "cells" / CELL / f"seed{k}"  # beside the seed's bundle
+        assert root.resolve().parent == Path(out).resolve().parent
 
 
 @pytest.mark.slow

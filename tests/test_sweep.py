@@ -97,7 +97,7 @@ def test_each_point_config_holds_its_swept_values():
         (["seed=0,"], "sweep key 'seed' has an empty value"),
         (["seed="], "sweep key 'seed' has an empty value"),
         (["seed=0,1", "seed=2"], "sweep key 'seed' is given twice"),
-        (["train.lr=0.1,-1"], "train.lr must be > 0"),
+        (["train.lr=0.1,-1"], "train.lr must be a finite number in (0"),
     ],
 )
 def test_bad_sweeps_are_one_line_errors_before_any_run(items, message, capsys, tmp_path):

@@ -10,11 +10,13 @@ registry (``Family.validate``, taskvar_torch/families.py); the other family's ke
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
 import torch
 
+from taskvar_torch import rng
 from taskvar_torch.config.choices import (
     ACTIVATIONS,
     COLLECTOR_BACKENDS,
@@ -43,20 +45,56 @@ if TYPE_CHECKING:  # the schema calls _validate() in Config.__post_init__
     from taskvar_torch.config.schema import Config
 
 
+MAX_SEED = rng.MAX_SEED
+"""Largest seed (``seed``, ``taskvar eval --seed``, Gymnasium ``reset(seed=...)``): the keyed
+random streams (taskvar_torch/rng.py) take 32-bit keys, so seeds are integers in
+``[0, 2**32 - 1]``, each its own stream; a larger one is refused rather than wrapped onto another."""
+MAX_COUNT = 2**31 - 1
+"""Largest count of things a run allocates or loops over (environments, batch and buffer rows,
+layer widths, episodes, workers...): every such key is also bounded by the memory estimate
+(:mod:`taskvar_torch.config.memory`)."""
+MAX_FRAMES = 10**15
+"""Largest frame count (``train.total_frames`` and the other ``*_frames`` / ``*_every`` keys):
+exact in float64, far beyond any run."""
+MAX_HORIZON = rng.RESET_COUNTER - 1
+"""Largest episode horizon: step ``t`` draws from counters below ``rng.RESET_COUNTER``."""
+MAX_REAL = 1e9
+"""Largest magnitude of a real-valued key without a narrower range (thresholds, temperatures,
+gradient norms)."""
+
+
 def _one_of(key: str, value: Any, allowed: Sequence[str]) -> None:
     if value not in allowed:
         raise ValueError(f"{key} must be one of {sorted(allowed)}, got {value!r}")
 
 
-def _at_least(key: str, value: int | float | None, low: int | float) -> None:
-    if value is not None and value < low:
-        raise ValueError(f"{key} must be >= {low}, got {value}")
+def _at_least(
+    key: str, value: int | float | None, low: int | float, high: int | float = MAX_COUNT
+) -> None:
+    """``value`` (``None`` passes) must be in ``[low, high]``; a NaN is refused too."""
+    if value is not None and not low <= value <= high:
+        raise ValueError(f"{key} must be in [{low}, {high}], got {value}")
 
 
-def _within(key: str, value: float, low: float, high: float, open_low: bool = False) -> None:
-    ok = (low < value if open_low else low <= value) and value <= high
+def _within(
+    key: str,
+    value: float,
+    low: float,
+    high: float,
+    open_low: bool = False,
+    open_high: bool = False,
+) -> None:
+    """``value`` must be a finite number in the range (NaN and infinities refused)."""
+    ok = (
+        math.isfinite(value)
+        and (low < value if open_low else low <= value)
+        and (value < high if open_high else value <= high)
+    )
     if not ok:
-        raise ValueError(f"{key} must be in {'(' if open_low else '['}{low}, {high}], got {value}")
+        left, right = "(" if open_low else "[", ")" if open_high else "]"
+        raise ValueError(
+            f"{key} must be a finite number in {left}{low}, {high}{right}, got {value}"
+        )
 
 
 def _families_with(feature: str) -> str:
@@ -71,6 +109,18 @@ def _validate(cfg: Config) -> None:
     and experiment), so the first bad key of a config is the one reported.
     """
     fam = family(cfg)  # a one-line error naming the registered families
+    rng.check_seed(cfg.seed, "seed")
+    # seeds a config derives from its own: seed + k of train.seeds, seed + 1 + run of the
+    # experiments' test runs (and the evaluation's seed + 1)
+    _at_least("train.seeds", cfg.train.seeds, 1, 1024)
+    _at_least("experiment.runs", cfg.experiment.runs, 1, 10**6)
+    last = cfg.seed + max(cfg.train.seeds - 1, cfg.experiment.runs)
+    if last > MAX_SEED:
+        raise ValueError(
+            f"seed={cfg.seed} with train.seeds={cfg.train.seeds} and experiment.runs="
+            f"{cfg.experiment.runs} uses seeds up to {last}, above the largest seed {MAX_SEED} "
+            "(2**32 - 1); choose a smaller seed"
+        )
     try:
         torch.device(cfg.device)
     except (RuntimeError, ValueError) as e:
@@ -78,6 +128,9 @@ def _validate(cfg: Config) -> None:
             f"device must be a torch device such as 'cpu' or 'cuda:0', got {cfg.device!r}"
         ) from e
     _at_least("env.num_envs", cfg.env.num_envs, 1)
+    if cfg.env.horizon is not None:
+        _at_least("env.horizon", cfg.env.horizon, 1, MAX_HORIZON)
+    _at_least("env.patch_radius", cfg.env.patch_radius, 0, 4096)
     _check_family_section(cfg, fam)
     _one_of("env.instances", cfg.env.instances, fam.instance_names)
     if fam.validate is not None:
@@ -107,15 +160,22 @@ def _check_family_section(cfg: Config, fam: Family) -> None:
 
 def _check_heads(cfg: Config, fam: Family) -> None:
     """``heads.*``: layer sizes, activation, network kind and what the family supports."""
+    if len(cfg.heads.hidden) > 64:
+        raise ValueError(f"heads.hidden must have at most 64 layers, got {len(cfg.heads.hidden)}")
     for i, h in enumerate(cfg.heads.hidden):
-        _at_least(f"heads.hidden[{i}]", h, 1)
+        _at_least(f"heads.hidden[{i}]", h, 1, 2**20)
     _one_of("heads.activation", cfg.heads.activation, ACTIVATIONS)
     _one_of("heads.network", cfg.heads.network, HEAD_NETWORKS)
     if cfg.heads.network == "conv":
         if not cfg.heads.conv_channels:
             raise ValueError("heads.conv_channels must name at least one layer, got []")
+        if len(cfg.heads.conv_channels) > 64:
+            raise ValueError(
+                f"heads.conv_channels must have at most 64 layers, got "
+                f"{len(cfg.heads.conv_channels)}"
+            )
         for i, c in enumerate(cfg.heads.conv_channels):
-            _at_least(f"heads.conv_channels[{i}]", c, 1)
+            _at_least(f"heads.conv_channels[{i}]", c, 1, 2**16)
         if fam.conv_patch is None:
             raise ValueError(
                 "heads.network='conv' needs a family with a patch observation "
@@ -150,8 +210,9 @@ def _check_baseline(cfg: Config) -> None:
 def _check_train(cfg: Config, fam: Family) -> None:
     """``train.*``: discounts, rates, schedules, target updates and the estimators' choices."""
     t = cfg.train
-    _within("train.gamma", t.gamma, 0.0, 1.0, open_low=True)
-    _within("train.robustness_gamma", t.robustness_gamma, 0.0, 1.0, open_low=True)
+    _within("train.gamma", t.gamma, 0.0, 1.0, open_high=True)
+    _within("train.robustness_gamma", t.robustness_gamma, 0.0, 1.0, open_high=True)
+    _within("train.robustness_tau", t.robustness_tau, -MAX_REAL, MAX_REAL)
     _one_of("train.robustness_target", t.robustness_target, ROBUSTNESS_TARGETS)
     _one_of("train.hierarchy_root_policy", t.hierarchy_root_policy, ROOT_POLICIES)
     _one_of("train.robustness_threshold", t.robustness_threshold, ROBUSTNESS_THRESHOLDS)
@@ -162,28 +223,26 @@ def _check_train(cfg: Config, fam: Family) -> None:
     _one_of("train.robustness_until", t.robustness_until, ROBUSTNESS_UNTIL)
     _one_of("train.hierarchy_descent", t.hierarchy_descent, HIERARCHY_DESCENTS)
     _one_of("train.composed_reward", t.composed_reward, COMPOSED_REWARDS)
-    if not t.lr > 0:
-        raise ValueError(f"train.lr must be > 0, got {t.lr}")
-    if t.lr_end is not None and not 0 < t.lr_end <= t.lr:
+    _within("train.lr", t.lr, 0.0, MAX_REAL, open_low=True)
+    if t.lr_end is not None and not (math.isfinite(t.lr_end) and 0 < t.lr_end <= t.lr):
         raise ValueError(f"train.lr_end must be in (0, train.lr={t.lr}] or null, got {t.lr_end}")
-    _at_least("train.lr_decay_start_frames", t.lr_decay_start_frames, 0)
+    _at_least("train.lr_decay_start_frames", t.lr_decay_start_frames, 0, MAX_FRAMES)
     _at_least("train.batch_size", t.batch_size, 1)
-    _at_least("train.buffer_size", t.buffer_size, t.batch_size)
+    _at_least("train.buffer_size", t.buffer_size, t.batch_size, MAX_FRAMES)
     _at_least("train.frames_per_batch", t.frames_per_batch, 1)
-    _at_least("train.total_frames", t.total_frames, 0)
-    _at_least("train.updates_per_batch", t.updates_per_batch, 0)
-    _at_least("train.init_random_frames", t.init_random_frames, 0)
+    _at_least("train.total_frames", t.total_frames, 0, MAX_FRAMES)
+    _at_least("train.updates_per_batch", t.updates_per_batch, 0, 2**20)
+    _at_least("train.init_random_frames", t.init_random_frames, 0, MAX_FRAMES)
     _within("train.eps_start", t.eps_start, 0.0, 1.0)
     _within("train.eps_end", t.eps_end, 0.0, 1.0)
-    _at_least("train.eps_decay_frames", t.eps_decay_frames, 0)
+    _at_least("train.eps_decay_frames", t.eps_decay_frames, 0, MAX_FRAMES)
     _within("train.option_behaviour_prob", t.option_behaviour_prob, 0.0, 1.0)
     _within("train.option_coverage", t.option_coverage, 0.0, 1.0)
     _one_of("train.replay_sampling", t.replay_sampling, REPLAY_SAMPLINGS)
-    if t.n_step < 1:
-        raise ValueError(f"train.n_step must be >= 1, got {t.n_step}")
+    _at_least("train.n_step", t.n_step, 1, 1024)
     _one_of("train.target_update", t.target_update, TARGET_UPDATES)
     _within("train.target_tau", t.target_tau, 0.0, 1.0, open_low=True)
-    _at_least("train.target_period", t.target_period, 1)
+    _at_least("train.target_period", t.target_period, 1, MAX_FRAMES)
     if not 0.0 < t.max_value_expectile < 1.0:
         raise ValueError(
             f"train.max_value_expectile must be in (0, 1), got {t.max_value_expectile}"
@@ -202,15 +261,14 @@ def _check_train(cfg: Config, fam: Family) -> None:
             f"family={cfg.family!r}: use 'expectile' (taskvar_torch/heads/max_value.py)"
         )
     _one_of("train.mu_bar", t.mu_bar, MU_BAR_MODES)
-    if not t.mu_bar_temperature > 0:
-        raise ValueError(f"train.mu_bar_temperature must be > 0, got {t.mu_bar_temperature}")
-    if t.max_grad_norm is not None and not t.max_grad_norm > 0:
-        raise ValueError(f"train.max_grad_norm must be > 0 or null, got {t.max_grad_norm}")
-    _at_least("train.checkpoint_every", t.checkpoint_every, 0)
-    _at_least("train.log_every", t.log_every, 1)
-    _at_least("train.heads_every", t.heads_every, 0)
-    if isinstance(t.seeds, bool) or not isinstance(t.seeds, int) or t.seeds < 1:
-        raise ValueError(f"train.seeds must be an integer >= 1, got {t.seeds!r}")
+    _within("train.mu_bar_temperature", t.mu_bar_temperature, 0.0, MAX_REAL, open_low=True)
+    if t.max_grad_norm is not None:
+        _within("train.max_grad_norm", t.max_grad_norm, 0.0, MAX_REAL, open_low=True)
+    _at_least("train.checkpoint_every", t.checkpoint_every, 0, MAX_FRAMES)
+    _at_least("train.log_every", t.log_every, 1, MAX_FRAMES)
+    _at_least("train.heads_every", t.heads_every, 0, MAX_FRAMES)
+    if isinstance(t.seeds, bool) or not isinstance(t.seeds, int) or not 1 <= t.seeds <= 1024:
+        raise ValueError(f"train.seeds must be an integer in [1, 1024], got {t.seeds!r}")
     if t.seeds > 1 and (cfg.collector.num_workers > 1 or cfg.collector.backend == "ray"):
         raise ValueError(
             f"train.seeds={t.seeds} runs in one collector process: set collector.num_workers=1 "
@@ -228,7 +286,7 @@ def _check_collector(cfg: Config) -> None:
     """``collector.*``: workers, backend, and that the workers split the batch evenly."""
     env, t = cfg.env, cfg.train
     w = cfg.collector.num_workers
-    _at_least("collector.num_workers", w, 1)
+    _at_least("collector.num_workers", w, 1, 1024)
     _one_of("collector.backend", cfg.collector.backend, COLLECTOR_BACKENDS)
     if cfg.collector.ray_address is not None and cfg.collector.backend != "ray":
         raise ValueError(
@@ -249,7 +307,7 @@ def _check_eval_and_experiment(cfg: Config) -> None:
     _at_least("eval.batch_size", cfg.eval.batch_size, 1)
 
     x = cfg.experiment
-    for name in ("runs", "episodes_per_run", "trials", "learning_episodes_per_trial"):
+    for name in ("episodes_per_run", "trials", "learning_episodes_per_trial"):
         _at_least(f"experiment.{name}", getattr(x, name), 1)
     _at_least("experiment.test_episodes_per_trial", x.test_episodes_per_trial, 1)
     bad = [b for b in x.baselines if b not in FIG4_BASELINES]

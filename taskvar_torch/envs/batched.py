@@ -110,9 +110,17 @@ class BatchedFamilyEnv(EnvBase):
         state["seed"] = self._seed
         return state
 
+    def state_bounds(self) -> dict[str, tuple[float, float]]:
+        """Inclusive ``(low, high)`` of the runtime-state entries whose values index tables or
+        the grid (cells, directions, positions, step counters, probabilities): a saved state
+        outside them is refused by :meth:`set_extra_state` instead of indexing out of range."""
+        return {"episode": (0, 2**62)}
+
     def set_extra_state(self, state: dict) -> None:
-        """Restore :meth:`get_extra_state` (the env must have the same ``num_envs``)."""
+        """Restore :meth:`get_extra_state` (the env must have the same ``num_envs``; every entry
+        of :meth:`state_bounds` within its range, else a one-line ``ValueError``)."""
         tensors = {}
+        bounds = self.state_bounds()
         for k, v in state.items():
             if k == "seed":
                 continue
@@ -122,9 +130,15 @@ class BatchedFamilyEnv(EnvBase):
                     f"env state {k!r} has shape {tuple(value.shape)}, expected ({self.num_envs}, ...): "
                     "num_envs must match the saved env"
                 )
+            if k in bounds and value.numel():
+                low, high = bounds[k]
+                v64 = value.to(torch.float64)
+                if not (bool(torch.isfinite(v64).all()) and low <= v64.min() and v64.max() <= high):
+                    bad = v64[~(torch.isfinite(v64) & (v64 >= low) & (v64 <= high))][0].item()
+                    raise ValueError(f"env state {k!r} holds {bad:g}, outside [{low:g}, {high:g}]")
             tensors[k] = value.clone()
         self._load_runtime_state(tensors)
-        self._seed = int(state["seed"])
+        self._seed = rng.check_seed(state["seed"], "env state 'seed'")
 
     def _finish(
         self,

@@ -131,6 +131,17 @@ class TaxiEnv(BatchedFamilyEnv):
     )
     """Simulator state that changes as the env runs (saved for exact resume)."""
 
+    def state_bounds(self) -> dict[str, tuple[float, float]]:
+        return {
+            **super().state_bounds(),
+            "state": (0, taxi.NUM_STATES - 1),
+            "t": (0, self.horizon),
+            "q": (0.0, 1.0),
+            "f": (0.0, 1.0),
+            "thr_intended": (0, 1 << 24),
+            "thr_left": (0, 1 << 24),
+        }
+
     def __init__(
         self,
         num_envs: int = 1,

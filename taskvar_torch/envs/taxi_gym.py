@@ -105,7 +105,7 @@ class TaxiGymEnv(gym.Env):
         self._reward = self.model.np_reward.astype(float).tolist()
         self._done = self.model.np_done.tolist()
         self._targets = self.model.np_fickle_targets.tolist()
-        self._base_key = np.asarray(rng.sub_env_key(0, np.zeros(1, dtype=np.int64)))
+        self._base_key: np.ndarray | None = None  # seeded at the first reset
         self._episode = -1
         self._state, self._t, self._key, self._last_action = 0, 0, 0, None
         self._q, self._f, self._armed = np.float32(1.0), np.float32(0.0), False
@@ -143,6 +143,11 @@ class TaxiGymEnv(gym.Env):
         """Start an episode; ``options`` may hold ``instance`` (Taxi-v4 keywords) and ``state``.
 
         Every option is checked before anything changes: a refused reset leaves the env as it was.
+
+        ``seed`` is an integer in ``[0, 2**32 - 1]`` (the keyed streams' 32-bit keys; a larger one
+        is a ``ValueError``, never wrapped). Without ``seed`` the first reset draws one from
+        Gymnasium's ``np_random`` (entropy), later ones continue that stream, as Gymnasium's own
+        envs do: two unseeded envs, or ``gym.make_vec`` sub-envs, play different episodes.
         """
         options = gym_checks.check_reset_options(options, _OPTION_KEYS)
         pinned = None
@@ -151,9 +156,12 @@ class TaxiGymEnv(gym.Env):
         state = None
         if options.get("state") is not None:
             state = check_state(options["state"], "state")
+        seed = None if seed is None else rng.check_seed(seed)
         super().reset(seed=seed)
+        if seed is None and self._base_key is None:  # first reset unseeded: Gymnasium's entropy
+            seed = int(self.np_random.integers(0, rng.MAX_SEED + 1))
         if seed is not None:
-            self._base_key = np.asarray(rng.sub_env_key(int(seed), np.zeros(1, dtype=np.int64)))
+            self._base_key = np.asarray(rng.sub_env_key(seed, np.zeros(1, dtype=np.int64)))
             self._episode = -1
         self._episode += 1
         key = torch.as_tensor(rng.episode_key(self._base_key, self._episode))  # (1,)

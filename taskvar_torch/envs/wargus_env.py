@@ -196,6 +196,17 @@ class WargusEnv(BatchedFamilyEnv):
 
     _RUNTIME_STATE = ("_base_key", "_episode", "_iseed", "_ikey", "_picked", "_item_lost")
 
+    def state_bounds(self) -> dict[str, tuple[float, float]]:
+        side = self.config.size - 1
+        return {
+            **super().state_bounds(),
+            "state_agent": (0, side),
+            "state_patrols": (0, side),
+            "state_items": (0, side),
+            "state_t": (0, self.horizon),
+            "iseed": (0, rng.MASK32),
+        }
+
     def _runtime_state(self) -> dict[str, torch.Tensor]:
         state = super()._runtime_state()
         if hasattr(self, "_state"):

@@ -147,6 +147,11 @@ class WargusGymEnv(gym.Env):
         """Start an episode: the next one of this env's seed stream, or pin it with ``options``.
 
         Every option is checked before anything changes: a refused reset leaves the env as it was.
+
+        ``seed`` is an integer in ``[0, 2**32 - 1]`` (the keyed streams' 32-bit keys; a larger one
+        is a ``ValueError``, never wrapped). Without ``seed`` the first reset draws one from
+        Gymnasium's ``np_random`` (entropy), later ones continue that stream, as Gymnasium's own
+        envs do: two unseeded envs, or ``gym.make_vec`` sub-envs, play different episodes.
         """
         options = gym_checks.check_reset_options(options, _OPTION_KEYS)
         iseed = None
@@ -161,12 +166,13 @@ class WargusGymEnv(gym.Env):
         start = None
         if options.get("start") is not None:
             start = gym_checks.check_cell(options["start"], self.config.size, self.config.size)
+        seed = None if seed is None else rng.check_seed(seed)
         # every input is valid: only now change the env's state
         super().reset(seed=seed)
-        if seed is None and self._base_key is None:
-            seed = int(self.np_random.integers(0, 2**31 - 1))
+        if seed is None and self._base_key is None:  # first reset unseeded: Gymnasium's entropy
+            seed = int(self.np_random.integers(0, rng.MAX_SEED + 1))
         if seed is not None:
-            self._base_key = rng.sub_env_key(int(seed), self._index)  # (1,)
+            self._base_key = rng.sub_env_key(seed, self._index)  # (1,)
             self._episode = 0
         else:
             self._episode += 1

@@ -19,6 +19,21 @@ _C_START = rng.RESET_COUNTER + 4
 _FLAGS = (keys.DONE, keys.TERMINATED, keys.TRUNCATED)
 
 
+def observation_size(
+    layout: windy.WindyLayout, encoding: str = "onehot", patch_radius: int = 2
+) -> int:
+    """``D``, the length of :func:`observation_table`'s rows, without building the table."""
+    coords_patch = 2 + 3 * (2 * patch_radius + 1) ** 2
+    side = max(layout.height, layout.width)
+    return {
+        "onehot": layout.num_cells,
+        "coords_patch": coords_patch,
+        "exits_patch": coords_patch + 2 * len(layout.exit_cells),
+        "rowcol_patch": coords_patch + layout.height + layout.width,
+        "fourier_patch": coords_patch + 4 * (int(np.ceil(np.log2(max(side, 2)))) + 1),
+    }[encoding]
+
+
 def observation_table(
     layout: windy.WindyLayout, encoding: str = "onehot", patch_radius: int = 2
 ) -> np.ndarray:
@@ -227,6 +242,16 @@ class WindyGridEnv(BatchedFamilyEnv):
 
     _RUNTIME_STATE = ("_base_key", "_episode", "_key32", "_threshold", "_t", "_p", "_dir", "_cell")
     """Simulator state that changes as the env runs (saved for exact resume)."""
+
+    def state_bounds(self) -> dict[str, tuple[float, float]]:
+        return {
+            **super().state_bounds(),
+            "cell": (0, self.layout.num_cells - 1),
+            "dir": (0, len(windy.DIRECTIONS) - 1),
+            "p": (0.0, 1.0),
+            "t": (0, self.horizon),
+            "threshold": (0, 1 << 24),
+        }
 
     def _out(self, cell, p, direction, reward=None, terminated=None, truncated=None):
         td = {

@@ -78,7 +78,7 @@ class WindyGridGymEnv(gym.Env):
         self.action_space = gym.spaces.Discrete(4)
         self._move, self._push = self.model.np_move.tolist(), self.model.np_push.tolist()
         self._goal = self.model.np_is_goal.tolist()
-        self._base_key = np.asarray(rng.sub_env_key(0, np.zeros(1, dtype=np.int64)))
+        self._base_key: np.ndarray | None = None  # seeded at the first reset
         self._episode = -1
         self._cell = int(self.model.np_start_cells[0])
         self._t, self._p, self._dir = 0, np.float32(0.0), 0
@@ -96,6 +96,11 @@ class WindyGridGymEnv(gym.Env):
 
         Every option is checked before anything changes: a refused reset leaves the env (episode
         counter, instance, position, seed) exactly as it was.
+
+        ``seed`` is an integer in ``[0, 2**32 - 1]`` (the keyed streams' 32-bit keys; a larger one
+        is a ``ValueError``, never wrapped). Without ``seed`` the first reset draws one from
+        Gymnasium's ``np_random`` (entropy), later ones continue that stream, as Gymnasium's own
+        envs do: two unseeded envs, or ``gym.make_vec`` sub-envs, play different episodes.
         """
         options = gym_checks.check_reset_options(options, _OPTION_KEYS)
         pinned: dict[str, Any] = {}
@@ -114,9 +119,12 @@ class WindyGridGymEnv(gym.Env):
                     f"start must be a free (row, col) cell (not a wall or goal), got {options['start']!r}"
                 )
             start = r * W + c
+        seed = None if seed is None else rng.check_seed(seed)
         super().reset(seed=seed)
+        if seed is None and self._base_key is None:  # first reset unseeded: Gymnasium's entropy
+            seed = int(self.np_random.integers(0, rng.MAX_SEED + 1))
         if seed is not None:
-            self._base_key = np.asarray(rng.sub_env_key(int(seed), np.zeros(1, dtype=np.int64)))
+            self._base_key = np.asarray(rng.sub_env_key(seed, np.zeros(1, dtype=np.int64)))
             self._episode = -1
         self._episode += 1
         key = torch.as_tensor(rng.episode_key(self._base_key, self._episode))  # (1,)

@@ -15,6 +15,7 @@ its regret against the exact per-instance optimum (an agent that knows the insta
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,8 +25,10 @@ import numpy as np
 import torch
 from torchrl.envs import TransformedEnv
 
-from taskvar_torch import keys
+from taskvar_torch import keys, rng
 from taskvar_torch.config import METHODS, Config
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller
 from taskvar_torch.experiments.baselines import (
     available_baselines,
@@ -44,7 +47,7 @@ from taskvar_torch.experiments.regret_steps import (
     step_regret_affordable,
     supports_step_regret,
 )
-from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.results import write_csv, write_json
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
     calibrate,
@@ -61,6 +64,7 @@ from taskvar_torch.heads.recurrent import BASELINES
 from taskvar_torch.oracle import exact_episode_returns
 from taskvar_torch.oracle.learnt import optimal_episode_returns
 from taskvar_torch.progress import progress_bar
+from taskvar_torch.run_folder import ResultsFolder, refuse_inside
 from taskvar_torch.subtasks.base import Subtasks
 
 METRICS_NAME = "metrics.json"
@@ -104,6 +108,8 @@ def episode_seed(cfg: Config, test: str, seed: int | None) -> int:
     """The seed of the test episodes (docs/evaluation.md): ``seed``, by default the bundle's
     ``seed + 1`` (the experiments' first test run); a held-out distribution plays its sealed seed
     only (another ``seed`` is a one-line error)."""
+    if seed is not None:
+        seed = rng.check_seed(seed, "--seed")  # 32-bit keys: a larger seed is refused, not wrapped
     sealed = family(cfg).tests[test].seed
     if sealed is not None and seed is not None and int(seed) != sealed:
         raise ValueError(f"--test {test} plays its sealed held-out seed; drop --seed {seed}")
@@ -286,8 +292,11 @@ def eval_bundle(
     the named test distribution ``test`` (``None``: the family's first) with ``shifts``
     (``KEY=V`` or ``KEY=V1,V2,..``: a shift curve); no retraining. ``seed`` defaults to the bundle's
     ``seed + 1`` (the first test run of the experiments). Writes ``metrics.json``,
-    ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given (a folder already holding
-    results is refused unless ``overwrite``); returns the metrics.
+    ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given, like every results folder
+    (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, written in a staging folder and
+    swapped in whole; a folder already holding results is refused unless ``overwrite``, one
+    holding other files always, and so is an ``out_dir`` holding ``checkpoint``); returns the
+    metrics.
 
     ``exact``: the exact per-episode returns and regret where the family has an oracle; ``None``
     (default): where they are cheap (an oracle may bound the distinct instances it solves per
@@ -297,6 +306,37 @@ def eval_bundle(
     ``by_frames``: also each memoryless method's exact regret on every heads snapshot of the run
     (``train.heads_every``) on the same episodes (``experiments/regret_frames.py``): the
     ``metrics.json`` key ``regret_by_frames``, ``regret_by_frames.csv`` and ``.png``."""
+    if out_dir is None:
+        return _evaluate(
+            checkpoint, method, test, shifts, episodes, seed, noise_seed, batch_size, None,
+            progress, plots, exact, by_frames,
+        )  # fmt: skip
+    folder = ResultsFolder(out_dir, overwrite, "taskvar eval")
+    refuse_inside(checkpoint, folder.out, "--checkpoint")
+    folder.check()  # a one-line refusal before any loading
+    with folder as staging:  # locked; written in a staging folder, swapped in whole at the end
+        return _evaluate(
+            checkpoint, method, test, shifts, episodes, seed, noise_seed, batch_size, staging,
+            progress, plots, exact, by_frames,
+        )  # fmt: skip
+
+
+def _evaluate(
+    checkpoint: str | os.PathLike,
+    method: str,
+    test: str | None,
+    shifts: Sequence[str | Shift],
+    episodes: int,
+    seed: int | None,
+    noise_seed: int | None,
+    batch_size: int | None,
+    out_dir: Path | None,
+    progress: bool,
+    plots: bool,
+    exact: bool | None,
+    by_frames: bool,
+) -> dict[str, Any]:
+    """:func:`eval_bundle` writing into ``out_dir`` (the staging folder) when given."""
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
@@ -311,6 +351,11 @@ def eval_bundle(
     baselines = load_baselines(checkpoint, methods, cfg)  # recurrent, informed (docs/memory.md)
     seed = episode_seed(cfg, test_name, seed)
     bs = int(batch_size or cfg.eval.batch_size)
+    rows_kept = len(points) * len(methods) * int(episodes)  # one result row per episode
+    batch = dataclasses.replace(cfg.eval, batch_size=min(bs, int(episodes)))  # --batch-size
+    check_memory(
+        estimate_memory(dataclasses.replace(cfg, eval=batch), training=False, episodes=rows_kept)
+    )
     calibration = None  # the hierarchy's thresholds: on the bundle's *training* distribution
     if "hierarchy" in methods and cfg.train.robustness_threshold == "calibrated":
         calibration = calibrate(cfg, heads, train_subtasks, training_states(cfg, heads))
@@ -328,8 +373,6 @@ def eval_bundle(
         if exact is False:
             raise ValueError("--by-frames computes exact returns; drop --no-exact")
         check_by_frames(checkpoint, points)
-    if out_dir is not None:
-        refuse_existing_results(Path(out_dir), overwrite, "taskvar eval")
     bar = progress_bar(
         total=len(points) * len(methods) * int(episodes), disable=not progress, desc="eval"
     )

@@ -52,6 +52,7 @@ from taskvar_torch.config.choices import FIG4_BASELINES
 from taskvar_torch.experiments import aggregate
 from taskvar_torch.experiments.fig4_metrics import trials_to_fraction_of_max
 from taskvar_torch.io import atomic_write
+from taskvar_torch.run_folder import check_out_path, folder_lock
 
 MIN_SEEDS = 5
 """Training seeds a group needs before it is quoted (issue 33: every headline over >= 5)."""
@@ -768,6 +769,7 @@ def add_rows(
     ``docs/claims.md`` beside the README)."""
     if int(reps) < 100:
         raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
+    _refuse_inside_results(dirs, readme, "--readme")
     text = _read_readme(readme)
     report = build_report(dirs, reps)
     if report.claims:
@@ -785,7 +787,8 @@ def add_rows(
     )
     block = merge_rows(old, results_table(report, link))
     new_text = replace_block(text, block, str(readme)).encode()
-    return [atomic_write(Path(readme), lambda f: f.write(new_text))], report
+    with folder_lock(Path(readme).resolve().parent, "--readme"):
+        return [atomic_write(Path(readme), lambda f: f.write(new_text))], report
 
 
 def profile_png(report: Report, reps: int) -> bytes | None:
@@ -840,7 +843,10 @@ def write_report(
     """``taskvar report``: check everything, compute everything, then write the claims page
     ``out``, its profile PNG (``img/<out stem>-profile.png`` beside it) and, with ``readme``, the
     README's Results block. Returns the files written and the report."""
-    out = Path(out)
+    out = check_out_path(out)
+    _refuse_inside_results(dirs, out, "--out")
+    if readme is not None:
+        _refuse_inside_results(dirs, readme, "--readme")
     png = out.parent / "img" / f"{out.stem}-profile.png"
     if int(reps) < 100:
         raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
@@ -868,12 +874,26 @@ def write_report(
         ).encode()
     )
     written = []
-    if image is not None:
-        written.append(atomic_write(png, lambda f: f.write(image)))
-    written.append(atomic_write(out, lambda f: f.write(page)))
-    if new_readme is not None:
-        written.append(atomic_write(Path(readme), lambda f: f.write(new_readme)))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out.parent):  # one taskvar command writing in the folder at a time
+        if image is not None:
+            written.append(atomic_write(png, lambda f: f.write(image)))
+        written.append(atomic_write(out, lambda f: f.write(page)))
+        if new_readme is not None:
+            written.append(atomic_write(Path(readme), lambda f: f.write(new_readme)))
     return written, report
+
+
+def _refuse_inside_results(dirs: Sequence[str], path: str | os.PathLike, flag: str) -> None:
+    """A one-line :class:`ReportError` when ``path`` (a file the report writes) lies in one of
+    the results folders ``dirs`` it reads."""
+    target = Path(path).resolve()
+    for d in dirs:
+        if Path(d).resolve() in target.parents:
+            raise ReportError(
+                f"{flag} {str(path)!r} lies in the results folder {d!r} that taskvar report reads; "
+                f"choose another {flag}"
+            )
 
 
 __all__ = [

@@ -82,7 +82,7 @@ from torch import nn
 from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules import RandomPolicy
 
-from taskvar_torch import keys
+from taskvar_torch import keys, rng
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import (
     METHODS,
@@ -94,7 +94,7 @@ from taskvar_torch.config import (
     save_config_yaml,
 )
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
-from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.results import write_csv, write_json
 from taskvar_torch.experiments.scale_report import (
     COLOURS,
     CSV_FIELDS,
@@ -128,6 +128,7 @@ from taskvar_torch.heads.recurrent import (
     load_baseline,
 )
 from taskvar_torch.progress import progress_bar
+from taskvar_torch.run_folder import ResultsFolder
 from taskvar_torch.train import HEADS_SNAPSHOTS, seed_config, train
 from taskvar_torch.train_recurrent import train_baseline
 
@@ -217,6 +218,13 @@ class ScaleConfig:
             raise ValueError(f"total_frames must be >= 1, got {self.total_frames}")
         if isinstance(self.seeds, bool) or not isinstance(self.seeds, int) or self.seeds < 1:
             raise ValueError(f"seeds must be an integer >= 1, got {self.seeds!r}")
+        top = rng.MAX_SEED - TEST_SEED_OFFSET - self.seeds  # the test episodes' seed + 1000
+        if (
+            isinstance(self.seed, bool)
+            or not isinstance(self.seed, int)
+            or not 0 <= self.seed <= top
+        ):
+            raise ValueError(f"seed must be an integer in [0, {top}], got {self.seed!r}")
         for name in ("init_random_fraction", "eps_decay_fraction"):
             v = getattr(self, name)
             if not 0.0 <= v <= 1.0:
@@ -915,14 +923,21 @@ def scale(
     """Run every (case, num_envs) cell, write the results folder, print the table.
 
     ``overwrite``: replace the results (and cell runs) already in ``out_dir``; without it such a
-    folder is refused.
+    folder is refused. ``out_dir`` is written like every results folder
+    (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, filled in a staging folder and
+    swapped in whole).
 
     Returns:
         The metrics dict written to ``metrics.json``.
     """
-    out = Path(out_dir)
-    refuse_existing_results(out, overwrite, "taskvar experiment scale")
-    out.mkdir(parents=True, exist_ok=True)
+    folder = ResultsFolder(out_dir, overwrite, "taskvar experiment scale")
+    folder.check()
+    with folder as staging:
+        return _scale(cfg, staging, progress, quick, plots)
+
+
+def _scale(cfg: ScaleConfig, out: Path, progress: bool, quick: bool, plots: bool) -> dict[str, Any]:
+    """:func:`scale` writing into the folder ``out``."""
     save_config_yaml(cfg, out / "config.yaml")
     t0 = time.perf_counter()
     cases = cfg.selected()
@@ -943,7 +958,7 @@ def scale(
             held_refs[case.name] = held
         for n in cfg.num_envs:
             bar.set_postfix_str(f"{case.name} N={n}")
-            cells.append(run_cell(cfg, case, n, out, refs[case.name], overwrite, held))
+            cells.append(run_cell(cfg, case, n, out, refs[case.name], False, held))  # new folder
             bar.update(1)
     bar.close()
     metrics = {

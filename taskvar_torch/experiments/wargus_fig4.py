@@ -128,6 +128,7 @@ from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.heads.seeds import load_seed, stack_seeds
 from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.progress import progress_bar
+from taskvar_torch.run_folder import ResultsFolder
 from taskvar_torch.train import (
     build_heads,
     make_env,
@@ -662,12 +663,16 @@ def wargus_fig4(
     progress: bool = True,
     plots: bool = True,
     overwrite: bool = False,
+    staged: bool = True,
 ) -> dict[str, Any]:
     """Run the lifelong protocol (module docstring), write the results folder, print the table.
 
     ``workers`` processes run the repetitions; ``plots=False`` skips ``fig4.png`` (``taskvar plot
     DIR`` draws it later from the folder); ``overwrite`` replaces results already in ``out_dir``
-    (without it such a folder is refused).
+    (without it such a folder is refused). ``out_dir`` is written like every results folder
+    (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, filled in a staging folder and
+    swapped in whole); ``staged=False`` writes into it directly (a sweep's point: the sweep holds
+    its folder).
     """
     FAMILIES["wargus"].require(cfg, "wargus-fig4")
     if cfg.train.eval_ema_tau is not None:
@@ -682,9 +687,21 @@ def wargus_fig4(
         )
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    out = Path(out_dir)
-    refuse_existing_results(out, overwrite, "taskvar experiment wargus-fig4")
-    out.mkdir(parents=True, exist_ok=True)
+    if not staged:
+        out = Path(out_dir)
+        refuse_existing_results(out, overwrite, "taskvar experiment wargus-fig4")
+        out.mkdir(parents=True, exist_ok=True)
+        return _wargus_fig4(cfg, out, workers, progress, plots)
+    folder = ResultsFolder(out_dir, overwrite, "taskvar experiment wargus-fig4")
+    folder.check()
+    with folder as staging:
+        return _wargus_fig4(cfg, staging, workers, progress, plots)
+
+
+def _wargus_fig4(
+    cfg: Config, out: Path, workers: int, progress: bool, plots: bool
+) -> dict[str, Any]:
+    """:func:`wargus_fig4` writing into the folder ``out``."""
     save_config_yaml(cfg, out / "config.yaml")
 
     start = time.perf_counter()

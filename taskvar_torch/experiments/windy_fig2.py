@@ -48,6 +48,8 @@ from torchrl.envs import TransformedEnv
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import Config, save_config_yaml, windy_layout
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.envs.instances import WindyInstances
 from taskvar_torch.envs.windy_env import WindyGridEnv
@@ -83,6 +85,7 @@ from taskvar_torch.oracle import (  # the exact maths; also importable from this
     learnt_vs_oracle_by_start,
 )
 from taskvar_torch.progress import progress_bar
+from taskvar_torch.run_folder import RESULT_MARKERS, ResultsFolder, refuse_inside
 from taskvar_torch.train import (
     check_device,
     check_output_folder,
@@ -371,21 +374,26 @@ def windy_fig2(
     quick: bool = False,
     plots: bool = True,
     overwrite: bool = False,
+    staged: bool = True,
 ) -> dict[str, Any]:
     """Train (or load ``checkpoint``), evaluate Figure 2's protocol, write the results folder.
 
     Args:
         cfg: a windy config; ``experiment.runs`` x ``experiment.episodes_per_run`` test episodes
             per distribution, ``eval.batch_size`` environments in parallel.
-        out_dir: results folder (created).
+        out_dir: results folder (created), written like every results folder
+            (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, filled in a staging
+            folder, swapped in whole at the end; the training run goes to ``out_dir/train``).
         checkpoint: a bundle written by ``train.train``; skips training (its config's env and
             heads are used, ``cfg``'s experiment and eval sizes).
         progress: progress bars (taskvar_torch/progress.py: plain lines away from a terminal).
         quick: recorded in ``metrics.json`` (the config already holds the quick overrides).
         plots: draw the PNGs (``False``: skip them, e.g. in sweeps; ``taskvar plot DIR`` draws
             them later from the folder).
-        overwrite: replace a training run already in ``out_dir/train`` (without it such a folder
-            is refused, see :func:`~taskvar_torch.train.train`).
+        overwrite: replace the results (and training run) already in ``out_dir`` (without it
+            such a folder is refused; a killed run leaves them whole).
+        staged: ``False``: write into ``out_dir`` directly (a sweep's point: the sweep holds its
+            folder; ``overwrite`` then replaces a training run in ``out_dir/train``).
 
     Returns:
         The metrics dict written to ``metrics.json``.
@@ -393,16 +401,42 @@ def windy_fig2(
 
     FAMILIES["windy"].require(cfg, "windy-fig2")
     heldout_seed(cfg, cfg.experiment.runs - 1)  # every held-out run has a sealed seed
-    out = Path(out_dir)
-    heads, tcfg = _check_inputs(cfg, out, checkpoint, overwrite)
-    out.mkdir(parents=True, exist_ok=True)
+    if not staged:
+        out = Path(out_dir)
+        heads, tcfg = _check_inputs(cfg, out, checkpoint, overwrite=overwrite)
+        out.mkdir(parents=True, exist_ok=True)
+        return _windy_fig2(
+            cfg, out, out, checkpoint, heads, tcfg, progress, quick, plots, overwrite
+        )  # fmt: skip
+    folder = ResultsFolder(out_dir, overwrite, "taskvar experiment windy-fig2")
+    heads, tcfg = _check_inputs(cfg, folder.out, checkpoint, folder=folder)
+    with folder as staging:  # locked; written in a staging folder, swapped in whole at the end
+        return _windy_fig2(
+            cfg, folder.out, staging, checkpoint, heads, tcfg, progress, quick, plots, False
+        )  # fmt: skip
+
+
+def _windy_fig2(
+    cfg: Config,
+    dest: Path,
+    out: Path,
+    checkpoint: str | os.PathLike | None,
+    heads: Heads | None,
+    tcfg: Config | None,
+    progress: bool,
+    quick: bool,
+    plots: bool,
+    overwrite: bool,
+) -> dict[str, Any]:
+    """:func:`windy_fig2` writing into ``out`` (``dest``, or the staging folder of ``dest``)."""
     t0 = time.perf_counter()
     train_seconds = 0.0
     if checkpoint is None:
         save_config_yaml(cfg, out / "config.yaml")
         result = train(cfg, out / "train", progress=progress, overwrite=overwrite)
-        checkpoint, train_seconds = result["final"], float(result["seconds"])
-        heads, tcfg = load_heads(checkpoint, device=cfg.device)
+        train_seconds = float(result["seconds"])
+        heads, tcfg = load_heads(result["final"], device=cfg.device)
+        checkpoint = dest / "train" / "final.pt"  # where it is once the folder is swapped in
     else:
         tcfg = _with_sizes(tcfg, cfg)
         save_config_yaml(tcfg, out / "config.yaml")
@@ -446,16 +480,38 @@ def windy_fig2(
 
 
 def _check_inputs(
-    cfg: Config, out: Path, checkpoint: str | os.PathLike | None, overwrite: bool
+    cfg: Config,
+    out: Path,
+    checkpoint: str | os.PathLike | None,
+    folder: ResultsFolder | None = None,
+    overwrite: bool = False,
 ) -> tuple[Heads | None, Config | None]:
-    """Every check before any work or any file written: the output folder, the device, a given
-    ``checkpoint``'s family (then its heads and config are loaded), a training run already in
-    ``out/train`` without ``overwrite``, and results already in ``out``.
+    """Every check before any work or any file written: the output folder (a training run
+    already in ``out/train``; results or other files already in ``out``: ``folder.check``, or
+    without a ``folder`` results unless ``overwrite``), the device, the memory, a given
+    ``checkpoint``'s family and place (not inside the ``folder``; then its heads and config are
+    loaded).
 
     Returns the checkpoint's ``(heads, config)``, or ``(None, None)`` without one.
     """
     check_output_folder(out)
+    has_results = any((out / m).is_file() for m in RESULT_MARKERS)
+    if checkpoint is None and run_files(out / "train") and not (has_results or overwrite):
+        raise ValueError(
+            f"{str(out / 'train')!r} already holds a training run; evaluate it with --checkpoint "
+            f"{out / 'train' / 'final.pt'}, or choose another --out"
+        )
+    if folder is not None:
+        folder.check()
+        if checkpoint is not None:
+            refuse_inside(checkpoint, out, "--checkpoint")
+    else:
+        refuse_existing_results(out, overwrite, "taskvar experiment windy-fig2")
     check_device(cfg.device)
+    x = cfg.experiment  # one result row per test episode, distribution and method
+    rows = (len(DISTRIBUTIONS) + len(HELDOUT)) * x.runs * x.episodes_per_run * len(METHODS)
+    key = "experiment.episodes_per_run"
+    check_memory(estimate_memory(cfg, training=False, episodes=rows, episodes_key=key))
     heads = tcfg = None
     if checkpoint is not None:
         saved = load_checkpoint(checkpoint)["config"].get("family")
@@ -465,12 +521,6 @@ def _check_inputs(
                 "evaluates windy bundles (wargus-fig4 trains its own)"
             )
         heads, tcfg = load_heads(checkpoint, device=cfg.device)
-    elif run_files(out / "train") and not overwrite:
-        raise ValueError(
-            f"{str(out / 'train')!r} already holds a training run; replace it with --overwrite, "
-            f"evaluate it with --checkpoint {out / 'train' / 'final.pt'}, or choose another --out"
-        )
-    refuse_existing_results(out, overwrite, "taskvar experiment windy-fig2")
     return heads, tcfg
 
 
