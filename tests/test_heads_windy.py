@@ -33,12 +33,13 @@ pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]  # a 4-min fixture un
 BUDGET = ["train.total_frames=40000", "train.eps_decay_frames=20000", "train.checkpoint_every=0"]
 
 
-INFORMED_BOUND = 0.25
+INFORMED_BOUND = 0.15
 """Stated bound on the informed head's mean regret against the exact per-instance optimum on the
-training distribution (measured: MEASURED_INFORMED)."""
+training distribution (measured: 0.033 +- 0.028 on 4000 episodes, seed 0, at this budget)."""
 RECURRENT_BOUND = 0.5
 """Stated bound on how far the recurrent head's mean return may fall below the averaging head's
-exact value on the training distribution at the same budget (measured: MEASURED_RECURRENT)."""
+exact value on the training distribution at the same budget (measured at this budget, seed 0:
+-4.540 +- 0.052 against averaging's exact -5.880; the bound only asks for no worse)."""
 EPISODES = 4000
 
 

@@ -39,8 +39,9 @@ ROW_EXTRA = 512
 PARAM_COPIES = 7
 """Copies of every weight a training run holds: weights, gradients, targets, Adam's two moments,
 the evaluation average and one spare."""
-HEADS = 6
-"""Networks per bundle (averaging, options, switching, max-value gap, robustness, a critic)."""
+HEADS = 7
+"""Networks per bundle (averaging, options, switching, max-value gap, robustness, a critic, the
+informed head)."""
 OUTPUTS = 64
 """Output width assumed for a head's last layer (options x actions: 12 to 27 in the families)."""
 FIRST_VISIT_BUCKETS = 1 << 14

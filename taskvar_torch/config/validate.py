@@ -202,9 +202,9 @@ def _check_heads(cfg: Config, fam: Family) -> None:
 
 def _check_baseline(cfg: Config) -> None:
     """``baseline.*``: the recurrent baseline's own sizes."""
-    _at_least("baseline.hidden", cfg.baseline.hidden, 1)
-    _at_least("baseline.slice_len", cfg.baseline.slice_len, 1)
-    _at_least("baseline.burn_in", cfg.baseline.burn_in, 0)
+    _at_least("baseline.hidden", cfg.baseline.hidden, 1, 2**20)  # as heads.hidden's widths
+    _at_least("baseline.slice_len", cfg.baseline.slice_len, 1, MAX_HORIZON)
+    _at_least("baseline.burn_in", cfg.baseline.burn_in, 0, MAX_HORIZON)
 
 
 def _check_train(cfg: Config, fam: Family) -> None:
