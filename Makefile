@@ -59,10 +59,13 @@ test-fast: $(VENV)/.test-extras
 	$(BIN)/ruff format --check taskvar_torch tests benchmarks scripts
 	$(BIN)/python -m pytest -q -m "not slow" --durations=10
 
-## notebooks: install the test extras (nbclient, ipykernel) and execute the four notebooks with
-## small settings (tests/test_notebooks.py; each notebook's table lists its TASKVAR_NB_* knobs)
+## notebooks: install the test extras (nbclient, ipykernel), execute the four notebooks with the
+## test suite's small settings (tests/test_notebooks.py SETTINGS; each notebook's table lists its
+## TASKVAR_NB_* knobs) and store them with their outputs, plots included, for a reader to see
+## without running them; commit the result. CI executes them again and fails where a stored output
+## is stale. About 1.5 min on 2 CPU cores
 notebooks: install-test
-	$(BIN)/python -m pytest -q tests/test_notebooks.py
+	TASKVAR_NB_WRITE=1 $(BIN)/python -m pytest -q tests/test_notebooks.py
 
 ## lint: the lint and format checks of make test, without installing or testing
 lint:
