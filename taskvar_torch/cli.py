@@ -655,14 +655,16 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out",
         metavar="FILE",
-        help="the claims page (docs/claims.md); its performance profiles go to "
-        "img/<FILE stem>-profile.png beside it (required unless --add)",
+        help="the claims page (docs/claims.md); beside it img/<FILE stem>-profile.png "
+        "(performance profiles), img/<FILE stem>-results.png (regret per method and family) and "
+        "<FILE stem>-results.json (the data of the README's compact tables) (required unless --add)",
     )
     p.add_argument(
         "--readme",
         metavar="FILE",
-        help="also replace the Results table between <!-- report:results:start --> and "
-        "<!-- report:results:end --> in FILE (README.md)",
+        help="also replace the Results block between <!-- report:results:start --> and "
+        "<!-- report:results:end --> in FILE (README.md): the regret figure, per family a compact "
+        "table (methods as columns, the winner bold) and the table of every result, folded",
     )
     p.add_argument(
         "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"
