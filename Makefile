@@ -45,12 +45,11 @@ demo: install
 	@echo "interruption), a recurrent policy (memory) and the informed head, which sees the hidden wind."
 	@echo "Look at the last table's regret column: steps per episode lost to an agent that knows the wind."
 	@echo "The budget is small ($(DEMO_FRAMES) frames per model): the training lines compare the heads with the"
-	@echo "exact oracle and name what is not learnt yet."
-	@echo "-- 1/3: the paper's heads and the informed one (taskvar train)"
+	@echo "exact oracle and name what is not learnt yet. Three steps, each command printed as it starts:"
+	@echo "taskvar train (the paper's heads and the informed one), taskvar train-baselines (the recurrent"
+	@echo "policy, same budget), taskvar eval --explain (every method on 2000 paired episodes)."
 	$(BIN)/taskvar train configs/windy_corridor.yaml --overwrite --out $(DEMO) $(DEMO_TRAIN)
-	@echo "-- 2/3: the recurrent policy, same budget (taskvar train-baselines)"
 	$(BIN)/taskvar train-baselines --out $(DEMO) --method recurrent --overwrite
-	@echo "-- 3/3: every method on 2000 paired episodes of the training winds (taskvar eval --explain)"
 	$(BIN)/taskvar eval --checkpoint $(DEMO)/final.pt --method all --test train --episodes 2000 \
 		--overwrite --out $(DEMO)/eval --explain
 	@echo "Next: make fig2 (the paper's Figure 2 protocol: interruption vs averaging); notebooks/ (read"
