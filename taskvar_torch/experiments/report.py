@@ -1005,12 +1005,10 @@ def write_report(
     reps: int = aggregate.REPS,
     overwrite: bool = False,
 ) -> tuple[list[Path], Report]:
-    """``taskvar report``: check everything, compute everything, then write the claims page
-    ``out``, its profile PNG (``img/<out stem>-profile.png`` beside it), the regret figure
-    (``img/<out stem>-results.png``) with the summaries behind it and the compact tables
-    (``<out stem>-results.json``) and, with ``readme``, the README's Results block (the figure,
-    the compact tables per family, the table of every result folded away). Returns the files
-    written and the report."""
+    """``taskvar report``: check everything, compute everything, then write the regret figure
+    and the summaries behind it and the compact tables (:func:`results_files`), the claims page
+    ``out``, its profile PNG (``img/<out stem>-profile.png`` beside it) and, with ``readme``, the
+    README's Results block. Returns the files written and the report."""
     out = Path(out)
     png = out.parent / "img" / f"{out.stem}-profile.png"
     results_png, data = results_files(out)
