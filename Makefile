@@ -5,8 +5,9 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 OUT ?= results/windy-fig2-quick
 DEMO ?= results/demo
-DEMO_TRAIN := train.total_frames=10240 train.eps_decay_frames=6000 train.init_random_frames=1024 \
-	train.checkpoint_every=0
+DEMO_FRAMES := 10240
+DEMO_TRAIN := train.total_frames=$(DEMO_FRAMES) train.eps_decay_frames=6000 \
+	train.init_random_frames=1024 train.checkpoint_every=0
 
 .PHONY: demo fig2 test test-fast notebooks install install-test lint clean
 
@@ -30,15 +31,29 @@ $(VENV)/.test-extras: pyproject.toml
 ## demo: install everything, then on the windy corridor (configs/windy_corridor.yaml, docs/memory.md)
 ## train the paper's heads with the informed baseline, then the recurrent one (10240 frames each), and evaluate
 ## every method on 2000 paired episodes of the training winds: the table puts each method's return
-## and exact value beside the exact per-instance optimum (the ceiling) and its regret; the plots go
-## to $(DEMO)/eval. About 1.5 minutes on 2 CPU cores; a rerun replaces $(DEMO)
+## and exact value beside the exact per-instance optimum (the ceiling) and its regret, and --explain
+## says what it shows, from its numbers; the plots go to $(DEMO)/eval. The first lines say what is
+## compared and what to look for. Measured on 2 CPU cores: see the README; a rerun replaces $(DEMO)
 demo: install
+	@echo "== make demo: memory against the paper's methods on the windy corridor (configs/windy_corridor.yaml)"
+	@echo "Each episode hides a wind from the agent: strength p in [0, 1], blowing north or south. From the"
+	@echo "start cell S, between two windy cells, it must reach an exit at either end. A gust that pushes it"
+	@echo "back to S tells the wind's direction, which only a policy with memory can use. Exact on this layout:"
+	@echo "the best memoryless policy returns -2.0 per episode (a stochastic one, which greedy Q-heads cannot"
+	@echo "represent), the best with memory -1.833, one that knows the wind -1.5 (docs/memory.md)."
+	@echo "Compared on the same 2000 episodes: the paper's memoryless methods (averaging, options,"
+	@echo "interruption), a recurrent policy (memory) and the informed head, which sees the hidden wind."
+	@echo "Look at the last table's regret column: steps per episode lost to an agent that knows the wind."
+	@echo "The budget is small ($(DEMO_FRAMES) frames per model): the training lines compare the heads with the"
+	@echo "exact oracle and name what is not learnt yet. Three steps, each command printed as it starts:"
+	@echo "taskvar train (the paper's heads and the informed one), taskvar train-baselines (the recurrent"
+	@echo "policy, same budget), taskvar eval --explain (every method on 2000 paired episodes)."
 	$(BIN)/taskvar train configs/windy_corridor.yaml --overwrite --out $(DEMO) $(DEMO_TRAIN)
 	$(BIN)/taskvar train-baselines --out $(DEMO) --method recurrent --overwrite
 	$(BIN)/taskvar eval --checkpoint $(DEMO)/final.pt --method all --test train --episodes 2000 \
-		--overwrite --out $(DEMO)/eval
-	@echo "regret: steps per episode lost to an agent that knows the wind (exact per-instance optimum);"
-	@echo "plots: $(DEMO)/eval/*.png. The paper's Figure 2 protocol (interruption vs averaging): make fig2"
+		--overwrite --out $(DEMO)/eval --explain
+	@echo "Next: make fig2 (the paper's Figure 2 protocol: interruption vs averaging); notebooks/ (read"
+	@echo "rendered); the README's Results (every family, many training seeds)"
 
 ## fig2: install everything and run the paper's Figure 2 protocol, quick (train, evaluate, print the
 ## table, write the plot); --overwrite: a rerun replaces the previous results in $(OUT)
@@ -59,10 +74,13 @@ test-fast: $(VENV)/.test-extras
 	$(BIN)/ruff format --check taskvar_torch tests benchmarks scripts
 	$(BIN)/python -m pytest -q -m "not slow" --durations=10
 
-## notebooks: install the test extras (nbclient, ipykernel) and execute the four notebooks with
-## small settings (tests/test_notebooks.py; each notebook's table lists its TASKVAR_NB_* knobs)
+## notebooks: install the test extras (nbclient, ipykernel), execute the four notebooks with the
+## test suite's small settings (tests/test_notebooks.py SETTINGS; each notebook's table lists its
+## TASKVAR_NB_* knobs) and store them with their outputs, plots included, for a reader to see
+## without running them; commit the result. CI executes them again and fails where a stored output
+## is stale. About 1.5 min on 2 CPU cores
 notebooks: install-test
-	$(BIN)/python -m pytest -q tests/test_notebooks.py
+	TASKVAR_NB_WRITE=1 $(BIN)/python -m pytest -q tests/test_notebooks.py
 
 ## lint: the lint and format checks of make test, without installing or testing
 lint:

@@ -247,13 +247,20 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
         "docs/memory.md)",
     )
     p.add_argument("--out", metavar="DIR", help="write DIR/metrics.json, episodes.csv, eval.png")
+    p.add_argument(
+        "--explain",
+        action="store_true",
+        help="after the table, say in words what each column is and what the numbers show (which "
+        "methods acted alike or tie within their 95%% CIs, memory against the memoryless methods, "
+        "the ceiling), and where to read further (make demo uses it)",
+    )
     _overwrite_argument(p, "DIR")
     _threads_argument(p)
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
 def _eval_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
+    from taskvar_torch.experiments.bundle_eval import eval_bundle, explain_table, format_table
     from taskvar_torch.experiments.regret_frames import format_by_frames
     from taskvar_torch.experiments.shift import parse_shift
 
@@ -290,6 +297,8 @@ def _eval_run(args: argparse.Namespace) -> int:
             + (", eval.png" if metrics.get("figures") else "")
             + "".join(f", {f}" for f in metrics.get("regret_by_frames", {}).get("files", []))
         )
+    if args.explain:
+        print(explain_table(metrics))
     return 0
 
 
@@ -658,14 +667,16 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out",
         metavar="FILE",
-        help="the claims page (docs/claims.md); its performance profiles go to "
-        "img/<FILE stem>-profile.png beside it (required unless --add)",
+        help="the claims page (docs/claims.md); beside it img/<FILE stem>-profile.png "
+        "(performance profiles), img/<FILE stem>-results.png (regret per method and family) and "
+        "<FILE stem>-results.json (the data of the README's compact tables) (required unless --add)",
     )
     p.add_argument(
         "--readme",
         metavar="FILE",
-        help="also replace the Results table between <!-- report:results:start --> and "
-        "<!-- report:results:end --> in FILE (README.md)",
+        help="also replace the Results block between <!-- report:results:start --> and "
+        "<!-- report:results:end --> in FILE (README.md): the regret figure, per family a compact "
+        "table (methods as columns, the winner bold) and the table of every result, folded",
     )
     p.add_argument(
         "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"

@@ -428,25 +428,45 @@ def _windy_head_report(cfg: Config, heads: Any, with_max_value: bool = True) -> 
 
 
 def _windy_summary(heads: Any, cfg: Config) -> list[str]:
-    """The learnt heads beside the exact oracle on the training instances (docs/oracle.md)."""
+    """The learnt heads beside the exact oracle on the training instances (docs/oracle.md), each
+    figure labelled: what it compares, and an option the budget has not learnt (its greedy policy
+    never reaches an exit within the horizon)."""
     oracle = _windy_oracle(cfg)
     if oracle is None:
         return []
     from taskvar_torch.heads.validate import compare_with_oracle
 
     r = compare_with_oracle(heads.cpu(), oracle)
+    horizon = cfg.env.horizon
     lines = [
-        "learnt heads vs exact oracle (expected returns: training instances, uniform start):",
+        "learnt heads vs exact oracle (exact expected returns of the greedy policies, not sampled; "
+        "training instances, uniform start):",
         f"  averaging policy  {r['averaging_return']:8.3f}   oracle {r['oracle_averaging_return']:8.3f}",
     ]
+    unlearnt = []
     for name, a, b in zip(heads.option_names, r["option_returns"], r["oracle_option_returns"]):
-        lines.append(f"  option {name:<10} {a:8.3f}   oracle {b:8.3f}")
+        note = ""
+        if a <= -horizon + 1e-6 < b:  # the option's greedy policy never reaches its exit
+            unlearnt.append(name)
+            note = f"   not learnt: never reaches its exit in {horizon} steps"
+        lines.append(f"  option {name:<10} {a:8.3f}   oracle {b:8.3f}{note}")
+    per_option = ", ".join(
+        f"{n} {e:.3f}" for n, e in zip(heads.option_names, r["max_value_error_per_option"])
+    )
     lines += [
-        f"  mu_bar agreement            {r['mu_bar_agreement']:.3f} on {r['mu_bar_cells']} cells",
-        f"  max |Q_hat - oracle|        {r['max_value_error']:.3f}",
+        f"  mu_bar agreement            {r['mu_bar_agreement']:.3f} on {r['mu_bar_cells']} cells "
+        "(share of them where the switching head picks the oracle's option)",
+        f"  max |Q_hat - oracle|        {r['max_value_error']:.3f}   (max-value head, largest "
+        f"error over the cells; per option: {per_option})",
         f"  interruption agreement      {r['interruption_agreement']:.3f} on "
-        f"{r['interruption_pairs']} (cell, option) pairs",
+        f"{r['interruption_pairs']} (cell, option) pairs (share where learnt and exact heads agree "
+        "on whether Algorithm 1 interrupts)",
     ]
+    if unlearnt:
+        lines.append(
+            f"  undertrained at {cfg.train.total_frames} training frames: option(s) "
+            f"{', '.join(unlearnt)} not learnt yet"
+        )
     return lines
 
 

@@ -15,6 +15,7 @@ import yaml
 from taskvar_torch import cli
 from taskvar_torch.checkpoint import make_bundle, save_checkpoint
 from taskvar_torch.experiments import report
+from taskvar_torch.experiments import report_results as glance
 
 METHODS = ("averaging", "options", "interruption", "hierarchy")
 START, END = report.README_START, report.README_END
@@ -48,7 +49,12 @@ def fig4_folder(
         "protocol": {"seeds": list(seeds)},
         "heldout": {"methods": methods},
     }
-    cfg = {"seed": seeds[0], "env": {"wargus": {"size": size}}, "experiment": {"trials": trials}}
+    cfg = {
+        "seed": seeds[0],
+        "family": "wargus",
+        "env": {"wargus": {"size": size}},
+        "experiment": {"trials": trials},
+    }
     return _write(folder, metrics, cfg)
 
 
@@ -60,7 +66,7 @@ def fig2_folder(folder: Path, seed: int, no_worse: float, better: float, layout=
         "mean_difference": better - (1 - no_worse),
         "mean_return": {m: {"mean": -6.0 + 0.1 * seed} for m in METHODS[:3]},
     }
-    cfg = {"seed": seed, "env": {"layout": layout}}
+    cfg = {"seed": seed, "family": "windy", "env": {"layout": layout}}
     return _write(folder, {"experiment": "windy-fig2", "heldout": held}, cfg)
 
 
@@ -369,19 +375,28 @@ def test_add_grows_the_readme_table_and_keeps_the_other_rows(tmp_path, capsys):
         eval_folder(tmp_path / "e" / f"seed{k}", k, {"averaging": 1.0, "options": 2.0}, "train")
     rc, out, err = _run([str(tmp_path / "e"), "--readme", str(readme), "--add"], capsys)
     assert rc == 0, err
-    rows = readme.read_text().split(START)[1].split(END)[0].strip().splitlines()
+    block = readme.read_text().split(START)[1].split(END)[0]
+    rows = glance.details_of(block).strip().splitlines()
     assert rows[:3] == [*head, old] and len(rows) == 4
     assert rows[3].startswith("| eval windy --test train --shift") and "averaging -6.48" in rows[3]
     assert "([claims](docs/claims.md))" in rows[3]
+    assert "1 row(s) of the table below are in no table above" in block  # the old row: no data
     assert readme.read_text().endswith(f"{END}\n\ntail\n")
-    assert not (tmp_path / "docs").exists()
+    assert not (tmp_path / "docs" / "claims.md").exists()  # no claims page: the summaries only
+    kept = json.loads((tmp_path / "docs" / "claims-results.json").read_text())["groups"]
+    assert [g["label"] for g in kept] == [
+        "eval windy --test train --shift env.instances.p=0.0,0.5,1.0"
+    ]
     for k in range(5):  # a rerun on other numbers replaces its own row, in place
         m = json.loads((tmp_path / "e" / f"seed{k}" / "metrics.json").read_text())
         m["points"][0]["methods"]["averaging"]["mean_return"] = -9.5
         (tmp_path / "e" / f"seed{k}" / "metrics.json").write_text(json.dumps(m))
     assert _run([str(tmp_path / "e"), "--readme", str(readme), "--add"], capsys)[0] == 0
-    again = readme.read_text().split(START)[1].split(END)[0].strip().splitlines()
+    block = readme.read_text().split(START)[1].split(END)[0]
+    again = glance.details_of(block).strip().splitlines()
     assert again[:3] == rows[:3] and len(again) == 4 and again[3] != rows[3]
+    kept_again = json.loads((tmp_path / "docs" / "claims-results.json").read_text())["groups"]
+    assert len(kept_again) == 1 and kept_again[0] != kept[0]  # replaced, not added
     before = readme.read_text()
     fig4_folder(tmp_path / "f4", range(5), dict.fromkeys(METHODS, 1.0))
     rc, out, err = _run([str(tmp_path / "f4"), "--readme", str(readme), "--add"], capsys)
@@ -401,3 +416,179 @@ def test_a_wargus_evaluation_is_labelled_by_its_grid(tmp_path):
         (folder / "metrics.json").write_text(json.dumps(m))
     (group,) = report.collect([str(tmp_path / "w")])
     assert group.label.startswith("eval wargus 64x64 --test train")
+
+
+def methods_folder(
+    folder: Path,
+    seed: int,
+    family: str,
+    test: str,
+    returns: dict,
+    regret: dict | None = None,
+    frames: int = 50_000,
+) -> Path:
+    """A one-point ``taskvar eval`` folder of training seed ``seed``: method ``m`` returns
+    ``returns[m] + 0.01 * seed``; with ``regret``, each method's regret to the exact optimum
+    (``regret[m] - 0.01 * seed``), the baselines' marked as sampled."""
+    ckpt = folder / "bundle.pt"
+    folder.mkdir(parents=True, exist_ok=True)
+    cfg = {"seed": seed, "family": family, "train": {"total_frames": frames}}
+    save_checkpoint(ckpt, make_bundle(cfg, models={}))
+    methods = {}
+    for m, v in returns.items():
+        methods[m] = {"mean_return": v + 0.01 * seed}
+        if regret is not None:
+            methods[m]["regret_mean"] = regret[m] - 0.01 * seed
+            if m in ("recurrent", "informed"):
+                methods[m]["regret_sampled"] = True
+    metrics = {
+        "experiment": "eval",
+        "checkpoint": str(ckpt),
+        "family": family,
+        "test": test,
+        "shifts": [],
+        "methods": list(returns),
+        "episodes": 100,
+        "points": [{"shift": "", "methods": methods}],
+    }
+    return _write(folder, metrics, None)
+
+
+WINDY = {
+    "averaging": -5.0,
+    "options": -5.0,
+    "interruption": -7.0,
+    "recurrent": -6.0,
+    "informed": -4.0,
+}
+WINDY_REGRET = {m: -4.0 - v for m, v in WINDY.items()}  # to the optimum, -4.0
+WARGUS = {"averaging": 2.0, "hierarchy": 2.1, "recurrent": 3.0, "informed": 4.0}
+
+
+def _block(readme: Path) -> str:
+    return readme.read_text().split(START)[1].split(END)[0]
+
+
+def _table(block: str, family: str) -> list[str]:
+    """The lines of ``family``'s table in a Results block."""
+    lines = block.split(f"**{family}**:")[1].strip().splitlines()[2:]  # its heading, a blank line
+    return lines[: next((i for i, line in enumerate(lines) if not line.startswith("|")), None)]
+
+
+@pytest.mark.slow  # ~10 s: three groups' bootstraps, twice
+def test_results_at_a_glance_follow_the_per_seed_numbers(tmp_path, capsys):
+    """Per family one table (methods as columns, a row per group, mean [95% CI] over seeds, the
+    winners bold: the best that does not see the instance and every method not separated from it;
+    informed never), and the regret figure's data: to the exact optimum where the results have it
+    (the baselines' from sampled returns), to informed elsewhere, none without either."""
+    for k in range(5):
+        methods_folder(tmp_path / "windy" / f"seed{k}", k, "windy", "train", WINDY, WINDY_REGRET)
+        methods_folder(tmp_path / "wargus" / f"seed{k}", k, "wargus", "heldout", WARGUS)
+        methods_folder(
+            tmp_path / "plain" / f"seed{k}", k, "wargus", "train", WARGUS | {"informed": 0}
+        )
+    plain = [tmp_path / "plain" / f"seed{k}" / "metrics.json" for k in range(5)]
+    for path in plain:  # a group without informed: in the tables only
+        m = json.loads(path.read_text())
+        m["methods"] = ["averaging", "hierarchy"]
+        m["points"][0]["methods"] = {
+            k: v for k, v in m["points"][0]["methods"].items() if k in m["methods"]
+        }
+        path.write_text(json.dumps(m))
+    readme = tmp_path / "README.md"
+    readme.write_text(README)
+    out = tmp_path / "docs" / "claims.md"
+    dirs = [str(tmp_path / d) for d in ("windy", "wargus", "plain")]
+    rc, _, err = _run([*dirs, "--out", str(out), "--readme", str(readme)], capsys)
+    assert rc == 0, err
+    block = _block(readme)
+    assert block.strip().startswith("![Regret per method and family](docs/img/claims-results.png)")
+    png = tmp_path / "docs" / "img" / "claims-results.png"
+    assert png.is_file() and report._ours_png(png)
+    head, _, row = _table(block, "windy")
+    assert head == (
+        "| results | budget, seeds | averaging | options | interruption | recurrent | "
+        "informed (ceiling) |"
+    )
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    want = np.mean([-5.0 + 0.01 * k for k in range(5)])  # the per-seed numbers' own mean
+    assert cells[0] == "train" and cells[1] == "50k frames, 5"
+    assert cells[2].startswith(f"**{want:.2f} [") and cells[2] == cells[3]  # a tie: both bold
+    assert not cells[4].startswith("**") and not cells[5].startswith("**")  # behind, CIs apart
+    assert cells[6].startswith(f"{want + 1:.2f} [")  # informed: highest, never marked
+    _, _, wargus, plain_row = _table(block, "wargus")
+    wargus_cells = [c.strip() for c in wargus.strip("|").split("|")]
+    assert wargus_cells[0] == "heldout" and wargus_cells[4].startswith("**3.02 [")
+    assert not wargus_cells[2].startswith("**") and not wargus_cells[5].startswith("**")
+    assert plain_row.split("|")[-2].strip() == "-"  # informed not evaluated there
+    groups = json.loads((tmp_path / "docs" / "claims-results.json").read_text())["groups"]
+    windy, wargus_group, plain_group = groups
+    assert windy["regret"]["reference"] == glance.EXACT
+    assert windy["regret"]["methods"]["averaging"]["mean"] == pytest.approx(1.0 - 0.02)
+    assert windy["regret"]["methods"]["recurrent"]["sampled"]
+    assert not windy["regret"]["methods"]["averaging"]["sampled"]
+    assert wargus_group["regret"]["reference"] == glance.CEILING
+    assert wargus_group["regret"]["methods"]["recurrent"]["mean"] == pytest.approx(1.0)
+    assert "informed" not in wargus_group["regret"]["methods"]
+    assert plain_group["regret"] is None and plain_group["winners"] == ["hierarchy"]
+    details = glance.details_of(block)
+    assert details.count("| eval ") == 3 and "<details>" in block and "</details>" in block
+    page = out.read_text()
+    assert (
+        "## Every result" in page
+        and "![regret per method and family](img/claims-results.png)" in page
+    )
+    assert "| eval windy --test train |" in page and "([claims](claims.md))" in page
+
+
+@pytest.mark.slow  # ~8 s
+def test_add_redraws_the_tables_from_every_kept_summary(tmp_path, capsys):
+    for k in range(5):
+        methods_folder(tmp_path / "windy" / f"seed{k}", k, "windy", "train", WINDY, WINDY_REGRET)
+        methods_folder(tmp_path / "wargus" / f"seed{k}", k, "wargus", "heldout", WARGUS)
+    readme = tmp_path / "README.md"
+    readme.write_text(README)
+    out = tmp_path / "docs" / "claims.md"
+    assert (
+        _run([str(tmp_path / "windy"), "--out", str(out), "--readme", str(readme)], capsys)[0] == 0
+    )
+    assert "**wargus**" not in _block(readme)
+    rc, _, err = _run([str(tmp_path / "wargus"), "--readme", str(readme), "--add"], capsys)
+    assert rc == 0, err
+    block = _block(readme)
+    assert "**windy**" in block and "**wargus**" in block and "in no table above" not in block
+    assert glance.details_of(block).count("| eval ") == 2
+    groups = json.loads((tmp_path / "docs" / "claims-results.json").read_text())["groups"]
+    assert [g["family"] for g in groups] == ["windy", "wargus"]
+
+
+def test_a_foreign_results_file_is_refused_and_nothing_written(tmp_path, capsys):
+    for k in range(5):
+        fig2_folder(tmp_path / "fig2" / f"seed{k}", k, no_worse=0.9, better=0.1)
+    readme = tmp_path / "README.md"
+    readme.write_text(README)
+    (tmp_path / "docs").mkdir()
+    foreign = tmp_path / "docs" / "claims-results.json"
+    foreign.write_text('{"mine": 1}')
+    out = tmp_path / "docs" / "claims.md"
+    rc, _, err = _run([str(tmp_path / "fig2"), "--out", str(out), "--readme", str(readme)], capsys)
+    assert rc == 2 and "was not written by taskvar report" in err
+    assert len(err.strip().splitlines()) == 1
+    assert (
+        readme.read_text() == README and not out.exists() and foreign.read_text() == '{"mine": 1}'
+    )
+
+
+def test_row_names_and_budgets_are_short():
+    label = "eval windy --test heldout --shift env.instances.p=0.0,0.25,0.5,0.75,1.0"
+    assert glance.row_name(label, "windy") == "heldout, shift p (5 points)"
+    assert glance.row_name("eval wargus 64x64 --test heldout", "wargus") == "64x64 heldout"
+    assert glance.row_name("eval windy --test train (env.layout=default)", "windy") == (
+        "train (env.layout=default)"
+    )
+    assert [glance.frames_text(n) for n in (50_000, 5_000_000, 10_240, 300_000)] == [
+        "50k frames",
+        "5M frames",
+        "10240 frames",
+        "300k frames",
+    ]

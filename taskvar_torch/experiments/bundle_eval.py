@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import textwrap
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -625,4 +626,155 @@ def format_table(metrics: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["eval_bundle", "format_table", "parse_methods", "play", "plot_eval", "summarise"]
+def _score(r: dict[str, Any], regret: bool) -> tuple[float, float]:
+    """A method's regret (``regret``) or mean return, and its 95% CI half-width."""
+    if regret:
+        return r["regret_mean"], r["regret_ci95"]
+    return r["mean_return"], r["mean_return_ci95"]
+
+
+def _apart(a: tuple[float, float], b: tuple[float, float]) -> bool:
+    """Whether two (value, 95% CI half-width) intervals do not overlap."""
+    return abs(a[0] - b[0]) > a[1] + b[1]
+
+
+def _wrap(text: str, indent: str = "  ") -> str:
+    return textwrap.fill(text, 100, initial_indent=indent, subsequent_indent=indent + "  ")
+
+
+def explain_table(metrics: dict[str, Any]) -> str:
+    """What :func:`format_table`'s table shows, in words derived from its numbers (``taskvar eval
+    --explain``, the end of ``make demo``): what each column is; on one test point, which methods
+    played alike and why where the table says it, how the other memoryless methods stand against
+    the best one, whether memory (``recurrent``) is better or worse than the best memoryless
+    method with the 95% CIs apart, where the ceiling (``informed``) stands; the plots; where to
+    read further. A statement is made only where the numbers support it."""
+    points, episodes = metrics["points"], metrics["episodes"]
+    rows = [r for p in points for r in p["methods"].values()]
+    sampled = sorted(
+        {m for p in points for m, r in p["methods"].items() if r.get("regret_sampled")}
+    )
+    parts = [
+        f"mean return: the sampled mean over {episodes} paired episodes (every method played the "
+        "same instances, starts and random draws), +- its 95% CI half-width; higher is better"
+    ]
+    if any("exact_mean_return" in r for r in rows):
+        parts.append(
+            "exact: the expected return of the learnt memoryless policy in each episode's instance "
+            "and start, computed by the exact oracle (no sampling noise)"
+        )
+    if any("regret_mean" in r for r in rows):
+        parts.append(
+            "regret: the exact per-instance optimum (an agent that knows the hidden instance) minus "
+            "the method's return, per episode: 0 is the ceiling, lower is better; from the exact "
+            "value for the memoryless methods"
+            + (f", from the sampled return for {', '.join(sampled)}" if sampled else "")
+        )
+    if any("control" in r for r in rows):
+        parts.append(
+            "interr./ep: how often interruption (Algorithm 1) cut a running option short, per "
+            "episode; control: the share of steps each option acted"
+        )
+    lines = ["How to read the table:", *map(_wrap, parts)]
+    alike: list[list[str]] = []
+    if len(points) == 1:
+        shows, alike = _explain_point(points[0]["methods"])
+        lines += ["What it shows:", *map(_wrap, shows)]
+    if metrics.get("figures"):
+        overlap = [g for g in alike if len(g) > 1]
+        lines.append(
+            _wrap(
+                f"Plots beside metrics.json: {', '.join(metrics['figures'])}"
+                + "".join(f"; {', '.join(g)} draw on top of each other" for g in overlap),
+                "",
+            )
+        )
+    lines.append(
+        _wrap(
+            "Further: docs/evaluation.md (this table, named tests, --shift curves), docs/memory.md "
+            "(memory and the ceiling), the README's Results (many training seeds)",
+            "",
+        )
+    )
+    return "\n".join(lines)
+
+
+_ALIKE = ("mean_return", "exact_mean_return", "regret_mean")
+
+
+def _explain_point(ms: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """:func:`explain_table`'s statements on one test point's methods ``ms``, and the groups of
+    memoryless methods that played alike (the same mean return, exact value and regret)."""
+    regret = all("regret_mean" in r for r in ms.values())
+    what = "regret" if regret else "mean return"
+    sign = 1.0 if regret else -1.0  # the best is the smallest regret, the largest return
+    memoryless = [m for m in ms if m not in BASELINES]
+    alike: list[list[str]] = []
+    for m in memoryless:
+        for g in alike:
+            if all(ms[g[0]].get(k) == ms[m].get(k) for k in _ALIKE):
+                g.append(m)
+                break
+        else:
+            alike.append([m])
+    shows = []
+    for g in (g for g in alike if len(g) > 1):
+        v, ci = _score(ms[g[0]], regret)
+        why = []
+        if {"options", "interruption"} <= set(g):
+            if ms["interruption"].get("interruptions_per_episode") == 0:
+                why.append("interruption never fired, so it ran as the options controller")
+        if {"options", "averaging"} <= set(g):
+            ran = [o for o, share in ms["options"].get("control", {}).items() if share == 1.0]
+            if ran:
+                why.append(f"the options controller ran {ran[0]} on every step")
+        shows.append(
+            f"{', '.join(g)}: the same mean return, exact value and {what} ({v:.3f} +-{ci:.3f}): "
+            "on these episodes they acted alike" + (f" ({'; '.join(why)})" if why else "")
+        )
+    first = [g[0] for g in alike]
+    best = min(first, key=lambda m: sign * _score(ms[m], regret)[0]) if first else None
+    for m in first:
+        if m == best:
+            continue
+        a, b = _score(ms[m], regret), _score(ms[best], regret)
+        shows.append(
+            f"{m} ({what} {a[0]:.3f} +-{a[1]:.3f}) "
+            + ("is behind" if _apart(a, b) else "ties with")
+            + f" {best} ({b[0]:.3f} +-{b[1]:.3f})"
+            + (", 95% CIs apart" if _apart(a, b) else " within their 95% CIs")
+        )
+    if "recurrent" in ms and best is not None:
+        a, b = _score(ms["recurrent"], regret), _score(ms[best], regret)
+        if not _apart(a, b):
+            verdict = "ties with the best memoryless method within their 95% CIs"
+        elif sign * a[0] < sign * b[0]:
+            verdict = "is better than every memoryless method, 95% CIs apart"
+        else:
+            verdict = "is worse than the best memoryless method, 95% CIs apart"
+        shows.append(
+            f"recurrent (memory: it acts on the episode so far; {what} {a[0]:.3f} +-{a[1]:.3f}) "
+            f"{verdict} (best: {best}, {b[0]:.3f} +-{b[1]:.3f}); where and why memory pays: "
+            "docs/memory.md"
+        )
+    if "informed" in ms:
+        v, ci = _score(ms["informed"], regret)
+        if not regret:
+            where = f"mean return {v:.3f} +-{ci:.3f}"
+        elif abs(v) <= ci:
+            where = f"at the exact optimum (regret {v:.3f} +-{ci:.3f}: the CI contains 0)"
+        else:
+            where = f"regret {v:.3f} +-{ci:.3f}: short of the exact optimum"
+        shows.append(f"informed (it sees the hidden instance: the learnt ceiling): {where}")
+    return shows, alike
+
+
+__all__ = [
+    "eval_bundle",
+    "explain_table",
+    "format_table",
+    "parse_methods",
+    "play",
+    "plot_eval",
+    "summarise",
+]

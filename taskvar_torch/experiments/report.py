@@ -26,11 +26,17 @@ Each claim gets the paper's figure, ours with its CI, and a verdict (``reproduce
 Results that score no claim (other families' evaluations, the baselines) can also join the README's
 table alone (:func:`add_rows`, ``taskvar report --add``), the other rows kept.
 
+The README's Results block is read in a minute (issue 48,
+:mod:`~taskvar_torch.experiments.report_results`): the regret figure, per family one compact table
+(methods as columns, a row per group, mean [95% CI] over seeds, the winners bold), and the table of
+every result folded away; the per-group summaries behind them are kept beside the claims page
+(``<stem>-results.json``) so that ``--add`` draws them again with the groups it adds.
+
 Bad input is one line (:class:`ReportError`, a ``ValueError``) and nothing is written: a folder
 that is not a results folder, results of different configs under one ``DIR`` (one claim), a
 training seed twice, fewer than :data:`MIN_SEEDS` seeds, results without held-out scores, a
-README without the marker comments, an output file that ``taskvar report`` did not write (unless
-``overwrite``). Every file is written atomically (``taskvar_torch/io.py``).
+README without the marker comments, an output file (page, PNG, results JSON) that ``taskvar report``
+did not write (unless ``overwrite``). Every file is written atomically (``taskvar_torch/io.py``).
 """
 
 from __future__ import annotations
@@ -50,6 +56,7 @@ import yaml
 
 from taskvar_torch.config.choices import FIG4_BASELINES
 from taskvar_torch.experiments import aggregate
+from taskvar_torch.experiments import report_results as at_a_glance
 from taskvar_torch.experiments.fig4_metrics import trials_to_fraction_of_max
 from taskvar_torch.io import atomic_write
 from taskvar_torch.run_folder import check_out_path, folder_lock
@@ -599,13 +606,16 @@ def _scale(g: Group, reps: int) -> str:
 
 @dataclass
 class Report:
-    """What ``taskvar report`` writes: the claims, the README rows, the profile panels."""
+    """What ``taskvar report`` writes: the claims, the README rows, the profile panels and the
+    per-group summaries behind the compact tables and the regret figure
+    (:mod:`~taskvar_torch.experiments.report_results`)."""
 
     groups: list[Group]
     claims: list[Claim]
     rows: list[tuple[str, str, int, str]]  # (label, headline, seeds, config digest)
     profiles: list[tuple[str, dict[str, Any], str]]  # (title, scores, x label)
     reps: int
+    summaries: list[dict[str, Any]] = field(default_factory=list)
 
 
 def build_report(dirs: Sequence[str], reps: int = aggregate.REPS) -> Report:
@@ -614,32 +624,134 @@ def build_report(dirs: Sequence[str], reps: int = aggregate.REPS) -> Report:
     claims: list[Claim] = []
     rows: list[tuple[str, str, int, str]] = []
     profiles: list[tuple[str, dict[str, Any], str]] = []
+    summaries: list[dict[str, Any]] = []
     for g in groups:
         if g.kind == "windy-fig2":
             claim, headline, returns = _fig2(g, reps)
             claims.append(claim)
             profiles.append((g.label, returns, "mean held-out return per seed"))
+            summaries.append(_fig2_summary(g, returns, reps))
         elif g.kind == "wargus-fig4":
             fig4_claims, headline, curves = _fig4(g, reps)
             claims += fig4_claims
             profiles.append((g.label, curves, "held-out items per episode, first half"))
+            summaries.append(_fig4_summary(g, curves, reps))
         elif g.kind == "eval":
             claim, headline, scores = _eval(g, reps)
             if claim is not None:
                 claims.append(claim)
             profiles.append((g.label, scores, "mean return per seed and point"))
-        else:
+            summaries.append(_eval_summary(g, scores, reps))
+        else:  # the scale experiment's gap closed: its row of the table of every result only
             headline = _scale(g, reps)
         rows.append((g.label, headline, len(g.seeds), g.digest))
-    return Report(groups, claims, rows, profiles, reps)
+    return Report(groups, claims, rows, profiles, reps, summaries)
+
+
+# --------------------------------------------------------------------------------------------
+# the compact tables' and the regret figure's data, per group (experiments/report_results.py)
+
+
+def _group_info(g: Group, family: Any, row: str, budget: str, score: str) -> dict[str, Any]:
+    return {
+        "label": g.label,
+        "digest": g.digest,
+        "kind": g.kind,
+        "family": str(family),
+        "row": row,
+        "budget": budget,
+        "seeds": len(g.seeds),
+        "score": score,
+    }
+
+
+def _frames(train: Any) -> str:
+    frames = train.get("total_frames") if isinstance(train, dict) else None
+    return "-" if frames is None else at_a_glance.frames_text(frames)
+
+
+def _with_ceiling(per_seed: dict[str, np.ndarray]) -> tuple[str, Any, set[str]] | None:
+    """The regret to the ``informed`` head where it was evaluated (the results' learnt ceiling),
+    from sampled returns."""
+    if at_a_glance.CEILING not in per_seed:
+        return None
+    reference, arrays = at_a_glance.regret_to_ceiling(per_seed)
+    return reference, arrays, set(arrays)
+
+
+def _fig2_summary(g: Group, returns: dict[str, Any], reps: int) -> dict[str, Any]:
+    per_seed = {m: np.asarray(v, dtype=np.float64) for m, v in returns.items()}
+    row = "Figure 2 protocol, " + g.label.removeprefix("windy-fig2, ")
+    info = _group_info(
+        g,
+        g.config.get("family") or g.kind,
+        row,
+        _frames(g.config.get("train")),
+        "mean return per held-out episode",
+    )
+    return at_a_glance.summarise(info, per_seed, _with_ceiling(per_seed), reps)
+
+
+def _fig4_summary(g: Group, curves: dict[str, Any], reps: int) -> dict[str, Any]:
+    per_seed = {m: np.asarray(c, dtype=np.float64).mean(1) for m, c in curves.items()}
+    half = np.asarray(next(iter(curves.values()))).shape[1]
+    row = f"Figure 4 {g.label.removeprefix('wargus-fig4, ')}: trials 1-{half}"
+    trials = g.config.get("experiment", {}).get("trials")
+    info = _group_info(
+        g,
+        g.config.get("family") or g.kind,
+        row,
+        f"{trials} trials",
+        "Figure 4: items per held-out episode over the first half of the trials",
+    )
+    return at_a_glance.summarise(info, per_seed, _with_ceiling(per_seed), reps)
+
+
+def _eval_summary(g: Group, scores: dict[str, np.ndarray], reps: int) -> dict[str, Any]:
+    family = g.config["eval"]["family"]
+    per_seed = {m: s.mean(1) for m, s in scores.items()}  # the points' mean, per seed
+    n = next(iter(scores.values())).shape[1]
+    info = _group_info(
+        g,
+        family,
+        at_a_glance.row_name(g.label, family),
+        _frames(g.config.get("bundle", {}).get("train")),
+        "mean return per episode" + (f" (mean over a curve's {n} points)" if n > 1 else ""),
+    )
+    points = [r.metrics["points"] for r in g.results]
+    rows = [p["methods"][m] for pts in points for p in pts for m in scores]
+    regret = None
+    if all("regret_mean" in r for r in rows):  # the exact per-instance optimum, every point
+        arrays = {
+            m: np.array(
+                [np.mean([_num(p["methods"][m]["regret_mean"]) for p in pts]) for pts in points]
+            )
+            for m in scores
+        }
+        sampled = {
+            m
+            for m in scores
+            if any(p["methods"][m].get("regret_sampled") for pts in points for p in pts)
+        }
+        regret = (at_a_glance.EXACT, arrays, sampled)
+    else:
+        regret = _with_ceiling(per_seed)
+    return at_a_glance.summarise(info, per_seed, regret, reps)
 
 
 def _cell(text: str) -> str:
     return text.replace("|", "\\|").replace("\n", " ")
 
 
-def claims_markdown(report: Report, png_name: str | None, dirs: Sequence[str]) -> str:
-    """The claims page."""
+def claims_markdown(
+    report: Report,
+    png_name: str | None,
+    dirs: Sequence[str],
+    results_png: str | None = None,
+    self_link: str = "claims.md",
+) -> str:
+    """The claims page; ``results_png``: the regret figure beside it, shown with the table of
+    every result (``self_link``: the page's own file name, where that table's rows link)."""
     lines = [
         GENERATED,
         "# The paper's claims against ours",
@@ -685,6 +797,10 @@ def claims_markdown(report: Report, png_name: str | None, dirs: Sequence[str]) -
             "Performance profiles (rliable's score distributions): the fraction of each method's "
             "scores above tau, with 95% bootstrap bands."
         )
+    lines += ["", "## Every result", "", results_table(report, self_link)]
+    if results_png:
+        lines += ["", f"![regret per method and family]({results_png})", ""]
+        lines.append(at_a_glance.FIGURE_CAPTION)
     return "\n".join(lines) + "\n"
 
 
@@ -756,21 +872,67 @@ def merge_rows(block: str, table: str) -> str:
     return "\n".join(head + kept + list(new.values()))
 
 
+def results_files(claims: str | os.PathLike) -> tuple[Path, Path]:
+    """Beside the claims page ``claims``: the regret figure ``img/<stem>-results.png`` and the
+    summaries behind it and the compact tables, ``<stem>-results.json``."""
+    claims = Path(claims)
+    return claims.parent / "img" / f"{claims.stem}-results.png", claims.with_name(
+        f"{claims.stem}-results.json"
+    )
+
+
+def _read_summaries(path: Path) -> list[dict[str, Any]]:
+    """The summaries ``taskvar report`` kept in ``path`` (none where there is no file)."""
+    if not path.exists():
+        return []
+    data = _read_json(path)
+    if data.get("written_by") != PNG_SOFTWARE:
+        raise ReportError(f"{str(path)!r} exists and was not written by taskvar report; move it")
+    return list(data.get("groups", []))
+
+
+def _summaries_json(summaries: Sequence[dict[str, Any]]) -> bytes:
+    data = {"written_by": PNG_SOFTWARE, "groups": list(summaries)}
+    return (json.dumps(data, indent=1) + "\n").encode()
+
+
+def _results_block(
+    summaries: Sequence[dict[str, Any]], details: str, png: Path | None, readme: str | os.PathLike
+) -> str:
+    """The README's Results block: the figure (linked from the README), the compact tables, the
+    table of every result ``details`` folded away, and a note on rows without a summary."""
+    known = {(s["label"], s["digest"]) for s in summaries}
+    keys = [_row_key(line) for line in details.splitlines()]
+    missing = sum(1 for k in keys if k is not None and k not in known)
+    figure = None if png is None else Path(os.path.relpath(png, Path(readme).parent)).as_posix()
+    return at_a_glance.results_block(summaries, details, figure, missing)
+
+
 def add_rows(
     dirs: Sequence[str],
     readme: str | os.PathLike,
     claims: str | os.PathLike | None = None,
     reps: int = aggregate.REPS,
 ) -> tuple[list[Path], Report]:
-    """``taskvar report --add``: add these folders' rows to the README's Results table, keeping
-    the rows of results not given (each row names its config digest), and write nothing else.
-    Refused where a folder scores one of the paper's claims: the claims page must then be
-    rewritten from every folder. ``claims``: the claims page the rows link to (default
-    ``docs/claims.md`` beside the README)."""
+    """``taskvar report --add``: add these folders' rows to the README's Results, keeping the
+    rows of results not given (each row names its config digest), and write no claims page.
+    Their summaries join those kept beside the claims page (``<stem>-results.json``; a group of
+    the same label and config replaced), and the compact tables and the regret figure are drawn
+    again from them all. Refused where a folder scores one of the paper's claims: the claims
+    page must then be rewritten from every folder. ``claims``: the claims page the rows link to
+    (default ``docs/claims.md`` beside the README)."""
     if int(reps) < 100:
         raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
     _refuse_inside_results(dirs, readme, "--readme")
     text = _read_readme(readme)
+    claims_path = Path(readme).parent / "docs" / "claims.md" if claims is None else Path(claims)
+    png, data = results_files(claims_path)
+    kept = _read_summaries(data)
+    if png.exists() and not _ours_png(png):
+        raise ReportError(
+            f"{str(png)!r} exists and was not written by taskvar report; move it or rerun without "
+            "--add and with --overwrite"
+        )
     report = build_report(dirs, reps)
     if report.claims:
         scored = sorted({c.group for c in report.claims})
@@ -780,15 +942,21 @@ def add_rows(
         )
     a = text.index(README_START) + len(README_START)
     old = text[a : text.index(README_END)]
-    link = (
-        "docs/claims.md"
-        if claims is None
-        else Path(os.path.relpath(claims, Path(readme).parent)).as_posix()
-    )
-    block = merge_rows(old, results_table(report, link))
+    link = Path(os.path.relpath(claims_path, Path(readme).parent)).as_posix()
+    details = merge_rows(at_a_glance.details_of(old), results_table(report, link))
+    new = {(s["label"], s["digest"]): s for s in report.summaries}
+    summaries = [new.pop((s["label"], s["digest"]), s) for s in kept] + list(new.values())
+    image = at_a_glance.results_png(summaries, PNG_SOFTWARE)
+    block = _results_block(summaries, details, png if image is not None else None, readme)
     new_text = replace_block(text, block, str(readme)).encode()
+    written = []
+    data_bytes = _summaries_json(summaries)
     with folder_lock(Path(readme).resolve().parent, "--readme"):
-        return [atomic_write(Path(readme), lambda f: f.write(new_text))], report
+        if image is not None:
+            written.append(atomic_write(png, lambda f: f.write(image)))
+        written.append(atomic_write(data, lambda f: f.write(data_bytes)))
+        written.append(atomic_write(Path(readme), lambda f: f.write(new_text)))
+    return written, report
 
 
 def profile_png(report: Report, reps: int) -> bytes | None:
@@ -840,7 +1008,8 @@ def write_report(
     reps: int = aggregate.REPS,
     overwrite: bool = False,
 ) -> tuple[list[Path], Report]:
-    """``taskvar report``: check everything, compute everything, then write the claims page
+    """``taskvar report``: check everything, compute everything, then write the regret figure
+    and the summaries behind it and the compact tables (:func:`results_files`), the claims page
     ``out``, its profile PNG (``img/<out stem>-profile.png`` beside it) and, with ``readme``, the
     README's Results block. Returns the files written and the report."""
     out = check_out_path(out)
@@ -848,6 +1017,7 @@ def write_report(
     if readme is not None:
         _refuse_inside_results(dirs, readme, "--readme")
     png = out.parent / "img" / f"{out.stem}-profile.png"
+    results_png, data = results_files(out)
     if int(reps) < 100:
         raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
     if out.exists() and not overwrite and not _ours_md(out):
@@ -855,29 +1025,41 @@ def write_report(
             f"--out {str(out)!r} exists and was not written by taskvar report; choose another "
             "--out or pass --overwrite"
         )
-    if png.exists() and not overwrite and not _ours_png(png):
-        raise ReportError(
-            f"{str(png)!r} exists and was not written by taskvar report; move it or pass --overwrite"
-        )
+    for path in (png, results_png):
+        if path.exists() and not overwrite and not _ours_png(path):
+            raise ReportError(
+                f"{str(path)!r} exists and was not written by taskvar report; move it or pass "
+                "--overwrite"
+            )
+    if not overwrite:
+        _read_summaries(data)  # refused where it is someone else's
     readme_text = None if readme is None else _read_readme(readme)
     report = build_report(dirs, reps)
     image = profile_png(report, reps)
+    results_image = at_a_glance.results_png(report.summaries, PNG_SOFTWARE)
     rel = os.path.relpath(png, out.parent) if image is not None else None
-    page = claims_markdown(report, rel, dirs).encode()
-    new_readme = (
-        None
-        if readme_text is None
-        else replace_block(
-            readme_text,
-            results_table(report, Path(os.path.relpath(out, Path(readme).parent)).as_posix()),
-            str(readme),
-        ).encode()
+    results_rel = (
+        Path(os.path.relpath(results_png, out.parent)).as_posix()
+        if results_image is not None
+        else None
     )
+    page = claims_markdown(report, rel, dirs, results_rel, out.name).encode()
+    new_readme = None
+    if readme_text is not None:
+        details = results_table(report, Path(os.path.relpath(out, Path(readme).parent)).as_posix())
+        block = _results_block(
+            report.summaries, details, results_png if results_image is not None else None, readme
+        )
+        new_readme = replace_block(readme_text, block, str(readme)).encode()
+    data_bytes = _summaries_json(report.summaries)
     written = []
     out.parent.mkdir(parents=True, exist_ok=True)
     with folder_lock(out.parent):  # one taskvar command writing in the folder at a time
         if image is not None:
             written.append(atomic_write(png, lambda f: f.write(image)))
+        if results_image is not None:
+            written.append(atomic_write(results_png, lambda f: f.write(results_image)))
+        written.append(atomic_write(data, lambda f: f.write(data_bytes)))
         written.append(atomic_write(out, lambda f: f.write(page)))
         if new_readme is not None:
             written.append(atomic_write(Path(readme), lambda f: f.write(new_readme)))
@@ -917,6 +1099,7 @@ __all__ = [
     "load_result",
     "merge_rows",
     "replace_block",
+    "results_files",
     "results_table",
     "write_report",
 ]

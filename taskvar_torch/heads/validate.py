@@ -91,6 +91,9 @@ def compare_with_oracle(
 
     q_hat, q_hat_oracle = tab["max_value"], oracle.max_value().cpu()  # (S, O)
     res["max_value_error"] = float((q_hat - q_hat_oracle)[visited].abs().max())
+    res["max_value_error_per_option"] = (
+        (q_hat - q_hat_oracle)[visited].abs().max(0).values.tolist()  # (O,)
+    )
     # the same max over the oracle's instance set, for the *learnt* option policies and mu_bar
     p, d = oracle.instance_set()
     P, R = oracle.transition(p, d)

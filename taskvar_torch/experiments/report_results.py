@@ -1,0 +1,319 @@
+"""The README's Results at a glance (issue 48), written by ``taskvar report``
+(:mod:`taskvar_torch.experiments.report`) from the same results folders as the claims:
+
+- per family, one compact table: the methods as columns, one row per results group (a test
+  distribution, a protocol), each cell the method's score as the mean over training seeds with its
+  95% stratified-bootstrap CI (rliable), the winner in bold (the best method that does not see the
+  hidden instance, and every method whose paired difference to it has a CI reaching 0);
+- one figure: the regret of each method per family and row, with its CI, to the exact per-instance
+  optimum where the results have it (exact for memoryless methods, from sampled returns for the
+  baselines: hollow markers), else to the ``informed`` head (a learnt ceiling);
+- the data behind both (one summary per group, :func:`summarise`), kept as JSON beside the claims
+  page so that ``taskvar report --add`` can redraw them with the groups it adds.
+
+Nothing here branches on a family's name: a family is whatever the results call it.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from taskvar_torch.config import METHODS
+from taskvar_torch.experiments import aggregate
+from taskvar_torch.heads.recurrent import BASELINES
+
+CEILING = "informed"
+"""The baseline that sees the hidden instance: a ceiling, shown but never marked the winner."""
+ORDER = (*METHODS, *BASELINES)
+"""The columns' order: the paper's methods, then the baselines."""
+COLORS = dict(zip(ORDER, ("#4c72b0", "#dd8452", "#55a868", "#8172b3", "#c44e52", "#7f7f7f")))
+EXACT = "exact optimum"
+"""A regret's reference where the results have the exact per-instance optimum."""
+DETAILS_START = "<details><summary>Every result"
+DETAILS_END = "</details>"
+
+
+def _ordered(methods: Sequence[str]) -> list[str]:
+    known = [m for m in ORDER if m in methods]
+    return known + [m for m in methods if m not in ORDER]
+
+
+def summarise(
+    group: Mapping[str, Any],
+    per_seed: Mapping[str, np.ndarray],
+    regret: tuple[str, Mapping[str, np.ndarray], set[str]] | None,
+    reps: int,
+) -> dict[str, Any]:
+    """One group's summary: ``group`` (its ``label``, ``digest``, ``kind``, ``family``, ``row``,
+    ``budget``, ``seeds``, ``score``) with each method's mean score and 95% CI over training seeds
+    (``per_seed[m]``: one score per seed, the same seeds and episodes for every method), the
+    winners, and ``regret`` (its reference, ``{method: per-seed regret}``, the methods whose
+    regret comes from sampled returns) summarised the same way."""
+    scores = {m: np.asarray(per_seed[m], dtype=np.float64) for m in _ordered(list(per_seed))}
+    est = aggregate.interval_estimates(scores, reps)
+    out = dict(group)
+    out["methods"] = {m: {"mean": est[m]["mean"], "ci95": est[m]["mean_ci95"]} for m in scores}
+    contenders = [m for m in scores if m != CEILING]
+    out["winners"] = []
+    if contenders:
+        best = max(contenders, key=lambda m: est[m]["mean"])
+        others = [m for m in contenders if m != best]
+        diffs = aggregate.paired_differences(scores, [(best, m) for m in others], reps)
+        out["winners"] = [best] + [m for m in others if diffs[f"{best} - {m}"]["mean_ci95"][0] <= 0]
+    out["regret"] = None
+    if regret is not None:
+        reference, arrays, sampled = regret
+        arrays = {m: np.asarray(arrays[m], dtype=np.float64) for m in _ordered(list(arrays))}
+        r_est = aggregate.interval_estimates(arrays, reps)
+        out["regret"] = {
+            "reference": reference,
+            "methods": {
+                m: {
+                    "mean": r_est[m]["mean"],
+                    "ci95": r_est[m]["mean_ci95"],
+                    "sampled": m in sampled,
+                }
+                for m in arrays
+            },
+        }
+    return out
+
+
+def regret_to_ceiling(per_seed: Mapping[str, np.ndarray]) -> tuple[str, dict[str, np.ndarray]]:
+    """Where the results have no exact optimum: each method's regret to the ``informed`` head,
+    seed by seed (``informed`` minus the method), the ceiling itself left out."""
+    ceiling = np.asarray(per_seed[CEILING], dtype=np.float64)
+    return CEILING, {
+        m: ceiling - np.asarray(v, dtype=np.float64) for m, v in per_seed.items() if m != CEILING
+    }
+
+
+def row_name(label: str, family: str) -> str:
+    """A group's label, shortened for its family's table: the family prefix of an evaluation and
+    the ``--test``/``--shift`` flags dropped (a shift curve named by its key and points)."""
+    text = label.removeprefix(f"eval {family}").strip()
+
+    def curve(m: re.Match[str]) -> str:
+        return f", shift {m.group(1).split('.')[-1]} ({len(m.group(2).split(','))} points)"
+
+    text = re.sub(r" --shift (\S+?)=(\S+)", curve, text)
+    return text.replace("--test ", "")
+
+
+def frames_text(frames: Any) -> str:
+    """Training frames as a budget: ``50k frames``, ``5M frames``."""
+    n = int(frames)
+    for div, unit in ((1_000_000, "M"), (1_000, "k")):
+        if n >= div and n % (div // 10) == 0:
+            return f"{n / div:g}{unit} frames"
+    return f"{n} frames"
+
+
+def _cell(s: Mapping[str, Any], m: str) -> str:
+    e = s["methods"].get(m)
+    if e is None:
+        return "-"
+    text = f"{e['mean']:.2f} [{e['ci95'][0]:.2f}, {e['ci95'][1]:.2f}]"
+    return f"**{text}**" if m in s["winners"] else text
+
+
+def _by_family(summaries: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping[str, Any]]]:
+    out: dict[str, list[Mapping[str, Any]]] = {}
+    for s in summaries:
+        out.setdefault(s["family"], []).append(s)
+    return out
+
+
+def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
+    """Per family one table: a row per group, the methods as columns (``-``: not evaluated)."""
+    parts = [
+        "Each cell: the method's score, mean over training seeds [95% stratified-bootstrap CI] "
+        "(rliable). **Bold**: the best method that does not see the hidden instance, and every "
+        "method whose paired difference to it has a 95% CI reaching 0 (not separated from it). "
+        f"`{CEILING}` sees the instance (the learnt ceiling) and is never marked."
+    ]
+    for family, rows in _by_family(summaries).items():
+        methods = _ordered(sorted({m for s in rows for m in s["methods"]}))
+        scores = list(dict.fromkeys(s["score"] for s in rows))
+        head = [m if m != CEILING else f"{m} (ceiling)" for m in methods]
+        parts.append(
+            "\n".join(
+                [
+                    f"**{family}**: {'; '.join(scores)}",
+                    "",
+                    "| results | budget, seeds | " + " | ".join(head) + " |",
+                    "| --- | --- | " + " | ".join("---" for _ in head) + " |",
+                    *(
+                        f"| {s['row']} | {s['budget']}, {s['seeds']} | "
+                        + " | ".join(_cell(s, m) for m in methods)
+                        + " |"
+                        for s in rows
+                    ),
+                ]
+            )
+        )
+    return "\n\n".join(parts)
+
+
+FIGURE_CAPTION = (
+    "Regret per episode of each method, mean over training seeds with its 95% CI (lower is "
+    "better; 0: as good as the reference): against the exact per-instance optimum, an agent that "
+    "knows the hidden instance, where the results have it (filled markers: the exact value of a "
+    "memoryless method's policy; hollow: from sampled returns, recurrent and informed); elsewhere "
+    f"against the `{CEILING}` head (rows marked 'vs {CEILING}': a learnt ceiling, which a method "
+    "can beat). Rows without either are in the tables only."
+)
+
+
+FIGURE_TITLE = (
+    "Regret per episode: the return lost to the exact per-instance optimum, an agent that knows "
+    f"the hidden instance\n(rows 'vs {CEILING}': to the {CEILING} head, a learnt ceiling). Mean "
+    "over training seeds with 95% CI; lower is better.\nFilled: exact values of memoryless "
+    "policies; hollow: from sampled returns."
+)
+
+
+def results_png(summaries: Sequence[Mapping[str, Any]], software: str) -> bytes | None:
+    """The regret figure: one panel per family with regret, a row per group, a marker and CI per
+    method (PNG bytes, ``Software`` = ``software``); ``None`` where no group has a regret."""
+    panels = [
+        (f, [s for s in rows if s.get("regret")]) for f, rows in _by_family(summaries).items()
+    ]
+    panels = [(f, rows) for f, rows in panels if rows]
+    if not panels:
+        return None
+    from matplotlib.lines import Line2D
+    from matplotlib.ticker import FuncFormatter
+
+    from taskvar_torch.experiments.plots import _pyplot
+
+    plt = _pyplot()
+    methods_all = _regret_methods([s for _, rows in panels for s in rows])
+    heights = [0.5 + 0.22 * len(rows) * len(_regret_methods(rows)) for _, rows in panels]
+    fig, axes = plt.subplots(
+        len(panels),
+        1,
+        figsize=(8.0, 1.0 + 0.5 * len(panels) + sum(heights)),  # title and legend, then panels
+        squeeze=False,
+        gridspec_kw={"height_ratios": heights},
+        layout="constrained",
+    )
+    for ax, (family, rows) in zip(axes[:, 0], panels):
+        methods = _regret_methods(rows)
+        width = 0.8 / len(methods)
+        lows, highs = [0.0], [0.0]
+        for i, s in enumerate(rows):
+            for k, m in enumerate(methods):
+                r = s["regret"]["methods"].get(m)
+                if r is None:
+                    continue
+                y = i + (k - (len(methods) - 1) / 2) * width
+                lo, hi = r["ci95"]
+                lows.append(lo)
+                highs.append(hi)
+                ax.errorbar(
+                    r["mean"],
+                    y,
+                    xerr=[[max(r["mean"] - lo, 0.0)], [max(hi - r["mean"], 0.0)]],
+                    fmt="o",
+                    ms=5,
+                    capsize=2,
+                    color=COLORS.get(m, "k"),
+                    mfc="white" if r["sampled"] else COLORS.get(m, "k"),
+                )
+        ax.set_yticks(
+            range(len(rows)),
+            [
+                s["row"]
+                + ("" if s["regret"]["reference"] == EXACT else f" (vs {CEILING})")
+                + f"\n{s['budget']}, {s['seeds']} seeds"
+                for s in rows
+            ],
+            fontsize=8,
+        )
+        ax.set_ylim(len(rows) - 0.5, -0.5)
+        ax.axvline(0.0, color="k", lw=0.8)
+        lo, hi = min(lows), max(highs)
+        if max(abs(lo), abs(hi)) > 20:  # a failing method would flatten the rest
+            ax.set_xscale("symlog", linthresh=1.0)  # linear within 1, logarithmic beyond
+            ax.set_xlim(lo - 0.5 if lo < 0 else -0.5, hi * 1.5 if hi > 0 else 0.5)
+            ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+            ax.set_xlabel("regret per episode (linear within 1, logarithmic beyond)", fontsize=8)
+        else:
+            pad = 0.05 * (hi - lo or 1.0)
+            ax.set_xlim(lo - pad, hi + pad)
+            ax.set_xlabel("regret per episode", fontsize=8)
+        ax.set_title(family, fontsize=9, loc="left")
+        ax.grid(axis="x", alpha=0.3)
+    handles = [
+        Line2D([], [], ls="", marker="o", color=COLORS.get(m, "k"), label=m) for m in methods_all
+    ]
+    handles += [
+        Line2D([], [], ls="", marker="o", color="k", label="exact"),
+        Line2D([], [], ls="", marker="o", color="k", mfc="white", label="sampled"),
+    ]
+    fig.suptitle(FIGURE_TITLE, fontsize=8)
+    fig.legend(handles=handles, loc="outside lower center", ncol=len(handles), fontsize=7)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, metadata={"Software": software})
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def _regret_methods(rows: Sequence[Mapping[str, Any]]) -> list[str]:
+    return _ordered(sorted({m for s in rows for m in s["regret"]["methods"]}))
+
+
+def results_block(
+    summaries: Sequence[Mapping[str, Any]], details: str, figure: str | None, missing: int = 0
+) -> str:
+    """The README's Results block: the regret figure (``figure``: its path from the README) and
+    its caption, the per-family tables, then ``details`` (the table of every result) folded
+    away; ``missing``: detail rows whose group has no summary (kept from an older README)."""
+    parts = []
+    if figure is not None:
+        parts += [f"![Regret per method and family]({figure})", FIGURE_CAPTION]
+    if summaries:
+        parts.append(tables_markdown(summaries))
+    if missing:
+        parts.append(
+            f"{missing} row(s) of the table below are in no table above: results added before "
+            "taskvar report kept their data; rerun taskvar report with every results folder."
+        )
+    n = max(len(details.strip().splitlines()) - 2, 0)
+    parts.append(
+        f"{DETAILS_START} ({n} rows: headline with IQM, training seeds, config, claims)</summary>"
+        f"\n\n{details.strip()}\n\n{DETAILS_END}"
+    )
+    return "\n\n".join(parts)
+
+
+def details_of(block: str) -> str:
+    """The table of every result inside a Results block (all of an older block, which held only
+    that table)."""
+    if DETAILS_START not in block:
+        return block
+    inner = block.split(DETAILS_START, 1)[1].split(DETAILS_END, 1)[0]
+    return inner.split("</summary>", 1)[-1]
+
+
+__all__ = [
+    "CEILING",
+    "EXACT",
+    "FIGURE_CAPTION",
+    "FIGURE_TITLE",
+    "ORDER",
+    "details_of",
+    "frames_text",
+    "regret_to_ceiling",
+    "results_block",
+    "results_png",
+    "row_name",
+    "summarise",
+    "tables_markdown",
+]
