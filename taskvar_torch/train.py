@@ -473,9 +473,7 @@ class _Run:
         n = batch.shape[0] // S  # seed s owns sub-envs [s n, (s + 1) n) (set_seed_blocks)
         for s, buffer in enumerate(self.buffers):
             rows = batch if S == 1 else batch[s * n : (s + 1) * n]
-            informed = self.cfg.heads.informed  # the informed head reads z at s and s'
-            instance = t.max_value_estimator == "instance" or informed
-            raw = raw_transitions(rows, keep_instance=instance, keep_next_instance=informed)
+            raw = replay_rows(self.cfg, rows)
             if keep is not None:  # one sample per (s, a) per episode
                 raw = raw[(keep if S == 1 else keep[s * n : (s + 1) * n]).reshape(-1)]
             stored = raw.batch_size[0]  # (TensorDict.numel() of an empty batch is 1, not 0)
@@ -636,6 +634,15 @@ class _Run:
             stats={k: v.clone() for k, v in self.stats.items()},
             heads_spec=learner.heads.spec.to_dict(),
         )
+
+
+def replay_rows(cfg: Config, batch: TensorDictBase) -> TensorDictBase:
+    """The raw transitions a run of ``cfg`` replays from a collector batch ``(N, T)``: the hidden
+    instance kept for the ``instance`` max-value estimator and the informed head, its ``next``
+    copy for the informed head (it reads the features at ``s'``)."""
+    informed = cfg.heads.informed
+    instance = cfg.train.max_value_estimator == "instance" or informed
+    return raw_transitions(batch, keep_instance=instance, keep_next_instance=informed)
 
 
 def write_informed(folder: Path, heads: Heads, cfg: Config, counters: dict[str, int]) -> None:
@@ -813,7 +820,7 @@ def _check_resume_state(run: _Run, bundle: dict[str, Any], resume: str | os.Path
         if t.n_step > 1:  # the n-step keys, as _Run.store adds them
             subtasks = learner.loss.subtasks
             stored = nstep_returns(stored, subtasks, t.gamma, t.n_step, BEHAVIOUR)
-        rows = raw_transitions(stored, keep_instance=t.max_value_estimator == "instance")
+        rows = replay_rows(run.cfg, stored)
         if run.seeds == 1:
             check_replay_state(bundle["replay"], rows, t.buffer_size)
         else:
