@@ -933,7 +933,13 @@ def scale(
     folder = ResultsFolder(out_dir, overwrite, "taskvar experiment scale")
     folder.check()
     with folder as staging:
-        return _scale(cfg, staging, progress, quick, plots)
+        metrics = _scale(cfg, staging, progress, quick, plots)
+    where = folder.out  # printed once the staging folder is swapped in
+    print(
+        f"wrote {where / METRICS_NAME}, {where / CSV_NAME}"
+        + (f", {where / FIGURE}" if plots else "")
+    )
+    return metrics
 
 
 def _scale(cfg: ScaleConfig, out: Path, progress: bool, quick: bool, plots: bool) -> dict[str, Any]:
@@ -1010,7 +1016,6 @@ def _scale(cfg: ScaleConfig, out: Path, progress: bool, quick: bool, plots: bool
     if plots:  # else ``taskvar plot DIR`` draws it from the folder
         plot_results(out)
     print(format_table(metrics))
-    print(f"wrote {out / METRICS_NAME}, {out / CSV_NAME}" + (f", {out / FIGURE}" if plots else ""))
     return metrics
 
 

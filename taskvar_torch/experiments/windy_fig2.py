@@ -475,7 +475,7 @@ def _windy_fig2(
     metrics["train_seconds"] = train_seconds
     metrics["eval_seconds"] = time.perf_counter() - eval_t0
     metrics["wall_seconds"] = time.perf_counter() - t0
-    _write_results(out, metrics, all_rows, plots)
+    _write_results(out, metrics, all_rows, plots, shown=dest)
     return metrics
 
 
@@ -525,19 +525,24 @@ def _check_inputs(
 
 
 def _write_results(
-    out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]], plots: bool
+    out: Path,
+    metrics: dict[str, Any],
+    rows: list[dict[str, Any]],
+    plots: bool,
+    shown: Path | None = None,
 ) -> None:
     """Write ``episodes.csv``, ``metrics.json`` and (with ``plots``) the figures; print the
-    tables and what was written."""
+    tables and what was written, named where it will be (``shown``: the folder ``out`` stages)."""
     write_csv(out / CSV_NAME, rows, CSV_FIELDS)
     write_json(out / METRICS_NAME, metrics)
-    figures = [str(p) for p in plot_results(out)] if plots else []
+    figures = [p.relative_to(out) for p in plot_results(out)] if plots else []
+    where = out if shown is None else shown
     print(format_table(metrics))
     print(format_start_table(metrics["oracle_by_start"]))
     print(
-        f"wrote {out / METRICS_NAME}, {out / CSV_NAME}"
-        + "".join(f", {f}" for f in figures)
-        + ("" if plots else f" (no plots: taskvar plot {out})")
+        f"wrote {where / METRICS_NAME}, {where / CSV_NAME}"
+        + "".join(f", {where / f}" for f in figures)
+        + ("" if plots else f" (no plots: taskvar plot {where})")
     )
 
 
