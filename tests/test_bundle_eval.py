@@ -86,8 +86,11 @@ def test_windy_shift_curve_with_exact_values_and_paired_instances(bundles, tmp_p
         out_dir=tmp_path,
         progress=False,
     )
-    assert m["methods"] == ["averaging", "options", "interruption"]  # no hierarchy on windy
-    assert all("exact_mean_return" in p["methods"][k] for p in m["points"] for k in m["methods"])
+    # no hierarchy on windy; the informed baseline trained with the heads (heads.informed)
+    assert m["methods"] == ["averaging", "options", "interruption", "informed"]
+    memoryless = m["methods"][:3]
+    assert all("exact_mean_return" in p["methods"][k] for p in m["points"] for k in memoryless)
+    assert all(p["methods"]["informed"]["regret_sampled"] for p in m["points"])
     rows = _rows(tmp_path / "episodes.csv")
     for r in rows:  # the shift reached the env: every episode's wind is the swept value
         assert float(r["instance_p"]) == float(r["shift"].split("=")[1])
