@@ -81,6 +81,7 @@ def metrics_digest(path) -> str:
     return hashlib.sha256(json.dumps(numbers, sort_keys=True).encode()).hexdigest()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("family", sorted(RUNS))
 def test_short_fixed_seed_runs_are_bit_identical(family, tmp_path):
     torch.set_num_threads(1)
