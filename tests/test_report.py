@@ -418,6 +418,20 @@ def test_a_wargus_evaluation_is_labelled_by_its_grid(tmp_path):
     assert group.label.startswith("eval wargus 64x64 --test train")
 
 
+def test_an_evaluation_of_a_named_layout_is_labelled_by_it(tmp_path):
+    """Whole-column windy's rows are not the default layout's: added in separate runs (``--add``)
+    their labels still tell them apart; the default layout adds nothing."""
+    for layout in ("default", "whole_column_windy"):
+        for k in range(5):
+            folder = eval_folder(tmp_path / layout / f"seed{k}", k, {"averaging": 1.0}, "train")
+            cfg = {"seed": k, "family": "windy", "env": {"layout": layout}}
+            save_checkpoint(folder / "bundle.pt", make_bundle(cfg, models={}))
+    (default,) = report.collect([str(tmp_path / "default")])
+    (column,) = report.collect([str(tmp_path / "whole_column_windy")])
+    assert default.label.startswith("eval windy --test train")
+    assert column.label.startswith("eval windy whole_column_windy --test train")
+
+
 def methods_folder(
     folder: Path,
     seed: int,

@@ -348,9 +348,13 @@ def _label(g: Group) -> str:
     e = c["eval"]
     shifts = f" --shift {' '.join(e['shifts'])}" if e.get("shifts") else ""
     family = e.get("family")
-    own = c.get("bundle", {}).get("env", {}).get(family)  # the family's own env section
+    env = c.get("bundle", {}).get("env", {})
+    own = env.get(family)  # the family's own env section
     if isinstance(own, dict) and own.get("size") is not None:  # its grid, as Figure 4's label
         family = f"{family} {own['size']}x{own['size']}"
+    layout = env.get("layout")  # a named layout other than the default, as windy-fig2's label
+    if isinstance(layout, str) and layout != "default" and "\n" not in layout:
+        family = f"{family} {layout}"
     return f"eval {family} --test {e.get('test')}{shifts}"
 
 
