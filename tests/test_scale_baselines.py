@@ -137,8 +137,10 @@ def test_every_cell_and_seed_has_the_baseline_entries(runs):
         assert [(t["seed"], t["method"]) for t in c["baseline_training"]] == [
             (s, b) for s in c["seeds"] for b in BASES
         ]
-        for t in c["baseline_training"]:
-            assert t["frames"] >= 200 and t["updates"] > 0 and t["train_seconds"] > 0
+        for t in c["baseline_training"]:  # informed: one more head (heads.informed)
+            assert t["frames"] >= 200 and t["updates"] > 0
+            assert t["with_heads"] is (t["method"] == "informed")
+            assert (t["train_seconds"] > 0) is not t["with_heads"]
         assert c["baseline_train_seconds"] == pytest.approx(
             sum(t["train_seconds"] for t in c["baseline_training"])
         )
@@ -198,7 +200,8 @@ def test_each_seed_trains_its_baselines_on_the_cells_config_and_budget(runs):
     cfg = scale.load_scale_config(scale.default_config_path(), TINY, quick=True)
     ccfg = scale.case_config(cfg, cfg.selected()[0], 4)
     trained = runs["trained"]
-    assert [(c.seed, meth) for c, meth, *_ in trained] == [(s, b) for s in (0, 1) for b in BASES]
+    # informed is the heads' own (heads.informed): only recurrent trains apart
+    assert [(c.seed, meth) for c, meth, *_ in trained] == [(s, "recurrent") for s in (0, 1)]
     for bcfg, _, folder in trained:
         k = bcfg.seed - ccfg.seed
         assert bcfg == scale.seed_config(ccfg, k)  # the cell's own config: the heads' settings

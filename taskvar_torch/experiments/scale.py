@@ -686,8 +686,9 @@ def _heads_informed(folder: Path) -> dict[str, Any]:
         "path": str(path),
         "frames": int(counters.get("frames", 0)),
         "updates": int(counters.get("updates", 0)),
-        "seconds": 0.0,
+        "seconds": 0.0,  # its time is the heads' (train_seconds of the cell)
         "mean_train_return": float("nan"),
+        "with_heads": True,
     }
 
 
@@ -716,7 +717,8 @@ def baseline_phase(
     methods' paired episodes), with ``gap_closed``, added to every seed's ``methods`` as a new
     entry (so to ``cell["methods"]`` and ``per_seed``) and, with several seeds, to
     ``over_seeds``. New keys: ``baseline_training`` (per seed and baseline: frames, updates,
-    seconds, the mean training return of the last tenth), ``baseline_train_seconds`` (their
+    seconds, the mean training return of the last tenth, ``with_heads``: trained as one more head,
+    its seconds counted in the heads'), ``baseline_train_seconds`` (their
     total) and ``baseline_eval_seconds``. Every call runs under :func:`isolated_rng`, so the
     methods' numbers are bit for bit those of a run without baselines."""
     controllers: list[dict[str, BaselineController]] = []
@@ -742,6 +744,7 @@ def baseline_phase(
                     "updates": int(r["updates"]),
                     "train_seconds": float(r["seconds"]),
                     "mean_train_return": None if last != last else float(last),  # NaN: none ended
+                    "with_heads": bool(r.get("with_heads", False)),
                 }
             )
         controllers.append(ctrls)
