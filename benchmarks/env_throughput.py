@@ -31,7 +31,8 @@ from torchrl.collectors import Collector
 
 import taskvar_torch  # noqa: F401
 from taskvar_torch import rng
-from taskvar_torch.envs import WindyGridEnv, WindyLayout, WindyModel, windy
+from taskvar_torch.families.windy import WindyGridEnv, WindyLayout, WindyModel
+from taskvar_torch.families.windy import dynamics as windy
 
 
 def sync(device: torch.device) -> None:

@@ -4,7 +4,7 @@ One real :func:`~taskvar_torch.train.train` run of a windy config per seed, keep
 online heads one exponential moving average of their weights per ``--taus`` value (``ema <- ema +
 tau (online - ema)`` after every update, from the initial weights, as ``train.eval_ema_tau`` does;
 the averages only read the weights, so the run trains as without them), then
-:func:`~taskvar_torch.oracle.head_report.head_report` of the online heads and of each average
+:func:`~taskvar_torch.families.windy.head_report.head_report` of the online heads and of each average
 against the exact oracle (the training distribution's exact values). Prints per seed and weights:
 how many heads are within 2% of their exact optimum, each head's relative gap (``*``: within 2%),
 mu_bar's agreement at the start cells and the exact return of the learnt options controller; then
@@ -28,9 +28,9 @@ import torch
 
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import load_heads
-from taskvar_torch.families import windy_sparse_oracle as sparse_oracle
+from taskvar_torch.families.windy.family import windy_sparse_oracle as sparse_oracle
+from taskvar_torch.families.windy.head_report import head_report
 from taskvar_torch.heads import learner as learner_module
-from taskvar_torch.oracle.head_report import head_report
 from taskvar_torch.train import train
 
 QUICK = ["train.total_frames=3000", "train.init_random_frames=500", "train.eps_decay_frames=1500"]

@@ -37,8 +37,11 @@ import torch
 from taskvar_torch import keys, rng
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import make_controller, option_first
-from taskvar_torch.envs import WargusEnv, WindyGridEnv, wargus, windy
-from taskvar_torch.envs.taxi_env import TaxiEnv
+from taskvar_torch.families.taxi.env import TaxiEnv
+from taskvar_torch.families.wargus import WargusEnv
+from taskvar_torch.families.wargus import dynamics as wargus
+from taskvar_torch.families.windy import WindyGridEnv
+from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.networks import make_head
 from taskvar_torch.subtasks import Hierarchy

@@ -1,12 +1,12 @@
 """The sparse oracle's expectation step at the head report's shapes: gather + sum vs per outcome.
 
-Every exact solve of :class:`~taskvar_torch.oracle.sparse.SparseWindyOracle` is a loop of one
+Every exact solve of :class:`~taskvar_torch.families.windy.sparse_oracle.SparseWindyOracle` is a loop of one
 expectation ``E[V(s')]`` over successor tables; the head report's slowest part
 (:meth:`SparseWindyOracle.controller_returns`: ``horizon`` backward-induction steps over the
 (cell, option) chains of 32 instances at a time) spends nearly all of its time there. Before, a
 step gathered every outcome into ``(B, n, K)`` and summed over the last dim (the *gather + sum*
 reference below, the formula as it was); now it gathers one contiguous plane per outcome and adds
-them (:func:`~taskvar_torch.oracle.sparse.expect_planes`): the same bits for ``K <= 2`` (checked
+them (:func:`~taskvar_torch.families.windy.sparse_oracle.expect_planes`): the same bits for ``K <= 2`` (checked
 here on every step, and in ``tests/test_oracle_sparse.py``). The chains are the real ones: the
 layout of ``--config``, the options controller's chains with its exact option policies (no
 interruption), one quadrature chunk of instances.
@@ -27,9 +27,9 @@ import torch
 
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, make_env, make_subtasks
-from taskvar_torch.families import windy_sparse_oracle as sparse_oracle
-from taskvar_torch.oracle.head_report import head_report
-from taskvar_torch.oracle.sparse import expect_planes, outcome_planes
+from taskvar_torch.families.windy.family import windy_sparse_oracle as sparse_oracle
+from taskvar_torch.families.windy.head_report import head_report
+from taskvar_torch.families.windy.sparse_oracle import expect_planes, outcome_planes
 
 
 def sync(device: torch.device | str) -> None:

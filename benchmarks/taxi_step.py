@@ -23,8 +23,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from taskvar_torch.envs.taxi_env import TaxiEnv
-from taskvar_torch.envs.taxi_gym import TaxiGymEnv
+from taskvar_torch.families.taxi.env import TaxiEnv
+from taskvar_torch.families.taxi.gym_env import TaxiGymEnv
 
 
 def sync(device: torch.device) -> None:

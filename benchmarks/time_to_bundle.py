@@ -2,7 +2,7 @@
 
 For each variant of a windy family config (``NAME=key.sub=value,...``; the first is the baseline)
 and each seed: the real :func:`~taskvar_torch.train.train` to the config's budget, then
-:func:`~taskvar_torch.oracle.head_report.head_report` against the exact oracle. Prints, per run,
+:func:`~taskvar_torch.families.windy.head_report.head_report` against the exact oracle. Prints, per run,
 the training seconds and their ratio to the baseline's (same seed), each head's relative gap to
 its exact optimum (``*``: within 2%), how many heads are within 2%, mu_bar's agreement at the
 start cells, the exact return of the learnt options controller and the learnt interruption
@@ -35,8 +35,8 @@ import torch
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import load_heads
-from taskvar_torch.families import windy_sparse_oracle as sparse_oracle
-from taskvar_torch.oracle.head_report import head_report
+from taskvar_torch.families.windy.family import windy_sparse_oracle as sparse_oracle
+from taskvar_torch.families.windy.head_report import head_report
 from taskvar_torch.train import HEADS_SNAPSHOTS, train
 
 QUICK = ["train.total_frames=3000", "train.init_random_frames=500", "train.eps_decay_frames=1500"]

@@ -10,7 +10,7 @@ load hits both alike:
   the learner's losses and the dynamics step run through ``torch.compile``
   (``train.compile=true``; ``--eager``: eager).
 
-A trial is what :func:`~taskvar_torch.experiments.wargus_fig4.run_repetition` does per trial: the
+A trial is what :func:`~taskvar_torch.families.wargus.fig4.run_repetition` does per trial: the
 learning phase, the hierarchy's calibration, a snapshot of the heads, and the test phase (the
 trials' test phases run side by side at the end, ``TEST_GROUP`` at a time as in the protocol, and
 their cost is shared out per trial). The compiled learner may differ from the eager one in the
@@ -42,7 +42,7 @@ from torchrl.envs import InitTracker, TransformedEnv
 
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import SideBySide
-from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.families.wargus import fig4
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.train import make_env
 

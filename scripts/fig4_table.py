@@ -20,12 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from taskvar_torch.experiments.fig4_metrics import (
-    METHODS,
-    mean_over_trials,
-    trials_to_fraction,
-    trials_to_fraction_of_max,
-)
+from taskvar_torch.experiments.curves import trials_to_fraction, trials_to_fraction_of_max
+from taskvar_torch.families.wargus.fig4_metrics import METHODS, mean_over_trials
 
 
 def rows_of(

@@ -12,7 +12,7 @@ R(root, s, a) predicted at each step vs the discounted return-to-go of the root'
 steps where the item is seen and the patrol is not (where the root should take control), and the
 fraction of those steps with R > tau (predicted, and by the rollout). Last, every option's critic
 against Monte Carlo returns of its own runs up to its termination, as its TD target is defined
-(``taskvar_torch.experiments.robustness_mc``, docs/hierarchy-critics.md). Single-threaded; a few
+(``taskvar_torch.families.wargus.robustness_mc``, docs/hierarchy-critics.md). Single-threaded; a few
 seconds per 32 episodes.
 
     python scripts/hierarchy_diagnostics.py /tmp/h1/rep0/final.pt --episodes 32
@@ -27,10 +27,10 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from taskvar_torch import keys
-from taskvar_torch.envs import wargus
-from taskvar_torch.envs.wargus_env import WargusEnv
-from taskvar_torch.experiments.robustness_mc import format_report, robustness_monte_carlo
 from taskvar_torch.factory import make_method_controller
+from taskvar_torch.families.wargus import dynamics as wargus
+from taskvar_torch.families.wargus.env import WargusEnv
+from taskvar_torch.families.wargus.robustness_mc import format_report, robustness_monte_carlo
 from taskvar_torch.train import load_heads, make_subtasks
 
 

@@ -4,7 +4,7 @@ For each named test distribution of the Taxi family: the exact expected 200-step
 starts) of the averaging, options and interruption controllers on the oracle's own tables and, with
 ``--checkpoint``, on a trained bundle's heads; the expected interruptions per episode; and the
 per-instance optimum (an agent that knows the rain and the passenger's fickleness). Everything is
-exact (``oracle/taxi.py``): no episode is sampled.
+exact (``families/taxi/oracle.py``): no episode is sampled.
 
 Usage:
     python scripts/taxi_exact.py [--checkpoint runs/taxi/final.pt] [--tests train fickle ...]
@@ -17,9 +17,9 @@ import argparse
 import torch
 
 from taskvar_torch.factory import load_heads, make_method_controller
-from taskvar_torch.oracle.taxi import TaxiOracle
-from taskvar_torch.subtasks.taxi import TaxiSubtasks
-from taskvar_torch.taxi import TESTS
+from taskvar_torch.families.taxi.family import TESTS
+from taskvar_torch.families.taxi.oracle import TaxiOracle
+from taskvar_torch.families.taxi.subtasks import TaxiSubtasks
 
 METHODS = ("averaging", "options", "interruption")
 

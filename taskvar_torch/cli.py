@@ -27,6 +27,7 @@ import sys
 import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.experiments.registry import EXPERIMENTS as _EXPERIMENTS
@@ -356,17 +357,30 @@ def _experiment_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _experiment_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.config import load_config
-
-    if args.name == "wargus-fig4":
-        return _wargus_fig4_run(args)
+    """``taskvar experiment NAME``: every experiment through its registry entry
+    (experiments/registry.py); an option it does not take is a one-line error."""
+    exp = experiment(args.name)
+    options: dict[str, Any] = {
+        "progress": not args.no_progress,
+        "plots": not args.no_plots,
+        "overwrite": args.overwrite,
+    }
+    if args.checkpoint is not None:
+        exp.refuse("checkpoint", "--checkpoint")
+        options["checkpoint"] = args.checkpoint
+    if args.quick and exp.takes("quick"):  # --quick otherwise only picks the quick overrides
+        options["quick"] = True
+    if args.workers != 1:
+        exp.refuse("workers", "--workers")
+        cores = os.cpu_count() or 1
+        if args.workers > cores:  # >= 1 is checked by the experiment
+            raise ValueError(
+                f"--workers must be in [1, {cores}] (this machine's cores), got {args.workers}"
+            )
+        options["workers"] = args.workers
+    if args.threads != 1 and "threads" in dict(exp.refusals):  # e.g. one thread per worker
+        raise ValueError(dict(exp.refusals)["threads"])
     _set_threads(args)  # default 1: small MLPs, more threads only contend on a shared CPU
-    if args.name == "scale":
-        return _scale_run(args)
-    if args.name != "windy-fig2":  # a registry entry without a runner here: never run another
-        raise ValueError(f"experiment {args.name!r} has no runner in taskvar experiment")
-    from taskvar_torch.experiments.windy_fig2 import windy_fig2
-
     config_path, overrides = _split_config_and_overrides(args.items)
     if args.checkpoint is not None:
         _check_checkpoint_overrides(overrides)
@@ -375,18 +389,9 @@ def _experiment_run(args: argparse.Namespace) -> int:
                 f"config file {config_path!r} cannot apply with --checkpoint: the bundle's own "
                 "config is used; pass experiment.*, eval.* or device overrides instead"
             )
-    default = experiment(args.name).default_config_path()
-    cfg = load_config(config_path or default, overrides, quick=args.quick)
+    cfg = exp.load_config(config_path or exp.default_config_path(), overrides, quick=args.quick)
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
-    windy_fig2(
-        cfg,
-        out,
-        checkpoint=args.checkpoint,
-        progress=not args.no_progress,
-        quick=args.quick,
-        plots=not args.no_plots,
-        overwrite=args.overwrite,
-    )
+    exp.call(cfg, out, **options)
     return 0
 
 
@@ -405,43 +410,6 @@ def _check_checkpoint_overrides(overrides: Sequence[str]) -> None:
                 f"used; only {', '.join(k + ('.*' if k != 'device' else '') for k in CHECKPOINT_OVERRIDABLE)} "
                 "may be overridden (train a new bundle to change it)"
             )
-
-
-def _wargus_fig4_run(args: argparse.Namespace) -> int:
-    import torch
-
-    from taskvar_torch.config import load_config
-    from taskvar_torch.experiments.wargus_fig4 import wargus_fig4
-
-    if args.checkpoint is not None:
-        raise ValueError(
-            "wargus-fig4 learns from scratch (lifelong protocol); --checkpoint is not used"
-        )
-    if args.threads != 1:
-        raise ValueError(
-            f"--threads {args.threads}: wargus-fig4 runs one thread per process (small batches; "
-            "2 threads under contention ran 10x slower); use --workers N to use more cores"
-        )
-    cores = os.cpu_count() or 1
-    if args.workers > cores:  # >= 1 is checked by wargus_fig4
-        raise ValueError(
-            f"--workers must be in [1, {cores}] (this machine's cores), got {args.workers}"
-        )
-    config_path, overrides = _split_config_and_overrides(args.items)
-    default = experiment(args.name).default_config_path()
-    cfg = load_config(config_path or default, overrides, quick=args.quick)
-    out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
-    # small batches: one intra-op thread per process; 2 threads under contention ran 10x slower
-    torch.set_num_threads(1)
-    wargus_fig4(
-        cfg,
-        out,
-        workers=args.workers,
-        progress=not args.no_progress,
-        plots=not args.no_plots,
-        overwrite=args.overwrite,
-    )
-    return 0
 
 
 def _sweep_arguments(p: argparse.ArgumentParser) -> None:
@@ -516,27 +484,6 @@ def _sweep_run(args: argparse.Namespace) -> int:
         overwrite=args.overwrite,
         resume=args.resume,
         batch_seeds=not args.no_batch_seeds,
-    )
-    return 0
-
-
-def _scale_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.experiments.scale import default_config_path, load_scale_config, scale
-
-    if args.checkpoint is not None:
-        raise ValueError(
-            "scale trains one bundle per (case, num_envs) cell; --checkpoint is not used"
-        )
-    config_path, overrides = _split_config_and_overrides(args.items)
-    cfg = load_scale_config(config_path or default_config_path(), overrides, quick=args.quick)
-    out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
-    scale(
-        cfg,
-        out,
-        progress=not args.no_progress,
-        quick=args.quick,
-        plots=not args.no_plots,
-        overwrite=args.overwrite,
     )
     return 0
 

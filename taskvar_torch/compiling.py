@@ -5,7 +5,7 @@ the first call compiles it (Dynamo + Inductor, static shapes; a new input shape 
 if compiling fails (no C++ compiler, an unsupported op) the error is warned once and every later
 call runs the eager function. Used for the learner's losses
 (:class:`~taskvar_torch.heads.learner.CompiledLosses`) and the Wargus dynamics step
-(:meth:`~taskvar_torch.envs.wargus_env.WargusEnv.compile_dynamics`); numbers and compile times:
+(:meth:`~taskvar_torch.families.wargus.env.WargusEnv.compile_dynamics`); numbers and compile times:
 docs/benchmarks.md.
 
 Examples:

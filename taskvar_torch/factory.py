@@ -2,7 +2,7 @@
 controllers are built (in the manner of TorchRL's ``sota-implementations/*/utils.py``).
 
 - :func:`make_env`, :func:`make_subtasks`: the family's batched env and options, through the family
-  registry (``families.py``), so nothing here tests a family's name;
+  registry (``families/``), so nothing here tests a family's name;
 - :func:`build_heads`: fresh networks for every head, from a :class:`HeadSpec` (the constructor
   arguments a checkpoint records, so :func:`load_heads` needs no env);
 - :func:`make_learner`: the fused multi-head learner of ``cfg.train``;

@@ -16,7 +16,7 @@ TRUNCATED = "truncated"
 NEXT = "next"
 
 # Integer position / event state, kept beside the observation so subtask rewards can be computed
-# from raw transitions. Windy: ``cell`` (flat row*W+col). Wargus: see envs/wargus.py.
+# from raw transitions. Windy: ``cell`` (flat row*W+col). Wargus: see families/wargus/dynamics.py.
 CELL = "cell"
 STEP_COUNT = "step_count"
 

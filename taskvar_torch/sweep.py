@@ -198,15 +198,18 @@ def run_point(
     if checkpoint is None and (out / "train").is_symlink():
         (out / "train").unlink()  # a killed batched attempt's link: this point now trains alone
     t0 = time.perf_counter()
+    exp = experiment(family(cfg).experiment)
     options = {} if checkpoint is None else {"checkpoint": checkpoint}
+    if exp.takes("quick"):
+        options["quick"] = quick  # elsewhere --quick only picked the quick overrides
+    if exp.takes("workers"):
+        options["workers"] = 1  # one process per point
     with open(out / POINT_LOG, "w") as log, contextlib.redirect_stdout(log):
         try:
-            metrics = experiment(family(cfg).experiment).call(
+            metrics = exp.call(
                 cfg,
                 out,
-                workers=1,
                 progress=False,
-                quick=quick,
                 plots=plots,
                 overwrite=overwrite,
                 staged=False,  # the sweep holds its folder (sweep())

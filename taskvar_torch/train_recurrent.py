@@ -168,7 +168,7 @@ class BaselineLearner:
     in ``set_recurrent_mode(True)`` from each slice's stored state, taken past the burn-in
     (:func:`burn_in_mask`). ``time_major`` (the default) stores the collector's ``(N, T)``
     batches as they come (``LazyTensorStorage(ndim=2)``), else flat batches whose episodes are
-    already whole and contiguous (the Figure 4 protocol's, ``experiments/fig4_recurrent.py``).
+    already whole and contiguous (the Figure 4 protocol's, ``families/wargus/fig4_recurrent.py``).
     Otherwise uniform transitions of ``train.batch_size``.
     """
 

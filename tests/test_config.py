@@ -17,7 +17,6 @@ from taskvar_torch.config import (
     ExperimentConfig,
     HeadsConfig,
     TrainConfig,
-    WargusConfig,
     apply_overrides,
     config_from_dict,
     config_help,
@@ -25,15 +24,14 @@ from taskvar_torch.config import (
     field_docs,
     load_config,
     save_config_yaml,
-    windy_env_kwargs,
-    windy_layout,
 )
 from taskvar_torch.config.loader import config_schema
-from taskvar_torch.envs import WindyGridEnv
-from taskvar_torch.experiments import fig4_metrics, windy_fig2
 from taskvar_torch.experiments import scale as scale_experiment
 from taskvar_torch.experiments.scale import ScaleConfig, load_scale_config
-from taskvar_torch.families import EXACT_ORACLE_CELLS
+from taskvar_torch.families.wargus import WargusConfig, fig4_metrics
+from taskvar_torch.families.windy import WindyGridEnv
+from taskvar_torch.families.windy import fig2 as windy_fig2
+from taskvar_torch.families.windy.family import EXACT_ORACLE_CELLS, windy_env_kwargs, windy_layout
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 # Training/experiment configs (the `Config` schema); `scale.yaml` is the scale experiment's own
@@ -172,7 +170,7 @@ def test_misspelt_top_level_key_is_an_error_naming_it(tmp_path: Path):
     "text, key, allowed",
     [
         ("train:\n  lrr: 0.01\n", "train.lrr", "updates_per_batch"),
-        ("env:\n  wargus:\n    sigth: 3\n", "env.wargus.sigth", "shoot_range"),
+        ("family: wargus\nenv:\n  wargus:\n    sigth: 3\n", "env.wargus.sigth", "shoot_range"),
         ("heads:\n  hiden: [3]\n", "heads.hiden", "activation"),
     ],
 )
@@ -206,16 +204,16 @@ def test_wrong_type_in_file_names_key_and_file(tmp_path: Path):
 
 def test_override_applies_and_leaves_the_rest_alone():
     base = load_config(WINDY)
-    cfg = load_config(WINDY, ["train.lr=0.01", "heads.hidden=[32,16]", "env.wargus.sight=3"])
+    cfg = load_config(WINDY, ["train.lr=0.01", "heads.hidden=[32,16]", "env.layout=middle_exits"])
     assert cfg.train.lr == 0.01
     assert cfg.heads.hidden == (32, 16)
-    assert cfg.env.wargus.sight == 3
+    assert cfg.env.layout == "middle_exits"
     assert (
         dataclasses.replace(
             cfg,
             train=dataclasses.replace(cfg.train, lr=base.train.lr),
             heads=base.heads,
-            env=dataclasses.replace(cfg.env, wargus=base.env.wargus),
+            env=dataclasses.replace(cfg.env, layout=base.env.layout),
         )
         == base
     )
@@ -328,8 +326,9 @@ def test_wargus_values_are_checked_by_the_family_rules(override, parts):
 
 def test_only_the_chosen_family_keys_are_validated():
     assert load_config(CONFIG_DIR / "wargus.yaml").eval.test == "nominal"
-    # windy never reads env.wargus, and Wargus never reads the windy layout
-    assert load_config(WINDY, ["env.wargus.shoot_range=8"]).env.wargus.shoot_range == 8
+    # a windy config has no env.wargus (a family's own keys exist for that family only), and
+    # Wargus never reads the windy layout
+    _raises_one_line(["env.wargus"], load_config, WINDY, ["env.wargus.shoot_range=8"])
     assert load_config(CONFIG_DIR / "wargus.yaml", ["env.obs_encoding=x"]).family == "wargus"
 
 

@@ -33,10 +33,11 @@ from taskvar_torch.controllers.hierarchy import (
     hierarchy_decide_table_of,
     hierarchy_search_of,
 )
-from taskvar_torch.envs import WindyGridEnv, WindyInstances, windy
+from taskvar_torch.families.windy import WindyGridEnv, WindyInstances, WindyOracle
+from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.networks import make_head
-from taskvar_torch.oracle import WindyOracle, table_heads
+from taskvar_torch.oracle import table_heads
 from taskvar_torch.subtasks import Hierarchy, Subtasks
 
 torch.set_num_threads(1)

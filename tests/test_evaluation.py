@@ -6,9 +6,8 @@ import torch
 from tensordict.nn import TensorDictModule
 
 from taskvar_torch import keys
-from taskvar_torch.envs import WindyGridEnv
 from taskvar_torch.experiments.evaluation import paired_summary, run_episodes
-from taskvar_torch.oracle import WindyOracle
+from taskvar_torch.families.windy import WindyGridEnv, WindyOracle
 
 torch.set_num_threads(1)
 

@@ -48,7 +48,7 @@ def test_unknown_experiment_names_the_known_ones():
         experiment("fig3")
 
 
-def test_call_passes_only_the_options_the_run_takes(monkeypatch):
+def test_call_refuses_an_option_the_run_does_not_take(monkeypatch):
     seen = {}
 
     def run(cfg, out_dir, workers=1, plots=True):
@@ -57,5 +57,9 @@ def test_call_passes_only_the_options_the_run_takes(monkeypatch):
 
     exp = experiment("wargus-fig4")
     monkeypatch.setattr(type(exp), "function", lambda self, attr: run)
-    assert exp.call("cfg", "out", workers=3, plots=False, quick=True) == {"ok": True}
+    assert exp.call("cfg", "out", workers=3, plots=False) == {"ok": True}
     assert seen == {"cfg": "cfg", "out_dir": "out", "workers": 3, "plots": False}
+    with pytest.raises(ValueError, match="^quick is not an option of wargus-fig4$"):
+        exp.call("cfg", "out", quick=True)  # never dropped
+    with pytest.raises(ValueError, match="learns from scratch"):  # the experiment's own reason
+        exp.call("cfg", "out", checkpoint="x.pt")

@@ -16,10 +16,10 @@ from taskvar_torch import keys
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import side_by_side
-from taskvar_torch.envs.wargus import WargusInstances
-from taskvar_torch.envs.wargus_env import WargusEnv
-from taskvar_torch.experiments import fig4_metrics, fig4_report, fig4_trial
-from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.experiments import curves
+from taskvar_torch.families.wargus import fig4, fig4_metrics, fig4_report, fig4_trial
+from taskvar_torch.families.wargus.dynamics import WargusInstances
+from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads import snapshots
 from taskvar_torch.train import load_heads, make_env
 
@@ -170,18 +170,18 @@ def test_moving_average_matches_a_loop():
     x = np.array([3.0, 1.0, 4.0, 1.0, 5.0, 9.0, 2.0])
     w = 3
     loop = [x[max(0, t - w + 1) : t + 1].mean() for t in range(x.size)]
-    np.testing.assert_allclose(fig4.moving_average(x, w), loop)
+    np.testing.assert_allclose(curves.moving_average(x, w), loop)
 
 
 def test_trials_to_90pct_on_known_curves():
     ramp = np.minimum(np.arange(1, 201) / 50.0, 1.0)  # reaches 1.0 at trial 50, final = 1.0
-    t, reached = fig4.trials_to_fraction(ramp)
-    w = fig4.smoothing_window(200)  # trailing window delays the crossing by about w / 2
+    t, reached = curves.trials_to_fraction(ramp)
+    w = curves.smoothing_window(200)  # trailing window delays the crossing by about w / 2
     assert reached and 45 + w // 2 - 1 <= t <= 45 + w // 2 + 1
-    assert fig4.trials_to_fraction(np.zeros(10)) == (1, True)  # final 0: reached at once
+    assert curves.trials_to_fraction(np.zeros(10)) == (1, True)  # final 0: reached at once
     down = np.concatenate([np.full(50, 10.0), np.zeros(5), np.full(5, -1.0)])  # final < 0
-    assert fig4.trials_to_fraction(down)[0] == 1
-    assert fig4.final_count(500) == 50 and fig4.smoothing_window(500) == 25
+    assert curves.trials_to_fraction(down)[0] == 1
+    assert curves.final_count(500) == 50 and curves.smoothing_window(500) == 25
 
 
 def test_wargus_fig4_re_exports_the_split_modules():
@@ -297,9 +297,9 @@ def test_held_out_test_phases_play_sealed_instances_paired_and_apart_from_nomina
 def test_the_hierarchy_hands_fe_exactly_the_states_with_a_patrol_in_sight(results):
     """With the root never robust (tau huge), Algorithm 2's descent must give FE every state
     where a patrol is in sight and TG every other: the control split is that indicator."""
-    from taskvar_torch.envs.wargus import PATROL_SEEN
     from taskvar_torch.experiments.evaluation import run_episodes
     from taskvar_torch.factory import make_method_controller
+    from taskvar_torch.families.wargus.dynamics import PATROL_SEEN
     from taskvar_torch.heads.robustness import RobustnessCalibration
 
     heads, cfg = load_heads(results / "rep0" / "final.pt")

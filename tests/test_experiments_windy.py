@@ -16,9 +16,9 @@ import torch
 
 from taskvar_torch import cli, keys
 from taskvar_torch.config import load_config
-from taskvar_torch.envs import windy
-from taskvar_torch.experiments import fig2_metrics, fig2_report
-from taskvar_torch.experiments import windy_fig2 as wf
+from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy import fig2 as wf
+from taskvar_torch.families.windy import fig2_metrics, fig2_report
 from taskvar_torch.oracle import table_heads
 
 torch.set_num_threads(1)

@@ -1,6 +1,6 @@
 """What ``make demo`` says about its numbers (issue 48): ``taskvar eval --explain`` reads the
 table in words derived from its numbers (experiments/bundle_eval.py ``explain_table``), and the
-training summary labels what the budget has not learnt (families.py ``_windy_summary``)."""
+training summary labels what the budget has not learnt (``families/windy/family.py`` ``_windy_summary``)."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ import copy
 import pytest
 import torch
 
-from taskvar_torch import families
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import explain_table
+from taskvar_torch.families.windy import family as windy_family
 from taskvar_torch.heads.validate import compare_with_oracle
 from taskvar_torch.train import load_heads, train
 
@@ -124,7 +124,7 @@ def test_a_shift_curve_gets_the_columns_only():
 
 def test_the_training_summary_names_an_option_the_budget_has_not_learnt(monkeypatch):
     cfg = load_config("configs/windy.yaml", ["train.total_frames=1234"])
-    from taskvar_torch.oracle import WindyOracle
+    from taskvar_torch.families.windy import WindyOracle
 
     heads = WindyOracle("default").heads()
     report = {
@@ -142,7 +142,7 @@ def test_the_training_summary_names_an_option_the_budget_has_not_learnt(monkeypa
     import taskvar_torch.heads.validate as validate
 
     monkeypatch.setattr(validate, "compare_with_oracle", lambda h, o: report)
-    lines = families._windy_summary(heads, cfg)
+    lines = windy_family._windy_summary(heads, cfg)
     north, south = (line for line in lines if line.startswith("  option"))
     assert "not learnt: never reaches its exit in 100 steps" in north
     assert "not learnt" not in south
@@ -151,7 +151,7 @@ def test_the_training_summary_names_an_option_the_budget_has_not_learnt(monkeypa
         lines[-1] == "  undertrained at 1234 training frames: option(s) exit_north not learnt yet"
     )
     report["option_returns"] = [-4.0, -5.0]  # every option learnt: no label
-    assert "not learnt" not in "\n".join(families._windy_summary(heads, cfg))
+    assert "not learnt" not in "\n".join(windy_family._windy_summary(heads, cfg))
 
 
 @pytest.mark.slow
@@ -175,7 +175,7 @@ def test_taskvar_eval_explain_and_the_summary_on_a_trained_bundle(tmp_path, caps
     assert main([*args, "--episodes", "20", "--no-progress"]) == 0
     assert "How to read the table" not in capsys.readouterr().out  # only when asked
     heads, cfg = load_heads(tmp_path / "run" / "final.pt")
-    r = compare_with_oracle(heads, families._windy_oracle(cfg))
+    r = compare_with_oracle(heads, windy_family._windy_oracle(cfg))
     assert max(r["max_value_error_per_option"]) == pytest.approx(r["max_value_error"])
-    summary = "\n".join(families._windy_summary(heads, cfg))
+    summary = "\n".join(windy_family._windy_summary(heads, cfg))
     assert "per option: exit_north " in summary and "exit_south " in summary

@@ -3,6 +3,7 @@ checkpoints that load without building an env (``heads_spec``), old checkpoints 
 
 from __future__ import annotations
 
+import ast
 import re
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from taskvar_torch import factory, keys
 from taskvar_torch.checkpoint import load_checkpoint, save_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import HeadSpec, build_heads, load_heads, make_env, make_subtasks
-from taskvar_torch.families import FAMILIES, family
+from taskvar_torch.families import BUILTIN, FAMILIES, family
 from taskvar_torch.train import train
 
 torch.set_num_threads(1)
@@ -33,15 +34,49 @@ TINY = [
 
 
 def test_no_family_name_branches_outside_the_registry():
+    """Nothing outside ``families/`` (the contract and the families' own packages) branches on a
+    family's name."""
     pattern = re.compile(r"""\.family\s*(==|!=)|family\s*(==|!=)\s*["']""")
     hits = [
         f"{p.relative_to(PACKAGE)}:{i}"
         for p in PACKAGE.rglob("*.py")
-        if p.name != "families.py"
+        if p.relative_to(PACKAGE).parts[0] != "families"
         for i, line in enumerate(p.read_text().splitlines(), 1)
         if pattern.search(line)
     ]
     assert not hits, hits
+
+
+def _imported_modules(path):
+    """Every module ``path`` imports, at any depth (a function's lazy import too): the module of
+    ``import M`` / ``from M import ...`` and ``M.name`` for each name taken from it."""
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                yield node.lineno, alias.name
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            yield node.lineno, node.module
+            for alias in node.names:
+                yield node.lineno, f"{node.module}.{alias.name}"
+
+
+def test_the_core_imports_no_family():
+    """A family's package ``taskvar_torch/families/<name>/`` is imported only by itself: the core,
+    the study and the other families reach it through the registry (``family(cfg)``, entry
+    points), as they would an outside family's (read from the import statements, lazy ones too)."""
+    builtin = set(BUILTIN)
+    hits = []
+    for p in PACKAGE.rglob("*.py"):
+        parts = p.relative_to(PACKAGE).parts
+        own = parts[1] if parts[0] == "families" and len(parts) > 2 else None
+        for line, module in _imported_modules(p):
+            m = module.split(".")
+            if m[:2] == ["taskvar_torch", "families"] and len(m) > 2 and m[2] in builtin:
+                if m[2] != own:
+                    hits.append(f"{'/'.join(parts)}:{line} imports {module}")
+    assert not hits, hits
+    assert {p.name for p in (PACKAGE / "families").iterdir() if p.is_dir()} >= builtin
 
 
 @pytest.mark.parametrize(

@@ -105,7 +105,7 @@ HOOK = textwrap.dedent(
 
     PATCHES = {"taskvar_torch.train": patch_train} if FAULT == "fsize" else {}
     if FAULT == "kill":
-        PATCHES["taskvar_torch.experiments.windy_fig2"] = patch_fig2
+        PATCHES["taskvar_torch.families.windy.fig2"] = patch_fig2
 
     class Finder(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path, target=None):

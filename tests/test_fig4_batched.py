@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.families.wargus import fig4
 from taskvar_torch.heads.seeds import load_seed, split_seed, stack_seeds
 
 torch.set_num_threads(1)

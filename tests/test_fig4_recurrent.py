@@ -1,4 +1,4 @@
-"""The recurrent baseline's curve in the Figure 4 protocol (experiments/fig4_recurrent.py)."""
+"""The recurrent baseline's curve in the Figure 4 protocol (families/wargus/fig4_recurrent.py)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 import torch
 
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments import fig4_recurrent as rec
-from taskvar_torch.experiments import wargus_fig4 as fig4
+from taskvar_torch.families.wargus import fig4
+from taskvar_torch.families.wargus import fig4_recurrent as rec
 from taskvar_torch.heads.recurrent import load_baseline
 
 torch.set_num_threads(1)

@@ -11,7 +11,7 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
-from taskvar_torch.envs.wargus import ITEM_SEEN, PATROL_SEEN
+from taskvar_torch.families.wargus.dynamics import ITEM_SEEN, PATROL_SEEN
 from taskvar_torch.train import load_heads, make_env, train
 
 torch.set_num_threads(1)

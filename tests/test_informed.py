@@ -18,6 +18,7 @@ from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.factory import build_heads, make_env, make_subtasks, write_heads
+from taskvar_torch.families.windy import WindyOracle
 from taskvar_torch.heads.informed import INSTANCE_FEATURES, informed_features
 from taskvar_torch.heads.recurrent import (
     BaselineSpec,
@@ -26,8 +27,7 @@ from taskvar_torch.heads.recurrent import (
     make_recurrent_qnet,
     save_baseline,
 )
-from taskvar_torch.oracle import WindyOracle
-from taskvar_torch.oracle.learnt import optimal_episode_returns
+from taskvar_torch.oracle.episodes import optimal_episode_returns
 from taskvar_torch.train_recurrent import train_baseline
 
 CORRIDOR = "configs/windy_corridor.yaml"

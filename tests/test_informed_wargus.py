@@ -1,6 +1,6 @@
 """The informed baseline on Wargus (issue 31, item 2; docs/memory.md): the averaging head's
 network reading the full hidden state, every item's and every patrol's position
-(``Family.informed_features``, families.py ``wargus_state_features``), trained as on windy and Taxi
+(``Family.informed_features``, ``families/wargus/family.py`` ``wargus_state_features``), trained as on windy and Taxi
 and played by ``taskvar eval --method all`` beside the paper's methods (paper §3.5: no exact
 oracle, items per episode only).
 
@@ -9,7 +9,7 @@ episodes) a 20k-frame run (~7 s CPU) collects many times the random policy's ite
 the features is not checked: with the same weights and the features rolled across the batch it
 scored 2.52 vs 2.84 items (paired difference +0.32 +- 0.14, 1000 episodes) at 122k frames, but
 -0.23 +- 0.12 at 31k: Wargus's observation already gives the bearing of the nearest item and patrol
-(envs/wargus.py), so the positions add only distances, which short runs do not learn to read.
+(families/wargus/dynamics.py), so the positions add only distances, which short runs do not learn to read.
 """
 
 from __future__ import annotations

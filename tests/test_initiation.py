@@ -27,8 +27,8 @@ from taskvar_torch.controllers import (
 )
 from taskvar_torch.controllers.base import sample_categorical
 from taskvar_torch.controllers.interruption import interruption_decide_of, masked_mu_bar
-from taskvar_torch.envs import WindyGridEnv, WindyInstances
-from taskvar_torch.oracle import WindyOracle, table_heads
+from taskvar_torch.families.windy import WindyGridEnv, WindyInstances, WindyOracle
+from taskvar_torch.oracle import table_heads
 from taskvar_torch.subtasks import Hierarchy, Subtasks
 
 torch.set_num_threads(1)
@@ -370,8 +370,8 @@ def test_subtasks_initiable_everywhere_skip_the_mask_and_its_fallback():
     """Wargus options start anywhere (``initiable_everywhere``): no mask is read and the option
     controllers need no averaging head; windy's and Taxi's initiation sets are read."""
     from taskvar_torch.controllers.base import defines_initiation
-    from taskvar_torch.subtasks.taxi import TaxiSubtasks
-    from taskvar_torch.subtasks.wargus import WargusSubtasks
+    from taskvar_torch.families.taxi.subtasks import TaxiSubtasks
+    from taskvar_torch.families.wargus.subtasks import WargusSubtasks
 
     wargus = WargusSubtasks()
     td = TensorDict({"item_seen": torch.zeros(5, dtype=torch.bool)}, [5])

@@ -21,9 +21,9 @@ from taskvar_torch.config.memory import (
     estimate,
     observation_size,
 )
-from taskvar_torch.envs import windy
-from taskvar_torch.envs.windy_env import OBS_ENCODINGS, observation_table
-from taskvar_torch.envs.windy_env import observation_size as windy_observation_size
+from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy.env import OBS_ENCODINGS, observation_table
+from taskvar_torch.families.windy.env import observation_size as windy_observation_size
 from taskvar_torch.replay import raw_transitions
 from taskvar_torch.train import _build_run
 

@@ -18,7 +18,10 @@ import pytest
 import torch
 
 from taskvar_torch import rng
-from taskvar_torch.envs import WargusEnv, WindyGridEnv, wargus, windy
+from taskvar_torch.families.wargus import WargusEnv
+from taskvar_torch.families.wargus import dynamics as wargus
+from taskvar_torch.families.windy import WindyGridEnv
+from taskvar_torch.families.windy import dynamics as windy
 
 
 def on_meta(model):

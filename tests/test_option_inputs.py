@@ -9,7 +9,7 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
-from taskvar_torch.envs.wargus import (
+from taskvar_torch.families.wargus.dynamics import (
     OBS_AGENT,
     OBS_ITEM_BEARING,
     OBS_ITEM_OFFSET,

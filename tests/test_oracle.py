@@ -10,8 +10,9 @@ from tensordict import TensorDict
 from tensordict.nn import TensorDictModule
 
 from taskvar_torch import keys
-from taskvar_torch.envs import WindyGridEnv, WindyInstances, windy
-from taskvar_torch.oracle import TableLookup, WindyOracle, gauss_legendre, greedy, solve_mdp
+from taskvar_torch.families.windy import WindyGridEnv, WindyInstances, WindyOracle
+from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.oracle import TableLookup, gauss_legendre, greedy, solve_mdp
 
 torch.set_num_threads(1)
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from taskvar_torch.envs.windy import make_layout
-from taskvar_torch.oracle import WindyOracle
-from taskvar_torch.oracle.sparse import (
+from taskvar_torch.families.windy import WindyOracle
+from taskvar_torch.families.windy.dynamics import make_layout
+from taskvar_torch.families.windy.sparse_oracle import (
     SparseKernel,
     SparseWindyOracle,
     expect_planes,
@@ -110,7 +110,7 @@ def test_head_report_of_exact_tables():
     """A bundle of the oracle's own tables scores 0 gap on every head, full agreement of mu_bar
     and of the interruption condition, and the oracle's controller returns."""
     from taskvar_torch import keys
-    from taskvar_torch.oracle.head_report import head_report
+    from taskvar_torch.families.windy.head_report import head_report
     from taskvar_torch.oracle.tables import table_heads
 
     o = SparseWindyOracle("whole_column_windy", train_instances="south")

@@ -6,7 +6,7 @@ import json
 
 import torch
 
-from taskvar_torch.experiments import oracle_table
+from taskvar_torch.families.windy import oracle_table
 
 torch.set_num_threads(1)
 

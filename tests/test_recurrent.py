@@ -23,6 +23,7 @@ from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.factory import make_env
+from taskvar_torch.families.windy import WindyOracle
 from taskvar_torch.heads.recurrent import (
     BaselineController,
     BaselineSpec,
@@ -30,7 +31,6 @@ from taskvar_torch.heads.recurrent import (
     make_recurrent_qnet,
     save_baseline,
 )
-from taskvar_torch.oracle import WindyOracle
 from taskvar_torch.train_recurrent import train_baseline
 
 CORRIDOR = "configs/windy_corridor.yaml"

@@ -8,7 +8,9 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import taskvar_torch  # noqa: F401
-from taskvar_torch.envs.registration import ENV_IDS
+from taskvar_torch.envs.registration import env_ids
+
+ENV_IDS = env_ids()
 
 
 @pytest.mark.parametrize("env_id", list(ENV_IDS))

@@ -12,15 +12,15 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
-from taskvar_torch.envs import windy
 from taskvar_torch.experiments.bundle_eval import _exact_oracle, eval_bundle, format_table
 from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import make_method_controller
-from taskvar_torch.oracle.learnt import exact_episode_returns, optimal_episode_returns
+from taskvar_torch.families.taxi.oracle import TaxiOracle
+from taskvar_torch.families.taxi.subtasks import TaxiSubtasks
+from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy.oracle import WindyOracle
+from taskvar_torch.oracle.episodes import exact_episode_returns, optimal_episode_returns
 from taskvar_torch.oracle.mdp import greedy
-from taskvar_torch.oracle.taxi import TaxiOracle
-from taskvar_torch.oracle.windy import WindyOracle
-from taskvar_torch.subtasks.taxi import TaxiSubtasks
 from taskvar_torch.train import train
 
 torch.set_num_threads(1)

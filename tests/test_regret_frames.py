@@ -24,7 +24,7 @@ from taskvar_torch.experiments.regret_frames import (
 )
 from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
-from taskvar_torch.oracle.learnt import exact_episode_returns
+from taskvar_torch.oracle.episodes import exact_episode_returns
 from taskvar_torch.train import train
 
 torch.set_num_threads(1)

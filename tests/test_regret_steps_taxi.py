@@ -9,10 +9,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from taskvar_torch.envs import taxi
-from taskvar_torch.envs.taxi import TaxiInstances
+from taskvar_torch.families.taxi import dynamics as taxi
+from taskvar_torch.families.taxi.dynamics import TaxiInstances
+from taskvar_torch.families.taxi.oracle import TaxiOracle
 from taskvar_torch.oracle.mdp import greedy
-from taskvar_torch.oracle.taxi import TaxiOracle
 
 torch.set_num_threads(1)
 

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments.robustness_mc import (
+from taskvar_torch.families.wargus.robustness_mc import (
     format_report,
     option_returns,
     robustness_monte_carlo,

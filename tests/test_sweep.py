@@ -153,9 +153,7 @@ def ray_session():
         return
     ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     # a lambda travels by value (this test module is not importable in the workers)
-    warm = ray.remote(num_cpus=1)(
-        lambda: __import__("taskvar_torch.experiments.windy_fig2") and None
-    )
+    warm = ray.remote(num_cpus=1)(lambda: __import__("taskvar_torch.families.windy.fig2") and None)
     refs = [warm.remote() for _ in range(2)]
     yield ray
     ray.get(refs)

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from taskvar_torch import sweep as sweep_module
-from taskvar_torch.experiments import windy_fig2
 from taskvar_torch.factory import load_heads
+from taskvar_torch.families.windy import fig2 as windy_fig2
 from taskvar_torch.sweep import expand_points, load_point_configs, plan_jobs, sweep
 
 torch.set_num_threads(1)

@@ -10,10 +10,10 @@ from gymnasium.utils.env_checker import check_env
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
-from taskvar_torch.envs import taxi
-from taskvar_torch.envs.taxi import TaxiInstances, TaxiModel, encode
-from taskvar_torch.envs.taxi_env import TaxiEnv
-from taskvar_torch.envs.taxi_gym import TaxiGymEnv
+from taskvar_torch.families.taxi import dynamics as taxi
+from taskvar_torch.families.taxi.dynamics import TaxiInstances, TaxiModel, encode
+from taskvar_torch.families.taxi.env import TaxiEnv
+from taskvar_torch.families.taxi.gym_env import TaxiGymEnv
 
 torch.set_num_threads(1)
 

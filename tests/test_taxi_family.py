@@ -11,13 +11,13 @@ from torchrl.envs import TransformedEnv
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
-from taskvar_torch.envs.taxi_env import TaxiEnv
 from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.experiments.shift import parse_shift, shift_points
 from taskvar_torch.factory import load_heads, make_method_controller
 from taskvar_torch.families import FAMILIES, family
-from taskvar_torch.oracle.taxi import TaxiOracle
-from taskvar_torch.subtasks.taxi import TaxiSubtasks
+from taskvar_torch.families.taxi.env import TaxiEnv
+from taskvar_torch.families.taxi.oracle import TaxiOracle
+from taskvar_torch.families.taxi.subtasks import TaxiSubtasks
 from taskvar_torch.train import train
 
 torch.set_num_threads(1)

@@ -12,11 +12,11 @@ from gymnasium.envs.toy_text.taxi import TaxiEnv as GymTaxi
 from torchrl.envs import TransformedEnv
 
 from taskvar_torch.controllers import Controller, make_controller
-from taskvar_torch.envs import taxi
-from taskvar_torch.envs.taxi import TaxiInstances, encode
-from taskvar_torch.envs.taxi_env import TaxiEnv
+from taskvar_torch.families.taxi import dynamics as taxi
+from taskvar_torch.families.taxi.dynamics import TaxiInstances, encode
+from taskvar_torch.families.taxi.env import TaxiEnv
+from taskvar_torch.families.taxi.oracle import TaxiOracle
 from taskvar_torch.oracle.mdp import solve_mdp
-from taskvar_torch.oracle.taxi import TaxiOracle
 
 torch.set_num_threads(1)
 S = taxi.NUM_STATES

@@ -7,8 +7,8 @@ import torch
 from tensordict import TensorDict
 
 from taskvar_torch import keys
-from taskvar_torch.envs.taxi import IN_TAXI, NUM_STATES, TaxiModel, decode, encode
-from taskvar_torch.subtasks.taxi import TaxiSubtasks
+from taskvar_torch.families.taxi.dynamics import IN_TAXI, NUM_STATES, TaxiModel, decode, encode
+from taskvar_torch.families.taxi.subtasks import TaxiSubtasks
 
 R, G, Y, B = 0, 1, 2, 3
 TO_R, TO_G, TO_Y, TO_B, PICKUP, DROPOFF = range(6)

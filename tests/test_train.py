@@ -255,7 +255,7 @@ def test_eval_ema_tau_bundles_hold_the_polyak_average(tmp_path):
     for bad in ("train.eval_ema_tau=0", "train.eval_ema_tau=1.5"):
         with pytest.raises(ValueError, match=r"train.eval_ema_tau must be in \(0, 1\] or null"):
             load_config(CONFIG, [bad])
-    from taskvar_torch.experiments.wargus_fig4 import default_config_path, wargus_fig4
+    from taskvar_torch.families.wargus.fig4 import default_config_path, wargus_fig4
 
     wcfg = load_config(default_config_path(), ["train.eval_ema_tau=0.01"], quick=True)
     with pytest.raises(ValueError, match="wargus-fig4 tests the live heads"):

@@ -15,10 +15,15 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from taskvar_torch import keys
-from taskvar_torch.envs import wargus
-from taskvar_torch.envs.wargus import WargusConfig, WargusInstances, WargusModel, WargusState
-from taskvar_torch.envs.wargus_env import WargusEnv
-from taskvar_torch.envs.wargus_gym import WargusGymEnv
+from taskvar_torch.families.wargus import dynamics as wargus
+from taskvar_torch.families.wargus.dynamics import (
+    WargusConfig,
+    WargusInstances,
+    WargusModel,
+    WargusState,
+)
+from taskvar_torch.families.wargus.env import WargusEnv
+from taskvar_torch.families.wargus.gym_env import WargusGymEnv
 
 torch.set_num_threads(1)
 

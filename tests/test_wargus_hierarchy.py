@@ -13,7 +13,8 @@ from tensordict import TensorDict
 
 from taskvar_torch import keys
 from taskvar_torch.controllers import HierarchyController, make_controller
-from taskvar_torch.envs import wargus
+from taskvar_torch.families.wargus import dynamics as wargus
+from taskvar_torch.families.wargus.subtasks import WargusSubtasks
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.robustness import (
     RobustnessCalibration,
@@ -21,7 +22,6 @@ from taskvar_torch.heads.robustness import (
     robustness_loss,
 )
 from taskvar_torch.oracle import table_heads
-from taskvar_torch.subtasks.wargus import WargusSubtasks
 
 SUB = WargusSubtasks()
 NAMES = SUB.names  # ("TG", "FE", "TG+FE")

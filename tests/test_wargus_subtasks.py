@@ -7,9 +7,9 @@ import torch
 from tensordict import TensorDict
 
 from taskvar_torch import keys
-from taskvar_torch.envs import wargus
-from taskvar_torch.envs.wargus_env import WargusEnv
-from taskvar_torch.subtasks.wargus import WargusSubtasks
+from taskvar_torch.families.wargus import dynamics as wargus
+from taskvar_torch.families.wargus.env import WargusEnv
+from taskvar_torch.families.wargus.subtasks import WargusSubtasks
 
 torch.set_num_threads(1)
 

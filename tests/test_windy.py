@@ -11,16 +11,19 @@ from torchrl.envs.utils import check_env_specs, step_mdp
 
 import taskvar_torch  # noqa: F401  (registers the gym ids)
 from taskvar_torch import rng
-from taskvar_torch.envs import (
+from taskvar_torch.envs.registration import env_ids
+from taskvar_torch.families.windy import (
     WindyGridEnv,
     WindyInstances,
     WindyLayout,
     WindyModel,
     make_layout,
-    windy,
 )
-from taskvar_torch.envs.registration import ENV_IDS
+from taskvar_torch.families.windy import (
+    dynamics as windy,
+)
 
+ENV_IDS = env_ids()
 torch.set_num_threads(1)
 
 WINDY_IDS = [i for i in ENV_IDS if "Windy" in i]

@@ -8,9 +8,9 @@ import pytest
 import torch
 
 from taskvar_torch.config import load_config
-from taskvar_torch.envs.windy import WindyModel, make_layout
-from taskvar_torch.envs.windy_env import observation_table
-from taskvar_torch.subtasks.windy import WindySubtasks
+from taskvar_torch.families.windy.dynamics import WindyModel, make_layout
+from taskvar_torch.families.windy.env import observation_table
+from taskvar_torch.families.windy.subtasks import WindySubtasks
 
 LAYOUT = make_layout(11, 11, num_exits=3, wind_cells_per_exit=2)
 

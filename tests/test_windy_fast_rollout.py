@@ -9,7 +9,7 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torchrl.collectors import Collector
 
 from taskvar_torch import rng
-from taskvar_torch.envs import WindyGridEnv, WindyInstances, make_layout
+from taskvar_torch.families.windy import WindyGridEnv, WindyInstances, make_layout
 
 CONFIGS = {
     "default": dict(num_envs=64, seed=3),
@@ -108,8 +108,8 @@ def test_reset_draws_equal_the_reference_draws():
     env = WindyGridEnv(num_envs=300, seed=7, instances=WindyInstances(0.2, 0.7, ("north", "east")))
     td = env.reset()
     key = rng.episode_key(rng.sub_env_key(7, torch.arange(300)), torch.zeros(300, dtype=torch.long))
-    from taskvar_torch.envs.instances import _C_DIR, _C_P
-    from taskvar_torch.envs.windy_env import _C_START
+    from taskvar_torch.families.windy.env import _C_START
+    from taskvar_torch.families.windy.instances import _C_DIR, _C_P
 
     p = 0.2 + (0.7 - 0.2) * rng.draw_uniform(key, _C_P)
     direction = torch.tensor([0, 2])[rng.draw_index(key, _C_DIR, 2)]

@@ -12,7 +12,7 @@ Configs).
 
 Every name is importable from ``taskvar_torch.config`` itself, as are :func:`atomic_write`
 (``taskvar_torch/io.py``) and the family helpers the config is read through
-(``taskvar_torch/families.py``).
+(``taskvar_torch/families/__init__.py``).
 
 Examples:
     >>> cfg = load_config("configs/windy.yaml", ["train.lr=0.01"])
@@ -59,9 +59,8 @@ from taskvar_torch.config.schema import (
     ExperimentConfig,
     HeadsConfig,
     TrainConfig,
-    WargusConfig,
 )
-from taskvar_torch.families import FAMILIES, GENERATED, family, windy_env_kwargs, windy_layout
+from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.io import atomic_write
 
 __all__ = [
@@ -69,7 +68,6 @@ __all__ = [
     "COLLECTOR_BACKENDS",
     "COMPOSED_REWARDS",
     "FAMILIES",
-    "GENERATED",
     "HEAD_NETWORKS",
     "HIERARCHY_DESCENTS",
     "MAX_VALUE_ESTIMATORS",
@@ -90,7 +88,6 @@ __all__ = [
     "ExperimentConfig",
     "HeadsConfig",
     "TrainConfig",
-    "WargusConfig",
     "apply_overrides",
     "atomic_write",
     "config_from_dict",
@@ -103,6 +100,4 @@ __all__ = [
     "load_config",
     "load_strict",
     "save_config_yaml",
-    "windy_env_kwargs",
-    "windy_layout",
 ]

@@ -11,7 +11,7 @@ from __future__ import annotations
 METHODS = ("averaging", "options", "interruption", "hierarchy")
 """The paper's four controllers, in its order: averaging (§3.1), options (§3.2), interruption
 (Algorithm 1), hierarchy (Algorithm 2). The experiments iterate them in this order; the windy
-Figure 2 takes all but hierarchy (experiments/windy_fig2.py)."""
+Figure 2 takes all but hierarchy (families/windy/fig2.py)."""
 
 ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
 HEAD_NETWORKS = ("mlp", "conv")  # taskvar_torch/heads/networks.py NETWORKS
@@ -25,9 +25,9 @@ ROOT_POLICIES = ("averaging", "option")  # mirrors controllers/base.py
 ROBUSTNESS_THRESHOLDS = ("calibrated", "fixed")
 ROBUSTNESS_UNTIL = ("episode", "termination")  # mirrors heads/robustness.py
 HIERARCHY_DESCENTS = ("normalised", "raw")  # mirrors controllers/hierarchy.py
-COMPOSED_REWARDS = ("env", "sum")  # mirrors subtasks/wargus.py
+COMPOSED_REWARDS = ("env", "sum")  # mirrors families/wargus/subtasks.py
 COLLECTOR_BACKENDS = ("process", "ray")  # taskvar_torch/train.py make_collector
 MATMUL_DTYPES = ("bfloat16", "float32")  # mirrors heads/learner.py MATMUL_DTYPES
 REPLAY_SAMPLINGS = ("uniform", "per_option")  # taskvar_torch/replay.py make_replay_buffer
 LOGGERS = ("csv", "mlflow", "tensorboard", "wandb")  # taskvar_torch/train.py RunLoggers
-FIG4_BASELINES = ("recurrent",)  # experiments/fig4_recurrent.py
+FIG4_BASELINES = ("recurrent",)  # families/wargus/fig4_recurrent.py

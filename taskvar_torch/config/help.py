@@ -49,7 +49,8 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
     """``--help`` text: one line per dotted key with its type, default and docstring.
 
     A nested dataclass field is a header line followed by its own keys; ``cls`` may be any
-    config dataclass whose fields all have defaults.
+    config dataclass whose fields all have defaults. For :class:`Config`, every registered
+    family's own keys (``Family.config_class``, under ``env.<name>``) follow.
     """
     lines = []
     docs = field_docs(cls)
@@ -65,4 +66,12 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
         shown = list(value) if isinstance(value, tuple) else value
         tname = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
         lines.append(f"  {prefix}{f.name} ({tname}, default {shown!r}): {docs.get(f.name, '')}")
+    if cls is Config and not prefix:  # each registered family's own keys, read for it only
+        from taskvar_torch.families import FAMILIES
+
+        for name in sorted(FAMILIES):
+            section = FAMILIES[name].config_class
+            if section is not None:
+                lines.append(f"env.{name}: the {name} family's own keys (read when family={name})")
+                lines.append(config_help(section, f"env.{name}."))
     return "\n".join(lines)

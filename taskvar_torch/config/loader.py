@@ -94,6 +94,40 @@ def _schema_with_section(name: str, section_class: type) -> type[Config]:
     )
 
 
+LEGACY_SECTIONS = ("wargus",)
+"""Family sections every config held before the families became packages (``env.wargus``)."""
+
+
+def migrate_config_data(data: Any, source: str = "config") -> Any:
+    """The one migration of old config data (a YAML file's, a checkpoint's or a results folder's
+    ``config.yaml``) to the current schema, each change with a deprecation line (a
+    ``FutureWarning``): ``env.wargus`` in a config of another family (every config written before
+    the families became packages held it, :data:`LEGACY_SECTIONS`) is dropped; it was never read. ``data`` is returned unchanged where nothing applies."""
+    env = data.get("env", None) if isinstance(data, (Mapping, DictConfig)) else None
+    if not isinstance(env, (Mapping, DictConfig)):
+        return data
+    family = data.get("family", "windy")
+    stale = [k for k in LEGACY_SECTIONS if k in env and k != family]
+    if not stale:
+        return data
+    warnings.warn(
+        f"{source}: env.{stale[0]} in a config of family {family!r} is ignored and dropped (a "
+        "family's own keys are read only for that family; written by an older taskvar_torch)",
+        FutureWarning,
+        stacklevel=3,
+    )
+    out = (
+        OmegaConf.create(OmegaConf.to_container(data))
+        if isinstance(data, DictConfig)
+        else dict(data)
+    )
+    env = dict(out["env"]) if not isinstance(out, DictConfig) else out["env"]
+    for k in stale:
+        del env[k]
+    out["env"] = env
+    return out
+
+
 def _reduce_config(cfg: Config) -> tuple:
     """Pickle a family-section config as its dict (the class is made at run time): it is rebuilt,
     and validated, where the same family is registered (an entry point, or the same import)."""
@@ -398,6 +432,7 @@ def load_strict(
     path = Path(path)
     data = _read_yaml(path)
     if schema is Config:  # a family with its own env keys extends the schema (config_schema)
+        data = migrate_config_data(data, str(path))
         schema = config_schema(_family_named(data.get("family", None), overrides))
     node = _merge(schema, _structured(schema), data, f"in {path}")
     cfg = _to_object(schema, node, f"in {path}")
@@ -458,7 +493,8 @@ def apply_overrides(cfg: T, overrides: Sequence[str]) -> T:
     schema = type(cfg)
     if isinstance(cfg, Config):
         schema = config_schema(_family_named(cfg.family, overrides))
-    node = _merge(schema, _structured(schema), OmegaConf.structured(cfg), "config")
+    # as plain data: a family-section schema (config_schema) is not the class of a plain Config
+    node = _merge(schema, _structured(schema), OmegaConf.create(config_to_dict(cfg)), "config")
     return _to_object(schema, _apply_overrides(schema, node, overrides), "with overrides")
 
 
@@ -484,6 +520,7 @@ def config_from_dict(
     if not isinstance(d, Mapping):
         raise ValueError(f"config ({source}) must be a mapping, got {type(d).__name__}")
     if schema is Config:
+        d = migrate_config_data(d, source)
         schema = config_schema(_family_named(d.get("family")))
     try:
         data = OmegaConf.create(dict(d))

@@ -1,7 +1,8 @@
 """The config schema: frozen dataclasses mirrored by ``configs/*.yaml`` (docs/design.md, Configs).
 
-:class:`Config` is a whole experiment; its sections are :class:`EnvConfig` (with
-:class:`WargusConfig`, the Wargus env's own config, under ``env.wargus``), :class:`HeadsConfig`, :class:`TrainConfig`,
+:class:`Config` is a whole experiment; its sections are :class:`EnvConfig` (a family's own keys,
+its ``Family.config_class``, under ``env.<family>``: :func:`~taskvar_torch.config.loader
+.config_schema`), :class:`HeadsConfig`, :class:`TrainConfig`,
 :class:`CollectorConfig`, :class:`EvalConfig` and :class:`ExperimentConfig`. Every field carries
 a docstring (the string literal right below it), the source of ``taskvar train --help``
 (:mod:`taskvar_torch.config.help`). Building a :class:`Config` in any way runs the range and
@@ -15,25 +16,12 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 from taskvar_torch.config.validate import _validate
-from taskvar_torch.envs import wargus
-
-
-@dataclass(frozen=True)
-class WargusConfig(wargus.WargusConfig):
-    """The Wargus env's own config (``envs/wargus.py``: the one definition of its fields and
-    their docs) under ``env.wargus``. Its range checks run in the family's validation
-    (``families.py``) only when ``family='wargus'``, so a windy config never reads these keys."""
-
-    def __post_init__(self) -> None:  # checked by the Wargus family's validation instead
-        pass
 
 
 @dataclass(frozen=True)
 class EnvConfig:
-    """The environment: shared and windy fields at this level, Wargus fields under ``env.wargus``.
-
-    Only the keys of ``family`` are validated and read; the other family's are ignored.
-    """
+    """The environment: shared and windy fields at this level; another family's own keys under
+    ``env.<family>`` (``env.wargus``, ``env.taxi``), added by the loader for that family only."""
 
     num_envs: int = 16
     """Number of environments simulated in parallel for training (the batch size N)."""
@@ -61,8 +49,6 @@ class EnvConfig:
     (coords_patch + one-hot row and column)."""
     patch_radius: int = 2
     """Windy coords_patch encoding: radius r of the (2r+1)^2 local patch."""
-    wargus: WargusConfig = field(default_factory=WargusConfig)
-    """Wargus family parameters."""
 
 
 @dataclass(frozen=True)

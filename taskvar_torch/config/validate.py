@@ -4,7 +4,7 @@
 :func:`_validate` runs in ``Config.__post_init__``, so every way of building a config (YAML,
 overrides, a checkpoint's dict, ``dataclasses.replace``) is checked. Each error is one line naming
 the dotted key and what is allowed there. The family's own ``env`` keys are checked by the family
-registry (``Family.validate``, taskvar_torch/families.py); the other family's keys are never read.
+registry (``Family.validate``, taskvar_torch/families/); the other family's keys are never read.
 """
 
 from __future__ import annotations

@@ -62,8 +62,7 @@ from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.recurrent import BASELINES
-from taskvar_torch.oracle import exact_episode_returns
-from taskvar_torch.oracle.learnt import optimal_episode_returns
+from taskvar_torch.oracle.episodes import exact_episode_returns, optimal_episode_returns
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder, refuse_inside
 from taskvar_torch.subtasks.base import Subtasks

@@ -9,7 +9,7 @@ Examples:
     >>> sorted(EXPERIMENTS)
     ['scale', 'wargus-fig4', 'windy-fig2']
     >>> EXPERIMENTS["wargus-fig4"].module
-    'taskvar_torch.experiments.wargus_fig4'
+    'taskvar_torch.families.wargus.fig4'
 """
 
 from __future__ import annotations
@@ -38,7 +38,12 @@ class Experiment:
         plot: ``plot(out_dir) -> [png paths]`` (redraws from the results folder alone).
         default_config: ``default_config() -> Path`` of its YAML config.
         schema: the config dataclass its YAML follows (``Config`` or ``ScaleConfig``).
+        loader: ``loader(path, overrides, quick=...) -> config`` in its module, for a schema
+            other than ``Config`` (``Config``: :func:`taskvar_torch.config.load_config`).
         description: one line for ``--help``.
+        refusals: why the experiment does not take an option of ``taskvar experiment`` (option
+            -> the one-line reason); an option it neither takes nor names here is refused with
+            a generic line.
     """
 
     name: str
@@ -47,7 +52,9 @@ class Experiment:
     plot: str = "plot_results"
     default_config: str = "default_config_path"
     schema: str = "Config"
+    loader: str | None = None
     description: str = ""
+    refusals: tuple[tuple[str, str], ...] = ()
 
     def load(self) -> ModuleType:
         """The experiment's module (imported now)."""
@@ -57,12 +64,33 @@ class Experiment:
         """``run``, ``plot`` or ``default_config`` as a callable."""
         return getattr(self.load(), getattr(self, attr))
 
+    def takes(self, option: str) -> bool:
+        """Whether ``run`` takes the keyword ``option`` (e.g. ``workers``: wargus-fig4 only)."""
+        return option in inspect.signature(self.function("run")).parameters
+
+    def refuse(self, option: str, flag: str | None = None) -> None:
+        """A one-line ``ValueError`` unless ``run`` takes ``option`` (named ``flag`` to the
+        user, e.g. ``--workers``): the experiment's own reason where it gives one."""
+        if self.takes(option):
+            return
+        reason = dict(self.refusals).get(option)
+        raise ValueError(reason or f"{flag or option} is not an option of {self.name}")
+
     def call(self, cfg: Any, out_dir: str | os.PathLike, **options: Any) -> dict[str, Any]:
-        """Run the experiment with the ``options`` its ``run`` function takes (others are
-        dropped: e.g. ``workers`` reaches wargus-fig4 only, ``quick`` windy-fig2 and scale)."""
-        run = self.function("run")
-        accepted = inspect.signature(run).parameters
-        return run(cfg, out_dir, **{k: v for k, v in options.items() if k in accepted})
+        """Run the experiment with ``options``; one it does not take is a one-line
+        ``ValueError`` (:meth:`refuse`), never dropped."""
+        for k in options:
+            self.refuse(k)
+        return self.function("run")(cfg, out_dir, **options)
+
+    def load_config(self, path: str | os.PathLike, overrides: Any = (), quick: bool = False) -> Any:
+        """The experiment's config from ``path`` and ``overrides`` (its own ``loader`` where its
+        schema is not ``Config``)."""
+        if self.loader is None:
+            from taskvar_torch.config import load_config
+
+            return load_config(path, overrides, quick=quick)
+        return getattr(self.load(), self.loader)(path, overrides, quick=quick)
 
     def default_config_path(self) -> Path:
         return self.function("default_config")()
@@ -74,21 +102,39 @@ class Experiment:
 EXPERIMENTS: dict[str, Experiment] = {
     "windy-fig2": Experiment(
         "windy-fig2",
-        "taskvar_torch.experiments.windy_fig2",
+        "taskvar_torch.families.windy.fig2",
         run="windy_fig2",
         description="paired rollouts of interruption vs averaging on windy grids (paper Figure 2)",
     ),
     "wargus-fig4": Experiment(
         "wargus-fig4",
-        "taskvar_torch.experiments.wargus_fig4",
+        "taskvar_torch.families.wargus.fig4",
         run="wargus_fig4",
         description="lifelong learning curves of the four methods on Wargus (paper Figure 4)",
+        refusals=(
+            (
+                "checkpoint",
+                "wargus-fig4 learns from scratch (lifelong protocol); --checkpoint is not used",
+            ),
+            (
+                "threads",
+                "--threads: wargus-fig4 runs one thread per process (small batches; 2 threads "
+                "under contention ran 10x slower); use --workers N to use more cores",
+            ),
+        ),
     ),
     "scale": Experiment(
         "scale",
         "taskvar_torch.experiments.scale",
         run="scale",
         schema="ScaleConfig",
+        loader="load_scale_config",
+        refusals=(
+            (
+                "checkpoint",
+                "scale trains one bundle per (case, num_envs) cell; --checkpoint is not used",
+            ),
+        ),
         description="every method on large grids and many environments, against references",
     ),
 }

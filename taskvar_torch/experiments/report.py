@@ -57,7 +57,7 @@ import yaml
 from taskvar_torch.config.choices import FIG4_BASELINES
 from taskvar_torch.experiments import aggregate
 from taskvar_torch.experiments import report_results as at_a_glance
-from taskvar_torch.experiments.fig4_metrics import trials_to_fraction_of_max
+from taskvar_torch.experiments.curves import trials_to_fraction_of_max
 from taskvar_torch.io import atomic_write
 from taskvar_torch.run_folder import check_out_path, folder_lock
 

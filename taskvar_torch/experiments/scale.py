@@ -207,7 +207,7 @@ class ScaleConfig:
     curve_episodes: int = 100
     """Test episodes per method per learning-curve point (the first of the final evaluation's)."""
     head_report: bool = True
-    """Windy cells: every learnt head against its exact optimum (oracle/head_report.py)."""
+    """Windy cells: every learnt head against its exact optimum (families/windy/head_report.py)."""
     head_report_max_value: bool = True
     """With head_report: compare the learnt interruption condition too (the slowest exact solve)."""
     quick_overrides: tuple[str, ...] = ()

@@ -209,7 +209,7 @@ def format_heads(metrics: dict[str, Any]) -> list[str]:
     """Lines of the every-head report (windy cells): each head's relative gap to its exact
     optimum (``*``: within 2%), mu_bar's agreement at the start cells, the interruption
     condition's agreement over (cell, option) pairs, and the exact returns of the learnt and the
-    oracle's interruption controllers (oracle/head_report.py)."""
+    oracle's interruption controllers (families/windy/head_report.py)."""
     cells = [c for c in metrics["cells"] if c.get("heads")]
     if not cells:
         return []

@@ -2,7 +2,7 @@
 
 A *test point* is what one evaluation plays: the bundle's config with some ``env`` keys changed,
 and an instance distribution. :func:`shift_points` builds them from a named test distribution of
-the family (``families.py``: ``Family.tests``, listed in docs/evaluation.md) and ad-hoc shifts:
+the family (``families/``: ``Family.tests``, listed in docs/evaluation.md) and ad-hoc shifts:
 
 - ``env.KEY=VALUE``: any ``env`` config key (``env.wargus.patrol_speed=1.0``,
   ``env.horizon=50``), validated like a config file (an unknown key or a bad value is a one-line

@@ -63,13 +63,13 @@ def has_robustness(subtasks: Subtasks) -> bool:
     return type(subtasks).robustness_reward is not Subtasks.robustness_reward
 
 
-WINDY_DIRECTIONS = 4  # north, south, east, west (envs/windy.py DIRECTIONS)
+WINDY_DIRECTIONS = 4  # north, south, east, west (families/windy/dynamics.py DIRECTIONS)
 WINDY_INSTANCE_DIM = 1 + WINDY_DIRECTIONS  # (p, one_hot(direction))
 
 
 InstanceFeatures = Callable[[TensorDictBase], torch.Tensor]
 """A family's ``instance_features``: transitions ``(B,)`` -> ``(B, F)`` features of their hidden
-``("instance", ...)`` entries (families.py, ``Family.instance_features``)."""
+``("instance", ...)`` entries (``families/``, ``Family.instance_features``)."""
 
 
 def windy_instance_features(td: TensorDictBase) -> torch.Tensor | None:

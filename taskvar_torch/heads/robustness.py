@@ -22,7 +22,7 @@ option whose own policy loses its goal: in Wargus the root's policy walks out of
 yet the greedy target values that step as "one step back and the +1s resume" (~5.8 > tau = 2), so
 Algorithm 2 kept handing the root control at the sight boundary (docs/changelog.md).
 
-**Scale** (Wargus, ``subtasks/wargus.py``). With the root never terminating, R(TG+FE, s, a) is the
+**Scale** (Wargus, ``families/wargus/subtasks.py``). With the root never terminating, R(TG+FE, s, a) is the
 discounted count of future steps with the item in sight, minus the steps in a patrol's sight, along
 the averaging policy until destruction. At gamma_R = 0.9 it looks ~10 steps ahead, so it is high
 only where the item is in sight now, and any threshold suspends the root wherever the item is out of

@@ -1,11 +1,14 @@
 """Controllers as Markov chains on (cell, carried state), evaluated exactly (paper §3.3-3.4,
 Algorithms 1-2; docs/oracle.md).
 
-:class:`ControllerChains` is mixed into :class:`~taskvar_torch.oracle.windy.WindyOracle`: it
-tabulates any :class:`~taskvar_torch.heads.bundle.Heads` bundle over the cells, builds the
-controller's decision kernel by an implementation of Algorithms 1 and 2 independent of
-``controllers/``, and gives exact returns and firing counts by backward induction over steps-to-go
-(see "Controllers" in the :mod:`taskvar_torch.oracle` docstring). :func:`discounted_chain_values`
+:class:`ControllerChains` is mixed into a family's exact oracle
+(:class:`~taskvar_torch.families.windy.oracle.WindyOracle`,
+:class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`), which provides the instance models
+(``transition(p, direction) -> P, R`` and ``_instances_arg``): it tabulates any
+:class:`~taskvar_torch.heads.bundle.Heads` bundle over the cells, builds the controller's decision
+kernel by an implementation of Algorithms 1 and 2 independent of ``controllers/``, and gives exact
+returns and firing counts by backward induction over steps-to-go (see "Controllers" in the
+:mod:`taskvar_torch.families.windy` docstring). :func:`discounted_chain_values`
 gives a chain's infinite-horizon discounted values (one linear solve).
 """
 
@@ -16,7 +19,6 @@ from typing import Any
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.envs import windy
 from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
@@ -253,7 +255,7 @@ class ControllerChains:
         :meth:`controller_chain`.
         """
         pt, d, scalar = self._instances_arg(p, direction)
-        P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
+        P, R = self.transition(pt, d)  # the family oracle's exact models (float64)
         chain = self.controller_chain(controller, **kwargs)
         V = self._chain_values(P, R, chain)[..., 0]  # (B, S): empty carried state
         out = self._select_start(V, start)
@@ -265,7 +267,7 @@ class ControllerChains:
         """Exact expected number of steps per episode at which the controller's ``fires`` flag is
         set (Algorithm 1: interruptions; Algorithm 2: control moves), within the horizon."""
         pt, d, scalar = self._instances_arg(p, direction)
-        P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
+        P, R = self.transition(pt, d)  # the family oracle's exact models (float64)
         chain = self.controller_chain(controller, **kwargs)
         V = self._chain_values(P, R, chain, count_fires=True)[..., 0]  # (B, S)
         out = self._select_start(V, start)

@@ -1,0 +1,456 @@
+"""The family registry: what each task family brings, behind one public contract (docs/families.md).
+
+A family is a distribution over MDPs sharing states and actions (paper §2): its batched env, its
+options (subtasks), its named instance and test distributions, and what the heads, the exact oracle
+and the experiments can use of it. Everything that depends on the family reads the registry
+(:func:`family`) instead of testing the family's name, so a new family needs no edit of the package:
+
+- :func:`register_family` adds one from code in the same process;
+- the entry-point group ``taskvar_torch.families`` adds those of any installed package (the way
+  Gymnasium and pytest find plugins), so the installed ``taskvar`` command sees them; an entry
+  point names a :class:`Family` or a callable returning one;
+- :func:`check_family` checks the contract and names what is missing in one line.
+
+The built-in families use the same door: windy and Wargus are registered below with
+:func:`register_family`, Taxi through the package's own entry point (``taskvar_torch/families/taxi/family.py``).
+
+Examples:
+    >>> family("windy").experiment
+    'windy-fig2'
+    >>> sorted(FAMILIES)[:2]
+    ['taxi', 'wargus']
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib.metadata
+import warnings
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from torchrl.envs import EnvBase
+
+from taskvar_torch.heads.networks import PatchLayout
+from taskvar_torch.subtasks.base import Subtasks
+
+Config = Any
+"""A :class:`taskvar_torch.config.Config` (not imported: the config package reads this registry,
+never the reverse)."""
+EnvConfig = Any
+"""Its ``env`` section, :class:`taskvar_torch.config.EnvConfig`."""
+
+ENTRY_POINT_GROUP = "taskvar_torch.families"
+"""The entry-point group an installed package registers its families under (docs/families.md)."""
+BUILTIN = {
+    "windy": "taskvar_torch.families.windy.family:family",
+    "wargus": "taskvar_torch.families.wargus.family:family",
+    "taxi": "taskvar_torch.families.taxi.family:family",
+}
+"""The package's own families (``families/<name>/``), loaded through the same door as an installed
+package's entry points (and listed in its ``pyproject.toml``); another family of one of these
+names is refused."""
+HELDOUT_SEED = 7_000_000
+"""First seed of the sealed held-out range ``[HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE)``
+(docs/claims.md): no config, doc, test or tuning script names a seed in it
+(``tests/test_heldout.py`` checks), so no design choice was ever made on its episodes. Windy and
+Taxi play their test distribution under env seed ``HELDOUT_SEED + run``; Wargus plays the
+instance seeds of the range."""
+HELDOUT_SIZE = 300
+"""Seeds in the sealed range: Wargus's held-out instances, and the most held-out runs."""
+HELDOUT_SEEDS = tuple(range(HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE))
+"""The sealed held-out seeds, in order (Wargus's held-out instance seeds)."""
+
+
+@dataclass(frozen=True)
+class TestDistribution:
+    """A named test distribution of a family (``taskvar eval --test NAME``): which instances its
+    episodes draw and which env keys it changes from the bundle's training config.
+
+    Attributes:
+        description: what it shifts, in one line (docs/evaluation.md lists them all).
+        instances: a named instance distribution or the fields of one (a dict).
+        overrides: config overrides of ``env`` keys (``key=value``), validated like a config.
+        seed: a sealed test seed (``HELDOUT_SEED``): ``taskvar eval`` plays under it and refuses
+            another ``--seed``; ``None``: the evaluation's seed (the bundle's ``seed + 1``).
+    """
+
+    __test__ = False  # not a pytest test class
+
+    description: str
+    instances: Any = "train"
+    overrides: tuple[str, ...] = ()
+    seed: int | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
+class Family:
+    """One task family: how to build its env and options from a config, and what it supports.
+
+    The first five attributes are required; the rest are optional capabilities (``None``: the
+    family does not offer it, and the commands that need it say so in one line). docs/families.md
+    has the contract the env and the subtasks must honour, and a walk-through.
+
+    Attributes:
+        name: the config's ``family`` value.
+        env_class: the batched TorchRL env (a ``BatchedFamilyEnv``); its constructor takes
+            ``num_envs``, ``seed``, ``instances``, ``index_offset``, ``noise_seed`` and
+            ``validate_actions`` besides what ``env_kwargs`` gives.
+        env_kwargs: config -> keyword arguments of ``env_class`` for the training env.
+        subtasks: (config, env) -> the family's options (a :class:`Subtasks`).
+        instance_names: the named instance distributions (``env.instances``, ``eval.test``).
+        config_class: the family's own env keys, a frozen dataclass read under
+            ``env.<name>`` (strictly: a misspelt key is a one-line error naming it; its
+            ``__post_init__`` range errors start with the field's name). ``None``: no own keys.
+        validate: extra checks of a config of this family; raises a one-line ``ValueError``.
+        tests: the named test distributions (``taskvar eval --test``), the first the default.
+        instance_fields: an instance distribution (name, dict or object) -> its fields as a dict,
+            for ``--shift env.instances.FIELD=...``; ``None``: the instances cannot be shifted.
+        make_instances: fields -> an instance distribution (raises a one-line ``ValueError``).
+        shift_aliases: extra ``env.instances.FIELD`` names ``make_instances`` accepts (windy's
+            ``p``: one wind strength for the band).
+        instance_dim: features of the hidden instance the heads may read offline
+            (``train.max_value_estimator=instance``), computed by ``instance_features``.
+        instance_features: a tensordict of transitions -> ``(B, instance_dim)`` features of
+            their ``("instance", ...)`` entries.
+        informed_features: config -> ``(dim, features)``, what the ``informed`` baseline reads
+            beside the observation (docs/memory.md): ``features`` maps transitions to ``(B, dim)``
+            features of the hidden instance and state. ``None``: ``(instance_dim,
+            instance_features)``. Its own hook because its dimension may depend on the config
+            (Wargus: the item and patrol positions) and because only the baseline reads it, never
+            the ``instance`` max-value estimator (Definition 1's max over instances).
+        oracle: config -> the family's exact oracle for that env, or ``None`` where it has none
+            (too large, another encoding). It offers the windy oracle's interface
+            (docs/families.md): ``instance_keys``, ``controller_return``, ``averaging_policy``.
+        oracle_summary: (heads, config) -> lines comparing the learnt heads with the exact oracle
+            (printed after ``taskvar train``); ``None``: nothing printed.
+        averaging_optimum: config -> the exact mean-MDP averaging policy ``(cells,)`` over
+            ``cell``, the scale experiment's reference (also for grids too large for ``oracle``).
+        head_report: (config, heads, with_max_value) -> every head against exact values (the
+            scale experiment's ``head_report``).
+        experiment: the family's figure experiment (``taskvar experiment NAME``, sweeps).
+        grid_side: config -> the grid's side length (the scale experiment's tables).
+        cells: config -> the number of positions of the agent.
+        observation: config -> the observation encoding's name.
+        observation_size: config -> the observation's length, without building the env (the
+            memory estimate, :mod:`taskvar_torch.config.memory`); ``None``: read from a
+            one-environment env.
+        conv_patch: config -> the observation's patch layout (``heads.network=conv``).
+        option_inputs: the subtasks define per-option input features
+            (``heads.option_inputs=subtask``).
+        description: one line for listings.
+        gym_ids: the Gymnasium ids the family registers (``gym.make(id)``): id -> ``(entry
+            point "module:Class", keyword arguments)``, registered when the family is (lazily:
+            nothing is imported until ``gym.make``); :func:`taskvar_torch.envs.registration
+            .register_envs` registers every family's on ``import taskvar_torch``.
+    """
+
+    name: str
+    env_class: type[EnvBase]
+    env_kwargs: Callable[[Config], dict[str, Any]]
+    subtasks: Callable[[Config, EnvBase], Subtasks]
+    instance_names: tuple[str, ...]
+    config_class: type | None = None
+    validate: Callable[[Config], None] | None = None
+    tests: dict[str, TestDistribution] = dataclasses.field(default_factory=dict)
+    instance_fields: Callable[[Any], dict[str, Any]] | None = None
+    make_instances: Callable[[dict[str, Any]], Any] | None = None
+    shift_aliases: tuple[str, ...] = ()
+    instance_dim: int | None = None
+    instance_features: Callable[[Any], Any] | None = None
+    informed_features: Callable[[Config], tuple[int, Callable[[Any], Any]]] | None = None
+    oracle: Callable[[Config], Any] | None = None
+    oracle_summary: Callable[[Any, Config], list[str]] | None = None
+    averaging_optimum: Callable[[Config], Any] | None = None
+    head_report: Callable[..., dict[str, Any]] | None = None
+    experiment: str | None = None
+    grid_side: Callable[[Config], int] | None = None
+    cells: Callable[[Config], int] | None = None
+    observation: Callable[[Config], str] | None = None
+    observation_size: Callable[[Config], int] | None = None
+    conv_patch: Callable[[Config], PatchLayout] | None = None
+    option_inputs: bool = False
+    description: str = ""
+    gym_ids: Mapping[str, tuple[str, dict[str, Any]]] = dataclasses.field(default_factory=dict)
+
+    @property
+    def exact_oracle(self) -> bool:
+        """Whether the family brings an exact oracle (``oracle``)."""
+        return self.oracle is not None
+
+    def env_config(self, cfg: Config) -> Any:
+        """The family's own keys of ``cfg`` (``cfg.env.<name>``; defaults when the config was
+        built without them); ``None`` for a family without ``config_class``."""
+        if self.config_class is None:
+            return None
+        section = getattr(cfg.env, self.name, None)
+        return self.config_class() if section is None else section
+
+    def make_env(
+        self,
+        cfg: Config,
+        num_envs: int | None = None,
+        *,
+        seed: int | None = None,
+        index_offset: int = 0,
+        instances: Any = None,
+        noise_seed: int | None = None,
+        validate_actions: bool | None = None,
+    ) -> EnvBase:
+        """The family's batched env of ``cfg`` (no transforms). ``None`` keeps the config's value
+        (``env.num_envs``, ``seed``, ``env.instances``); ``index_offset`` is the global index of
+        sub-environment 0 in the keyed streams (envs with offsets 0, n, 2n... are disjoint slices
+        of one env of the summed size); ``noise_seed`` keys the per-step noise apart from the
+        instances (common random numbers for paired episodes)."""
+        kw = self.env_kwargs(cfg)
+        kw["index_offset"] = int(index_offset)
+        if num_envs is not None:
+            kw["num_envs"] = int(num_envs)
+        if seed is not None:
+            kw["seed"] = int(seed)
+        if instances is not None:
+            kw["instances"] = instances
+        if noise_seed is not None:
+            kw["noise_seed"] = int(noise_seed)
+        if validate_actions is not None:
+            kw["validate_actions"] = bool(validate_actions)
+        return self.env_class(**kw)
+
+    def require(self, cfg: Config, what: str) -> None:
+        """Refuse a config of another family for ``what`` (an experiment or command)."""
+        if cfg.family != self.name:
+            raise ValueError(f"{what} needs family={self.name!r}, got family={cfg.family!r}")
+
+    def needs(self, capability: str, what: str) -> Any:
+        """The optional attribute ``capability``, or a one-line ``ValueError`` saying that
+        ``what`` needs it and this family does not bring it."""
+        value = getattr(self, capability)
+        if value is None or value == {}:
+            raise ValueError(
+                f"{what} needs a family with {capability!r}; family {self.name!r} has none "
+                "(docs/families.md)"
+            )
+        return value
+
+
+# --------------------------------------------------------------------------------------------
+# the registry
+
+
+def _entry_points() -> list[importlib.metadata.EntryPoint]:
+    """The built-in families (:data:`BUILTIN`) and the ``taskvar_torch.families`` entry points of
+    every installed distribution, as entry points loaded the same way.
+
+    The built-ins come first and from :data:`BUILTIN` itself, so a source checkout whose installed
+    metadata is stale still has them. Every copy of a distribution's metadata is read, not only
+    the first on ``sys.path`` (which ``importlib.metadata.entry_points`` keeps): a stale
+    ``*.egg-info`` left in a source checkout would otherwise hide the installed package's entry
+    points when run from that folder.
+    """
+    out = [
+        importlib.metadata.EntryPoint(name=name, value=value, group=ENTRY_POINT_GROUP)
+        for name, value in BUILTIN.items()
+    ]
+    seen = {(ep.name, ep.value) for ep in out}
+    for dist in importlib.metadata.distributions():
+        for ep in dist.entry_points:
+            if ep.group == ENTRY_POINT_GROUP and (ep.name, ep.value) not in seen:
+                seen.add((ep.name, ep.value))
+                out.append(ep)
+    return out
+
+
+class _Registry(Mapping):
+    """Every family by name: the ones registered in this process and, loaded at the first lookup,
+    those of installed packages' ``taskvar_torch.families`` entry points."""
+
+    def __init__(self) -> None:
+        self._families: dict[str, Family] = {}
+        self._entry_points_loaded = False
+        self.broken: dict[str, str] = {}
+        """Entry points that failed to load: name -> the one-line reason (warned once)."""
+
+    def _load_entry_points(self) -> None:
+        if self._entry_points_loaded:
+            return
+        self._entry_points_loaded = True
+        for ep in _entry_points():
+            if ep.name in self._families:
+                continue
+            try:
+                obj = ep.load()
+                fam = obj if isinstance(obj, Family) else obj()
+                if not isinstance(fam, Family):
+                    raise TypeError(f"it gives {type(fam).__name__}, not a Family")
+                if fam.name != ep.name:
+                    raise ValueError(
+                        f"the entry point is named {ep.name!r}, its family {fam.name!r}"
+                    )
+                _check_declaration(fam)
+            except (Exception, SystemExit) as e:  # a broken plugin must not break the others
+                reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+                if isinstance(e, SystemExit):  # sys.exit() on import: not the command's exit
+                    reason = f"it called sys.exit({e.code!r}) on import"
+                else:
+                    reason = f"{type(e).__name__}: {reason}"
+                self.broken[ep.name] = f"entry point {ep.value!r}: {reason}"
+                warnings.warn(
+                    f"taskvar_torch: family {ep.name!r} from {ep.value!r} could not be loaded: "
+                    f"{reason}",
+                    stacklevel=2,
+                )
+                continue
+            self._families[fam.name] = fam
+            register_gym_ids(fam)
+
+    def __getitem__(self, name: str) -> Family:
+        if name not in self._families:
+            self._load_entry_points()
+        return self._families[name]
+
+    def __iter__(self) -> Iterator[str]:
+        self._load_entry_points()
+        return iter(dict(self._families))
+
+    def __len__(self) -> int:
+        self._load_entry_points()
+        return len(self._families)
+
+    def __contains__(self, name: object) -> bool:
+        if name not in self._families:
+            self._load_entry_points()
+        return name in self._families
+
+    def __repr__(self) -> str:
+        return f"FAMILIES({sorted(self)})"
+
+
+FAMILIES = _Registry()
+"""Every family, by its config name (a read-only mapping; add with :func:`register_family`)."""
+
+
+def _check_declaration(fam: Family) -> None:
+    """What :func:`register_family` checks without building anything: one-line errors."""
+    if not isinstance(fam.name, str) or not fam.name.isidentifier():
+        raise ValueError(f"family name must be an identifier such as 'taxi', got {fam.name!r}")
+    if not (isinstance(fam.env_class, type) and issubclass(fam.env_class, EnvBase)):
+        raise ValueError(f"family {fam.name!r}: env_class must be a torchrl EnvBase subclass")
+    for attr in ("env_kwargs", "subtasks"):
+        if not callable(getattr(fam, attr)):
+            raise ValueError(f"family {fam.name!r}: {attr} must be callable")
+    if not fam.instance_names or not all(isinstance(n, str) for n in fam.instance_names):
+        raise ValueError(f"family {fam.name!r}: instance_names must name at least one distribution")
+    if fam.config_class is not None:
+        cls = fam.config_class
+        params = getattr(cls, "__dataclass_params__", None)
+        if params is None or not params.frozen:
+            raise ValueError(
+                f"family {fam.name!r}: config_class must be a frozen dataclass (env.{fam.name}.*)"
+            )
+        try:
+            cls()
+        except Exception as e:
+            raise ValueError(
+                f"family {fam.name!r}: config_class() must build with its defaults: {e}"
+            ) from None
+    if fam.informed_features is not None and not callable(fam.informed_features):
+        raise ValueError(f"family {fam.name!r}: informed_features must be callable")
+    if (fam.instance_dim is None) != (fam.instance_features is None):
+        raise ValueError(
+            f"family {fam.name!r}: instance_dim and instance_features go together (both or none)"
+        )
+    for env_id, spec in dict(fam.gym_ids).items():
+        if not (
+            isinstance(env_id, str)
+            and isinstance(spec, tuple)
+            and len(spec) == 2
+            and isinstance(spec[0], str)
+            and ":" in spec[0]
+            and isinstance(spec[1], Mapping)
+        ):
+            raise ValueError(
+                f"family {fam.name!r}: gym_ids[{env_id!r}] must be ('module:Class', kwargs)"
+            )
+    for name, dist in fam.tests.items():
+        if not isinstance(dist, TestDistribution):
+            raise ValueError(f"family {fam.name!r}: tests[{name!r}] must be a TestDistribution")
+
+
+def one_of(key: str, value: Any, allowed: tuple[str, ...]) -> None:
+    """A family's validation helper: a one-line ``ValueError`` naming ``key`` and the allowed
+    values unless ``value`` is one of ``allowed``."""
+    if value not in allowed:
+        raise ValueError(f"{key} must be one of {sorted(allowed)}, got {value!r}")
+
+
+def register_family(fam: Family, *, replace: bool = False) -> Family:
+    """Add ``fam`` to the registry, so every command, experiment and controller can use it.
+
+    Args:
+        fam: the family (see :class:`Family` and docs/families.md for the contract).
+        replace: replace a family of the same name registered earlier (never a built-in one).
+
+    Returns:
+        ``fam``.
+
+    Raises:
+        ValueError: in one line, a declaration that breaks the contract, a name of a built-in
+            family, or a name already taken (without ``replace``).
+
+    Examples:
+        >>> register_family(Family(name="corridor", env_class=CorridorEnv, ...))  # doctest: +SKIP
+    """
+    if not isinstance(fam, Family):
+        raise ValueError(f"register_family takes a Family, got {type(fam).__name__}")
+    _check_declaration(fam)
+    existing = FAMILIES._families.get(fam.name)
+    if existing is not None and existing is not fam:
+        if fam.name in BUILTIN:
+            raise ValueError(f"family {fam.name!r} is built in; choose another name")
+        if not replace:
+            raise ValueError(
+                f"family {fam.name!r} is already registered; pass replace=True to replace it"
+            )
+    FAMILIES._families[fam.name] = fam
+    register_gym_ids(fam)
+    return fam
+
+
+def register_gym_ids(fam: Family) -> None:
+    """Register the family's Gymnasium ids (``Family.gym_ids``) not registered yet."""
+    import gymnasium as gym
+
+    for env_id, (entry_point, kwargs) in fam.gym_ids.items():
+        if env_id not in gym.registry:
+            gym.register(
+                id=env_id, entry_point=entry_point, kwargs=dict(kwargs), disable_env_checker=False
+            )
+
+
+def family(cfg_or_name: Config | str) -> Family:
+    """The registry entry of a config (its ``family``) or of a family name."""
+    name = cfg_or_name if isinstance(cfg_or_name, str) else cfg_or_name.family
+    if name not in FAMILIES:
+        broken = FAMILIES.broken.get(name)
+        if broken:
+            raise ValueError(f"family {name!r} is installed but could not be loaded: {broken}")
+        raise ValueError(f"family must be one of {sorted(FAMILIES)}, got {name!r}")
+    return FAMILIES[name]
+
+
+__all__ = [
+    "BUILTIN",
+    "ENTRY_POINT_GROUP",
+    "FAMILIES",
+    "GENERATED",
+    "HELDOUT_SEED",
+    "HELDOUT_SEEDS",
+    "HELDOUT_SIZE",
+    "Family",
+    "TestDistribution",
+    "family",
+    "one_of",
+    "register_family",
+    "register_gym_ids",
+]

@@ -1,0 +1,164 @@
+"""The Wargus family: resource gathering with a hidden item and patrol (paper §3.5,
+docs/wargus-fig4.md).
+
+:func:`family` is the declaration the registry loads (``taskvar_torch.families`` entry point
+``wargus``), exactly as a user's package declares its own (docs/families.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from taskvar_torch import keys
+from taskvar_torch.families import (
+    HELDOUT_SEED,
+    HELDOUT_SEEDS,
+    HELDOUT_SIZE,
+    Family,
+    TestDistribution,
+    one_of,
+)
+from taskvar_torch.families.wargus import dynamics as wargus
+from taskvar_torch.families.wargus.dynamics import WargusConfig, WargusInstances, wargus_instances
+from taskvar_torch.families.wargus.env import WargusEnv
+from taskvar_torch.families.wargus.subtasks import WargusSubtasks
+
+Config = Any
+
+
+def section(cfg: Config) -> WargusConfig:
+    """The config's Wargus keys (``env.wargus``; defaults where it was built without them)."""
+    return getattr(cfg.env, "wargus", None) or WargusConfig()
+
+
+def _wargus_env_kwargs(cfg: Config) -> dict[str, Any]:
+    return {
+        "num_envs": cfg.env.num_envs,
+        "config": dataclasses.asdict(section(cfg)),
+        "instances": cfg.env.instances,
+        "seed": cfg.seed,
+        "device": cfg.device,
+    }
+
+
+def wargus_state_features(td: Any, size: int, num_patrols: int, num_items: int) -> torch.Tensor:
+    """``(B, 2 * (num_items + num_patrols))``: every item's and every patrol's ``(row, col)``,
+    divided by ``size - 1`` (so in ``[0, 1]`` on a grid of that size), from the transitions'
+    ``("instance", "item_pos")`` (B, M, 2) and ``("instance", "patrol_pos")`` (B, K, 2): the
+    whole state the agent does not see (its own position is in the observation; the instance
+    seed is a random-stream key, not a feature). Read only by the ``informed`` baseline
+    (docs/memory.md); an env with other counts is a one-line ``ValueError``."""
+    items = td.get((keys.INSTANCE, wargus.ITEM_POS))
+    patrols = td.get((keys.INSTANCE, wargus.PATROL_POS))
+    want = ((int(num_items), 2), (int(num_patrols), 2))
+    if (tuple(items.shape[-2:]), tuple(patrols.shape[-2:])) != want:
+        raise ValueError(
+            f"the informed baseline reads {num_items} item(s) and {num_patrols} patrol(s); this "
+            f"env has {items.shape[-2]} and {patrols.shape[-2]}"
+        )
+    B = items.shape[0]
+    pos = torch.cat([items.reshape(B, -1), patrols.reshape(B, -1)], dim=-1)
+    return pos.to(torch.float32) / float(int(size) - 1)
+
+
+def _wargus_informed(cfg: Config) -> tuple[int, Callable[[Any], torch.Tensor]]:
+    w = section(cfg)
+    dim = 2 * (int(w.num_items) + int(w.num_patrols))
+    feats = functools.partial(
+        wargus_state_features,
+        size=int(w.size),
+        num_patrols=int(w.num_patrols),
+        num_items=int(w.num_items),
+    )
+    return dim, feats
+
+
+def _wargus_fields(spec: Any) -> dict[str, Any]:
+    inst = wargus_instances(spec)
+    return {"seeds": None if inst.seeds is None else list(inst.seeds), "order": inst.order}
+
+
+def _wargus_make_instances(fields: dict[str, Any]) -> WargusInstances:
+    fields = dict(fields)
+    if isinstance(fields.get("seeds"), (int, str)):
+        fields["seeds"] = [int(s) for s in str(fields["seeds"]).split("+") if s]
+    return wargus_instances(fields)
+
+
+WARGUS_TESTS = {
+    "nominal": TestDistribution(
+        "the nominal test instances (seeds 0-4: Figure 4's test episodes)", "nominal"
+    ),
+    "train": TestDistribution("fresh instances of the training distribution", "train"),
+    "fast_patrol": TestDistribution(
+        "a faster patrol: moves every step (patrol_speed 1.0; paper 0.8)",
+        overrides=("env.wargus.patrol_speed=1.0",),
+    ),
+    "more_patrols": TestDistribution(
+        "two patrols instead of one", overrides=("env.wargus.num_patrols=2",)
+    ),
+    "long_sight": TestDistribution(
+        "longer sight: objects seen within 12 cells (paper 8)", overrides=("env.wargus.sight=12",)
+    ),
+    "short_sight": TestDistribution(
+        "shorter sight: objects seen within 6 cells (paper 8)", overrides=("env.wargus.sight=6",)
+    ),
+    "long_range": TestDistribution(
+        "longer shooting range: 7 cells (paper 5)", overrides=("env.wargus.shoot_range=7",)
+    ),
+    "short_range": TestDistribution(
+        "shorter shooting range: 3 cells (paper 5)", overrides=("env.wargus.shoot_range=3",)
+    ),
+    "large_grid": TestDistribution(
+        "a 64x64 grid (paper 32x32; the observation is size-independent)",
+        overrides=("env.wargus.size=64",),
+    ),
+    "heldout": TestDistribution(
+        f"sealed held-out instances: {HELDOUT_SIZE} instance seeds of the held-out range, cycled",
+        {"seeds": HELDOUT_SEEDS},
+        seed=HELDOUT_SEED,
+    ),
+}
+"""Wargus test distributions (docs/evaluation.md), fresh instances unless stated."""
+
+
+def _validate_wargus(cfg: Config) -> None:
+    one_of("env.instances", cfg.env.instances, WargusInstances.NAMES)
+    one_of("eval.test", cfg.eval.test, WargusInstances.NAMES)
+
+
+_GYM = "taskvar_torch.families.wargus.gym_env:WargusGymEnv"
+GYM_IDS = {
+    "taskvar/Wargus-v0": (_GYM, {}),
+    "taskvar/Wargus-Large-v0": (_GYM, {"size": 64, "num_patrols": 3, "horizon": 1000}),
+}
+"""The Wargus family's Gymnasium ids."""
+
+
+def family() -> Family:
+    """The Wargus :class:`Family` (the package's ``taskvar_torch.families`` entry point)."""
+    return Family(
+        name="wargus",
+        description="Wargus resource gathering: item and patrol hidden (paper §3.5)",
+        experiment="wargus-fig4",
+        env_kwargs=_wargus_env_kwargs,
+        env_class=WargusEnv,
+        subtasks=lambda cfg, env: WargusSubtasks(composed_reward=cfg.train.composed_reward),
+        instance_names=WargusInstances.NAMES,
+        validate=_validate_wargus,
+        config_class=WargusConfig,
+        grid_side=lambda cfg: int(section(cfg).size),
+        cells=lambda cfg: int(section(cfg).size) ** 2,
+        observation=lambda cfg: "wargus",
+        informed_features=_wargus_informed,
+        option_inputs=True,
+        tests=WARGUS_TESTS,
+        instance_fields=_wargus_fields,
+        make_instances=_wargus_make_instances,
+        gym_ids=GYM_IDS,
+    )

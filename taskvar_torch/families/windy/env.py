@@ -1,0 +1,470 @@
+"""TorchRL ``EnvBase`` over the batched windy dynamics (paper §3.3.1)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+
+from taskvar_torch import keys, rng
+from taskvar_torch.envs.batched import BatchedFamilyEnv
+from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy import render
+from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
+
+OBS_ENCODINGS = ("onehot", "coords_patch", "fourier_patch", "rowcol_patch", "exits_patch")
+_C_START = rng.RESET_COUNTER + 4
+_FLAGS = (keys.DONE, keys.TERMINATED, keys.TRUNCATED)
+
+
+def observation_size(
+    layout: windy.WindyLayout, encoding: str = "onehot", patch_radius: int = 2
+) -> int:
+    """``D``, the length of :func:`observation_table`'s rows, without building the table."""
+    coords_patch = 2 + 3 * (2 * patch_radius + 1) ** 2
+    side = max(layout.height, layout.width)
+    return {
+        "onehot": layout.num_cells,
+        "coords_patch": coords_patch,
+        "exits_patch": coords_patch + 2 * len(layout.exit_cells),
+        "rowcol_patch": coords_patch + layout.height + layout.width,
+        "fourier_patch": coords_patch + 4 * (int(np.ceil(np.log2(max(side, 2)))) + 1),
+    }[encoding]
+
+
+def observation_table(
+    layout: windy.WindyLayout, encoding: str = "onehot", patch_radius: int = 2
+) -> np.ndarray:
+    """Observation of every cell, ``(S, D)`` float32; the env gathers rows of it.
+
+    ``onehot``: one-hot over cells (D = S). ``coords_patch``: normalised ``(row, col)`` then a
+    ``(2r+1)^2`` local patch per channel wall-or-edge, windy, goal (D = 2 + 3 (2r+1)^2), for grids
+    too large for one-hot. ``fourier_patch``: ``coords_patch`` followed by ``sin, cos(2^j pi x)``
+    of each normalised coordinate, ``j = 0 .. ceil(log2(side))`` (random-feature style positional
+    encoding: cells far apart in value but close in coordinates, like two exits of the same
+    look, become easy to tell apart; docs/scale.md). ``rowcol_patch``: ``coords_patch`` followed by
+    a one-hot row and a one-hot column (D + H + W). ``exits_patch``: ``coords_patch`` followed
+    by the ``(row, col)`` offset from the cell to each exit, divided by the grid side (D + 2 x
+    exits): the feature each exit option's own subtask needs (with ``heads.option_inputs=subtask``
+    option k sees the coordinates, the patch and exit k's offset only; :class:`WindySubtasks`).
+    The instance is never in the observation.
+    """
+    S = layout.num_cells
+    if encoding == "onehot":
+        return np.eye(S, dtype=np.float32)
+    if encoding == "exits_patch":  # coords_patch + (row, col) offset to each exit, / side
+        base = observation_table(layout, "coords_patch", patch_radius)
+        side = max(layout.height - 1, layout.width - 1, 1)
+        rows, cols = np.divmod(np.arange(S), layout.width)
+        offsets = []
+        for group in layout.exit_cells:
+            er, ec = np.divmod(np.asarray(group), layout.width)
+            offsets += [(er.mean() - rows) / side, (ec.mean() - cols) / side]
+        return np.concatenate([base, np.stack(offsets, 1)], 1).astype(np.float32)
+    if encoding == "rowcol_patch":  # coords_patch + one-hot row + one-hot column (D + H + W)
+        base = observation_table(layout, "coords_patch", patch_radius)
+        rows, cols = np.divmod(np.arange(S), layout.width)
+        extra = np.concatenate([np.eye(layout.height)[rows], np.eye(layout.width)[cols]], 1)
+        return np.concatenate([base, extra], 1).astype(np.float32)
+    if encoding == "fourier_patch":
+        base = observation_table(layout, "coords_patch", patch_radius)
+        side = max(layout.height, layout.width)
+        freqs = np.pi * 2.0 ** np.arange(int(np.ceil(np.log2(max(side, 2)))) + 1)  # (F,)
+        x = base[:, :2, None] * freqs  # (S, 2, F)
+        extra = np.concatenate([np.sin(x), np.cos(x)], 1).reshape(S, -1)  # (S, 4F)
+        return np.concatenate([base, extra], 1).astype(np.float32)
+    if encoding != "coords_patch":
+        raise ValueError(
+            f"observation encoding must be one of {list(OBS_ENCODINGS)}, got {encoding!r}"
+        )
+    if patch_radius < 0:
+        raise ValueError(f"patch_radius must be >= 0, got {patch_radius}")
+    H, W, r = layout.height, layout.width, patch_radius
+    k = 2 * r + 1
+    out = np.zeros((S, 2 + 3 * k * k), dtype=np.float32)
+    for cell in range(S):
+        row, col = divmod(cell, W)
+        out[cell, 0] = row / max(H - 1, 1)
+        out[cell, 1] = col / max(W - 1, 1)
+        for i, dr in enumerate(range(-r, r + 1)):
+            for j, dc in enumerate(range(-r, r + 1)):
+                rr, cc = row + dr, col + dc
+                inside = 0 <= rr < H and 0 <= cc < W
+                ch = layout.rows[rr][cc] if inside else "#"
+                base = 2 + i * k + j
+                out[cell, base] = ch == "#"
+                out[cell, base + k * k] = ch == "W"
+                out[cell, base + 2 * k * k] = ch == "G"
+    return out
+
+
+def resolve_layout(layout: str | windy.WindyLayout) -> windy.WindyLayout:
+    """A :class:`WindyLayout` from a layout name, a map string, or a layout."""
+    if isinstance(layout, windy.WindyLayout):
+        return layout
+    if isinstance(layout, str) and layout in windy.LAYOUTS:
+        return windy.WindyLayout.named(layout)
+    if isinstance(layout, str) and "\n" in layout.strip():
+        return windy.WindyLayout.from_map(layout)
+    raise ValueError(
+        f"layout must be one of {sorted(windy.LAYOUTS)}, a multi-line map string or a WindyLayout, "
+        f"got {layout!r}"
+    )
+
+
+class WindyGridEnv(BatchedFamilyEnv):
+    """Batched windy gridworld family (paper §3.3.1) as a TorchRL environment.
+
+    ## Description
+    A grid with a wall pierced by exits; wind blows in the cells just west of the exits. Each
+    sub-environment draws its own hidden instance ``(p, direction)`` at every (partial) reset.
+
+    ## Action Space
+    ``Categorical(4)``: 0 north, 1 south, 2 east, 3 west. Walls and edges block moves.
+
+    ## Observation Space
+    ``observation``: one-hot cell (``onehot``) or coordinates plus a local patch
+    (``coords_patch``); ``cell``: the flat cell index ``row * width + col`` (int64).
+    ``("instance", "p")``, ``("instance", "direction")``: the hidden instance, for analysis only.
+
+    ## Starting State
+    A uniformly random start cell (``S``), or ``start=(row, col)``.
+
+    ## Reward
+    -1 per step until a goal cell is reached.
+
+    ## Episode End
+    Terminated on entering a goal cell; truncated after ``horizon`` steps.
+
+    ## Task parameters
+    ``p`` in [0, 1]: probability that a gust pushes the agent one cell toward ``direction`` when it
+    ends a step in a windy cell. Drawn from ``instances`` (``train``, ``test``, ``south``,
+    ``north``, or a :class:`WindyInstances`).
+
+    Args:
+        num_envs: batch size N.
+        layout: layout name, map string or :class:`WindyLayout`.
+        instances: instance distribution.
+        horizon: steps before truncation (default :func:`windy.default_horizon`).
+        obs_encoding: ``onehot`` or ``coords_patch``.
+        start: optional fixed start ``(row, col)``.
+        seed: seed; sub-environment ``i`` draws from key ``(seed, index_offset + i)``, so any split
+            of N environments reproduces the same trajectories.
+        index_offset: global index of sub-environment 0.
+        noise_seed: salt of the per-step wind stream. Two envs with the same ``seed`` draw the same
+            instances and start cells; with the same ``noise_seed`` they also see the same gusts
+            (common random numbers), with different ones independent gusts (the null comparison
+            of docs/windy-fig2.md).
+        validate_actions: check actions are in range, raising a one-line error (one host sync
+            per step). ``None`` (default): on CPU only, so that on an accelerator the step has no
+            host round trip.
+        device: torch device.
+
+    Examples:
+        >>> env = WindyGridEnv(num_envs=8, seed=0)
+        >>> td = env.rollout(10)
+        >>> td["next", "reward"].shape
+        torch.Size([8, 10, 1])
+    """
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        layout: str | windy.WindyLayout = "default",
+        instances: str | WindyInstances | dict = "train",
+        horizon: int | None = None,
+        obs_encoding: str = "onehot",
+        patch_radius: int = 2,
+        start: tuple[int, int] | None = None,
+        seed: int = 0,
+        index_offset: int = 0,
+        noise_seed: int = 0,
+        validate_actions: bool | None = None,
+        device: torch.device | str = "cpu",
+    ):
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
+        self.layout = resolve_layout(layout)
+        self.model = windy.WindyModel(self.layout, self.device)
+        self.instances = windy_instances(instances)
+        self.horizon = int(horizon) if horizon is not None else windy.default_horizon(self.layout)
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        self.obs_encoding = obs_encoding
+        self._obs_table = torch.as_tensor(
+            observation_table(self.layout, obs_encoding, patch_radius), device=self.device
+        )
+        self.start = None
+        if start is not None:
+            r, c = start
+            H, W = self.layout.height, self.layout.width
+            if not (0 <= r < H and 0 <= c < W):
+                raise ValueError(f"start must be a (row, col) inside {H}x{W}, got {start}")
+            cell = r * W + c
+            if self.layout.char(cell) in "#G":
+                raise ValueError(f"start {start} is a wall or goal cell; choose a free cell")
+            self.start = cell
+        self.index_offset = int(index_offset)
+        self.noise_seed = int(noise_seed)
+        self._noise_salt = rng.hash32(rng.hash32(self.noise_seed & rng.MASK32) ^ 0x5BD1E995)
+        self.validate_actions = (
+            self.device.type == "cpu" if validate_actions is None else bool(validate_actions)
+        )
+        counters = (*self.instances.counters, _C_START)  # the instance's, then the start cell's
+        self._reset_counters = torch.tensor(counters, device=self.device).unsqueeze(-1)  # (C, 1)
+        self._make_specs()
+        self._set_seed(seed)
+
+    def _make_specs(self) -> None:
+        N, S = self.num_envs, self.model.num_cells
+        D = self._obs_table.shape[1]
+        dev = self.device
+        self.observation_spec = Composite(
+            {
+                keys.OBSERVATION: Bounded(0.0, 1.0, shape=(N, D), dtype=torch.float32, device=dev),
+                keys.CELL: Categorical(S, shape=(N,), dtype=torch.int64, device=dev),
+                keys.INSTANCE: Composite(
+                    p=Bounded(0.0, 1.0, shape=(N,), dtype=torch.float32, device=dev),
+                    direction=Categorical(4, shape=(N,), dtype=torch.int64, device=dev),
+                    shape=(N,),
+                    device=dev,
+                ),
+            },
+            shape=(N,),
+            device=dev,
+        )
+        self.action_spec = Categorical(4, shape=(N,), dtype=torch.int64, device=dev)
+        self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
+        self._make_done_spec()
+
+    _RUNTIME_STATE = ("_base_key", "_episode", "_key32", "_threshold", "_t", "_p", "_dir", "_cell")
+    """Simulator state that changes as the env runs (saved for exact resume)."""
+
+    def state_bounds(self) -> dict[str, tuple[float, float]]:
+        return {
+            **super().state_bounds(),
+            "cell": (0, self.layout.num_cells - 1),
+            "dir": (0, len(windy.DIRECTIONS) - 1),
+            "p": (0.0, 1.0),
+            "t": (0, self.horizon),
+            "threshold": (0, 1 << 24),
+        }
+
+    def _out(self, cell, p, direction, reward=None, terminated=None, truncated=None):
+        td = {
+            keys.OBSERVATION: self._obs_table.index_select(0, cell),
+            keys.CELL: cell,
+            keys.INSTANCE: TensorDict._new_unsafe(
+                {"p": p, "direction": direction}, batch_size=self.batch_size, device=self.device
+            ),
+        }
+        return self._finish(td, reward, terminated, truncated)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        reset = None if tensordict is None else tensordict.get("_reset", None)
+        self._start_episodes(reset if hasattr(self, "_cell") else None)
+        return self._out(self._cell, self._p, self._dir)
+
+    def _start_episodes(self, reset: torch.Tensor | None) -> None:
+        """Start the next episode of the sub-envs where ``reset`` (``(N,)`` or ``(N, 1)`` bool) is
+        set, or of all of them (``None``): new instance, start cell, gust key and step counter."""
+        idx, key = self._next_episodes_where(reset)
+        bits = rng.draw_bits(key, self._reset_counters)  # (C, n): every reset draw in one pass
+        p, direction = self.instances.from_bits(bits)
+        if self.start is None:
+            starts = self.model.start_cells
+            cell = starts.index_select(0, rng.index_of(bits[-1], starts.numel()))
+        else:
+            cell = torch.full_like(key, self.start)
+        noise_key = key if self.noise_seed == 0 else rng.hash32(key ^ self._noise_salt)
+        key32, threshold = rng.to_i32(noise_key), rng.probability_threshold(p)
+        t = torch.zeros_like(key32)
+        state = dict(_key32=key32, _threshold=threshold, _t=t, _p=p, _dir=direction, _cell=cell)
+        if idx is not None:  # out-of-place updates: tensors already handed out are never mutated
+            state = {k: getattr(self, k).index_put((idx,), v) for k, v in state.items()}
+        self._set_state(state)
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get(keys.ACTION).reshape(-1)
+        cell, terminated, truncated = self._advance(action)
+        reward = torch.full((self.num_envs, 1), -1.0, device=self.device)
+        return self._out(
+            cell, self._p, self._dir, reward, terminated.unsqueeze(-1), truncated.unsqueeze(-1)
+        )
+
+    def _advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """One step of every sub-env with ``action`` ``(N,)``: draw the gusts, move, count the step.
+
+        Returns ``(cell, terminated, truncated)``, each ``(N,)``; the new state replaces the old.
+        """
+        if self.validate_actions and (
+            bool((action < 0).any()) or bool((action >= self.model.num_actions).any())
+        ):
+            bad = action[(action < 0) | (action >= self.model.num_actions)][0].item()
+            raise ValueError(f"action must be in [0, {self.model.num_actions - 1}], got {bad}")
+        gust = rng.bernoulli_i32(self._key32, self._t, self._threshold)  # (N,) this step's wind
+        cell, terminated = windy.step(self.model, self._cell, action, self._dir, gust)
+        self._set_state({"_cell": cell, "_t": self._t + 1})
+        truncated = (self._t >= self.horizon) & ~terminated
+        return cell, terminated, truncated
+
+    @torch.no_grad()
+    def rollout_fast(
+        self,
+        policy: Callable[[TensorDictBase], TensorDictBase],
+        steps: int,
+        compact_obs: bool = False,
+        out: TensorDictBase | None = None,
+    ) -> TensorDictBase:
+        """``steps`` steps of every sub-env under ``policy``, resetting done sub-envs as they end.
+
+        Returns the ``(N, steps)`` batch that TorchRL's ``Collector(env, policy,
+        frames_per_batch=N * steps, track_traj_ids=False, compact_obs=compact_obs)`` yields: the
+        same keys, shapes, dtypes and values (tested bit for bit), and leaves the env where the
+        collector would (successive calls continue the episodes; the first starts them if the env
+        was never reset). It skips the collector's per-step tensordict work (``EnvBase.step``,
+        ``step_mdp``, ``maybe_reset``, per-step stacking): a step is the policy, the pure step
+        (:meth:`_advance`) and, where episodes ended, :meth:`_start_episodes`; observations are
+        gathered once per batch unless the policy reads them (docs/benchmarks.md has the figures).
+
+        Args:
+            policy: a tensordict module reading the root keys of a step (``observation``,
+                ``cell``, ``instance``, ``done``...) and writing ``action`` ``(N,)`` and any other
+                ``out_keys`` (stored like the collector's policy outputs). Nothing is carried
+                from step to step: recurrent policies and transforms (``InitTracker``, ``RewardSum``)
+                need the collector.
+            steps: time steps T of the batch.
+            compact_obs: drop the ``("next", ...)`` observation keys, as the collector's option.
+            out: a batch returned by an earlier call (same ``steps``, ``compact_obs`` and policy)
+                to overwrite and return, as the collector's ``return_same_td=True``: fresh memory
+                for every batch costs more than the writes themselves at large N.
+
+        Examples:
+            >>> from tensordict.nn import TensorDictModule
+            >>> env = WindyGridEnv(num_envs=4, seed=0)
+            >>> policy = TensorDictModule(lambda cell: cell % 4, ["cell"], ["action"])
+            >>> batch = env.rollout_fast(policy, 16)
+            >>> batch["next", "observation"].shape
+            torch.Size([4, 16, 25])
+            >>> batch = env.rollout_fast(policy, 16, out=batch)  # the next 16 steps, same memory
+        """
+        T = int(steps)
+        if T < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        if out is not None and tuple(out.batch_size) != (self.num_envs, T):
+            raise ValueError(
+                f"out has batch size {tuple(out.batch_size)}, expected ({self.num_envs}, {T})"
+            )
+        if not hasattr(self, "_cell"):
+            self._start_episodes(None)
+        N, dev = self.num_envs, self.device
+        in_keys = getattr(policy, "in_keys", None)
+        obs_per_step = in_keys is None or keys.OBSERVATION in in_keys
+        out_keys = list(getattr(policy, "out_keys", [keys.ACTION]))
+        false = torch.zeros(N, 1, dtype=torch.bool, device=dev)
+        cols: dict[str, list[torch.Tensor]] = {
+            k: [] for k in ("cell", "p", "dir", "next", "term", "trunc", "obs")
+        }
+        outs: dict = {k: [] for k in out_keys}
+        for _ in range(T):
+            if obs_per_step:
+                root = self._out(self._cell, self._p, self._dir)
+                cols["obs"].append(root.get(keys.OBSERVATION))
+            else:
+                instance = TensorDict._new_unsafe(
+                    {"p": self._p, "direction": self._dir}, batch_size=self.batch_size, device=dev
+                )
+                flags = dict.fromkeys(_FLAGS, false)
+                root = TensorDict._new_unsafe(
+                    {keys.CELL: self._cell, keys.INSTANCE: instance, **flags},
+                    batch_size=self.batch_size,
+                    device=dev,
+                )
+            cols["cell"].append(self._cell)
+            cols["p"].append(self._p)
+            cols["dir"].append(self._dir)
+            td = policy(root)
+            for k in out_keys:
+                outs[k].append(td.get(k))
+            cell, terminated, truncated = self._advance(td.get(keys.ACTION).reshape(-1))
+            cols["next"].append(cell)
+            cols["term"].append(terminated)
+            cols["trunc"].append(truncated)
+            done = terminated | truncated
+            if bool(done.any()):
+                self._start_episodes(done)
+        if out is None:
+            out = self._empty_batch(T, compact_obs, outs)
+        return self._fill_batch(out, cols, outs, compact_obs)
+
+    def _empty_batch(self, T: int, compact_obs: bool, outs: dict) -> TensorDictBase:
+        """An uninitialised ``(N, T)`` batch in the collector's layout, for :meth:`rollout_fast`."""
+        N, D, dev = self.num_envs, self._obs_table.shape[1], self.device
+
+        def new(*shape, dtype=torch.int64):
+            return torch.empty(N, T, *shape, dtype=dtype, device=dev)
+
+        def step_data():
+            return {
+                keys.OBSERVATION: new(D, dtype=torch.float32),
+                keys.CELL: new(),
+                keys.INSTANCE: {"p": new(dtype=torch.float32), "direction": new()},
+            }
+
+        flags = {k: new(1, dtype=torch.bool) for k in _FLAGS}
+        following = {keys.REWARD: new(1, dtype=torch.float32), **flags}
+        following.update({keys.INSTANCE: {}} if compact_obs else step_data())
+        batch = TensorDict(
+            {**step_data(), **{k: new(1, dtype=torch.bool) for k in _FLAGS}, keys.NEXT: following},
+            batch_size=(N, T),
+        )
+        for k, v in outs.items():
+            batch.set(k, new(*v[0].shape[1:], dtype=v[0].dtype))
+        batch.refine_names(..., "time")
+        return batch
+
+    def _fill_batch(
+        self, batch: TensorDictBase, cols: dict, outs: dict, compact_obs: bool
+    ) -> TensorDictBase:
+        """Write :meth:`rollout_fast`'s per-step columns into ``batch`` (``(N, T)``), in place."""
+        N, T = batch.batch_size
+        D = self._obs_table.shape[1]
+        cell = torch.stack(cols["cell"], 1, out=batch.get(keys.CELL))
+        if cols["obs"]:
+            torch.stack(cols["obs"], 1, out=batch.get(keys.OBSERVATION))
+        else:
+            obs = batch.get(keys.OBSERVATION).view(N * T, D)
+            torch.index_select(self._obs_table, 0, cell.view(-1), out=obs)
+        for k in _FLAGS:
+            batch.get(k).zero_()
+        instance = batch.get(keys.INSTANCE)
+        torch.stack(cols["p"], 1, out=instance.get("p"))
+        torch.stack(cols["dir"], 1, out=instance.get("direction"))
+        following = batch.get(keys.NEXT)
+        following.get(keys.REWARD).fill_(-1.0)
+        terminated = torch.stack(cols["term"], 1, out=following.get(keys.TERMINATED).view(N, T))
+        truncated = torch.stack(cols["trunc"], 1, out=following.get(keys.TRUNCATED).view(N, T))
+        torch.bitwise_or(terminated, truncated, out=following.get(keys.DONE).view(N, T))
+        if not compact_obs:
+            nxt = torch.stack(cols["next"], 1, out=following.get(keys.CELL))
+            obs = following.get(keys.OBSERVATION).view(N * T, D)
+            torch.index_select(self._obs_table, 0, nxt.view(-1), out=obs)
+            following.get(keys.INSTANCE).update_(instance)
+        for k, v in outs.items():
+            torch.stack(v, 1, out=batch.get(k))
+        return batch
+
+    def render(self, index: int = 0, mode: str = "ansi"):
+        """Render sub-environment ``index`` as text (``ansi``) or an image (``rgb_array``)."""
+
+        cell = int(self._cell[index])
+        p, d = float(self._p[index]), windy.DIRECTIONS[int(self._dir[index])]
+        if mode == "ansi":
+            return render.windy_ansi(self.layout, cell, p, d)
+        if mode == "rgb_array":
+            return render.windy_rgb(self.layout, cell, d)
+        raise ValueError(f"render mode must be one of ['ansi', 'rgb_array'], got {mode!r}")

@@ -1,0 +1,344 @@
+"""The windy family: the paper's windy gridworlds (paper §3.3.1, docs/windy-fig2.md).
+
+Wind strength ``p`` and direction are the hidden instance, drawn per episode
+(:class:`~taskvar_torch.families.windy.instances.WindyInstances`); the options are "exit by
+exit k" (:mod:`~taskvar_torch.families.windy.subtasks`); small layouts have the exact oracle
+(:mod:`~taskvar_torch.families.windy.oracle`), large ones the sparse one. :func:`family` is the
+declaration the registry loads (``taskvar_torch.families`` entry point ``windy``), exactly as a
+user's package declares its own (docs/families.md).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution, one_of
+from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy.env import OBS_ENCODINGS, WindyGridEnv
+from taskvar_torch.families.windy.env import observation_size as windy_observation_size
+from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
+from taskvar_torch.families.windy.subtasks import WindySubtasks
+from taskvar_torch.heads.networks import PatchLayout
+from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, windy_instance_features
+
+Config = Any
+EnvConfig = Any
+
+GENERATED = "generated"
+"""``env.layout`` value that builds the grid from ``env.height``/``env.width``/... (make_layout)."""
+_GENERATOR_KEYS = ("height", "width", "num_exits", "wall_col", "wind_cells_per_exit")
+EXACT_ORACLE_CELLS = 400
+"""Windy layouts up to this many cells get the exact oracle in reports (docs/oracle.md)."""
+MAX_WINDY_SIDE = 4096
+"""Largest height or width of a generated windy grid (``env.layout=generated``)."""
+MAX_WINDY_CELLS = (1 << 24) - 1
+"""Most cells of a windy layout: start cells are drawn by ``rng.draw_index`` (n < 2^24)."""
+
+
+def windy_layout(env: EnvConfig) -> windy.WindyLayout:
+    """The windy layout an ``EnvConfig`` describes (a name, a map string, or generated).
+
+    Raises:
+        ValueError: naming ``env.layout`` or the generator key at fault.
+    """
+    if env.layout != GENERATED:
+        stray = [k for k in _GENERATOR_KEYS if getattr(env, k) is not None]
+        if stray:
+            raise ValueError(
+                f"env.{stray[0]} is only read when env.layout={GENERATED!r}; "
+                f"remove it or set env.layout={GENERATED!r} (env.layout is {env.layout!r})"
+            )
+        if env.layout in windy.LAYOUTS:
+            return windy.WindyLayout.named(env.layout)
+        if "\n" not in env.layout.strip():
+            raise ValueError(
+                f"env.layout must be one of {sorted([*windy.LAYOUTS, GENERATED])} or a multi-line "
+                f"map string, got {env.layout!r}"
+            )
+        try:
+            return windy.WindyLayout.from_map(env.layout)
+        except ValueError as e:
+            raise ValueError(f"env.layout: {e}") from None
+    for k in ("height", "width"):
+        if getattr(env, k) is None:
+            raise ValueError(f"env.{k} is required when env.layout={GENERATED!r}")
+    try:
+        return windy.make_layout(
+            env.height,
+            env.width,
+            num_exits=2 if env.num_exits is None else env.num_exits,
+            wall_col=env.wall_col,
+            wind_cells_per_exit=1 if env.wind_cells_per_exit is None else env.wind_cells_per_exit,
+        )
+    except ValueError as e:
+        raise ValueError(f"env (layout={GENERATED!r}): {e}") from None
+
+
+def windy_env_kwargs(cfg: Config) -> dict[str, Any]:
+    """Keyword arguments of ``WindyGridEnv`` for the training environment of ``cfg``.
+
+    Examples:
+        >>> env = WindyGridEnv(**windy_env_kwargs(cfg))  # doctest: +SKIP
+    """
+    if cfg.family != "windy":
+        raise ValueError(f"windy_env_kwargs needs family='windy', got family={cfg.family!r}")
+    e = cfg.env
+    return {
+        "num_envs": e.num_envs,
+        "layout": windy_layout(e),
+        "instances": e.instances,
+        "horizon": e.horizon,
+        "obs_encoding": e.obs_encoding,
+        "patch_radius": e.patch_radius,
+        "seed": cfg.seed,
+        "device": cfg.device,
+    }
+
+
+def _validate_windy(cfg: Config) -> None:
+    env = cfg.env
+    one_of("env.instances", env.instances, WindyInstances.NAMES)
+    one_of("eval.test", cfg.eval.test, WindyInstances.NAMES)
+    if env.horizon is not None and env.horizon < 1:
+        raise ValueError(f"env.horizon must be >= 1, got {env.horizon}")
+    one_of("env.obs_encoding", env.obs_encoding, OBS_ENCODINGS)
+    if env.patch_radius is not None and env.patch_radius < 0:
+        raise ValueError(f"env.patch_radius must be >= 0, got {env.patch_radius}")
+    if cfg.heads.option_inputs == "subtask" and env.obs_encoding != "exits_patch":
+        raise ValueError(
+            "heads.option_inputs='subtask' on the windy family needs env.obs_encoding="
+            f"'exits_patch' (each exit's offset), got env.obs_encoding={env.obs_encoding!r}"
+        )
+    if env.layout == GENERATED:  # the grid is built below: bound its size first
+        for k in ("height", "width"):
+            v = getattr(env, k)
+            if v is not None and not 1 <= v <= MAX_WINDY_SIDE:
+                raise ValueError(f"env.{k} must be in [1, {MAX_WINDY_SIDE}], got {v}")
+    layout = windy_layout(env)  # raises a ValueError naming the layout keys
+    if layout.num_cells > MAX_WINDY_CELLS:
+        raise ValueError(
+            f"env.layout has {layout.num_cells} cells; at most {MAX_WINDY_CELLS} (start cells are "
+            "drawn from 24-bit integers)"
+        )
+    side = max(layout.height, layout.width)
+    if env.patch_radius is not None and env.patch_radius > side:
+        raise ValueError(
+            f"env.patch_radius must be in [0, {side}] (the grid's side: a wider patch only adds "
+            f"walls), got {env.patch_radius}"
+        )
+
+
+def _windy_side(cfg: Config) -> int:
+    lay = windy_layout(cfg.env)
+    return max(lay.height, lay.width)
+
+
+def _windy_patch(cfg: Config) -> PatchLayout:
+    if cfg.env.obs_encoding != "coords_patch":
+        raise ValueError(
+            "heads.network='conv' needs env.obs_encoding='coords_patch', "
+            f"got env.obs_encoding={cfg.env.obs_encoding!r}"
+        )
+    # coords_patch: (row, col), then 3 (2r+1)^2 channels
+    return PatchLayout(coords_dim=2, channels=3, size=2 * cfg.env.patch_radius + 1)
+
+
+def _windy_fields(spec: Any) -> dict[str, Any]:
+    inst = windy_instances(spec)
+    return {
+        "p_low": inst.p_low,
+        "p_high": inst.p_high,
+        "directions": list(inst.directions),
+        "points": None if inst.points is None else [list(p) for p in inst.points],
+    }
+
+
+def _windy_make_instances(fields: dict[str, Any]) -> WindyInstances:
+    fields = dict(fields)
+    if "p" in fields:  # one wind strength: p_low = p_high = p
+        p = fields.pop("p")
+        fields.update(p_low=p, p_high=p)
+    if isinstance(fields.get("directions"), str):
+        fields["directions"] = tuple(d for d in fields["directions"].split("+") if d)
+    return windy_instances(fields)
+
+
+def _windy_oracle(cfg: Config) -> Any:
+    """The exact oracle of a small one-hot windy layout (docs/oracle.md), else ``None``."""
+    if cfg.env.obs_encoding != "onehot":
+        return None
+    layout = windy_layout(cfg.env)
+    if layout.num_cells > EXACT_ORACLE_CELLS:
+        return None
+    from taskvar_torch.families.windy.oracle import WindyOracle
+
+    return WindyOracle(
+        layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon, train_instances=cfg.env.instances
+    )
+
+
+def windy_sparse_oracle(cfg: Config) -> Any:
+    """The exact oracle of a windy layout at any size (families/windy/sparse_oracle.py)."""
+    from taskvar_torch.families.windy.sparse_oracle import SparseWindyOracle
+
+    return SparseWindyOracle(
+        windy_layout(cfg.env),
+        gamma=cfg.train.gamma,
+        horizon=cfg.env.horizon,
+        train_instances=cfg.env.instances,
+        device=cfg.device,
+    )
+
+
+def _windy_averaging_optimum(cfg: Config) -> Any:
+    """The mean-MDP optimal averaging policy ``(cells,)``: dense on small layouts, successor
+    tables beyond (the scale experiment's reference)."""
+    oracle = _windy_oracle(cfg) if windy_layout(cfg.env).num_cells <= EXACT_ORACLE_CELLS else None
+    if oracle is None:
+        oracle = windy_sparse_oracle(cfg)
+    return oracle.averaging_policy()
+
+
+def _windy_head_report(cfg: Config, heads: Any, with_max_value: bool = True) -> dict[str, Any]:
+    """Every head against the exact values at any size (families/windy/head_report.py)."""
+    from taskvar_torch.families.windy.head_report import head_report
+
+    return head_report(
+        heads,
+        windy_sparse_oracle(cfg),
+        cfg.env.obs_encoding,
+        cfg.env.patch_radius,
+        with_max_value=with_max_value,
+    )
+
+
+def _windy_summary(heads: Any, cfg: Config) -> list[str]:
+    """The learnt heads beside the exact oracle on the training instances (docs/oracle.md), each
+    figure labelled: what it compares, and an option the budget has not learnt (its greedy policy
+    never reaches an exit within the horizon)."""
+    oracle = _windy_oracle(cfg)
+    if oracle is None:
+        return []
+    from taskvar_torch.heads.validate import compare_with_oracle
+
+    r = compare_with_oracle(heads.cpu(), oracle)
+    horizon = cfg.env.horizon
+    lines = [
+        "learnt heads vs exact oracle (exact expected returns of the greedy policies, not sampled; "
+        "training instances, uniform start):",
+        f"  averaging policy  {r['averaging_return']:8.3f}   oracle {r['oracle_averaging_return']:8.3f}",
+    ]
+    unlearnt = []
+    for name, a, b in zip(heads.option_names, r["option_returns"], r["oracle_option_returns"]):
+        note = ""
+        if a <= -horizon + 1e-6 < b:  # the option's greedy policy never reaches its exit
+            unlearnt.append(name)
+            note = f"   not learnt: never reaches its exit in {horizon} steps"
+        lines.append(f"  option {name:<10} {a:8.3f}   oracle {b:8.3f}{note}")
+    per_option = ", ".join(
+        f"{n} {e:.3f}" for n, e in zip(heads.option_names, r["max_value_error_per_option"])
+    )
+    lines += [
+        f"  mu_bar agreement            {r['mu_bar_agreement']:.3f} on {r['mu_bar_cells']} cells "
+        "(share of them where the switching head picks the oracle's option)",
+        f"  max |Q_hat - oracle|        {r['max_value_error']:.3f}   (max-value head, largest "
+        f"error over the cells; per option: {per_option})",
+        f"  interruption agreement      {r['interruption_agreement']:.3f} on "
+        f"{r['interruption_pairs']} (cell, option) pairs (share where learnt and exact heads agree "
+        "on whether Algorithm 1 interrupts)",
+    ]
+    if unlearnt:
+        lines.append(
+            f"  undertrained at {cfg.train.total_frames} training frames: option(s) "
+            f"{', '.join(unlearnt)} not learnt yet"
+        )
+    return lines
+
+
+WINDY_TESTS = {
+    "train": TestDistribution("the training distribution: p ~ U[0, 1], wind north or south"),
+    "south": TestDistribution("only southerly winds (push south), p ~ U[0, 1]", "south"),
+    "north": TestDistribution("only northerly winds (push north), p ~ U[0, 1]", "north"),
+    "calm": TestDistribution(
+        "calm winds: p ~ U[0, 0.3], north or south", {"p_low": 0.0, "p_high": 0.3}
+    ),
+    "stormy": TestDistribution(
+        "stormy winds: p ~ U[0.7, 1], north or south", {"p_low": 0.7, "p_high": 1.0}
+    ),
+    "middle_exits": TestDistribution(
+        "another 5x5 layout: the exits in the middle rows (training winds)",
+        overrides=("env.layout=middle_exits",),
+    ),
+    "whole_column_windy": TestDistribution(
+        "another 5x5 layout: wind in the whole column before the wall (training winds)",
+        overrides=("env.layout=whole_column_windy",),
+    ),
+    "heldout": TestDistribution(
+        "sealed held-out episodes: the training distribution under the held-out seed",
+        seed=HELDOUT_SEED,
+    ),
+}
+"""Windy test distributions (docs/evaluation.md); the layouts need a bundle of the same size."""
+
+
+_GYM = "taskvar_torch.families.windy.gym_env:WindyGridGymEnv"
+
+
+def _map(layout: windy.WindyLayout) -> str:
+    return "\n".join(layout.rows)
+
+
+def gym_ids() -> dict[str, tuple[str, dict[str, Any]]]:
+    """The windy family's Gymnasium ids (``taskvar/WindyGrid-*``)."""
+    return {
+        "taskvar/WindyGrid-v0": (_GYM, {"layout": "default"}),
+        "taskvar/WindyGrid-MiddleExits-v0": (_GYM, {"layout": "middle_exits"}),
+        "taskvar/WindyGrid-WholeColumnWindy-v0": (_GYM, {"layout": "whole_column_windy"}),
+        "taskvar/WindyGrid-25x25-v0": (
+            _GYM,
+            {
+                "layout": _map(windy.make_layout(25, 25, num_exits=2)),
+                "obs_encoding": "coords_patch",
+            },
+        ),
+        "taskvar/WindyGrid-51x51-4Exits-v0": (
+            _GYM,
+            {
+                "layout": _map(windy.make_layout(51, 51, num_exits=4)),
+                "obs_encoding": "coords_patch",
+            },
+        ),
+    }
+
+
+def family() -> Family:
+    """The windy :class:`Family` (the package's ``taskvar_torch.families`` entry point)."""
+    return Family(
+        name="windy",
+        description="windy gridworlds: wind strength and direction hidden (paper §3.3.1)",
+        experiment="windy-fig2",
+        env_kwargs=windy_env_kwargs,
+        env_class=WindyGridEnv,
+        subtasks=lambda cfg, env: WindySubtasks(env.model, obs_encoding=cfg.env.obs_encoding),
+        instance_names=WindyInstances.NAMES,
+        validate=_validate_windy,
+        grid_side=_windy_side,
+        cells=lambda cfg: windy_layout(cfg.env).num_cells,
+        observation=lambda cfg: cfg.env.obs_encoding,
+        observation_size=lambda cfg: windy_observation_size(
+            windy_layout(cfg.env), cfg.env.obs_encoding, cfg.env.patch_radius
+        ),
+        instance_dim=WINDY_INSTANCE_DIM,
+        instance_features=windy_instance_features,
+        conv_patch=_windy_patch,
+        option_inputs=True,
+        oracle=_windy_oracle,
+        oracle_summary=_windy_summary,
+        averaging_optimum=_windy_averaging_optimum,
+        head_report=_windy_head_report,
+        tests=WINDY_TESTS,
+        instance_fields=_windy_fields,
+        make_instances=_windy_make_instances,
+        shift_aliases=("p",),
+        gym_ids=gym_ids(),
+    )

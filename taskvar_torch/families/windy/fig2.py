@@ -1,0 +1,628 @@
+"""Windy Figure 2 with the learnt networks (paper §3.3.1; docs/windy-fig2.md).
+
+The protocol, top to bottom (:func:`windy_fig2`):
+
+1. train every head (``train.train`` into ``OUT/train``) or load a given checkpoint;
+2. build the averaging, options and interruption controllers (Algorithm 1) on the learnt heads;
+3. for each test distribution (``train``: the training distribution; ``south_only``: every wind
+   pushes south) and each of R runs (seed ``cfg.seed + 1 + run``), play E test episodes with
+   every method on *paired* rollouts: envs with the same seed give each method the same instance,
+   start cell and gust stream per episode (common random numbers, ``rng.py``);
+   The same again on the sealed held-out episodes (``heldout``: training winds under the seeds
+   ``HELDOUT_SEED + run``, :func:`heldout_seed`), reported beside the nominal ones;
+4. the *null* curve: averaging against itself with an independent gust stream (``noise_seed=1``,
+   same instances and starts) -- what "no worse" looks like for two equally good policies;
+5. the *exact* figure (layouts small enough for the oracle): per episode, the exact expected
+   return of each learnt controller in that episode's (instance, start), from the Markov chain on
+   (cell, running option) built from the trained heads' tables (``WindyOracle.controller_return``);
+6. where interruption fired (cells, running option), and Theorem 1's premise at each firing:
+   ``V^{mu_bar}(s') <= V^{m, mu_bar}(s')`` with the learnt ``V^{mu_bar}`` and the exact discounted
+   value of the learnt options controller in the test instance ``m``, with the outcome per case.
+
+The per-episode columns then go to the metrics (:mod:`taskvar_torch.families.windy.fig2_metrics`:
+``metrics.json``'s paired summaries, the null and exact comparisons, the interruption counts and
+Theorem 1's check, with their definitions) and to the report
+(:mod:`taskvar_torch.families.windy.fig2_report`: ``episodes.csv``, the tables, the figures): this
+module is the protocol, and re-exports the public names of those two and the oracle functions it
+uses (:mod:`taskvar_torch.oracle`).
+
+Writes ``config.yaml``, ``train/`` (checkpoints, logs), ``episodes.csv``, ``metrics.json``,
+``fig2_train.png``, ``fig2_south_only.png``, ``interruptions_heatmap.png``; prints a table.
+
+Examples:
+    >>> cfg = load_config("configs/windy.yaml", quick=True)  # doctest: +SKIP
+    >>> metrics = windy_fig2(cfg, "results/windy-fig2-quick")  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from torchrl.envs import TransformedEnv
+
+from taskvar_torch import keys
+from taskvar_torch.checkpoint import load_checkpoint
+from taskvar_torch.config import Config, save_config_yaml
+from taskvar_torch.config.memory import check_memory
+from taskvar_torch.config.memory import estimate as estimate_memory
+from taskvar_torch.controllers import Controller, make_controller
+from taskvar_torch.experiments.bundle_eval import eval_bundle
+from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE
+from taskvar_torch.families.windy import (
+    WindyOracle,
+    exact_returns,
+    firing_values,
+    learnt_vs_oracle_by_start,
+)
+from taskvar_torch.families.windy.env import WindyGridEnv
+from taskvar_torch.families.windy.family import EXACT_ORACLE_CELLS, windy_layout
+from taskvar_torch.families.windy.fig2_metrics import (
+    EXACT_ATOL,
+    METHODS,
+    run_summary,
+    summarise,
+    theorem1_check,
+)
+from taskvar_torch.families.windy.fig2_report import (
+    CSV_FIELDS,
+    CSV_NAME,
+    FIGURES,
+    HEATMAP,
+    METRICS_NAME,
+    csv_rows,
+    format_start_table,
+    format_table,
+    plot_results,
+    read_csv_columns,
+)
+from taskvar_torch.families.windy.instances import WindyInstances
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.oracle import discounted_chain_values
+from taskvar_torch.progress import progress_bar
+from taskvar_torch.run_folder import RESULT_MARKERS, ResultsFolder, refuse_inside
+from taskvar_torch.train import (
+    check_device,
+    check_output_folder,
+    load_heads,
+    make_env,
+    make_subtasks,
+    run_files,
+    train,
+)
+
+DISTRIBUTIONS = {"train": "train", "south_only": "south"}
+"""metrics.json key -> test instance distribution (``train``: the training distribution)."""
+HELDOUT = {"heldout": "train"}
+"""metrics.json key -> the sealed held-out test: the training distribution under the held-out
+seeds (:func:`heldout_seed`; ``taskvar eval --test heldout`` replays its run 0)."""
+NULL_NOISE_SEED = 1
+"""Gust-stream salt of the null comparison's second averaging rollout (same instances, starts)."""
+EXACT_MAX_CELLS = EXACT_ORACLE_CELLS
+"""The exact figure is computed on layouts with at most this many cells (the family registry's
+exact-oracle limit)."""
+
+
+def default_config_path() -> Path:
+    """``configs/windy.yaml`` of the repository (or of the working directory)."""
+    here = Path(__file__).resolve().parents[3] / "configs" / "windy.yaml"
+    return here if here.is_file() else Path("configs") / "windy.yaml"
+
+
+def test_seed(cfg: Config, run: int) -> int:
+    """Seed of test run ``run``: ``cfg.seed + 1 + run`` (never the training seed)."""
+    return int(cfg.seed) + 1 + int(run)
+
+
+def heldout_seed(cfg: Config, run: int) -> int:
+    """Seed of held-out run ``run``: ``HELDOUT_SEED + run``, in the sealed range whatever the
+    training seed (every training seed's heads play the same held-out episodes)."""
+    if not 0 <= int(run) < HELDOUT_SIZE:
+        raise ValueError(f"experiment.runs must be at most {HELDOUT_SIZE} (the held-out seeds)")
+    return HELDOUT_SEED + int(run)
+
+
+# --------------------------------------------------------------------------------------------
+# paired evaluation
+
+
+def make_eval_env(
+    cfg: Config,
+    instances: str | WindyInstances,
+    num_envs: int,
+    seed: int,
+    index_offset: int = 0,
+    noise_seed: int = 0,
+) -> WindyGridEnv:
+    """The family env of ``cfg`` on a test distribution; sub-env ``i`` is global episode ``offset + i``."""
+    return make_env(
+        cfg,
+        num_envs,
+        seed=seed,
+        index_offset=index_offset,
+        instances=instances,
+        noise_seed=noise_seed,
+        validate_actions=False,
+    )
+
+
+def build_controller(method: str, heads: Heads, cfg: Config) -> Controller:
+    """A controller of ``method`` on ``heads`` with the family's option terminations."""
+
+    if method == "hierarchy":
+        raise ValueError(
+            "method 'hierarchy' needs robustness heads and a composition hierarchy, which the "
+            f"{cfg.family!r} bundle does not have; use averaging, options or interruption"
+        )
+    subtasks = make_subtasks(cfg, make_env(cfg, num_envs=1))
+    return make_controller(method, heads, subtasks, seed=cfg.seed)
+
+
+def evaluate(
+    heads: Heads,
+    cfg: Config,
+    method: str,
+    instances: str | WindyInstances,
+    seed: int,
+    episodes: int,
+    batch_size: int | None = None,
+    noise_seed: int = 0,
+    record_firings: bool = False,
+    progress: Any = None,
+) -> dict[str, np.ndarray]:
+    """Play ``episodes`` one-episode sub-envs (global indices ``0..episodes-1``) with ``method``.
+
+    The same ``(seed, instances)`` gives every method the same instance and start per episode, and
+    the same gusts when ``noise_seed`` matches: the pairing of docs/windy-fig2.md. The env is seeded
+    per sub-env, so the result does not depend on ``batch_size``.
+
+    Returns per-episode arrays ``return``, ``length``, ``interruptions``, ``p``, ``direction``,
+    ``start`` and, with ``record_firings``, the firing events ``fire_episode``, ``fire_cell``,
+    ``fire_option`` (the option running when Algorithm 1 line 6 fired).
+    """
+    ctrl = build_controller(method, heads, cfg)
+    bs = int(batch_size or cfg.eval.batch_size)
+    trace = (keys.CELL, keys.RUNNING_OPTION, keys.INTERRUPTED) if record_firings else ()
+    parts: dict[str, list[np.ndarray]] = {}
+    for lo in range(0, int(episodes), bs):
+        n = min(bs, int(episodes) - lo)
+        env = TransformedEnv(make_eval_env(cfg, instances, n, seed, lo, noise_seed), ctrl.primer())
+        out = run_episodes(env, ctrl, max_steps=cfg.env.horizon, trace_keys=trace)
+        got = {
+            "return": out["return"],
+            "length": out["length"],
+            "interruptions": out["interruptions"],
+            "p": out[keys.INSTANCE, "p"],
+            "direction": out[keys.INSTANCE, "direction"],
+            "start": out["start"],
+        }
+        if record_firings:
+            tr = out["trace"]
+            fired = tr[keys.INTERRUPTED].bool() & tr["alive"]  # (n, T)
+            ep, _t = fired.nonzero(as_tuple=True)
+            got["fire_episode"] = ep + lo
+            got["fire_cell"] = tr[keys.CELL][fired]
+            got["fire_option"] = tr[keys.RUNNING_OPTION][fired]
+        for k, v in got.items():
+            parts.setdefault(k, []).append(v.detach().cpu().numpy())
+        if progress is not None:
+            progress.update(n)
+    return {k: np.concatenate(v) for k, v in parts.items()}
+
+
+# --------------------------------------------------------------------------------------------
+# exact figures (oracle)
+
+
+def make_oracle(cfg: Config):
+    """The exact oracle of ``cfg``'s layout, or ``None`` when the layout is too large."""
+
+    layout = windy_layout(cfg.env)
+    if layout.num_cells > EXACT_MAX_CELLS:
+        return None
+    return WindyOracle(layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon)
+
+
+# --------------------------------------------------------------------------------------------
+# one test distribution
+
+
+def play_run(
+    heads: Heads, cfg: Config, instances: str, seed: int, episodes: int, bar: Any = None
+) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, np.ndarray]]:
+    """One run's paired rollouts (protocol steps 3-4): every method in :data:`METHODS` order
+    (interruption records its firings), then the null averaging rollout (``NULL_NOISE_SEED``).
+
+    Returns ``({method: evaluate(...)}, null)``; asserts the pairing (same instances and starts
+    for every method).
+    """
+    r = {
+        m: evaluate(
+            heads,
+            cfg,
+            m,
+            instances,
+            seed,
+            episodes,
+            record_firings=m == "interruption",
+            progress=bar,
+        )
+        for m in METHODS
+    }
+    null = evaluate(
+        heads,
+        cfg,
+        "averaging",
+        instances,
+        seed,
+        episodes,
+        noise_seed=NULL_NOISE_SEED,
+        progress=bar,
+    )
+    base = r["averaging"]
+    for m in METHODS:  # the pairing: same instances and starts for every method
+        assert np.array_equal(r[m]["p"], base["p"]) and np.array_equal(r[m]["start"], base["start"])
+    return r, null
+
+
+def episode_columns(
+    r: dict[str, dict[str, np.ndarray]],
+    null: dict[str, np.ndarray],
+    exact: dict[str, np.ndarray],
+) -> dict[str, np.ndarray]:
+    """One run's per-episode columns of ``episodes.csv`` (besides instance and start): each
+    method's return, the null return, interruptions and the ``exact`` returns per method (step 5;
+    empty without an oracle)."""
+    return {
+        "return_averaging": r["averaging"]["return"],
+        "return_options": r["options"]["return"],
+        "return_interruption": r["interruption"]["return"],
+        "return_averaging_null": null["return"],
+        "interruptions": r["interruption"]["interruptions"],
+        **{f"exact_{m}": v for m, v in exact.items()},
+    }
+
+
+def run_distribution(
+    heads: Heads,
+    cfg: Config,
+    instances: str,
+    runs: int,
+    episodes: int,
+    oracle=None,
+    progress: bool = True,
+    desc: str = "",
+    seed_of: Any = test_seed,
+) -> tuple[dict[str, Any], list[dict[str, Any]]]:
+    """Every method on R paired runs of E episodes of one test distribution; metrics and CSV rows.
+    Run ``r`` plays seed ``seed_of(cfg, r)`` (:func:`test_seed`; :func:`heldout_seed`).
+
+    Per run: :func:`play_run`, the exact returns of each learnt controller (with ``oracle``),
+    :func:`episode_columns`, the run's summary and CSV rows; then the pooled columns go to
+    :func:`~taskvar_torch.families.windy.fig2_metrics.summarise` and Theorem 1's check (step 6).
+    """
+    rows: list[dict[str, Any]] = []
+    per_run: list[dict[str, Any]] = []
+    pooled: dict[str, list[np.ndarray]] = {}
+    fire_parts: dict[str, list[np.ndarray]] = {}
+    width = windy_layout(cfg.env).width
+    ctrls = {m: build_controller(m, heads, cfg) for m in METHODS} if oracle is not None else {}
+    bar = progress_bar(
+        total=runs * episodes * (len(METHODS) + 1), disable=not progress, desc=desc, unit="ep"
+    )
+    for run in range(runs):
+        seed = seed_of(cfg, run)
+        r, null = play_run(heads, cfg, instances, seed, episodes, bar)
+        base = r["averaging"]
+        ex = {}
+        if oracle is not None:
+            for m in METHODS:
+                ex[m] = exact_returns(
+                    oracle, ctrls[m], cfg, base["p"], base["direction"], base["start"]
+                )
+        cols = episode_columns(r, null, ex)
+        for k, v in cols.items():
+            pooled.setdefault(k, []).append(v)
+        roll = r["interruption"]
+        for k in ("fire_episode", "fire_cell", "fire_option"):  # episode indices over all runs
+            fire_parts.setdefault(k, []).append(
+                roll[k] + (run * episodes if k == "fire_episode" else 0)
+            )
+        for k in ("p", "direction", "start"):
+            pooled.setdefault(k, []).append(base[k])
+        per_run.append(run_summary(run, seed, cols, r))
+        rows += csv_rows(desc, run, seed, base, cols, width)
+    bar.close()
+    data = {k: np.concatenate(v) for k, v in pooled.items()}
+    fires = {k: np.concatenate(v) for k, v in fire_parts.items()}
+    metrics = summarise(data, fires, cfg, runs, episodes)
+    metrics["per_run"] = per_run
+    if oracle is not None:
+        rolls = {
+            "return": data["return_averaging"],
+            "p": data["p"],
+            "direction": data["direction"],
+            **fires,
+        }
+        metrics["theorem1"] = theorem1_check(
+            oracle,
+            ctrls["options"],
+            cfg,
+            rolls,
+            data["exact_interruption"] - data["exact_options"],
+            data["return_interruption"] - data["return_averaging"],
+        )
+    else:
+        metrics["theorem1"] = None
+    return metrics, rows
+
+
+# --------------------------------------------------------------------------------------------
+# the experiment
+
+
+def windy_fig2(
+    cfg: Config,
+    out_dir: str | os.PathLike,
+    checkpoint: str | os.PathLike | None = None,
+    progress: bool = True,
+    quick: bool = False,
+    plots: bool = True,
+    overwrite: bool = False,
+    staged: bool = True,
+) -> dict[str, Any]:
+    """Train (or load ``checkpoint``), evaluate Figure 2's protocol, write the results folder.
+
+    Args:
+        cfg: a windy config; ``experiment.runs`` x ``experiment.episodes_per_run`` test episodes
+            per distribution, ``eval.batch_size`` environments in parallel.
+        out_dir: results folder (created), written like every results folder
+            (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, filled in a staging
+            folder, swapped in whole at the end; the training run goes to ``out_dir/train``).
+        checkpoint: a bundle written by ``train.train``; skips training (its config's env and
+            heads are used, ``cfg``'s experiment and eval sizes).
+        progress: progress bars (taskvar_torch/progress.py: plain lines away from a terminal).
+        quick: recorded in ``metrics.json`` (the config already holds the quick overrides).
+        plots: draw the PNGs (``False``: skip them, e.g. in sweeps; ``taskvar plot DIR`` draws
+            them later from the folder).
+        overwrite: replace the results (and training run) already in ``out_dir`` (without it
+            such a folder is refused; a killed run leaves them whole).
+        staged: ``False``: write into ``out_dir`` directly (a sweep's point: the sweep holds its
+            folder; ``overwrite`` then replaces a training run in ``out_dir/train``).
+
+    Returns:
+        The metrics dict written to ``metrics.json``.
+    """
+
+    FAMILIES["windy"].require(cfg, "windy-fig2")
+    heldout_seed(cfg, cfg.experiment.runs - 1)  # every held-out run has a sealed seed
+    if not staged:
+        out = Path(out_dir)
+        heads, tcfg = _check_inputs(cfg, out, checkpoint, overwrite=overwrite)
+        out.mkdir(parents=True, exist_ok=True)
+        return _windy_fig2(
+            cfg, out, out, checkpoint, heads, tcfg, progress, quick, plots, overwrite
+        )  # fmt: skip
+    folder = ResultsFolder(out_dir, overwrite, "taskvar experiment windy-fig2")
+    heads, tcfg = _check_inputs(cfg, folder.out, checkpoint, folder=folder)
+    with folder as staging:  # locked; written in a staging folder, swapped in whole at the end
+        return _windy_fig2(
+            cfg, folder.out, staging, checkpoint, heads, tcfg, progress, quick, plots, False
+        )  # fmt: skip
+
+
+def _windy_fig2(
+    cfg: Config,
+    dest: Path,
+    out: Path,
+    checkpoint: str | os.PathLike | None,
+    heads: Heads | None,
+    tcfg: Config | None,
+    progress: bool,
+    quick: bool,
+    plots: bool,
+    overwrite: bool,
+) -> dict[str, Any]:
+    """:func:`windy_fig2` writing into ``out`` (``dest``, or the staging folder of ``dest``)."""
+    t0 = time.perf_counter()
+    train_seconds = 0.0
+    if checkpoint is None:
+        save_config_yaml(cfg, out / "config.yaml")
+        result = train(cfg, out / "train", progress=progress, overwrite=overwrite)
+        train_seconds = float(result["seconds"])
+        heads, tcfg = load_heads(result["final"], device=cfg.device)
+        checkpoint = dest / "train" / "final.pt"  # where it is once the folder is swapped in
+    else:
+        tcfg = _with_sizes(tcfg, cfg)
+        save_config_yaml(tcfg, out / "config.yaml")
+    cfg = tcfg
+    runs, episodes = cfg.experiment.runs, cfg.experiment.episodes_per_run
+    oracle = make_oracle(cfg)
+    metrics: dict[str, Any] = {
+        "experiment": "windy-fig2",
+        "quick": bool(quick),
+        "layout": cfg.env.layout,
+        "checkpoint": str(checkpoint),
+        "seeds": [test_seed(cfg, r) for r in range(runs)],
+        "null_noise_seed": NULL_NOISE_SEED,
+        "methods": list(METHODS),
+        "comparison": "interruption - averaging (paired: same instance, start and gusts)",
+    }
+    all_rows: list[dict[str, Any]] = []
+    eval_t0 = time.perf_counter()
+    for key, instances in DISTRIBUTIONS.items():
+        m, rows = run_distribution(
+            heads, cfg, instances, runs, episodes, oracle, progress, desc=key
+        )
+        all_rows += rows
+        if key == "train":
+            metrics.update(m)
+        else:
+            metrics[key] = m
+    for key, instances in HELDOUT.items():  # the sealed held-out episodes, beside the nominal
+        m, rows = run_distribution(
+            heads, cfg, instances, runs, episodes, oracle, progress, key, heldout_seed
+        )
+        all_rows += rows
+        metrics[key] = m
+        metrics[key]["seeds"] = [heldout_seed(cfg, r) for r in range(runs)]
+    metrics["oracle_by_start"] = learnt_vs_oracle_by_start(heads, oracle)
+    metrics["train_seconds"] = train_seconds
+    metrics["eval_seconds"] = time.perf_counter() - eval_t0
+    metrics["wall_seconds"] = time.perf_counter() - t0
+    _write_results(out, metrics, all_rows, plots, shown=dest)
+    return metrics
+
+
+def _check_inputs(
+    cfg: Config,
+    out: Path,
+    checkpoint: str | os.PathLike | None,
+    folder: ResultsFolder | None = None,
+    overwrite: bool = False,
+) -> tuple[Heads | None, Config | None]:
+    """Every check before any work or any file written: the output folder (a training run
+    already in ``out/train``; results or other files already in ``out``: ``folder.check``, or
+    without a ``folder`` results unless ``overwrite``), the device, the memory, a given
+    ``checkpoint``'s family and place (not inside the ``folder``; then its heads and config are
+    loaded).
+
+    Returns the checkpoint's ``(heads, config)``, or ``(None, None)`` without one.
+    """
+    check_output_folder(out)
+    has_results = any((out / m).is_file() for m in RESULT_MARKERS)
+    if checkpoint is None and run_files(out / "train") and not (has_results or overwrite):
+        raise ValueError(
+            f"{str(out / 'train')!r} already holds a training run; evaluate it with --checkpoint "
+            f"{out / 'train' / 'final.pt'}, or choose another --out"
+        )
+    if folder is not None:
+        folder.check()
+        if checkpoint is not None:
+            refuse_inside(checkpoint, out, "--checkpoint")
+    else:
+        refuse_existing_results(out, overwrite, "taskvar experiment windy-fig2")
+    check_device(cfg.device)
+    x = cfg.experiment  # one result row per test episode, distribution and method
+    rows = (len(DISTRIBUTIONS) + len(HELDOUT)) * x.runs * x.episodes_per_run * len(METHODS)
+    key = "experiment.episodes_per_run"
+    check_memory(estimate_memory(cfg, training=False, episodes=rows, episodes_key=key))
+    heads = tcfg = None
+    if checkpoint is not None:
+        saved = load_checkpoint(checkpoint)["config"].get("family")
+        if saved not in FAMILIES or FAMILIES[saved].experiment != "windy-fig2":
+            raise ValueError(
+                f"--checkpoint {str(checkpoint)!r} is a {saved!r} bundle; windy-fig2 "
+                "evaluates windy bundles (wargus-fig4 trains its own)"
+            )
+        heads, tcfg = load_heads(checkpoint, device=cfg.device)
+    return heads, tcfg
+
+
+def _write_results(
+    out: Path,
+    metrics: dict[str, Any],
+    rows: list[dict[str, Any]],
+    plots: bool,
+    shown: Path | None = None,
+) -> None:
+    """Write ``episodes.csv``, ``metrics.json`` and (with ``plots``) the figures; print the
+    tables and what was written, named where it will be (``shown``: the folder ``out`` stages)."""
+    write_csv(out / CSV_NAME, rows, CSV_FIELDS)
+    write_json(out / METRICS_NAME, metrics)
+    figures = [p.relative_to(out) for p in plot_results(out)] if plots else []
+    where = out if shown is None else shown
+    print(format_table(metrics))
+    print(format_start_table(metrics["oracle_by_start"]))
+    print(
+        f"wrote {where / METRICS_NAME}, {where / CSV_NAME}"
+        + "".join(f", {where / f}" for f in figures)
+        + ("" if plots else f" (no plots: taskvar plot {where})")
+    )
+
+
+def _with_sizes(ckpt_cfg: Config, cfg: Config) -> Config:
+    """The checkpoint's config with ``cfg``'s experiment and eval sections (sizes of this run)."""
+
+    return dataclasses.replace(ckpt_cfg, experiment=cfg.experiment, eval=cfg.eval)
+
+
+# --------------------------------------------------------------------------------------------
+# checkpoint-based evaluation
+
+
+def eval_checkpoint(
+    checkpoint: str | os.PathLike,
+    method: str,
+    episodes: int,
+    test: str,
+    out_dir: str | os.PathLike | None = None,
+    seed: int | None = None,
+    noise_seed: int = 0,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Evaluate a saved windy bundle with ``method`` on test distribution ``test``; no retraining.
+
+    :func:`~taskvar_torch.experiments.bundle_eval.eval_bundle` with one method and no shift (no
+    plot): ``seed`` defaults to :func:`test_seed` of run 0, so ``windy_fig2``'s run ``r`` (seed
+    ``cfg.seed + 1 + r``, ``episodes_per_run`` episodes) is reproduced exactly by the same seed,
+    episodes and method. Writes ``out_dir/metrics.json`` (and ``episodes.csv``) when given.
+    """
+    return eval_bundle(
+        checkpoint,
+        method,
+        test,
+        episodes=episodes,
+        seed=seed,
+        noise_seed=noise_seed,
+        out_dir=out_dir,
+        progress=progress,
+        plots=False,
+        overwrite=False,  # a folder holding results is refused
+    )
+
+
+__all__ = [  # the protocol, then the names of fig2_metrics, fig2_report and oracle it re-exports
+    "DISTRIBUTIONS",
+    "EXACT_MAX_CELLS",
+    "HELDOUT",
+    "NULL_NOISE_SEED",
+    "build_controller",
+    "default_config_path",
+    "episode_columns",
+    "eval_checkpoint",
+    "evaluate",
+    "heldout_seed",
+    "make_eval_env",
+    "make_oracle",
+    "play_run",
+    "run_distribution",
+    "test_seed",
+    "windy_fig2",
+    "EXACT_ATOL",
+    "METHODS",
+    "run_summary",
+    "summarise",
+    "theorem1_check",
+    "CSV_FIELDS",
+    "CSV_NAME",
+    "FIGURES",
+    "HEATMAP",
+    "METRICS_NAME",
+    "csv_rows",
+    "format_start_table",
+    "format_table",
+    "plot_results",
+    "read_csv_columns",
+    "WindyOracle",
+    "discounted_chain_values",
+    "exact_returns",
+    "firing_values",
+    "learnt_vs_oracle_by_start",
+]

@@ -1,0 +1,544 @@
+"""The windy family's exact oracle, :class:`WindyOracle` (paper §3.1-3.4, Definition 1).
+
+Mean MDP, averaging policy, exit options, switching values ``Q_mu`` and ``mu_bar``, per-instance
+option values ``Q^{m,mu_bar}``, max-values ``Q_hat``, policy evaluation, exact returns and the
+tables as a :class:`~taskvar_torch.heads.bundle.Heads` bundle. The design decisions (discounted
+values, finite-horizon returns, quadrature, ties) are in the :mod:`taskvar_torch.oracle` docstring;
+docs/oracle.md describes the oracle's use. Controllers as Markov chains (Algorithms 1-2) come from
+:class:`~taskvar_torch.oracle.chains.ControllerChains`, what the learnt heads converge to from
+:class:`~taskvar_torch.families.windy.replay_reference.ReplayReference`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+import torch
+from tensordict import TensorDict
+from torch import nn
+
+from taskvar_torch import keys
+from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy.env import observation_table, resolve_layout
+from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
+from taskvar_torch.families.windy.replay_reference import ReplayReference
+from taskvar_torch.families.windy.subtasks import WindySubtasks
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.oracle.chains import ControllerChains
+from taskvar_torch.oracle.mdp import (
+    TIE_ATOL,
+    _policy_kernel,
+    _policy_reward,
+    gauss_legendre,
+    greedy,
+    snap_ties,
+    solve_mdp,
+)
+from taskvar_torch.oracle.tables import table_heads
+
+Tensor = torch.Tensor
+
+
+def layout_of(model_or_layout: windy.WindyModel | windy.WindyLayout | str) -> windy.WindyLayout:
+    """The layout of a model, a layout, a layout name or a map string (both oracles' input)."""
+    if isinstance(model_or_layout, windy.WindyModel):
+        return model_or_layout.layout
+    return resolve_layout(model_or_layout)
+
+
+def p_grid_values(p_grid: int | Sequence[float], instances: WindyInstances) -> Tensor:
+    """Q_hat's ``p`` values (float64): ``p_grid`` evenly spaced over ``instances``' range (an
+    int) or the given values; a one-line ``ValueError`` otherwise."""
+    if isinstance(p_grid, int):
+        if p_grid < 1:
+            raise ValueError(f"p_grid must be >= 1 or a sequence of p values, got {p_grid}")
+        return torch.linspace(instances.p_low, instances.p_high, p_grid, dtype=torch.float64)
+    grid = torch.as_tensor(list(p_grid), dtype=torch.float64)
+    if grid.numel() == 0 or bool(((grid < 0) | (grid > 1)).any()):
+        raise ValueError(f"p_grid values must be in [0, 1], got {list(p_grid)}")
+    return grid
+
+
+class WindyOracle(ControllerChains, ReplayReference):
+    """Exact solver of a windy layout's family (docs/oracle.md).
+
+    Args:
+        model_or_layout: a :class:`~taskvar_torch.families.windy.dynamics.WindyModel`, a layout, a layout name
+            (``default``, ``middle_exits``, ``whole_column_windy``) or a map string.
+        gamma: discount of the values compared against the networks.
+        horizon: episode length of the returns (default :func:`windy.default_horizon`, 100 on 5x5).
+        train_instances: the training distribution (name, dict or :class:`WindyInstances`).
+        wrong_exit_penalty: subtask penalty for reaching the goal through another exit
+            (:class:`~taskvar_torch.families.windy.subtasks.WindySubtasks`).
+        p_grid: ``p`` values of Q_hat's default instance set: an int (evenly spaced over
+            ``[p_low, p_high]``) or a sequence of values.
+        mu_temperature: ``None`` for a greedy mu_bar, else the temperature of a softmax mu_bar.
+        quad_nodes: Gauss-Legendre nodes for expectations over ``p`` (default ``ceil(horizon/2)``:
+            exact for returns).
+        tol: value-iteration stopping tolerance.
+        device: torch device of the tables.
+    """
+
+    instance_keys = ("p", "direction")
+    """The ``("instance", key)`` fields :meth:`controller_return` takes, in order (docs/families.md)."""
+
+    def __init__(
+        self,
+        model_or_layout: windy.WindyModel | windy.WindyLayout | str = "default",
+        gamma: float = 0.99,
+        horizon: int | None = None,
+        train_instances: str | dict | WindyInstances = "train",
+        wrong_exit_penalty: float = 100.0,
+        p_grid: int | Sequence[float] = 21,
+        mu_temperature: float | None = None,
+        quad_nodes: int | None = None,
+        tol: float = 1e-10,
+        device: torch.device | str = "cpu",
+    ):
+        layout = layout_of(model_or_layout)
+        if not 0.0 <= gamma < 1.0:
+            raise ValueError(f"gamma must be in [0, 1), got {gamma}")
+        self.layout = layout
+        self.device = torch.device(device)
+        self.model = windy.WindyModel(layout, self.device)
+        self.gamma = float(gamma)
+        self.horizon = int(horizon) if horizon is not None else windy.default_horizon(layout)
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        self.train_instances = windy_instances(train_instances)
+        self.subtasks = WindySubtasks(self.model, wrong_exit_penalty)
+        self.option_names = self.subtasks.names
+        self.mu_temperature = mu_temperature
+        self.quad_nodes = (
+            int(quad_nodes) if quad_nodes is not None else max(1, math.ceil(self.horizon / 2))
+        )
+        self.tol = float(tol)
+        self.p_grid = p_grid_values(p_grid, self.train_instances).to(self.device)
+        self.S, self.A, self.O = (
+            self.model.num_cells,
+            self.model.num_actions,
+            len(self.option_names),
+        )
+        self.start_cells = self.model.start_cells  # (K,)
+        self.is_goal = self.model.is_goal  # (S,)
+
+    # ---- models -----------------------------------------------------------------------------
+
+    def _f(self, x: Any) -> Tensor:
+        return torch.as_tensor(x, dtype=torch.float64, device=self.device)
+
+    def _instances_arg(self, p: Any, direction: Any) -> tuple[Tensor, Tensor, bool]:
+        """``(p (B,), direction (B,), scalar)`` from scalars, sequences or tensors (broadcast)."""
+        scalar = not isinstance(p, (Sequence, Tensor, np.ndarray)) or (
+            isinstance(p, (Tensor, np.ndarray)) and np.ndim(p) == 0
+        )
+        if isinstance(direction, str) or not isinstance(direction, (Sequence, Tensor, np.ndarray)):
+            d = torch.tensor([windy.direction_index(direction)], device=self.device)
+        elif isinstance(direction, Tensor):
+            d = direction.to(self.device, torch.int64).reshape(-1)
+        else:
+            d = torch.tensor([windy.direction_index(x) for x in direction], device=self.device)
+            scalar = False
+        pt = self._f(p).reshape(-1)
+        if bool(((pt < 0) | (pt > 1)).any()):
+            raise ValueError(f"p must be in [0, 1], got {p}")
+        if bool(((d < 0) | (d >= len(windy.DIRECTIONS))).any()):
+            raise ValueError(f"direction must be one of {list(windy.DIRECTIONS)} or 0..3")
+        pt, d = torch.broadcast_tensors(pt, d)
+        return pt.contiguous(), d.contiguous(), scalar and pt.numel() == 1
+
+    def transition(self, p: Any, direction: Any) -> tuple[Tensor, Tensor]:
+        """Exact instance models ``P (B, S, A, S)``, ``R (B, S, A)`` (float64)."""
+        pt, d, _ = self._instances_arg(p, direction)
+        return windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
+
+    def instance_set(self, instances: Any = None) -> tuple[Tensor, Tensor]:
+        """``(p (M,), direction (M,))`` of a finite instance set (Q_hat's max, Definition 1).
+
+        ``None``: the training distribution's ``points``, else ``p_grid`` x training directions. A
+        :class:`WindyInstances` (or name/dict): its points, else ``p_grid`` rescaled to its range x its
+        directions. A ``(p, direction)`` pair of sequences/tensors: those instances.
+        """
+        if isinstance(instances, tuple) and len(instances) == 2:
+            pt, d, _ = self._instances_arg(instances[0], instances[1])
+            return pt, d
+        dist = self.train_instances if instances is None else windy_instances(instances)
+        if dist.points is not None:
+            return self._instances_arg([p for p, _ in dist.points], [d for _, d in dist.points])[:2]
+        t = self.p_grid
+        if instances is not None:
+            ti = self.train_instances
+            span = ti.p_high - ti.p_low
+            u = (t - ti.p_low) / span if span > 0 else torch.zeros_like(t)
+            t = dist.p_low + (dist.p_high - dist.p_low) * u
+        dirs = [windy.direction_index(x) for x in dist.directions]
+        pp = t.repeat(len(dirs))
+        dd = torch.tensor(dirs, device=self.device).repeat_interleave(t.numel())
+        return pp, dd
+
+    def quadrature(self, instances: Any = None) -> tuple[Tensor, Tensor, Tensor]:
+        """``(p (K,), direction (K,), weight (K,))`` integrating over an instance distribution.
+
+        Continuous ``p ~ U[p_low, p_high]``: Gauss-Legendre with ``quad_nodes`` nodes x uniform
+        directions; ``points``: each point with weight ``1/len(points)``.
+        """
+        dist = self.train_instances if instances is None else windy_instances(instances)
+        if dist.points is not None:
+            pt, d = self.instance_set(dist)
+            return pt, d, torch.full_like(pt, 1.0 / pt.numel())
+        x, w = gauss_legendre(self.quad_nodes, dist.p_low, dist.p_high)
+        dirs = [windy.direction_index(x) for x in dist.directions]
+        nd = len(dirs)
+        pp = x.to(self.device).repeat(nd)
+        dd = torch.tensor(dirs, device=self.device).repeat_interleave(x.numel())
+        ww = (w.to(self.device) / nd).repeat(nd)
+        return pp, dd, ww
+
+    @cached_property
+    def _mean_mdp(self) -> tuple[Tensor, Tensor]:
+        ti = self.train_instances
+        if ti.points is not None:
+            P, R = self.transition(*self.instance_set(ti))
+        else:
+            mean_p = 0.5 * (ti.p_low + ti.p_high)
+            P, R = self.transition([mean_p] * len(ti.directions), list(ti.directions))
+        return P.mean(0), R.mean(0)
+
+    def mean_mdp(self) -> tuple[Tensor, Tensor]:
+        """The training distribution's mean MDP ``(P̄ (S, A, S), R̄ (S, A))`` (paper §3.1)."""
+        return self._mean_mdp
+
+    # ---- subtask tables ----------------------------------------------------------------------
+
+    def _cells_td(self, cells: Tensor) -> TensorDict:
+        return TensorDict({keys.CELL: cells}, batch_size=cells.shape, device=self.device)
+
+    @cached_property
+    def termination_table(self) -> Tensor:
+        """``beta (S, O)`` float64: 1 where option o terminates (windy: goal cells)."""
+        cells = torch.arange(self.S, device=self.device)
+        return self.subtasks.termination(self._cells_td(cells)).to(torch.float64)
+
+    @cached_property
+    def subtask_reward_table(self) -> Tensor:
+        """``r_o(s, s') (O, S, S')`` float64 from :class:`WindySubtasks` (-1/step, wrong-exit penalty)."""
+        S = self.S
+        s = torch.arange(S, device=self.device).repeat_interleave(S)  # (S*S,)
+        s2 = torch.arange(S, device=self.device).repeat(S)  # (S*S,)
+        td = self._cells_td(s)
+        td.set(keys.NEXT, self._cells_td(s2))
+        r = self.subtasks.reward(td).to(torch.float64)  # (S*S, O)
+        return r.T.reshape(self.O, S, S)
+
+    # ---- averaging policy (paper §3.1) --------------------------------------------------------
+
+    @cached_property
+    def _averaging_q(self) -> Tensor:
+        P, R = self.mean_mdp()
+        return self._zero_goal(solve_mdp(P, R, self.gamma, tol=self.tol))
+
+    def averaging_q(self) -> Tensor:
+        """Optimal ``Q (S, A)`` of the mean MDP: the averaging policy's values (paper §3.1)."""
+        return self._averaging_q
+
+    def averaging_policy(self) -> Tensor:
+        """The averaging policy pi_bar ``(S,)`` int64: greedy in :meth:`averaging_q`."""
+        return greedy(self.averaging_q())
+
+    def optimal_q(self, p: Any, direction: Any, option: str | int | None = None) -> Tensor:
+        """Per-instance optimal ``Q (B, S, A)`` (env reward, or option ``option``'s subtask reward)."""
+        pt, d, scalar = self._instances_arg(p, direction)
+        P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
+        if option is None:
+            Q = solve_mdp(P, R, self.gamma, tol=self.tol)
+        else:
+            o = self.subtasks.index(option) if isinstance(option, str) else int(option)
+            Ro, cont = self._option_reward(P, o)
+            Q = solve_mdp(P, Ro, self.gamma, cont=cont.expand(P.shape[0], -1), tol=self.tol)
+        Q = self._zero_goal(Q)
+        return Q[0] if scalar else Q
+
+    # ---- options (paper §3.2) ------------------------------------------------------------------
+
+    def _option_reward(self, P: Tensor, o: int) -> tuple[Tensor, Tensor]:
+        """Expected subtask reward ``(..., S, A)`` of option ``o`` and its continuation ``(S',)``."""
+        Ro = torch.einsum("...sat,st->...sa", P, self.subtask_reward_table[o])
+        Ro = Ro.masked_fill(self.is_goal.view(-1, 1), 0.0)  # outside the initiation set: unused
+        return Ro, 1.0 - self.termination_table[:, o]
+
+    @cached_property
+    def _option_q(self) -> Tensor:
+        P, _ = self.mean_mdp()
+        Rs, conts = zip(*(self._option_reward(P, o) for o in range(self.O)))
+        Po = P.unsqueeze(0).expand(self.O, *P.shape)
+        Q = solve_mdp(Po, torch.stack(Rs), self.gamma, cont=torch.stack(conts), tol=self.tol)
+        return self._zero_goal(Q)
+
+    def option_q(self) -> Tensor:
+        """``Q_o (O, S, A)``: each exit option's averaging values on the mean MDP (subtask reward)."""
+        return self._option_q
+
+    def option_policies(self) -> Tensor:
+        """``pi^o (O, S)`` int64: greedy in :meth:`option_q`."""
+        return greedy(self.option_q())
+
+    # ---- switching and max-values (paper §3.2, §3.3) --------------------------------------------
+
+    def _mu(self, q_mu: Tensor) -> Tensor:
+        if self.mu_temperature is None:
+            return nn.functional.one_hot(greedy(q_mu), self.O).to(q_mu.dtype)
+        return torch.softmax(q_mu / self.mu_temperature, dim=-1)
+
+    def option_values(
+        self, P: Tensor, R: Tensor, mu: Tensor, policies: Tensor | None = None
+    ) -> Tensor:
+        """``Q^{m,mu}(s, o) (B, S, O)``: run option o from s, then continue with ``mu (S, O)`` (SMDP).
+
+        Solves ``Q(s,o) = r(s,a) + gamma sum_s' P(s,a,s') [(1-beta_o(s')) Q(s',o) + beta_o(s') V(s')]``
+        with ``a = pi^o(s)`` and ``V(s') = sum_q mu(s',q) Q(s',q)`` exactly (one linear solve).
+        """
+        B, S, K = P.shape[0], self.S, self.O  # K options
+        pol = self.option_policies() if policies is None else policies  # (K, S)
+        Po = torch.stack([_policy_kernel(P, pol[o]) for o in range(K)], 2)  # (B, S, K, S')
+        ro = torch.stack([_policy_reward(R, pol[o]) for o in range(K)], 2)  # (B, S, K)
+        beta = self.termination_table  # (S', K)
+        stay = Po * (1.0 - beta.T).view(1, 1, K, S)  # (B, S, K, S')
+        eye_o = torch.eye(K, dtype=P.dtype, device=P.device)
+        M = stay.unsqueeze(-1) * eye_o.view(1, 1, K, 1, K)  # (B, S, K, S', K'): keep running o
+        M = M + torch.einsum("bsot,to,tp->bsotp", Po, beta, mu.to(P.dtype))  # terminate, mu picks
+        M = M.reshape(B, S * K, S * K)
+        eye = torch.eye(S * K, dtype=P.dtype, device=P.device)
+        x = torch.linalg.solve(eye - self.gamma * M, ro.reshape(B, S * K, 1))
+        return self._zero_goal(x.reshape(B, S, K))
+
+    def _zero_goal(self, q: Tensor) -> Tensor:
+        """Values ``(..., S, X)`` with goal rows set to exactly 0 (the episode has ended there)."""
+        return q.masked_fill(self.is_goal.view(-1, 1), 0.0)
+
+    @cached_property
+    def _switching_q(self) -> Tensor:
+        P, R = self.mean_mdp()
+        P, R = P.unsqueeze(0), R.unsqueeze(0)
+        mu = torch.full((self.S, self.O), 1.0 / self.O, dtype=torch.float64, device=self.device)
+        q = self.option_values(P, R, mu)[0]
+        for _ in range(1000):  # policy iteration over mu_bar (windy: beta only at the goal, 1 step)
+            mu = self._mu(snap_ties(q))
+            q_new = self.option_values(P, R, mu)[0]
+            if bool((q_new - q).abs().max() < self.tol):
+                q = q_new
+                break
+            q = q_new
+        else:  # pragma: no cover
+            raise RuntimeError("switching values did not converge")
+        return snap_ties(q)
+
+    def switching_q(self) -> Tensor:
+        """``Q_mu (S, O)``: option values of mu_bar on the mean MDP, env reward (paper §3.2).
+
+        mu_bar is greedy (or softmax) in these values. Windy options terminate only at the goal, so
+        ``Q_mu(s, o)`` is the mean-MDP value of running ``pi^o`` from ``s``.
+        """
+        return self._switching_q
+
+    def mu_bar(self) -> Tensor:
+        """mu_bar ``(S, O)``: greedy one-hot (lowest index on ties) or softmax in :meth:`switching_q`."""
+        return self._mu(self.switching_q())
+
+    def v_mu_bar(self) -> Tensor:
+        """``V^{mu_bar}(s) = sum_q mu_bar(s, q) Q_mu(s, q)`` ``(S,)`` (Definition 1's right-hand side)."""
+        return (self.mu_bar() * self.switching_q()).sum(-1)
+
+    def instance_option_q(self, p: Any, direction: Any) -> Tensor:
+        """``Q^{m, mu_bar}(s, o)`` ``(B, S, O)`` (or ``(S, O)`` for a scalar instance) in instance m."""
+        pt, d, scalar = self._instances_arg(p, direction)
+        P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
+        q = self.option_values(P, R, self.mu_bar())
+        return q[0] if scalar else q
+
+    def max_value(self, instances: Any = None) -> Tensor:
+        """``Q_hat (S, O) = max_m Q^{m, mu_bar}(s, o)`` over an instance set (Definition 1).
+
+        ``instances``: see :meth:`instance_set` (default: ``p_grid`` x training directions).
+        Values within ``TIE_ATOL`` of ``V^{mu_bar}(s)`` are snapped to it (see "Ties").
+        """
+        if instances is None:
+            return self._max_value_default
+        return self._max_value(*self.instance_set(instances))
+
+    def _max_value(self, p: Tensor, d: Tensor) -> Tensor:
+        chunks = [
+            self.instance_option_q(p[i : i + 64], d[i : i + 64]) for i in range(0, p.numel(), 64)
+        ]
+        q_hat = torch.cat(chunks).max(0).values  # (S, O)
+        v = self.v_mu_bar().unsqueeze(-1)  # (S, 1)
+        return torch.where((q_hat - v).abs() <= TIE_ATOL, v.expand_as(q_hat), q_hat)
+
+    @cached_property
+    def _max_value_default(self) -> Tensor:
+        return self._max_value(*self.instance_set(None))
+
+    # ---- evaluation ----------------------------------------------------------------------------
+
+    def _start_index(self, start: Any) -> Tensor | None:
+        if start is None or (isinstance(start, str) and start == "uniform"):
+            return None
+        if isinstance(start, tuple) and len(start) == 2:
+            r, c = start
+            return torch.tensor(int(r) * self.layout.width + int(c), device=self.device)
+        return torch.as_tensor(start, dtype=torch.int64, device=self.device)
+
+    def _select_start(self, V: Tensor, start: Any) -> Tensor:
+        """``V (B, S)`` -> per-cell (start None), mean over start cells ('uniform'), or one cell."""
+        if start is None:
+            return V
+        if isinstance(start, str):
+            if start != "uniform":
+                raise ValueError(
+                    f"start must be None, 'uniform', a cell or (row, col), got {start!r}"
+                )
+            return V[:, self.start_cells].mean(-1)
+        return V[:, self._start_index(start)]
+
+    def evaluate(self, policy: Tensor, p: Any, direction: Any) -> Tensor:
+        """Discounted values ``V (B, S)`` of a deterministic ``(S,)`` or stochastic ``(S, A)`` policy."""
+        pt, d, scalar = self._instances_arg(p, direction)
+        P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
+        V = self._evaluate(P, R, policy.to(self.device))
+        return V[0] if scalar else V
+
+    def _evaluate(self, P: Tensor, R: Tensor, policy: Tensor) -> Tensor:
+        Ppi, rpi = _policy_kernel(P, policy), _policy_reward(R, policy)
+        eye = torch.eye(self.S, dtype=P.dtype, device=P.device)
+        return torch.linalg.solve(eye - self.gamma * Ppi, rpi.unsqueeze(-1)).squeeze(-1)
+
+    def _finite_horizon(self, Ppi: Tensor, rpi: Tensor) -> Tensor:
+        """Backward induction over steps-to-go: ``V_H`` with ``V_k = r_pi + P_pi V_{k-1}``, ``V_0 = 0``."""
+        V = torch.zeros_like(rpi)
+        for _ in range(self.horizon):
+            V = rpi + torch.einsum("bst,bt->bs", Ppi, V)
+        return V
+
+    def episode_return(self, policy: Tensor, p: Any, direction: Any, start: Any = None) -> Tensor:
+        """Exact expected ``horizon``-step undiscounted return of a stationary policy in an instance.
+
+        ``start``: ``None`` (every cell, ``(B, S)``), ``"uniform"`` (mean over start cells), a cell
+        index or ``(row, col)``. A scalar instance drops the batch dimension.
+        """
+        pt, d, scalar = self._instances_arg(p, direction)
+        P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
+        policy = policy.to(self.device)
+        V = self._finite_horizon(_policy_kernel(P, policy), _policy_reward(R, policy))
+        out = self._select_start(V, start)
+        return out[0] if scalar else out
+
+    def optimal_return(self, p: Any, direction: Any, start: Any = None) -> Tensor:
+        """Exact per-instance optimal ``horizon``-step undiscounted return ``(B, S)``: an agent
+        that knows ``(p, direction)`` (the ceiling of regret, docs/evaluation.md; paper §3.3.1's
+        return). Backward induction with a max over actions at every steps-to-go, so the optimum
+        is over all policies, time-dependent ones included (not the discounted-optimal greedy
+        policy of :meth:`optimal_q`): it bounds every controller's :meth:`controller_return`.
+        Same dynamics as :func:`windy.transition_tensors`, read from the ``move``/``push`` tables
+        (``O(B S A)`` a step). ``start`` as in :meth:`episode_return`."""
+        pt, d, scalar = self._instances_arg(p, direction)
+        m = self.model
+        moved = m.move  # (S, A)
+        gust = m.push[moved.unsqueeze(0), d.view(-1, 1, 1)]  # (B, S, A)
+        pp = pt.view(-1, 1, 1)
+        goal = self.is_goal.view(1, -1)
+        B = pt.numel()
+        V = torch.zeros(B, self.S, dtype=torch.float64, device=self.device)
+        for _ in range(self.horizon):
+            nxt = (1.0 - pp) * V[:, moved] + pp * V.gather(1, gust.reshape(B, -1)).view_as(gust)
+            V = torch.where(goal, 0.0, (nxt - 1.0).max(-1).values)
+        out = self._select_start(V, start)
+        return out[0] if scalar else out
+
+    def step_regret(
+        self, p: Any, direction: Any, cells: Any, actions: Any, alive: Any = None
+    ) -> Tensor:
+        """Instantaneous regret ``(B, T)`` of the actions played in ``B`` episodes, one instance
+        each: ``V*_{H-t}(s_t) - Q*_{H-t}(s_t, a_t)`` at step ``t`` (``H = horizon``, the
+        per-instance optimum's values with ``H - t`` steps to go, as :meth:`optimal_return`), 0
+        where ``alive`` (default all) is false. ``cells``, ``actions``: ``(B, T)``, ``T <= H``.
+
+        By the performance-difference identity an episode's sum over steps is, in expectation over
+        the gusts, its regret against the per-instance optimum (exactly so where the instance is
+        deterministic, ``p`` 0 or 1): ``optimal_return - return`` (docs/evaluation.md)."""
+        pt, d, _ = self._instances_arg(p, direction)
+        s, a, live = self._step_trace(pt.numel(), cells, actions, alive)
+        B, T = s.shape
+        m = self.model
+        moved = m.move  # (S, A)
+        gust = m.push[moved.unsqueeze(0), d.view(-1, 1, 1)]  # (B, S, A)
+        pp = pt.view(-1, 1, 1)
+        goal = self.is_goal.view(1, -1, 1)
+        rows = torch.arange(B, device=self.device)
+        out = torch.zeros(B, T, dtype=torch.float64, device=self.device)
+        V = torch.zeros(B, self.S, dtype=torch.float64, device=self.device)
+        for togo in range(1, self.horizon + 1):
+            nxt = (1.0 - pp) * V[:, moved] + pp * V.gather(1, gust.reshape(B, -1)).view_as(gust)
+            Q = torch.where(goal, 0.0, nxt - 1.0)  # (B, S, A), togo steps to go
+            V = Q.max(-1).values
+            t = self.horizon - togo
+            if t < T:
+                st, at = s[:, t], a[:, t]
+                gap = V[rows, st] - Q[rows, st, at]
+                out[:, t] = torch.where(live[:, t], gap, 0.0)
+        return out
+
+    def mean_mdp_return(self, policy: Tensor, start: Any = None) -> Tensor:
+        """Exact ``horizon``-step return of a policy in the mean MDP (instance redrawn every step)."""
+        P, R = self.mean_mdp()
+        policy = policy.to(self.device)
+        V = self._finite_horizon(_policy_kernel(P[None], policy), _policy_reward(R[None], policy))
+        return self._select_start(V, start)[0]
+
+    def expected_return(
+        self, policy: Tensor, instances: Any = None, starts: Any = "uniform"
+    ) -> Tensor:
+        """``E_m[return]`` of a policy when the instance is drawn per episode and held fixed.
+
+        Quadrature over ``instances`` (default: the training distribution), see :meth:`quadrature`.
+        ``starts``: ``"uniform"`` (scalar), ``None`` (per cell, ``(S,)``) or one cell.
+        """
+        pt, d, w = self.quadrature(instances)
+        ret = self.episode_return(policy, pt, d, start=starts)  # (K, ...)
+        return torch.einsum("k,k...->...", w, ret)
+
+    # ---- heads ---------------------------------------------------------------------------------
+
+    def heads(
+        self,
+        in_key: Any = keys.CELL,
+        dtype: torch.dtype = torch.float64,
+        robustness: Tensor | None = None,
+    ) -> Heads:
+        """A :class:`Heads` bundle of the oracle's tables (averaging, options, switching, max-value).
+
+        Heads read ``in_key`` (``keys.CELL`` or a one-hot ``keys.OBSERVATION``) and gather rows:
+        ``action_value (B, A)``, ``option_action_value (B, O, A)``, ``option_value (B, O)``,
+        ``max_value (B, O)``; optionally ``robustness (B, O, A)`` from a given ``(S, O, A)`` table.
+        """
+        t = dict(dtype=dtype, device=self.device)
+        return table_heads(
+            self.option_names,
+            averaging=self.averaging_q().to(**t),
+            options=self.option_q().permute(1, 0, 2).contiguous().to(**t),
+            switching=self.switching_q().to(**t),
+            max_value=self.max_value().to(**t),
+            robustness=None if robustness is None else robustness.to(**t),
+            in_key=in_key,
+            softmax_temperature=self.mu_temperature,
+        )
+
+    def observation_td(self, obs_encoding: str = "onehot") -> TensorDict:
+        """A ``(S,)`` tensordict of every cell: ``cell`` and ``observation`` (for tabulating heads)."""
+        cells = torch.arange(self.S, device=self.device)
+        obs = torch.as_tensor(observation_table(self.layout, obs_encoding), device=self.device)
+        return TensorDict(
+            {keys.CELL: cells, keys.OBSERVATION: obs}, batch_size=[self.S], device=self.device
+        )

@@ -1,0 +1,527 @@
+"""Exact values of *large* windy layouts (51x51, 101x101): :class:`SparseWindyOracle`.
+
+The dense oracle (:class:`~taskvar_torch.families.windy.oracle.WindyOracle`) builds ``P (B, S, A, S)`` and
+solves linear systems; at 51x51 one instance's kernel is 216 MB and at 101x101 3.3 GB, so it stops
+at small grids. A windy step has at most two outcomes (the agent's move, then a gust with
+probability ``p``: families/windy/dynamics.py), so here a kernel is a *successor table*: ``succ (B, S, A, K)``
+cells with probabilities ``prob (B, S, A, K)`` (``K = 2`` for one instance, ``1 + 4`` for the mean
+MDP: the move, or a gust in one of the four directions). Every solve is then a gather per sweep,
+batched over instances, on any device:
+
+- optimal values: value iteration (paper §3.1 for the averaging policy on the mean MDP, §3.2 for
+  each exit option's averaging policy with its subtask reward);
+- policy values: iterative policy evaluation, stopped once the sup-norm change certifies an error
+  below ``tol`` (a ``gamma``-contraction: the certificate is ``gamma/(1-gamma) * change``);
+- switching values ``Q_mu`` and ``mu_bar`` (§3.2), per-instance option values ``Q^{m, mu_bar}``
+  and max-values ``Q_hat`` (§3.3, Definition 1); windy options terminate only at the goal, where
+  the episode ends too, so ``Q^{m, mu}(s, o)`` is the value of ``pi^o`` from ``s`` in instance m;
+- exact ``horizon``-step undiscounted returns by backward induction, and their expectation over
+  the training distribution by Gauss-Legendre quadrature in ``p`` (``quad_nodes`` nodes; the
+  default 32 is not the exactness bound ``ceil(horizon / 2)`` of the dense oracle, see
+  :meth:`SparseWindyOracle.expected_return`).
+
+The conventions are the dense oracle's (discounted values, goal rows 0, lowest index on ties),
+with one difference: values come from iterations stopped at ``tol`` rather than linear solves, so
+ties are snapped at ``tie_atol`` (default ``1e-6``, far above ``tol``) instead of ``1e-9``. On the
+shipped small layouts both oracles agree to ``1e-8`` (tests/test_oracle_sparse.py).
+
+Examples:
+    >>> from taskvar_torch.families.windy.dynamics import make_layout
+    >>> oracle = SparseWindyOracle(make_layout(51, 51, num_exits=4, wind_cells_per_exit=2))
+    >>> oracle.averaging_policy().shape, oracle.option_q().shape
+    (torch.Size([2601]), torch.Size([4, 2601, 4]))
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from functools import cached_property
+from typing import Any
+
+import torch
+
+from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
+from taskvar_torch.families.windy.oracle import layout_of, p_grid_values
+from taskvar_torch.oracle.mdp import gauss_legendre, greedy, snap_ties
+
+Tensor = torch.Tensor
+
+
+class SparseKernel:
+    """A batch of windy kernels as successor tables (``B`` instances or mixtures).
+
+    Attributes:
+        succ: ``(B, S, A, K)`` int64 next cells.
+        prob: ``(B, S, A, K)`` float64 probabilities (sum to 1 over K).
+    """
+
+    def __init__(self, succ: Tensor, prob: Tensor):
+        self.succ, self.prob = succ, prob
+        self.B, self.S, self.A, self.K = succ.shape
+        self._flat = succ.reshape(self.B, -1)
+        self._planes: tuple[list[Tensor], list[Tensor]] | None = None
+
+    def expect(self, V: Tensor) -> Tensor:
+        """``E[V(s')] (B, S, A)`` for values ``V (B, S)``."""
+        if self.K <= 2:  # one gather per outcome (expect_planes: the same bits, faster)
+            if self._planes is None:
+                self._planes = outcome_planes(self.succ, self.prob)
+            return expect_planes(V, *self._planes).view(self.B, self.S, self.A)
+        nxt = V.gather(1, self._flat).view(self.B, self.S, self.A, self.K)
+        return (nxt * self.prob).sum(-1)
+
+    def policy(self, policy: Tensor) -> SparseKernel:
+        """The kernel of a deterministic policy ``(S,)`` or ``(B, S)`` as a one-action kernel."""
+        pol = policy.to(torch.int64).expand(self.B, self.S).view(self.B, self.S, 1, 1)
+        idx = pol.expand(self.B, self.S, 1, self.K)
+        return SparseKernel(self.succ.gather(2, idx), self.prob.gather(2, idx))
+
+    def expect_reward(self, r: Tensor) -> Tensor:
+        """``E[r(s, s')] (B, S, A)`` for a transition reward ``r (S, S')`` given as a function
+        ``(s (B, S, A, K), s' (B, S, A, K)) -> reward``."""
+        s = torch.arange(self.S, device=self.succ.device).view(1, self.S, 1, 1)
+        return (r(s.expand_as(self.succ), self.succ) * self.prob).sum(-1)
+
+
+class SparseWindyOracle:
+    """Exact values of a windy layout of any size by per-instance iterations on successor tables.
+
+    Args:
+        model_or_layout: a :class:`~taskvar_torch.families.windy.dynamics.WindyModel`, a layout, a layout name
+            or a map string.
+        gamma: discount of the values (the networks' ``gamma``).
+        horizon: episode length of the returns (default :func:`windy.default_horizon`).
+        train_instances: the training distribution (name, dict or :class:`WindyInstances`).
+        wrong_exit_penalty: subtask penalty for reaching the goal through another exit.
+        p_grid: ``p`` values of Q_hat's instance set (an int: evenly spaced over the training range).
+        quad_nodes: Gauss-Legendre nodes in ``p`` for expected returns.
+        tol: certified sup-norm error of every iterative solve.
+        tie_atol: values closer than this are ties (lowest index wins).
+        device: torch device of the tables.
+    """
+
+    def __init__(
+        self,
+        model_or_layout: windy.WindyModel | windy.WindyLayout | str = "default",
+        gamma: float = 0.99,
+        horizon: int | None = None,
+        train_instances: str | dict | WindyInstances = "train",
+        wrong_exit_penalty: float = 100.0,
+        p_grid: int | Sequence[float] = 21,
+        quad_nodes: int = 32,
+        tol: float = 1e-8,
+        tie_atol: float = 1e-6,
+        device: torch.device | str = "cpu",
+    ):
+        layout = layout_of(model_or_layout)
+        if not 0.0 <= gamma < 1.0:
+            raise ValueError(f"gamma must be in [0, 1), got {gamma}")
+        if quad_nodes < 1:
+            raise ValueError(f"quad_nodes must be >= 1, got {quad_nodes}")
+        if not 0 < tol < tie_atol:
+            raise ValueError(f"tol must be in (0, tie_atol={tie_atol}), got {tol}")
+        self.layout = layout
+        self.device = torch.device(device)
+        self.model = windy.WindyModel(layout, self.device)
+        self.gamma = float(gamma)
+        self.horizon = int(horizon) if horizon is not None else windy.default_horizon(layout)
+        if self.horizon < 1:
+            raise ValueError(f"horizon must be >= 1, got {horizon}")
+        self.train_instances = windy_instances(train_instances)
+        self.wrong_exit_penalty = float(wrong_exit_penalty)
+        self.quad_nodes = int(quad_nodes)
+        self.tol, self.tie_atol = float(tol), float(tie_atol)
+        self.p_grid = p_grid_values(p_grid, self.train_instances).to(self.device)
+        self.option_names = layout.exit_names
+        self.S, self.A, self.O = self.model.num_cells, self.model.num_actions, layout.num_exits
+        self.start_cells = self.model.start_cells
+        self.is_goal = self.model.is_goal
+
+    # ---- kernels --------------------------------------------------------------------------------
+
+    def kernel(self, p: Any, direction: Any) -> SparseKernel:
+        """Instances ``(p (B,), direction (B,))``: successors move / move-then-gust, ``K = 2``.
+
+        Goal cells are absorbing (values there are 0: the episode has ended).
+        """
+        p = torch.as_tensor(p, dtype=torch.float64, device=self.device).reshape(-1)
+        d = _directions(direction, self.device)
+        p, d = torch.broadcast_tensors(p, d)
+        if bool(((p < 0) | (p > 1)).any()):
+            raise ValueError(f"p must be in [0, 1], got {p.tolist()}")
+        B, S, A = p.numel(), self.S, self.A
+        moved = self.model.move.unsqueeze(0).expand(B, S, A)
+        gust = self.model.push[moved, d.view(B, 1, 1)]
+        succ = torch.stack([moved, gust], -1)
+        pp = p.view(B, 1, 1, 1).expand(B, S, A, 1)
+        return SparseKernel(succ.contiguous(), torch.cat([1.0 - pp, pp], -1).contiguous())
+
+    def instance_set(self, instances: Any = None) -> tuple[Tensor, Tensor]:
+        """``(p (M,), direction (M,))``: the training ``points``, else ``p_grid`` x directions."""
+        dist = self.train_instances if instances is None else windy_instances(instances)
+        if dist.points is not None:
+            p = torch.tensor([p for p, _ in dist.points], dtype=torch.float64)
+            return p.to(self.device), _directions([d for _, d in dist.points], self.device)
+        t = self.p_grid
+        if instances is not None:
+            ti = self.train_instances
+            span = ti.p_high - ti.p_low
+            u = (t - ti.p_low) / span if span > 0 else torch.zeros_like(t)
+            t = dist.p_low + (dist.p_high - dist.p_low) * u
+        dirs = _directions(list(dist.directions), self.device)
+        return t.repeat(dirs.numel()), dirs.repeat_interleave(t.numel())
+
+    def quadrature(self, instances: Any = None) -> tuple[Tensor, Tensor, Tensor]:
+        """``(p (K,), direction (K,), weight (K,))``: Gauss-Legendre in ``p`` x uniform directions
+        (or the ``points``, equally weighted)."""
+        dist = self.train_instances if instances is None else windy_instances(instances)
+        if dist.points is not None:
+            p, d = self.instance_set(dist)
+            return p, d, torch.full_like(p, 1.0 / p.numel())
+        x, w = gauss_legendre(self.quad_nodes, dist.p_low, dist.p_high)
+        dirs = _directions(list(dist.directions), self.device)
+        nd = dirs.numel()
+        return (
+            x.to(self.device).repeat(nd),
+            dirs.repeat_interleave(x.numel()),
+            (w.to(self.device) / nd).repeat(nd),
+        )
+
+    @cached_property
+    def mean_kernel(self) -> SparseKernel:
+        """The training distribution's mean MDP (paper §3.1), ``B = 1``: the move with probability
+        ``1 - E[p]``, a gust towards d with ``E[p 1{dir = d}]`` (the kernel is affine in ``p``)."""
+        ti = self.train_instances
+        D = len(windy.DIRECTIONS)
+        w = torch.zeros(D, dtype=torch.float64, device=self.device)
+        if ti.points is not None:
+            for p, d in ti.points:
+                w[windy.direction_index(d)] += p / len(ti.points)
+        else:
+            mean_p = 0.5 * (ti.p_low + ti.p_high)
+            for d in ti.directions:
+                w[windy.direction_index(d)] += mean_p / len(ti.directions)
+        moved = self.model.move  # (S, A)
+        gusts = self.model.push[moved]  # (S, A, D)
+        succ = torch.cat([moved.unsqueeze(-1), gusts], -1).unsqueeze(0)  # (1, S, A, 1 + D)
+        prob = torch.cat([(1.0 - w.sum()).view(1), w]).expand(1, self.S, self.A, 1 + D)
+        return SparseKernel(succ.contiguous(), prob.contiguous())
+
+    # ---- rewards ---------------------------------------------------------------------------------
+
+    def _env_reward(self, kernel: SparseKernel) -> Tensor:
+        """``R (B, S, A)``: -1 per step outside the goal, 0 at the goal."""
+        R = torch.full((kernel.B, self.S, self.A), -1.0, dtype=torch.float64, device=self.device)
+        return R.masked_fill(self.is_goal.view(1, -1, 1), 0.0)
+
+    def _option_reward(self, kernel: SparseKernel, o: int) -> Tensor:
+        """Option ``o``'s expected subtask reward ``(B, S, A)``: -1 per step, and the wrong-exit
+        penalty on arriving at the goal from another exit's cell (families/windy/subtasks.py)."""
+        goal, exit_id, pen = self.is_goal, self.model.exit_id, self.wrong_exit_penalty
+
+        def r(s: Tensor, s2: Tensor) -> Tensor:
+            wrong = goal[s2] & (exit_id[s] != o)
+            return -1.0 - pen * wrong.to(torch.float64)
+
+        return kernel.expect_reward(r).masked_fill(self.is_goal.view(1, -1, 1), 0.0)
+
+    # ---- solvers ---------------------------------------------------------------------------------
+
+    def _bound(self) -> float:
+        return self.tol * (1.0 - self.gamma) / max(self.gamma, 1e-300)
+
+    def _start_values(self, B: int) -> Tensor:
+        """``-1 / (1 - gamma)`` outside the goal (never arriving), 0 at the goal: the exact value of
+        every cell a policy never leads to the goal from, so only the cells that do arrive need
+        iterations (the certificate holds from any start)."""
+        V = torch.full(
+            (B, self.S), -1.0 / (1.0 - self.gamma), dtype=torch.float64, device=self.device
+        )
+        return V.masked_fill(self.is_goal, 0.0)
+
+    def solve(self, kernel: SparseKernel, R: Tensor, max_iter: int = 1_000_000) -> Tensor:
+        """Optimal ``Q (B, S, A)``: value iteration until the certified error is below ``tol``."""
+        V = self._start_values(kernel.B)
+        for _ in range(max_iter):
+            Q = R + self.gamma * kernel.expect(V)
+            V_new = Q.max(-1).values.masked_fill(self.is_goal, 0.0)
+            delta = float((V_new - V).abs().max())
+            V = V_new
+            if delta < self._bound():
+                break
+        else:  # pragma: no cover - a contraction always converges
+            raise RuntimeError("value iteration did not converge")
+        Q = R + self.gamma * kernel.expect(V)
+        return snap_ties(Q.masked_fill(self.is_goal.view(1, -1, 1), 0.0), self.tie_atol)
+
+    def evaluate_kernel(self, kernel: SparseKernel, R: Tensor, policy: Tensor) -> Tensor:
+        """Discounted ``V (B, S)`` of a deterministic policy ``(S,)`` / ``(B, S)`` (to ``tol``)."""
+        k = kernel.policy(policy)
+        r = R.gather(2, policy.to(torch.int64).expand(kernel.B, self.S).unsqueeze(-1))[..., 0]
+        V = self._start_values(kernel.B)
+        for _ in range(1_000_000):
+            V_new = (r + self.gamma * k.expect(V)[..., 0]).masked_fill(self.is_goal, 0.0)
+            delta = float((V_new - V).abs().max())
+            V = V_new
+            if delta < self._bound():
+                return V
+        raise RuntimeError("policy evaluation did not converge")  # pragma: no cover
+
+    # ---- averaging policy and options (paper §3.1, §3.2) ----------------------------------------
+
+    @cached_property
+    def _averaging_q(self) -> Tensor:
+        k = self.mean_kernel
+        return self.solve(k, self._env_reward(k))[0]
+
+    def averaging_q(self) -> Tensor:
+        """Optimal ``Q (S, A)`` of the mean MDP: the averaging policy's values (paper §3.1)."""
+        return self._averaging_q
+
+    def averaging_policy(self) -> Tensor:
+        """The averaging policy ``(S,)`` int64: greedy in :meth:`averaging_q` (lowest on ties)."""
+        return greedy(self.averaging_q(), self.tie_atol)
+
+    @cached_property
+    def _option_q(self) -> Tensor:
+        k = self.mean_kernel
+        return torch.stack([self.solve(k, self._option_reward(k, o))[0] for o in range(self.O)])
+
+    def option_q(self) -> Tensor:
+        """``Q_o (O, S, A)``: each exit option's optimal values on the mean MDP, subtask reward."""
+        return self._option_q
+
+    def option_policies(self) -> Tensor:
+        """``pi^o (O, S)`` int64: greedy in :meth:`option_q`."""
+        return greedy(self.option_q(), self.tie_atol)
+
+    def option_objective(self, policies: Tensor | None = None) -> Tensor:
+        """``V_o^{pi} (O, S)``: each option's own objective (discounted mean-MDP subtask value)
+        for policies ``(O, S)`` (default: the optimal ones, i.e. ``max_a Q_o``)."""
+        if policies is None:
+            return self.option_q().max(-1).values
+        k = self.mean_kernel
+        return torch.stack(
+            [
+                self.evaluate_kernel(k, self._option_reward(k, o), policies[o])[0]
+                for o in range(self.O)
+            ]
+        )
+
+    def averaging_objective(self, policy: Tensor | None = None) -> Tensor:
+        """``V^{pi} (S,)`` on the mean MDP, env reward (default: the optimum, ``max_a Q``)."""
+        if policy is None:
+            return self.averaging_q().max(-1).values
+        k = self.mean_kernel
+        return self.evaluate_kernel(k, self._env_reward(k), policy)[0]
+
+    # ---- switching and max-values (paper §3.2, §3.3) --------------------------------------------
+
+    def _option_env_values(self, kernel: SparseKernel, policies: Tensor) -> Tensor:
+        """``(B, S, O)``: env-reward values of running each ``pi^o`` to the goal (= termination)."""
+        R = self._env_reward(kernel)
+        return torch.stack(
+            [self.evaluate_kernel(kernel, R, policies[o]) for o in range(self.O)], -1
+        )
+
+    def switching_q(self, policies: Tensor | None = None) -> Tensor:
+        """``Q_mu (S, O)``: mean-MDP value of running ``pi^o`` from s (windy options end at the
+        goal, so no continuation with mu_bar is needed; paper §3.2)."""
+        if policies is None:
+            return self._switching_q
+        return snap_ties(self._option_env_values(self.mean_kernel, policies)[0], self.tie_atol)
+
+    @cached_property
+    def _switching_q(self) -> Tensor:
+        return self.switching_q(self.option_policies())
+
+    def mu_bar(self) -> Tensor:
+        """Greedy mu_bar ``(S,)`` int64 (lowest index on ties) in :meth:`switching_q`."""
+        return greedy(self.switching_q(), self.tie_atol)
+
+    def v_mu_bar(self) -> Tensor:
+        """``V^{mu_bar}(s) = max_o Q_mu(s, o)`` ``(S,)``."""
+        return self.switching_q().max(-1).values
+
+    def instance_option_q(self, p: Any, direction: Any, policies: Tensor | None = None) -> Tensor:
+        """``Q^{m, mu_bar}(s, o) (B, S, O)``: value of running ``pi^o`` from s in instance m."""
+        pol = self.option_policies() if policies is None else policies
+        return self._option_env_values(self.kernel(p, direction), pol)
+
+    def max_value(self, instances: Any = None, chunk: int = 64) -> Tensor:
+        """``Q_hat (S, O) = max_m Q^{m, mu_bar}(s, o)`` over an instance set (Definition 1); values
+        within ``tie_atol`` of ``V^{mu_bar}(s)`` are snapped to it."""
+        if instances is None:
+            return self._max_value
+        return self._max_value_of(*self.instance_set(instances), chunk=chunk)
+
+    def _max_value_of(self, p: Tensor, d: Tensor, chunk: int = 64) -> Tensor:
+        q = (
+            torch.cat(
+                [
+                    self.instance_option_q(p[i : i + chunk], d[i : i + chunk]).max(0).values[None]
+                    for i in range(0, p.numel(), chunk)
+                ]
+            )
+            .max(0)
+            .values
+        )  # (S, O)
+        v = self.v_mu_bar().unsqueeze(-1)
+        return torch.where((q - v).abs() <= self.tie_atol, v.expand_as(q), q)
+
+    @cached_property
+    def _max_value(self) -> Tensor:
+        return self._max_value_of(*self.instance_set(None))
+
+    def interruption_condition(self, q_hat: Tensor, q_mu: Tensor) -> Tensor:
+        """``(S, O)`` bool: Algorithm 1 line 6, ``Q_hat(s, o) < max_q Q_mu(s, q)`` (goal rows
+        False), from any tables (exact or learnt)."""
+        v = q_mu.max(-1, keepdim=True).values
+        return (q_hat < v - self.tie_atol) & ~self.is_goal.view(-1, 1)
+
+    # ---- returns ---------------------------------------------------------------------------------
+
+    def episode_return(self, policy: Tensor, p: Any, direction: Any) -> Tensor:
+        """Exact ``horizon``-step undiscounted return ``(B, S)`` of a deterministic policy ``(S,)``
+        in instances ``(p, direction)``, from every cell (backward induction over steps-to-go)."""
+        k = self.kernel(p, direction).policy(policy)
+        V = torch.zeros(k.B, self.S, dtype=torch.float64, device=self.device)
+        r = torch.where(self.is_goal, 0.0, -1.0).to(torch.float64)
+        for _ in range(self.horizon):
+            V = (r + k.expect(V)[..., 0]).masked_fill(self.is_goal, 0.0)
+        return V
+
+    def expected_return(
+        self, policy: Tensor, instances: Any = None, starts: str | None = "uniform", chunk: int = 64
+    ) -> Tensor:
+        """``E_m[return]`` when the instance is drawn per episode and held fixed (quadrature over
+        ``instances``, default the training distribution). ``starts``: ``"uniform"`` (a scalar: the
+        mean over start cells) or ``None`` (``(S,)``, every cell).
+
+        With ``quad_nodes`` = ``ceil(horizon / 2)`` this is exact up to rounding (the return is a
+        polynomial of degree < horizon in ``p``); the default 32 nodes is not a certificate but
+        agrees with 64 nodes to 1e-6 on the shipped large layouts' averaging optimum (tests).
+        """
+        p, d, w = self.quadrature(instances)
+        total = torch.zeros(self.S, dtype=torch.float64, device=self.device)
+        for i in range(0, p.numel(), chunk):
+            ret = self.episode_return(policy, p[i : i + chunk], d[i : i + chunk])
+            total = total + (w[i : i + chunk, None] * ret).sum(0)
+        if starts is None:
+            return total
+        if starts != "uniform":
+            raise ValueError(f"starts must be 'uniform' or None, got {starts!r}")
+        return total[self.start_cells].mean()
+
+    def controller_returns(
+        self,
+        policies: Tensor,
+        q_mu: Tensor,
+        q_hat: Tensor | None = None,
+        instances: Any = None,
+        starts: str | None = "uniform",
+        chunk: int = 32,
+    ) -> dict[str, Tensor]:
+        """Exact expected return and interruptions per episode of the options controller with a
+        greedy mu_bar, with offline interruption (Algorithm 1) when ``q_hat`` is given.
+
+        The controller is a Markov chain on (cell, running option): at the start and never again
+        (windy options end only at the goal) ``o_run = argmax_o Q_mu(s, o)`` (line 4); at every
+        later step line 6, ``Q_hat(s, o_run) < max_q Q_mu(s, q)``, switches to that argmax
+        (lines 7-8); then ``a = pi^{o_run}(s)`` (line 11). The comparison is strict, as in
+        ``controllers/interruption.py``, and an interruption is counted whenever line 6 holds,
+        even when mu_bar picks the running option again (the controllers' ``interrupted``); the
+        oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them.
+        Horizon-step returns by backward induction over steps-to-go, expected over ``instances``
+        (default: the training distribution) by :meth:`quadrature`, as :meth:`expected_return`.
+
+        Args:
+            policies: ``(O, S)`` greedy option policies (exact or learnt).
+            q_mu: ``(S, O)`` switching values (mu_bar is greedy in them; first index on ties).
+            q_hat: ``(S, O)`` max-values; ``None``: plain options (no interruption).
+            starts: ``"uniform"`` (scalars: the mean over start cells) or ``None`` (``(S,)``).
+
+        Returns:
+            ``{"expected_return": ..., "interruptions_per_episode": ...}``.
+        """
+        O, S = self.O, self.S  # noqa: E741
+        pol = policies.to(self.device, torch.int64)
+        q_mu = q_mu.to(self.device, torch.float64)
+        best = q_mu.argmax(-1)  # (S,) line 4
+        keep = torch.arange(O, device=self.device).expand(S, O)
+        fire = torch.zeros(S, O, dtype=torch.bool, device=self.device)
+        if q_hat is not None:
+            v = q_mu.max(-1, keepdim=True).values
+            fire = (q_hat.to(self.device, torch.float64) < v) & ~self.is_goal.view(-1, 1)
+        nxt = torch.where(fire, best.view(-1, 1), keep)  # (S, O): o_run after line 6-8
+        act = pol.gather(0, nxt.T.contiguous()).T  # (S, O): pi^{nxt}(s)
+        goal = self.is_goal.view(S, 1).expand(S, O).reshape(1, S * O)
+        fr = fire.to(torch.float64).reshape(1, S * O)  # firing indicator per step (goal rows 0)
+        p, d, w = self.quadrature(instances)
+        ret = torch.zeros(S, dtype=torch.float64, device=self.device)
+        fires = torch.zeros(S, dtype=torch.float64, device=self.device)
+        start_idx = (torch.arange(S, device=self.device) * O + best).view(1, S)  # line 4's o_run
+        for i in range(0, p.numel(), chunk):
+            k = self.kernel(p[i : i + chunk], d[i : i + chunk])
+            B, K = k.B, k.K
+            idx = act.view(1, S, O, 1).expand(B, S, O, K)
+            succ, prob = k.succ.gather(2, idx), k.prob.gather(2, idx)  # (B, S, O, K)
+            # chain successors (s', o') as per-outcome planes (B, S O): expect_planes
+            planes = outcome_planes(succ * O + nxt.view(1, S, O, 1), prob)
+            V = torch.zeros(B, S * O, dtype=torch.float64, device=self.device)
+            F = torch.zeros_like(V) if q_hat is not None else None
+            for _ in range(self.horizon):  # V_k(s, o) = -1 + E[V_{k-1}(s', o')], 0 at the goal
+                V = expect_planes(V, *planes).sub_(1.0)
+                V.masked_fill_(goal, 0.0)
+                if F is not None:  # the same recursion with the firing indicator as reward
+                    F = expect_planes(F, *planes).add_(fr)
+                    F.masked_fill_(goal, 0.0)
+            wi = w[i : i + chunk].view(-1, 1)
+            ret = ret + (wi * V.gather(1, start_idx.expand(B, S))).sum(0)
+            if F is not None:
+                fires = fires + (wi * F.gather(1, start_idx.expand(B, S))).sum(0)
+        if starts is None:
+            return {"expected_return": ret, "interruptions_per_episode": fires}
+        if starts != "uniform":
+            raise ValueError(f"starts must be 'uniform' or None, got {starts!r}")
+        cells = self.start_cells
+        return {
+            "expected_return": ret[cells].mean(),
+            "interruptions_per_episode": fires[cells].mean(),
+        }
+
+
+def outcome_planes(succ: Tensor, prob: Tensor) -> tuple[list[Tensor], list[Tensor]]:
+    """Successor tables ``(B, ..., K)`` as ``K`` contiguous planes ``(B, n)`` of indices and of
+    probabilities, for :func:`expect_planes`."""
+    B, K = succ.shape[0], succ.shape[-1]
+    return (
+        [succ[..., j].reshape(B, -1).contiguous() for j in range(K)],
+        [prob[..., j].reshape(B, -1).contiguous() for j in range(K)],
+    )
+
+
+def expect_planes(V: Tensor, succ: Sequence[Tensor], prob: Sequence[Tensor]) -> Tensor:
+    """``sum_j prob_j * V[succ_j]`` ``(B, n)`` for values ``V (B, S)``: one gather per outcome,
+    accumulated in outcome order. For ``K <= 2`` outcomes this is bit-equal to gathering all
+    outcomes and ``sum(-1)`` over them (tests/test_oracle_sparse.py), and faster on the CPU, where
+    a reduction over a last dim of size 2 is slow (docs/benchmarks.md, "The exact oracle's chain
+    step")."""
+    out = V.gather(1, succ[0]).mul_(prob[0])
+    for s, p in zip(succ[1:], prob[1:]):
+        out.add_(V.gather(1, s).mul_(p))
+    return out
+
+
+def _directions(direction: Any, device: torch.device) -> Tensor:
+    """Direction names / indices (scalar or sequence) -> ``(B,)`` int64."""
+    if isinstance(direction, Tensor):
+        d = direction.to(device, torch.int64).reshape(-1)
+    elif isinstance(direction, (str, int)):
+        d = torch.tensor([windy.direction_index(direction)], device=device)
+    else:
+        d = torch.tensor([windy.direction_index(x) for x in direction], device=device)
+    if bool(((d < 0) | (d >= len(windy.DIRECTIONS))).any()):
+        raise ValueError(f"direction must be one of {list(windy.DIRECTIONS)} or 0..3")
+    return d

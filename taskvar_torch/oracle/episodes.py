@@ -1,0 +1,87 @@
+"""Exact returns per played episode, for any family's oracle (docs/evaluation.md, docs/oracle.md).
+
+The oracle protocol a family's exact oracle (``Family.oracle``, docs/families.md) offers:
+``instance_keys`` (the ``("instance", key)`` fields of an episode), ``controller_return(ctrl,
+*fields, start=None, obs_encoding=...) -> (B, S)`` (Algorithms 1-2 as Markov chains,
+:mod:`~taskvar_torch.oracle.chains`) and ``optimal_return(*fields, start=None) -> (B, S)`` (the
+per-instance optimum). :func:`exact_episode_returns` and :func:`optimal_episode_returns` read them
+per episode: ``taskvar eval``'s exact values and regret.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from taskvar_torch.config import Config
+from taskvar_torch.controllers import Controller
+
+
+def exact_episode_returns(
+    oracle,
+    ctrl: Controller,
+    cfg: Config,
+    instance: dict[str, np.ndarray],
+    start: np.ndarray,
+    chunk: int = 2000,
+) -> np.ndarray:
+    """Exact expected horizon-step return of ``ctrl`` (learnt heads) per (instance, start) episode.
+
+    ``oracle`` is a family's exact oracle (``Family.oracle``, docs/families.md): its
+    ``instance_keys`` name the ``("instance", key)`` fields its ``controller_return(ctrl, *fields,
+    start=None, obs_encoding=...)`` takes, each an array of the episodes' values in ``instance``;
+    ``start`` holds each episode's first ``cell``. Learnt heads are read in the oracle's
+    ``obs_encoding`` where it has one, else the config's ``env.obs_encoding``.
+    """
+    names = tuple(oracle.instance_keys)
+    missing = [k for k in names if k not in instance]
+    if missing:
+        raise ValueError(f"exact returns need the episodes' instance fields {list(names)}")
+    out = []
+    for lo in range(0, len(start), chunk):
+        sl = slice(lo, lo + chunk)
+        fields = []
+        for k in names:
+            v = torch.as_tensor(np.asarray(instance[k])[sl])
+            fields.append(v.to(torch.float64) if v.is_floating_point() else v.to(torch.int64))
+        encoding = getattr(oracle, "obs_encoding", None) or cfg.env.obs_encoding
+        V = oracle.controller_return(ctrl, *fields, start=None, obs_encoding=encoding)  # (B, S)
+        idx = torch.as_tensor(start[sl], dtype=torch.int64).unsqueeze(-1)
+        out.append(V.gather(1, idx.to(V.device)).squeeze(-1).cpu().numpy())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+def optimal_episode_returns(
+    oracle, instance: dict[str, np.ndarray], start: np.ndarray, chunk: int = 500
+) -> np.ndarray:
+    """Exact expected horizon-step return of the per-instance optimal policy per (instance, start)
+    episode: an agent that knows the instance (the ceiling regret is measured against,
+    docs/evaluation.md; paper §3.3.1's returns).
+
+    Mirrors :func:`exact_episode_returns`: ``oracle.optimal_return(*fields, start=None)`` gives
+    ``(B, S)`` for the ``instance_keys`` fields. Distinct instances are solved once (a finite test
+    set, a dry Taxi), in chunks of ``chunk`` instances.
+    """
+    names = tuple(oracle.instance_keys)
+    missing = [k for k in names if k not in instance]
+    if missing:
+        raise ValueError(f"optimal returns need the episodes' instance fields {list(names)}")
+    cols = [np.asarray(instance[k]) for k in names]
+    uniq, inv = np.unique(
+        np.stack([c.astype(np.float64) for c in cols], 1), axis=0, return_inverse=True
+    )
+    inv = inv.reshape(-1)
+    out = np.zeros(len(start))
+    start = np.asarray(start, dtype=np.int64)
+    for lo in range(0, len(uniq), chunk):
+        fields = []
+        for j, c in enumerate(cols):
+            v = torch.as_tensor(uniq[lo : lo + chunk, j])
+            fields.append(v if c.dtype.kind == "f" else v.to(torch.int64))
+        V = oracle.optimal_return(*fields, start=None).cpu().numpy()  # (b, S)
+        sel = (inv >= lo) & (inv < lo + chunk)
+        out[sel] = V[inv[sel] - lo, start[sel]]
+    return out
+
+
+__all__ = ["exact_episode_returns", "optimal_episode_returns"]
