@@ -1,6 +1,6 @@
 """Which Polyak average of the weights to evaluate (``train.eval_ema_tau``; docs/scale.md).
 
-One real :func:`~taskvar_torch.train.train` run of a windy config per seed, keeping beside the
+One real :func:`~taskvar_torch.training.train` run of a windy config per seed, keeping beside the
 online heads one exponential moving average of their weights per ``--taus`` value (``ema <- ema +
 tau (online - ema)`` after every update, from the initial weights, as ``train.eval_ema_tau`` does;
 the averages only read the weights, so the run trains as without them), then
@@ -31,7 +31,7 @@ from taskvar_torch.factory import load_heads
 from taskvar_torch.families.windy.family import windy_sparse_oracle as sparse_oracle
 from taskvar_torch.families.windy.head_report import head_report
 from taskvar_torch.heads import learner as learner_module
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 QUICK = ["train.total_frames=3000", "train.init_random_frames=500", "train.eps_decay_frames=1500"]
 

@@ -4,7 +4,7 @@
 Training frames/s, same config and frame budget for each (default configs/windy.yaml, frames
 ``--frames``, no checkpoints):
 
-- ``paper heads``: ``taskvar train`` (``taskvar_torch.train.train``): the averaging head is trained
+- ``paper heads``: ``taskvar train`` (``taskvar_torch.training.train``): the averaging head is trained
   there, with the option, switching and max-value heads, from one stream (the project's trainer);
 - ``feed-forward``: the informed baseline's loop (TorchRL ``Collector``, ``DQNLoss(double_dqn)``,
   uniform replay): a feed-forward DQN like the averaging head, through the same TorchRL pieces as
@@ -44,8 +44,8 @@ from taskvar_torch.heads.recurrent import (
     BaselineSpec,
     make_recurrent_qnet,
 )
-from taskvar_torch.train import train
 from taskvar_torch.train_recurrent import train_baseline
+from taskvar_torch.training import train
 
 
 def best_of(fn, iters: int, repeats: int) -> tuple[float, float]:

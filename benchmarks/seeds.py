@@ -1,7 +1,7 @@
 """Seeds as a batch dimension: ``taskvar train --seeds N`` against one seed, side by side.
 
 For each case (a config and a frame budget) and each N in ``--seeds`` (default 1, 5, 10), one
-child process runs the real :func:`~taskvar_torch.train.train` with ``train.seeds=N`` (one torch
+child process runs the real :func:`~taskvar_torch.training.train` with ``train.seeds=N`` (one torch
 thread) and reports its wall time, its CPU time and its peak resident memory; the cases and Ns are
 interleaved over ``--repeats`` rounds so that load on the machine hits them alike, and the medians
 are printed with the ratios that matter: N seeds' wall over one seed's (the goal: 5 seeds in <= 2x
@@ -65,7 +65,7 @@ def child(config: str, overrides: list[str], seeds: int, fig4: bool = False) -> 
 
     from taskvar_torch.config import load_config
     from taskvar_torch.families.wargus.fig4 import run_repetitions_batched
-    from taskvar_torch.train import train
+    from taskvar_torch.training import train
 
     torch.set_num_threads(1)
     extra = [] if fig4 else [f"train.seeds={seeds}"]

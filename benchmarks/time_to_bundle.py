@@ -1,7 +1,7 @@
 """Time to a learnt bundle (docs/scale.md, "The shipped settings and time to a learnt bundle").
 
 For each variant of a windy family config (``NAME=key.sub=value,...``; the first is the baseline)
-and each seed: the real :func:`~taskvar_torch.train.train` to the config's budget, then
+and each seed: the real :func:`~taskvar_torch.training.train` to the config's budget, then
 :func:`~taskvar_torch.families.windy.head_report.head_report` against the exact oracle. Prints, per run,
 the training seconds and their ratio to the baseline's (same seed), each head's relative gap to
 its exact optimum (``*``: within 2%), how many heads are within 2%, mu_bar's agreement at the
@@ -37,7 +37,7 @@ from taskvar_torch.config import load_config
 from taskvar_torch.factory import load_heads
 from taskvar_torch.families.windy.family import windy_sparse_oracle as sparse_oracle
 from taskvar_torch.families.windy.head_report import head_report
-from taskvar_torch.train import HEADS_SNAPSHOTS, train
+from taskvar_torch.training import HEADS_SNAPSHOTS, train
 
 QUICK = ["train.total_frames=3000", "train.init_random_frames=500", "train.eps_decay_frames=1500"]
 

@@ -1,6 +1,6 @@
 """Training on one torch thread and on two, side by side in one run (docs/benchmarks.md).
 
-The real :func:`~taskvar_torch.train.train` of a family config (default ``configs/windy_xl.yaml``,
+The real :func:`~taskvar_torch.training.train` of a family config (default ``configs/windy_xl.yaml``,
 the 51x51 family, cut to ``--frames``) with ``torch.set_num_threads(1)`` and with ``2``, in
 alternating rounds (1, 2, 1, 2, ...) so that machine load hits both alike. Prints each run's
 training seconds (the trainer's own clock), the median ratio, and whether the two thread counts
@@ -25,7 +25,7 @@ import torch
 
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 # --quick: the 5x5 family, a few hundred updates (a smoke run)
 QUICK = [

@@ -1,6 +1,6 @@
 """Training throughput of config variants, side by side in one run (docs/scale.md).
 
-The real :func:`~taskvar_torch.train.train` of a family config (default ``configs/windy_xxl.yaml``,
+The real :func:`~taskvar_torch.training.train` of a family config (default ``configs/windy_xxl.yaml``,
 the 101x101 family, cut to ``--frames``) for each variant (``NAME=key.sub=value,...``; the first
 is the baseline), in alternating rounds (A, B, A, B, ...) so that machine load hits every variant
 alike. The rate is read from the run's own log rows (``logs/scalars/seconds.csv``) from the
@@ -32,7 +32,7 @@ import torch
 from time_to_bundle import parse_variant  # benchmarks/ is the script's folder on sys.path
 
 from taskvar_torch.config import load_config
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 # --quick: the 5x5 family, a few hundred updates (a smoke run)
 QUICK = [

@@ -42,9 +42,9 @@ from torchrl.envs import InitTracker, TransformedEnv
 
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import SideBySide
+from taskvar_torch.factory import make_env
 from taskvar_torch.families.wargus import fig4
 from taskvar_torch.heads.behaviour import BehaviourPolicy
-from taskvar_torch.train import make_env
 
 CORES = 2  # this project's machine
 QUICK = [  # --quick: a smoke run, first (the command line's overrides come after)

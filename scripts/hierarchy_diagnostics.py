@@ -27,11 +27,10 @@ import torch
 from torchrl.envs import TransformedEnv
 
 from taskvar_torch import keys
-from taskvar_torch.factory import make_method_controller
+from taskvar_torch.factory import load_heads, make_method_controller, make_subtasks
 from taskvar_torch.families.wargus import dynamics as wargus
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.families.wargus.robustness_mc import format_report, robustness_monte_carlo
-from taskvar_torch.train import load_heads, make_subtasks
 
 
 def fixed_instances_env(cfg, seeds) -> WargusEnv:

@@ -34,7 +34,7 @@ from taskvar_torch.family_check import check_family
 
 _LAZY = {
     "load_config": "taskvar_torch.config",
-    "train": "taskvar_torch.train",
+    "train": "taskvar_torch.training",
     "load_heads": "taskvar_torch.factory",
     "make_env": "taskvar_torch.factory",
     "make_subtasks": "taskvar_torch.factory",

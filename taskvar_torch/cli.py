@@ -112,7 +112,7 @@ def _train_epilog() -> str:
 
 def _train_run(args: argparse.Namespace) -> int:
     from taskvar_torch.config import load_config
-    from taskvar_torch.train import train
+    from taskvar_torch.training import train
 
     _set_threads(args)
     config_path, overrides = _split_config_and_overrides(args.items)
@@ -151,8 +151,8 @@ def _train_run(args: argparse.Namespace) -> int:
 def _print_oracle_summary(path: str | os.PathLike) -> None:
     """Where the family brings an exact oracle that covers the bundle's env, print the learnt
     heads beside it (``Family.oracle_summary``; windy: docs/oracle.md)."""
+    from taskvar_torch.factory import load_heads
     from taskvar_torch.families import family
-    from taskvar_torch.train import load_heads
 
     heads, cfg = load_heads(path)
     summary = family(cfg).oracle_summary
@@ -271,7 +271,7 @@ def _eval_run(args: argparse.Namespace) -> int:
     if args.batch_size is not None and args.batch_size < 1:  # 0 would fall back to the config's
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.out is not None:
-        from taskvar_torch.train import check_output_folder
+        from taskvar_torch.run_folder import check_output_folder
 
         check_output_folder(args.out)
     method = args.method or ("all" if args.by_frames else "interruption")

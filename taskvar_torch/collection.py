@@ -1,4 +1,4 @@
-"""Experience collection for :func:`~taskvar_torch.train.train` (docs/design.md, "Many processes
+"""Experience collection for :func:`~taskvar_torch.training.train` (docs/design.md, "Many processes
 and Ray actors"): the training env and the collector of ``cfg.collector``.
 
 * one process (``collector.num_workers = 1``): TorchRL's ``Collector`` on the whole batched env,
@@ -10,8 +10,6 @@ and Ray actors"): the training env and the collector of ``cfg.collector``.
   ``SharedMemWeightSyncScheme``;
 * ``collector.backend = ray``: the same W slices as Ray actors (TorchRL ``Collector(backend="ray")``,
   ``RayWeightSyncScheme``).
-
-Every name is re-exported by :mod:`taskvar_torch.train`.
 """
 
 from __future__ import annotations

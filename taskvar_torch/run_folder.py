@@ -1,4 +1,4 @@
-"""The run folder of :func:`~taskvar_torch.train.train`: one run per folder, locked, never silently
+"""The run folder of :func:`~taskvar_torch.training.train`: one run per folder, locked, never silently
 reused; an interrupted run leaves a resumable checkpoint (docs/design.md, "Training the heads").
 
 * :class:`RunFolder` creates and locks ``--out`` (:data:`LOCK_NAME`, ``flock``-ed, so a second run
@@ -14,8 +14,6 @@ reused; an interrupted run leaves a resumable checkpoint (docs/design.md, "Train
 The other results folders (``taskvar eval``, ``experiment``, ``sweep``) are written like it:
 :class:`ResultsFolder` locks the folder, fills a staging sibling and swaps it in whole;
 ``taskvar export`` and ``report`` hold :func:`folder_lock` while they write.
-
-Every name of ``__all__`` is re-exported by :mod:`taskvar_torch.train`.
 """
 
 from __future__ import annotations

@@ -65,8 +65,8 @@ from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
-from taskvar_torch.run_folder import ResultsFolder, check_out_path, folder_lock
-from taskvar_torch.train import TrainingDiverged, check_output_folder, train
+from taskvar_torch.run_folder import ResultsFolder, check_out_path, check_output_folder, folder_lock
+from taskvar_torch.training import TrainingDiverged, train
 
 BACKENDS = ("local", "ray")
 """Config family -> the experiment each sweep point runs (as ``taskvar experiment NAME``)."""

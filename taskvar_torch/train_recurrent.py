@@ -8,13 +8,13 @@ compared with differ only where they must:
 
 * the budget ``train.total_frames`` and ``train.frames_per_batch``; epsilon-greedy exploration
   (:class:`~torchrl.modules.EGreedyModule`) at the heads' schedule
-  (:func:`~taskvar_torch.train.epsilon_at`: uniform for ``train.init_random_frames``, then
+  (:func:`~taskvar_torch.training.epsilon_at`: uniform for ``train.init_random_frames``, then
   ``eps_start -> eps_end`` by ``eps_decay_frames``); ``train.updates_per_batch`` gradient steps
   per batch of ``train.batch_size`` rows from a replay of ``train.buffer_size``;
 * ``DQNLoss(double_dqn=train.double_q, delay_value=True)`` at ``train.gamma``, the target network
   updated as ``train.target_update`` says (``SoftUpdate`` at ``train.target_tau``, or
   ``HardUpdate`` every ``train.target_period``), Adam at ``train.lr`` (decayed to
-  ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.train.lr_at`), gradients clipped at
+  ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.training.lr_at`), gradients clipped at
   ``train.max_grad_norm``, and the evaluation weights a Polyak average where
   ``train.eval_ema_tau`` is set;
 * the Q head's widths and activation ``heads.hidden``, ``heads.activation``.
@@ -273,7 +273,7 @@ def train_baseline(
     tenth of training, exploration included).
 
     Seeded by ``cfg.seed`` (torch's global generator and the env's keyed streams)."""
-    from taskvar_torch.train import epsilon_at, lr_at
+    from taskvar_torch.training import epsilon_at, lr_at
 
     t = cfg.train
     torch.manual_seed(int(cfg.seed))

@@ -761,7 +761,7 @@ def test_sigkill_of_an_overwriting_eval_leaves_the_old_results_whole(run_dir, tm
 
 TERM_BEFORE_LOOP = """
 import os, signal
-import taskvar_torch.train as T
+import taskvar_torch.training as T
 build = T._build_run
 def term(*args, **kwargs):  # the folder is taken, the loop not started
     os.kill(os.getpid(), signal.SIGTERM)

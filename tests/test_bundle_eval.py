@@ -15,7 +15,7 @@ from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.experiments.shift import parse_shift, shift_points
 from taskvar_torch.factory import export_heads, load_heads, make_env
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 TINY = [

@@ -21,7 +21,7 @@ import torch
 from taskvar_torch import cli
 from taskvar_torch.config import load_config
 from taskvar_torch.run_folder import LOCK_NAME, RunFolder
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 

@@ -17,11 +17,11 @@ from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import side_by_side
 from taskvar_torch.experiments import curves
+from taskvar_torch.factory import load_heads, make_env
 from taskvar_torch.families.wargus import fig4, fig4_metrics, fig4_report, fig4_trial
 from taskvar_torch.families.wargus.dynamics import WargusInstances
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads import snapshots
-from taskvar_torch.train import load_heads, make_env
 
 torch.set_num_threads(1)
 

@@ -12,9 +12,10 @@ import torch
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import explain_table
+from taskvar_torch.factory import load_heads
 from taskvar_torch.families.windy import family as windy_family
 from taskvar_torch.heads.validate import compare_with_oracle
-from taskvar_torch.train import load_heads, train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 

@@ -15,7 +15,7 @@ from taskvar_torch.checkpoint import load_checkpoint, save_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import HeadSpec, build_heads, load_heads, make_env, make_subtasks
 from taskvar_torch.families import BUILTIN, FAMILIES, family
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 PACKAGE = Path(__file__).resolve().parents[1] / "taskvar_torch"

@@ -23,11 +23,12 @@ import pytest
 import torch
 from test_train import assert_same  # tests/ is on sys.path (rootdir import mode)
 
-import taskvar_torch.train as T
+import taskvar_torch.training as T
 from taskvar_torch.checkpoint import load_checkpoint, make_bundle, save_checkpoint
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
-from taskvar_torch.train import LOCK_NAME, RunFolder, TrainingDiverged, train
+from taskvar_torch.run_folder import LOCK_NAME, RunFolder
+from taskvar_torch.training import TrainingDiverged, train
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
@@ -49,7 +50,7 @@ HOOK = textwrap.dedent(
     """
     import os, signal, sys
     import torch
-    import taskvar_torch.train as T
+    import taskvar_torch.training as T
     from taskvar_torch.cli import main
 
     kind, frame = os.environ["FAULT"], int(os.environ["FAULT_FRAME"])

@@ -14,6 +14,7 @@ from torchrl.objectives import DQNLoss
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
+from taskvar_torch.factory import build_heads, make_env, make_subtasks
 from taskvar_torch.heads.averaging import averaging_loss, make_averaging_head
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.bundle import Heads
@@ -31,7 +32,6 @@ from taskvar_torch.heads.relabel import Transitions, relabel
 from taskvar_torch.heads.robustness import component_matrix, parent_closure, robustness_loss
 from taskvar_torch.heads.targets import expectile_loss, masked_mean
 from taskvar_torch.subtasks import Hierarchy
-from taskvar_torch.train import build_heads, make_env, make_subtasks
 
 torch.set_num_threads(1)
 CONFIG = "configs/windy.yaml"

@@ -11,8 +11,9 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
+from taskvar_torch.factory import load_heads, make_env
 from taskvar_torch.families.wargus.dynamics import ITEM_SEEN, PATROL_SEEN
-from taskvar_torch.train import load_heads, make_env, train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 pytestmark = pytest.mark.slow

@@ -19,13 +19,13 @@ from torchrl.envs import TransformedEnv
 
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
-from taskvar_torch.factory import make_env
+from taskvar_torch.factory import load_heads, make_env
 from taskvar_torch.families.windy import WindyOracle
 from taskvar_torch.heads.recurrent import load_baseline
 from taskvar_torch.heads.validate import compare_with_oracle
 from taskvar_torch.oracle.episodes import optimal_episode_returns
-from taskvar_torch.train import load_heads, train
 from taskvar_torch.train_recurrent import train_baseline
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]  # a 4-min fixture under load

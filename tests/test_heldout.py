@@ -16,7 +16,7 @@ from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle
 from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SEEDS, HELDOUT_SIZE
 from taskvar_torch.families.wargus.dynamics import NOMINAL_SEEDS
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]

@@ -14,7 +14,7 @@ from taskvar_torch import families
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.heads.recurrent import load_baseline
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 SHORT = [
     "train.total_frames=4096",

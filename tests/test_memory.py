@@ -25,7 +25,7 @@ from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.env import OBS_ENCODINGS, observation_table
 from taskvar_torch.families.windy.env import observation_size as windy_observation_size
 from taskvar_torch.replay import raw_transitions
-from taskvar_torch.train import _build_run
+from taskvar_torch.training import _build_run
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]

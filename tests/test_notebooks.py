@@ -150,14 +150,25 @@ def _output_text(o: nbformat.NotebookNode) -> str:
     return text
 
 
+def _compared(outputs: list) -> list:
+    """The outputs the comparison reads: stderr left out, and the stdout chunks it separated
+    merged back into one (where a library's stderr line lands between two prints is timing)."""
+    out = []
+    for o in outputs:
+        if o["output_type"] == "stream" and o["name"] in UNCOMPARED_STREAMS:
+            continue
+        if o["output_type"] == "stream" and out and out[-1]["output_type"] == "stream":
+            if out[-1]["name"] == o["name"]:
+                out[-1] = nbformat.from_dict({**out[-1], "text": out[-1]["text"] + o["text"]})
+                continue
+        out.append(o)
+    return out
+
+
 def cell_outputs(nb: nbformat.NotebookNode) -> list[str]:
     """Every code cell's outputs, as the comparison sees them."""
     return [
-        "\n".join(
-            _output_text(o)
-            for o in c.get("outputs", [])
-            if not (o["output_type"] == "stream" and o["name"] in UNCOMPARED_STREAMS)
-        )
+        "\n".join(_output_text(o) for o in _compared(c.get("outputs", [])))
         for c in nb.cells
         if c.cell_type == "code"
     ]

@@ -9,6 +9,7 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
+from taskvar_torch.factory import build_heads, load_heads, make_env, make_subtasks
 from taskvar_torch.families.wargus.dynamics import (
     OBS_AGENT,
     OBS_ITEM_BEARING,
@@ -18,7 +19,7 @@ from taskvar_torch.families.wargus.dynamics import (
     OBS_PATROL_SEEN,
 )
 from taskvar_torch.heads.networks import StackedMLP, head_network
-from taskvar_torch.train import build_heads, load_heads, make_env, make_subtasks, train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 WARGUS = "configs/wargus.yaml"

@@ -21,7 +21,7 @@ from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.oracle import WindyOracle
 from taskvar_torch.oracle.episodes import exact_episode_returns, optimal_episode_returns
 from taskvar_torch.oracle.mdp import greedy
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 TINY = [

@@ -25,7 +25,7 @@ from taskvar_torch.experiments.regret_frames import (
 from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
 from taskvar_torch.oracle.episodes import exact_episode_returns
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 CORRIDOR = "configs/windy_corridor.yaml"  # memory provably helps; 5 cells: exact values are cheap

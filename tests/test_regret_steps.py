@@ -13,7 +13,7 @@ from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.families.windy.oracle import WindyOracle
 from taskvar_torch.oracle.mdp import greedy
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 TINY = [

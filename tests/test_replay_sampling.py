@@ -12,7 +12,7 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.replay import PerOptionSampler, load_replay_state, replay_state
-from taskvar_torch.train import train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 TINY = [*TINY_TRAIN, "train.replay_sampling=per_option"]  # test_train's tiny windy run

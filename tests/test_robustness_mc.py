@@ -15,12 +15,13 @@ import pytest
 import torch
 
 from taskvar_torch.config import load_config
+from taskvar_torch.factory import load_heads
 from taskvar_torch.families.wargus.robustness_mc import (
     format_report,
     option_returns,
     robustness_monte_carlo,
 )
-from taskvar_torch.train import load_heads, train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 

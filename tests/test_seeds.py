@@ -11,19 +11,13 @@ import pytest
 import torch
 
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
+from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import load_config
-from taskvar_torch.factory import load_heads
+from taskvar_torch.factory import build_heads, load_heads, make_learner, make_subtasks
 from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.seeds import split_seed, stack_seeds
-from taskvar_torch.train import (
-    build_heads,
-    make_learner,
-    make_subtasks,
-    make_training_env,
-    raw_transitions,
-    seed_config,
-    train,
-)
+from taskvar_torch.replay import raw_transitions
+from taskvar_torch.training import seed_config, train
 
 TINY = [
     "env.num_envs=4",
@@ -207,7 +201,7 @@ def test_seeds_into_a_folder_holding_a_run_is_refused(tmp_path):
 @pytest.mark.slow  # trains (2-10 s on the shared 2-core CPU)
 def test_a_diverging_batch_names_the_seed_and_writes_nothing(tmp_path):
     cfg = _cfg("train.seeds=2", "train.checkpoint_every=320")
-    from taskvar_torch import train as train_module
+    from taskvar_torch import training as train_module
 
     original = train_module._Run.learn
 

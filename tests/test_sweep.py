@@ -15,8 +15,8 @@ import pytest
 import torch
 
 from taskvar_torch import cli
+from taskvar_torch.factory import load_heads
 from taskvar_torch.sweep import expand_points, load_point_configs, point_name, split_values, sweep
-from taskvar_torch.train import load_heads
 
 torch.set_num_threads(1)
 

@@ -12,12 +12,13 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-import taskvar_torch.train as T
-from taskvar_torch import collection, keys, run_folder
+import taskvar_torch.training as T
+from taskvar_torch import keys
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
-from taskvar_torch.train import TrainingDiverged, load_heads, train
+from taskvar_torch.factory import load_heads
+from taskvar_torch.training import TrainingDiverged, train
 
 torch.set_num_threads(1)
 CONFIG = "configs/windy.yaml"
@@ -186,15 +187,6 @@ def test_final_bundle_reloads_the_trained_heads(tmp_path):
     td = heads(TensorDict({keys.OBSERVATION: torch.eye(25)}, [25]))
     assert td[keys.OPTION_ACTION_VALUE].shape == (25, 2, 4) and td[keys.MAX_VALUE].shape == (25, 2)
     assert (td[keys.MAX_VALUE] >= td[keys.OPTION_VALUE]).all()
-
-
-def test_train_re_exports_the_split_modules():
-    """Names that moved out of ``train`` (the run folder, the collection) are still importable
-    from it, as the same objects."""
-    for module in (run_folder, collection):
-        for name in module.__all__:
-            assert getattr(T, name) is getattr(module, name), (module.__name__, name)
-            assert name in T.__all__, name
 
 
 @pytest.mark.slow

@@ -1,5 +1,5 @@
 """Training options no other test trains (issue 32), each through the real trainer
-(:func:`taskvar_torch.train.train`) on a tiny config, checked for the run finishing with finite
+(:func:`taskvar_torch.training.train`) on a tiny config, checked for the run finishing with finite
 heads and for the option taking effect:
 
 * ``train.n_step > 1`` (shipped in configs/windy_xxl.yaml): the replay holds the n-step windows and
@@ -13,7 +13,7 @@ heads and for the option taking effect:
 * ``train.option_coverage``: option picks leave mu_bar's greedy choice;
 * ``train.max_grad_norm``: every head's gradient norm is clipped to it (``null``: unclipped).
 
-The learner and the run are observed by wrapping what :mod:`taskvar_torch.train` builds
+The learner and the run are observed by wrapping what :mod:`taskvar_torch.training` builds
 (``make_learner``, ``_Run.store``), never by re-implementing the loop.
 """
 
@@ -30,15 +30,15 @@ from tensordict import TensorDict
 from torchrl.objectives import HardUpdate
 
 from taskvar_torch import factory
-from taskvar_torch import train as train_module
+from taskvar_torch import training as train_module
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
-from taskvar_torch.factory import make_method_controller
+from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
 from taskvar_torch.heads.learner import MultiHeadLearner
 from taskvar_torch.heads.networks import head_network
 from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.heads.switching import mu_bar_probs
-from taskvar_torch.train import load_heads, make_env, make_subtasks, train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 

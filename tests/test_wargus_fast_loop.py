@@ -8,10 +8,10 @@ from torchrl.envs import InitTracker, TransformedEnv
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
+from taskvar_torch.factory import make_env
 from taskvar_torch.families.wargus import fig4
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads.behaviour import BehaviourPolicy
-from taskvar_torch.train import make_env
 
 torch.set_num_threads(1)
 

@@ -44,7 +44,7 @@ from taskvar_torch.factory import (
 from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.subtasks.base import Subtasks
-from taskvar_torch.train import HEADS_SNAPSHOTS
+from taskvar_torch.training import HEADS_SNAPSHOTS
 
 CSV_NAME = "regret_by_frames.csv"
 PNG_NAME = "regret_by_frames.png"

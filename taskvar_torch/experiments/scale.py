@@ -129,8 +129,8 @@ from taskvar_torch.heads.recurrent import (
 )
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder
-from taskvar_torch.train import HEADS_SNAPSHOTS, seed_config, train
 from taskvar_torch.train_recurrent import train_baseline
+from taskvar_torch.training import HEADS_SNAPSHOTS, seed_config, train
 
 TEST_SEED_OFFSET = 1000
 """Test episodes use env seed ``seed + TEST_SEED_OFFSET`` (never a training seed)."""

@@ -85,7 +85,15 @@ from taskvar_torch.experiments.curves import (
 )
 from taskvar_torch.experiments.evaluation import run_episodes  # noqa: F401  (read from here)
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
-from taskvar_torch.factory import calibrate, make_method_controller, replay_states
+from taskvar_torch.factory import (
+    build_heads,
+    calibrate,
+    make_env,
+    make_learner,
+    make_method_controller,
+    make_subtasks,
+    replay_states,
+)
 from taskvar_torch.families import FAMILIES, HELDOUT_SEEDS
 from taskvar_torch.families.wargus.dynamics import WargusInstances
 from taskvar_torch.families.wargus.env import WargusEnv
@@ -126,14 +134,8 @@ from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.heads.seeds import load_seed, stack_seeds
 from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.progress import progress_bar
+from taskvar_torch.replay import make_replay_buffer
 from taskvar_torch.run_folder import ResultsFolder
-from taskvar_torch.train import (
-    build_heads,
-    make_env,
-    make_learner,
-    make_replay_buffer,
-    make_subtasks,
-)
 
 EXPLORATION_OFFSET = 1 << 32
 """A repetition's exploration generator is seeded ``seed + EXPLORATION_OFFSET``."""

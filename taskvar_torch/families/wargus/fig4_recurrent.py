@@ -44,6 +44,7 @@ from torchrl.envs.utils import step_mdp
 from taskvar_torch import keys
 from taskvar_torch.config import Config
 from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.factory import make_env
 from taskvar_torch.families.wargus.dynamics import WargusInstances
 from taskvar_torch.families.wargus.fig4_trial import repetition_seed, trial_seeds
 from taskvar_torch.heads.recurrent import (
@@ -54,8 +55,8 @@ from taskvar_torch.heads.recurrent import (
     recurrent_transforms,
     save_baseline,
 )
-from taskvar_torch.train import epsilon_at, lr_at, make_env
 from taskvar_torch.train_recurrent import BaselineLearner, stored_keys
+from taskvar_torch.training import epsilon_at, lr_at
 
 RECURRENT_OFFSET = 1 << 33
 """The recurrent agent of the repetition seeded ``seed`` draws from torch's generator seeded

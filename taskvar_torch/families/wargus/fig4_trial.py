@@ -46,7 +46,7 @@ from taskvar_torch.families.wargus.fig4_metrics import METHODS
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.robustness import RobustnessCalibration
-from taskvar_torch.train import epsilon_at
+from taskvar_torch.training import epsilon_at
 
 # --------------------------------------------------------------------------------------------
 # the agent: every head, one learner, one replay buffer (paper §3.5.1: no prior knowledge)

@@ -54,6 +54,7 @@ from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.experiments.bundle_eval import eval_bundle
 from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.factory import check_device, load_heads, make_env, make_subtasks
 from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE
 from taskvar_torch.families.windy import (
     WindyOracle,
@@ -86,16 +87,14 @@ from taskvar_torch.families.windy.instances import WindyInstances
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle import discounted_chain_values
 from taskvar_torch.progress import progress_bar
-from taskvar_torch.run_folder import RESULT_MARKERS, ResultsFolder, refuse_inside
-from taskvar_torch.train import (
-    check_device,
+from taskvar_torch.run_folder import (
+    RESULT_MARKERS,
+    ResultsFolder,
     check_output_folder,
-    load_heads,
-    make_env,
-    make_subtasks,
+    refuse_inside,
     run_files,
-    train,
 )
+from taskvar_torch.training import train
 
 DISTRIBUTIONS = {"train": "train", "south_only": "south"}
 """metrics.json key -> test instance distribution (``train``: the training distribution)."""

@@ -70,12 +70,10 @@ from taskvar_torch.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from taskvar_torch.collection import (  # noqa: F401  (the collection names stay importable here)
+from taskvar_torch.collection import (
     collects_in_workers,
     make_collector,
-    make_ray_collector,
     make_training_env,
-    make_worker_env,
 )
 from taskvar_torch.config import (
     Config,
@@ -86,15 +84,12 @@ from taskvar_torch.config import (
 )
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
-from taskvar_torch.factory import (  # noqa: F401  (the factories stay importable from here)
+from taskvar_torch.factory import (
     HEADS_NAME,
     build_heads,
     check_device,
-    load_heads,
-    make_env,
     make_learner,
     make_subtasks,
-    mu_bar_temperature,
     write_heads,
 )
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
@@ -106,7 +101,7 @@ from taskvar_torch.heads.nstep import nstep_returns
 from taskvar_torch.heads.recurrent import baseline_path, save_informed_head
 from taskvar_torch.heads.seeds import split_seed, stack_seeds
 from taskvar_torch.progress import progress_bar
-from taskvar_torch.replay import (  # noqa: F401  (importable from here too)
+from taskvar_torch.replay import (
     EPISODE_REWARD,
     check_replay_state,
     load_replay_state,
@@ -114,19 +109,14 @@ from taskvar_torch.replay import (  # noqa: F401  (importable from here too)
     raw_transitions,
     replay_state,
 )
-from taskvar_torch.run_folder import (  # noqa: F401  (the run-folder names stay importable here)
-    LOCK_NAME,
+from taskvar_torch.run_folder import (
     RunFolder,
-    TrainingInterrupted,
     _interrupted,
     _last_checkpoint_note,
-    _latest_checkpoint,
     _restore_logs,
     _StopSignals,
     check_out_path,
     check_output_folder,
-    resume_command,
-    run_files,
 )
 
 HEADS_SNAPSHOTS = "heads"
@@ -968,31 +958,11 @@ def _log_row(
 
 
 __all__ = [
-    "CheckpointError",
-    "LOCK_NAME",
     "LOGGER_EXTRAS",
-    "RunFolder",
     "RunLoggers",
     "TrainingDiverged",
-    "TrainingInterrupted",
-    "build_heads",
-    "check_device",
     "check_logger",
-    "check_output_folder",
-    "collects_in_workers",
     "epsilon_at",
     "lr_at",
-    "load_heads",
-    "make_collector",
-    "make_env",
-    "make_learner",
-    "make_ray_collector",
-    "make_replay_buffer",
-    "make_subtasks",
-    "make_training_env",
-    "make_worker_env",
-    "raw_transitions",
-    "resume_command",
-    "run_files",
     "train",
 ]
