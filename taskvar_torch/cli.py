@@ -69,6 +69,11 @@ def _split_config_and_overrides(items: Sequence[str]) -> tuple[str | None, list[
 
 def _train_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
+        "--help-all",
+        action=_HelpAll,
+        help="list every config key, grouped by section, with each family's own, and exit",
+    )
+    p.add_argument(
         "items",
         nargs="*",
         metavar="CONFIG [key.sub=value ...]",
@@ -105,9 +110,27 @@ def _seed_count(text: str) -> int:
 
 
 def _train_epilog() -> str:
-    from taskvar_torch.config import config_help
+    from taskvar_torch.config.help import config_help, count_keys, user_help
 
-    return "config keys (override any with key.sub=value):\n" + config_help()
+    return (
+        "the config keys a user sets (override any key with key.sub=value):\n"
+        + user_help()
+        + f"\n\ntaskvar train --help-all lists every key ({count_keys(config_help())}), "
+        "grouped by section, with each family's own"
+    )
+
+
+class _HelpAll(argparse.Action):
+    """``--help-all``: every config key, grouped by section, with each family's own; exits."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any, **kwargs: Any) -> None:
+        from taskvar_torch.config import config_help
+
+        print("every config key (override any with key.sub=value):\n" + config_help())
+        parser.exit()
 
 
 def _train_run(args: argparse.Namespace) -> int:

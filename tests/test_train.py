@@ -143,6 +143,27 @@ def test_cli_help(command, capsys):
         assert "--resume" in text and "train.total_frames" in text
 
 
+def test_train_help_shows_the_user_keys_and_help_all_every_key(capsys):
+    """``taskvar train --help`` lists at most 35 keys (config/help.py ``USER_KEYS``); ``--help-all``
+    lists every key of the schema, grouped by section, with each registered family's own."""
+    from taskvar_torch.config import Config, config_help
+    from taskvar_torch.config.help import USER_KEYS, count_keys
+
+    with pytest.raises(SystemExit):
+        main(["train", "--help"])
+    short = capsys.readouterr().out
+    listed = [k for k in USER_KEYS if f"  {k} (" in short]
+    assert listed == list(USER_KEYS) and count_keys(short) == len(USER_KEYS) <= 35
+    with pytest.raises(SystemExit) as e:
+        main(["train", "--help-all"])
+    assert e.value.code == 0
+    full = capsys.readouterr().out
+    assert count_keys(full) == count_keys(config_help()) > len(USER_KEYS)
+    for key in ("train.target_tau", "env.wargus.sight (int, default 8)", "env.taxi.horizon"):
+        assert f"  {key}" in full, key
+    assert "heads:" in full and "env.taxi:" in full and Config().train.lr == 0.001
+
+
 @pytest.mark.slow
 def test_final_bundle_without_replay_evaluates_but_does_not_resume(tmp_path):
     """keep_replay=False (the scale experiment's cells): final.pt without the replay buffer, the

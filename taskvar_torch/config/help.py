@@ -16,6 +16,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import inspect
+import re
 import textwrap
 import typing
 
@@ -45,8 +46,58 @@ def field_docs(cls: type) -> dict[str, str]:
     return docs
 
 
+USER_KEYS = (
+    "family",
+    "seed",
+    "device",
+    "env.num_envs",
+    "env.instances",
+    "env.layout",
+    "env.obs_encoding",
+    "env.horizon",
+    "heads.hidden",
+    "heads.activation",
+    "heads.network",
+    "heads.informed",
+    "train.total_frames",
+    "train.lr",
+    "train.gamma",
+    "train.batch_size",
+    "train.buffer_size",
+    "train.frames_per_batch",
+    "train.updates_per_batch",
+    "train.init_random_frames",
+    "train.eps_decay_frames",
+    "train.seeds",
+    "train.checkpoint_every",
+    "train.log_every",
+    "train.compile",
+    "train.eval_ema_tau",
+    "collector.num_workers",
+    "collector.backend",
+    "eval.method",
+    "eval.test",
+    "eval.episodes",
+    "experiment.runs",
+    "experiment.quick_overrides",
+    "baseline.hidden",
+    "baseline.slice_len",
+)
+"""The keys ``taskvar train --help`` shows: those a user sets (what the shipped configs and the
+docs change, and the budget); ``--help-all`` (:func:`config_help`) shows every key."""
+
+
+def _key_line(cls: type, name: str, prefix: str) -> str:
+    """``  prefix.name (type, default value): docstring`` of field ``name`` of ``cls``."""
+    t = typing.get_type_hints(cls)[name]
+    value = getattr(cls(), name)
+    shown = list(value) if isinstance(value, tuple) else value
+    tname = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
+    return f"  {prefix}{name} ({tname}, default {shown!r}): {field_docs(cls).get(name, '')}"
+
+
 def config_help(cls: type = Config, prefix: str = "") -> str:
-    """``--help`` text: one line per dotted key with its type, default and docstring.
+    """``--help-all`` text: one line per dotted key with its type, default and docstring.
 
     A nested dataclass field is a header line followed by its own keys; ``cls`` may be any
     config dataclass whose fields all have defaults. For :class:`Config`, every registered
@@ -55,17 +106,12 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
     lines = []
     docs = field_docs(cls)
     hints = typing.get_type_hints(cls)
-    default = cls()
     for f in dataclasses.fields(cls):
-        t = hints[f.name]
-        if dataclasses.is_dataclass(t):
+        if dataclasses.is_dataclass(hints[f.name]):
             lines.append(f"{prefix}{f.name}: {docs.get(f.name, '')}")
-            lines.append(config_help(t, f"{prefix}{f.name}."))
+            lines.append(config_help(hints[f.name], f"{prefix}{f.name}."))
             continue
-        value = getattr(default, f.name)
-        shown = list(value) if isinstance(value, tuple) else value
-        tname = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
-        lines.append(f"  {prefix}{f.name} ({tname}, default {shown!r}): {docs.get(f.name, '')}")
+        lines.append(_key_line(cls, f.name, prefix))
     if cls is Config and not prefix:  # each registered family's own keys, read for it only
         from taskvar_torch.families import FAMILIES
 
@@ -75,3 +121,24 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
                 lines.append(f"env.{name}: the {name} family's own keys (read when family={name})")
                 lines.append(config_help(section, f"env.{name}."))
     return "\n".join(lines)
+
+
+def user_help() -> str:
+    """``--help`` text: the :data:`USER_KEYS`, one line each, under their section's header."""
+    lines, section = [], None
+    for key in USER_KEYS:
+        cls: type = Config
+        *path, name = key.split(".")
+        for part in path:
+            cls = typing.get_type_hints(cls)[part]
+        header = ".".join(path) or "top level"
+        if header != section:
+            section = header
+            lines.append(f"{header}:")
+        lines.append(_key_line(cls, name, "".join(p + "." for p in path)))
+    return "\n".join(lines)
+
+
+def count_keys(text: str) -> int:
+    """Keys listed in a help text of :func:`config_help` or :func:`user_help`."""
+    return sum(1 for line in text.splitlines() if re.match(r"  [a-z][a-z0-9_.]* \(", line))
