@@ -159,7 +159,7 @@ def test_returns_change_where_the_shift_must_change_them(bundles):
     m = eval_bundle(
         bundles["windy"] / "final.pt",
         "averaging",
-        shifts=["env.horizon=7,300"],
+        shifts=["env.windy.horizon=7,300"],
         episodes=20,
         progress=False,
     )
@@ -192,7 +192,7 @@ def test_eval_refuses_a_folder_holding_results_and_checks_points_first(bundles, 
     assert (tmp_path / "metrics.json").read_text() == before
     assert main([*argv, "--method", "averaging", "--overwrite"]) == 0
     # a sweep whose second point does not fit the bundle fails before any episode is played
-    bad = ["--shift", "env.obs_encoding=onehot,coords_patch", "--episodes", "100000"]
+    bad = ["--shift", "env.windy.obs_encoding=onehot,coords_patch", "--episodes", "100000"]
     assert main(["eval", "--checkpoint", ckpt, "--no-progress", *bad]) == 2
     assert "trained on" in capsys.readouterr().err
 

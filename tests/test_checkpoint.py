@@ -83,7 +83,7 @@ def _assert_same_tree(a, b) -> None:
 
 def test_round_trip_restores_outputs_optimizer_state_and_training(tmp_path: Path):
     net, target, opt = _trained()
-    cfg = Config()
+    cfg = config_from_dict({})  # the default config, its family section included
     path = save_checkpoint(
         tmp_path / "run" / "final.pt",  # parent folder is created
         make_bundle(
@@ -254,11 +254,11 @@ def test_missing_file_and_directory(tmp_path: Path):
 def test_config_mismatch_names_the_key_and_both_values(tmp_path: Path):
     cfg = Config()
     path = save_checkpoint(tmp_path / "c.pt", make_bundle(cfg, {}))
-    other = apply_overrides(cfg, ["env.layout=middle_exits"])
+    other = apply_overrides(cfg, ["env.windy.layout=middle_exits"])
     with pytest.raises(CheckpointError) as info:
         load_checkpoint(path, expected_config=other)
     _one_line(
-        info, "trained with env.layout='default'", "the config says 'middle_exits'", str(path)
+        info, "trained with env.windy.layout='default'", "the config says 'middle_exits'", str(path)
     )
 
     several = apply_overrides(cfg, ["train.lr=0.5", "heads.hidden=[8]", "seed=3"])

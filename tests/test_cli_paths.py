@@ -78,7 +78,9 @@ def bundle(tmp_path_factory) -> Path:
     """A tiny trained windy bundle (``final.pt``), ~2 s; 30-step episodes keep its evaluation
     short."""
     out = tmp_path_factory.mktemp("bundle")
-    return train(load_config(WINDY, [*TRAIN_TINY, "env.horizon=30"]), out, progress=False)["final"]
+    return train(load_config(WINDY, [*TRAIN_TINY, "env.windy.horizon=30"]), out, progress=False)[
+        "final"
+    ]
 
 
 # --------------------------------------------------------------------------------------------
@@ -235,8 +237,8 @@ def test_windy_fig2_with_checkpoint_refuses_a_config_file_and_env_overrides(
     base = ["experiment", "windy-fig2", "--checkpoint", str(bundle), "--out", str(tmp_path / "o")]
     status, _, err = run_cli([*base, WINDY, "--no-progress"], capsys)
     assert_one_line_error(status, err, "experiment", "cannot apply with --checkpoint")
-    status, _, err = run_cli([*base, "env.horizon=10", "--no-progress"], capsys)
-    assert_one_line_error(status, err, "experiment", "env.horizon=10")
+    status, _, err = run_cli([*base, "env.windy.horizon=10", "--no-progress"], capsys)
+    assert_one_line_error(status, err, "experiment", "env.windy.horizon=10")
     assert not (tmp_path / "o").exists()
 
 
@@ -277,7 +279,7 @@ def test_wargus_fig4_workers_below_one_is_a_one_line_error(tmp_path, capsys):
 # taskvar sweep: --overwrite and its refusal; the Ray options
 
 
-SWEEP_TINY = [*TRAIN_TINY, "env.horizon=30", *EVAL_TINY]
+SWEEP_TINY = [*TRAIN_TINY, "env.windy.horizon=30", *EVAL_TINY]
 
 
 @pytest.mark.slow

@@ -43,15 +43,15 @@ WINDY = CONFIG_DIR / "windy.yaml"
 # Keys only one family reads: a config file of the other family must not set them (
 # no config key that nothing reads).
 WINDY_ONLY = (
-    "env.layout",
-    "env.height",
-    "env.width",
-    "env.num_exits",
-    "env.wall_col",
-    "env.wind_cells_per_exit",
-    "env.horizon",
-    "env.obs_encoding",
-    "env.patch_radius",
+    "env.windy.layout",
+    "env.windy.height",
+    "env.windy.width",
+    "env.windy.num_exits",
+    "env.windy.wall_col",
+    "env.windy.wind_cells_per_exit",
+    "env.windy.horizon",
+    "env.windy.obs_encoding",
+    "env.windy.patch_radius",
     "experiment.episodes_per_run",
 )
 WARGUS_ONLY = (
@@ -140,17 +140,20 @@ def test_windy_config_files_build_their_environment(path: Path):
     env = WindyGridEnv(**windy_env_kwargs(cfg))
     td = env.reset()
     assert td["observation"].shape[0] == 2
-    layout = windy_layout(cfg.env)
+    layout = windy_layout(cfg.env.windy)
     assert env.layout == layout
 
 
 def test_scaled_up_windy_files_have_the_spec_sizes():
-    large = windy_layout(load_config(CONFIG_DIR / "windy_large.yaml").env)
-    xl = windy_layout(load_config(CONFIG_DIR / "windy_xl.yaml").env)
+    large = windy_layout(load_config(CONFIG_DIR / "windy_large.yaml").env.windy)
+    xl = windy_layout(load_config(CONFIG_DIR / "windy_xl.yaml").env.windy)
     assert (large.height, large.width, large.num_exits) == (25, 25, 2)
     assert (xl.height, xl.width, xl.num_exits) == (51, 51, 4)
-    assert load_config(CONFIG_DIR / "windy_large.yaml").env.obs_encoding == "coords_patch"
-    assert windy_layout(load_config(CONFIG_DIR / "windy_middle_exits.yaml").env).rows[1] == "SW.GG"
+    assert load_config(CONFIG_DIR / "windy_large.yaml").env.windy.obs_encoding == "coords_patch"
+    assert (
+        windy_layout(load_config(CONFIG_DIR / "windy_middle_exits.yaml").env.windy).rows[1]
+        == "SW.GG"
+    )
     wl = load_config(CONFIG_DIR / "wargus_large.yaml").env.wargus
     assert (wl.size, wl.num_patrols) == (64, 3)
     # robustness critics look ~100 steps ahead (heads/robustness.py "Scale")
@@ -204,16 +207,18 @@ def test_wrong_type_in_file_names_key_and_file(tmp_path: Path):
 
 def test_override_applies_and_leaves_the_rest_alone():
     base = load_config(WINDY)
-    cfg = load_config(WINDY, ["train.lr=0.01", "heads.hidden=[32,16]", "env.layout=middle_exits"])
+    cfg = load_config(
+        WINDY, ["train.lr=0.01", "heads.hidden=[32,16]", "env.windy.layout=middle_exits"]
+    )
     assert cfg.train.lr == 0.01
     assert cfg.heads.hidden == (32, 16)
-    assert cfg.env.layout == "middle_exits"
+    assert cfg.env.windy.layout == "middle_exits"
     assert (
         dataclasses.replace(
             cfg,
             train=dataclasses.replace(cfg.train, lr=base.train.lr),
             heads=base.heads,
-            env=dataclasses.replace(cfg.env, layout=base.env.layout),
+            env=dataclasses.replace(cfg.env, windy=base.env.windy),
         )
         == base
     )
@@ -227,8 +232,8 @@ def test_later_overrides_win_and_quick_comes_before_cli():
 
 
 def test_layout_map_string_override_and_null():
-    cfg = load_config(WINDY, ["env.layout=middle_exits", "env.horizon=null"])
-    assert cfg.env.layout == "middle_exits" and cfg.env.horizon is None
+    cfg = load_config(WINDY, ["env.windy.layout=middle_exits", "env.windy.horizon=null"])
+    assert cfg.env.windy.layout == "middle_exits" and cfg.env.windy.horizon is None
 
 
 @pytest.mark.parametrize(
@@ -270,16 +275,19 @@ def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
         ("train.mu_bar=eps", ["train.mu_bar must be one of ['greedy', 'softmax']"]),
         ("train.target_update=polyak", ["train.target_update must be one of ['hard', 'soft']"]),
         (
-            "env.obs_encoding=pixels",
+            "env.windy.obs_encoding=pixels",
             [
-                "env.obs_encoding must be one of ['coords_patch', 'exits_patch', 'fourier_patch', 'onehot', 'rowcol_patch']"
+                "env.windy.obs_encoding must be one of ['coords_patch', 'exits_patch', 'fourier_patch', 'onehot', 'rowcol_patch']"
             ],
         ),
         ("env.instances=east", ["env.instances must be one of", "'south'"]),
         ("eval.method=random", ["eval.method must be one of", "'interruption'"]),
         ("eval.test=west", ["eval.test must be one of"]),
         ("heads.activation=sigmoid", ["heads.activation must be one of", "'relu'"]),
-        ("env.layout=tiny", ["env.layout must be one of", "'middle_exits'", "'generated'"]),
+        (
+            "env.windy.layout=tiny",
+            ["env.windy.layout must be one of", "'middle_exits'", "'generated'"],
+        ),
         ("device=gpu", ["device must be a torch device"]),
         (
             "collector.backend=dask",
@@ -326,35 +334,72 @@ def test_wargus_values_are_checked_by_the_family_rules(override, parts):
 
 def test_only_the_chosen_family_keys_are_validated():
     assert load_config(CONFIG_DIR / "wargus.yaml").eval.test == "nominal"
-    # a windy config has no env.wargus (a family's own keys exist for that family only), and
-    # Wargus never reads the windy layout
+    # a family's own keys exist for that family only: a windy config has no env.wargus, a Wargus
+    # config no env.windy (nor the windy keys' old env.* spelling)
     _raises_one_line(["env.wargus"], load_config, WINDY, ["env.wargus.shoot_range=8"])
-    assert load_config(CONFIG_DIR / "wargus.yaml", ["env.obs_encoding=x"]).family == "wargus"
+    wargus = CONFIG_DIR / "wargus.yaml"
+    _raises_one_line(["env.windy"], load_config, wargus, ["env.windy.obs_encoding=x"])
+    _raises_one_line(
+        ["env.obs_encoding", "windy", "'wargus'"], load_config, wargus, ["env.obs_encoding=x"]
+    )
+
+
+def test_old_windy_spellings_migrate_with_one_deprecation_line(tmp_path):
+    """Configs, checkpoints and overrides written before env.windy: the windy keys at env.* move
+    to env.windy.* (a FutureWarning naming the move); another family's copy of them, and
+    env.wargus in a windy config, are dropped (never read)."""
+    new = load_config(WINDY, ["env.windy.layout=middle_exits", "env.windy.horizon=50"])
+    with pytest.warns(FutureWarning, match="env.windy.layout"):
+        old = load_config(WINDY, ["env.layout=middle_exits", "env.horizon=50"])
+    assert old == new
+    data = config_to_dict(new)
+    data["env"] = {**{k: v for k, v in data["env"].items() if k != "windy"}, **data["env"]["windy"]}
+    data["env"]["wargus"] = {"size": 16}
+    with pytest.warns(FutureWarning, match="env.layout and the other windy keys are now env.windy"):
+        assert config_from_dict(data, "an old checkpoint") == new
+    taxi = config_to_dict(load_config(CONFIG_DIR / "taxi.yaml"))
+    taxi["env"]["layout"] = "default"
+    with pytest.warns(FutureWarning, match="windy keys at env.* \\(layout\\) are dropped"):
+        assert config_from_dict(taxi, "an old checkpoint") == load_config(CONFIG_DIR / "taxi.yaml")
 
 
 def test_generator_keys_need_layout_generated():
-    _raises_one_line(["env.height", "generated"], load_config, WINDY, ["env.height=9"])
+    _raises_one_line(["env.windy.height", "generated"], load_config, WINDY, ["env.windy.height=9"])
     _raises_one_line(
-        ["env.width is required"], load_config, WINDY, ["env.layout=generated", "env.height=9"]
+        ["env.windy.width is required"],
+        load_config,
+        WINDY,
+        ["env.windy.layout=generated", "env.windy.height=9"],
     )
     _raises_one_line(
         ["num_exits"],
         load_config,
         WINDY,
-        ["env.layout=generated", "env.height=9", "env.width=9", "env.num_exits=1"],
+        [
+            "env.windy.layout=generated",
+            "env.windy.height=9",
+            "env.windy.width=9",
+            "env.windy.num_exits=1",
+        ],
     )
     cfg = load_config(
-        WINDY, ["env.layout=generated", "env.height=7", "env.width=9", "env.num_exits=3"]
+        WINDY,
+        [
+            "env.windy.layout=generated",
+            "env.windy.height=7",
+            "env.windy.width=9",
+            "env.windy.num_exits=3",
+        ],
     )
-    assert windy_layout(cfg.env).num_exits == 3
+    assert windy_layout(cfg.env.windy).num_exits == 3
 
 
 def test_map_string_layout_in_yaml(tmp_path: Path):
     text = "env:\n  layout: |\n    S W . G\n    S . # G\n    S W . G\n"
     cfg = load_config(_write(tmp_path, text))
-    assert windy_layout(cfg.env).rows == ("SW.G", "S.#G", "SW.G")
+    assert windy_layout(cfg.env.windy).rows == ("SW.G", "S.#G", "SW.G")
     bad = "env:\n  layout: |\n    S W . G\n    S . #\n"
-    _raises_one_line(["env.layout", "row 1"], load_config, _write(tmp_path, bad, "b.yaml"))
+    _raises_one_line(["env.windy.layout", "row 1"], load_config, _write(tmp_path, bad, "b.yaml"))
 
 
 def test_windy_env_kwargs_refuses_wargus():

@@ -340,7 +340,7 @@ def test_experiment_checkpoint_mismatches_are_refused_before_any_work(reference,
     out = tmp_path / "out"
     for argv, needle in (
         (["--checkpoint", str(tmp_path / "wargus.pt")], "is a 'wargus' bundle"),
-        (["--checkpoint", str(reference[0] / "final.pt"), "env.layout=middle_exits"],
+        (["--checkpoint", str(reference[0] / "final.pt"), "env.windy.layout=middle_exits"],
          "cannot apply with --checkpoint"),
         (["--checkpoint", str(reference[0] / "final.pt"), str(ROOT / "configs" / "windy.yaml")],
          "cannot apply with --checkpoint"),

@@ -44,11 +44,11 @@ EPISODES = 4000
 
 
 def train_and_compare(layout: str, out) -> dict:
-    cfg = load_config("configs/windy.yaml", [*BUDGET, f"env.layout={layout}"])
+    cfg = load_config("configs/windy.yaml", [*BUDGET, f"env.windy.layout={layout}"])
     result = train(cfg, out, progress=False)
     heads, cfg = load_heads(result["final"])
     oracle = WindyOracle(
-        layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon, train_instances="train"
+        layout, gamma=cfg.train.gamma, horizon=cfg.env.windy.horizon, train_instances="train"
     )
     return compare_with_oracle(heads, oracle)
 
@@ -72,9 +72,9 @@ def _baseline_returns(folder, method: str, cfg):
     ``seed + 1``), with the exact per-instance optimum of each episode."""
     ctrl, _ = load_baseline(folder / f"{method}.pt")
     env = TransformedEnv(make_env(cfg, EPISODES, seed=cfg.seed + 1), ctrl.primer())
-    out = run_episodes(env, ctrl, max_steps=cfg.env.horizon)
+    out = run_episodes(env, ctrl, max_steps=cfg.env.windy.horizon)
     inst = {k: out["instance", k].numpy() for k in ("p", "direction")}
-    oracle = WindyOracle(cfg.env.layout, horizon=cfg.env.horizon)
+    oracle = WindyOracle(cfg.env.windy.layout, horizon=cfg.env.windy.horizon)
     optimum = optimal_episode_returns(oracle, inst, out["start"].numpy())
     return out["return"].double(), torch.as_tensor(optimum)
 

@@ -57,7 +57,7 @@ def test_informed_within_bound_of_exact_optimum(corridor_informed):
     env = TransformedEnv(make_env(cfg, 4000, seed=cfg.seed + 1), ctrl.primer())
     out = run_episodes(env, ctrl, max_steps=100)
     inst = {k: out["instance", k].numpy() for k in ("p", "direction")}
-    optimum = optimal_episode_returns(WindyOracle(cfg.env.layout), inst, out["start"].numpy())
+    optimum = optimal_episode_returns(WindyOracle(cfg.env.windy.layout), inst, out["start"].numpy())
     regret, ci = mean_ci95(torch.as_tensor(optimum) - out["return"].double())
     assert regret < BOUND, (regret, ci)
     assert regret > -3 * ci - 1e-9  # nothing beats the exact optimum beyond sampling noise

@@ -49,7 +49,10 @@ def test_no_shipped_config_is_refused(path):
         (["env.num_envs=1000000000"], "env.num_envs"),
         (["train.buffer_size=1000000000000"], "train.buffer_size"),
         (["heads.hidden=[100000,100000]"], "heads.hidden"),
-        (["env.layout=generated", "env.height=1000", "env.width=1000"], "env.layout"),
+        (
+            ["env.windy.layout=generated", "env.windy.height=1000", "env.windy.width=1000"],
+            "env.windy",
+        ),
     ],
 )
 def test_the_absurd_is_refused_naming_the_key_and_the_estimate(override, key):

@@ -286,7 +286,7 @@ def test_shift_notebook_executes(tmp_path):
     nb = run_notebook("04_shift.ipynb", tmp_path)
     text = _code_text(nb)
     assert "interruption" in text and "env.instances.p=1.0:" in text
-    assert "test stormy" in text and "env.horizon=200:" in text and "fast_patrol" in text
+    assert "test stormy" in text and "env.windy.horizon=200:" in text and "fast_patrol" in text
     assert "interruption fired at" in text and "sampled mean within its 95% CI" in text
     for folder in ("p_sweep", "horizon", "wargus_fast_patrol"):
         assert (tmp_path / "run" / folder / "metrics.json").is_file()

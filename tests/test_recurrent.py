@@ -48,7 +48,7 @@ best memory policy is 1/6; measured: -1.824 to -1.858 on seeds 0, 4, 6, 7, 8 at 
 def best_memoryless_value(cfg) -> float:
     """Exact best value of any memoryless instance-blind policy on the corridor: the other cells
     fixed to their instance-independent optimal action, the probability of north at S swept."""
-    oracle = WindyOracle(cfg.env.layout, horizon=100)
+    oracle = WindyOracle(cfg.env.windy.layout, horizon=100)
     S = oracle.S
     start = int(oracle.model.start_cells[0])
     best = -float("inf")

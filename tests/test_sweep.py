@@ -28,7 +28,7 @@ TINY = [  # on top of --quick: about 5 s per point, and the averaging policy alr
     "train.updates_per_batch=8",
     "train.lr=0.005",
     "train.log_every=1024",
-    "env.horizon=30",
+    "env.windy.horizon=30",
     "experiment.runs=1",
     "experiment.episodes_per_run=20",
     "eval.batch_size=20",
@@ -74,9 +74,9 @@ def test_commas_inside_brackets_do_not_split_and_names_are_filesystem_safe():
     cfgs = load_point_configs(CONFIG, points)
     assert [c.heads.hidden for c in cfgs] == [(32,), (64, 64)]
     assert [p.name for p in points] == ["heads.hidden=_32_", "heads.hidden=_64,64_"]
-    assert point_name({"env.layout": "a/b c"}) == "env.layout=a_b_c"
+    assert point_name({"env.windy.layout": "a/b c"}) == "env.windy.layout=a_b_c"
     # two values differing only in unsafe characters still get their own folders
-    assert len({p.name for p in expand_points(["env.layout=a/b,a_b"])}) == 2
+    assert len({p.name for p in expand_points(["env.windy.layout=a/b,a_b"])}) == 2
 
 
 def test_each_point_config_holds_its_swept_values():

@@ -273,7 +273,7 @@ def _picks_off_mu_bar(tmp_path: Path, coverage: float) -> tuple[int, int]:
             "train.eps_end=0.0",
             "train.init_random_frames=0",  # epsilon is 1 during the random frames
             "env.num_envs=10",
-            "env.horizon=10",
+            "env.windy.horizon=10",
         )
     finally:
         train_module._Run.store = store

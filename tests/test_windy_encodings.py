@@ -41,12 +41,13 @@ def test_option_input_mask_shows_each_option_its_own_exit():
 
 
 def test_subtask_inputs_need_exits_patch():
-    with pytest.raises(ValueError, match="needs env.obs_encoding='exits_patch'"):
+    with pytest.raises(ValueError, match="needs env.windy.obs_encoding='exits_patch'"):
         load_config(
             "configs/windy_xl.yaml",
-            ["heads.option_inputs=subtask", "env.obs_encoding=coords_patch"],
+            ["heads.option_inputs=subtask", "env.windy.obs_encoding=coords_patch"],
         )
     cfg = load_config(
-        "configs/windy_xl.yaml", ["heads.option_inputs=subtask", "env.obs_encoding=exits_patch"]
+        "configs/windy_xl.yaml",
+        ["heads.option_inputs=subtask", "env.windy.obs_encoding=exits_patch"],
     )
     assert cfg.heads.option_inputs == "subtask"

@@ -52,9 +52,9 @@ USER_KEYS = (
     "device",
     "env.num_envs",
     "env.instances",
-    "env.layout",
-    "env.obs_encoding",
-    "env.horizon",
+    "env.windy.layout",
+    "env.windy.obs_encoding",
+    "env.windy.horizon",
     "heads.hidden",
     "heads.activation",
     "heads.network",
@@ -130,7 +130,13 @@ def user_help() -> str:
         cls: type = Config
         *path, name = key.split(".")
         for part in path:
-            cls = typing.get_type_hints(cls)[part]
+            hints = typing.get_type_hints(cls)
+            if part in hints:
+                cls = hints[part]
+            else:  # a family's own section, env.<name>
+                from taskvar_torch.families import FAMILIES
+
+                cls = FAMILIES[part].config_class
         header = ".".join(path) or "top level"
         if header != section:
             section = header

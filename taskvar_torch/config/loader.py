@@ -38,7 +38,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from taskvar_torch.config.schema import Config, EnvConfig
-from taskvar_torch.families import FAMILIES
+from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.io import atomic_write
 
 T = TypeVar("T")
@@ -59,9 +59,9 @@ def config_schema(family_name: str | None = None) -> type[Config]:
     Only the config's own family adds its section, so a windy config's dict is the same whichever
     families are installed. The subclass is made once per (family, class) and pickles as its dict.
     """
-    if family_name is None or family_name not in FAMILIES:
-        return Config
-    fam = FAMILIES[family_name]
+    if family_name is None:  # the schema's default family
+        family_name = Config.family
+    fam = family(family_name)  # an unknown family is a one-line error naming the known ones
     if fam.config_class is None or family_name in {f.name for f in fields(EnvConfig)}:
         return Config
     return _schema_with_section(family_name, fam.config_class)
@@ -94,38 +94,45 @@ def _schema_with_section(name: str, section_class: type) -> type[Config]:
     )
 
 
-LEGACY_SECTIONS = ("wargus",)
-"""Family sections every config held before the families became packages (``env.wargus``)."""
-
-
 def migrate_config_data(data: Any, source: str = "config") -> Any:
     """The one migration of old config data (a YAML file's, a checkpoint's or a results folder's
-    ``config.yaml``) to the current schema, each change with a deprecation line (a
-    ``FutureWarning``): ``env.wargus`` in a config of another family (every config written before
-    the families became packages held it, :data:`LEGACY_SECTIONS`) is dropped; it was never read. ``data`` is returned unchanged where nothing applies."""
+    ``config.yaml``) to the current schema, with one deprecation line (a ``FutureWarning``) per
+    config it changes, as the families declare it (docs/families.md): a family's
+    ``legacy_env_keys`` found at ``env.*`` move to ``env.<name>.*`` in a config of that family and
+    are dropped in another's (never read there); the section ``env.<name>`` of a family with
+    ``legacy_section`` (every config written before the families became packages held
+    ``env.wargus``) is dropped from another family's config. ``data`` is returned unchanged
+    where nothing applies."""
     env = data.get("env", None) if isinstance(data, (Mapping, DictConfig)) else None
     if not isinstance(env, (Mapping, DictConfig)):
         return data
-    family = data.get("family", "windy")
-    stale = [k for k in LEGACY_SECTIONS if k in env and k != family]
-    if not stale:
+    family = data.get("family", Config.family)
+    families = [FAMILIES[n] for n in FAMILIES]
+    stale = [f.name for f in families if f.legacy_section and f.name in env and f.name != family]
+    moved = {f.name: [k for k in f.legacy_env_keys if k in env] for f in families}
+    moved = {name: keys for name, keys in moved.items() if keys}
+    if not stale and not moved:
         return data
+    out = OmegaConf.to_container(data) if isinstance(data, DictConfig) else dict(data)
+    new_env = dict(out["env"])
+    what = []
+    for name in stale:
+        del new_env[name]
+        what.append(f"env.{name} is dropped (read only for family {name!r})")
+    for name, keys in moved.items():
+        legacy = {k: new_env.pop(k) for k in keys}
+        if name == family:
+            new_env[name] = {**legacy, **dict(new_env.get(name) or {})}
+            what.append(f"env.{keys[0]} and the other {name} keys are now env.{name}.* (moved)")
+        else:
+            what.append(f"the {name} keys at env.* ({', '.join(keys)}) are dropped")
+    out["env"] = new_env
     warnings.warn(
-        f"{source}: env.{stale[0]} in a config of family {family!r} is ignored and dropped (a "
-        "family's own keys are read only for that family; written by an older taskvar_torch)",
+        f"{source}: written by an older taskvar_torch, family {family!r}: {'; '.join(what)}",
         FutureWarning,
         stacklevel=3,
     )
-    out = (
-        OmegaConf.create(OmegaConf.to_container(data))
-        if isinstance(data, DictConfig)
-        else dict(data)
-    )
-    env = dict(out["env"]) if not isinstance(out, DictConfig) else out["env"]
-    for k in stale:
-        del env[k]
-    out["env"] = env
-    return out
+    return OmegaConf.create(out) if isinstance(data, DictConfig) else out
 
 
 def _reduce_config(cfg: Config) -> tuple:
@@ -352,13 +359,34 @@ RENAMED_KEYS = {
 ``baseline.*`` copies of them, ``taskvar train-baselines baseline.KEY=V``)."""
 
 
-def migrate_overrides(overrides: Sequence[str]) -> list[str]:
+def migrate_overrides(overrides: Sequence[str], family: str | None = None) -> list[str]:
     """``overrides`` with every renamed key (:data:`RENAMED_KEYS`) spelt as it is now, each with
     a deprecation line (a ``FutureWarning``); ``baseline.mlp=64+64`` becomes
-    ``heads.hidden=[64,64]``. A malformed old value is a one-line ``ValueError`` naming it."""
+    ``heads.hidden=[64,64]``, and a family's ``legacy_env_keys`` at ``env.*`` (``env.layout=X``)
+    their ``env.<name>.*`` spelling in a config of that ``family`` (another family's is a one-line
+    ``ValueError``). A malformed old value is a one-line ``ValueError`` naming it."""
     out = []
     for item in overrides:
         key, sep, value = str(item).partition("=")
+        part = key.strip().split(".")
+        owner = next(
+            (n for n in FAMILIES if len(part) == 2 and part[1] in FAMILIES[n].legacy_env_keys),
+            None,
+        )
+        if sep and part[0] == "env" and owner is not None:
+            if family != owner:
+                raise ValueError(
+                    f"{key.strip()} is a {owner} key (env.{owner}.{part[1]}); this config's family "
+                    f"is {family!r}"
+                )
+            warnings.warn(
+                f"{key.strip()} is deprecated: the {owner} family's keys are env.{owner}.*; use "
+                f"env.{owner}.{part[1]}={value}",
+                FutureWarning,
+                stacklevel=3,
+            )
+            out.append(f"env.{owner}.{part[1]}={value}")
+            continue
         new = RENAMED_KEYS.get(key.strip())
         if not sep or new is None:
             out.append(item)
@@ -389,7 +417,9 @@ def _apply_overrides(
     if isinstance(overrides, str):
         overrides = [overrides]
     if schema is Config or issubclass(schema, Config):
-        overrides = migrate_overrides(overrides)
+        env_fields = {f.name for f in fields(typing.get_type_hints(schema)["env"])}
+        family = next((f for f in env_fields if f in FAMILIES), None)  # its section's family
+        overrides = migrate_overrides(overrides, family)
     parsed = [_parse_override(schema, item) for item in overrides]
     if not parsed:
         return node
@@ -493,14 +523,20 @@ def apply_overrides(cfg: T, overrides: Sequence[str]) -> T:
     schema = type(cfg)
     if isinstance(cfg, Config):
         schema = config_schema(_family_named(cfg.family, overrides))
-    # as plain data: a family-section schema (config_schema) is not the class of a plain Config
-    node = _merge(schema, _structured(schema), OmegaConf.create(config_to_dict(cfg)), "config")
+    # as plain data: a family-section schema (config_schema) is not the class of a plain Config;
+    # a family=NAME override leaves the old family's section behind
+    data = config_to_dict(cfg)
+    if isinstance(cfg, Config):
+        target = _family_named(cfg.family, overrides)
+        data["env"] = {k: v for k, v in data["env"].items() if k not in FAMILIES or k == target}
+    node = _merge(schema, _structured(schema), OmegaConf.create(data), "config")
     return _to_object(schema, _apply_overrides(schema, node, overrides), "with overrides")
 
 
 def config_to_dict(cfg: Any) -> dict[str, Any]:
     """Plain nested dict of str/int/float/bool/None/list (tuples become lists), e.g. for
-    checkpoints; ``cfg`` is any config dataclass."""
+    checkpoints; ``cfg`` is any config dataclass. A :class:`Config` built without its family's
+    section (``Config(family=...)`` in code) gets the section's defaults, as the loader gives."""
 
     def plain(x: Any) -> Any:
         if isinstance(x, Mapping):
@@ -509,7 +545,13 @@ def config_to_dict(cfg: Any) -> dict[str, Any]:
             return [plain(v) for v in x]
         return x
 
-    return plain(OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True))
+    out = plain(OmegaConf.to_container(OmegaConf.structured(cfg), resolve=True))
+    if isinstance(cfg, Config) and isinstance(out.get("env"), dict):  # a plain Config(...)
+        fam = FAMILIES[cfg.family] if cfg.family in FAMILIES else None
+        if fam is not None and fam.config_class is not None and cfg.family not in out["env"]:
+            section = OmegaConf.structured(fam.config_class())  # its defaults, always written
+            out["env"][cfg.family] = plain(OmegaConf.to_container(section, resolve=True))
+    return out
 
 
 def config_from_dict(

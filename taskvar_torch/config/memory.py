@@ -9,7 +9,7 @@ adds up what a run holds at once, by the config key that drives it:
 ==================  ===========================================================================
 key                 what it counts
 ==================  ===========================================================================
-env.layout          the family's per-cell observation table (cells x observation)
+env.<family>        the family's per-cell observation table (cells x observation: its grid)
 env.num_envs        the environments' observations, first-visit flags and the collected batch
 train.buffer_size   the replay rows (observation, next observation and the other keys)
 heads.hidden        every head's weights with their gradients, targets, Adam moments and
@@ -90,7 +90,7 @@ def estimate(
     seeds = int(t.seeds) if training else 1
     row = 2 * D * FLOAT + ROW_EXTRA
     envs = cfg.env.num_envs * seeds if training else cfg.eval.batch_size
-    terms = {"env.layout": cells * D * FLOAT, "env.num_envs": envs * row * 4}
+    terms = {f"env.{fam.name}": cells * D * FLOAT, "env.num_envs": envs * row * 4}
     widths = [D, *cfg.heads.hidden, OUTPUTS]
     params = sum((a + 1) * b for a, b in zip(widths, widths[1:])) * HEADS * seeds
     copies = PARAM_COPIES if training else 1

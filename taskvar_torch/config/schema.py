@@ -20,35 +20,15 @@ from taskvar_torch.config.validate import _validate
 
 @dataclass(frozen=True)
 class EnvConfig:
-    """The environment: shared and windy fields at this level; another family's own keys under
-    ``env.<family>`` (``env.wargus``, ``env.taxi``), added by the loader for that family only."""
+    """The environment: what every family shares at this level; the family's own keys under
+    ``env.<family>`` (``env.windy``, ``env.wargus``, ``env.taxi``), added by the loader for that
+    family only (:func:`~taskvar_torch.config.loader.config_schema`)."""
 
     num_envs: int = 16
     """Number of environments simulated in parallel for training (the batch size N)."""
-    layout: str = "default"
-    """Windy layout: a name (default, middle_exits, whole_column_windy), a multi-line map string,
-    or 'generated' to build it from height/width/num_exits/wall_col/wind_cells_per_exit."""
-    height: int | None = None
-    """Generated windy grid: number of rows (only with layout='generated')."""
-    width: int | None = None
-    """Generated windy grid: number of columns (only with layout='generated')."""
-    num_exits: int | None = None
-    """Generated windy grid: exits in the wall, >= 2 (only with layout='generated'; default 2)."""
-    wall_col: int | None = None
-    """Generated windy grid: column of the wall (only with layout='generated'; default width // 2)."""
-    wind_cells_per_exit: int | None = None
-    """Generated windy grid: windy cells west of each exit (only with layout='generated'; default 1)."""
     instances: str = "train"
     """Training instance distribution; windy: train, test, south or north; Wargus: train, test or
     nominal."""
-    horizon: int | None = None
-    """Windy steps before truncation; null: max(100, 4 * (height + width))."""
-    obs_encoding: str = "onehot"
-    """Windy observation: onehot (one-hot cell), coords_patch (coordinates + local patch),
-    fourier_patch (coords_patch + sin/cos features of the coordinates) or rowcol_patch
-    (coords_patch + one-hot row and column)."""
-    patch_radius: int = 2
-    """Windy coords_patch encoding: radius r of the (2r+1)^2 local patch."""
 
 
 @dataclass(frozen=True)

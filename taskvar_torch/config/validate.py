@@ -128,9 +128,6 @@ def _validate(cfg: Config) -> None:
             f"device must be a torch device such as 'cpu' or 'cuda:0', got {cfg.device!r}"
         ) from e
     _at_least("env.num_envs", cfg.env.num_envs, 1)
-    if cfg.env.horizon is not None:
-        _at_least("env.horizon", cfg.env.horizon, 1, MAX_HORIZON)
-    _at_least("env.patch_radius", cfg.env.patch_radius, 0, 4096)
     _check_family_section(cfg, fam)
     _one_of("env.instances", cfg.env.instances, fam.instance_names)
     if fam.validate is not None:

@@ -3,7 +3,7 @@ an agent that knows the instance as training goes on (issue 31, item 3; docs/mem
 against training frames", docs/evaluation.md; the per-instance optimum of paper §3.3.1).
 
 Training saves the heads every ``train.heads_every`` frames (``heads/heads_<frames>.pt`` beside
-``final.pt``, train.py). :func:`regret_by_frames` plays the test point's paired episodes once (the
+``final.pt``, training.py). :func:`regret_by_frames` plays the test point's paired episodes once (the
 same instances and starts for every snapshot and method: one seed, the same global indices) and
 gives, for each snapshot and the final heads, each memoryless method's exact expected return per
 episode under the family's exact oracle and its regret against the exact per-instance optimum with

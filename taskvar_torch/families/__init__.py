@@ -144,6 +144,11 @@ class Family:
             point "module:Class", keyword arguments)``, registered when the family is (lazily:
             nothing is imported until ``gym.make``); :func:`taskvar_torch.envs.registration
             .register_envs` registers every family's on ``import taskvar_torch``.
+        legacy_env_keys: keys of ``config_class`` that configs of an older version held at
+            ``env.*``; the loader moves them to ``env.<name>.*`` with a deprecation line (and an
+            override ``env.KEY=V`` likewise: :func:`taskvar_torch.config.loader.migrate_overrides`).
+        legacy_section: configs of an older version held ``env.<name>`` whatever their family;
+            the loader drops it from another family's config with a deprecation line.
     """
 
     name: str
@@ -173,6 +178,8 @@ class Family:
     option_inputs: bool = False
     description: str = ""
     gym_ids: Mapping[str, tuple[str, dict[str, Any]]] = dataclasses.field(default_factory=dict)
+    legacy_env_keys: tuple[str, ...] = ()
+    legacy_section: bool = False
 
     @property
     def exact_oracle(self) -> bool:

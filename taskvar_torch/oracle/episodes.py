@@ -15,6 +15,7 @@ import torch
 
 from taskvar_torch.config import Config
 from taskvar_torch.controllers import Controller
+from taskvar_torch.families import family
 
 
 def exact_episode_returns(
@@ -31,7 +32,7 @@ def exact_episode_returns(
     ``instance_keys`` name the ``("instance", key)`` fields its ``controller_return(ctrl, *fields,
     start=None, obs_encoding=...)`` takes, each an array of the episodes' values in ``instance``;
     ``start`` holds each episode's first ``cell``. Learnt heads are read in the oracle's
-    ``obs_encoding`` where it has one, else the config's ``env.obs_encoding``.
+    ``obs_encoding`` where it has one, else the family's observation (``Family.observation``).
     """
     names = tuple(oracle.instance_keys)
     missing = [k for k in names if k not in instance]
@@ -44,7 +45,7 @@ def exact_episode_returns(
         for k in names:
             v = torch.as_tensor(np.asarray(instance[k])[sl])
             fields.append(v.to(torch.float64) if v.is_floating_point() else v.to(torch.int64))
-        encoding = getattr(oracle, "obs_encoding", None) or cfg.env.obs_encoding
+        encoding = getattr(oracle, "obs_encoding", None) or family(cfg).observation(cfg)
         V = oracle.controller_return(ctrl, *fields, start=None, obs_encoding=encoding)  # (B, S)
         idx = torch.as_tensor(start[sl], dtype=torch.int64).unsqueeze(-1)
         out.append(V.gather(1, idx.to(V.device)).squeeze(-1).cpu().numpy())

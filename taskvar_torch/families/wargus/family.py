@@ -152,6 +152,7 @@ def family() -> Family:
         instance_names=WargusInstances.NAMES,
         validate=_validate_wargus,
         config_class=WargusConfig,
+        legacy_section=True,  # every config held env.wargus until the families became packages
         grid_side=lambda cfg: int(section(cfg).size),
         cells=lambda cfg: int(section(cfg).size) ** 2,
         observation=lambda cfg: "wargus",

@@ -14,6 +14,8 @@ from typing import Any
 
 from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution, one_of
 from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy.config import KEYS as LEGACY_KEYS
+from taskvar_torch.families.windy.config import WindyConfig, section
 from taskvar_torch.families.windy.env import OBS_ENCODINGS, WindyGridEnv
 from taskvar_torch.families.windy.env import observation_size as windy_observation_size
 from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
@@ -22,46 +24,45 @@ from taskvar_torch.heads.networks import PatchLayout
 from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, windy_instance_features
 
 Config = Any
-EnvConfig = Any
 
 GENERATED = "generated"
-"""``env.layout`` value that builds the grid from ``env.height``/``env.width``/... (make_layout)."""
+"""``env.windy.layout`` value that builds the grid from ``env.windy.height``/``env.windy.width``/... (make_layout)."""
 _GENERATOR_KEYS = ("height", "width", "num_exits", "wall_col", "wind_cells_per_exit")
 EXACT_ORACLE_CELLS = 400
 """Windy layouts up to this many cells get the exact oracle in reports (docs/oracle.md)."""
 MAX_WINDY_SIDE = 4096
-"""Largest height or width of a generated windy grid (``env.layout=generated``)."""
+"""Largest height or width of a generated windy grid (``env.windy.layout=generated``)."""
 MAX_WINDY_CELLS = (1 << 24) - 1
 """Most cells of a windy layout: start cells are drawn by ``rng.draw_index`` (n < 2^24)."""
 
 
-def windy_layout(env: EnvConfig) -> windy.WindyLayout:
-    """The windy layout an ``EnvConfig`` describes (a name, a map string, or generated).
+def windy_layout(env: WindyConfig) -> windy.WindyLayout:
+    """The windy layout a :class:`WindyConfig` (``env.windy``) describes (a name, a map string, or generated).
 
     Raises:
-        ValueError: naming ``env.layout`` or the generator key at fault.
+        ValueError: naming ``env.windy.layout`` or the generator key at fault.
     """
     if env.layout != GENERATED:
         stray = [k for k in _GENERATOR_KEYS if getattr(env, k) is not None]
         if stray:
             raise ValueError(
-                f"env.{stray[0]} is only read when env.layout={GENERATED!r}; "
-                f"remove it or set env.layout={GENERATED!r} (env.layout is {env.layout!r})"
+                f"env.windy.{stray[0]} is only read when env.windy.layout={GENERATED!r}; "
+                f"remove it or set env.windy.layout={GENERATED!r} (env.windy.layout is {env.layout!r})"
             )
         if env.layout in windy.LAYOUTS:
             return windy.WindyLayout.named(env.layout)
         if "\n" not in env.layout.strip():
             raise ValueError(
-                f"env.layout must be one of {sorted([*windy.LAYOUTS, GENERATED])} or a multi-line "
+                f"env.windy.layout must be one of {sorted([*windy.LAYOUTS, GENERATED])} or a multi-line "
                 f"map string, got {env.layout!r}"
             )
         try:
             return windy.WindyLayout.from_map(env.layout)
         except ValueError as e:
-            raise ValueError(f"env.layout: {e}") from None
+            raise ValueError(f"env.windy.layout: {e}") from None
     for k in ("height", "width"):
         if getattr(env, k) is None:
-            raise ValueError(f"env.{k} is required when env.layout={GENERATED!r}")
+            raise ValueError(f"env.windy.{k} is required when env.windy.layout={GENERATED!r}")
     try:
         return windy.make_layout(
             env.height,
@@ -71,7 +72,7 @@ def windy_layout(env: EnvConfig) -> windy.WindyLayout:
             wind_cells_per_exit=1 if env.wind_cells_per_exit is None else env.wind_cells_per_exit,
         )
     except ValueError as e:
-        raise ValueError(f"env (layout={GENERATED!r}): {e}") from None
+        raise ValueError(f"env.windy (layout={GENERATED!r}): {e}") from None
 
 
 def windy_env_kwargs(cfg: Config) -> dict[str, Any]:
@@ -82,11 +83,11 @@ def windy_env_kwargs(cfg: Config) -> dict[str, Any]:
     """
     if cfg.family != "windy":
         raise ValueError(f"windy_env_kwargs needs family='windy', got family={cfg.family!r}")
-    e = cfg.env
+    e = section(cfg)
     return {
-        "num_envs": e.num_envs,
+        "num_envs": cfg.env.num_envs,
         "layout": windy_layout(e),
-        "instances": e.instances,
+        "instances": cfg.env.instances,
         "horizon": e.horizon,
         "obs_encoding": e.obs_encoding,
         "patch_radius": e.patch_radius,
@@ -96,51 +97,51 @@ def windy_env_kwargs(cfg: Config) -> dict[str, Any]:
 
 
 def _validate_windy(cfg: Config) -> None:
-    env = cfg.env
-    one_of("env.instances", env.instances, WindyInstances.NAMES)
+    env = section(cfg)
+    one_of("env.instances", cfg.env.instances, WindyInstances.NAMES)
     one_of("eval.test", cfg.eval.test, WindyInstances.NAMES)
     if env.horizon is not None and env.horizon < 1:
-        raise ValueError(f"env.horizon must be >= 1, got {env.horizon}")
-    one_of("env.obs_encoding", env.obs_encoding, OBS_ENCODINGS)
+        raise ValueError(f"env.windy.horizon must be >= 1, got {env.horizon}")
+    one_of("env.windy.obs_encoding", env.obs_encoding, OBS_ENCODINGS)
     if env.patch_radius is not None and env.patch_radius < 0:
-        raise ValueError(f"env.patch_radius must be >= 0, got {env.patch_radius}")
+        raise ValueError(f"env.windy.patch_radius must be >= 0, got {env.patch_radius}")
     if cfg.heads.option_inputs == "subtask" and env.obs_encoding != "exits_patch":
         raise ValueError(
-            "heads.option_inputs='subtask' on the windy family needs env.obs_encoding="
-            f"'exits_patch' (each exit's offset), got env.obs_encoding={env.obs_encoding!r}"
+            "heads.option_inputs='subtask' on the windy family needs env.windy.obs_encoding="
+            f"'exits_patch' (each exit's offset), got env.windy.obs_encoding={env.obs_encoding!r}"
         )
     if env.layout == GENERATED:  # the grid is built below: bound its size first
         for k in ("height", "width"):
             v = getattr(env, k)
             if v is not None and not 1 <= v <= MAX_WINDY_SIDE:
-                raise ValueError(f"env.{k} must be in [1, {MAX_WINDY_SIDE}], got {v}")
+                raise ValueError(f"env.windy.{k} must be in [1, {MAX_WINDY_SIDE}], got {v}")
     layout = windy_layout(env)  # raises a ValueError naming the layout keys
     if layout.num_cells > MAX_WINDY_CELLS:
         raise ValueError(
-            f"env.layout has {layout.num_cells} cells; at most {MAX_WINDY_CELLS} (start cells are "
+            f"env.windy.layout has {layout.num_cells} cells; at most {MAX_WINDY_CELLS} (start cells are "
             "drawn from 24-bit integers)"
         )
     side = max(layout.height, layout.width)
     if env.patch_radius is not None and env.patch_radius > side:
         raise ValueError(
-            f"env.patch_radius must be in [0, {side}] (the grid's side: a wider patch only adds "
+            f"env.windy.patch_radius must be in [0, {side}] (the grid's side: a wider patch only adds "
             f"walls), got {env.patch_radius}"
         )
 
 
 def _windy_side(cfg: Config) -> int:
-    lay = windy_layout(cfg.env)
+    lay = windy_layout(section(cfg))
     return max(lay.height, lay.width)
 
 
 def _windy_patch(cfg: Config) -> PatchLayout:
-    if cfg.env.obs_encoding != "coords_patch":
+    if section(cfg).obs_encoding != "coords_patch":
         raise ValueError(
-            "heads.network='conv' needs env.obs_encoding='coords_patch', "
-            f"got env.obs_encoding={cfg.env.obs_encoding!r}"
+            "heads.network='conv' needs env.windy.obs_encoding='coords_patch', "
+            f"got env.windy.obs_encoding={section(cfg).obs_encoding!r}"
         )
     # coords_patch: (row, col), then 3 (2r+1)^2 channels
-    return PatchLayout(coords_dim=2, channels=3, size=2 * cfg.env.patch_radius + 1)
+    return PatchLayout(coords_dim=2, channels=3, size=2 * section(cfg).patch_radius + 1)
 
 
 def _windy_fields(spec: Any) -> dict[str, Any]:
@@ -165,15 +166,18 @@ def _windy_make_instances(fields: dict[str, Any]) -> WindyInstances:
 
 def _windy_oracle(cfg: Config) -> Any:
     """The exact oracle of a small one-hot windy layout (docs/oracle.md), else ``None``."""
-    if cfg.env.obs_encoding != "onehot":
+    if section(cfg).obs_encoding != "onehot":
         return None
-    layout = windy_layout(cfg.env)
+    layout = windy_layout(section(cfg))
     if layout.num_cells > EXACT_ORACLE_CELLS:
         return None
     from taskvar_torch.families.windy.oracle import WindyOracle
 
     return WindyOracle(
-        layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon, train_instances=cfg.env.instances
+        layout,
+        gamma=cfg.train.gamma,
+        horizon=section(cfg).horizon,
+        train_instances=cfg.env.instances,
     )
 
 
@@ -182,9 +186,9 @@ def windy_sparse_oracle(cfg: Config) -> Any:
     from taskvar_torch.families.windy.sparse_oracle import SparseWindyOracle
 
     return SparseWindyOracle(
-        windy_layout(cfg.env),
+        windy_layout(section(cfg)),
         gamma=cfg.train.gamma,
-        horizon=cfg.env.horizon,
+        horizon=section(cfg).horizon,
         train_instances=cfg.env.instances,
         device=cfg.device,
     )
@@ -193,7 +197,9 @@ def windy_sparse_oracle(cfg: Config) -> Any:
 def _windy_averaging_optimum(cfg: Config) -> Any:
     """The mean-MDP optimal averaging policy ``(cells,)``: dense on small layouts, successor
     tables beyond (the scale experiment's reference)."""
-    oracle = _windy_oracle(cfg) if windy_layout(cfg.env).num_cells <= EXACT_ORACLE_CELLS else None
+    oracle = (
+        _windy_oracle(cfg) if windy_layout(section(cfg)).num_cells <= EXACT_ORACLE_CELLS else None
+    )
     if oracle is None:
         oracle = windy_sparse_oracle(cfg)
     return oracle.averaging_policy()
@@ -206,8 +212,8 @@ def _windy_head_report(cfg: Config, heads: Any, with_max_value: bool = True) -> 
     return head_report(
         heads,
         windy_sparse_oracle(cfg),
-        cfg.env.obs_encoding,
-        cfg.env.patch_radius,
+        section(cfg).obs_encoding,
+        section(cfg).patch_radius,
         with_max_value=with_max_value,
     )
 
@@ -222,7 +228,7 @@ def _windy_summary(heads: Any, cfg: Config) -> list[str]:
     from taskvar_torch.heads.validate import compare_with_oracle
 
     r = compare_with_oracle(heads.cpu(), oracle)
-    horizon = cfg.env.horizon
+    horizon = section(cfg).horizon
     lines = [
         "learnt heads vs exact oracle (exact expected returns of the greedy policies, not sampled; "
         "training instances, uniform start):",
@@ -267,11 +273,11 @@ WINDY_TESTS = {
     ),
     "middle_exits": TestDistribution(
         "another 5x5 layout: the exits in the middle rows (training winds)",
-        overrides=("env.layout=middle_exits",),
+        overrides=("env.windy.layout=middle_exits",),
     ),
     "whole_column_windy": TestDistribution(
         "another 5x5 layout: wind in the whole column before the wall (training winds)",
-        overrides=("env.layout=whole_column_windy",),
+        overrides=("env.windy.layout=whole_column_windy",),
     ),
     "heldout": TestDistribution(
         "sealed held-out episodes: the training distribution under the held-out seed",
@@ -319,14 +325,16 @@ def family() -> Family:
         experiment="windy-fig2",
         env_kwargs=windy_env_kwargs,
         env_class=WindyGridEnv,
-        subtasks=lambda cfg, env: WindySubtasks(env.model, obs_encoding=cfg.env.obs_encoding),
+        subtasks=lambda cfg, env: WindySubtasks(env.model, obs_encoding=section(cfg).obs_encoding),
         instance_names=WindyInstances.NAMES,
         validate=_validate_windy,
+        config_class=WindyConfig,
+        legacy_env_keys=LEGACY_KEYS,  # at env.* until the families became packages
         grid_side=_windy_side,
-        cells=lambda cfg: windy_layout(cfg.env).num_cells,
-        observation=lambda cfg: cfg.env.obs_encoding,
+        cells=lambda cfg: windy_layout(section(cfg)).num_cells,
+        observation=lambda cfg: section(cfg).obs_encoding,
         observation_size=lambda cfg: windy_observation_size(
-            windy_layout(cfg.env), cfg.env.obs_encoding, cfg.env.patch_radius
+            windy_layout(section(cfg)), section(cfg).obs_encoding, section(cfg).patch_radius
         ),
         instance_dim=WINDY_INSTANCE_DIM,
         instance_features=windy_instance_features,

@@ -62,6 +62,7 @@ from taskvar_torch.families.windy import (
     firing_values,
     learnt_vs_oracle_by_start,
 )
+from taskvar_torch.families.windy.config import section
 from taskvar_torch.families.windy.env import WindyGridEnv
 from taskvar_torch.families.windy.family import EXACT_ORACLE_CELLS, windy_layout
 from taskvar_torch.families.windy.fig2_metrics import (
@@ -192,7 +193,7 @@ def evaluate(
     for lo in range(0, int(episodes), bs):
         n = min(bs, int(episodes) - lo)
         env = TransformedEnv(make_eval_env(cfg, instances, n, seed, lo, noise_seed), ctrl.primer())
-        out = run_episodes(env, ctrl, max_steps=cfg.env.horizon, trace_keys=trace)
+        out = run_episodes(env, ctrl, max_steps=section(cfg).horizon, trace_keys=trace)
         got = {
             "return": out["return"],
             "length": out["length"],
@@ -222,10 +223,10 @@ def evaluate(
 def make_oracle(cfg: Config):
     """The exact oracle of ``cfg``'s layout, or ``None`` when the layout is too large."""
 
-    layout = windy_layout(cfg.env)
+    layout = windy_layout(section(cfg))
     if layout.num_cells > EXACT_MAX_CELLS:
         return None
-    return WindyOracle(layout, gamma=cfg.train.gamma, horizon=cfg.env.horizon)
+    return WindyOracle(layout, gamma=cfg.train.gamma, horizon=section(cfg).horizon)
 
 
 # --------------------------------------------------------------------------------------------
@@ -310,7 +311,7 @@ def run_distribution(
     per_run: list[dict[str, Any]] = []
     pooled: dict[str, list[np.ndarray]] = {}
     fire_parts: dict[str, list[np.ndarray]] = {}
-    width = windy_layout(cfg.env).width
+    width = windy_layout(section(cfg)).width
     ctrls = {m: build_controller(m, heads, cfg) for m in METHODS} if oracle is not None else {}
     bar = progress_bar(
         total=runs * episodes * (len(METHODS) + 1), disable=not progress, desc=desc, unit="ep"
@@ -446,7 +447,7 @@ def _windy_fig2(
     metrics: dict[str, Any] = {
         "experiment": "windy-fig2",
         "quick": bool(quick),
-        "layout": cfg.env.layout,
+        "layout": section(cfg).layout,
         "checkpoint": str(checkpoint),
         "seeds": [test_seed(cfg, r) for r in range(runs)],
         "null_noise_seed": NULL_NOISE_SEED,

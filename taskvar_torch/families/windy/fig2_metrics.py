@@ -33,6 +33,7 @@ from taskvar_torch.config import Config
 from taskvar_torch.controllers import Controller
 from taskvar_torch.experiments.evaluation import mean_ci95, paired_summary
 from taskvar_torch.families.windy import firing_values
+from taskvar_torch.families.windy.config import section
 from taskvar_torch.families.windy.family import windy_layout
 
 METHODS = tuple(m for m in ALL_METHODS if m != "hierarchy")
@@ -115,7 +116,7 @@ def summarise(
         m["fraction_no_worse_exact"] = None
         m["exact"] = None
     k = data["interruptions"].astype(np.float64)
-    S = windy_layout(cfg.env).num_cells
+    S = windy_layout(section(cfg)).num_cells
     m["interruptions_per_episode"] = float(k.mean())
     m["episodes_with_interruption"] = float((k > 0).mean())
     m["interruption_cells"] = np.bincount(fires["fire_cell"], minlength=S).astype(int).tolist()
@@ -146,7 +147,7 @@ def theorem1_check(
     ep = rolls["fire_episode"]
     if ep.size == 0:
         return {"firings": 0, "episodes_with_firing": 0}
-    vals = firing_values(oracle, options_ctrl, cfg.env.obs_encoding, rolls, chunk)
+    vals = firing_values(oracle, options_ctrl, section(cfg).obs_encoding, rolls, chunk)
     v_m, q_m = vals["v_m"], vals["q_m"]
     episodes = np.unique(ep)
     premise = vals["v_mu_bar"] <= v_m + 1e-9

@@ -24,6 +24,7 @@ import numpy as np
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.plots import plot_interruption_heatmap, plot_sorted_differences
 from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy.config import section
 from taskvar_torch.families.windy.family import windy_layout
 
 CSV_NAME, METRICS_NAME = "episodes.csv", "metrics.json"
@@ -192,7 +193,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     m_south = metrics.get("south_only") or {}
     paths.append(
         plot_interruption_heatmap(
-            windy_layout(cfg.env),
+            windy_layout(section(cfg)),
             {
                 "training distribution": metrics.get("interruption_cells"),
                 "south-only": m_south.get("interruption_cells"),
