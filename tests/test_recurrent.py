@@ -169,7 +169,7 @@ def test_old_bundle_spec_still_loads():
 
 
 def test_parse_methods_names_missing_baseline(tmp_path):
-    from taskvar_torch.experiments.bundle_eval import parse_methods
+    from taskvar_torch.experiments.paired import parse_methods
 
     oracle = WindyOracle()
     heads, subtasks = oracle.heads(), oracle.subtasks

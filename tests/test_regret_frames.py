@@ -15,7 +15,8 @@ import torch
 
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments.bundle_eval import _exact_oracle, eval_bundle
+from taskvar_torch.experiments.bundle_eval import eval_bundle
+from taskvar_torch.experiments.paired import _exact_oracle
 from taskvar_torch.experiments.regret_frames import (
     CSV_NAME,
     PNG_NAME,

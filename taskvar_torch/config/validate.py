@@ -12,7 +12,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
@@ -41,8 +41,9 @@ from taskvar_torch.config.choices import (
 from taskvar_torch.families import FAMILIES as _REGISTRY
 from taskvar_torch.families import Family, family
 
-if TYPE_CHECKING:  # the schema calls _validate() in Config.__post_init__
-    from taskvar_torch.config.schema import Config
+Config = Any
+"""A :class:`taskvar_torch.config.schema.Config` (not imported: the schema calls :func:`_validate`
+in ``Config.__post_init__``, so this module is below it)."""
 
 
 MAX_SEED = rng.MAX_SEED

@@ -7,7 +7,7 @@ Training saves the heads every ``train.heads_every`` frames (``heads/heads_<fram
 same instances and starts for every snapshot and method: one seed, the same global indices) and
 gives, for each snapshot and the final heads, each memoryless method's exact expected return per
 episode under the family's exact oracle and its regret against the exact per-instance optimum with
-a 95% CI: :func:`taskvar_torch.experiments.bundle_eval.exact_regret`, the numbers ``taskvar eval``
+a 95% CI: :func:`taskvar_torch.experiments.paired.exact_regret`, the numbers ``taskvar eval``
 reports for one bundle. Writes ``regret_by_frames.csv`` and ``regret_by_frames.png``.
 """
 
@@ -23,7 +23,7 @@ import numpy as np
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import METHODS
 from taskvar_torch.experiments.baselines import available_baselines
-from taskvar_torch.experiments.bundle_eval import (
+from taskvar_torch.experiments.paired import (
     _affordable,
     episode_seed,
     exact_regret,

@@ -1,0 +1,216 @@
+"""Paired episodes of a bundle's methods (``taskvar eval``, docs/evaluation.md): which methods,
+which episode seed, the play loop every method runs on the same episodes, and the exact regret
+where the family's oracle can afford it. :mod:`~taskvar_torch.experiments.bundle_eval` and
+:mod:`~taskvar_torch.experiments.regret_frames` both play through it."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torchrl.envs import TransformedEnv
+
+from taskvar_torch import keys, rng
+from taskvar_torch.config import METHODS, Config
+from taskvar_torch.controllers import Controller
+from taskvar_torch.experiments.baselines import (
+    missing_baseline_error,
+)
+from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
+from taskvar_torch.experiments.shift import EvalPoint
+from taskvar_torch.factory import (
+    make_env,
+)
+from taskvar_torch.families import family
+from taskvar_torch.heads.bundle import Heads
+from taskvar_torch.heads.informed import informed_features
+from taskvar_torch.heads.recurrent import BASELINES
+from taskvar_torch.oracle.episodes import exact_episode_returns, optimal_episode_returns
+from taskvar_torch.subtasks.base import Subtasks
+
+
+def parse_methods(
+    spec: str,
+    subtasks: Subtasks,
+    heads: Heads,
+    baselines: Sequence[str] = (),
+    checkpoint: str | os.PathLike = "final.pt",
+) -> list[str]:
+    """``all``, one method or a comma list -> the methods, in the paper's order, then the
+    ``baselines`` (docs/memory.md) whose files sit beside ``checkpoint``. ``all`` is every method
+    the bundle supports (the hierarchy needs a composition hierarchy and robustness critics);
+    naming an unsupported or unknown one is a one-line error."""
+    can_compose = subtasks.hierarchy is not None and heads.has("robustness")
+    paper = [m for m in METHODS if m != "hierarchy" or can_compose]
+    if spec == "all":
+        return paper + [m for m in BASELINES if m in baselines]
+    names = [m.strip() for m in spec.split(",") if m.strip()]
+    for m in names:
+        if m not in METHODS and m not in BASELINES:
+            raise ValueError(
+                f"--method must be 'all' or among {list(METHODS) + list(BASELINES)}, got {m!r}"
+            )
+        if m in BASELINES and m not in baselines:
+            supported = paper + [b for b in BASELINES if b in baselines]
+            raise missing_baseline_error(checkpoint, m, supported)
+    if "hierarchy" in names and not can_compose:
+        raise ValueError(
+            "method 'hierarchy' needs robustness heads and a composition hierarchy, which this "
+            "bundle does not have; use averaging, options or interruption"
+        )
+    return [m for m in (*METHODS, *BASELINES) if m in names]
+
+
+def episode_seed(cfg: Config, test: str, seed: int | None) -> int:
+    """The seed of the test episodes (docs/evaluation.md): ``seed``, by default the bundle's
+    ``seed + 1`` (the experiments' first test run); a held-out distribution plays its sealed seed
+    only (another ``seed`` is a one-line error)."""
+    if seed is not None:
+        seed = rng.check_seed(seed, "--seed")  # 32-bit keys: a larger seed is refused, not wrapped
+    sealed = family(cfg).tests[test].seed
+    if sealed is not None and seed is not None and int(seed) != sealed:
+        raise ValueError(f"--test {test} plays its sealed held-out seed; drop --seed {seed}")
+    return (int(cfg.seed) + 1 if sealed is None else sealed) if seed is None else int(seed)
+
+
+def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:
+    """The shifted env must keep the bundle's observation, actions and options."""
+    obs = int(env.observation_spec[keys.OBSERVATION].shape[-1])
+    spec = getattr(heads, "spec", None)
+    want = None if spec is None else (spec.obs_dim, spec.num_actions)
+    got = (obs, int(env.action_spec.space.n))
+    where = point.label or "the test distribution"
+    if want is not None and got != want:
+        raise ValueError(
+            f"{where} gives observations of {got[0]} values and {got[1]} actions; the bundle "
+            f"was trained on {want[0]} and {want[1]}"
+        )
+    if tuple(subtasks.names) != tuple(heads.option_names):
+        raise ValueError(
+            f"{where} has options {list(subtasks.names)}; the bundle's are "
+            f"{list(heads.option_names)}"
+        )
+
+
+def _check_baseline_fits(point: EvalPoint, ctrl: Any, env: Any) -> None:
+    """A baseline's network must fit the test point's observations, actions and (``informed``)
+    instance features; ``env`` is a probe of the point."""
+    where = point.label or "the test distribution"
+    got = (int(env.observation_spec[keys.OBSERVATION].shape[-1]), int(env.action_spec.space.n))
+    want = (ctrl.spec.obs_dim, ctrl.spec.num_actions)
+    if got != want:
+        raise ValueError(
+            f"{where} gives observations of {got[0]} values and "
+            f"{got[1]} actions; the {ctrl.name} baseline was trained on {want[0]} and {want[1]}"
+        )
+    if ctrl.spec.instance_dim:  # informed: e.g. a Wargus shift in the number of items
+        dim, _ = informed_features(point.cfg)
+        if dim != ctrl.spec.instance_dim:
+            raise ValueError(
+                f"{where} gives {dim} instance features; the {ctrl.name} baseline was trained "
+                f"on {ctrl.spec.instance_dim}"
+            )
+
+
+def _exact_oracle(cfg: Config, point: EvalPoint) -> Any:
+    """The exact oracle of a test point, where the family brings one (``Family.oracle``) and it
+    covers the point's env (windy: small one-hot layouts)."""
+    fam = family(cfg)
+    return None if fam.oracle is None else fam.oracle(point.cfg)
+
+
+def _affordable(oracle: Any, instance: dict[str, np.ndarray]) -> bool:
+    """Whether the oracle's exact returns of these episodes are cheap: the distinct instances it
+    would solve (``oracle.exact_solves(*fields)``, else the distinct field tuples) within its
+    ``max_exact_solves`` (no such attribute: always)."""
+    limit = getattr(oracle, "max_exact_solves", None)
+    if limit is None:
+        return True
+    fields = [np.asarray(instance[k]) for k in oracle.instance_keys]
+    count = getattr(oracle, "exact_solves", None)
+    n = count(*fields) if count is not None else len(np.unique(np.stack(fields, 1), axis=0))
+    return n <= limit
+
+
+def exact_regret(
+    oracle: Any,
+    ctrl: Controller,
+    cfg: Config,
+    instance: dict[str, np.ndarray],
+    start: np.ndarray,
+    optimum: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray | None, dict[str, float] | None]:
+    """A memoryless controller's exact expected return per episode (``exact_episode_returns``)
+    and its regret against the exact per-instance optimum (docs/evaluation.md; paper §3.3.1).
+
+    ``optimum``: the episodes' exact optimal returns where already known (paired episodes: the
+    same for every method), else solved here where the oracle has ``optimal_return``. Returns
+    the exact returns, the optimum (``None`` without ``optimal_return``) and ``regret_mean`` with
+    its ``regret_ci95`` (``None`` without an optimum)."""
+    exact_r = exact_episode_returns(oracle, ctrl, cfg, instance, start)
+    if optimum is None and hasattr(oracle, "optimal_return"):
+        optimum = optimal_episode_returns(oracle, instance, start)
+    if optimum is None:
+        return exact_r, None, None
+    mean, ci = mean_ci95(torch.as_tensor(optimum - exact_r, dtype=torch.float64))
+    return exact_r, optimum, {"regret_mean": float(mean), "regret_ci95": ci}
+
+
+def play(
+    ctrl: Controller,
+    point: EvalPoint,
+    episodes: int,
+    seed: int,
+    batch_size: int,
+    noise_seed: int | None = None,
+    progress: Any = None,
+    steps: bool = False,
+) -> dict[str, np.ndarray]:
+    """Play ``episodes`` episodes (global indices ``0..episodes-1``) of ``point`` with ``ctrl``;
+    per-episode ``return``, ``length``, ``interruptions``, the instance fields and, for option
+    controllers, ``steps_<o>`` (steps option ``o`` held control). ``steps``: also each step's
+    ``step_cell``, ``step_action`` and ``step_alive`` ``(episodes, horizon)`` (per-step regret)."""
+    parts: dict[str, list[np.ndarray]] = {}
+    option_level = ctrl.name not in ("averaging", *BASELINES)  # baselines: no options
+    O = len(ctrl.heads.option_names) if option_level else 0  # noqa: E741
+    trace = (keys.OPTION,) if option_level else ()
+    if steps:
+        trace += (keys.CELL, keys.ACTION)
+    for lo in range(0, int(episodes), batch_size):
+        n = min(batch_size, int(episodes) - lo)
+        base = make_env(
+            point.cfg,
+            n,
+            seed=seed,
+            index_offset=lo,
+            instances=point.instances,
+            noise_seed=noise_seed,
+            validate_actions=False,
+        )
+        out = run_episodes(
+            TransformedEnv(base, ctrl.primer()), ctrl, max_steps=int(base.horizon), trace_keys=trace
+        )
+        got = {k: out[k] for k in ("return", "length", "interruptions")}
+        for k, v in out[keys.INSTANCE].items():
+            if v.dim() == 1:  # scalar instance fields (windy p, direction; Wargus seed)
+                got[f"instance_{k}"] = v
+        if "start" in out.keys():
+            got["start"] = out["start"]
+        tr = out["trace"] if trace else None
+        if option_level:
+            opt = torch.where(tr["alive"], tr[keys.OPTION], torch.full_like(tr[keys.OPTION], -1))
+            for o in range(O):
+                got[f"steps_{o}"] = (opt == o).sum(-1)
+        if steps:  # padded to the horizon: batches end at different steps
+            pad = int(base.horizon) - tr["alive"].shape[-1]
+            got["step_alive"] = torch.nn.functional.pad(tr["alive"], (0, pad), value=False)
+            for name, k in (("step_cell", keys.CELL), ("step_action", keys.ACTION)):
+                got[name] = torch.nn.functional.pad(tr[k], (0, pad))
+        for k, v in got.items():
+            parts.setdefault(k, []).append(v.detach().cpu().numpy())
+        if progress is not None:
+            progress.update(n)
+    return {k: np.concatenate(v) for k, v in parts.items()}
