@@ -14,7 +14,7 @@ import yaml
 
 from taskvar_torch import cli
 from taskvar_torch.checkpoint import make_bundle, save_checkpoint
-from taskvar_torch.experiments import report
+from taskvar_torch.experiments import report, report_claims, report_folders
 from taskvar_torch.experiments import report_results as glance
 
 METHODS = ("averaging", "options", "interruption", "hierarchy")
@@ -127,7 +127,7 @@ def test_verdicts_follow_the_data(tmp_path, capsys):
     }
 
     def verdict(claim: str, group: str) -> str:
-        return verdicts[f"{report.CLAIMS[claim][0]} [{group}"]
+        return verdicts[f"{report_claims.CLAIMS[claim][0]} [{group}"]
 
     assert verdict("fig4_order", "wargus-fig4, 12x12, 40 trials") == "reproduced"
     assert verdict("fig4_speed", "wargus-fig4, 12x12, 40 trials") == "reproduced"
@@ -171,8 +171,8 @@ def test_a_rerun_replaces_its_own_files_only(tmp_path, capsys):
 def test_figures_are_the_per_seed_numbers(tmp_path):
     levels = {"averaging": 1.0, "options": 1.2, "interruption": 1.2, "hierarchy": 1.6}
     folder = fig4_folder(tmp_path / "f", range(6), levels, trials=20)
-    groups = report.collect([str(folder)])
-    (order, speed), _, _ = report._fig4(groups[0], 200)
+    groups = report_folders.collect([str(folder)])
+    (order, speed), _, _ = report_claims._fig4(groups[0], 200)
     curves = json.loads((folder / "metrics.json").read_text())["heldout"]["methods"]
     first = {m: np.asarray(curves[m]["curve_per_rep"])[:, :10].mean(1) for m in METHODS}
     want = float(np.mean(first["hierarchy"] - first["averaging"]))
@@ -187,8 +187,10 @@ def test_fig4_baseline_curve_joins_the_evidence(tmp_path):
     levels = {"averaging": 1.0, "options": 1.2, "interruption": 1.4, "hierarchy": 1.6}
     plain = fig4_folder(tmp_path / "plain", range(5), levels, trials=20)
     both = fig4_folder(tmp_path / "both", range(5), {**levels, "recurrent": 0.5}, trials=20)
-    (order_a, speed_a), _, _ = report._fig4(report.collect([str(plain)])[0], 200)
-    (order_b, speed_b), _, profile = report._fig4(report.collect([str(both)])[0], 200)
+    (order_a, speed_a), _, _ = report_claims._fig4(report_folders.collect([str(plain)])[0], 200)
+    (order_b, speed_b), _, profile = report_claims._fig4(
+        report_folders.collect([str(both)])[0], 200
+    )
     assert "recurrent" not in " ".join(order_a.details)
     assert "; recurrent IQM" in order_b.details[0] and "recurrent 0." in order_b.details[2]
     assert "recurrent" in profile
@@ -283,7 +285,7 @@ def test_scale_rows_aggregate_the_gap_over_seeds_and_windy_cells(tmp_path):
             {"experiment": "scale", "cells": cells},
             {"seed": k, "only": ["windy-5x5", "windy-25x25", "wargus-32x32"]},
         )
-    rows = report.build_report([str(tmp_path / "scale")], reps=100).rows
+    rows = report_claims.build_report([str(tmp_path / "scale")], reps=100).rows
     assert len(rows) == 1 and rows[0][2] == 5
     want = trim_mean(np.array([gaps["windy-25x25"], gaps["windy-5x5"]]).T, 0.25, axis=None)
     assert f"averaging {want:.2f} [" in rows[0][1]
@@ -297,7 +299,7 @@ def test_a_capability_that_fails_everywhere_is_unaffected_not_robust(tmp_path):
         for p in m["points"]:
             p["methods"]["options"]["mean_return"] = -100.0  # the same failure at every point
         (folder / "metrics.json").write_text(json.dumps(m))
-    (claim,) = report.build_report([str(tmp_path / "e")], reps=100).claims
+    (claim,) = report_claims.build_report([str(tmp_path / "e")], reps=100).claims
     assert claim.key == "premise" and claim.verdict == "partly"
     assert "fail everywhere" in claim.reason
 
@@ -323,9 +325,9 @@ def test_a_scale_folder_of_several_seeds_counts_each(tmp_path):
         {"experiment": "scale", "seeds": 5, "cells": [cell]},
         {"seed": 0, "seeds": 5},
     )
-    (g,) = report.collect([str(tmp_path / "s")])
+    (g,) = report_folders.collect([str(tmp_path / "s")])
     assert g.seeds == [0, 1, 2, 3, 4]
-    (row,) = report.build_report([str(tmp_path / "s")], reps=100).rows
+    (row,) = report_claims.build_report([str(tmp_path / "s")], reps=100).rows
     assert "averaging 0.70 [" in row[1]  # the IQM of 0.5 ... 0.9
 
 
@@ -333,7 +335,7 @@ def test_the_readme_header_does_not_call_every_row_held_out():
     """An eval row of ``--test train`` sits in the same table as the held-out claims: the header
     says held-out only where the row names no other test (found on the real windy tables)."""
     rows = [("eval windy --test train", "IQM mean return (--test train, 1 point(s))", 5, "abc")]
-    table = report.results_table(report.Report([], [], rows, [], 100))
+    table = report.results_table(report_claims.Report([], [], rows, [], 100))
     header = table.splitlines()[0]
     assert "(held-out instances;" not in header
     assert "held-out instances unless the row names another --test" in header
@@ -349,7 +351,7 @@ def test_two_configs_of_one_label_are_named_by_the_key_that_differs(tmp_path):
         cfg = yaml.safe_load((folder / "config.yaml").read_text())
         cfg["train"] = {"compile": compile_}
         (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
-    groups = report.collect([str(tmp_path / "eager"), str(tmp_path / "compiled")])
+    groups = report_folders.collect([str(tmp_path / "eager"), str(tmp_path / "compiled")])
     assert [g.label for g in groups] == [
         "wargus-fig4, 12x12, 40 trials (train.compile=false)",
         "wargus-fig4, 12x12, 40 trials (train.compile=true)",
@@ -358,7 +360,7 @@ def test_two_configs_of_one_label_are_named_by_the_key_that_differs(tmp_path):
     cfg = yaml.safe_load((third / "config.yaml").read_text())
     cfg["train"] = {"compile": False, "lr": 0.1}
     (third / "config.yaml").write_text(yaml.safe_dump(cfg))
-    groups = report.collect([str(tmp_path / d) for d in ("eager", "compiled", "third")])
+    groups = report_folders.collect([str(tmp_path / d) for d in ("eager", "compiled", "third")])
     assert all(g.label.endswith(f"(config {g.digest})") for g in groups)
     assert len({g.label for g in groups}) == 3
 
@@ -368,7 +370,7 @@ def test_add_grows_the_readme_table_and_keeps_the_other_rows(tmp_path, capsys):
     experiment and config where it stands on a rerun, keeps rows of results not given, writes no
     claims page, and refuses results that score a claim."""
     old = "| eval windy --test south | old headline | 5 | abcd1234 | - ([claims](docs/claims.md)) |"
-    head = report.results_table(report.Report([], [], [], [], 100)).splitlines()
+    head = report.results_table(report_claims.Report([], [], [], [], 100)).splitlines()
     readme = tmp_path / "README.md"
     readme.write_text(README.replace("old table", "\n".join([*head, old])))
     for k in range(5):
@@ -414,7 +416,7 @@ def test_a_wargus_evaluation_is_labelled_by_its_grid(tmp_path):
         m = json.loads((folder / "metrics.json").read_text())
         m["family"] = "wargus"
         (folder / "metrics.json").write_text(json.dumps(m))
-    (group,) = report.collect([str(tmp_path / "w")])
+    (group,) = report_folders.collect([str(tmp_path / "w")])
     assert group.label.startswith("eval wargus 64x64 --test train")
 
 
@@ -426,8 +428,8 @@ def test_an_evaluation_of_a_named_layout_is_labelled_by_it(tmp_path):
             folder = eval_folder(tmp_path / layout / f"seed{k}", k, {"averaging": 1.0}, "train")
             cfg = {"seed": k, "family": "windy", "env": {"layout": layout}}
             save_checkpoint(folder / "bundle.pt", make_bundle(cfg, models={}))
-    (default,) = report.collect([str(tmp_path / "default")])
-    (column,) = report.collect([str(tmp_path / "whole_column_windy")])
+    (default,) = report_folders.collect([str(tmp_path / "default")])
+    (column,) = report_folders.collect([str(tmp_path / "whole_column_windy")])
     assert default.label.startswith("eval windy --test train")
     assert column.label.startswith("eval windy whole_column_windy --test train")
 

@@ -1,0 +1,484 @@
+"""The paper's claims scored on the groups of results folders ``taskvar report`` reads (issue 33;
+docs/claims.md is the page, docs/report.md its guide), on the **sealed held-out** instances:
+
+- **Figure 2** (§3.3.1): offline interruption no worse than the averaging policy in almost 80% of
+  held-out episodes (:func:`_fig2`);
+- **Figure 4** (§3.5.3): the ordering hierarchy > interruption > options > averaging over the
+  first half of the trials, and the speed to 90% of the maximum (:func:`_fig4`);
+- **§3.2's premise**: a capability is less affected by variability than the full task, over the
+  points of a ``taskvar eval --shift`` curve (:func:`_eval`);
+
+each aggregated over training seeds with ``rliable`` (:mod:`taskvar_torch.experiments.aggregate`)
+and given a verdict by the rules in :data:`RULES`. :func:`build_report` computes every group's
+claims, README row, profile panel and the per-group summaries behind the compact tables
+(:mod:`~taskvar_torch.experiments.report_results`); :mod:`~taskvar_torch.experiments.report`
+writes them.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from taskvar_torch.config.choices import FIG4_BASELINES
+from taskvar_torch.experiments import aggregate
+from taskvar_torch.experiments import report_results as at_a_glance
+from taskvar_torch.experiments.curves import trials_to_fraction_of_max
+from taskvar_torch.experiments.report_folders import Group, ReportError, Result, collect
+
+NO_WORSE = 0.75
+"""Figure 2: the least fraction no worse that reads as the paper's "almost 80%"."""
+SPEED_RATIO = 2.0
+"""Figure 4: the least averaging / hierarchy ratio of trials to 90% of maximum that reads as the
+paper's ~100 vs > 350 (3.5x)."""
+RULES = {
+    "fig2": f"reproduced: the CI of the held-out fraction no worse lies at or above "
+    f"{NO_WORSE:.0%} and interruption is better in some episodes (CI above 0); partly: at or above "
+    f"{NO_WORSE:.0%} without being better anywhere (a tie, not a gain), or a CI across "
+    f"{NO_WORSE:.0%}; not: the CI below {NO_WORSE:.0%}",
+    "fig4_order": "reproduced: each of hierarchy - interruption, interruption - options, options - "
+    "averaging has a paired CI above 0; partly: hierarchy - averaging above 0 but not the whole "
+    "chain; not: otherwise",
+    "fig4_speed": "reproduced: averaging - hierarchy in trials to 90% of maximum has a paired CI "
+    f"above 0 and the means' ratio is at least {SPEED_RATIO:g}; partly: the CI above 0 with a "
+    "smaller ratio; not: otherwise",
+    "premise": "reproduced: averaging's range minus the options controller's range over the shift "
+    "curve has a paired CI above 0 and the options controller is not worse than averaging over the "
+    "curve (paired mean difference CI reaching 0 or above; a policy that fails everywhere is "
+    "unaffected, not robust); partly: the smaller range without that, or a range CI across 0; "
+    "not: a range CI at or below 0",
+}
+"""How each verdict is decided (printed on the claims page). Every CI is the mean's 95%
+stratified-bootstrap CI over training seeds."""
+CLAIMS = {
+    "fig2": (
+        "Figure 2: offline interruption no worse than the averaging policy (§3.3.1)",
+        "no worse in almost 80% of episodes",
+    ),
+    "fig4_order": (
+        "Figure 4: hierarchy > interruption > options > averaging, first half (§3.5.3)",
+        "the hierarchy leads, then interruption, options, averaging",
+    ),
+    "fig4_speed": (
+        "Figure 4: trials to 90% of maximum, hierarchy vs averaging (§3.5.3)",
+        "~100 vs > 350 of 500 trials",
+    ),
+    "premise": (
+        "§3.2: a capability is less affected by variability than the full task",
+        "argued (shown through Figure 4's head start)",
+    ),
+}
+"""Claim id -> (title, the paper's figure)."""
+PAPER_METHODS = ("averaging", "options", "interruption", "hierarchy")
+
+
+@dataclass
+class Claim:
+    """One claim's row: the paper's figure, ours, the verdict and why, and detail lines."""
+
+    key: str
+    group: str
+    ours: str
+    verdict: str
+    reason: str
+    details: list[str] = field(default_factory=list)
+
+
+# --------------------------------------------------------------------------------------------
+# statistics per group
+
+
+def _num(x: Any) -> float:
+    return float("nan") if x is None else float(x)
+
+
+def _ci(e: dict[str, Any], fmt: str = ".3f", which: str = "mean") -> str:
+    lo, hi = e[f"{which}_ci95"]
+    return f"{e[which]:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
+
+
+def _both(e: dict[str, Any], fmt: str = ".3f") -> str:
+    return f"IQM {_ci(e, fmt, 'iqm')}, mean {_ci(e, fmt)}"
+
+
+def _held(r: Result) -> dict[str, Any]:
+    h = r.metrics.get("heldout")
+    if not h:
+        raise ReportError(
+            f"{r.path}: {r.kind} results without held-out scores (run before the held-out split, "
+            "issue 33); rerun the experiment"
+        )
+    return h
+
+
+def _fig2(g: Group, reps: int) -> tuple[Claim, str, dict[str, Any]]:
+    held = [_held(r) for r in g.results]
+    per_seed = {
+        "no worse": [_num(h["fraction_no_worse"]) for h in held],
+        "better": [_num(h["fraction_better"]) for h in held],
+        "null no worse": [_num(h["fraction_no_worse_null"]) for h in held],
+        "interruption - averaging": [_num(h["mean_difference"]) for h in held],
+    }
+    est = aggregate.interval_estimates(per_seed, reps)
+    returns = {
+        m: [_num(h["mean_return"][m]["mean"]) for h in held]
+        for m in ("averaging", "options", "interruption")
+    }
+    poi = aggregate.probability_of_improvement(returns, "averaging", reps)
+    nw, better, null = est["no worse"], est["better"], est["null no worse"]
+    lo, hi = nw["mean_ci95"]
+    acts = better["mean_ci95"][0] > 0
+    pct = lambda e: _ci(e, ".1%")  # noqa: E731
+    if lo >= NO_WORSE and acts:
+        verdict, why = "reproduced", f"no worse in {pct(nw)}, better in {pct(better)}"
+    elif hi < NO_WORSE:
+        verdict, why = "not", f"no worse in only {pct(nw)}"
+    elif lo >= NO_WORSE:
+        verdict = "partly"
+        why = (
+            f"no worse in {pct(nw)} but better in {pct(better)}: interruption ties the "
+            "averaging policy rather than improving on it"
+        )
+    else:
+        verdict, why = "partly", f"no worse in {pct(nw)}: the CI crosses {NO_WORSE:.0%}"
+    if nw["mean"] <= null["mean"]:
+        why += f"; the null (averaging against itself, other gusts) is already {pct(null)}"
+    ours = f"no worse in {pct(nw)} of held-out episodes ({len(g.seeds)} seeds)"
+    details = [
+        f"fraction no worse (paired, sampled): {_both(nw, '.3f')}",
+        f"fraction better: {_both(better, '.3f')}; null fraction no worse: {_both(null, '.3f')}",
+        "interruption - averaging per episode, paired: " + _both(est["interruption - averaging"]),
+        "P(improvement over averaging): "
+        + ", ".join(f"{m} {v['probability']:.2f} {_pair(v['ci95'])}" for m, v in poi.items()),
+    ]
+    claim = Claim("fig2", g.label, ours, verdict, why, details)
+    headline = (
+        f"interruption no worse than averaging in {pct(nw)} of held-out episodes, better in "
+        f"{pct(better)} (null {pct(null)}); interruption - averaging "
+        f"{_ci(est['interruption - averaging'], '+.3f')} per episode"
+    )
+    return claim, headline, returns
+
+
+def _pair(ci: Sequence[float]) -> str:
+    return f"[{ci[0]:.2f}, {ci[1]:.2f}]"
+
+
+def _fig4(g: Group, reps: int) -> tuple[list[Claim], str, dict[str, Any]]:
+    held = [_held(r) for r in g.results]
+    extra = [m for m in FIG4_BASELINES if all(m in h["methods"] for h in held)]
+    curves = {
+        m: np.concatenate([np.asarray(h["methods"][m]["curve_per_rep"], dtype=float) for h in held])
+        for m in (*PAPER_METHODS, *extra)
+    }  # (R, T) items per held-out test episode; experiment.baselines' curves in the evidence
+    T = curves["averaging"].shape[1]
+    half = max(T // 2, 1)
+    first = {m: c[:, :half].mean(1) for m, c in curves.items()}
+    links = [("hierarchy", "interruption"), ("interruption", "options"), ("options", "averaging")]
+    diffs = aggregate.paired_differences(first, [*links, ("hierarchy", "averaging")], reps)
+    level = aggregate.interval_estimates(first, reps)
+    poi = aggregate.probability_of_improvement(first, "averaging", reps)
+
+    def status(e: dict[str, Any]) -> str:
+        lo, hi = e["mean_ci95"]
+        if lo > 0:
+            return "ahead"
+        if hi < 0:
+            return "behind"
+        return "tied" if lo == hi == 0 else "level"
+
+    sts = [status(diffs[f"{a} - {b}"]) for a, b in links]
+    overall = diffs["hierarchy - averaging"]
+    if all(s == "ahead" for s in sts):
+        verdict = "reproduced"
+    elif status(overall) == "ahead":
+        verdict = "partly"
+    else:
+        verdict = "not"
+    why = "; ".join(f"{a} vs {b}: {s}" for (a, b), s in zip(links, sts))
+    order = Claim(
+        "fig4_order",
+        g.label,
+        f"hierarchy - averaging {_ci(overall, '+.3f')} items per held-out episode, trials 1-{half} "
+        f"({len(g.seeds)} seeds)",
+        verdict,
+        why,
+        [
+            f"items per held-out episode, trials 1-{half}: "
+            + "; ".join(f"{m} {_both(level[m])}" for m in curves),
+            "paired differences: " + "; ".join(f"{k} {_ci(v, '+.3f')}" for k, v in diffs.items()),
+            "P(improvement over averaging): "
+            + ", ".join(f"{m} {v['probability']:.2f} {_pair(v['ci95'])}" for m, v in poi.items()),
+        ],
+    )
+    t90 = {
+        m: np.array([trials_to_fraction_of_max(c) for c in curves[m]], dtype=float)
+        for m in ("hierarchy", "averaging")
+    }
+    speed = aggregate.interval_estimates(t90, reps)
+    gap = aggregate.paired_differences(t90, [("averaging", "hierarchy")], reps)[
+        "averaging - hierarchy"
+    ]
+    ratio = speed["averaging"]["mean"] / max(speed["hierarchy"]["mean"], 1e-9)
+    if gap["mean_ci95"][0] > 0 and ratio >= SPEED_RATIO:
+        sv = "reproduced"
+    elif gap["mean_ci95"][0] > 0:
+        sv = "partly"
+    else:
+        sv = "not"
+    speed_claim = Claim(
+        "fig4_speed",
+        g.label,
+        f"hierarchy {_ci(speed['hierarchy'], '.0f')} vs averaging "
+        f"{_ci(speed['averaging'], '.0f')} of {T} trials ({len(g.seeds)} seeds)",
+        sv,
+        f"averaging - hierarchy {_ci(gap, '+.0f')} trials, paired; ratio {ratio:.1f}"
+        + ("" if T == 500 else f" (the paper's protocol has 500 trials, these {T})"),
+        [
+            f"trials to 90% of maximum (each repetition's held-out curve): {_both(speed['hierarchy'], '.0f')} (hierarchy), {_both(speed['averaging'], '.0f')} (averaging)"
+        ],
+    )
+    headline = (
+        f"items per held-out episode, trials 1-{half}: "
+        + ", ".join(f"{m} {_ci(level[m], '.2f')}" for m in PAPER_METHODS)
+        + f"; 90% of maximum in {speed['hierarchy']['mean']:.0f} vs "
+        f"{speed['averaging']['mean']:.0f} trials (hierarchy vs averaging)"
+    )
+    profile = {m: c[:, :half] for m, c in curves.items()}
+    return [order, speed_claim], headline, profile
+
+
+def _eval(g: Group, reps: int) -> tuple[Claim | None, str, dict[str, Any]]:
+    methods = list(g.config["eval"]["methods"] or [])
+    points = [r.metrics["points"] for r in g.results]
+    scores = {
+        m: np.array([[_num(p["methods"][m]["mean_return"]) for p in pts] for pts in points])
+        for m in methods
+    }  # (seeds, points)
+    est = aggregate.interval_estimates(scores, reps)
+    test = g.config["eval"]["test"]
+    where = "held-out" if test == "heldout" else f"--test {test}"
+    headline = f"IQM mean return ({where}, {scores[methods[0]].shape[1]} point(s)): " + ", ".join(
+        f"{m} {_ci(est[m], '.3f', 'iqm')}" for m in methods
+    )
+    claim = None
+    if (
+        test == "heldout"
+        and scores[methods[0]].shape[1] >= 2
+        and {"averaging", "options"} <= set(methods)
+    ):
+        spread = {m: scores[m].max(1) - scores[m].min(1) for m in ("averaging", "options")}
+        d = aggregate.paired_differences(spread, [("averaging", "options")], reps)[
+            "averaging - options"
+        ]
+        lo, hi = d["mean_ci95"]
+        level = {m: scores[m].mean(1) for m in ("averaging", "options")}
+        worse = aggregate.paired_differences(level, [("options", "averaging")], reps)[
+            "options - averaging"
+        ]
+        fails = worse["mean_ci95"][1] < 0  # options clearly worse over the whole curve
+        verdict = "not" if hi <= 0 else ("reproduced" if lo > 0 and not fails else "partly")
+        rng = aggregate.interval_estimates(spread, reps)
+        claim = Claim(
+            "premise",
+            g.label,
+            f"range of mean return over the curve: options {_ci(rng['options'])} vs averaging "
+            f"{_ci(rng['averaging'])} ({len(g.seeds)} seeds)",
+            verdict,
+            f"averaging - options range {_ci(d, '+.3f')}, paired"
+            + (
+                f"; but options are worse over the curve ({_ci(worse, '+.3f')} per episode): "
+                "unaffected because they fail everywhere"
+                if fails and lo > 0
+                else ""
+            )
+            + "; the options controller composes the capabilities, so this tests them composed",
+            [f"mean return per point and seed: {headline}"],
+        )
+    return claim, headline, scores
+
+
+def _scale_seeds(metrics: dict[str, Any]) -> list[dict[str, dict[str, float]]]:
+    """One ``{cell: {method: score}}`` per training seed of a scale folder (``per_seed`` where the
+    experiment ran ``seeds > 1``, else the cell's own methods); the score is the gap closed on
+    windy cells, the mean return elsewhere."""
+    n = max(len(c.get("per_seed") or [None]) for c in metrics.get("cells", [])) or 1
+    out: list[dict[str, dict[str, float]]] = [{} for _ in range(n)]
+    for c in metrics.get("cells", []):
+        runs = [ps["methods"] for ps in c["per_seed"]] if c.get("per_seed") else [c["methods"]]
+        for k, methods in enumerate(runs):
+            for m, v in (methods or {}).items():
+                if v:
+                    score = (
+                        v.get("gap_closed") if c.get("family") == "windy" else v.get("mean_return")
+                    )
+                    out[k].setdefault(f"{c['case']}-n{c['num_envs']}", {})[m] = _num(score)
+    return out
+
+
+def _scale(g: Group, reps: int) -> str:
+    seeds = [row for r in g.results for row in _scale_seeds(r.metrics)]
+    windy = sorted({cell for row in seeds for cell in row if cell.startswith("windy")})
+    methods = [m for m in PAPER_METHODS if all(m in row.get(c, {}) for row in seeds for c in windy)]
+    parts = []
+    for m in methods if windy else []:
+        mat = np.array([[row[c][m] for c in windy] for row in seeds])  # (seeds, cells)
+        e = aggregate.interval_estimates({m: mat}, reps)[m]
+        parts.append(f"{m} {_ci(e, '.2f', 'iqm')}")
+    return "gap to the exact optimum closed, windy cells (IQM over seeds x cells): " + (
+        ", ".join(parts) or "no windy cells"
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# the report
+
+
+@dataclass
+class Report:
+    """What ``taskvar report`` writes: the claims, the README rows, the profile panels and the
+    per-group summaries behind the compact tables and the regret figure
+    (:mod:`~taskvar_torch.experiments.report_results`)."""
+
+    groups: list[Group]
+    claims: list[Claim]
+    rows: list[tuple[str, str, int, str]]  # (label, headline, seeds, config digest)
+    profiles: list[tuple[str, dict[str, Any], str]]  # (title, scores, x label)
+    reps: int
+    summaries: list[dict[str, Any]] = field(default_factory=list)
+
+
+def build_report(dirs: Sequence[str], reps: int = aggregate.REPS) -> Report:
+    """Read and check every ``DIR`` (:func:`collect`), then compute every group's figures."""
+    groups = collect(dirs)
+    claims: list[Claim] = []
+    rows: list[tuple[str, str, int, str]] = []
+    profiles: list[tuple[str, dict[str, Any], str]] = []
+    summaries: list[dict[str, Any]] = []
+    for g in groups:
+        if g.kind == "windy-fig2":
+            claim, headline, returns = _fig2(g, reps)
+            claims.append(claim)
+            profiles.append((g.label, returns, "mean held-out return per seed"))
+            summaries.append(_fig2_summary(g, returns, reps))
+        elif g.kind == "wargus-fig4":
+            fig4_claims, headline, curves = _fig4(g, reps)
+            claims += fig4_claims
+            profiles.append((g.label, curves, "held-out items per episode, first half"))
+            summaries.append(_fig4_summary(g, curves, reps))
+        elif g.kind == "eval":
+            claim, headline, scores = _eval(g, reps)
+            if claim is not None:
+                claims.append(claim)
+            profiles.append((g.label, scores, "mean return per seed and point"))
+            summaries.append(_eval_summary(g, scores, reps))
+        else:  # the scale experiment's gap closed: its row of the table of every result only
+            headline = _scale(g, reps)
+        rows.append((g.label, headline, len(g.seeds), g.digest))
+    return Report(groups, claims, rows, profiles, reps, summaries)
+
+
+# --------------------------------------------------------------------------------------------
+# the compact tables' and the regret figure's data, per group (experiments/report_results.py)
+
+
+def _group_info(g: Group, family: Any, row: str, budget: str, score: str) -> dict[str, Any]:
+    return {
+        "label": g.label,
+        "digest": g.digest,
+        "kind": g.kind,
+        "family": str(family),
+        "row": row,
+        "budget": budget,
+        "seeds": len(g.seeds),
+        "score": score,
+    }
+
+
+def _frames(train: Any) -> str:
+    frames = train.get("total_frames") if isinstance(train, dict) else None
+    return "-" if frames is None else at_a_glance.frames_text(frames)
+
+
+def _with_ceiling(per_seed: dict[str, np.ndarray]) -> tuple[str, Any, set[str]] | None:
+    """The regret to the ``informed`` head where it was evaluated (the results' learnt ceiling),
+    from sampled returns."""
+    if at_a_glance.CEILING not in per_seed:
+        return None
+    reference, arrays = at_a_glance.regret_to_ceiling(per_seed)
+    return reference, arrays, set(arrays)
+
+
+def _fig2_summary(g: Group, returns: dict[str, Any], reps: int) -> dict[str, Any]:
+    per_seed = {m: np.asarray(v, dtype=np.float64) for m, v in returns.items()}
+    row = "Figure 2 protocol, " + g.label.removeprefix("windy-fig2, ")
+    info = _group_info(
+        g,
+        g.config.get("family") or g.kind,
+        row,
+        _frames(g.config.get("train")),
+        "mean return per held-out episode",
+    )
+    return at_a_glance.summarise(info, per_seed, _with_ceiling(per_seed), reps)
+
+
+def _fig4_summary(g: Group, curves: dict[str, Any], reps: int) -> dict[str, Any]:
+    per_seed = {m: np.asarray(c, dtype=np.float64).mean(1) for m, c in curves.items()}
+    half = np.asarray(next(iter(curves.values()))).shape[1]
+    row = f"Figure 4 {g.label.removeprefix('wargus-fig4, ')}: trials 1-{half}"
+    trials = g.config.get("experiment", {}).get("trials")
+    info = _group_info(
+        g,
+        g.config.get("family") or g.kind,
+        row,
+        f"{trials} trials",
+        "Figure 4: items per held-out episode over the first half of the trials",
+    )
+    return at_a_glance.summarise(info, per_seed, _with_ceiling(per_seed), reps)
+
+
+def _eval_summary(g: Group, scores: dict[str, np.ndarray], reps: int) -> dict[str, Any]:
+    family = g.config["eval"]["family"]
+    per_seed = {m: s.mean(1) for m, s in scores.items()}  # the points' mean, per seed
+    n = next(iter(scores.values())).shape[1]
+    info = _group_info(
+        g,
+        family,
+        at_a_glance.row_name(g.label, family),
+        _frames(g.config.get("bundle", {}).get("train")),
+        "mean return per episode" + (f" (mean over a curve's {n} points)" if n > 1 else ""),
+    )
+    points = [r.metrics["points"] for r in g.results]
+    rows = [p["methods"][m] for pts in points for p in pts for m in scores]
+    regret = None
+    if all("regret_mean" in r for r in rows):  # the exact per-instance optimum, every point
+        arrays = {
+            m: np.array(
+                [np.mean([_num(p["methods"][m]["regret_mean"]) for p in pts]) for pts in points]
+            )
+            for m in scores
+        }
+        sampled = {
+            m
+            for m in scores
+            if any(p["methods"][m].get("regret_sampled") for pts in points for p in pts)
+        }
+        regret = (at_a_glance.EXACT, arrays, sampled)
+    else:
+        regret = _with_ceiling(per_seed)
+    return at_a_glance.summarise(info, per_seed, regret, reps)
+
+
+__all__ = [
+    "CLAIMS",
+    "NO_WORSE",
+    "PAPER_METHODS",
+    "RULES",
+    "SPEED_RATIO",
+    "Claim",
+    "Report",
+    "build_report",
+]

@@ -1,0 +1,267 @@
+"""The results folders ``taskvar report`` reads (issue 33; docs/report.md): :func:`load_result` reads
+one folder's ``metrics.json`` and config, :func:`collect` expands every ``DIR`` (a results folder
+or a folder of ``seed<k>/`` results folders) and groups the results by experiment and config (the
+config without its seed), checked: one config per ``DIR``, no training seed twice, at least
+:data:`MIN_SEEDS` seeds. Bad input is one line (:class:`ReportError`, a ``ValueError``).
+
+The claims are scored from these groups by :mod:`~taskvar_torch.experiments.report_claims` and
+written by :mod:`~taskvar_torch.experiments.report`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+MIN_SEEDS = 5
+"""Training seeds a group needs before it is quoted (issue 33: every headline over >= 5)."""
+KINDS = ("windy-fig2", "wargus-fig4", "scale", "eval")
+"""``metrics.json`` ``experiment`` values of the results folders it reads."""
+
+
+class ReportError(ValueError):
+    """Bad input to ``taskvar report``: one line, and nothing is written."""
+
+
+@dataclass
+class Result:
+    """One results folder: its kind, ``metrics.json``, config (seed removed) and training seeds."""
+
+    path: Path
+    kind: str
+    metrics: dict[str, Any]
+    config: dict[str, Any]
+    seeds: tuple[int, ...]
+
+
+@dataclass
+class Group:
+    """Results of one kind and one config: the unit a claim or a README row is computed on."""
+
+    kind: str
+    config: dict[str, Any]
+    results: list[Result] = field(default_factory=list)
+    label: str = ""
+
+    @property
+    def seeds(self) -> list[int]:
+        return [s for r in self.results for s in r.seeds]
+
+    @property
+    def digest(self) -> str:
+        text = json.dumps(self.config, sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:8]
+
+
+# --------------------------------------------------------------------------------------------
+# reading results folders
+
+
+def _read_json(path: Path) -> dict[str, Any]:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ReportError(f"{path} cannot be read as JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise ReportError(f"{path} is not a metrics.json (not an object)")
+    return data
+
+
+def _config_yaml(folder: Path) -> dict[str, Any]:
+    path = folder / "config.yaml"
+    try:
+        cfg = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise ReportError(
+            f"{folder} has no readable config.yaml ({e.__class__.__name__})"
+        ) from None
+    if not isinstance(cfg, dict):
+        raise ReportError(f"{path} is not a config")
+    return cfg
+
+
+def _bundle_config(folder: Path, metrics: dict[str, Any]) -> dict[str, Any]:
+    """The evaluated bundle's config (``taskvar eval``'s ``checkpoint``, as given or relative to
+    the results folder)."""
+    from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
+
+    ckpt = Path(str(metrics.get("checkpoint", "")))
+    for path in (ckpt, folder / ckpt):
+        if path.is_file():
+            try:
+                return dict(load_checkpoint(path)["config"])
+            except CheckpointError as e:
+                raise ReportError(f"{folder}: {e}") from None
+    raise ReportError(
+        f"{folder}: the bundle it evaluated ({str(ckpt)!r}) is not there, so its training seed "
+        "and config are unknown"
+    )
+
+
+def load_result(folder: str | os.PathLike) -> Result:
+    """One results folder (``folder/metrics.json`` of a :data:`KINDS` kind)."""
+    folder = Path(folder)
+    metrics = _read_json(folder / "metrics.json")
+    kind = metrics.get("experiment")
+    if kind not in KINDS:
+        raise ReportError(
+            f"{folder} is not a results folder of {', '.join(KINDS)} (metrics.json 'experiment' "
+            f"is {kind!r})"
+        )
+    if kind == "eval":
+        cfg = _bundle_config(folder, metrics)
+        seeds: tuple[int, ...] = (int(cfg.get("seed", 0)),)
+        keep = ("family", "test", "shifts", "methods", "episodes")
+        config = {"bundle": cfg, "eval": {k: metrics.get(k) for k in keep}}
+    else:
+        config = _config_yaml(folder)
+        if kind == "wargus-fig4":  # one repetition per training seed
+            seeds = tuple(int(s) for s in metrics.get("protocol", {}).get("seeds", ()))
+            config.setdefault("experiment", {}).pop("runs", None)
+        elif kind == "scale" and int(metrics.get("seeds", 1)) > 1:  # seeds=k: k seeds a cell
+            seeds = tuple(int(config.get("seed", 0)) + k for k in range(int(metrics["seeds"])))
+            config.pop("seeds", None)
+        else:
+            seeds = (int(config.get("seed", 0)),)
+    config.pop("seed", None)
+    if kind == "eval":
+        config["bundle"].pop("seed", None)
+    return Result(folder, kind, metrics, config, seeds)
+
+
+_SEED_DIR = re.compile(r"seed(\d+)$")
+
+
+def _expand(arg: str) -> list[Result]:
+    """``arg``'s results: the folder itself, or its ``seed<k>/`` results folders."""
+    folder = Path(arg)
+    if not folder.is_dir():
+        raise ReportError(f"{arg} is not a folder")
+    if (folder / "metrics.json").is_file():
+        return [load_result(folder)]
+    seeds = sorted(
+        (p for p in folder.iterdir() if p.is_dir() and _SEED_DIR.match(p.name)),
+        key=lambda p: int(_SEED_DIR.match(p.name).group(1)),  # type: ignore[union-attr]
+    )
+    if not seeds:
+        raise ReportError(
+            f"{arg} is not a results folder: no metrics.json, nor seed<k>/metrics.json, of "
+            "taskvar experiment or taskvar eval"
+        )
+    for p in seeds:
+        if not (p / "metrics.json").is_file():
+            raise ReportError(f"{p} has no metrics.json: not a results folder")
+    return [load_result(p) for p in seeds]
+
+
+def _difference(a: Any, b: Any, prefix: str = "") -> tuple[str, Any, Any]:
+    """The first dotted key where two config dicts differ, and its two values."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            if a.get(k) != b.get(k):
+                return _difference(a.get(k), b.get(k), f"{prefix}{k}.")
+    return prefix.rstrip("."), a, b
+
+
+def _first_difference(a: Any, b: Any) -> str:
+    """The first dotted key where two config dicts differ (for the one-line error)."""
+    key, va, vb = _difference(a, b)
+    return f"{key} ({va!r} vs {vb!r})"
+
+
+def collect(dirs: Sequence[str]) -> list[Group]:
+    """Every ``DIR``'s results, grouped by kind and config; the checks of the module docstring."""
+    if not dirs:
+        raise ReportError("give at least one results folder")
+    groups: list[Group] = []
+    for arg in dirs:
+        results = _expand(arg)
+        first = results[0]
+        for r in results[1:]:  # one DIR is one claim: one kind, one config
+            if r.kind != first.kind:
+                raise ReportError(
+                    f"{arg} mixes {first.kind} ({first.path}) and {r.kind} ({r.path}) results"
+                )
+            if r.config != first.config:
+                raise ReportError(
+                    f"{arg} mixes results of different configs as one claim: {first.path} and "
+                    f"{r.path} differ in {_first_difference(first.config, r.config)}"
+                )
+        for g in groups:
+            if g.kind == first.kind and g.config == first.config:
+                g.results += results
+                break
+        else:
+            groups.append(Group(first.kind, first.config, list(results)))
+    for g in groups:
+        where: dict[int, Path] = {}
+        for r in g.results:
+            for s in r.seeds:
+                if s in where:
+                    raise ReportError(
+                        f"training seed {s} appears twice in one {g.kind} group ({where[s]}, "
+                        f"{r.path})"
+                    )
+                where[s] = r.path
+        g.label = _label(g)
+    labels = []
+    for g in groups:  # a label two groups share: the key that tells two apart, else the digest
+        twins = [h for h in groups if h is not g and h.label == g.label]
+        label = g.label
+        if len(twins) == 1:
+            key, value, _ = _difference(g.config, twins[0].config)
+            value = str(value).lower() if isinstance(value, bool) else value  # as an override
+            label = f"{g.label} ({key.removeprefix('bundle.')}={value})"
+        elif twins:
+            label = f"{g.label} (config {g.digest})"
+        labels.append(label)
+    for g, label in zip(groups, labels):
+        g.label = label
+    for g in groups:
+        if len(g.seeds) < MIN_SEEDS:
+            raise ReportError(
+                f"{g.label}: {len(g.seeds)} training seed(s) ({', '.join(str(r.path) for r in g.results)}); "
+                f"a claim needs >= {MIN_SEEDS}"
+            )
+    return groups
+
+
+def _label(g: Group) -> str:
+    c = g.config
+    if g.kind == "windy-fig2":
+        return f"windy-fig2, layout {c.get('env', {}).get('layout')}"
+    if g.kind == "wargus-fig4":
+        size = c.get("env", {}).get("wargus", {}).get("size")
+        return f"wargus-fig4, {size}x{size}, {c.get('experiment', {}).get('trials')} trials"
+    if g.kind == "scale":
+        return f"scale, {', '.join(c.get('only') or ['every case'])}"
+    e = c["eval"]
+    shifts = f" --shift {' '.join(e['shifts'])}" if e.get("shifts") else ""
+    family = e.get("family")
+    env = c.get("bundle", {}).get("env", {})
+    own = env.get(family)  # the family's own env section
+    if isinstance(own, dict) and own.get("size") is not None:  # its grid, as Figure 4's label
+        family = f"{family} {own['size']}x{own['size']}"
+    layout = env.get("layout")  # a named layout other than the default, as windy-fig2's label
+    if isinstance(layout, str) and layout != "default" and "\n" not in layout:
+        family = f"{family} {layout}"
+    return f"eval {family} --test {e.get('test')}{shifts}"
+
+
+__all__ = [
+    "KINDS",
+    "MIN_SEEDS",
+    "Group",
+    "ReportError",
+    "Result",
+    "collect",
+    "load_result",
+]
