@@ -12,10 +12,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from taskvar_torch import sweep as sweep_module
+from taskvar_torch import sweep_jobs
 from taskvar_torch.factory import load_heads
 from taskvar_torch.families.windy import fig2 as windy_fig2
-from taskvar_torch.sweep import expand_points, load_point_configs, plan_jobs, sweep
+from taskvar_torch.sweep import sweep
+from taskvar_torch.sweep_grid import expand_points, load_point_configs
+from taskvar_torch.sweep_jobs import plan_jobs
 
 torch.set_num_threads(1)
 
@@ -79,7 +81,7 @@ def test_a_seed_sweep_trains_once_and_each_point_evaluates_its_seed(tmp_path, mo
 
         return wrapper
 
-    monkeypatch.setattr(sweep_module, "train", counted(sweep_module.train))
+    monkeypatch.setattr(sweep_jobs, "train", counted(sweep_jobs.train))
     monkeypatch.setattr(windy_fig2, "train", counted(windy_fig2.train))
     out = tmp_path / "sweep"
     rows = sweep(CONFIGS / "windy.yaml", ["seed=0,1", *TINY], out, progress=False, plots=False)
