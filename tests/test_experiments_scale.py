@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from taskvar_torch.cli import main
-from taskvar_torch.experiments import scale, scale_report
+from taskvar_torch.experiments import scale, scale_config, scale_eval, scale_report
 
 torch.set_num_threads(1)
 
@@ -120,12 +120,12 @@ def test_scale_re_exports_the_report():
 
 def test_evaluation_is_paired_and_deterministic():
     cfg = scale.load_scale_config(scale.default_config_path(), ["only=[windy-5x5]"])
-    ccfg = scale.case_config(cfg, cfg.selected()[0], 4)
-    a = scale.evaluate(ccfg, "random", 12, 5)
-    assert scale.evaluate(ccfg, "random", 12, 5) == a  # seeded: the same numbers again
-    o = scale.evaluate(ccfg, "oracle_averaging", 12, 6)
+    ccfg = scale_config.case_config(cfg, cfg.selected()[0], 4)
+    a = scale_eval.evaluate(ccfg, "random", 12, 5)
+    assert scale_eval.evaluate(ccfg, "random", 12, 5) == a  # seeded: the same numbers again
+    o = scale_eval.evaluate(ccfg, "oracle_averaging", 12, 6)
     # the envs are seeded per sub-environment: batching does not change the episodes
-    assert scale.evaluate(ccfg, "oracle_averaging", 12, 12) == o
+    assert scale_eval.evaluate(ccfg, "oracle_averaging", 12, 12) == o
     assert o["mean_return"] > a["mean_return"]
 
 
@@ -136,7 +136,7 @@ def test_case_config_keeps_updates_per_frame():
     )
     case = next(c for c in cfg.cases if c.name == "windy-25x25")  # its own: 8 per 1024 frames
     for n in (16, 48, 2048):
-        c = scale.case_config(cfg, case, n)
+        c = scale_config.case_config(cfg, case, n)
         t = c.train
         assert c.env.num_envs == n and t.frames_per_batch % n == 0
         assert t.total_frames == 100000 and t.eps_decay_frames == 50000
@@ -144,7 +144,7 @@ def test_case_config_keeps_updates_per_frame():
         assert t.updates_per_batch / t.frames_per_batch == pytest.approx(8 / 1024, rel=0.1)
     cfg = scale.load_scale_config(scale.default_config_path(), ["updates_per_frame=0.0625"])
     for n in (16, 48):
-        t = scale.case_config(cfg, case, n).train
+        t = scale_config.case_config(cfg, case, n).train
         assert t.updates_per_batch / t.frames_per_batch == pytest.approx(1 / 16, rel=0.1)
 
 

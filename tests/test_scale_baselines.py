@@ -16,9 +16,10 @@ import torch
 
 from taskvar_torch import families, keys
 from taskvar_torch.cli import main
-from taskvar_torch.experiments import scale
+from taskvar_torch.experiments import scale, scale_cell, scale_config, scale_eval
 from taskvar_torch.families import FAMILIES
 from taskvar_torch.heads.recurrent import BASELINES
+from taskvar_torch.training import seed_config
 
 torch.set_num_threads(1)
 
@@ -64,7 +65,7 @@ def _strip_baselines(x):
 
 def _run(out, *extra, spy=None):
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(scale, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
+        mp.setattr(scale_cell, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
         if spy is not None:
             spy(mp)
         argv = ["experiment", "scale", "--quick", "--out", str(out), "--no-progress", "--no-plots"]
@@ -79,8 +80,8 @@ def runs(tmp_path_factory):
     played = []  # (env seed, policy name, instance fields, start cells) per batch of episodes
     trained = []  # (config, method, folder) per train_baseline call
     envs = {}
-    make_test_env, run_episodes = scale.make_test_env, scale.run_episodes
-    train_baseline = scale.train_baseline
+    make_test_env, run_episodes = scale_eval.make_test_env, scale_eval.run_episodes
+    train_baseline = scale_cell.train_baseline
 
     def spy(mp):
         def made(cfg, num_envs, seed, index_offset=0, instances="test"):
@@ -99,9 +100,9 @@ def runs(tmp_path_factory):
             trained.append((cfg, method, out_dir))
             return train_baseline(cfg, method, out_dir, *args, **kwargs)
 
-        mp.setattr(scale, "make_test_env", made)
-        mp.setattr(scale, "run_episodes", ran)
-        mp.setattr(scale, "train_baseline", trains)
+        mp.setattr(scale_eval, "make_test_env", made)
+        mp.setattr(scale_eval, "run_episodes", ran)
+        mp.setattr(scale_cell, "train_baseline", trains)
 
     on = tmp_path_factory.mktemp("baselines-on")
     off = tmp_path_factory.mktemp("baselines-off")
@@ -198,13 +199,13 @@ def _assert_same(a, b):
 def test_each_seed_trains_its_baselines_on_the_cells_config_and_budget(runs):
     out, m = runs["on"]
     cfg = scale.load_scale_config(scale.default_config_path(), TINY, quick=True)
-    ccfg = scale.case_config(cfg, cfg.selected()[0], 4)
+    ccfg = scale_config.case_config(cfg, cfg.selected()[0], 4)
     trained = runs["trained"]
     # informed is the heads' own (heads.informed): only recurrent trains apart
     assert [(c.seed, meth) for c, meth, *_ in trained] == [(s, "recurrent") for s in (0, 1)]
     for bcfg, _, folder in trained:
         k = bcfg.seed - ccfg.seed
-        assert bcfg == scale.seed_config(ccfg, k)  # the cell's own config: the heads' settings
+        assert bcfg == seed_config(ccfg, k)  # the cell's own config: the heads' settings
         assert bcfg.train.total_frames == 200
         root = Path(folder).parents[2]  # out, or its staging folder beside it (ResultsFolder)
         assert Path(folder) == root / "cells" / CELL / f"seed{k}"  # beside the seed's bundle
@@ -248,15 +249,15 @@ def test_the_baseline_phase_leaves_the_global_random_streams_alone(tmp_path):
 
     extra = ["seeds=1", "baselines=[recurrent,informed]", "heldout_episodes=0"]
     cfg = scale.load_scale_config(scale.default_config_path(), [*TINY, *extra], quick=True)
-    ccfg = scale.case_config(cfg, cfg.selected()[0], 4)
+    ccfg = scale_config.case_config(cfg, cfg.selected()[0], 4)
     # no heads trained here: informed trains apart (train_baseline), as on a bundle without it
     ccfg = dataclasses.replace(ccfg, heads=dataclasses.replace(ccfg.heads, informed=False))
-    ecfg = scale.seed_config(ccfg, 0)
+    ecfg = seed_config(ccfg, 0)
     states = lambda: (torch.get_rng_state(), np.random.get_state()[1].copy(), random.getstate())  # noqa: E731
     torch.manual_seed(3), np.random.seed(3), random.seed(3)
     before = states()
     cell, methods = {}, {}
-    ctrls = scale.baseline_phase(cfg, ccfg, ecfg, [tmp_path], cell, [methods], -30.0, -5.0)
+    ctrls = scale_cell.baseline_phase(cfg, ccfg, ecfg, [tmp_path], cell, [methods], -30.0, -5.0)
     after = states()
     assert torch.equal(before[0], after[0]) and (before[1] == after[1]).all()
     assert before[2] == after[2]
@@ -287,7 +288,7 @@ def test_informed_without_features_is_a_one_line_error_before_any_training(tmp_p
     def no_training(*args, **kwargs):
         raise AssertionError("a cell trained before the baselines were checked")
 
-    monkeypatch.setattr(scale, "train", no_training)
+    monkeypatch.setattr(scale_cell, "train", no_training)
     with pytest.raises(ValueError, match="family 'wargus'") as e:
         scale.scale(cfg, tmp_path / "out", progress=False, plots=False)
     assert "\n" not in str(e.value) and "['recurrent']" in str(e.value)
@@ -296,5 +297,5 @@ def test_informed_without_features_is_a_one_line_error_before_any_training(tmp_p
 
 def test_no_baselines_by_default():
     assert scale.load_scale_config(scale.default_config_path()).baselines == ()
-    field = {f.name: f for f in dataclasses.fields(scale.ScaleConfig)}["baselines"]
+    field = {f.name: f for f in dataclasses.fields(scale_config.ScaleConfig)}["baselines"]
     assert field.default == ()

@@ -12,7 +12,7 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.cli import main
-from taskvar_torch.experiments import scale
+from taskvar_torch.experiments import scale, scale_cell, scale_config, scale_eval
 from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE
 
 torch.set_num_threads(1)
@@ -45,7 +45,7 @@ def _without_timing(x):
 
 def _run(out, *extra, spy=None):
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(scale, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
+        mp.setattr(scale_cell, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
         if spy is not None:
             spy(mp)
         argv = ["experiment", "scale", "--quick", "--out", str(out), "--no-progress", "--no-plots"]
@@ -59,7 +59,7 @@ def runs(tmp_path_factory):
     the same run with it off."""
     played = []  # (family, env seed, policy, instance tensordict) per batch of episodes
     envs = {}
-    make_test_env, run_episodes = scale.make_test_env, scale.run_episodes
+    make_test_env, run_episodes = scale_eval.make_test_env, scale_eval.run_episodes
 
     def spy(mp):
         def made(cfg, num_envs, seed, index_offset=0, instances="test"):
@@ -75,8 +75,8 @@ def runs(tmp_path_factory):
             played.append((fam, seed, name, out[keys.INSTANCE].clone(), start.clone()))
             return out
 
-        mp.setattr(scale, "make_test_env", made)
-        mp.setattr(scale, "run_episodes", ran)
+        mp.setattr(scale_eval, "make_test_env", made)
+        mp.setattr(scale_eval, "run_episodes", ran)
 
     on = tmp_path_factory.mktemp("heldout-on")
     off = tmp_path_factory.mktemp("heldout-off")
@@ -88,7 +88,7 @@ def runs(tmp_path_factory):
 @pytest.mark.slow
 def test_every_cell_and_seed_has_a_heldout_block_for_every_method(runs):
     _, m = runs["on"]
-    assert m["heldout"]["test"] == scale.HELDOUT_TEST and m["heldout"]["episodes"] == EPISODES
+    assert m["heldout"]["test"] == scale_eval.HELDOUT_TEST and m["heldout"]["episodes"] == EPISODES
     for c in m["cells"]:
         fam = FAMILIES[c["family"]]
         ref = m["heldout"]["references"][c["case"]]
@@ -199,11 +199,11 @@ def test_heldout_references_leave_the_nominal_random_streams_alone():
     cfg = scale.load_scale_config(
         scale.default_config_path(), ["only=[windy-5x5]", "heldout_episodes=4"]
     )
-    ccfg = scale.case_config(cfg, cfg.selected()[0], 4)
+    ccfg = scale_config.case_config(cfg, cfg.selected()[0], 4)
     torch.manual_seed(3)
     want = torch.rand(5)
     torch.manual_seed(3)
-    refs = scale.heldout_references(cfg, ccfg)
+    refs = scale_cell.heldout_references(cfg, ccfg)
     assert torch.equal(torch.rand(5), want)
     assert refs["seed"] == FAMILIES["windy"].tests["heldout"].seed and refs["episodes"] == 4
     assert refs["oracle_averaging"]["mean_return"] >= refs["random"]["mean_return"]

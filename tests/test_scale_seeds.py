@@ -14,7 +14,7 @@ import torch
 
 from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.cli import main
-from taskvar_torch.experiments import scale
+from taskvar_torch.experiments import scale, scale_cell, scale_eval
 from taskvar_torch.factory import load_heads
 
 torch.set_num_threads(1)
@@ -43,7 +43,7 @@ CELL_KEYS = {
 
 def _run(out, *extra):
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(scale, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
+        mp.setattr(scale_cell, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
         argv = ["experiment", "scale", "--quick", "--out", str(out), "--no-progress", "--no-plots"]
         assert main([*argv, *TINY, *extra]) == 0
     return json.loads((out / "metrics.json").read_text())
@@ -73,7 +73,7 @@ def test_each_seed_row_is_its_bundle_evaluated_on_the_same_episodes(two_seeds):
         # evaluated directly from the bundle's own config, on the scale's test episodes (seed 0's)
         ecfg = dataclasses.replace(bcfg, seed=0)
         for method in scale.METHODS:
-            direct = scale.evaluate(ecfg, method, 8, 8, h)
+            direct = scale_eval.evaluate(ecfg, method, 8, 8, h)
             row = run["methods"][method]
             if direct is None:
                 assert row is None  # windy: no hierarchy
