@@ -64,7 +64,7 @@ def child(config: str, overrides: list[str], seeds: int, fig4: bool = False) -> 
     import torch
 
     from taskvar_torch.config import load_config
-    from taskvar_torch.families.wargus.fig4 import run_repetitions_batched
+    from taskvar_torch.families.wargus.fig4_repetition import run_repetitions_batched
     from taskvar_torch.training import train
 
     torch.set_num_threads(1)

@@ -10,7 +10,7 @@ load hits both alike:
   the learner's losses and the dynamics step run through ``torch.compile``
   (``train.compile=true``; ``--eager``: eager).
 
-A trial is what :func:`~taskvar_torch.families.wargus.fig4.run_repetition` does per trial: the
+A trial is what :func:`~taskvar_torch.families.wargus.fig4_repetition.run_repetition` does per trial: the
 learning phase, the hierarchy's calibration, a snapshot of the heads, and the test phase (the
 trials' test phases run side by side at the end, ``TEST_GROUP`` at a time as in the protocol, and
 their cost is shared out per trial). The compiled learner may differ from the eager one in the
@@ -43,7 +43,7 @@ from torchrl.envs import InitTracker, TransformedEnv
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import SideBySide
 from taskvar_torch.factory import make_env
-from taskvar_torch.families.wargus import fig4
+from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 
 CORES = 2  # this project's machine
@@ -66,7 +66,7 @@ def build(cfg, torchrl: bool = False, stacked: bool = True, seed: int = 0):
         env = TransformedEnv(env, InitTracker())
     else:
         env.validate_actions = False
-    agent = fig4.make_agent(cfg, env, seed)
+    agent = fig4_agent.make_agent(cfg, env, seed)
     if not stacked:  # the old behaviour: each head on its own
         agent.behaviour = BehaviourPolicy(
             agent.heads,
@@ -76,7 +76,9 @@ def build(cfg, torchrl: bool = False, stacked: bool = True, seed: int = 0):
             root_policy=cfg.train.hierarchy_root_policy,
             stacked=False,
         )
-    policy = SideBySide(fig4.make_test_controllers(agent), cfg.experiment.test_episodes_per_trial)
+    policy = SideBySide(
+        fig4_agent.make_test_controllers(agent), cfg.experiment.test_episodes_per_trial
+    )
     return env, agent, policy
 
 
@@ -152,7 +154,7 @@ class Path:
         learned = fig4.learning_phase(a, self.env)
         sync(device)
         c = time.process_time()
-        self.calibrations.append(fig4.trial_calibration(a))
+        self.calibrations.append(fig4_agent.trial_calibration(a))
         sync(device)
         if self.clock is not None:
             self.clock["calibration"] += time.process_time() - c
@@ -168,12 +170,12 @@ class Path:
         sync(self.cfg.device)
         t = time.process_time()
         n = len(self.snapshots)
-        for g in range(0, n, fig4.TEST_GROUP):
+        for g in range(0, n, fig4_repetition.TEST_GROUP):
             snaps, cals = (
-                self.snapshots[g : g + fig4.TEST_GROUP],
-                self.calibrations[g : g + fig4.TEST_GROUP],
+                self.snapshots[g : g + fig4_repetition.TEST_GROUP],
+                self.calibrations[g : g + fig4_repetition.TEST_GROUP],
             )
-            env = fig4.make_test_env(self.cfg, k, 0, g, len(snaps))
+            env = fig4_agent.make_test_env(self.cfg, k, 0, g, len(snaps))
             fig4.test_trials(self.policy, env, k, snaps, cals)
         sync(self.cfg.device)
         s = (time.process_time() - t) / n
@@ -228,7 +230,7 @@ def main() -> None:
         k = cfg.experiment.test_episodes_per_trial
         ref_env, ref_agent, ref_policy = build(old_cfg, torchrl=True)
         ref_test_env = TransformedEnv(
-            fig4.make_test_env(cfg, k, 0), ref_policy.controllers[-1].primer()
+            fig4_agent.make_test_env(cfg, k, 0), ref_policy.controllers[-1].primer()
         )
     ref_s = 0.0
     for trial in range(args.warmup + args.trials):

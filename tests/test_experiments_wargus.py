@@ -17,8 +17,15 @@ from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import side_by_side
 from taskvar_torch.experiments import curves
-from taskvar_torch.factory import load_heads, make_env
-from taskvar_torch.families.wargus import fig4, fig4_metrics, fig4_report, fig4_trial
+from taskvar_torch.factory import load_heads, make_env, make_subtasks
+from taskvar_torch.families.wargus import (
+    fig4,
+    fig4_agent,
+    fig4_metrics,
+    fig4_repetition,
+    fig4_report,
+    fig4_trial,
+)
 from taskvar_torch.families.wargus.dynamics import WargusInstances
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads import snapshots
@@ -99,7 +106,7 @@ def test_metrics_have_every_method_and_key(results):
     assert sum(trace["per_subtask"].values()) == pytest.approx(1.0)
     assert m["timing"]["wall_seconds"] > 0
     cpu = m["timing"]["cpu_seconds_per_trial"]  # where a trial's CPU goes
-    assert list(cpu) == list(fig4.PHASES)
+    assert list(cpu) == list(fig4_repetition.PHASES)
     assert all(v >= 0 for v in cpu.values())
     assert cpu["learning_loop"] > 0 and cpu["test"] > 0
     assert m["protocol"]["seeds"] == [0, 1]
@@ -122,7 +129,9 @@ def test_repetitions_differ_and_same_seed_reproduces(results, tmp_path):
     assert any(not torch.equal(w0[k], w1[k]) for k in w0)
 
     cfg = load_config(results / "config.yaml")
-    again = fig4.run_repetition(cfg, 1, tmp_path)  # repetition 1 alone, in a fresh process state
+    again = fig4_repetition.run_repetition(
+        cfg, 1, tmp_path
+    )  # repetition 1 alone, in a fresh process state
     for i, name in enumerate(fig4.METHODS):
         assert again["items"][:, i].tolist() == m["methods"][name]["curve_per_rep"][1]
     assert again["learn_items"].tolist() == learn[1]
@@ -133,8 +142,8 @@ def test_side_by_side_equals_each_controller_alone():
     cfg = load_config(fig4.default_config_path(), [*TINY, "env.wargus.size=16"])
     env = TransformedEnv(make_env(cfg, num_envs=4, seed=3), InitTracker())
     torch.manual_seed(3)
-    agent = fig4.make_agent(cfg, env, seed=3)
-    controllers = fig4.make_test_controllers(agent)
+    agent = fig4_agent.make_agent(cfg, env, seed=3)
+    controllers = fig4_agent.make_test_controllers(agent)
     k = 3
 
     def nominal_env(n: int, primer) -> TransformedEnv:
@@ -286,11 +295,11 @@ def test_held_out_test_phases_play_sealed_instances_paired_and_apart_from_nomina
 
     cfg = load_config(fig4.default_config_path(), TINY)
     k, trials = 5, len(HELDOUT_SEEDS) // 5
-    env = fig4.make_heldout_test_env(cfg, k, seed=0, first_trial=0, trials=trials)
+    env = fig4_agent.make_heldout_test_env(cfg, k, seed=0, first_trial=0, trials=trials)
     seeds = env.reset()["instance", "seed"].view(trials, len(fig4.METHODS), k)
     assert (seeds == seeds[:, :1]).all()  # every method plays the same instances (paired)
     assert sorted(seeds[:, 0].flatten().tolist()) == list(HELDOUT_SEEDS)  # each sealed one once
-    nominal = fig4.make_test_env(cfg, k, seed=0, trials=2).reset()["instance", "seed"]
+    nominal = fig4_agent.make_test_env(cfg, k, seed=0, trials=2).reset()["instance", "seed"]
     assert not set(nominal.tolist()) & set(HELDOUT_SEEDS)
 
 
@@ -304,7 +313,7 @@ def test_the_hierarchy_hands_fe_exactly_the_states_with_a_patrol_in_sight(result
 
     heads, cfg = load_heads(results / "rep0" / "final.pt")
     env = make_env(cfg, 24, seed=5, instances="train", validate_actions=False)
-    subtasks = fig4.make_subtasks(cfg, env)
+    subtasks = make_subtasks(cfg, env)
     O = len(heads.option_names)  # noqa: E741
     cal = RobustnessCalibration(torch.full((O,), 1e6), torch.ones(O))
     ctrl = make_method_controller(cfg, "hierarchy", heads, subtasks, calibration=cal)

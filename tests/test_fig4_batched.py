@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from taskvar_torch.config import load_config
-from taskvar_torch.families.wargus import fig4
+from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition
 from taskvar_torch.heads.seeds import load_seed, split_seed, stack_seeds
 
 torch.set_num_threads(1)
@@ -34,13 +34,15 @@ def test_batched_repetitions_equal_each_alone(tmp_path):
     (a repetition whose episodes all ended draws nothing more) and their update phases fall at
     different steps."""
     cfg = load_config(fig4.default_config_path(), TINY)
-    batch = fig4.run_repetitions_batched(cfg, [0, 1, 2], tmp_path / "batch", test_group=2)
+    batch = fig4_repetition.run_repetitions_batched(
+        cfg, [0, 1, 2], tmp_path / "batch", test_group=2
+    )
     frames = [b["frames"].tolist() for b in batch]
     assert len({tuple(f) for f in frames}) == 3  # distinct streams, distinct phase lengths
     assert max(int(b["updates"][-1]) for b in batch) > 0
     for rep in (0, 2):
-        alone = fig4.run_repetition(cfg, rep, tmp_path / f"alone{rep}", test_group=2)
-        for key in (*KEYS, *(f"heldout_{k}" for k in fig4.HELDOUT_KEYS)):
+        alone = fig4_repetition.run_repetition(cfg, rep, tmp_path / f"alone{rep}", test_group=2)
+        for key in (*KEYS, *(f"heldout_{k}" for k in fig4_repetition.HELDOUT_KEYS)):
             assert alone[key].tolist() == batch[rep][key].tolist(), (rep, key)
         a = torch.load(tmp_path / f"alone{rep}/rep{rep}/final.pt", weights_only=True)
         b = torch.load(tmp_path / f"batch/rep{rep}/final.pt", weights_only=True)
@@ -60,14 +62,14 @@ def test_load_seed_is_split_seed_inverse():
     """Copying a run's weights into a stack and cutting it back out returns them; the other
     runs' rows are untouched."""
     cfg = load_config(fig4.default_config_path(), TINY)
-    runs = [fig4._start_repetition(cfg, r, 1) for r in range(3)]
+    runs = [fig4_repetition._start_repetition(cfg, r, 1) for r in range(3)]
     heads = [r.agent.heads for r in runs]
     batch = stack_seeds(heads)
     with torch.no_grad():
         for p in heads[1].parameters():
             p.add_(1.0)
     load_seed(batch, 1, heads[1])
-    template = fig4._start_repetition(cfg, 0, 1).agent.heads
+    template = fig4_repetition._start_repetition(cfg, 0, 1).agent.heads
     for s in range(3):
         out = split_seed(batch, s, template)
         for (name, p), q in zip(out.named_parameters(), heads[s].parameters()):
@@ -80,7 +82,7 @@ def test_behaviour_blocks_draw_from_their_own_generator_only():
     """With generators, block s's draws come from generator s alone: the same whatever the other
     blocks hold, and an inactive block draws nothing (its generator is left as it was)."""
     cfg = load_config(fig4.default_config_path(), TINY)
-    run = fig4._start_repetition(cfg, 0, 1)
+    run = fig4_repetition._start_repetition(cfg, 0, 1)
     a = run.agent
     env = run.learn_env
     td = env.reset_all().set("is_init", torch.ones(env.num_envs, 1, dtype=torch.bool))
@@ -88,7 +90,7 @@ def test_behaviour_blocks_draw_from_their_own_generator_only():
     def act(active):
         gens = [torch.Generator().manual_seed(s) for s in range(2)]
         batch = stack_seeds([a.heads, a.heads])
-        pol = fig4.make_behaviour(cfg, batch, a.subtasks, env.action_spec, gens)
+        pol = fig4_agent.make_behaviour(cfg, batch, a.subtasks, env.action_spec, gens)
         pol.set_epsilon(0.5)
         pol.set_active(active)
         both = torch.cat([td, td])

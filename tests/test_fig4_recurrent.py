@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from taskvar_torch.config import load_config
-from taskvar_torch.families.wargus import fig4
+from taskvar_torch.families.wargus import fig4, fig4_repetition
 from taskvar_torch.families.wargus import fig4_recurrent as rec
 from taskvar_torch.heads.recurrent import load_baseline
 
@@ -84,7 +84,7 @@ def test_recurrent_curve_beside_unchanged_paper_methods(tmp_path):
     cost = b["timing"]["baselines"]["recurrent"]
     assert set(cost["cpu_seconds_per_trial"]) == set(rec.PHASES)
     assert all(f > 0 for f in cost["frames_per_repetition"])
-    with open(tmp_path / "rec" / fig4.BASELINES_CSV) as f:
+    with open(tmp_path / "rec" / fig4_repetition.BASELINES_CSV) as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == R * T and {r["method"] for r in rows} == {"recurrent"}
     assert float(rows[0]["items"]) == curve[0][0]

@@ -9,7 +9,7 @@ from torchrl.envs import InitTracker, TransformedEnv
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import make_env
-from taskvar_torch.families.wargus import fig4
+from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 
@@ -56,8 +56,8 @@ def _agent(cfg, torchrl: bool):
     env = make_env(cfg, num_envs=cfg.experiment.learning_episodes_per_trial, seed=SEED)
     if torchrl:
         env = TransformedEnv(env, InitTracker())
-    agent = fig4.make_agent(cfg, env, SEED)
-    return env, agent, fig4.SideBySide(fig4.make_test_controllers(agent), K)
+    agent = fig4_agent.make_agent(cfg, env, SEED)
+    return env, agent, fig4.SideBySide(fig4_agent.make_test_controllers(agent), K)
 
 
 def _plain(tested: dict) -> dict:
@@ -70,7 +70,9 @@ def test_fast_trials_equal_torchrl_trials():
     by side on frozen heads equal the TorchRL loops trial by trial."""
     cfg = load_config(fig4.default_config_path(), SMALL)
     env, agent, policy = _agent(cfg, torchrl=True)
-    test_env = TransformedEnv(fig4.make_test_env(cfg, K, SEED), policy.controllers[-1].primer())
+    test_env = TransformedEnv(
+        fig4_agent.make_test_env(cfg, K, SEED), policy.controllers[-1].primer()
+    )
     torch.manual_seed(11)
     ref = []
     for _ in range(TRIALS):
@@ -85,7 +87,9 @@ def test_fast_trials_equal_torchrl_trials():
     for _ in range(TRIALS):
         learned.append((fig4.learning_phase(agent, env), agent.updates))
         snapshots.append(policy.head_values.snapshot())
-    tested = fig4.test_trials(policy, fig4.make_test_env(cfg, K, SEED, 0, TRIALS), K, snapshots)
+    tested = fig4.test_trials(
+        policy, fig4_agent.make_test_env(cfg, K, SEED, 0, TRIALS), K, snapshots
+    )
     fast = [(lrn, u, _plain(t)) for (lrn, u), t in zip(learned, tested)]
     assert fast == ref
     assert torch.equal(torch.get_rng_state(), ref_rng)
@@ -99,7 +103,7 @@ def test_fast_trials_equal_torchrl_trials():
     for p, q in zip(agent.heads.parameters(), ref_agent.heads.parameters()):
         assert torch.equal(p, q)
     # the last trial alone, on the live heads, as the batch gave it
-    alone = fig4.test_phase(policy, fig4.make_test_env(cfg, K, SEED, TRIALS - 1), K)
+    alone = fig4.test_phase(policy, fig4_agent.make_test_env(cfg, K, SEED, TRIALS - 1), K)
     assert _plain(alone) == fast[-1][2]
 
 
@@ -121,8 +125,8 @@ def test_head_values_equal_each_head_alone():
 def test_run_repetition_same_for_any_test_group(tmp_path):
     """Testing 2 trials side by side (then 1 left over) gives every trial's own episodes."""
     cfg = load_config(fig4.default_config_path(), [*SMALL, "experiment.trials=3"])
-    one = fig4.run_repetition(cfg, 0, tmp_path / "one", test_group=1)
-    two = fig4.run_repetition(cfg, 0, tmp_path / "two", test_group=2)
+    one = fig4_repetition.run_repetition(cfg, 0, tmp_path / "one", test_group=1)
+    two = fig4_repetition.run_repetition(cfg, 0, tmp_path / "two", test_group=2)
     for key in ("items", "interruptions", "control_steps", "learn_items", "frames", "updates"):
         assert one[key].tolist() == two[key].tolist(), key
     assert one["control_steps"].sum() > 0

@@ -14,7 +14,7 @@ Speed (docs/benchmarks.md, ``benchmarks/wargus_trial.py``): the loops step the p
 through :meth:`WargusEnv.reset_all` / :meth:`WargusEnv.step_all` (no ``EnvBase`` checks,
 transforms or ``step_mdp``), write replay once per update phase, run every head in one stacked
 pass (:class:`~taskvar_torch.heads.snapshots.HeadValues`), and test several trials
-(:data:`~taskvar_torch.families.wargus.fig4.TEST_GROUP`) side by side on frozen copies of their
+(:data:`~taskvar_torch.families.wargus.fig4_repetition.TEST_GROUP`) side by side on frozen copies of their
 heads (:func:`test_trials` with :class:`~taskvar_torch.controllers.side_by_side.SideBySide`). The
 TorchRL loops :func:`learning_phase_torchrl` / :func:`test_phase_torchrl` are kept as the
 reference the tests check them bit-equal to. ``train.compile`` also runs the behaviour's
@@ -256,7 +256,7 @@ def test_phase(policy: SideBySide, env: WargusEnv, k: int) -> dict[str, np.ndarr
 
     Returns per method ``items`` (mean per test episode), ``interruptions`` (per episode) and,
     over the hierarchy's live steps, the count of steps each subtask held control. ``env``: the
-    test env (:func:`~taskvar_torch.families.wargus.fig4.make_test_env`), at its next trial.
+    test env (:func:`~taskvar_torch.families.wargus.fig4_agent.make_test_env`), at its next trial.
     The fast loop (:func:`test_trials` with the live heads); the same episodes as
     :func:`test_phase_torchrl` (tested equal).
     """
@@ -274,7 +274,7 @@ def test_trials(
     """The test phases of ``G`` trials side by side: trial ``g`` with frozen heads
     ``snapshots[g]`` (:meth:`HeadValues.snapshot`; ``None``: one trial, the live heads) on rows
     ``(g, method, episode)`` of ``env``
-    (:func:`~taskvar_torch.families.wargus.fig4.make_test_env` with ``trials=G``).
+    (:func:`~taskvar_torch.families.wargus.fig4_agent.make_test_env` with ``trials=G``).
 
     Steps ``env``'s dynamics directly (:meth:`WargusEnv.step_all`) with
     :meth:`SideBySide.decide_batch`, carries ``running_option`` (-1 at the start) itself, and stops
