@@ -409,6 +409,23 @@ def migrate_overrides(overrides: Sequence[str], family: str | None = None) -> li
     return out
 
 
+def overrides_for(overrides: Sequence[str], family_name: str) -> list[str]:
+    """The ``overrides`` that apply to a config of ``family_name``: another family's own keys
+    (``env.<name>.*``, or their old ``env.*`` spellings, ``Family.legacy_env_keys``) are left out.
+    For overrides meant for configs of several families at once (the scale experiment's)."""
+    out = []
+    for item in overrides:
+        part = str(item).partition("=")[0].strip().split(".")
+        if len(part) >= 2 and part[0] == "env":
+            owner = part[1] if part[1] in FAMILIES and len(part) > 2 else None
+            if len(part) == 2:
+                owner = next((n for n in FAMILIES if part[1] in FAMILIES[n].legacy_env_keys), None)
+            if owner is not None and owner != family_name:
+                continue
+        out.append(item)
+    return out
+
+
 def _apply_overrides(
     schema: type, node: DictConfig, overrides: Sequence[str], label: str = "override"
 ) -> DictConfig:

@@ -19,6 +19,7 @@ from taskvar_torch.config import (
     config_to_dict,
     load_config,
 )
+from taskvar_torch.config.loader import overrides_for
 from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.recurrent import (
     BASELINES,
@@ -85,7 +86,8 @@ class ScaleConfig:
     only: tuple[str, ...] = ()
     """Names of the cases to run; empty: all."""
     overrides: tuple[str, ...] = ()
-    """key.sub=value overrides applied to every case's family config (before the case's own)."""
+    """key.sub=value overrides applied to every case's family config (before the case's own); a
+    family's own keys (``env.<family>.*``) reach its cases only."""
     keep_checkpoints: bool = False
     """Keep each cell's cells/<case>-n<N>/final.pt (with its replay buffer: large)."""
     curve_points: int = 10
@@ -205,7 +207,8 @@ def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
     ``updates_per_batch`` is scaled with it, keeping the config's updates per frame (or
     ``cfg.updates_per_frame`` when set).
     """
-    base = load_config(case.config, [*cfg.overrides, *case.overrides])
+    family = load_config(case.config).family  # the experiment's overrides hit its keys only
+    base = load_config(case.config, [*overrides_for(cfg.overrides, family), *case.overrides])
     t = base.train
     n = int(num_envs)
     total = case_frames(cfg, case)
