@@ -13,6 +13,7 @@ import torch
 from taskvar_torch import families
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
+from taskvar_torch.factory import build_heads, load_heads, make_env, make_subtasks
 from taskvar_torch.heads.recurrent import load_baseline
 from taskvar_torch.train import train
 
@@ -49,8 +50,9 @@ def test_paper_heads_are_the_same_bits_with_the_informed_head(tmp_path, config):
 
 
 def test_informed_bundle_holds_the_heads_evaluation_weights(tmp_path):
-    """``informed.pt`` plays the learner's informed head: the same Q-values on the same input
-    (its Polyak-averaged weights with ``train.eval_ema_tau``)."""
+    """``informed.pt`` plays the learner's informed head ``Q_avg + Delta``: its ``Delta`` is the
+    head's Polyak-averaged weights (``train.eval_ema_tau``), its ``Q_avg`` a copy of the
+    averaging head's, and it gives the heads' Q-values on the same input (self-contained)."""
     _train(tmp_path, "configs/windy_corridor.yaml", "heads.informed=true", "train.eval_ema_tau=0.1")
     bundle = load_checkpoint(tmp_path / "final.pt")
     ema = {
@@ -59,12 +61,33 @@ def test_informed_bundle_holds_the_heads_evaluation_weights(tmp_path):
         if k.startswith("heads.informed.")
     }
     ctrl, _ = load_baseline(tmp_path / "informed.pt")
-    mlp = ctrl.net[2].module.state_dict()
-    assert set(mlp) == set(ema)
-    for k in mlp:
-        assert torch.equal(mlp[k], ema[k])
+    assert ctrl.spec.residual
+    q = ctrl.net[1].module
+    delta = q.delta.state_dict()
+    assert set(delta) == set(ema)
+    for k in delta:
+        assert torch.equal(delta[k], ema[k])
     online = bundle["models"]["heads"]["heads.informed.module.mlp.0.weight"]
     assert not torch.equal(online, ema["0.weight"])  # the average, not the online weights
+    heads, _ = load_heads(tmp_path / "heads.pt")  # the evaluation heads
+    gen = torch.Generator().manual_seed(0)
+    obs = torch.rand(32, heads.spec.obs_dim, generator=gen)
+    z = torch.rand(32, heads.spec.informed_dim, generator=gen)
+    with torch.no_grad():
+        want = heads.heads["averaging"].module(obs) + heads.heads["informed"].module(obs, z)
+        assert torch.allclose(q(obs, z), want, atol=1e-5)
+
+
+def test_informed_head_starts_as_the_averaging_head():
+    """``Delta``'s last layer is zero at initialisation: ``Q_inf = Q_avg`` before any update."""
+    cfg = load_config("configs/taxi.yaml", ["env.num_envs=2"])
+    env = make_env(cfg, 2)
+    heads = build_heads(cfg, env, make_subtasks(cfg, env))
+    net = heads.heads["informed"].module
+    assert net.residual
+    obs = torch.rand(8, heads.spec.obs_dim)
+    z = torch.rand(8, heads.spec.informed_dim)
+    assert torch.equal(net(obs, z), torch.zeros(8, heads.spec.num_actions))
 
 
 def test_every_seed_folder_gets_its_informed_bundle(tmp_path):
