@@ -31,7 +31,7 @@ Trained as a plain DQN (the old form), or as the residual alone (``informed_anch
 on Taxi: on validation seeds 100 and 101 (``configs/taxi.yaml``, 2000 fresh training episodes,
 env seed 777) it returned -59.1 and -57.0 against averaging's 6.05 and 6.02, the residual alone
 preferring moves into walls the behaviour barely tries on rainy and even on dry instances; with
-``informed_anchor=0.3`` 2.64 and 5.43, with ``1.0`` 5.95 and ANCHOR101 (docs/memory.md).
+``informed_anchor=0.3`` 2.64 and 5.43, with ``1.0`` (the default) 5.95 and 6.04 (docs/memory.md).
 
 Its weights are initialised from a generator of their own (:data:`INFORMED_SEED_OFFSET`) and it
 takes no random draw while training, so the paper's heads are the same bits with it on or off
