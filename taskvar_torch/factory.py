@@ -230,6 +230,7 @@ class HeadSpec:
     robustness: bool
     option_input_mask: tuple[tuple[float, ...], ...] | None = None
     informed_dim: int | None = None
+    informed_residual: bool = False
 
     @classmethod
     def of(cls, cfg: Config, env: EnvBase, subtasks: Subtasks) -> HeadSpec:
@@ -251,6 +252,7 @@ class HeadSpec:
             robustness=has_robustness(subtasks),
             option_input_mask=mask,
             informed_dim=informed_features(cfg)[0] if cfg.heads.informed else None,
+            informed_residual=bool(cfg.heads.informed) and cfg.heads.network == "mlp",
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -275,6 +277,7 @@ class HeadSpec:
             robustness=bool(d["robustness"]),
             option_input_mask=None if mask is None else tuple(tuple(r) for r in mask),
             informed_dim=None if informed is None else int(informed),
+            informed_residual=bool(d.get("informed_residual", False)),  # False: written before
         )
 
 
@@ -369,6 +372,7 @@ def build_heads(cfg: Config, env: EnvBase | HeadSpec, subtasks: Subtasks | None 
             tuple(cfg.heads.hidden),
             cfg.heads.activation,
             cfg.seed,
+            residual=spec.informed_residual,
         )
     bundle = Heads(spec.option_names, **heads, softmax_temperature=mu_bar_temperature(cfg.train))
     bundle.spec = spec  # what a checkpoint records beside the weights (load_heads)
@@ -500,6 +504,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         max_value_estimator=t.max_value_estimator,
         max_value_instances=t.max_value_instances,
         matmul_dtype=t.matmul_dtype,
+        informed_anchor=cfg.heads.informed_anchor,
     )
     informed = informed_features(cfg)[1] if cfg.heads.informed else None
     loss = MultiHeadLoss(heads, subtasks, settings, family(cfg).instance_features, informed)

@@ -647,6 +647,7 @@ def write_informed(folder: Path, heads: Heads, cfg: Config, counters: dict[str, 
             spec.num_actions,
             cfg,
             counters=dict(counters),
+            averaging=heads.heads["averaging"] if heads.has("averaging") else None,
         )
 
 

@@ -49,12 +49,18 @@ class HeadsConfig:
     option's policy is its own network that sees its subtask's features only: TG the item's, FE
     the patrol's, both the agent's position; the composed root sees everything)."""
     informed: bool = False
-    """Train the informed baseline as one more head of the learner: the averaging head's network
-    (heads.hidden, heads.activation) reading the family's features of the hidden instance beside
-    the observation, on the same samples with the same settings; written as DIR/informed.pt, the
-    learnt ceiling of ``taskvar eval --method all`` (docs/memory.md). The paper's heads are the
-    same bits with it on or off. Needs a family with instance features (windy, Taxi, Wargus);
-    with heads.network=conv it is an MLP over the whole observation."""
+    """Train the informed baseline as one more head of the learner: the averaging head plus a
+    correction Delta (an MLP of heads.hidden, heads.activation) reading the family's features of
+    the hidden instance beside the observation, on the same samples with the same settings
+    (heads.informed_anchor); written as DIR/informed.pt, the learnt ceiling of ``taskvar eval
+    --method all`` (docs/memory.md). The paper's heads are the same bits with it on or off. Needs a
+    family with instance features (windy, Taxi, Wargus); with heads.network=conv it is a plain MLP
+    over the whole observation and the features (no residual)."""
+    informed_anchor: float = 1.0
+    """heads.informed: weight of the penalty ``mean_a Delta(s, z, a)^2`` that holds the informed
+    head to the averaging head (``Q_inf = Q_avg + Delta``) where the data do not move it
+    (heads/informed.py); 0 trains ``Delta`` by the TD loss alone. 1.0 chosen on Taxi validation
+    seeds 100 and 101 (0 and 0.3 loop; docs/memory.md)."""
 
 
 @dataclass(frozen=True)

@@ -189,6 +189,7 @@ def _check_heads(cfg: Config, fam: Family) -> None:
             f"({_families_with('option_inputs')}) and heads.network='mlp', "
             f"got family={cfg.family!r}, heads.network={cfg.heads.network!r}"
         )
+    _at_least("heads.informed_anchor", cfg.heads.informed_anchor, 0.0, 1e6)
     if cfg.heads.informed:
         if fam.informed_features is None and fam.instance_features is None:
             raise ValueError(

@@ -80,6 +80,7 @@ class LossSettings:
     max_value_estimator: str = "expectile"  # or "instance" (heads/max_value.py)
     max_value_instances: int = 64  # |Z| of the instance estimator's max
     matmul_dtype: str = "float32"  # or "bfloat16": the network passes under torch.autocast
+    informed_anchor: float = 0.0  # lambda of mean_a Delta^2 in the informed loss (informed.py)
 
 
 def _unique_params(module: nn.Module) -> TensorDictParams:
@@ -137,6 +138,12 @@ class MultiHeadLoss(LossModule):
         self.informed_features = informed_features
         if heads.has(INFORMED) and informed_features is None:
             raise ValueError("the informed head needs the family's informed_features")
+        if (
+            heads.has(INFORMED)
+            and getattr(head_network(heads.heads[INFORMED]), "residual", False)
+            and not heads.has("averaging")
+        ):
+            raise ValueError("the informed head (Q_avg + Delta) needs the ['averaging'] head")
         for name, needs in _NEEDS.items():
             missing = [n for n in needs if heads.has(name) and not heads.has(n)]
             if missing:
@@ -317,6 +324,10 @@ class MultiHeadLoss(LossModule):
                     batch,
                     s.gamma,
                     s.double_q,
+                    tuple(out.get("averaging") for out in outputs[:3])
+                    if "averaging" in outputs[0]
+                    else None,
+                    s.informed_anchor,
                 ).float()
         cur, nxt, nxt_target, far, far_target = (
             {k: v.float() for k, v in out.items()} for out in outputs

@@ -42,8 +42,10 @@ from taskvar_torch.checkpoint import CheckpointError, load_checkpoint, make_bund
 from taskvar_torch.config import Config, config_from_dict
 from taskvar_torch.heads.informed import (
     INSTANCE_FEATURES,
+    ResidualInformedQ,
     family_instance_keys,
     informed_features,
+    plain_member_mlp,
 )
 from taskvar_torch.heads.networks import make_mlp
 
@@ -185,9 +187,26 @@ def make_informed_qnet(
     instance_keys: tuple[str, ...],
     mlp: tuple[int, ...],
     activation: str = "relu",
+    residual: bool = False,
 ) -> TensorDictSequential:
     """The informed Q-network: ``[observation, instance_features] -> MLP -> QValueModule`` (its
-    MLP has the informed head's layout: :class:`~taskvar_torch.heads.informed.InformedNet`)."""
+    MLP has the informed head's layout: :class:`~taskvar_torch.heads.informed.InformedNet`);
+    ``residual``: ``Q_avg(observation) + Delta([observation, instance_features])``
+    (:class:`~taskvar_torch.heads.informed.ResidualInformedQ`, both MLPs of ``mlp`` widths), what
+    the learner's informed head is evaluated as."""
+    if residual:
+        return TensorDictSequential(
+            InstanceFeatures(features, instance_keys),
+            TensorDictModule(
+                ResidualInformedQ(
+                    make_mlp(obs_dim, num_actions, tuple(mlp), activation),
+                    make_mlp(obs_dim + instance_dim, num_actions, tuple(mlp), activation),
+                ),
+                in_keys=[keys.OBSERVATION, INSTANCE_FEATURES],
+                out_keys=[keys.ACTION_VALUE],
+            ),
+            QValueModule(action_space="categorical", action_value_key=keys.ACTION_VALUE),
+        )
     return TensorDictSequential(
         InstanceFeatures(features, instance_keys),
         TensorDictModule(_Concat(), in_keys=[keys.OBSERVATION, INSTANCE_FEATURES], out_keys=["x"]),
@@ -213,6 +232,9 @@ class BaselineSpec:
             ``("instance", key)`` entries they are read from (informed only).
         prev_reward: the recurrent network reads the previous reward (bundles written before it
             did load with ``False``).
+        residual: the informed network is ``Q_avg + Delta`` (the learner's informed head,
+            :class:`~taskvar_torch.heads.informed.ResidualInformedQ`); bundles written before it,
+            and ``train-baselines --method informed``, are a plain MLP (``False``).
     """
 
     method: str
@@ -223,6 +245,7 @@ class BaselineSpec:
     instance_dim: int = 0
     instance_keys: tuple[str, ...] = ()
     prev_reward: bool = True
+    residual: bool = False
 
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
@@ -248,6 +271,7 @@ class BaselineSpec:
             instance_dim=int(d.get("instance_dim", 0)),
             instance_keys=tuple(d.get("instance_keys", ())),
             prev_reward=bool(prev_reward),
+            residual=bool(d.get("residual", False)),
         )
 
 
@@ -268,6 +292,7 @@ def build_baseline(spec: BaselineSpec, cfg: Config) -> TensorDictSequential:
             spec.instance_keys,
             spec.mlp,
             act,
+            spec.residual,
         )
     raise ValueError(f"baseline method must be one of {list(BASELINES)}, got {spec.method!r}")
 
@@ -336,19 +361,30 @@ def save_informed_head(
     num_actions: int,
     cfg: Config,
     counters: dict[str, Any] | None = None,
+    averaging: nn.Module | None = None,
 ) -> Path:
     """Write the learner's informed head (:class:`~taskvar_torch.heads.informed.InformedNet`, or
     the ``TensorDictModule`` around it, of one run) as the ``informed`` baseline bundle ``path``:
-    the same weights in :func:`make_informed_qnet`'s network, which ``taskvar eval`` plays."""
+    the same weights in :func:`make_informed_qnet`'s network, which ``taskvar eval`` plays. A
+    residual head (``Q_avg + Delta``) needs the same bundle's ``averaging`` head, whose weights
+    the file then holds too (it is self-contained)."""
     net_in = informed.module if isinstance(informed, TensorDictModule) else informed
+    residual = bool(getattr(net_in, "residual", False))
     dim, feats = informed_features(cfg)
     ikeys = family_instance_keys(cfg)
     spec = BaselineSpec("informed", int(obs_dim), int(num_actions), tuple(cfg.heads.hidden))
-    spec.instance_dim, spec.instance_keys = int(dim), ikeys
+    spec.instance_dim, spec.instance_keys, spec.residual = int(dim), ikeys, residual
     net = make_informed_qnet(
-        spec.obs_dim, spec.num_actions, dim, feats, ikeys, spec.mlp, cfg.heads.activation
+        spec.obs_dim, spec.num_actions, dim, feats, ikeys, spec.mlp, cfg.heads.activation, residual
     )
-    net[2].module.load_state_dict(net_in.mlp.state_dict())
+    if residual:
+        if averaging is None:
+            raise ValueError("a residual informed head is written with its averaging head")
+        q = net[1].module
+        q.base.load_state_dict(plain_member_mlp(averaging, cfg.heads.activation).state_dict())
+        q.delta.load_state_dict(net_in.mlp.state_dict())
+    else:
+        net[2].module.load_state_dict(net_in.mlp.state_dict())
     return save_baseline(path, net, spec, cfg, counters)
 
 
