@@ -128,7 +128,7 @@ def informed_dry_policy(folder, cfg) -> torch.Tensor:
     every Taxi state of a dry instance (its features as a dry env's reset gives them)."""
     from tensordict import TensorDict
 
-    from taskvar_torch.envs.taxi_env import observation_table
+    from taskvar_torch.families.taxi.env import observation_table
 
     ctrl, _ = load_baseline(folder / "informed.pt")
     dry = make_env(cfg, 1).reset()["instance"]
@@ -148,7 +148,7 @@ def test_informed_reaches_the_exact_optimum_on_dry_taxi(tmp_path):
     the loaded 2-core CPU; at 120k frames 1.79, 7.93, 2.45 and at 100k -68.2, -21.7 (seeds 0, 1):
     the flat heads (averaging, and so informed = averaging + Delta) need about this budget on
     dry Taxi, so no cheaper run held it."""
-    from taskvar_torch.oracle.taxi import TaxiOracle
+    from taskvar_torch.families.taxi.oracle import TaxiOracle
 
     torch.set_num_threads(1)
     cfg = load_config("configs/taxi.yaml", DRY_BUDGET)
