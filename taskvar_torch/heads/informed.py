@@ -92,9 +92,9 @@ def informed_features(cfg: Config) -> tuple[int, Callable[[TensorDictBase], torc
 
 def family_instance_keys(cfg: Config) -> tuple[str, ...]:
     """The ``("instance", key)`` fields of the family's env (read from a one-env probe)."""
-    from taskvar_torch.factory import make_env
+    from taskvar_torch.families import family
 
-    env = make_env(cfg, 1)
+    env = family(cfg).make_env(cfg, 1)
     return tuple(
         k[1]
         for k in env.observation_spec.keys(True, True)
