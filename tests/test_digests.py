@@ -46,7 +46,7 @@ DIGESTS = {
         "ce6a643b85cb94ffbff78a57d4f48c70c92e517a189fbbb4fa4e8f0847c32e66",
     ),
     "windy": (
-        "96cefbb11115d0e3cff5a7417b8db6ff5d917030cf8376a611b0c393162ce8a4",
+        "0d0fc44868f082e6ba809a6c5e0449249843207d8ed87e0ee9ac0bb7324057b2",
         "3b4b000a09cd77cd0bbb86f63c5aeacb51924ac7cb3c3e488b8fa12a0ad53726",
     ),
 }

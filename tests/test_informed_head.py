@@ -144,8 +144,8 @@ def test_informed_reaches_the_exact_optimum_on_dry_taxi(tmp_path):
     informed head's greedy policy from ``informed.pt`` is within :data:`DRY_BOUND` of the exact
     optimum (7.930) in expectation over Taxi-v4's starts.
 
-    Measured (exact, seeds 0, 1, 2): 7.930 on all three at this budget, 60-100 s of training on
-    the loaded 2-core CPU; at 120k frames 1.79, 7.93, 2.45 and at 100k -68.2, -21.7 (seeds 0, 1):
+    Measured (exact, seeds 0, 1, 2): 7.930 on all three at this budget; the test takes 44 s on
+    one core of the 2-core CPU (60-100 s of training with a third process on it); at 120k frames 1.79, 7.93, 2.45 and at 100k -68.2, -21.7 (seeds 0, 1):
     the flat heads (averaging, and so informed = averaging + Delta) need about this budget on
     dry Taxi, so no cheaper run held it."""
     from taskvar_torch.families.taxi.oracle import TaxiOracle
