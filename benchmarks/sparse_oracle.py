@@ -108,7 +108,7 @@ def main() -> None:
         heads = build_heads(cfg, env, make_subtasks(cfg, env))
         sync(oracle.device)
         start = time.perf_counter()
-        head_report(heads, oracle, cfg.env.obs_encoding, cfg.env.patch_radius)
+        head_report(heads, oracle, cfg.env.windy.obs_encoding, cfg.env.windy.patch_radius)
         sync(oracle.device)
         print(f"  head report of an untrained bundle: {time.perf_counter() - start:.1f} s")
 
