@@ -73,7 +73,9 @@ def train_with_averages(config: str, overrides: list[str], seed: int, taus: list
 
 
 def report_line(heads, cfg, oracle) -> dict:
-    report = head_report(heads, oracle, cfg.env.windy.obs_encoding, cfg.env.windy.patch_radius, False)
+    report = head_report(
+        heads, oracle, cfg.env.windy.obs_encoding, cfg.env.windy.patch_radius, False
+    )
     gaps = {"averaging": report["averaging"]}
     gaps.update(report.get("options", {}))
     return {

@@ -82,7 +82,9 @@ def run_once(
 def measure(heads, cfg, oracle, max_value: bool) -> dict:
     """Each head's gap to its exact optimum, the heads within 2%, mu_bar's agreement, the options
     controller's exact return and (``max_value``) the interruption condition's agreement."""
-    report = head_report(heads, oracle, cfg.env.windy.obs_encoding, cfg.env.windy.patch_radius, max_value)
+    report = head_report(
+        heads, oracle, cfg.env.windy.obs_encoding, cfg.env.windy.patch_radius, max_value
+    )
     gaps = {"averaging": report["averaging"]}
     gaps.update(report.get("options", {}))
     return {
