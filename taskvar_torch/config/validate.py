@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
 from typing import Any
 
 import torch
@@ -40,6 +39,7 @@ from taskvar_torch.config.choices import (
 )
 from taskvar_torch.families import FAMILIES as _REGISTRY
 from taskvar_torch.families import Family, family
+from taskvar_torch.families import one_of as _one_of
 
 Config = Any
 """A :class:`taskvar_torch.config.schema.Config` (not imported: the schema calls :func:`_validate`
@@ -62,11 +62,6 @@ MAX_HORIZON = rng.RESET_COUNTER - 1
 MAX_REAL = 1e9
 """Largest magnitude of a real-valued key without a narrower range (thresholds, temperatures,
 gradient norms)."""
-
-
-def _one_of(key: str, value: Any, allowed: Sequence[str]) -> None:
-    if value not in allowed:
-        raise ValueError(f"{key} must be one of {sorted(allowed)}, got {value!r}")
 
 
 def _at_least(
