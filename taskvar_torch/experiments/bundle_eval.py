@@ -287,6 +287,8 @@ def _evaluate(
             plots=plots,
             overwrite=True,  # out_dir: refused above if it held any
         )
+    if baselines:  # each baseline's own training budget (it may differ from the heads')
+        metrics["baseline_frames"] = {m: b.total_frames for m, b in baselines.items()}
     if out_dir is not None:
         _write(Path(out_dir), metrics, rows, plots)
     return metrics

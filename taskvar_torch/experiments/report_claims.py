@@ -440,6 +440,21 @@ def _fig4_summary(g: Group, curves: dict[str, Any], reps: int) -> dict[str, Any]
     return at_a_glance.summarise(info, per_seed, _with_ceiling(per_seed), reps)
 
 
+def _eval_budget(g: Group) -> str:
+    """The heads' training frames, and a baseline's own where it trained on another budget:
+    ``300k frames (recurrent 1.2M)``."""
+    budget = _frames(g.config.get("bundle", {}).get("train"))
+    own: dict[str, str] = {}
+    for r in g.results:
+        for m, frames in (r.metrics.get("baseline_frames") or {}).items():
+            text = at_a_glance.frames_text(frames) if frames else budget
+            if text != budget:
+                own[m] = text.removesuffix(" frames")
+    if own:
+        budget += " (" + ", ".join(f"{m} {t}" for m, t in sorted(own.items())) + ")"
+    return budget
+
+
 def _eval_summary(g: Group, scores: dict[str, np.ndarray], reps: int) -> dict[str, Any]:
     family = g.config["eval"]["family"]
     per_seed = {m: s.mean(1) for m, s in scores.items()}  # the points' mean, per seed
@@ -448,7 +463,7 @@ def _eval_summary(g: Group, scores: dict[str, np.ndarray], reps: int) -> dict[st
         g,
         family,
         at_a_glance.row_name(g.label, family),
-        _frames(g.config.get("bundle", {}).get("train")),
+        _eval_budget(g),
         "mean return per episode" + (f" (mean over a curve's {n} points)" if n > 1 else ""),
     )
     points = [r.metrics["points"] for r in g.results]

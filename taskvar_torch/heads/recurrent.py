@@ -311,6 +311,7 @@ class BaselineController(TensorDictModuleBase):
         self.net = net
         self.spec = spec
         self.name = spec.method
+        self.total_frames: int | None = None  # its training budget, set by load_baseline
         self.in_keys = list(net.in_keys)
         self.out_keys = list(net.out_keys)
 
@@ -411,7 +412,9 @@ def load_baseline(
         raise CheckpointError(
             f"{str(path)!r} weights do not fit its spec: {str(e).splitlines()[0]}"
         ) from None
-    return BaselineController(net.to(device).eval(), spec), cfg
+    ctrl = BaselineController(net.to(device).eval(), spec)
+    ctrl.total_frames = int(cfg.train.total_frames)
+    return ctrl, cfg
 
 
 __all__ = [
