@@ -8,7 +8,7 @@ the seeds play different episodes, but a held-out test plays its sealed seed for
 ``OUT/eval-<test>/seed<k>/``: the layout ``taskvar report`` reads. Steps already done are skipped,
 so an interrupted run continues. Finally one table per test: each method's mean return, exact
 value and regret against the exact per-instance optimum (where the family has an oracle), as the
-mean over seeds with rliable's stratified-bootstrap 95% CI (``experiments/aggregate.py``).
+mean over seeds with rliable's stratified-bootstrap 95% CI (``study/aggregate.py``).
 
 Usage::
 
@@ -34,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from taskvar_torch.experiments.aggregate import interval_estimates
+from taskvar_torch.study.aggregate import interval_estimates
 
 COLUMNS = (("mean_return", "return"), ("exact_mean_return", "exact"), ("regret_mean", "regret"))
 

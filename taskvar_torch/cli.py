@@ -492,7 +492,7 @@ def _sweep_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _sweep_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.sweep import sweep
+    from taskvar_torch.study.sweep import sweep
 
     sweep(
         args.config,
@@ -667,7 +667,7 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _report_run(args: argparse.Namespace) -> int:
-    from taskvar_torch.experiments.report import CLAIMS, ReportError, add_rows, write_report
+    from taskvar_torch.study.report import CLAIMS, ReportError, add_rows, write_report
 
     if args.add:
         if args.readme is None:

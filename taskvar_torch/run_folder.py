@@ -547,9 +547,12 @@ def _interrupted(
 
 __all__ = [
     "LOCK_NAME",
+    "ResultsFolder",
     "RunFolder",
     "TrainingInterrupted",
+    "check_out_path",
     "check_output_folder",
+    "folder_lock",
     "resume_command",
     "run_files",
 ]

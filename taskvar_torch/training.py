@@ -959,11 +959,13 @@ def _log_row(
 
 
 __all__ = [
+    "HEADS_SNAPSHOTS",
     "LOGGER_EXTRAS",
     "RunLoggers",
     "TrainingDiverged",
     "check_logger",
     "epsilon_at",
     "lr_at",
+    "seed_config",
     "train",
 ]

@@ -26,17 +26,17 @@ from taskvar_torch.config import (
     save_config_yaml,
 )
 from taskvar_torch.config.loader import config_schema
-from taskvar_torch.experiments import scale as scale_experiment
-from taskvar_torch.experiments.scale import load_scale_config
-from taskvar_torch.experiments.scale_config import ScaleConfig
 from taskvar_torch.families.wargus import WargusConfig, fig4_metrics
 from taskvar_torch.families.windy import WindyGridEnv
 from taskvar_torch.families.windy import fig2 as windy_fig2
 from taskvar_torch.families.windy.family import EXACT_ORACLE_CELLS, windy_env_kwargs, windy_layout
+from taskvar_torch.study import scale as scale_experiment
+from taskvar_torch.study.scale import load_scale_config
+from taskvar_torch.study.scale_config import ScaleConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 # Training/experiment configs (the `Config` schema); `scale.yaml` is the scale experiment's own
-# schema (`experiments.scale_config.ScaleConfig`), checked in tests/test_experiments_scale.py.
+# schema (`study.scale_config.ScaleConfig`), checked in tests/test_experiments_scale.py.
 CONFIG_FILES = sorted(p for p in CONFIG_DIR.glob("*.yaml") if p.name != "scale.yaml")
 SCALE_CONFIG = CONFIG_DIR / "scale.yaml"
 WINDY = CONFIG_DIR / "windy.yaml"

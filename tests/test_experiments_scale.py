@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from taskvar_torch.cli import main
-from taskvar_torch.experiments import scale, scale_config, scale_eval, scale_report
+from taskvar_torch.study import scale, scale_config, scale_eval, scale_report
 
 torch.set_num_threads(1)
 

@@ -318,7 +318,7 @@ def test_a_ray_worker_killed_in_a_point_is_retried_or_reported(tmp_path):
     """Point seed=0's worker is killed once (retried: it completes); seed=1's on every try (after
     RAY_RETRIES retries it is a failed row); the sweep finishes with a row for each."""
     pytest.importorskip("ray")
-    from taskvar_torch.sweep import RAY_RETRIES
+    from taskvar_torch.study.sweep import RAY_RETRIES
 
     out = tmp_path / "sweep"
     kills = tmp_path / "kills"

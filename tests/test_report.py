@@ -1,4 +1,4 @@
-"""``taskvar report`` (experiments/report.py) on synthetic results folders whose answers are known:
+"""``taskvar report`` (study/report.py) on synthetic results folders whose answers are known:
 each verdict follows the data (a clear lead reproduces a claim, a tie does not), the figures are
 the per-seed numbers' own means, the README changes between its markers only, and every kind of
 bad input is one line that writes nothing."""
@@ -14,8 +14,8 @@ import yaml
 
 from taskvar_torch import cli
 from taskvar_torch.checkpoint import make_bundle, save_checkpoint
-from taskvar_torch.experiments import report, report_claims, report_folders
-from taskvar_torch.experiments import report_results as glance
+from taskvar_torch.study import report, report_claims, report_folders
+from taskvar_torch.study import report_results as glance
 
 METHODS = ("averaging", "options", "interruption", "hierarchy")
 START, END = report.README_START, report.README_END

@@ -12,8 +12,8 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.cli import main
-from taskvar_torch.experiments import scale, scale_cell, scale_config, scale_eval
 from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE
+from taskvar_torch.study import scale, scale_cell, scale_config, scale_eval
 
 torch.set_num_threads(1)
 

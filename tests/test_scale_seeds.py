@@ -14,8 +14,8 @@ import torch
 
 from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.cli import main
-from taskvar_torch.experiments import scale, scale_cell, scale_eval
 from taskvar_torch.factory import load_heads
+from taskvar_torch.study import scale, scale_cell, scale_eval
 
 torch.set_num_threads(1)
 

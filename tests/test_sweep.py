@@ -16,8 +16,13 @@ import torch
 
 from taskvar_torch import cli
 from taskvar_torch.factory import load_heads
-from taskvar_torch.sweep import sweep
-from taskvar_torch.sweep_grid import expand_points, load_point_configs, point_name, split_values
+from taskvar_torch.study.sweep import sweep
+from taskvar_torch.study.sweep_grid import (
+    expand_points,
+    load_point_configs,
+    point_name,
+    split_values,
+)
 
 torch.set_num_threads(1)
 

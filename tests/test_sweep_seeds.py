@@ -12,12 +12,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from taskvar_torch import sweep_jobs
 from taskvar_torch.factory import load_heads
 from taskvar_torch.families.windy import fig2 as windy_fig2
-from taskvar_torch.sweep import sweep
-from taskvar_torch.sweep_grid import expand_points, load_point_configs
-from taskvar_torch.sweep_jobs import plan_jobs
+from taskvar_torch.study import sweep_jobs
+from taskvar_torch.study.sweep import sweep
+from taskvar_torch.study.sweep_grid import expand_points, load_point_configs
+from taskvar_torch.study.sweep_jobs import plan_jobs
 
 torch.set_num_threads(1)
 

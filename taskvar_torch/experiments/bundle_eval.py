@@ -42,7 +42,7 @@ from taskvar_torch.experiments.paired import (
     parse_methods,
     play,
 )
-from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.plots import pyplot, save_figure
 from taskvar_torch.experiments.regret_plots import PNG_NAME as REGRET_PNG
 from taskvar_torch.experiments.regret_plots import plot_regret, regret_by_instance
 from taskvar_torch.experiments.regret_steps import PNG_NAME as STEPS_PNG
@@ -358,7 +358,7 @@ def _write(out: Path, metrics: dict[str, Any], rows: list[dict[str, Any]], plots
 def plot_eval(metrics: dict[str, Any], path: Path) -> Path:
     """Each method's mean return with its 95% CI: bars for one test point, else the shift curve
     against the swept value (with the oracle's exact values dashed where there are any)."""
-    plt = _pyplot()
+    plt = pyplot()
     points, methods = metrics["points"], metrics["methods"]
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     if len(points) == 1:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 
-def _pyplot():
+def pyplot():
     """pyplot, headless (Agg) in scripts and the CLI; a notebook keeps its inline backend."""
     # imported here: the backend must be chosen before pyplot is first imported
     import sys
@@ -46,7 +46,7 @@ def plot_sorted_differences(
     are drawn dashed in grey: the spread that chance alone produces. ``exact_runs`` (the oracle's
     exact expected-return differences of the same episodes) are drawn dotted in black.
     """
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
     for i, d in enumerate(runs):
         d = np.sort(np.asarray(d, dtype=float))
@@ -112,7 +112,7 @@ def plot_interruption_heatmap(
 ) -> Path:
     """Where offline interruption fired (paper §3.3, Algorithm 1 line 6): firings per episode per
     cell, one panel per test distribution, on the grid (walls hatched, goals outlined)."""
-    plt = _pyplot()
+    plt = pyplot()
     panels = [(k, v) for k, v in counts.items() if v is not None]
     fig, axes = plt.subplots(
         1,

@@ -125,7 +125,7 @@ EXPERIMENTS: dict[str, Experiment] = {
     ),
     "scale": Experiment(
         "scale",
-        "taskvar_torch.experiments.scale",
+        "taskvar_torch.study.scale",
         run="scale",
         schema="ScaleConfig",
         loader="load_scale_config",

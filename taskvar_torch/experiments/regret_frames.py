@@ -30,7 +30,7 @@ from taskvar_torch.experiments.paired import (
     parse_methods,
     play,
 )
-from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.plots import pyplot, save_figure
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
@@ -228,7 +228,7 @@ def write_by_frames(out: Path, data: dict[str, Any], plots: bool, title: str) ->
 def plot_regret_by_frames(data: Mapping[str, Any], path: Path, title: str) -> Path:
     """Each method's mean exact regret against training frames with its 95% CI band (log y where
     every value is positive; a regret of 0 is the per-instance optimum)."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     xs = np.array([p["frames"] for p in data["points"]], dtype=np.float64)
     lows = []

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from taskvar_torch.experiments.evaluation import mean_ci95
-from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.plots import pyplot, save_figure
 
 PNG_NAME = "regret.png"
 BINS = 8
@@ -83,7 +83,7 @@ def regret_by_instance(
 
 def plot_regret(data: dict[str, Any], path: Path, title: str) -> Path:
     """Each method's mean regret per group of the hidden field, with its 95% CI band."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     xs = np.arange(len(data["groups"]))
     for m, d in data["methods"].items():

@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from taskvar_torch.experiments.evaluation import mean_ci95
-from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.plots import pyplot, save_figure
 
 PNG_NAME = "regret_by_step.png"
 TAIL = 0.01
@@ -107,7 +107,7 @@ def plot_regret_by_step(data: Mapping[str, Any], path: Path, title: str) -> Path
     """Two panels against the step: each method's mean regret per step over all episodes with its
     95% CI band (the area under a line is the method's regret), and the fraction of episodes still
     playing."""
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax, live_ax) = plt.subplots(
         2, 1, figsize=(6.4, 5.2), sharex=True, gridspec_kw={"height_ratios": [3, 1.4]}
     )

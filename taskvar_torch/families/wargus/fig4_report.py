@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 
 from taskvar_torch.experiments.curves import moving_average
-from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.plots import pyplot, save_figure
 from taskvar_torch.families.wargus.fig4_metrics import EXPERIMENT, METHODS
 
 CSV_FIELDS = ("rep", "trial", "method", "items", "interruptions")
@@ -126,7 +126,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
 
     out = Path(out_dir)
     metrics = json.loads((out / "metrics.json").read_text())
-    plt = _pyplot()
+    plt = pyplot()
     fig, (ax, bx) = plt.subplots(
         2, 1, figsize=(8, 6), gridspec_kw={"height_ratios": [3, 1]}, sharex=True
     )

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.plots import pyplot, save_figure
 from taskvar_torch.families.windy import WindyOracle, render
 from taskvar_torch.families.windy import dynamics as windy
 
@@ -81,7 +81,7 @@ def format_table(result: dict) -> str:
 def plot_grid(layout: str, result: dict, path: Path) -> None:
     """PNG of the grid with the averaging policy's actions and expected returns per cell."""
 
-    plt = _pyplot()
+    plt = pyplot()
     lay = (
         windy.WindyLayout.named(layout)
         if layout in windy.LAYOUTS

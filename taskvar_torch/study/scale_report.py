@@ -1,6 +1,6 @@
 """Scaled-up grids report: ``scale.csv`` rows, the printed table and ``scale.png`` (docs/scale.md).
 
-Reads the ``metrics.json`` that :func:`taskvar_torch.experiments.scale.scale` writes (per cell:
+Reads the ``metrics.json`` that :func:`taskvar_torch.study.scale.scale` writes (per cell:
 frames, updates, training seconds, frames/s, each method's mean return with its 95% CI and the gap
 closed between the random policy and the exact averaging optimum, paper §3.1; the held-out
 block beside the nominal numbers, :func:`format_heldout`; the baselines of docs/memory.md as
@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from taskvar_torch.config import METHODS
-from taskvar_torch.experiments.plots import _pyplot, save_figure
+from taskvar_torch.experiments.plots import pyplot, save_figure
 
 EXPERIMENT = "scale"
 """``metrics.json``'s ``"experiment"`` (a results folder's kind)."""
@@ -295,7 +295,7 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
     cells, refs = metrics["cells"], metrics["references"]
     ns = sorted({c["num_envs"] for c in cells})
     families = list(dict.fromkeys(c["family"] for c in cells))  # in the order of the cases
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(
         2,
         1 + len(families),
@@ -336,7 +336,7 @@ def plot_curves(metrics: dict[str, Any], path: Path) -> Path:
     exact averaging optimum (windy) as horizontal references; a method whose curve equals one
     drawn before it (options when interruption never fires) is dashed and labelled so."""
     cells = [c for c in metrics["cells"] if len(c.get("curve") or []) > 1]
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(
         2, len(cells), figsize=(4.6 * len(cells), 7.2), squeeze=False, layout="constrained"
     )

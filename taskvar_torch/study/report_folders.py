@@ -4,8 +4,8 @@ or a folder of ``seed<k>/`` results folders) and groups the results by experimen
 config without its seed), checked: one config per ``DIR``, no training seed twice, at least
 :data:`MIN_SEEDS` seeds. Bad input is one line (:class:`ReportError`, a ``ValueError``).
 
-The claims are scored from these groups by :mod:`~taskvar_torch.experiments.report_claims` and
-written by :mod:`~taskvar_torch.experiments.report`.
+The claims are scored from these groups by :mod:`~taskvar_torch.study.report_claims` and
+written by :mod:`~taskvar_torch.study.report`.
 """
 
 from __future__ import annotations
@@ -65,7 +65,9 @@ class Group:
 # reading results folders
 
 
-def _read_json(path: Path) -> dict[str, Any]:
+def read_json(path: Path) -> dict[str, Any]:
+    """``path``'s JSON object; a one-line :class:`ReportError` when it cannot be read or is not
+    an object."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError) as e:
@@ -109,7 +111,7 @@ def _bundle_config(folder: Path, metrics: dict[str, Any]) -> dict[str, Any]:
 def load_result(folder: str | os.PathLike) -> Result:
     """One results folder (``folder/metrics.json`` of a :data:`KINDS` kind)."""
     folder = Path(folder)
-    metrics = _read_json(folder / "metrics.json")
+    metrics = read_json(folder / "metrics.json")
     kind = metrics.get("experiment")
     if kind not in KINDS:
         raise ReportError(
@@ -264,4 +266,5 @@ __all__ = [
     "Result",
     "collect",
     "load_result",
+    "read_json",
 ]

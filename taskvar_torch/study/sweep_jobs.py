@@ -1,5 +1,5 @@
-"""What a sweep's workers run (:mod:`taskvar_torch.sweep`, ``taskvar sweep``): one point, the same
-function as ``taskvar experiment`` (:func:`run_point`, paper §3.3.1 and §3.5), or a seed batch:
+"""What a sweep's workers run (:mod:`~taskvar_torch.study.sweep`, ``taskvar sweep``): one point, the
+same function as ``taskvar experiment`` (:func:`run_point`, paper §3.3.1 and §3.5), or a seed batch:
 points whose configs differ only in consecutive seeds, trained as one run with ``train.seeds = k``
 (the batched trainer, docs/seeds.md) in ``OUT/batches/<name>/`` and each point then evaluating its
 seed's bundle (:func:`seed_batches`, :func:`run_batch`); :func:`plan_jobs` turns the points into
@@ -26,7 +26,7 @@ from taskvar_torch.config import Config, apply_overrides, config_to_dict
 from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import write_json
 from taskvar_torch.families import family
-from taskvar_torch.sweep_grid import SweepPoint, point_name
+from taskvar_torch.study.sweep_grid import SweepPoint, point_name
 from taskvar_torch.training import TrainingDiverged, train
 
 POINT_LOG = "output.txt"

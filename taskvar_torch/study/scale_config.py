@@ -1,5 +1,5 @@
 """The scale experiment's config (docs/scale.md; mirrored by configs/scale.yaml, loaded strictly by
-:func:`taskvar_torch.experiments.scale.load_scale_config`): the cases (a family config each: windy
+:func:`taskvar_torch.study.scale.load_scale_config`): the cases (a family config each: windy
 5x5, 25x25, 51x51 with 4 exits; Wargus 32x32, 64x64 with 3 patrols), the ``num_envs`` values, the
 frame budget and the evaluation sizes (:class:`ScaleConfig`), and each cell's training config
 (:func:`case_config`: ``env.num_envs = N``, the exploration schedule scaled to the budget,

@@ -33,8 +33,9 @@ are kept (their metrics read back for the summary), the others run again from sc
 point's partial folder is replaced). A point folder holding results of another config is refused.
 Without ``resume`` or ``overwrite`` a folder already holding a sweep is refused.
 
-The grid (points, configs, resume, summary) is :mod:`taskvar_torch.sweep_grid`, what a worker runs
-(a point, a seed batch) :mod:`taskvar_torch.sweep_jobs`; this module runs the jobs on a backend.
+The grid (points, configs, resume, summary) is :mod:`taskvar_torch.study.sweep_grid`, what a
+worker runs (a point, a seed batch) :mod:`taskvar_torch.study.sweep_jobs`; this module runs the
+jobs on a backend.
 
 Examples:
     >>> points = expand_points(["seed=0,1", "train.lr=0.002"])
@@ -57,15 +58,15 @@ from taskvar_torch.experiments.results import refuse_existing_results, write_csv
 from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder, check_out_path, check_output_folder, folder_lock
-from taskvar_torch.sweep_grid import (
+from taskvar_torch.study.sweep_grid import (
     SweepPoint,
-    _summary_rows,
     completed_points,
     expand_points,
     format_summary,
     load_point_configs,
+    summary_rows,
 )
-from taskvar_torch.sweep_jobs import BATCHES, Job, plan_jobs, run_job
+from taskvar_torch.study.sweep_jobs import BATCHES, Job, plan_jobs, run_job
 
 BACKENDS = ("local", "ray")
 """Config family -> the experiment each sweep point runs (as ``taskvar experiment NAME``)."""
@@ -277,7 +278,7 @@ def _sweep(
     results = [done[i] if i in done else None for i in range(len(points))]
     for i, r in zip([i for j in jobs for i in j.points], ran):
         results[i] = r
-    rows = _summary_rows(points, results)
+    rows = summary_rows(points, results)
     fields = list(dict.fromkeys(k for row in rows for k in row))
     write_csv(out / SUMMARY_CSV, rows, fields)
     summary = {

@@ -8,10 +8,10 @@ docs/claims.md is the page, docs/report.md its guide), on the **sealed held-out*
 - **§3.2's premise**: a capability is less affected by variability than the full task, over the
   points of a ``taskvar eval --shift`` curve (:func:`_eval`);
 
-each aggregated over training seeds with ``rliable`` (:mod:`taskvar_torch.experiments.aggregate`)
+each aggregated over training seeds with ``rliable`` (:mod:`taskvar_torch.study.aggregate`)
 and given a verdict by the rules in :data:`RULES`. :func:`build_report` computes every group's
 claims, README row, profile panel and the per-group summaries behind the compact tables
-(:mod:`~taskvar_torch.experiments.report_results`); :mod:`~taskvar_torch.experiments.report`
+(:mod:`~taskvar_torch.study.report_results`); :mod:`~taskvar_torch.study.report`
 writes them.
 """
 
@@ -24,10 +24,10 @@ from typing import Any
 import numpy as np
 
 from taskvar_torch.config.choices import FIG4_BASELINES
-from taskvar_torch.experiments import aggregate
-from taskvar_torch.experiments import report_results as at_a_glance
 from taskvar_torch.experiments.curves import trials_to_fraction_of_max
-from taskvar_torch.experiments.report_folders import Group, ReportError, Result, collect
+from taskvar_torch.study import aggregate
+from taskvar_torch.study import report_results as at_a_glance
+from taskvar_torch.study.report_folders import Group, ReportError, Result, collect
 
 NO_WORSE = 0.75
 """Figure 2: the least fraction no worse that reads as the paper's "almost 80%"."""
@@ -341,7 +341,7 @@ def _scale(g: Group, reps: int) -> str:
 class Report:
     """What ``taskvar report`` writes: the claims, the README rows, the profile panels and the
     per-group summaries behind the compact tables and the regret figure
-    (:mod:`~taskvar_torch.experiments.report_results`)."""
+    (:mod:`~taskvar_torch.study.report_results`)."""
 
     groups: list[Group]
     claims: list[Claim]
@@ -382,7 +382,7 @@ def build_report(dirs: Sequence[str], reps: int = aggregate.REPS) -> Report:
 
 
 # --------------------------------------------------------------------------------------------
-# the compact tables' and the regret figure's data, per group (experiments/report_results.py)
+# the compact tables' and the regret figure's data, per group (study/report_results.py)
 
 
 def _group_info(g: Group, family: Any, row: str, budget: str, score: str) -> dict[str, Any]:

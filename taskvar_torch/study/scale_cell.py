@@ -1,6 +1,6 @@
 """One cell of the scale experiment (docs/scale.md; a case and a ``num_envs`` value,
 :func:`run_cell`): every head trained with the real trainer (``train.seeds = k`` with ``seeds > 1``),
-each seed's bundle evaluated (:mod:`~taskvar_torch.experiments.scale_eval`), the aggregate over
+each seed's bundle evaluated (:mod:`~taskvar_torch.study.scale_eval`), the aggregate over
 seeds (:func:`over_seeds`, rliable's stratified-bootstrap 95% CIs), the baselines of docs/memory.md
 trained and played on the same episodes (:func:`baseline_phase`), the held-out block
 (:func:`heldout_references`, :func:`heldout_block`), the learning curve and the peak memory.
@@ -22,23 +22,23 @@ from taskvar_torch.config import (
     METHODS,
     Config,
 )
-from taskvar_torch.experiments.scale_config import ScaleCase, ScaleConfig, case_config
-from taskvar_torch.experiments.scale_eval import (
-    HELDOUT_TEST,
-    _family_figure,
-    evaluate,
-    gap_closed,
-    grid_side,
-    heldout_test,
-    isolated_rng,
-    references,
-)
 from taskvar_torch.factory import load_heads
 from taskvar_torch.families import family
 from taskvar_torch.heads.recurrent import (
     BaselineController,
     baseline_path,
     load_baseline,
+)
+from taskvar_torch.study.scale_config import ScaleCase, ScaleConfig, case_config
+from taskvar_torch.study.scale_eval import (
+    HELDOUT_TEST,
+    evaluate,
+    family_figure,
+    gap_closed,
+    grid_side,
+    heldout_test,
+    isolated_rng,
+    references,
 )
 from taskvar_torch.train_recurrent import train_baseline
 from taskvar_torch.training import HEADS_SNAPSHOTS, seed_config, train
@@ -117,14 +117,14 @@ def run_cell(
         "case": case.name,
         "family": ccfg.family,
         "grid_side": grid_side(ccfg),
-        "cells": _family_figure(ccfg, "cells"),
+        "cells": family_figure(ccfg, "cells"),
         "num_envs": int(num_envs),
         "frames": int(result["frames"]),
         "updates": int(result["updates"]),
         "frames_per_batch": ccfg.train.frames_per_batch,
         "updates_per_batch": ccfg.train.updates_per_batch,
         "hidden": list(ccfg.heads.hidden),
-        "obs_encoding": _family_figure(ccfg, "observation"),
+        "obs_encoding": family_figure(ccfg, "observation"),
         "train_seconds": secs,
         "frames_per_second": result["frames"] / secs if secs > 0 else None,
         "eval_seconds": time.perf_counter() - t0,
@@ -308,12 +308,12 @@ def over_seeds(
 ) -> dict[str, dict[str, Any] | None]:
     """Each method's mean test return per seed (``per_seed[i][method]["mean_return"]``, same
     episodes for every seed), aggregated over the seeds with rliable
-    (:func:`taskvar_torch.experiments.aggregate.interval_estimates`: one task, the seeds as runs):
+    (:func:`taskvar_torch.study.aggregate.interval_estimates`: one task, the seeds as runs):
     ``mean_return`` with ``mean_ci95`` = [lo, hi] (stratified bootstrap, percentile), the IQM with
     its CI, the per-seed means (``returns``) and the gap closed by the mean and by the CI's ends;
     ``None`` where the method does not apply. ``methods``: which entries (default the paper's; a
     cell's baselines are aggregated in a call of their own, :func:`baseline_phase`)."""
-    from taskvar_torch.experiments.aggregate import interval_estimates
+    from taskvar_torch.study.aggregate import interval_estimates
 
     scores = {
         m: [[s[m]["mean_return"]] for s in per_seed]

@@ -53,10 +53,10 @@ CI, :func:`over_seeds`); ``scale.csv`` gets a ``seed`` column and one row per se
 table adds each cell's aggregate, and ``scale.png``'s final-return panels draw it.
 
 This module is the protocol (:func:`scale`) and the registry's entry points (the loader, the
-default config); the config is :mod:`taskvar_torch.experiments.scale_config`, the evaluation and
-the references :mod:`taskvar_torch.experiments.scale_eval`, one cell (training, seeds, baselines,
-held-out block) :mod:`taskvar_torch.experiments.scale_cell`, and the report (``scale.csv``'s rows,
-the table, ``scale.png``) :mod:`taskvar_torch.experiments.scale_report`, whose public names are
+default config); the config is :mod:`taskvar_torch.study.scale_config`, the evaluation and
+the references :mod:`taskvar_torch.study.scale_eval`, one cell (training, seeds, baselines,
+held-out block) :mod:`taskvar_torch.study.scale_cell`, and the report (``scale.csv``'s rows,
+the table, ``scale.png``) :mod:`taskvar_torch.study.scale_report`, whose public names are
 re-exported here.
 
 Examples:
@@ -81,21 +81,23 @@ from taskvar_torch.config import (
     save_config_yaml,
 )
 from taskvar_torch.experiments.results import write_csv, write_json
-from taskvar_torch.experiments.scale_cell import (
+from taskvar_torch.progress import progress_bar
+from taskvar_torch.run_folder import ResultsFolder
+from taskvar_torch.study.scale_cell import (
     heldout_references,
     run_cell,
 )
-from taskvar_torch.experiments.scale_config import (
+from taskvar_torch.study.scale_config import (
     TEST_SEED_OFFSET,
     ScaleConfig,
     case_config,
     check_case_baselines,
 )
-from taskvar_torch.experiments.scale_eval import (
+from taskvar_torch.study.scale_eval import (
     HELDOUT_TEST,
     references,
 )
-from taskvar_torch.experiments.scale_report import (
+from taskvar_torch.study.scale_report import (
     COLOURS,
     CSV_FIELDS,
     CSV_NAME,
@@ -117,8 +119,6 @@ from taskvar_torch.experiments.scale_report import (
     plot_results,
     report_methods,
 )
-from taskvar_torch.progress import progress_bar
-from taskvar_torch.run_folder import ResultsFolder
 
 
 def default_config_path() -> Path:

@@ -28,7 +28,6 @@ from taskvar_torch.config import (
     Config,
 )
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
-from taskvar_torch.experiments.scale_config import TEST_SEED_OFFSET
 from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import make_env, make_method_controller, make_subtasks
 from taskvar_torch.families import family
@@ -36,6 +35,7 @@ from taskvar_torch.heads.recurrent import (
     BASELINES,
     BaselineController,
 )
+from taskvar_torch.study.scale_config import TEST_SEED_OFFSET
 
 HELDOUT_TEST = "heldout"
 """The family test distribution (``Family.tests``) the held-out block plays: the sealed instances
@@ -46,7 +46,7 @@ HELDOUT_TEST = "heldout"
 # evaluation on fresh test instances
 
 
-def _family_figure(cfg: Config, name: str) -> Any:
+def family_figure(cfg: Config, name: str) -> Any:
     """A family's table figure (``grid_side``, ``cells``, ``observation``), ``None`` if it has
     none."""
     f = getattr(family(cfg), name)
@@ -55,7 +55,7 @@ def _family_figure(cfg: Config, name: str) -> Any:
 
 def grid_side(cfg: Config) -> int:
     """The grid's side length (windy: max of height and width; Wargus: ``size``)."""
-    return _family_figure(cfg, "grid_side")
+    return family_figure(cfg, "grid_side")
 
 
 def make_test_env(
@@ -226,6 +226,7 @@ __all__ = [
     "HeldoutTest",
     "TablePolicy",
     "evaluate",
+    "family_figure",
     "gap_closed",
     "grid_side",
     "heldout_test",

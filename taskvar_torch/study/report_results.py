@@ -1,5 +1,5 @@
 """The README's Results at a glance (issue 48), written by ``taskvar report``
-(:mod:`taskvar_torch.experiments.report`) from the same results folders as the claims:
+(:mod:`taskvar_torch.study.report`) from the same results folders as the claims:
 
 - per family, one compact table: the methods as columns, one row per results group (a test
   distribution, a protocol), each cell the method's score as the mean over training seeds with its
@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from taskvar_torch.config import METHODS
-from taskvar_torch.experiments import aggregate
 from taskvar_torch.heads.recurrent import BASELINES
+from taskvar_torch.study import aggregate
 
 CEILING = "informed"
 """The baseline that sees the hidden instance: a ceiling, shown but never marked the winner."""
@@ -190,9 +190,9 @@ def results_png(summaries: Sequence[Mapping[str, Any]], software: str) -> bytes 
     from matplotlib.lines import Line2D
     from matplotlib.ticker import FuncFormatter
 
-    from taskvar_torch.experiments.plots import _pyplot
+    from taskvar_torch.experiments.plots import pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     methods_all = _regret_methods([s for _, rows in panels for s in rows])
     heights = [0.5 + 0.22 * len(rows) * len(_regret_methods(rows)) for _, rows in panels]
     fig, axes = plt.subplots(

@@ -1,4 +1,4 @@
-"""The grid of a sweep (:mod:`taskvar_torch.sweep`, ``taskvar sweep``; docs/sweeps.md): the
+"""The grid of a sweep (:mod:`taskvar_torch.study.sweep`, ``taskvar sweep``; docs/sweeps.md): the
 ``key=v1,v2,...`` overrides parsed into points (the Cartesian product of the swept values,
 :func:`expand_points`), each point's config strictly loaded (:func:`load_point_configs`), the
 points already complete in a folder (``--resume``, :func:`completed_points`), and the summary table
@@ -189,7 +189,7 @@ def _first_difference(a: Any, b: Any, prefix: str = "") -> str:
     return prefix.rstrip(".") or "config"
 
 
-def _summary_rows(points: Sequence[Any], results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+def summary_rows(points: Sequence[Any], results: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     """One summary row per point: its swept values, headline numbers, seconds (and error)."""
     rows = []
     for p, r in zip(points, results):
@@ -222,4 +222,5 @@ __all__ = [
     "load_point_configs",
     "point_name",
     "split_values",
+    "summary_rows",
 ]

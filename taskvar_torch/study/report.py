@@ -5,7 +5,7 @@ It reads results folders -- ``taskvar experiment windy-fig2`` / ``wargus-fig4`` 
 ``taskvar eval --out`` folders, each holding ``metrics.json``, or a folder of ``seed<k>/`` results
 folders (one training seed each) -- groups them by experiment and config (the config without its
 seed), and for every group aggregates over training seeds with ``rliable``
-(:mod:`taskvar_torch.experiments.aggregate`: IQM and mean with stratified-bootstrap 95% CIs,
+(:mod:`taskvar_torch.study.aggregate`: IQM and mean with stratified-bootstrap 95% CIs,
 paired differences, probability of improvement over the averaging policy, performance profiles).
 The claims are scored on the **sealed held-out** instances (``families.HELDOUT_SEED``), never on
 the nominal ones the designs were iterated on:
@@ -27,7 +27,7 @@ Results that score no claim (other families' evaluations, the baselines) can als
 table alone (:func:`add_rows`, ``taskvar report --add``), the other rows kept.
 
 The README's Results block is read in a minute (issue 48,
-:mod:`~taskvar_torch.experiments.report_results`): the regret figure, per family one compact table
+:mod:`~taskvar_torch.study.report_results`): the regret figure, per family one compact table
 (methods as columns, a row per group, mean [95% CI] over seeds, the winners bold), and the table of
 every result folded away; the per-group summaries behind them are kept beside the claims page
 (``<stem>-results.json``) so that ``--add`` draws them again with the groups it adds.
@@ -39,8 +39,8 @@ README without the marker comments, an output file (page, PNG, results JSON) tha
 did not write (unless ``overwrite``). Every file is written atomically (``taskvar_torch/io.py``).
 
 This module writes the page, the README block and the figures; the folders are read and grouped by
-:mod:`~taskvar_torch.experiments.report_folders`, the claims scored by
-:mod:`~taskvar_torch.experiments.report_claims`.
+:mod:`~taskvar_torch.study.report_folders`, the claims scored by
+:mod:`~taskvar_torch.study.report_claims`.
 """
 
 from __future__ import annotations
@@ -55,16 +55,16 @@ from typing import Any
 
 import numpy as np
 
-from taskvar_torch.experiments import aggregate
-from taskvar_torch.experiments import report_results as at_a_glance
-from taskvar_torch.experiments.report_claims import CLAIMS, RULES, Report, build_report
-from taskvar_torch.experiments.report_folders import (
-    MIN_SEEDS,
-    ReportError,
-    _read_json,
-)
 from taskvar_torch.io import atomic_write
 from taskvar_torch.run_folder import check_out_path, folder_lock
+from taskvar_torch.study import aggregate
+from taskvar_torch.study import report_results as at_a_glance
+from taskvar_torch.study.report_claims import CLAIMS, RULES, Report, build_report
+from taskvar_torch.study.report_folders import (
+    MIN_SEEDS,
+    ReportError,
+    read_json,
+)
 
 README_START = "<!-- report:results:start -->"
 README_END = "<!-- report:results:end -->"
@@ -220,7 +220,7 @@ def _read_summaries(path: Path) -> list[dict[str, Any]]:
     """The summaries ``taskvar report`` kept in ``path`` (none where there is no file)."""
     if not path.exists():
         return []
-    data = _read_json(path)
+    data = read_json(path)
     if data.get("written_by") != PNG_SOFTWARE:
         raise ReportError(f"{str(path)!r} exists and was not written by taskvar report; move it")
     return list(data.get("groups", []))
@@ -299,9 +299,9 @@ def profile_png(report: Report, reps: int) -> bytes | None:
     panels = [p for p in report.profiles if p[1]]
     if not panels:
         return None
-    from taskvar_torch.experiments.plots import _pyplot
+    from taskvar_torch.experiments.plots import pyplot
 
-    plt = _pyplot()
+    plt = pyplot()
     fig, axes = plt.subplots(1, len(panels), figsize=(5.0 * len(panels), 3.6), squeeze=False)
     for ax, (title, scores, xlabel) in zip(axes[0], panels):
         allv = np.concatenate([np.asarray(v, dtype=float).ravel() for v in scores.values()])
