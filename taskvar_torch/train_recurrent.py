@@ -8,13 +8,13 @@ compared with differ only where they must:
 
 * the budget ``train.total_frames`` and ``train.frames_per_batch``; epsilon-greedy exploration
   (:class:`~torchrl.modules.EGreedyModule`) at the heads' schedule
-  (:func:`~taskvar_torch.training.epsilon_at`: uniform for ``train.init_random_frames``, then
+  (:func:`~taskvar_torch.learning.epsilon_at`: uniform for ``train.init_random_frames``, then
   ``eps_start -> eps_end`` by ``eps_decay_frames``); ``train.updates_per_batch`` gradient steps
   per batch of ``train.batch_size`` rows from a replay of ``train.buffer_size``;
 * ``DQNLoss(double_dqn=train.double_q, delay_value=True)`` at ``train.gamma``, the target network
   updated as ``train.target_update`` says (``SoftUpdate`` at ``train.target_tau``, or
   ``HardUpdate`` every ``train.target_period``), Adam at ``train.lr`` (decayed to
-  ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.training.lr_at`), gradients clipped at
+  ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.learning.lr_at`), gradients clipped at
   ``train.max_grad_norm``, and the evaluation weights a Polyak average where
   ``train.eval_ema_tau`` is set;
 * the Q head's widths and activation ``heads.hidden``, ``heads.activation``.
@@ -75,6 +75,7 @@ from taskvar_torch.heads.recurrent import (
     make_recurrent_qnet,
     save_baseline,
 )
+from taskvar_torch.learning import epsilon_at, learn_batch, non_finite
 
 EPISODE_START = "episode_start"
 """Stored copy of ``is_init`` (a step that starts an episode): the sampler marks every slice start
@@ -233,9 +234,13 @@ class BaselineLearner:
         for group in self.optim.param_groups:
             group["lr"] = lr
 
-    def update(self) -> torch.Tensor:
-        """One gradient step on one replay sample; returns the loss (detached)."""
-        sample = self.buffer.sample().to(self.device)
+    def sample(self) -> TensorDictBase:
+        """One replay sample: ``train.batch_size`` transitions, or (recurrent) the slices."""
+        return self.buffer.sample()
+
+    def update(self, sample: TensorDictBase) -> torch.Tensor:
+        """One gradient step on ``sample`` (:meth:`sample`); returns the loss (detached)."""
+        sample = sample.to(self.device)
         if self.recurrent:
             # slice starts are init steps for the next-state pass too (stored hidden state)
             nxt = (keys.NEXT, "is_init")
@@ -272,9 +277,10 @@ def train_baseline(
     "seconds", "mean_train_return"}`` (the mean return of the episodes that ended in the last
     tenth of training, exploration included).
 
+    The loop: a TorchRL ``Collector`` of ``train.frames_per_batch`` frames; each batch stored
+    (:meth:`BaselineLearner.store`), then the heads' learning step
+    (:func:`~taskvar_torch.learning.learn_batch`) and epsilon (:func:`~taskvar_torch.learning.epsilon_at`).
     Seeded by ``cfg.seed`` (torch's global generator and the env's keyed streams)."""
-    from taskvar_torch.training import epsilon_at, lr_at
-
     t = cfg.train
     torch.manual_seed(int(cfg.seed))
     net, spec, env = build_for_training(cfg, method)
@@ -305,12 +311,11 @@ def train_baseline(
         if frames > 0.9 * int(t.total_frames):
             returns.append(data.get((keys.NEXT, "episode_reward")).squeeze(-1)[done])
         learner.store(data.select(*store, strict=False))
-        if frames >= int(t.init_random_frames) and len(learner.buffer) >= t.batch_size:
-            learner.set_lr(lr_at(frames, t))
-            for _ in range(learner.updates_per_batch):
-                value = learner.update()
-                updates += 1
-        explore.eps.fill_(epsilon_at(frames, t))  # the heads' schedule (train.epsilon_at)
+        losses = learn_batch(learner, learner.sample, frames, len(learner.buffer), t)
+        if losses is not None:
+            value = losses
+            updates += learner.updates_per_batch
+        explore.eps.fill_(epsilon_at(frames, t))  # the heads' schedule
         if bar is not None:
             bar.update(n)
         if log is not None and updates and updates % 1000 < learner.updates_per_batch:
@@ -318,7 +323,7 @@ def train_baseline(
     collector.shutdown()
     if bar is not None:
         bar.close()
-    if not all(bool(p.isfinite().all()) for p in learner.eval_net.parameters()):
+    if non_finite({"weights": learner.eval_net.parameters()}):
         raise ValueError(f"the {method} baseline diverged (non-finite weights); nothing written")
     seconds = time.perf_counter() - start
     path = baseline_path(Path(out_dir) / "final.pt", method)

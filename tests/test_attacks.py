@@ -768,11 +768,11 @@ def test_sigkill_of_an_overwriting_eval_leaves_the_old_results_whole(run_dir, tm
 TERM_BEFORE_LOOP = """
 import os, signal
 import taskvar_torch.training as T
-build = T._build_run
+build = T.build_run
 def term(*args, **kwargs):  # the folder is taken, the loop not started
     os.kill(os.getpid(), signal.SIGTERM)
     return build(*args, **kwargs)
-T._build_run = term
+T.build_run = term
 """
 
 

@@ -23,12 +23,14 @@ import pytest
 import torch
 from test_train import assert_same  # tests/ is on sys.path (rootdir import mode)
 
-import taskvar_torch.training as T
+import taskvar_torch.run_setup as B
+import taskvar_torch.run_state as T
 from taskvar_torch.checkpoint import load_checkpoint, make_bundle, save_checkpoint
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
+from taskvar_torch.learning import TrainingDiverged
 from taskvar_torch.run_folder import LOCK_NAME, RunFolder
-from taskvar_torch.training import TrainingDiverged, train
+from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,7 +52,7 @@ HOOK = textwrap.dedent(
     """
     import os, signal, sys
     import torch
-    import taskvar_torch.training as T
+    import taskvar_torch.run_state as T
     from taskvar_torch.cli import main
 
     kind, frame = os.environ["FAULT"], int(os.environ["FAULT_FRAME"])
@@ -198,9 +200,9 @@ def test_second_sigint_during_the_write_aborts_without_a_partial_file(tmp_path):
 def test_nan_weights_are_never_written(tmp_path, monkeypatch, frame, group):
 
     learners = []
-    make_learner = T.make_learner
+    make_learner = B.make_learner
     monkeypatch.setattr(
-        T, "make_learner", lambda *a: learners.append(make_learner(*a)) or learners[-1]
+        B, "make_learner", lambda *a: learners.append(make_learner(*a)) or learners[-1]
     )
     epsilon_at = T.epsilon_at
 

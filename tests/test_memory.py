@@ -25,7 +25,7 @@ from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.env import OBS_ENCODINGS, observation_table
 from taskvar_torch.families.windy.env import observation_size as windy_observation_size
 from taskvar_torch.replay import raw_transitions
-from taskvar_torch.training import _build_run
+from taskvar_torch.run_setup import build_run
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
@@ -90,7 +90,7 @@ def test_the_estimate_bounds_what_a_run_allocates(config, overrides, tmp_path):
     """Replay rows as the run stores them, and every network's weights with their gradients,
     Adam moments and targets: no more than the estimate counts for them."""
     cfg = load_config(ROOT / "configs" / config, ["env.num_envs=4", *overrides])
-    run = _build_run(cfg, tmp_path, None)
+    run = build_run(cfg, tmp_path, None)
     D = int(run.env.observation_spec[keys.OBSERVATION].shape[-1])
     assert observation_size(cfg) == D
     batch = run.env.rollout(3, policy=run.behaviour, break_when_any_done=False)

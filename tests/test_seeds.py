@@ -17,7 +17,8 @@ from taskvar_torch.factory import build_heads, load_heads, make_learner, make_su
 from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.seeds import split_seed, stack_seeds
 from taskvar_torch.replay import raw_transitions
-from taskvar_torch.training import seed_config, train
+from taskvar_torch.run_state import seed_config
+from taskvar_torch.training import train
 
 TINY = [
     "env.num_envs=4",
@@ -35,7 +36,7 @@ def _cfg(*extra: str, path: str = "configs/windy.yaml"):
 
 
 def _one(cfg, seed: int):
-    """Seed ``seed``'s heads as its one-seed run initialises them (train._build_run)."""
+    """Seed ``seed``'s heads as its one-seed run initialises them (run_setup.build_run)."""
     c = seed_config(cfg, seed - cfg.seed)
     torch.manual_seed(c.seed)
     env = make_training_env(c)
@@ -201,9 +202,10 @@ def test_seeds_into_a_folder_holding_a_run_is_refused(tmp_path):
 @pytest.mark.slow  # trains (2-10 s on the shared 2-core CPU)
 def test_a_diverging_batch_names_the_seed_and_writes_nothing(tmp_path):
     cfg = _cfg("train.seeds=2", "train.checkpoint_every=320")
-    from taskvar_torch import training as train_module
+    from taskvar_torch.learning import TrainingDiverged
+    from taskvar_torch.run_state import TrainingRun
 
-    original = train_module._Run.learn
+    original = TrainingRun.learn
 
     def poisoned(self):
         original(self)
@@ -212,12 +214,12 @@ def test_a_diverging_batch_names_the_seed_and_writes_nothing(tmp_path):
                 w = self.learner.heads.heads["averaging"].module.stack.weights[0]
                 w.view(2, -1)[1, 0] = float("nan")  # seed index 1 only
 
-    train_module._Run.learn = poisoned
+    TrainingRun.learn = poisoned
     try:
-        with pytest.raises(train_module.TrainingDiverged, match=r"non-finite weights in seed 1\)"):
+        with pytest.raises(TrainingDiverged, match=r"non-finite weights in seed 1\)"):
             train(cfg, tmp_path / "run", progress=False)
     finally:
-        train_module._Run.learn = original
+        TrainingRun.learn = original
     ckpt = tmp_path / "run" / "checkpoint_000000320.pt"
     assert ckpt.exists()
     assert torch.isfinite(

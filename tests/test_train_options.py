@@ -13,8 +13,8 @@ heads and for the option taking effect:
 * ``train.option_coverage``: option picks leave mu_bar's greedy choice;
 * ``train.max_grad_norm``: every head's gradient norm is clipped to it (``null``: unclipped).
 
-The learner and the run are observed by wrapping what :mod:`taskvar_torch.training` builds
-(``make_learner``, ``_Run.store``), never by re-implementing the loop.
+The learner and the run are observed by wrapping what :mod:`taskvar_torch.run_setup` builds
+(``make_learner``, ``TrainingRun.store``), never by re-implementing the loop.
 """
 
 from __future__ import annotations
@@ -29,8 +29,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.objectives import HardUpdate
 
-from taskvar_torch import factory
-from taskvar_torch import training as train_module
+from taskvar_torch import factory, run_setup
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
@@ -38,6 +37,7 @@ from taskvar_torch.heads.learner import MultiHeadLearner
 from taskvar_torch.heads.networks import head_network
 from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.heads.switching import mu_bar_probs
+from taskvar_torch.run_state import TrainingRun
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
@@ -77,12 +77,12 @@ def train_tiny(
             on_learner(learner)
         return learner
 
-    original = train_module.make_learner
-    train_module.make_learner = make_learner
+    original = run_setup.make_learner
+    run_setup.make_learner = make_learner
     try:
         result = train(load_config(config, [*TINY, *overrides]), out, progress=False)
     finally:
-        train_module.make_learner = original
+        run_setup.make_learner = original
     assert result["frames"] == 400 and result["updates"] > 0
     bundle = load_checkpoint(result["final"])
     for name, t in bundle["models"]["heads"].items():
@@ -249,7 +249,7 @@ def _picks_off_mu_bar(tmp_path: Path, coverage: float) -> tuple[int, int]:
     start, count the option picks and those that are not mu_bar's greedy pick (the heads that
     acted are the learner's, untouched between collection and ``store``)."""
     counts = [0, 0]
-    store = train_module._Run.store
+    store = TrainingRun.store
 
     def counting(run, batch):
         start = batch.get("is_init").squeeze(-1) & (batch.get("behaviour") >= 0)  # (N, T)
@@ -263,7 +263,7 @@ def _picks_off_mu_bar(tmp_path: Path, coverage: float) -> tuple[int, int]:
             counts[1] += int((td.get("behaviour") != greedy).sum())
         return store(run, batch)
 
-    train_module._Run.store = counting
+    TrainingRun.store = counting
     try:
         train_tiny(
             tmp_path,
@@ -276,7 +276,7 @@ def _picks_off_mu_bar(tmp_path: Path, coverage: float) -> tuple[int, int]:
             "env.windy.horizon=10",
         )
     finally:
-        train_module._Run.store = store
+        TrainingRun.store = store
     return counts[0], counts[1]
 
 

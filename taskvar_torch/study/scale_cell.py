@@ -29,6 +29,7 @@ from taskvar_torch.heads.recurrent import (
     baseline_path,
     load_baseline,
 )
+from taskvar_torch.run_state import HEADS_SNAPSHOTS, seed_config
 from taskvar_torch.study.scale_config import ScaleCase, ScaleConfig, case_config
 from taskvar_torch.study.scale_eval import (
     HELDOUT_TEST,
@@ -41,7 +42,7 @@ from taskvar_torch.study.scale_eval import (
     references,
 )
 from taskvar_torch.train_recurrent import train_baseline
-from taskvar_torch.training import HEADS_SNAPSHOTS, seed_config, train
+from taskvar_torch.training import train
 
 SEED_CI_REPS = 2000
 """Bootstrap replications of :func:`over_seeds`' 95% CIs (rliable's default; ~0.5-2 s a method)."""

@@ -26,8 +26,9 @@ from taskvar_torch.config import Config, apply_overrides, config_to_dict
 from taskvar_torch.experiments.registry import experiment
 from taskvar_torch.experiments.results import write_json
 from taskvar_torch.families import family
+from taskvar_torch.learning import TrainingDiverged
 from taskvar_torch.study.sweep_grid import SweepPoint, point_name
-from taskvar_torch.training import TrainingDiverged, train
+from taskvar_torch.training import train
 
 POINT_LOG = "output.txt"
 BATCHES = "batches"

@@ -13,7 +13,8 @@ through the same lifelong protocol as the paper's agent (paper §3.5.1), on its 
    to the replay whole, and then the agent takes the gradient steps its frames called for:
    ``updates_per_batch`` for every ``train.frames_per_batch`` frames played once
    ``train.init_random_frames`` were (the paper's agent takes the same number, as the frames come
-   in: :func:`~taskvar_torch.families.wargus.fig4_trial.learn_due`). The update rule is the recurrent
+   in: :func:`~taskvar_torch.families.wargus.fig4_trial.learn_due`; both through
+   :func:`~taskvar_torch.learning.update_phase`). The update rule is the recurrent
    baseline's own (:class:`~taskvar_torch.train_recurrent.BaselineLearner`: TorchRL's ``DQNLoss``
    with the heads' settings, ``SliceSampler`` slices of one episode each, from the stored hidden
    state after a burn-in), its own settings ``baseline.*`` (docs/memory.md). The trial's episodes
@@ -55,8 +56,8 @@ from taskvar_torch.heads.recurrent import (
     recurrent_transforms,
     save_baseline,
 )
+from taskvar_torch.learning import epsilon_at, lr_at, non_finite, update_phase
 from taskvar_torch.train_recurrent import BaselineLearner, stored_keys
-from taskvar_torch.training import epsilon_at, lr_at
 
 RECURRENT_OFFSET = 1 << 33
 """The recurrent agent of the repetition seeded ``seed`` draws from torch's generator seeded
@@ -136,10 +137,8 @@ def learning_phase(agent: RecurrentAgent) -> dict[str, float]:
     agent.learner.store(torch.stack(steps, 1)[torch.stack(masks, 1)])
     tick = time.process_time()
     if len(agent.learner.buffer) >= t.batch_size:
-        agent.learner.set_lr(lr_at(agent.frames, t))
-        for _ in range(due):
-            agent.learner.update()
-            agent.updates += 1
+        update_phase(agent.learner, agent.learner.sample, due, lr_at(agent.frames, t))
+        agent.updates += due
     return {
         "learn_items": float(items.mean()),
         "frames": frames,
@@ -203,7 +202,7 @@ def run_recurrent_repetition(
             if on_trial is not None:
                 on_trial(rep, trial)
     net = agent.learner.eval_net
-    if not all(bool(p.isfinite().all()) for p in net.parameters()):
+    if non_finite({"weights": net.parameters()}):
         raise ValueError(f"repetition {rep}'s recurrent agent diverged (non-finite weights)")
     save_baseline(
         baseline_path(Path(out_dir) / f"rep{rep}" / "final.pt", "recurrent"),

@@ -46,7 +46,7 @@ from taskvar_torch.families.wargus.fig4_metrics import METHODS
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.robustness import RobustnessCalibration
-from taskvar_torch.training import epsilon_at
+from taskvar_torch.learning import epsilon_at, learning_started, update_phase
 
 # --------------------------------------------------------------------------------------------
 # the agent: every head, one learner, one replay buffer (paper §3.5.1: no prior knowledge)
@@ -73,15 +73,16 @@ class LifelongAgent:
 
 def learn_due(agent: LifelongAgent, t: Any) -> None:
     """``train.updates_per_batch`` updates for every ``train.frames_per_batch`` frames played (after
-    ``train.init_random_frames``), each on one shared sample for every head; their CPU time
-    (sampling included) is added to ``agent.update_seconds``."""
+    ``train.init_random_frames``: :func:`~taskvar_torch.learning.learning_started`), each on one
+    shared sample for every head (:func:`~taskvar_torch.learning.update_phase`, at the learner's
+    ``train.lr``: this agent does not apply ``train.lr_end``, which no shipped config sets); their
+    CPU time (sampling included) is added to ``agent.update_seconds``."""
     while agent.pending >= t.frames_per_batch:
         agent.pending -= t.frames_per_batch
-        if agent.frames >= t.init_random_frames and len(agent.buffer) >= t.batch_size:
+        if learning_started(agent.frames, len(agent.buffer), t):
             start = time.process_time()
-            for _ in range(t.updates_per_batch):
-                agent.learner.update(agent.buffer.sample())
-                agent.updates += 1
+            update_phase(agent.learner, agent.buffer.sample, t.updates_per_batch)
+            agent.updates += t.updates_per_batch
             agent.update_seconds += time.process_time() - start
 
 
