@@ -348,7 +348,7 @@ def test_hierarchy_root_can_follow_the_averaging_policy():
         HierarchyController(heads, TREE, TAU, root_policy="flat")
 
 
-def test_hierarchy_matches_the_oracles_independent_recursive_search():
+def test_the_oracles_hierarchy_chain_holds_the_controllers_decisions():
     t = random_tables(25, seed=7, num_options=5)
     heads = table_heads(NAMES, options=t["options"], robustness=t["robustness"])
     ctrl = HierarchyController(heads, TREE, -2.0)

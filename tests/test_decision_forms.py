@@ -1,4 +1,5 @@
-"""The kept second forms of Algorithms 1 and 2 equal the one implementation on random inputs.
+"""Algorithm 2's one implementation is the paper's recursion, and the kept second forms of
+Algorithms 1 and 2 equal the one implementation, on random inputs.
 
 One batched implementation per algorithm (``interruption_decide_of``, ``hierarchy_decide_of``);
 two faster forms kept beside them (benchmarks/decision_forms.py, docs/benchmarks.md): the table
@@ -89,6 +90,52 @@ def test_table_form_equals_the_search(seed, tree, batch, terminated, startable, 
     assert walk.keys() == table.keys()
     for k in walk:
         assert torch.equal(walk[k], table[k]), k
+
+
+def literal_search(h: Hierarchy, names, q, rob, tau, running, ended, can) -> int:
+    """Algorithm 2 as the paper writes it, recursive, for one state (``q``, ``rob``: ``[O][A]``
+    lists; ``can``: ``[O]`` bool or None): the option whose action is returned."""
+    act = [max(range(A), key=lambda a: (q[o][a], -a)) for o in range(len(names))]
+
+    def parent_of(o: int) -> int | None:
+        p = h.parent(names[o])
+        return None if p is None else names.index(p)
+
+    def search(o_run: int, p: int | None) -> int:  # HierarchicalSearch(K, o_run, p, tau, s)
+        if p is not None and rob[p][act[p]] > tau:  # lines 1-3
+            return p
+        a = act[o_run]  # line 5
+        kids = [names.index(k) for k in h.components(names[o_run])]
+        kids = [k for k in kids if can is None or can[k]]
+        if not kids or rob[o_run][a] > tau:  # line 6
+            return o_run
+        q_star = max(kids, key=lambda k: (rob[k][a], -k))  # line 10 (first on ties)
+        return search(q_star, o_run)  # line 11
+
+    o = names.index(h.root) if running < 0 else running
+    if ended and running >= 0 and parent_of(o) is not None:  # control returns up the tree
+        o = parent_of(o)
+    return search(o, parent_of(o))
+
+
+@settings(max_examples=200, deadline=None)
+@given(**CASE)
+def test_the_search_is_the_papers_recursion(seed, tree, batch, terminated, startable):
+    h, names, g, x = hierarchy_case(seed, tree, batch, terminated, startable)
+    args = (x["q_opt"], x["robustness"], x["running"], TreeTables.build(h, names), 0.0)
+    out = hierarchy_decide_of(*args, x["terminated"], x["startable"])
+    for i in range(batch):
+        want = literal_search(
+            h,
+            names,
+            x["q_opt"][..., i].tolist(),
+            x["robustness"][..., i].tolist(),
+            0.0,
+            int(x["running"][i]),
+            x["terminated"] is not None and bool(x["terminated"][i]),
+            None if x["startable"] is None else x["startable"][:, i].tolist(),
+        )
+        assert out["option"][i].item() == want, i
 
 
 @settings(max_examples=150, deadline=None)

@@ -23,8 +23,8 @@ One implementation of each decision rule, batched, and one fast form of it for o
   floats. Tested equal to the batched kernel on random inputs (tests/test_decision_forms.py) and
   10-25x faster than it at B = 1 (benchmarks/decision_forms.py, docs/benchmarks.md).
 
-The oracle's chains (``oracle/chains.py``) evaluate the rules exactly, by an implementation of
-their own (tests/test_controllers.py checks the two agree).
+The oracle's chains (``oracle/chains.py``) evaluate the same rules exactly: they call
+:meth:`Controller.decide` at every (state, carried state).
 """
 
 from __future__ import annotations

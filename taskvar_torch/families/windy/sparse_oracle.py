@@ -40,6 +40,8 @@ from typing import Any
 
 import torch
 
+from taskvar_torch import keys
+from taskvar_torch.controllers.interruption import interruption_decide_of
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.instances import WindyInstances
 from taskvar_torch.families.windy.oracle_base import WindyOracleBase
@@ -377,13 +379,13 @@ class SparseWindyOracle(WindyOracleBase):
         """Exact expected return and interruptions per episode of the options controller with a
         greedy mu_bar, with offline interruption (Algorithm 1) when ``q_hat`` is given.
 
-        The controller is a Markov chain on (cell, running option): at the start and never again
-        (windy options end only at the goal) ``o_run = argmax_o Q_mu(s, o)`` (line 4); at every
-        later step line 6, ``Q_hat(s, o_run) < max_q Q_mu(s, q)``, switches to that argmax
-        (lines 7-8); then ``a = pi^{o_run}(s)`` (line 11). The comparison is strict, as in
-        ``controllers/interruption.py``, and an interruption is counted whenever line 6 holds,
-        even when mu_bar picks the running option again (the controllers' ``interrupted``); the
-        oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them.
+        The controller is a Markov chain on (cell, running option), its decisions the controllers'
+        rule (:func:`~taskvar_torch.controllers.interruption.interruption_decide_of`): at the
+        start and never again (windy options end only at the goal) ``o_run = argmax_o Q_mu(s, o)``
+        (line 4); at every later step line 6, ``Q_hat(s, o_run) < max_q Q_mu(s, q)``, switches to
+        that argmax (lines 7-8); then ``a = pi^{o_run}(s)`` (line 11). An interruption is counted
+        whenever line 6 holds, even when mu_bar picks the running option again (the controllers'
+        ``interrupted``); the oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them.
         Horizon-step returns by backward induction over steps-to-go, expected over ``instances``
         (default: the training distribution) by :meth:`quadrature`, as :meth:`expected_return`.
 
@@ -399,13 +401,20 @@ class SparseWindyOracle(WindyOracleBase):
         O, S = self.O, self.S  # noqa: E741
         pol = policies.to(self.device, torch.int64)
         q_mu = q_mu.to(self.device, torch.float64)
-        best = q_mu.argmax(-1)  # (S,) line 4
-        keep = torch.arange(O, device=self.device).expand(S, O)
-        fire = torch.zeros(S, O, dtype=torch.bool, device=self.device)
-        if q_hat is not None:
-            v = q_mu.max(-1, keepdim=True).values
-            fire = (q_hat.to(self.device, torch.float64) < v) & ~self.is_goal.view(-1, 1)
-        nxt = torch.where(fire, best.view(-1, 1), keep)  # (S, O): o_run after line 6-8
+        # the controllers' rule (interruption_decide_of) at every (cell s, carried state z),
+        # z = 0 none (line 4), z = o + 1 option o running; pi^o as a greedy one-hot table
+        Z, dev = O + 1, self.device
+        q_opt = torch.nn.functional.one_hot(pol, self.A).to(torch.float64)  # (O, S, A)
+        q_opt = q_opt.permute(0, 2, 1).repeat_interleave(Z, 2)  # (O, A, S Z)
+        of = lambda x: x.T.repeat_interleave(Z, 1)  # noqa: E731  (S, O) -> (O, S Z)
+        running = torch.arange(Z, device=dev).repeat(S) - 1
+        q_hat_of = None if q_hat is None else of(q_hat.to(dev, torch.float64))
+        out = interruption_decide_of(q_opt, of(q_mu), q_hat_of, running)
+        option = out["option"].view(S, Z)
+        best = option[:, 0]  # (S,) line 4
+        fire = out[keys.INTERRUPTED].view(S, Z)[:, 1:] & ~self.is_goal.view(-1, 1)  # (S, O)
+        keep = torch.arange(O, device=dev).expand(S, O)
+        nxt = torch.where(fire, option[:, 1:], keep)  # (S, O): o_run after lines 6-8
         act = pol.gather(0, nxt.T.contiguous()).T  # (S, O): pi^{nxt}(s)
         goal = self.is_goal.view(S, 1).expand(S, O).reshape(1, S * O)
         fr = fire.to(torch.float64).reshape(1, S * O)  # firing indicator per step (goal rows 0)
