@@ -28,11 +28,6 @@ from taskvar_torch.controllers import (
     make_controller,
     select0,
 )
-from taskvar_torch.controllers.hierarchy import (
-    TreeTables,
-    hierarchy_decide_table_of,
-    hierarchy_search_of,
-)
 from taskvar_torch.families.windy import WindyGridEnv, WindyInstances, WindyOracle
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.heads.bundle import Heads
@@ -353,31 +348,7 @@ def test_hierarchy_root_can_follow_the_averaging_policy():
         HierarchyController(heads, TREE, TAU, root_policy="flat")
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_hierarchy_table_kernel_equals_the_level_walk_and_the_scalar_search(seed):
-
-    g = torch.Generator().manual_seed(seed)
-    B = 2000
-    q = torch.randint(-2, 2, (5, A, B), generator=g).double()  # ties are frequent
-    rob = torch.randint(-2, 2, (5, A, B), generator=g).double()
-    running = torch.randint(-1, 5, (B,), generator=g)
-    tree = TreeTables.build(TREE, NAMES)
-    assert tree.table_option is not None
-    table = hierarchy_decide_table_of(q, rob, running, tree, 0.0)
-    walk = hierarchy_search_of(q, rob, running, tree, 0.0)
-    for k in table:
-        assert torch.equal(table[k], walk[k]), k
-    heads = table_heads(NAMES, options=q.permute(2, 0, 1), robustness=rob.permute(2, 0, 1))
-    ctrl = HierarchyController(heads, TREE, 0.0)
-    for i in range(0, B, 7):
-        one = ctrl.act_one({keys.CELL: torch.tensor([i])}, int(running[i]))
-        assert (
-            one["option"] == table["option"][i].item()
-            and one["action"] == table["action"][i].item()
-        )
-
-
-def test_hierarchy_matches_the_oracles_independent_recursive_search():
+def test_the_oracles_hierarchy_chain_holds_the_controllers_decisions():
     t = random_tables(25, seed=7, num_options=5)
     heads = table_heads(NAMES, options=t["options"], robustness=t["robustness"])
     ctrl = HierarchyController(heads, TREE, -2.0)

@@ -14,7 +14,7 @@ Examples:
 
 from __future__ import annotations
 
-from taskvar_torch.controllers.averaging import AveragingController, averaging_decide
+from taskvar_torch.controllers.averaging import AveragingController
 from taskvar_torch.controllers.base import (
     Controller,
     FusedHeads,
@@ -26,15 +26,14 @@ from taskvar_torch.controllers.base import (
 from taskvar_torch.controllers.hierarchy import (
     HierarchyController,
     TreeTables,
-    hierarchy_decide,
     hierarchy_decide_of,
+    hierarchy_decide_table_of,
 )
 from taskvar_torch.controllers.interruption import (
     InterruptionController,
-    interruption_decide,
     interruption_decide_of,
 )
-from taskvar_torch.controllers.options import OptionsController, options_decide
+from taskvar_torch.controllers.options import OptionsController
 from taskvar_torch.controllers.side_by_side import SideBySide
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.robustness import RobustnessCalibration
@@ -102,13 +101,10 @@ __all__ = [
     "SideBySide",
     "TreeTables",
     "argmax0",
-    "averaging_decide",
-    "hierarchy_decide",
     "hierarchy_decide_of",
-    "interruption_decide",
+    "hierarchy_decide_table_of",
     "interruption_decide_of",
     "make_controller",
     "option_first",
-    "options_decide",
     "select0",
 ]

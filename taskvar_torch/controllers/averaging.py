@@ -8,14 +8,9 @@ from typing import Any
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.controllers.base import Controller, argmax0, first_argmax, option_first
+from taskvar_torch.controllers.base import Controller, argmax0, first_argmax
 
 Tensor = torch.Tensor
-
-
-def averaging_decide(q_avg: Tensor) -> Tensor:  # (B, A) -> (B,)
-    """``a_t = argmax_a Q_avg(s_t, a)`` (lowest index on ties)."""
-    return argmax0(option_first(q_avg))
 
 
 class AveragingController(Controller):

@@ -9,16 +9,22 @@ the decision traces (``option``, ``interrupted``, ``hierarchy_level``) and the n
 puts the state in the env's specs and resets it to -1 per sub-environment on (partial) resets, so
 ``env.rollout`` and TorchRL ``Collector``s carry it with no further code.
 
-Three implementations of each decision rule, tested against each other:
+One implementation of each decision rule, batched, and one fast form of it for one environment:
 
-- **batched kernels** (``decide_of``) work *option-first*: ``Q_mu (O, B)``, ``Q_o (O, A, B)``. A
-  reduction over a dimension of size 2-4 (``argmax(-1)`` on ``(B, O)``) is 10-100x slower on CPU
-  than elementwise ops over ``B``, so the kernels loop over the small option/action dimension with
+- **batched kernels** (``decide_of``; Algorithm 1: ``interruption_decide_of``, Algorithm 2:
+  ``hierarchy_decide_of``) work *option-first*: ``Q_mu (O, B)``, ``Q_o (O, A, B)``. A reduction
+  over a dimension of size 2-4 (``argmax(-1)`` on ``(B, O)``) is 10-100x slower on CPU than
+  elementwise ops over ``B``, so the kernels loop over the small option/action dimension with
   elementwise ops (:func:`argmax0`, :func:`select0`). Head outputs in the bundle's ``(B, O, A)``
-  layout enter as permuted views (no copy); heads that emit option-first need no permute.
-- **scalar path** (:meth:`Controller.act_one`) for one environment in real time: one fused head
-  forward (:class:`FusedHeads`), one host transfer, then the rule on Python floats.
-- the oracle's tabular chain (``oracle/chains.py``) is a third, independent implementation.
+  layout enter as permuted views (no copy, :meth:`Controller.decide`); heads that emit
+  option-first need no permute.
+- **scalar path** (:meth:`Controller.act_one`, ``decide_scalar``) for one environment in real
+  time: one fused head forward (:class:`FusedHeads`), one host transfer, then the rule on Python
+  floats. Tested equal to the batched kernel on random inputs (tests/test_decision_forms.py) and
+  10-25x faster than it at B = 1 (benchmarks/decision_forms.py, docs/benchmarks.md).
+
+The oracle's chains (``oracle/chains.py``) evaluate the same rules exactly: they call
+:meth:`Controller.decide` at every (state, carried state).
 """
 
 from __future__ import annotations

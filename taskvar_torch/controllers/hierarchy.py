@@ -17,14 +17,17 @@ else is carried. Every step (Algorithm 2, with greedy option policies ``pi^o = a
    ``o_run``. In that recursive call line 2 re-checks ``R(o_run, s_t, pi^{o_run}(s_t)) > tau``, which
    has just failed (deterministic policies), so it is not re-evaluated.
 
-Batched kernels. With greedy option policies the search reads only, per state and per *composed*
-node ``o``, the bit ``ok_o = R(o, s_t, pi^o(s_t)) > tau`` and the index of its most robust component
-under its own action (leaves always act, and only composed nodes are parents). So for small trees
-(``(O + 1) x prod over composed nodes of 2 x #components <= 65536``, e.g. 16 for Wargus's 3-node
-tree) :class:`TreeTables` precomputes the decision for every (running subtask, bits, choices) code
-and the kernel is one table lookup
-(:func:`hierarchy_decide_table_of`); larger trees walk the levels (:func:`hierarchy_search_of`,
-bounded by the tree depth). Both are tested against the scalar search and the oracle's.
+One implementation, :func:`hierarchy_decide_of` (the recursion, batched by walking the levels),
+and one faster form of it kept beside it. With greedy option policies the search reads only, per
+state and per *composed* node ``o``, the bit ``ok_o = R(o, s_t, pi^o(s_t)) > tau``, the bit "none of
+its components can take control", and the index of its most robust component under its own
+action (leaves always act, and only composed nodes are parents). So for small trees (``(O + 1) x prod over composed nodes of 4 x #components <= 65536``,
+e.g. 32 for Wargus's 3-node tree) :class:`TreeTables` precomputes the decision for every (running
+subtask, bits, choices) code and :func:`hierarchy_decide_table_of` is one table lookup; the
+controller uses it where the tree has a table. :meth:`HierarchyController.decide_scalar` is the
+same search on Python floats for one environment in real time. Both are tested equal to
+:func:`hierarchy_decide_of` on random inputs (tests/test_controllers.py) and measured faster
+(``benchmarks/decision_forms.py``, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -42,7 +45,6 @@ from taskvar_torch.controllers.base import (
     argmax0,
     first_argmax,
     lookup,
-    option_first,
     select0,
 )
 from taskvar_torch.heads.bundle import Heads
@@ -127,15 +129,17 @@ def _compile_table(
 ) -> dict[str, Any]:
     """Algorithm 2's decision for every (running subtask, robustness bits, component choices).
 
-    Code of a state: bit ``j`` = composed node ``j`` is robust under its own action; digit ``j`` (mixed
-    radix) = the index of its most robust component under that action.
+    Code of a state: per composed node ``j``, bit ``2j`` = it is robust under its own action,
+    bit ``2j + 1`` = none of its components can take control (it keeps control in a descent, but
+    regains none by it: lines 1-3 read robustness only); digit ``j`` (mixed radix) = the index of
+    its most robust component under that action.
     """
     O = len(names)  # noqa: E741
     nodes = [names.index(o) for o in hierarchy.options]
     kids = {i: sorted(names.index(k) for k in hierarchy.components(names[i])) for i in nodes}
     internal = [i for i in nodes if kids[i]]
-    bits = {i: 1 << j for j, i in enumerate(internal)}
-    radices, r = {}, 2 ** len(internal)
+    bits = {i: 1 << (2 * j) for j, i in enumerate(internal)}
+    radices, r = {}, 4 ** len(internal)
     for i in internal:
         radices[i] = r
         r *= len(kids[i])
@@ -145,6 +149,7 @@ def _compile_table(
     opt = torch.empty((O + 1) * num_codes, dtype=torch.int64)
     for code in range(num_codes):
         ok = {i: bool(code & bits[i]) for i in internal}
+        keep = {i: bool(code & (bits[i] << 1)) for i in internal}
         choice = {i: kids[i][(code // radices[i]) % len(kids[i])] for i in internal}
         for running in range(-1, O):
             o = root if running < 0 else running
@@ -152,8 +157,8 @@ def _compile_table(
             if p >= 0 and ok.get(p, False):  # lines 1-3
                 node = p
             else:
-                node = o
-                while kids.get(node) and not ok[node]:  # lines 5-11 (leaves always act)
+                node = o  # lines 5-11 (leaves always act)
+                while kids.get(node) and not (ok[node] or keep[node]):
                     node = choice[node]
             opt[(running + 1) * num_codes + code] = node
     return {
@@ -188,6 +193,22 @@ def _scores(
     return rob.masked_fill(~st, float("-inf")), ~st.any(0)
 
 
+def _control_start(running: Tensor, terminated: Tensor | None, tree: TreeTables) -> Tensor:
+    """Where the search starts: ``running``, or its parent where ``beta_{o_run}(s_t)`` holds
+    (control returns up the tree); -1 (the root) at the episode start."""
+    if terminated is None:
+        return running
+    up = terminated & (running >= 0)
+    parent = lookup(tree.parent, running.clamp(min=0))  # (B,)
+    return torch.where(up & (parent >= 0), parent, running)
+
+
+def _interrupted(option: Tensor, running: Tensor, terminated: Tensor | None) -> Tensor:
+    """Control left a running subtask that had not terminated (False at the episode start)."""
+    changed = (running >= 0) & (option != running)
+    return changed if terminated is None else changed & ~terminated
+
+
 def hierarchy_decide_of(
     q_opt: Tensor,  # (O, A, B) Q_o(s_t, a), option-first: option policies pi^o (greedy)
     robustness: Tensor,  # (O, A, B) R(o, s_t, a)
@@ -199,7 +220,8 @@ def hierarchy_decide_of(
     loc: Tensor | None = None,  # (O, 1|B) descent by (R - loc) / scale; None: raw R
     scale: Tensor | None = None,  # (O, 1|B)
 ) -> dict[str, Tensor]:
-    """One step of Algorithm 2 for a batch (option-first inputs), honouring termination.
+    """One step of Algorithm 2 for a batch (option-first inputs): the recursion, batched by
+    walking the levels (any tree size; at most ``tree.max_depth + 1`` passes).
 
     A running subtask whose termination holds at s_t (``terminated``) hands control to its parent
     first, so the search starts one level up (line 3 there, or a new descent). The descent (line
@@ -214,71 +236,15 @@ def hierarchy_decide_of(
     Returns ``action``, ``option`` (the subtask that acts: the next running subtask),
     ``hierarchy_level`` (its depth, 0 = root) and ``interrupted`` (control left a running subtask
     that had not terminated: the parent regained it or it descended; False at the episode start),
-    each ``(B,)``. Uses the compiled table when the tree has one, else walks the levels.
+    each ``(B,)``. :func:`hierarchy_decide_table_of` is the same function by table lookup.
     """
-    start = running
-    if terminated is not None:  # beta_{o_run}(s_t) = 1: control returns up the tree
-        up = terminated & (running >= 0)
-        parent = lookup(tree.parent, running.clamp(min=0))  # (B,)
-        start = torch.where(up & (parent >= 0), parent, running)
-    kernel = hierarchy_decide_table_of if tree.table_option is not None else hierarchy_search_of
-    out = kernel(q_opt, robustness, start, tree, tau, startable, loc, scale)
-    changed = (running >= 0) & (out["option"] != running)
-    if terminated is not None:
-        changed = changed & ~terminated
-    out[keys.INTERRUPTED] = changed
-    return out
-
-
-def hierarchy_decide_table_of(
-    q_opt: Tensor,  # (O, A, B)
-    robustness: Tensor,  # (O, A, B)
-    running: Tensor,  # (B,)
-    tree: TreeTables,
-    tau: float | Tensor,
-    startable: Tensor | None = None,  # (O, B)
-    loc: Tensor | None = None,  # (O, 1|B)
-    scale: Tensor | None = None,  # (O, 1|B)
-) -> dict[str, Tensor]:
-    """Algorithm 2 by table lookup: encode each state's robustness bits and component choices."""
-    code = torch.zeros(running.shape, dtype=torch.int64, device=running.device)
-    for node, kids, bit, radix in tree.internal:
-        a = argmax0(q_opt[node])  # (B,): pi^node(s_t) (lines 1, 5)
-        rob_a = robustness.gather(1, a.view(1, 1, -1).expand(robustness.shape[0], 1, -1))
-        rob_a = rob_a.squeeze(1)  # (O, B): R(q, s_t, pi^node(s_t)) for every q
-        ok = rob_a[node] > _at(tau, node)  # robust under its own action (lines 2, 6)
-        score, none_can = _scores(rob_a.index_select(0, kids), kids, loc, scale, startable)
-        if none_can is not None:
-            ok = ok | none_can  # no component can take control: the node keeps it
-        code = code + ok * bit
-        code = code + argmax0(score) * radix  # q* of line 10
-    code = code + (running + 1) * tree.num_codes
-    option = tree.table_option.index_select(0, code)  # (B,)
-    return {
-        "action": argmax0(select0(q_opt, option)),  # the acting option's greedy action
-        "option": option,
-        keys.HIERARCHY_LEVEL: tree.table_level.index_select(0, code),
-        keys.INTERRUPTED: (running >= 0) & (option != running),
-    }
-
-
-def hierarchy_search_of(
-    q_opt: Tensor,  # (O, A, B)
-    robustness: Tensor,  # (O, A, B)
-    running: Tensor,  # (B,)
-    tree: TreeTables,
-    tau: float | Tensor,
-    startable: Tensor | None = None,  # (O, B)
-    loc: Tensor | None = None,  # (O, 1|B)
-    scale: Tensor | None = None,  # (O, 1|B)
-) -> dict[str, Tensor]:
-    """Algorithm 2 by walking the levels (any tree size): the literal recursion, batched."""
+    start = _control_start(running, terminated, tree)
     O = q_opt.shape[0]  # noqa: E741
     acts = argmax0(q_opt.transpose(0, 1))  # (O, B): pi^o(s_t) of every option
     rob_a = robustness.transpose(0, 1)  # (A, O, B)
     if isinstance(tau, Tensor):
-        tau = tau.expand(O, running.shape[0])  # (O, B)
-    o = torch.where(running < 0, torch.full_like(running, tree.root), running)  # (B,)
+        tau = tau.expand(O, start.shape[0])  # (O, B)
+    o = torch.where(start < 0, torch.full_like(start, tree.root), start)  # (B,)
     p = lookup(tree.parent, o)  # (B,)
     pc = p.clamp(min=0)
     a_p = select0(acts, pc)  # (B,) line 1
@@ -287,7 +253,7 @@ def hierarchy_search_of(
     result = torch.where(regain, pc, o)
     done = regain
     node = o
-    all_opts = torch.arange(O, device=running.device)
+    all_opts = torch.arange(O, device=start.device)
     for _ in range(tree.max_depth + 1):
         a = select0(acts, node)  # (B,) line 5
         tau_n = select0(tau, node) if isinstance(tau, Tensor) else tau
@@ -302,25 +268,49 @@ def hierarchy_search_of(
         result = torch.where(ok & ~done, node, result)
         done = done | ok
         node = torch.where(done, node, argmax0(score))  # line 11: recurse into q*
-    action = select0(acts, result)
-    interrupted = (running >= 0) & (result != running)
     return {
-        "action": action,
+        "action": select0(acts, result),
         "option": result,
         keys.HIERARCHY_LEVEL: lookup(tree.depth, result),
-        keys.INTERRUPTED: interrupted,
+        keys.INTERRUPTED: _interrupted(result, running, terminated),
     }
 
 
-def hierarchy_decide(
-    q_opt: Tensor,  # (B, O, A)
-    robustness: Tensor,  # (B, O, A)
+def hierarchy_decide_table_of(
+    q_opt: Tensor,  # (O, A, B)
+    robustness: Tensor,  # (O, A, B)
     running: Tensor,  # (B,)
     tree: TreeTables,
-    tau: float,
+    tau: float | Tensor,
+    terminated: Tensor | None = None,  # (B,)
+    startable: Tensor | None = None,  # (O, B)
+    loc: Tensor | None = None,  # (O, 1|B)
+    scale: Tensor | None = None,  # (O, 1|B)
 ) -> dict[str, Tensor]:
-    """:func:`hierarchy_decide_of` for head outputs in the bundle layout (batch first)."""
-    return hierarchy_decide_of(option_first(q_opt), option_first(robustness), running, tree, tau)
+    """:func:`hierarchy_decide_of` by table lookup, for trees small enough to tabulate
+    (``tree.table_option`` set): encode each state's robustness bits and component choices, read
+    the decision. Tested equal to :func:`hierarchy_decide_of` on random inputs
+    (tests/test_controllers.py); faster (``benchmarks/decision_forms.py``, docs/benchmarks.md)."""
+    start = _control_start(running, terminated, tree)
+    code = torch.zeros(start.shape, dtype=torch.int64, device=start.device)
+    for node, kids, bit, radix in tree.internal:
+        a = argmax0(q_opt[node])  # (B,): pi^node(s_t) (lines 1, 5)
+        rob_a = robustness.gather(1, a.view(1, 1, -1).expand(robustness.shape[0], 1, -1))
+        rob_a = rob_a.squeeze(1)  # (O, B): R(q, s_t, pi^node(s_t)) for every q
+        ok = rob_a[node] > _at(tau, node)  # robust under its own action (lines 2, 6)
+        score, none_can = _scores(rob_a.index_select(0, kids), kids, loc, scale, startable)
+        code = code + ok * bit
+        if none_can is not None:  # no component can take control: a descent stops here
+            code = code + none_can * (bit << 1)
+        code = code + argmax0(score) * radix  # q* of line 10
+    code = code + (start + 1) * tree.num_codes
+    option = tree.table_option.index_select(0, code)  # (B,)
+    return {
+        "action": argmax0(select0(q_opt, option)),  # the acting option's greedy action
+        "option": option,
+        keys.HIERARCHY_LEVEL: tree.table_level.index_select(0, code),
+        keys.INTERRUPTED: _interrupted(option, running, terminated),
+    }
 
 
 DESCENTS = ("raw", "normalised")  # line 10's metric: raw R, or (R - tau) / scale per component
@@ -420,11 +410,13 @@ class HierarchyController(Controller):
         if self.descent == "normalised":
             loc = tau if isinstance(tau, Tensor) else torch.full_like(q_opt[:, 0, :1], tau)
             scale = scale if scale is not None else torch.ones_like(loc)
-        return hierarchy_decide_of(
+        tree = self.tree(q_opt.device)
+        decide = hierarchy_decide_of if tree.table_option is None else hierarchy_decide_table_of
+        return decide(
             q_opt,
             values[keys.ROBUSTNESS],
             running,
-            self.tree(q_opt.device),
+            tree,
             tau,
             terminated,
             values.get(keys.STARTABLE),

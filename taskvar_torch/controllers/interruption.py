@@ -17,7 +17,6 @@ from taskvar_torch.controllers.base import (
     first_argmax,
     first_argmax_where,
     max0,
-    option_first,
     sample_categorical,
     select0,
 )
@@ -102,32 +101,6 @@ def masked_mu_bar(q_mu: Tensor, temperature: float, initiable: Tensor | None) ->
         allowed = initiable | ~any0(initiable)  # (O, B)
         logits = logits.masked_fill(~allowed, float("-inf"))
     return torch.softmax(logits, dim=0)
-
-
-def interruption_decide(
-    q_opt: Tensor,  # (B, O, A)
-    q_mu: Tensor,  # (B, O)
-    q_hat: Tensor | None,  # (B, O)
-    running: Tensor,  # (B,)
-    terminated: Tensor | None = None,  # (B,)
-    mu: Tensor | None = None,  # (B, O)
-    u: Tensor | None = None,  # (B,)
-    initiable: Tensor | None = None,  # (B, O)
-    q_avg: Tensor | None = None,  # (B, A)
-) -> dict[str, Tensor]:
-    """:func:`interruption_decide_of` for head outputs in the bundle layout (batch first)."""
-    of = lambda x: None if x is None else option_first(x)  # noqa: E731
-    return interruption_decide_of(
-        option_first(q_opt),
-        option_first(q_mu),
-        of(q_hat),
-        running,
-        terminated,
-        of(mu),
-        u,
-        of(initiable),
-        of(q_avg),
-    )
 
 
 class InterruptionController(Controller):

@@ -2,30 +2,8 @@
 
 from __future__ import annotations
 
-import torch
-
 from taskvar_torch import keys
-from taskvar_torch.controllers.interruption import InterruptionController, interruption_decide
-
-Tensor = torch.Tensor
-
-
-def options_decide(
-    q_opt: Tensor,  # (B, O, A)
-    q_mu: Tensor,  # (B, O)
-    running: Tensor,  # (B,) int64, -1 = empty
-    terminated: Tensor | None = None,  # (B,) bool
-    initiable: Tensor | None = None,  # (B, O) bool s_t in I_o
-    q_avg: Tensor | None = None,  # (B, A): acts where no option is initiable
-) -> dict[str, Tensor]:
-    """Algorithm 1 without lines 6-9: returns ``action``, ``option``, ``interrupted`` (all False).
-
-    ``initiable`` / ``q_avg``: line 4 picks among the initiable options, else the averaging action
-    acts with option -1 (:func:`~taskvar_torch.controllers.interruption.interruption_decide_of`).
-    """
-    return interruption_decide(
-        q_opt, q_mu, None, running, terminated, initiable=initiable, q_avg=q_avg
-    )
+from taskvar_torch.controllers.interruption import InterruptionController
 
 
 class OptionsController(InterruptionController):

@@ -28,12 +28,15 @@ import importlib.metadata
 import warnings
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from torchrl.envs import EnvBase
 
 from taskvar_torch.heads.networks import PatchLayout
 from taskvar_torch.subtasks.base import Subtasks
+
+if TYPE_CHECKING:
+    from taskvar_torch.oracle.protocol import ExactOracle
 
 Config = Any
 """A :class:`taskvar_torch.config.Config` (not imported: the config package reads this registry,
@@ -121,8 +124,8 @@ class Family:
             (Wargus: the item and patrol positions) and because only the baseline reads it, never
             the ``instance`` max-value estimator (Definition 1's max over instances).
         oracle: config -> the family's exact oracle for that env, or ``None`` where it has none
-            (too large, another encoding). It offers the windy oracle's interface
-            (docs/families.md): ``instance_keys``, ``controller_return``, ``averaging_policy``.
+            (too large, another encoding): an
+            :class:`~taskvar_torch.oracle.protocol.ExactOracle` (docs/families.md).
         oracle_summary: (heads, config) -> lines comparing the learnt heads with the exact oracle
             (printed after ``taskvar train``); ``None``: nothing printed.
         averaging_optimum: config -> the exact mean-MDP averaging policy ``(cells,)`` over
@@ -165,7 +168,7 @@ class Family:
     instance_dim: int | None = None
     instance_features: Callable[[Any], Any] | None = None
     informed_features: Callable[[Config], tuple[int, Callable[[Any], Any]]] | None = None
-    oracle: Callable[[Config], Any] | None = None
+    oracle: Callable[[Config], ExactOracle | None] | None = None
     oracle_summary: Callable[[Any, Config], list[str]] | None = None
     averaging_optimum: Callable[[Config], Any] | None = None
     head_report: Callable[..., dict[str, Any]] | None = None

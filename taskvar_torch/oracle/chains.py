@@ -6,8 +6,8 @@ Algorithms 1-2; docs/oracle.md).
 :class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`), which provides the instance models
 (``transition(p, direction) -> P, R`` and ``_instances_arg``): it tabulates any
 :class:`~taskvar_torch.heads.bundle.Heads` bundle over the cells, builds the controller's decision
-kernel by an implementation of Algorithms 1 and 2 independent of ``controllers/``, and gives exact
-returns and firing counts by backward induction over steps-to-go (see "Controllers" in the
+kernel from the controller's own rule (Algorithms 1 and 2 of ``controllers/``: one implementation,
+so the exact values are those of the controller that plays), and gives exact returns and firing counts by backward induction over steps-to-go (see "Controllers" in the
 :mod:`taskvar_torch.families.windy` docstring). :func:`discounted_chain_values`
 gives a chain's infinite-horizon discounted values (one linear solve).
 """
@@ -17,8 +17,12 @@ from __future__ import annotations
 from typing import Any
 
 import torch
+from torch import nn
 
 from taskvar_torch import keys
+from taskvar_torch.controllers import Controller, InterruptionController, make_controller
+from taskvar_torch.controllers.base import option_first
+from taskvar_torch.controllers.interruption import masked_mu_bar
 from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
@@ -82,31 +86,32 @@ class ControllerChains:
     ) -> dict[str, Tensor]:
         """The controller as a Markov chain on (cell, carried state), from tabulated head outputs.
 
-        ``controller``: a name in ``CONTROLLER_NAMES`` (with the oracle's heads unless ``heads`` is
-        given) or a :class:`~taskvar_torch.controllers.base.Controller` (its heads, subtasks,
-        hierarchy and tau). Carried state ``z``: 0 = none, ``k + 1`` = option/subtask ``k`` ran last.
+        ``controller``: a name in ``CONTROLLER_NAMES`` (with the oracle's heads and subtasks unless
+        ``heads`` is given; ``hierarchy`` and ``tau`` for ``"hierarchy"``, which honours
+        ``subtasks``' termination when given) or a
+        :class:`~taskvar_torch.controllers.base.Controller`. Carried state ``z``: 0 = none,
+        ``k + 1`` = option/subtask ``k`` ran last.
 
         Returns ``decision (S, Z, N)``: distribution of the acting option ``n`` given ``(s, z)``;
         ``action (S, N)``: its greedy action; ``next_state (N,)``: ``z'`` after ``n`` acted;
         ``fires (S, Z)`` bool: an interruption fires (Algorithm 1 line 6) / control moves
-        (Algorithm 2). This is an implementation of Algorithms 1-2 independent of ``controllers/``.
+        (Algorithm 2). The decisions are the controller's own rule (:meth:`_decision_chain`).
         """
         name = controller if isinstance(controller, str) else controller.name
         if name not in CONTROLLER_NAMES:
             raise ValueError(f"controller must be one of {list(CONTROLLER_NAMES)}, got {name!r}")
-        if not isinstance(controller, str):
-            heads = controller.heads
-            subtasks = controller.subtasks
-            hierarchy = getattr(controller, "hierarchy", hierarchy)
-            tau = getattr(controller, "tau", tau)
-        elif heads is None:
-            heads, subtasks = self.heads(), self.subtasks if subtasks is None else subtasks
-        t = self.tabulate(heads, obs_encoding)
+        if isinstance(controller, str):
+            if heads is None:
+                heads, subtasks = self.heads(), self.subtasks if subtasks is None else subtasks
+            if name == "hierarchy" and (hierarchy is None or tau is None):
+                raise ValueError("the hierarchy controller needs a hierarchy and tau")
+            controller = make_controller(
+                name, heads, subtasks, hierarchy, tau, terminate=subtasks is not None
+            )
+        t = self.tabulate(controller.heads, obs_encoding)
         if name == "averaging":
             return self._averaging_chain(t)
-        if name in ("options", "interruption"):
-            return self._option_chain(t, heads, subtasks, interrupt=name == "interruption")
-        return self._hierarchy_chain(t, heads, hierarchy, tau, subtasks)
+        return self._decision_chain(controller, t)
 
     def _averaging_chain(self, t: dict[str, Tensor]) -> dict[str, Tensor]:
         """The averaging policy (paper §3.1) as a one-state chain: greedy in ``action_value``."""
@@ -120,130 +125,64 @@ class ControllerChains:
             "fires": torch.zeros(S, 1, dtype=torch.bool, device=self.device),
         }
 
-    def _empty_option_chain(self, t: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """``(action (S, O), decision (S, O + 1, O), fires (S, O + 1), next_state (O,))``: greedy
-        option actions, an all-zero decision kernel and firing table, ``z' = n + 1``."""
-        S = self.S
-        q_opt = t[keys.OPTION_ACTION_VALUE]  # (S, O, A)
-        O = q_opt.shape[1]  # noqa: E741
-        act = q_opt.argmax(-1)  # (S, O)
-        decision = torch.zeros(S, O + 1, O, dtype=torch.float64, device=self.device)
-        fires = torch.zeros(S, O + 1, dtype=torch.bool, device=self.device)
-        next_state = torch.arange(1, O + 1, device=self.device)
-        return act, decision, fires, next_state
+    def _decision_chain(self, controller: Controller, t: dict[str, Tensor]) -> dict[str, Tensor]:
+        """An option-level controller's decision at every (cell ``s``, carried state ``z``): its
+        own rule (:meth:`Controller.decide`: Algorithm 1 or 2, ``controllers/``) on the heads
+        tabulated at ``s``, ``running_option = z - 1``, its subtasks' termination and initiation
+        at ``s``.
 
-    def _initiation_table(
-        self, subtasks: Subtasks | None, method: str = "initiation"
-    ) -> Tensor | None:
-        """``(S, O)`` bool ``subtasks.<method>`` at every cell (``initiation``: I_o; ``startable``:
-        where o can take control in the hierarchy), or None where the subtasks define no
-        initiation sets (then every option may start everywhere)."""
-        if subtasks is None or type(subtasks).initiation is Subtasks.initiation:
-            return None
-        cells = torch.arange(self.S, device=self.device)
-        return getattr(subtasks, method)(self._cells_td(cells)).to(torch.bool)
-
-    def _option_chain(
-        self, t: dict[str, Tensor], heads: Heads, subtasks: Subtasks | None, interrupt: bool
-    ) -> dict[str, Tensor]:
-        """Options: the option greedy in ``option_value`` at the start and at termination
-        (Algorithm 1 line 4); with ``interrupt``, also Algorithm 1's interruption (lines 6-8).
-
-        With ``subtasks`` that define initiation sets, mu_bar ranges over the options initiable at
-        s (line 4's argmax, line 6's ``V^{mu_bar}(s)``, line 7's distribution renormalised over
-        them). Where none is: line 6 does not fire, and where line 4 must pick, the averaging
-        policy acts and the carried state stays empty: the chain then has ``N = O + 1`` columns,
-        the last one ``argmax_a Q_avg(s, a)`` with ``z' = 0``.
+        The acting entry ``n`` is option ``n`` (``z' = n + 1``), or, for the options controllers
+        with initiation sets, ``n = O``: the averaging action where no option is initiable
+        (``z' = 0``). Where a softmax mu_bar draws (line 7), the decision is mu_bar over the
+        initiable options (the draw's distribution; the controller's random stream is left as it
+        was). Each entry's action is its greedy one (the root's by the averaging head with
+        ``root_policy="averaging"``), checked against the rule's.
         """
-        S = self.S
-        act, decision, fires, next_state = self._empty_option_chain(t)
-        O = act.shape[1]  # noqa: E741
-        q_mu = t[keys.OPTION_VALUE]  # (S, O)
-        mu = heads.mu_bar(q_mu).to(torch.float64)  # (S, O)
-        v = (heads.mu_bar(q_mu) * q_mu).sum(-1)  # (S,)
-        best = q_mu.argmax(-1)  # (S,) line 4
-        init = self._initiation_table(subtasks)  # (S, O) or None
-        none = torch.zeros(S, dtype=torch.bool, device=self.device)
-        if init is not None:  # mu_bar over the initiable options only
-            none = ~init.any(-1)  # (S,)
-            q_in = q_mu.masked_fill(~init, float("-inf"))  # (S, O)
-            best = q_in.argmax(-1)
-            mu_in = heads.mu_bar(q_in).masked_fill(none.unsqueeze(-1), 0.0)  # (S, O) renormalised
-            mu = mu_in.to(torch.float64)
-            v = (mu_in * q_mu).sum(-1)  # (S,) (unused where none is initiable)
-            # the fallback column: the averaging policy acts, o_run stays empty
-            act = torch.cat([act, t[keys.ACTION_VALUE].argmax(-1, keepdim=True)], 1)  # (S, O + 1)
-            decision = torch.cat([decision, torch.zeros_like(decision[..., :1])], -1)
+        S, O, dev = self.S, controller.num_options, self.device  # noqa: E741
+        Z = O + 1
+        cells = torch.arange(S, device=dev).repeat_interleave(Z)  # (S Z,)
+        running = torch.arange(Z, device=dev).repeat(S) - 1  # (S Z,): z = 0 is none
+        td = self._cells_td(cells)
+        values = {
+            HEAD_OUT_KEYS[h]: t[HEAD_OUT_KEYS[h]].repeat_interleave(Z, 0)
+            for h in controller.required_heads
+        }
+        values.update(controller.extra_inputs(td))
+        g = controller.generator(dev)
+        stream = g.get_state()
+        out = controller.decide(values, running, controller._terminated(td, running))
+        g.set_state(stream)
+        fallback = keys.INITIABLE in values  # the averaging action is entry n = O
+        N = O + 1 if fallback else O
+        option = out["option"]
+        n = torch.where(option < 0, O, option)
+        decision = nn.functional.one_hot(n, N).to(torch.float64)  # (S Z, N)
+        if isinstance(controller, InterruptionController) and controller._softmax():
+            initiable = values.get(keys.INITIABLE)
+            mu = masked_mu_bar(
+                option_first(values[keys.OPTION_VALUE]),
+                controller.heads.softmax_temperature,
+                None if initiable is None else option_first(initiable),
+            ).T.to(torch.float64)  # (S Z, O) mu_bar over the initiable options
+            drawn = out[keys.INTERRUPTED].unsqueeze(-1)  # line 7 draws where line 6 fired
+            decision[:, :O] = torch.where(drawn, mu, decision[:, :O])
+        act = t[keys.OPTION_ACTION_VALUE].argmax(-1)  # (S, O): pi^o(s)
+        if controller.root_index is not None:  # pi^root = pi^avg (paper §3.4.2)
+            act[:, controller.root_index] = t[keys.ACTION_VALUE].argmax(-1)
+        next_state = torch.arange(1, O + 1, device=dev)
+        if fallback:
+            act = torch.cat([act, t[keys.ACTION_VALUE].argmax(-1, keepdim=True)], 1)  # (S, N)
             next_state = torch.cat([next_state, torch.zeros_like(next_state[:1])])
-        beta = torch.zeros(S, O, dtype=torch.bool, device=self.device)
-        if subtasks is not None:
-            beta = subtasks.termination(self._cells_td(torch.arange(S, device=self.device)))
-        for s in range(S):
-            for z in range(O + 1):
-                if z == 0 or bool(beta[s, z - 1]):
-                    decision[s, z, O if bool(none[s]) else best[s]] = 1.0  # line 4 / fallback
-                elif interrupt and not bool(none[s]) and bool(t[keys.MAX_VALUE][s, z - 1] < v[s]):
-                    decision[s, z, :O] = mu[s]  # lines 6-8
-                    fires[s, z] = True
-                else:
-                    decision[s, z, z - 1] = 1.0
-        return {"decision": decision, "action": act, "next_state": next_state, "fires": fires}
-
-    def _hierarchy_chain(
-        self,
-        t: dict[str, Tensor],
-        heads: Heads,
-        hierarchy: Hierarchy | None,
-        tau: float | None,
-        subtasks: Subtasks | None = None,
-    ) -> dict[str, Tensor]:
-        """Algorithm 2 (hierarchical search), literally, with greedy option policies.
-
-        With ``subtasks`` (a hierarchy controller that honours them), as that controller: a
-        running subtask whose termination holds hands control to its parent first, and the descent
-        (line 10) only considers components that can take control at s (``Subtasks.startable``:
-        in I_q and not terminated); a composed node none of whose components can keeps control.
-        """
-        S = self.S
-        act, decision, fires, next_state = self._empty_option_chain(t)
-        O = act.shape[1]  # noqa: E741
-        if hierarchy is None or tau is None:
-            raise ValueError("the hierarchy controller needs a hierarchy and tau")
-        names = list(heads.option_names)
-        rob = t[keys.ROBUSTNESS]  # (S, O, A)
-        can = self._initiation_table(subtasks, "startable")  # (S, O) or None
-        beta = torch.zeros(S, O, dtype=torch.bool, device=self.device)
-        if subtasks is not None:
-            beta = subtasks.termination(self._cells_td(torch.arange(S, device=self.device)))
-
-        def parent_of(o: int) -> int | None:
-            p = hierarchy.parent(names[o])
-            return None if p is None else names.index(p)
-
-        def search(s: int, o_run: int, p: int | None) -> int:
-            """HierarchicalSearch(K, o_run, p, tau, s): the option whose action is returned."""
-            if p is not None and float(rob[s, p, act[s, p]]) > tau:  # lines 1-3
-                return p
-            a = int(act[s, o_run])  # line 5
-            kids = [names.index(k) for k in hierarchy.components(names[o_run])]
-            if can is not None:
-                kids = [k for k in kids if bool(can[s, k])]
-            if not kids or float(rob[s, o_run, a]) > tau:  # line 6
-                return o_run
-            q_star = max(kids, key=lambda q: (float(rob[s, q, a]), -q))  # line 10 (first on ties)
-            return search(s, q_star, o_run)  # line 11
-
-        root = names.index(hierarchy.root)
-        for s in range(S):
-            for z in range(O + 1):
-                o_run = root if z == 0 else z - 1
-                ended = z > 0 and bool(beta[s, z - 1])
-                if ended and parent_of(o_run) is not None:  # control returns up the tree
-                    o_run = parent_of(o_run)
-                n = search(s, o_run, parent_of(o_run))
-                decision[s, z, n] = 1.0
-                fires[s, z] = z > 0 and n != z - 1 and not ended
-        return {"decision": decision, "action": act, "next_state": next_state, "fires": fires}
+        if not torch.equal(
+            act.repeat_interleave(Z, 0).gather(1, n.unsqueeze(-1))[:, 0], out["action"]
+        ):
+            raise RuntimeError(f"{controller.name}: an entry's action is not its greedy one")
+        return {
+            "decision": decision.view(S, Z, N),
+            "action": act,
+            "next_state": next_state,
+            "fires": out[keys.INTERRUPTED].view(S, Z),
+        }
 
     def controller_return(
         self, controller: Any, p: Any, direction: Any, start: Any = None, **kwargs: Any

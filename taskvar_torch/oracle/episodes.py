@@ -1,7 +1,7 @@
 """Exact returns per played episode, for any family's oracle (docs/evaluation.md, docs/oracle.md).
 
-The oracle protocol a family's exact oracle (``Family.oracle``, docs/families.md) offers:
-``instance_keys`` (the ``("instance", key)`` fields of an episode), ``controller_return(ctrl,
+A family's exact oracle (``Family.oracle``: an :class:`~taskvar_torch.oracle.protocol.ExactOracle`)
+offers ``instance_keys`` (the ``("instance", key)`` fields of an episode), ``controller_return(ctrl,
 *fields, start=None, obs_encoding=...) -> (B, S)`` (Algorithms 1-2 as Markov chains,
 :mod:`~taskvar_torch.oracle.chains`) and ``optimal_return(*fields, start=None) -> (B, S)`` (the
 per-instance optimum). :func:`exact_episode_returns` and :func:`optimal_episode_returns` read them
@@ -16,10 +16,11 @@ import torch
 from taskvar_torch.config import Config
 from taskvar_torch.controllers import Controller
 from taskvar_torch.families import family
+from taskvar_torch.oracle.protocol import ExactOracle
 
 
 def exact_episode_returns(
-    oracle,
+    oracle: ExactOracle,
     ctrl: Controller,
     cfg: Config,
     instance: dict[str, np.ndarray],
@@ -53,7 +54,7 @@ def exact_episode_returns(
 
 
 def optimal_episode_returns(
-    oracle, instance: dict[str, np.ndarray], start: np.ndarray, chunk: int = 500
+    oracle: ExactOracle, instance: dict[str, np.ndarray], start: np.ndarray, chunk: int = 500
 ) -> np.ndarray:
     """Exact expected horizon-step return of the per-instance optimal policy per (instance, start)
     episode: an agent that knows the instance (the ceiling regret is measured against,

@@ -7,6 +7,7 @@ exactly as on trained networks (docs/oracle.md; docs/design.md).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cached_property
 from typing import Any
 
 import torch
@@ -68,3 +69,57 @@ def table_heads(
         robustness=mod(robustness, keys.ROBUSTNESS),
         softmax_temperature=softmax_temperature,
     )
+
+
+class DerivedTables:
+    """What an exact oracle derives the same way from its own tables (paper §3.3, Definition 1):
+    ``V^{mu_bar}``, ``Q_hat``'s default instance set (cached), and the tables as heads.
+
+    A mixin of the oracles that give ``mu_bar() (S, O)``, ``switching_q()``, ``instance_set()``,
+    ``_max_value(*fields)`` (the max over those instances), ``averaging_q()``, ``option_q()``,
+    ``option_names``, ``mu_temperature`` and ``device``
+    (:class:`~taskvar_torch.families.windy.oracle.WindyOracle`,
+    :class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`).
+    """
+
+    def v_mu_bar(self) -> Tensor:
+        """``V^{mu_bar}(s) = sum_q mu_bar(s, q) Q_mu(s, q)`` ``(S,)`` (Definition 1's right-hand side)."""
+        return (self.mu_bar() * self.switching_q()).sum(-1)
+
+    def max_value(self, instances: Any = None) -> Tensor:
+        """``Q_hat (S, O) = max_m Q^{m, mu_bar}(s, o)`` over an instance set (Definition 1).
+
+        ``instances``: see ``instance_set`` (default: the training one, computed once). Values
+        within a tie tolerance of ``V^{mu_bar}(s)`` are snapped to it.
+        """
+        if instances is None:
+            return self._max_value_default
+        return self._max_value(*self.instance_set(instances))
+
+    @cached_property
+    def _max_value_default(self) -> Tensor:
+        return self._max_value(*self.instance_set(None))
+
+    def heads(
+        self,
+        in_key: Any = keys.CELL,
+        dtype: torch.dtype = torch.float64,
+        robustness: Tensor | None = None,
+    ) -> Heads:
+        """A :class:`Heads` bundle of the oracle's tables (averaging, options, switching, max-value).
+
+        Heads read ``in_key`` (``keys.CELL`` or a one-hot ``keys.OBSERVATION``) and gather rows:
+        ``action_value (B, A)``, ``option_action_value (B, O, A)``, ``option_value (B, O)``,
+        ``max_value (B, O)``; optionally ``robustness (B, O, A)`` from a given ``(S, O, A)`` table.
+        """
+        t = dict(dtype=dtype, device=self.device)
+        return table_heads(
+            self.option_names,
+            averaging=self.averaging_q().to(**t),
+            options=self.option_q().permute(1, 0, 2).contiguous().to(**t),
+            switching=self.switching_q().to(**t),
+            max_value=self.max_value().to(**t),
+            robustness=None if robustness is None else robustness.to(**t),
+            in_key=in_key,
+            softmax_temperature=self.mu_temperature,
+        )

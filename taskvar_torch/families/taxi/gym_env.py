@@ -18,6 +18,7 @@ import torch
 
 from taskvar_torch import rng
 from taskvar_torch.envs import gym_checks
+from taskvar_torch.envs.gym_episodes import EpisodeKeys
 from taskvar_torch.families.taxi import dynamics as taxi
 from taskvar_torch.families.taxi.dynamics import TaxiInstances, taxi_instances
 from taskvar_torch.families.taxi.env import _C_ARMED, _C_START, check_state
@@ -106,8 +107,7 @@ class TaxiGymEnv(gym.Env):
         self._reward = self.model.np_reward.astype(float).tolist()
         self._done = self.model.np_done.tolist()
         self._targets = self.model.np_fickle_targets.tolist()
-        self._base_key: np.ndarray | None = None  # seeded at the first reset
-        self._episode = -1
+        self._keys = EpisodeKeys()  # seeded at the first reset
         self._state, self._t, self._key, self._last_action = 0, 0, 0, None
         self._q, self._f, self._armed = np.float32(1.0), np.float32(0.0), False
         self._thr = (1 << 24, 1 << 24, 0)
@@ -159,13 +159,7 @@ class TaxiGymEnv(gym.Env):
             state = check_state(options["state"], "state")
         seed = None if seed is None else rng.check_seed(seed)
         super().reset(seed=seed)
-        if seed is None and self._base_key is None:  # first reset unseeded: Gymnasium's entropy
-            seed = int(self.np_random.integers(0, rng.MAX_SEED + 1))
-        if seed is not None:
-            self._base_key = np.asarray(rng.sub_env_key(seed, np.zeros(1, dtype=np.int64)))
-            self._episode = -1
-        self._episode += 1
-        key = torch.as_tensor(rng.episode_key(self._base_key, self._episode))  # (1,)
+        key = self._keys.next(seed, self.np_random)  # (1,)
         q, f = self.instances.sample(key)
         self._q, self._f = (np.float32(q[0].item()), np.float32(f[0].item()))
         if pinned is not None:

@@ -70,17 +70,14 @@ Examples:
 
 from __future__ import annotations
 
-import math
 from functools import cached_property
 from typing import Any
 
 import torch
-from torch import nn
 
-from taskvar_torch import keys
+from taskvar_torch.controllers import make_controller
 from taskvar_torch.families.taxi.dynamics import taxi_instances
 from taskvar_torch.families.taxi.oracle_mean import TaxiMeanMDP
-from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle.chains import CONTROLLER_NAMES
 from taskvar_torch.oracle.mdp import gauss_legendre
 
@@ -113,9 +110,10 @@ class TaxiOracle(TaxiMeanMDP):
     def controller_chain(self, controller: Any, **kwargs: Any) -> dict[str, Tensor]:
         """The controller as a chain on (Taxi state, carried state) with initiation sets honoured.
 
-        As :meth:`ControllerChains.controller_chain` (``decision (S, Z, N)``, ``action (S, N)``,
-        ``next_state (N,)``, ``fires (S, Z)``; ``Z = O + 1``) with one more acting entry
-        ``n = O``: the averaging action, holding no option (``z' = 0``), used where no option is
+        :meth:`ControllerChains.controller_chain` (``decision (S, Z, N)``, ``action (S, N)``,
+        ``next_state (N,)``, ``fires (S, Z)``; ``Z = O + 1``) with the oracle's subtasks where the
+        controller has none, and the oracle's ``obs_encoding`` unless given: one more acting
+        entry ``n = O``, the averaging action holding no option (``z' = 0``), where no option is
         initiable. No hierarchy (Taxi's options are flat).
         """
         name = controller if isinstance(controller, str) else controller.name
@@ -123,77 +121,18 @@ class TaxiOracle(TaxiMeanMDP):
             raise ValueError(
                 f"controller must be one of ['averaging', 'options', 'interruption'], got {name!r}"
             )
-        heads = kwargs.get("heads")
-        subtasks = kwargs.get("subtasks")
+        heads, subtasks = kwargs.get("heads"), kwargs.get("subtasks")
         if not isinstance(controller, str):
             heads, subtasks = controller.heads, controller.subtasks
-        if heads is None:
-            heads = self.heads()
-        subtasks = self.subtasks if subtasks is None else subtasks
-        t = self.tabulate(heads, kwargs.get("obs_encoding") or self.obs_encoding)
-        if name == "averaging":
-            return self._averaging_chain(t)
-        return self._initiation_chain(t, heads, subtasks, interrupt=name == "interruption")
-
-    def _initiation_chain(
-        self, t: dict[str, Tensor], heads: Heads, subtasks: Any, interrupt: bool
-    ) -> dict[str, Tensor]:
-        """Algorithm 1 over initiable options: line 4's argmax and line 7's draw over I(s), line
-        6's ``V^{mu_bar}(s)`` over I(s); no initiable option: the averaging action."""
-        S, O, dev = self.S, self.O, self.device  # noqa: E741
-        cells = self._cells_td(torch.arange(S, device=dev))
-        init = subtasks.initiation(cells)  # (S, O)
-        beta = subtasks.termination(cells)  # (S, O)
-        q_mu = t[keys.OPTION_VALUE].to(torch.float64)  # (S, O)
-        any_init = init.any(-1)  # (S,)
-        if heads.softmax_temperature is None:
-            mu = nn.functional.one_hot(q_mu.masked_fill(~init, -math.inf).argmax(-1), O).to(
-                torch.float64
+        if isinstance(controller, str) or subtasks is None:
+            controller = make_controller(
+                name,
+                self.heads() if heads is None else heads,
+                self.subtasks if subtasks is None else subtasks,
+                seed=getattr(controller, "seed", 0),
             )
-        else:
-            mu = torch.softmax(q_mu.masked_fill(~init, -math.inf) / heads.softmax_temperature, -1)
-        mu = torch.where(any_init.unsqueeze(-1), mu.nan_to_num(0.0), 0.0)  # (S, O)
-        fallback = nn.functional.one_hot(torch.full((S,), O, device=dev), O + 1).to(torch.float64)
-        pick = torch.where(
-            any_init.unsqueeze(-1),
-            torch.cat(
-                [
-                    nn.functional.one_hot(q_mu.masked_fill(~init, -math.inf).argmax(-1), O).to(
-                        torch.float64
-                    ),
-                    torch.zeros(S, 1, dtype=torch.float64, device=dev),
-                ],
-                -1,
-            ),
-            fallback,
-        )  # (S, N) line 4 (argmax even for a softmax mu_bar)
-        draw = torch.where(
-            any_init.unsqueeze(-1),
-            torch.cat([mu, torch.zeros(S, 1, dtype=torch.float64, device=dev)], -1),
-            fallback,
-        )  # (S, N) line 7
-        v = (mu * q_mu.masked_fill(~init, 0.0)).sum(-1)  # (S,) V^{mu_bar}(s) over I(s)
-        N, Z = O + 1, O + 1
-        decision = torch.zeros(S, Z, N, dtype=torch.float64, device=dev)
-        fires = torch.zeros(S, Z, dtype=torch.bool, device=dev)
-        decision[:, 0] = pick
-        stay = nn.functional.one_hot(torch.arange(O, device=dev), N).to(torch.float64)  # (O, N)
-        ended = beta  # (S, O): o_run terminated at s
-        below = (
-            (t[keys.MAX_VALUE].to(torch.float64) < v.unsqueeze(-1)) & any_init.unsqueeze(-1)
-            if interrupt
-            else torch.zeros_like(beta)
-        )  # (S, O) line 6
-        run = torch.where(below.unsqueeze(-1), draw.unsqueeze(1), stay.unsqueeze(0))  # (S, O, N)
-        decision[:, 1:] = torch.where(ended.unsqueeze(-1), pick.unsqueeze(1), run)
-        fires[:, 1:] = below & ~ended
-        act_opt = t[keys.OPTION_ACTION_VALUE].argmax(-1)  # (S, O)
-        act_avg = t[keys.ACTION_VALUE].argmax(-1) if keys.ACTION_VALUE in t else act_opt[:, 0]
-        action = torch.cat([act_opt, act_avg.unsqueeze(-1)], -1)  # (S, N)
-        next_state = torch.cat(
-            [torch.arange(1, O + 1, device=dev), torch.zeros(1, dtype=torch.int64, device=dev)]
-        )
-        return {"decision": decision, "action": action, "next_state": next_state, "fires": fires}
+        encoding = kwargs.get("obs_encoding") or self.obs_encoding
+        return super().controller_chain(controller, obs_encoding=encoding)
 
     @cached_property
     def _succ3(self) -> Tensor:

@@ -20,14 +20,13 @@ from taskvar_torch.families.taxi import dynamics as taxi
 from taskvar_torch.families.taxi.env import observation_table
 from taskvar_torch.families.taxi.oracle_models import _K, TaxiModels
 from taskvar_torch.families.taxi.subtasks import state_parts
-from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle.mdp import greedy, snap_ties, solve_mdp
-from taskvar_torch.oracle.tables import table_heads
+from taskvar_torch.oracle.tables import DerivedTables
 
 Tensor = torch.Tensor
 
 
-class TaxiMeanMDP(TaxiModels):
+class TaxiMeanMDP(DerivedTables, TaxiModels):
     """The mean MDP, options, switching values and heads of
     :class:`~taskvar_torch.families.taxi.oracle.TaxiOracle` (its arguments: that class)."""
 
@@ -283,23 +282,12 @@ class TaxiMeanMDP(TaxiModels):
         """mu_bar ``(S, O)`` over the initiable options (:meth:`masked_mu`)."""
         return self.masked_mu(self.switching_q())
 
-    def v_mu_bar(self) -> Tensor:
-        """``V^{mu_bar}(s) = sum_q mu_bar(s, q) Q_mu(s, q)`` over the initiable q ``(S,)``."""
-        return (self.mu_bar() * self.switching_q()).sum(-1)
-
     def instance_option_q(self, q: Any, f: Any) -> Tensor:
         """``Q^{m, mu_bar}((s, k), o)`` ``(B, 2, S, O)`` (``k`` = pending) in instances ``(q, f)``."""
         qt, ft, scalar = self._instances_arg(q, f)
         out = self._smdp_values(self.kernel_probs(qt, ft), True, self.mu_bar(), tol=1e-8)
         out = out.reshape(-1, 2, self.S, self.O)
         return out[0] if scalar else out
-
-    def max_value(self, instances: Any = None) -> Tensor:
-        """``Q_hat (S, O)``: max over the instance set and the hidden fickle status of
-        ``Q^{m, mu_bar}`` (Definition 1); values within ``TIE_ATOL`` of ``V^{mu_bar}`` snap to it."""
-        if instances is None:
-            return self._max_value_default
-        return self._max_value(*self.instance_set(instances))
 
     def _max_value(self, q: Tensor, f: Tensor) -> Tensor:
         chunks = [
@@ -309,26 +297,6 @@ class TaxiMeanMDP(TaxiModels):
         q_hat = torch.stack(chunks).amax(0)  # (S, O)
         v = self.v_mu_bar().unsqueeze(-1)
         return torch.where((q_hat - v).abs() <= 1e-7, v.expand_as(q_hat), q_hat)
-
-    @cached_property
-    def _max_value_default(self) -> Tensor:
-        return self._max_value(*self.instance_set(None))
-
-    # ---- heads -----------------------------------------------------------------------------------
-
-    def heads(self, in_key: Any = keys.CELL, dtype: torch.dtype = torch.float64) -> Heads:
-        """A :class:`Heads` bundle of the oracle's tables (averaging, options, switching, max-value),
-        reading ``in_key`` (``keys.CELL`` or the one-hot ``keys.OBSERVATION``)."""
-        t = dict(dtype=dtype, device=self.device)
-        return table_heads(
-            self.option_names,
-            averaging=self.averaging_q().to(**t),
-            options=self.option_q().permute(1, 0, 2).contiguous().to(**t),
-            switching=self.switching_q().to(**t),
-            max_value=self.max_value().to(**t),
-            in_key=in_key,
-            softmax_temperature=self.mu_temperature,
-        )
 
     def observation_td(self, obs_encoding: str = "onehot") -> TensorDict:
         """A ``(S,)`` tensordict of every Taxi state: ``cell`` and its ``observation`` in

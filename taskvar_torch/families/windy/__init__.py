@@ -57,8 +57,8 @@ Design decisions (documented here once):
 - **Controllers** (:meth:`WindyOracle.controller_return`) are evaluated exactly as Markov chains on
   (cell, carried state): the state is the option/subtask that acted last step (or none), the
   decision kernel is tabulated from the heads' outputs at every cell (any :class:`Heads`: the
-  oracle's tables or trained networks) by an implementation of Algorithms 1 and 2 independent of
-  ``controllers/``. :meth:`WindyOracle.controller_fire_count` gives the exact expected number of
+  oracle's tables or trained networks) by the controller's own rule (Algorithms 1 and 2 of
+  ``controllers/``). :meth:`WindyOracle.controller_fire_count` gives the exact expected number of
   interruptions (Algorithm 1) or control moves (Algorithm 2) per episode.
 - **Where interruption matters.** With the paper's training distribution the oracle's own tables
   satisfy Definition 1's condition at 12 (cell, option) pairs on every shipped layout, but none is

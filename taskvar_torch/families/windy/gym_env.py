@@ -10,10 +10,10 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import torch
 
 from taskvar_torch import rng
 from taskvar_torch.envs import gym_checks
+from taskvar_torch.envs.gym_episodes import EpisodeKeys
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy import render
 from taskvar_torch.families.windy.env import _C_START, observation_table, resolve_layout
@@ -80,8 +80,7 @@ class WindyGridGymEnv(gym.Env):
         self.action_space = gym.spaces.Discrete(4)
         self._move, self._push = self.model.np_move.tolist(), self.model.np_push.tolist()
         self._goal = self.model.np_is_goal.tolist()
-        self._base_key: np.ndarray | None = None  # seeded at the first reset
-        self._episode = -1
+        self._keys = EpisodeKeys()  # seeded at the first reset
         self._cell = int(self.model.np_start_cells[0])
         self._t, self._p, self._dir = 0, np.float32(0.0), 0
         self._key = 0
@@ -123,13 +122,7 @@ class WindyGridGymEnv(gym.Env):
             start = r * W + c
         seed = None if seed is None else rng.check_seed(seed)
         super().reset(seed=seed)
-        if seed is None and self._base_key is None:  # first reset unseeded: Gymnasium's entropy
-            seed = int(self.np_random.integers(0, rng.MAX_SEED + 1))
-        if seed is not None:
-            self._base_key = np.asarray(rng.sub_env_key(seed, np.zeros(1, dtype=np.int64)))
-            self._episode = -1
-        self._episode += 1
-        key = torch.as_tensor(rng.episode_key(self._base_key, self._episode))  # (1,)
+        key = self._keys.next(seed, self.np_random)  # (1,)
         p, d = self.instances.sample(key)
         self._p, self._dir = np.float32(p[0].item()), int(d[0])
         self._p = pinned.get("p", self._p)

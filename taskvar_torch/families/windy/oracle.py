@@ -11,59 +11,36 @@ docs/oracle.md describes the oracle's use. Controllers as Markov chains (Algorit
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 from functools import cached_property
 from typing import Any
 
-import numpy as np
 import torch
 from tensordict import TensorDict
 from torch import nn
 
 from taskvar_torch import keys
 from taskvar_torch.families.windy import dynamics as windy
-from taskvar_torch.families.windy.env import observation_table, resolve_layout
-from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
+from taskvar_torch.families.windy.env import observation_table
+from taskvar_torch.families.windy.instances import WindyInstances
+from taskvar_torch.families.windy.oracle_base import WindyOracleBase
 from taskvar_torch.families.windy.replay_reference import ReplayReference
 from taskvar_torch.families.windy.subtasks import WindySubtasks
-from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.oracle.chains import ControllerChains
 from taskvar_torch.oracle.mdp import (
     TIE_ATOL,
     _policy_kernel,
     _policy_reward,
-    gauss_legendre,
     greedy,
     snap_ties,
     solve_mdp,
 )
-from taskvar_torch.oracle.tables import table_heads
+from taskvar_torch.oracle.tables import DerivedTables
 
 Tensor = torch.Tensor
 
 
-def layout_of(model_or_layout: windy.WindyModel | windy.WindyLayout | str) -> windy.WindyLayout:
-    """The layout of a model, a layout, a layout name or a map string (both oracles' input)."""
-    if isinstance(model_or_layout, windy.WindyModel):
-        return model_or_layout.layout
-    return resolve_layout(model_or_layout)
-
-
-def p_grid_values(p_grid: int | Sequence[float], instances: WindyInstances) -> Tensor:
-    """Q_hat's ``p`` values (float64): ``p_grid`` evenly spaced over ``instances``' range (an
-    int) or the given values; a one-line ``ValueError`` otherwise."""
-    if isinstance(p_grid, int):
-        if p_grid < 1:
-            raise ValueError(f"p_grid must be >= 1 or a sequence of p values, got {p_grid}")
-        return torch.linspace(instances.p_low, instances.p_high, p_grid, dtype=torch.float64)
-    grid = torch.as_tensor(list(p_grid), dtype=torch.float64)
-    if grid.numel() == 0 or bool(((grid < 0) | (grid > 1)).any()):
-        raise ValueError(f"p_grid values must be in [0, 1], got {list(p_grid)}")
-    return grid
-
-
-class WindyOracle(ControllerChains, ReplayReference):
+class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleBase):
     """Exact solver of a windy layout's family (docs/oracle.md).
 
     Args:
@@ -83,9 +60,6 @@ class WindyOracle(ControllerChains, ReplayReference):
         device: torch device of the tables.
     """
 
-    instance_keys = ("p", "direction")
-    """The ``("instance", key)`` fields :meth:`controller_return` takes, in order (docs/families.md)."""
-
     def __init__(
         self,
         model_or_layout: windy.WindyModel | windy.WindyLayout | str = "default",
@@ -99,104 +73,21 @@ class WindyOracle(ControllerChains, ReplayReference):
         tol: float = 1e-10,
         device: torch.device | str = "cpu",
     ):
-        layout = layout_of(model_or_layout)
-        if not 0.0 <= gamma < 1.0:
-            raise ValueError(f"gamma must be in [0, 1), got {gamma}")
-        self.layout = layout
-        self.device = torch.device(device)
-        self.model = windy.WindyModel(layout, self.device)
-        self.gamma = float(gamma)
-        self.horizon = int(horizon) if horizon is not None else windy.default_horizon(layout)
-        if self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {horizon}")
-        self.train_instances = windy_instances(train_instances)
+        super().__init__(
+            model_or_layout, gamma, horizon, train_instances, p_grid, quad_nodes, device
+        )
         self.subtasks = WindySubtasks(self.model, wrong_exit_penalty)
         self.option_names = self.subtasks.names
+        self.O = len(self.option_names)  # noqa: E741
         self.mu_temperature = mu_temperature
-        self.quad_nodes = (
-            int(quad_nodes) if quad_nodes is not None else max(1, math.ceil(self.horizon / 2))
-        )
         self.tol = float(tol)
-        self.p_grid = p_grid_values(p_grid, self.train_instances).to(self.device)
-        self.S, self.A, self.O = (
-            self.model.num_cells,
-            self.model.num_actions,
-            len(self.option_names),
-        )
-        self.start_cells = self.model.start_cells  # (K,)
-        self.is_goal = self.model.is_goal  # (S,)
 
     # ---- models -----------------------------------------------------------------------------
-
-    def _f(self, x: Any) -> Tensor:
-        return torch.as_tensor(x, dtype=torch.float64, device=self.device)
-
-    def _instances_arg(self, p: Any, direction: Any) -> tuple[Tensor, Tensor, bool]:
-        """``(p (B,), direction (B,), scalar)`` from scalars, sequences or tensors (broadcast)."""
-        scalar = not isinstance(p, (Sequence, Tensor, np.ndarray)) or (
-            isinstance(p, (Tensor, np.ndarray)) and np.ndim(p) == 0
-        )
-        if isinstance(direction, str) or not isinstance(direction, (Sequence, Tensor, np.ndarray)):
-            d = torch.tensor([windy.direction_index(direction)], device=self.device)
-        elif isinstance(direction, Tensor):
-            d = direction.to(self.device, torch.int64).reshape(-1)
-        else:
-            d = torch.tensor([windy.direction_index(x) for x in direction], device=self.device)
-            scalar = False
-        pt = self._f(p).reshape(-1)
-        if bool(((pt < 0) | (pt > 1)).any()):
-            raise ValueError(f"p must be in [0, 1], got {p}")
-        if bool(((d < 0) | (d >= len(windy.DIRECTIONS))).any()):
-            raise ValueError(f"direction must be one of {list(windy.DIRECTIONS)} or 0..3")
-        pt, d = torch.broadcast_tensors(pt, d)
-        return pt.contiguous(), d.contiguous(), scalar and pt.numel() == 1
 
     def transition(self, p: Any, direction: Any) -> tuple[Tensor, Tensor]:
         """Exact instance models ``P (B, S, A, S)``, ``R (B, S, A)`` (float64)."""
         pt, d, _ = self._instances_arg(p, direction)
         return windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
-
-    def instance_set(self, instances: Any = None) -> tuple[Tensor, Tensor]:
-        """``(p (M,), direction (M,))`` of a finite instance set (Q_hat's max, Definition 1).
-
-        ``None``: the training distribution's ``points``, else ``p_grid`` x training directions. A
-        :class:`WindyInstances` (or name/dict): its points, else ``p_grid`` rescaled to its range x its
-        directions. A ``(p, direction)`` pair of sequences/tensors: those instances.
-        """
-        if isinstance(instances, tuple) and len(instances) == 2:
-            pt, d, _ = self._instances_arg(instances[0], instances[1])
-            return pt, d
-        dist = self.train_instances if instances is None else windy_instances(instances)
-        if dist.points is not None:
-            return self._instances_arg([p for p, _ in dist.points], [d for _, d in dist.points])[:2]
-        t = self.p_grid
-        if instances is not None:
-            ti = self.train_instances
-            span = ti.p_high - ti.p_low
-            u = (t - ti.p_low) / span if span > 0 else torch.zeros_like(t)
-            t = dist.p_low + (dist.p_high - dist.p_low) * u
-        dirs = [windy.direction_index(x) for x in dist.directions]
-        pp = t.repeat(len(dirs))
-        dd = torch.tensor(dirs, device=self.device).repeat_interleave(t.numel())
-        return pp, dd
-
-    def quadrature(self, instances: Any = None) -> tuple[Tensor, Tensor, Tensor]:
-        """``(p (K,), direction (K,), weight (K,))`` integrating over an instance distribution.
-
-        Continuous ``p ~ U[p_low, p_high]``: Gauss-Legendre with ``quad_nodes`` nodes x uniform
-        directions; ``points``: each point with weight ``1/len(points)``.
-        """
-        dist = self.train_instances if instances is None else windy_instances(instances)
-        if dist.points is not None:
-            pt, d = self.instance_set(dist)
-            return pt, d, torch.full_like(pt, 1.0 / pt.numel())
-        x, w = gauss_legendre(self.quad_nodes, dist.p_low, dist.p_high)
-        dirs = [windy.direction_index(x) for x in dist.directions]
-        nd = len(dirs)
-        pp = x.to(self.device).repeat(nd)
-        dd = torch.tensor(dirs, device=self.device).repeat_interleave(x.numel())
-        ww = (w.to(self.device) / nd).repeat(nd)
-        return pp, dd, ww
 
     @cached_property
     def _mean_mdp(self) -> tuple[Tensor, Tensor]:
@@ -348,26 +239,12 @@ class WindyOracle(ControllerChains, ReplayReference):
         """mu_bar ``(S, O)``: greedy one-hot (lowest index on ties) or softmax in :meth:`switching_q`."""
         return self._mu(self.switching_q())
 
-    def v_mu_bar(self) -> Tensor:
-        """``V^{mu_bar}(s) = sum_q mu_bar(s, q) Q_mu(s, q)`` ``(S,)`` (Definition 1's right-hand side)."""
-        return (self.mu_bar() * self.switching_q()).sum(-1)
-
     def instance_option_q(self, p: Any, direction: Any) -> Tensor:
         """``Q^{m, mu_bar}(s, o)`` ``(B, S, O)`` (or ``(S, O)`` for a scalar instance) in instance m."""
         pt, d, scalar = self._instances_arg(p, direction)
         P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
         q = self.option_values(P, R, self.mu_bar())
         return q[0] if scalar else q
-
-    def max_value(self, instances: Any = None) -> Tensor:
-        """``Q_hat (S, O) = max_m Q^{m, mu_bar}(s, o)`` over an instance set (Definition 1).
-
-        ``instances``: see :meth:`instance_set` (default: ``p_grid`` x training directions).
-        Values within ``TIE_ATOL`` of ``V^{mu_bar}(s)`` are snapped to it (see "Ties").
-        """
-        if instances is None:
-            return self._max_value_default
-        return self._max_value(*self.instance_set(instances))
 
     def _max_value(self, p: Tensor, d: Tensor) -> Tensor:
         chunks = [
@@ -376,10 +253,6 @@ class WindyOracle(ControllerChains, ReplayReference):
         q_hat = torch.cat(chunks).max(0).values  # (S, O)
         v = self.v_mu_bar().unsqueeze(-1)  # (S, 1)
         return torch.where((q_hat - v).abs() <= TIE_ATOL, v.expand_as(q_hat), q_hat)
-
-    @cached_property
-    def _max_value_default(self) -> Tensor:
-        return self._max_value(*self.instance_set(None))
 
     # ---- evaluation ----------------------------------------------------------------------------
 
@@ -510,30 +383,6 @@ class WindyOracle(ControllerChains, ReplayReference):
         return torch.einsum("k,k...->...", w, ret)
 
     # ---- heads ---------------------------------------------------------------------------------
-
-    def heads(
-        self,
-        in_key: Any = keys.CELL,
-        dtype: torch.dtype = torch.float64,
-        robustness: Tensor | None = None,
-    ) -> Heads:
-        """A :class:`Heads` bundle of the oracle's tables (averaging, options, switching, max-value).
-
-        Heads read ``in_key`` (``keys.CELL`` or a one-hot ``keys.OBSERVATION``) and gather rows:
-        ``action_value (B, A)``, ``option_action_value (B, O, A)``, ``option_value (B, O)``,
-        ``max_value (B, O)``; optionally ``robustness (B, O, A)`` from a given ``(S, O, A)`` table.
-        """
-        t = dict(dtype=dtype, device=self.device)
-        return table_heads(
-            self.option_names,
-            averaging=self.averaging_q().to(**t),
-            options=self.option_q().permute(1, 0, 2).contiguous().to(**t),
-            switching=self.switching_q().to(**t),
-            max_value=self.max_value().to(**t),
-            robustness=None if robustness is None else robustness.to(**t),
-            in_key=in_key,
-            softmax_temperature=self.mu_temperature,
-        )
 
     def observation_td(self, obs_encoding: str = "onehot") -> TensorDict:
         """A ``(S,)`` tensordict of every cell: ``cell`` and ``observation`` (for tabulating heads)."""

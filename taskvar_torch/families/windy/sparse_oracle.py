@@ -40,10 +40,12 @@ from typing import Any
 
 import torch
 
+from taskvar_torch import keys
+from taskvar_torch.controllers.interruption import interruption_decide_of
 from taskvar_torch.families.windy import dynamics as windy
-from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
-from taskvar_torch.families.windy.oracle import layout_of, p_grid_values
-from taskvar_torch.oracle.mdp import gauss_legendre, greedy, snap_ties
+from taskvar_torch.families.windy.instances import WindyInstances
+from taskvar_torch.families.windy.oracle_base import WindyOracleBase
+from taskvar_torch.oracle.mdp import greedy, snap_ties
 
 Tensor = torch.Tensor
 
@@ -84,7 +86,7 @@ class SparseKernel:
         return (r(s.expand_as(self.succ), self.succ) * self.prob).sum(-1)
 
 
-class SparseWindyOracle:
+class SparseWindyOracle(WindyOracleBase):
     """Exact values of a windy layout of any size by per-instance iterations on successor tables.
 
     Args:
@@ -114,29 +116,15 @@ class SparseWindyOracle:
         tie_atol: float = 1e-6,
         device: torch.device | str = "cpu",
     ):
-        layout = layout_of(model_or_layout)
-        if not 0.0 <= gamma < 1.0:
-            raise ValueError(f"gamma must be in [0, 1), got {gamma}")
-        if quad_nodes < 1:
-            raise ValueError(f"quad_nodes must be >= 1, got {quad_nodes}")
         if not 0 < tol < tie_atol:
             raise ValueError(f"tol must be in (0, tie_atol={tie_atol}), got {tol}")
-        self.layout = layout
-        self.device = torch.device(device)
-        self.model = windy.WindyModel(layout, self.device)
-        self.gamma = float(gamma)
-        self.horizon = int(horizon) if horizon is not None else windy.default_horizon(layout)
-        if self.horizon < 1:
-            raise ValueError(f"horizon must be >= 1, got {horizon}")
-        self.train_instances = windy_instances(train_instances)
+        super().__init__(
+            model_or_layout, gamma, horizon, train_instances, p_grid, quad_nodes, device
+        )
         self.wrong_exit_penalty = float(wrong_exit_penalty)
-        self.quad_nodes = int(quad_nodes)
         self.tol, self.tie_atol = float(tol), float(tie_atol)
-        self.p_grid = p_grid_values(p_grid, self.train_instances).to(self.device)
-        self.option_names = layout.exit_names
-        self.S, self.A, self.O = self.model.num_cells, self.model.num_actions, layout.num_exits
-        self.start_cells = self.model.start_cells
-        self.is_goal = self.model.is_goal
+        self.option_names = self.layout.exit_names
+        self.O = self.layout.num_exits  # noqa: E741
 
     # ---- kernels --------------------------------------------------------------------------------
 
@@ -145,48 +133,13 @@ class SparseWindyOracle:
 
         Goal cells are absorbing (values there are 0: the episode has ended).
         """
-        p = torch.as_tensor(p, dtype=torch.float64, device=self.device).reshape(-1)
-        d = _directions(direction, self.device)
-        p, d = torch.broadcast_tensors(p, d)
-        if bool(((p < 0) | (p > 1)).any()):
-            raise ValueError(f"p must be in [0, 1], got {p.tolist()}")
+        p, d, _ = self._instances_arg(p, direction)
         B, S, A = p.numel(), self.S, self.A
         moved = self.model.move.unsqueeze(0).expand(B, S, A)
         gust = self.model.push[moved, d.view(B, 1, 1)]
         succ = torch.stack([moved, gust], -1)
         pp = p.view(B, 1, 1, 1).expand(B, S, A, 1)
         return SparseKernel(succ.contiguous(), torch.cat([1.0 - pp, pp], -1).contiguous())
-
-    def instance_set(self, instances: Any = None) -> tuple[Tensor, Tensor]:
-        """``(p (M,), direction (M,))``: the training ``points``, else ``p_grid`` x directions."""
-        dist = self.train_instances if instances is None else windy_instances(instances)
-        if dist.points is not None:
-            p = torch.tensor([p for p, _ in dist.points], dtype=torch.float64)
-            return p.to(self.device), _directions([d for _, d in dist.points], self.device)
-        t = self.p_grid
-        if instances is not None:
-            ti = self.train_instances
-            span = ti.p_high - ti.p_low
-            u = (t - ti.p_low) / span if span > 0 else torch.zeros_like(t)
-            t = dist.p_low + (dist.p_high - dist.p_low) * u
-        dirs = _directions(list(dist.directions), self.device)
-        return t.repeat(dirs.numel()), dirs.repeat_interleave(t.numel())
-
-    def quadrature(self, instances: Any = None) -> tuple[Tensor, Tensor, Tensor]:
-        """``(p (K,), direction (K,), weight (K,))``: Gauss-Legendre in ``p`` x uniform directions
-        (or the ``points``, equally weighted)."""
-        dist = self.train_instances if instances is None else windy_instances(instances)
-        if dist.points is not None:
-            p, d = self.instance_set(dist)
-            return p, d, torch.full_like(p, 1.0 / p.numel())
-        x, w = gauss_legendre(self.quad_nodes, dist.p_low, dist.p_high)
-        dirs = _directions(list(dist.directions), self.device)
-        nd = dirs.numel()
-        return (
-            x.to(self.device).repeat(nd),
-            dirs.repeat_interleave(x.numel()),
-            (w.to(self.device) / nd).repeat(nd),
-        )
 
     @cached_property
     def mean_kernel(self) -> SparseKernel:
@@ -426,13 +379,13 @@ class SparseWindyOracle:
         """Exact expected return and interruptions per episode of the options controller with a
         greedy mu_bar, with offline interruption (Algorithm 1) when ``q_hat`` is given.
 
-        The controller is a Markov chain on (cell, running option): at the start and never again
-        (windy options end only at the goal) ``o_run = argmax_o Q_mu(s, o)`` (line 4); at every
-        later step line 6, ``Q_hat(s, o_run) < max_q Q_mu(s, q)``, switches to that argmax
-        (lines 7-8); then ``a = pi^{o_run}(s)`` (line 11). The comparison is strict, as in
-        ``controllers/interruption.py``, and an interruption is counted whenever line 6 holds,
-        even when mu_bar picks the running option again (the controllers' ``interrupted``); the
-        oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them.
+        The controller is a Markov chain on (cell, running option), its decisions the controllers'
+        rule (:func:`~taskvar_torch.controllers.interruption.interruption_decide_of`): at the
+        start and never again (windy options end only at the goal) ``o_run = argmax_o Q_mu(s, o)``
+        (line 4); at every later step line 6, ``Q_hat(s, o_run) < max_q Q_mu(s, q)``, switches to
+        that argmax (lines 7-8); then ``a = pi^{o_run}(s)`` (line 11). An interruption is counted
+        whenever line 6 holds, even when mu_bar picks the running option again (the controllers'
+        ``interrupted``); the oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them.
         Horizon-step returns by backward induction over steps-to-go, expected over ``instances``
         (default: the training distribution) by :meth:`quadrature`, as :meth:`expected_return`.
 
@@ -448,13 +401,20 @@ class SparseWindyOracle:
         O, S = self.O, self.S  # noqa: E741
         pol = policies.to(self.device, torch.int64)
         q_mu = q_mu.to(self.device, torch.float64)
-        best = q_mu.argmax(-1)  # (S,) line 4
-        keep = torch.arange(O, device=self.device).expand(S, O)
-        fire = torch.zeros(S, O, dtype=torch.bool, device=self.device)
-        if q_hat is not None:
-            v = q_mu.max(-1, keepdim=True).values
-            fire = (q_hat.to(self.device, torch.float64) < v) & ~self.is_goal.view(-1, 1)
-        nxt = torch.where(fire, best.view(-1, 1), keep)  # (S, O): o_run after line 6-8
+        # the controllers' rule (interruption_decide_of) at every (cell s, carried state z),
+        # z = 0 none (line 4), z = o + 1 option o running; pi^o as a greedy one-hot table
+        Z, dev = O + 1, self.device
+        q_opt = torch.nn.functional.one_hot(pol, self.A).to(torch.float64)  # (O, S, A)
+        q_opt = q_opt.permute(0, 2, 1).repeat_interleave(Z, 2)  # (O, A, S Z)
+        of = lambda x: x.T.repeat_interleave(Z, 1)  # noqa: E731  (S, O) -> (O, S Z)
+        running = torch.arange(Z, device=dev).repeat(S) - 1
+        q_hat_of = None if q_hat is None else of(q_hat.to(dev, torch.float64))
+        out = interruption_decide_of(q_opt, of(q_mu), q_hat_of, running)
+        option = out["option"].view(S, Z)
+        best = option[:, 0]  # (S,) line 4
+        fire = out[keys.INTERRUPTED].view(S, Z)[:, 1:] & ~self.is_goal.view(-1, 1)  # (S, O)
+        keep = torch.arange(O, device=dev).expand(S, O)
+        nxt = torch.where(fire, option[:, 1:], keep)  # (S, O): o_run after lines 6-8
         act = pol.gather(0, nxt.T.contiguous()).T  # (S, O): pi^{nxt}(s)
         goal = self.is_goal.view(S, 1).expand(S, O).reshape(1, S * O)
         fr = fire.to(torch.float64).reshape(1, S * O)  # firing indicator per step (goal rows 0)
@@ -512,16 +472,3 @@ def expect_planes(V: Tensor, succ: Sequence[Tensor], prob: Sequence[Tensor]) -> 
     for s, p in zip(succ[1:], prob[1:]):
         out.add_(V.gather(1, s).mul_(p))
     return out
-
-
-def _directions(direction: Any, device: torch.device) -> Tensor:
-    """Direction names / indices (scalar or sequence) -> ``(B,)`` int64."""
-    if isinstance(direction, Tensor):
-        d = direction.to(device, torch.int64).reshape(-1)
-    elif isinstance(direction, (str, int)):
-        d = torch.tensor([windy.direction_index(direction)], device=device)
-    else:
-        d = torch.tensor([windy.direction_index(x) for x in direction], device=device)
-    if bool(((d < 0) | (d >= len(windy.DIRECTIONS))).any()):
-        raise ValueError(f"direction must be one of {list(windy.DIRECTIONS)} or 0..3")
-    return d
