@@ -608,3 +608,32 @@ def test_row_names_and_budgets_are_short():
         "10240 frames",
         "300k frames",
     ]
+
+
+def test_a_baseline_on_its_own_budget_is_named_in_the_budget_column(tmp_path):
+    """A baseline trained on another budget than the heads (``metrics.json``'s
+    ``baseline_frames``, written by ``taskvar eval``) is named beside the heads' budget."""
+    for k in range(5):
+        folder = methods_folder(
+            tmp_path / "t" / f"seed{k}", k, "windy", "train", WINDY, frames=300_000
+        )
+        m = json.loads((folder / "metrics.json").read_text())
+        m["baseline_frames"] = {"recurrent": 1_200_000, "informed": 300_000}
+        (folder / "metrics.json").write_text(json.dumps(m))
+    (summary,) = report.build_report([str(tmp_path / "t")], 100).summaries
+    assert summary["budget"] == "300k frames (recurrent 1.2M)"
+
+
+def test_drop_removes_the_rows_of_a_superseded_config(tmp_path):
+    """``--drop DIGEST`` removes that config's rows and kept summaries; a digest naming no row
+    is a one-line error listing the digests there are."""
+    head = report.results_table(report_claims.Report([], [], [], [], 100)).splitlines()
+    rows = [
+        "| eval taxi --test train | old | 5 | 047e3af1 | - ([claims](docs/claims.md)) |",
+        "| eval windy --test train | kept | 5 | 87219546 | - ([claims](docs/claims.md)) |",
+    ]
+    kept = [{"label": "eval taxi --test train", "digest": "047e3af1"}]
+    block, summaries = report.drop_rows("\n".join([*head, *rows]), kept, ["047e3af1"])
+    assert block.splitlines() == [*head, rows[1]] and summaries == []
+    with pytest.raises(report.ReportError, match="--drop deadbeef: no Results row .* 047e3af1"):
+        report.drop_rows("\n".join([*head, *rows]), kept, ["deadbeef"])

@@ -243,17 +243,37 @@ def _results_block(
     return at_a_glance.results_block(summaries, details, figure, missing)
 
 
+def drop_rows(block: str, summaries: list[dict[str, Any]], digests: Sequence[str]):
+    """The Results table ``block`` and the kept ``summaries`` without the rows of the config
+    digests ``digests`` (``taskvar report --add --drop DIGEST``: results a rerun supersedes);
+    a digest that names no row is a one-line :class:`ReportError` listing those there are."""
+    lines = block.strip().splitlines()
+    present = {k[1] for k in map(_row_key, lines) if k is not None}
+    present |= {s["digest"] for s in summaries}
+    missing = [d for d in digests if d not in present]
+    if missing:
+        raise ReportError(
+            f"--drop {missing[0]}: no Results row has that config digest; the rows have "
+            f"{', '.join(sorted(present)) or 'none'}"
+        )
+    gone = set(digests)
+    kept = [line for line in lines if (_row_key(line) or ("", ""))[1] not in gone]
+    return "\n".join(kept), [s for s in summaries if s["digest"] not in gone]
+
+
 def add_rows(
     dirs: Sequence[str],
     readme: str | os.PathLike,
     claims: str | os.PathLike | None = None,
     reps: int = aggregate.REPS,
+    drop: Sequence[str] = (),
 ) -> tuple[list[Path], Report]:
     """``taskvar report --add``: add these folders' rows to the README's Results, keeping the
     rows of results not given (each row names its config digest), and write no claims page.
     Their summaries join those kept beside the claims page (``<stem>-results.json``; a group of
-    the same label and config replaced), and the compact tables and the regret figure are drawn
-    again from them all. Refused where a folder scores one of the paper's claims: the claims
+    the same label and config replaced; ``drop``: config digests whose rows go, see
+    :func:`drop_rows`), and the compact tables and the regret figure are drawn again from them
+    all. Refused where a folder scores one of the paper's claims: the claims
     page must then be rewritten from every folder. ``claims``: the claims page the rows link to
     (default ``docs/claims.md`` beside the README)."""
     if int(reps) < 100:
@@ -263,6 +283,8 @@ def add_rows(
     claims_path = Path(readme).parent / "docs" / "claims.md" if claims is None else Path(claims)
     png, data = results_files(claims_path)
     kept = _read_summaries(data)
+    a = text.index(README_START) + len(README_START)
+    old_rows, kept = drop_rows(at_a_glance.details_of(text[a : text.index(README_END)]), kept, drop)
     if png.exists() and not _ours_png(png):
         raise ReportError(
             f"{str(png)!r} exists and was not written by taskvar report; move it or rerun without "
@@ -275,10 +297,8 @@ def add_rows(
             f"--add: {'; '.join(scored)} score the paper's claims; rerun taskvar report with "
             "every results folder and --out docs/claims.md instead"
         )
-    a = text.index(README_START) + len(README_START)
-    old = text[a : text.index(README_END)]
     link = Path(os.path.relpath(claims_path, Path(readme).parent)).as_posix()
-    details = merge_rows(at_a_glance.details_of(old), results_table(report, link))
+    details = merge_rows(old_rows, results_table(report, link))
     new = {(s["label"], s["digest"]): s for s in report.summaries}
     summaries = [new.pop((s["label"], s["digest"]), s) for s in kept] + list(new.values())
     image = at_a_glance.results_png(summaries, PNG_SOFTWARE)
@@ -414,6 +434,7 @@ def _refuse_inside_results(dirs: Sequence[str], path: str | os.PathLike, flag: s
 
 
 __all__ = [
+    "drop_rows",
     "GENERATED",
     "PNG_SOFTWARE",
     "README_END",
