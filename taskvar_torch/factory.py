@@ -33,11 +33,11 @@ from taskvar_torch.checkpoint import (
     evaluation_heads_key,
     is_training_checkpoint,
     load_checkpoint,
-    load_state_dicts,
     make_bundle,
     require_finite_heads,
     save_checkpoint,
 )
+from taskvar_torch.checkpoint_checks import load_state_dicts
 from taskvar_torch.config import Config, TrainConfig, config_from_dict
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory

@@ -55,20 +55,22 @@ from taskvar_torch.checkpoint import (
     EVAL_HEADS,
     RUNTIME_KEYS,
     CheckpointError,
-    check_counter,
-    check_counters,
-    check_like,
-    check_optimizer_state,
-    check_rng_state,
     config_differences,
     load_checkpoint,
-    load_state_dicts,
     make_bundle,
     require_entries,
     require_finite_heads,
     rng_state,
     save_checkpoint,
     set_rng_state,
+)
+from taskvar_torch.checkpoint_checks import (
+    check_counter,
+    check_counters,
+    check_like,
+    check_optimizer_state,
+    check_rng_state,
+    load_state_dicts,
 )
 from taskvar_torch.collection import (
     collects_in_workers,
