@@ -48,6 +48,7 @@ from torch import nn
 
 import taskvar_torch
 from taskvar_torch.config import Config, config_to_dict
+from taskvar_torch.config.loader import migrate_config_data
 from taskvar_torch.io import atomic_write
 
 FORMAT = "taskvar_torch.checkpoint"
@@ -349,10 +350,12 @@ def config_differences(
 ) -> list[tuple[str, Any, Any]]:
     """``(dotted key, saved value, expected value)`` for every differing key not under ``ignore``.
 
-    A key present on one side only shows ``"<absent>"`` on the other.
+    A key present on one side only shows ``"<absent>"`` on the other. ``saved`` is read as the
+    current schema reads it (:func:`~taskvar_torch.config.loader.migrate_config_data`: a key
+    removed or renamed since it was written is no difference).
     """
     exp = config_to_dict(expected) if isinstance(expected, Config) else expected
-    a, b = _flatten(saved), _flatten(exp)
+    a, b = _flatten(migrate_config_data(saved, warn=False)), _flatten(exp)
 
     def ignored(k: str) -> bool:
         return any(k == p or k.startswith(p + ".") for p in ignore)

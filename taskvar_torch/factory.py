@@ -487,11 +487,6 @@ def write_heads(
 def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLearner:
     """The fused multi-head learner of ``cfg.train``."""
     t = cfg.train
-    if t.switching != "intra":
-        raise ValueError(
-            f"train.switching={t.switching!r} is not implemented; use 'intra' (intra-option "
-            "Q-learning, see taskvar_torch/heads/switching.py)"
-        )
     settings = LossSettings(
         gamma=t.gamma,
         robustness_gamma=t.robustness_gamma,
