@@ -48,7 +48,7 @@ from torch import nn
 
 import taskvar_torch
 from taskvar_torch.config import Config, config_to_dict
-from taskvar_torch.config.loader import migrate_config_data
+from taskvar_torch.config.migration import migrate_config_data
 from taskvar_torch.io import atomic_write
 
 FORMAT = "taskvar_torch.checkpoint"
@@ -351,7 +351,7 @@ def config_differences(
     """``(dotted key, saved value, expected value)`` for every differing key not under ``ignore``.
 
     A key present on one side only shows ``"<absent>"`` on the other. ``saved`` is read as the
-    current schema reads it (:func:`~taskvar_torch.config.loader.migrate_config_data`: a key
+    current schema reads it (:func:`~taskvar_torch.config.migration.migrate_config_data`: a key
     removed or renamed since it was written is no difference).
     """
     exp = config_to_dict(expected) if isinstance(expected, Config) else expected

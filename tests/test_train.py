@@ -279,7 +279,7 @@ def test_eval_ema_tau_bundles_hold_the_polyak_average(tmp_path):
 @pytest.mark.slow
 def test_a_checkpoint_written_before_train_logger_existed_resumes(tmp_path):
     """A checkpoint whose config has no ``train.logger`` (written before the key existed) and
-    still has ``train.switching`` (removed since, config/loader.py ``REMOVED_KEYS``) resumes, with
+    still has ``train.switching`` (removed since, config/migration.py ``REMOVED_KEYS``) resumes, with
     one deprecation line; the logger may change on resume (it is a runtime key)."""
     from taskvar_torch.checkpoint import save_checkpoint
 
