@@ -33,11 +33,11 @@ from taskvar_torch.checkpoint import (
     evaluation_heads_key,
     is_training_checkpoint,
     load_checkpoint,
-    load_state_dicts,
     make_bundle,
     require_finite_heads,
     save_checkpoint,
 )
+from taskvar_torch.checkpoint_checks import load_state_dicts
 from taskvar_torch.config import Config, TrainConfig, config_from_dict
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
@@ -487,11 +487,6 @@ def write_heads(
 def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLearner:
     """The fused multi-head learner of ``cfg.train``."""
     t = cfg.train
-    if t.switching != "intra":
-        raise ValueError(
-            f"train.switching={t.switching!r} is not implemented; use 'intra' (intra-option "
-            "Q-learning, see taskvar_torch/heads/switching.py)"
-        )
     settings = LossSettings(
         gamma=t.gamma,
         robustness_gamma=t.robustness_gamma,

@@ -22,14 +22,16 @@ from taskvar_torch import keys
 from taskvar_torch.checkpoint import (
     RUNTIME_KEYS,
     CheckpointError,
+    config_differences,
+    set_rng_state,
+)
+from taskvar_torch.checkpoint_checks import (
     check_counter,
     check_counters,
     check_like,
     check_optimizer_state,
     check_rng_state,
-    config_differences,
     load_state_dicts,
-    set_rng_state,
 )
 from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import Config

@@ -22,12 +22,12 @@ from taskvar_torch.checkpoint import (
     FORMAT_VERSION,
     CheckpointError,
     load_checkpoint,
-    load_state_dicts,
     make_bundle,
     rng_state,
     save_checkpoint,
     set_rng_state,
 )
+from taskvar_torch.checkpoint_checks import load_state_dicts
 from taskvar_torch.config import Config, apply_overrides, config_from_dict
 
 torch.set_num_threads(1)

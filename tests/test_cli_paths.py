@@ -5,7 +5,7 @@ command, ``train`` with neither a config nor ``--resume``, the ``--overwrite``/`
 and an ``--out`` that cannot be created, written or locked.
 
 Every input error is one line ``taskvar[ COMMAND]: error: ...`` on stderr with exit status 2
-(taskvar_torch/cli.py). Everything runs in this process through :func:`taskvar_torch.cli.main`
+(taskvar_torch/cli/). Everything runs in this process through :func:`taskvar_torch.cli.main`
 (a fresh ``python -m taskvar_torch.cli`` costs ~10 s of imports on a shared CPU).
 """
 

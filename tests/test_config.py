@@ -272,7 +272,7 @@ def test_typo_in_quick_overrides_fails_even_without_quick(tmp_path: Path):
     "override, parts",
     [
         ("family=atari", ["family must be one of [", "'taxi', 'wargus', 'windy'", "'atari'"]),
-        ("train.switching=hybrid", ["train.switching must be one of ['intra']"]),
+        ("train.switching=hybrid", ["train.switching='hybrid'", "was removed", "one allowed"]),
         ("train.mu_bar=eps", ["train.mu_bar must be one of ['greedy', 'softmax']"]),
         ("train.target_update=polyak", ["train.target_update must be one of ['hard', 'soft']"]),
         (
@@ -362,6 +362,35 @@ def test_old_windy_spellings_migrate_with_one_deprecation_line(tmp_path):
     taxi["env"]["layout"] = "default"
     with pytest.warns(FutureWarning, match="windy keys at env.* \\(layout\\) are dropped"):
         assert config_from_dict(taxi, "an old checkpoint") == load_config(CONFIG_DIR / "taxi.yaml")
+
+
+def test_removed_keys_load_with_one_deprecation_line(tmp_path):
+    """``train.switching`` (one allowed value, intra) is gone: an old config file, a checkpoint's
+    config and an override holding it load without it, each with one FutureWarning; another value
+    is a one-line error; an old checkpoint's config differs in nothing from its migration (so it
+    resumes)."""
+    from taskvar_torch.checkpoint import config_differences
+
+    new = load_config(WINDY)
+    text = WINDY.read_text()
+    assert text.count("\n  mu_bar: greedy\n") == 1
+    old_file = _write(
+        tmp_path, text.replace("\n  mu_bar: greedy\n", "\n  switching: intra\n  mu_bar: greedy\n")
+    )
+    with pytest.warns(
+        FutureWarning, match=r"train.switching is dropped \(it had one allowed"
+    ) as rec:
+        assert load_config(old_file) == new
+    assert len([w for w in rec if issubclass(w.category, FutureWarning)]) == 1
+    data = config_to_dict(new)
+    data["train"]["switching"] = "intra"
+    with pytest.warns(FutureWarning, match="train.switching is dropped"):
+        assert config_from_dict(data, "an old checkpoint") == new
+    with pytest.warns(FutureWarning, match="train.switching is deprecated"):
+        assert load_config(WINDY, ["train.switching=intra"]) == new
+    assert config_differences(data, new) == []
+    bad = {**data, "train": {**data["train"], "switching": "smdp"}}
+    _raises_one_line(["train.switching='smdp'", "was removed"], config_from_dict, bad)
 
 
 def test_generator_keys_need_layout_generated():

@@ -7,7 +7,7 @@ import json
 
 import pytest
 
-from taskvar_torch.cli import EXPERIMENTS as CLI_EXPERIMENTS
+from taskvar_torch.cli.study import EXPERIMENTS as CLI_EXPERIMENTS
 from taskvar_torch.experiments.registry import EXPERIMENTS, experiment, experiment_of_folder
 
 

@@ -13,8 +13,8 @@ from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss
 
 from taskvar_torch import keys
-from taskvar_torch.config import load_config
-from taskvar_torch.factory import build_heads, make_env, make_subtasks
+from taskvar_torch.config import apply_overrides, load_config
+from taskvar_torch.factory import build_heads, make_env, make_learner, make_subtasks
 from taskvar_torch.heads.averaging import averaging_loss, make_averaging_head
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.bundle import Heads
@@ -209,6 +209,24 @@ def test_expectile_loss_minimiser_is_the_expectile():
         assert x.item() == pytest.approx(expected, abs=0.02)
 
 
+def test_max_value_expectile_sets_the_level_of_the_max_value_loss(windy):
+    """``train.max_value_expectile`` reaches the learner (``factory.make_learner``) and weighs the
+    max-value head's TD errors: the same heads on the same sample give a loss linear in the level
+    (the expectile weights above), different at 0.25 and 0.75."""
+    cfg, env, subtasks = windy
+    batch = random_batch(env)
+    losses = {}
+    for level in (0.25, 0.5, 0.75):
+        over = ["train.max_value_estimator=expectile", f"train.max_value_expectile={level}"]
+        cfg_level = apply_overrides(cfg, over)
+        torch.manual_seed(0)
+        learner = make_learner(cfg_level, build_heads(cfg_level, env, subtasks), subtasks)
+        assert learner.loss.settings.max_value_expectile == level
+        losses[level] = learner.loss(batch.clone())["loss_max_value"].item()
+    assert losses[0.25] != pytest.approx(losses[0.75], rel=1e-3)
+    assert losses[0.5] == pytest.approx((losses[0.25] + losses[0.75]) / 2, rel=1e-5)
+
+
 def test_parent_closure_sends_component_updates_to_the_composed_parent():
     h = Hierarchy(root="TG+FE", children={"TG+FE": ("TG", "FE")})
     m = component_matrix(("TG", "FE", "TG+FE"), h)
@@ -284,7 +302,7 @@ def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
             nxt_t["robustness"],
             mask,
             tr,
-            0.9,
+            settings.robustness_gamma,  # train.robustness_gamma's default, 0.99
             True,
             pi_next,
             until_termination=until == "termination",

@@ -16,7 +16,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "taskvar_torch"
 STUDY = PACKAGE / "study"
-DISPATCH = {PACKAGE / "cli.py"}
+DISPATCH = set((PACKAGE / "cli").glob("*.py"))
 """Library modules allowed to import the study: the command line, which runs its commands."""
 
 

@@ -279,17 +279,20 @@ def test_eval_ema_tau_bundles_hold_the_polyak_average(tmp_path):
 
 @pytest.mark.slow
 def test_a_checkpoint_written_before_train_logger_existed_resumes(tmp_path):
-    """A checkpoint whose config has no ``train.logger`` (written before the key existed) still
-    resumes, and the logger may change on resume (it is a runtime key)."""
+    """A checkpoint whose config has no ``train.logger`` (written before the key existed) and
+    still has ``train.switching`` (removed since, config/migration.py ``REMOVED_KEYS``) resumes, with
+    one deprecation line; the logger may change on resume (it is a runtime key)."""
     from taskvar_torch.checkpoint import save_checkpoint
 
     train(load_config(CONFIG, [*TINY, "train.total_frames=1000"]), tmp_path / "a", progress=False)
     bundle = load_checkpoint(tmp_path / "a" / "final.pt")
     del bundle["config"]["train"]["logger"]
+    bundle["config"]["train"]["switching"] = "intra"
     old = save_checkpoint(
         tmp_path / "old.pt", {k: v for k, v in bundle.items() if not k.startswith("format")}
     )
-    result = train(
-        None, tmp_path / "b", resume=old, overrides=["train.total_frames=1200"], progress=False
-    )
+    with pytest.warns(FutureWarning, match="train.switching is dropped"):
+        result = train(
+            None, tmp_path / "b", resume=old, overrides=["train.total_frames=1200"], progress=False
+        )
     assert result["frames"] == 1200

@@ -36,7 +36,6 @@ from taskvar_torch.config.choices import (
     ROBUSTNESS_THRESHOLDS,
     ROBUSTNESS_UNTIL,
     ROOT_POLICIES,
-    SWITCHING_MODES,
     TARGET_UPDATES,
 )
 from taskvar_torch.config.help import config_help, field_docs
@@ -78,7 +77,6 @@ __all__ = [
     "ROBUSTNESS_THRESHOLDS",
     "ROBUSTNESS_UNTIL",
     "ROOT_POLICIES",
-    "SWITCHING_MODES",
     "TARGET_UPDATES",
     "BaselineConfig",
     "CollectorConfig",

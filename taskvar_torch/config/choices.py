@@ -17,7 +17,6 @@ ACTIVATIONS = ("elu", "gelu", "relu", "silu", "tanh")
 HEAD_NETWORKS = ("mlp", "conv")  # taskvar_torch/heads/networks.py NETWORKS
 OPTION_INPUTS = ("full", "subtask")
 TARGET_UPDATES = ("hard", "soft")
-SWITCHING_MODES = ("intra",)
 MU_BAR_MODES = ("greedy", "softmax")
 MAX_VALUE_ESTIMATORS = ("expectile", "instance")
 ROBUSTNESS_TARGETS = ("greedy", "option")  # mirrors heads/robustness.py

@@ -28,7 +28,6 @@ import difflib
 import functools
 import os
 import typing
-import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import field, fields
 from pathlib import Path
@@ -37,6 +36,7 @@ from typing import Any, TypeVar
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
+from taskvar_torch.config.migration import migrate_config_data, migrate_overrides
 from taskvar_torch.config.schema import Config, EnvConfig
 from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.io import atomic_write
@@ -92,47 +92,6 @@ def _schema_with_section(name: str, section_class: type) -> type[Config]:
         frozen=True,
         namespace={"__module__": __name__, "__reduce__": _reduce_config},
     )
-
-
-def migrate_config_data(data: Any, source: str = "config") -> Any:
-    """The one migration of old config data (a YAML file's, a checkpoint's or a results folder's
-    ``config.yaml``) to the current schema, with one deprecation line (a ``FutureWarning``) per
-    config it changes, as the families declare it (docs/families.md): a family's
-    ``legacy_env_keys`` found at ``env.*`` move to ``env.<name>.*`` in a config of that family and
-    are dropped in another's (never read there); the section ``env.<name>`` of a family with
-    ``legacy_section`` (every config written before the families became packages held
-    ``env.wargus``) is dropped from another family's config. ``data`` is returned unchanged
-    where nothing applies."""
-    env = data.get("env", None) if isinstance(data, (Mapping, DictConfig)) else None
-    if not isinstance(env, (Mapping, DictConfig)):
-        return data
-    family = data.get("family", Config.family)
-    families = [FAMILIES[n] for n in FAMILIES]
-    stale = [f.name for f in families if f.legacy_section and f.name in env and f.name != family]
-    moved = {f.name: [k for k in f.legacy_env_keys if k in env] for f in families}
-    moved = {name: keys for name, keys in moved.items() if keys}
-    if not stale and not moved:
-        return data
-    out = OmegaConf.to_container(data) if isinstance(data, DictConfig) else dict(data)
-    new_env = dict(out["env"])
-    what = []
-    for name in stale:
-        del new_env[name]
-        what.append(f"env.{name} is dropped (read only for family {name!r})")
-    for name, keys in moved.items():
-        legacy = {k: new_env.pop(k) for k in keys}
-        if name == family:
-            new_env[name] = {**legacy, **dict(new_env.get(name) or {})}
-            what.append(f"env.{keys[0]} and the other {name} keys are now env.{name}.* (moved)")
-        else:
-            what.append(f"the {name} keys at env.* ({', '.join(keys)}) are dropped")
-    out["env"] = new_env
-    warnings.warn(
-        f"{source}: written by an older taskvar_torch, family {family!r}: {'; '.join(what)}",
-        FutureWarning,
-        stacklevel=3,
-    )
-    return OmegaConf.create(out) if isinstance(data, DictConfig) else out
 
 
 def _reduce_config(cfg: Config) -> tuple:
@@ -347,66 +306,6 @@ def _parse_override(schema: type, item: str) -> DictConfig:
         return OmegaConf.from_dotlist([item])
     except Exception as e:  # OmegaConf and YAML parse errors
         raise ValueError(f"override {item!r} cannot be parsed: {str(e).splitlines()[0]}") from None
-
-
-RENAMED_KEYS = {
-    "baseline.mlp": "heads.hidden",
-    "baseline.lr": "train.lr",
-    "baseline.updates_per_batch": "train.updates_per_batch",
-    "baseline.target_tau": "train.target_tau",
-}
-"""Old override keys -> the key they are now (the baselines read the heads' settings: their old
-``baseline.*`` copies of them, ``taskvar train-baselines baseline.KEY=V``)."""
-
-
-def migrate_overrides(overrides: Sequence[str], family: str | None = None) -> list[str]:
-    """``overrides`` with every renamed key (:data:`RENAMED_KEYS`) spelt as it is now, each with
-    a deprecation line (a ``FutureWarning``); ``baseline.mlp=64+64`` becomes
-    ``heads.hidden=[64,64]``, and a family's ``legacy_env_keys`` at ``env.*`` (``env.layout=X``)
-    their ``env.<name>.*`` spelling in a config of that ``family`` (another family's is a one-line
-    ``ValueError``). A malformed old value is a one-line ``ValueError`` naming it."""
-    out = []
-    for item in overrides:
-        key, sep, value = str(item).partition("=")
-        part = key.strip().split(".")
-        owner = next(
-            (n for n in FAMILIES if len(part) == 2 and part[1] in FAMILIES[n].legacy_env_keys),
-            None,
-        )
-        if sep and part[0] == "env" and owner is not None:
-            if family != owner:
-                raise ValueError(
-                    f"{key.strip()} is a {owner} key (env.{owner}.{part[1]}); this config's family "
-                    f"is {family!r}"
-                )
-            warnings.warn(
-                f"{key.strip()} is deprecated: the {owner} family's keys are env.{owner}.*; use "
-                f"env.{owner}.{part[1]}={value}",
-                FutureWarning,
-                stacklevel=3,
-            )
-            out.append(f"env.{owner}.{part[1]}={value}")
-            continue
-        new = RENAMED_KEYS.get(key.strip())
-        if not sep or new is None:
-            out.append(item)
-            continue
-        if key.strip() == "baseline.mlp":
-            parts = [p.strip() for p in value.split("+") if p.strip()]
-            if not all(p.isdigit() and int(p) > 0 for p in parts):
-                raise ValueError(
-                    f"baseline.mlp={value!r} must be widths joined by '+' (e.g. 64+64); it is "
-                    "now heads.hidden, e.g. heads.hidden=[64,64]"
-                )
-            value = "[" + ",".join(parts) + "]"
-        warnings.warn(
-            f"{key.strip()} is deprecated: the baselines read the heads' setting {new}; "
-            f"use {new}={value}",
-            FutureWarning,
-            stacklevel=3,
-        )
-        out.append(f"{new}={value}")
-    return out
 
 
 def overrides_for(overrides: Sequence[str], family_name: str) -> list[str]:

@@ -123,8 +123,6 @@ class TrainConfig:
     """Use double Q-learning targets."""
     max_value_expectile: float = 0.95
     """Expectile level of the max-value head's upper estimator, in (0, 1)."""
-    switching: str = "intra"
-    """Option-switching learner: intra (intra-option Q-learning; SMDP learning is not built yet)."""
     mu_bar: str = "greedy"
     """mu_bar over Q_mu: greedy or softmax."""
     mu_bar_temperature: float = 1.0

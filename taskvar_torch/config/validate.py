@@ -34,7 +34,6 @@ from taskvar_torch.config.choices import (
     ROBUSTNESS_THRESHOLDS,
     ROBUSTNESS_UNTIL,
     ROOT_POLICIES,
-    SWITCHING_MODES,
     TARGET_UPDATES,
 )
 from taskvar_torch.families import FAMILIES as _REGISTRY
@@ -241,7 +240,6 @@ def _check_train(cfg: Config, fam: Family) -> None:
         raise ValueError(
             f"train.max_value_expectile must be in (0, 1), got {t.max_value_expectile}"
         )
-    _one_of("train.switching", t.switching, SWITCHING_MODES)
     _one_of("train.max_value_estimator", t.max_value_estimator, MAX_VALUE_ESTIMATORS)
     _one_of("train.matmul_dtype", t.matmul_dtype, MATMUL_DTYPES)
     if t.eval_ema_tau is not None and not 0.0 < t.eval_ema_tau <= 1.0:

@@ -149,7 +149,7 @@ class Family:
             .register_envs` registers every family's on ``import taskvar_torch``.
         legacy_env_keys: keys of ``config_class`` that configs of an older version held at
             ``env.*``; the loader moves them to ``env.<name>.*`` with a deprecation line (and an
-            override ``env.KEY=V`` likewise: :func:`taskvar_torch.config.loader.migrate_overrides`).
+            override ``env.KEY=V`` likewise: :func:`taskvar_torch.config.migration.migrate_overrides`).
         legacy_section: configs of an older version held ``env.<name>`` whatever their family;
             the loader drops it from another family's config with a deprecation line.
     """

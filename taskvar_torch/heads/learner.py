@@ -37,6 +37,7 @@ from torch import nn
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from taskvar_torch.compiling import Compiled
+from taskvar_torch.config.schema import HeadsConfig, TrainConfig
 from taskvar_torch.heads.averaging import averaging_loss
 from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.heads.informed import INFORMED, informed_loss
@@ -67,20 +68,23 @@ MATMUL_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 
 @dataclass(frozen=True)
 class LossSettings:
-    """Hyper-parameters of the head losses (mirrors ``TrainConfig`` fields of the same names)."""
+    """Hyper-parameters of the head losses: the ``TrainConfig`` fields of the same names (the
+    root's policy is ``train.hierarchy_root_policy``, the informed anchor
+    ``heads.informed_anchor``), whose defaults are these defaults; ``factory.make_learner`` sets
+    every one from the config."""
 
-    gamma: float = 0.99
-    robustness_gamma: float = 0.9
-    double_q: bool = True
-    max_value_expectile: float = 0.95
-    mu_bar_temperature: float | None = None  # None: greedy mu_bar
-    robustness_target: str = "option"  # R's next action: pi^o(s') ("option") or argmax R ("greedy")
-    robustness_until: str = "termination"  # R's horizon: the option's termination, or the episode
-    root_policy: str = "option"  # the hierarchy root's pi: its option head, or "averaging"
-    max_value_estimator: str = "expectile"  # or "instance" (heads/max_value.py)
-    max_value_instances: int = 64  # |Z| of the instance estimator's max
-    matmul_dtype: str = "float32"  # or "bfloat16": the network passes under torch.autocast
-    informed_anchor: float = 0.0  # lambda of mean_a Delta^2 in the informed loss (informed.py)
+    gamma: float = TrainConfig.gamma
+    robustness_gamma: float = TrainConfig.robustness_gamma
+    double_q: bool = TrainConfig.double_q
+    max_value_expectile: float = TrainConfig.max_value_expectile
+    mu_bar_temperature: float | None = None  # None: greedy mu_bar (train.mu_bar's default)
+    robustness_target: str = TrainConfig.robustness_target  # R's next action: pi^o(s') or argmax R
+    robustness_until: str = TrainConfig.robustness_until  # R's horizon: beta_o, or the episode
+    root_policy: str = TrainConfig.hierarchy_root_policy  # the root's pi: averaging, or its option
+    max_value_estimator: str = TrainConfig.max_value_estimator  # expectile | instance
+    max_value_instances: int = TrainConfig.max_value_instances  # |Z| of the instance max
+    matmul_dtype: str = TrainConfig.matmul_dtype  # or bfloat16: network passes under autocast
+    informed_anchor: float = HeadsConfig.informed_anchor  # lambda of mean_a Delta^2 (informed.py)
 
 
 def _unique_params(module: nn.Module) -> TensorDictParams:

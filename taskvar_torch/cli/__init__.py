@@ -1,0 +1,90 @@
+"""Command line: ``taskvar COMMAND ...`` (train, eval, train-baselines, experiment, sweep, export,
+plot, report).
+
+Each command is one entry of :data:`COMMANDS`: a help line, a function adding its arguments to an
+``argparse`` parser, and a function running it. Commands parse *intermixed* arguments, so
+Hydra-style ``key.sub=value`` overrides may come before or after the options::
+
+    taskvar train configs/windy.yaml --out runs/windy train.total_frames=100000
+    taskvar train --resume runs/windy/checkpoint_000050176.pt --out runs/windy
+    taskvar train --help
+
+Errors in the inputs (a misspelt config key, a foreign or tampered checkpoint, a diverged run, an
+``--out`` that cannot be used, more memory than the machine has) print one line ``taskvar COMMAND:
+error: ...`` and exit with status 2. Ctrl-C (SIGINT) or SIGTERM during ``taskvar train`` stops
+after the current batch, writes a checkpoint and prints one line with the ``--resume`` command
+(status 130, or 143 for SIGTERM); a second Ctrl-C aborts at once; elsewhere either signal prints
+one line ``taskvar COMMAND: interrupted ...`` (128 + N). Any other exception is a bug in the
+package: its traceback, then one line saying so (status 1). docs/reliability.md has them all.
+
+One module per command group, each command beside its arguments: ``train`` (train,
+train-baselines, export), ``evaluate`` (eval), ``study`` (experiment, sweep, plot, report);
+``arguments`` holds what they share, ``failures`` the one-line errors and exit statuses. Each
+command imports the machinery it runs inside its own function: the experiment modules share
+function names, and ``taskvar --help`` or a one-line error does not load every experiment.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from taskvar_torch.cli import evaluate, study, train
+from taskvar_torch.cli.arguments import Command
+from taskvar_torch.cli.failures import TerminateAsInterrupt, quiet_third_party, run_command
+
+COMMANDS: dict[str, Command] = {
+    "train": train.TRAIN,
+    "eval": evaluate.EVAL,
+    "train-baselines": train.TRAIN_BASELINES,
+    "experiment": study.EXPERIMENT,
+    "sweep": study.SWEEP,
+    "export": train.EXPORT,
+    "plot": study.PLOT,
+    "report": study.REPORT,
+}
+"""Subcommands by name, in ``taskvar --help``'s order (each defined beside its arguments and run
+function); add an entry to add a command."""
+
+
+class _OneLineParser(argparse.ArgumentParser):
+    """``argparse`` whose input errors are one line ``PROG: error: ...`` (no usage block), status 2."""
+
+    def error(self, message: str):  # argparse API
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    """The ``taskvar`` parser and one parser per subcommand."""
+    parser = _OneLineParser(
+        prog="taskvar",
+        description="Offline learning across task variations for online performance "
+        "(averaging policy, offline options, offline interruption, composition hierarchies).",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parsers = {}
+    for name, cmd in COMMANDS.items():
+        parsers[name] = sub.add_parser(
+            name,
+            help=cmd.help,
+            description=cmd.description,
+            epilog=cmd.epilog() if cmd.epilog else None,
+            formatter_class=argparse.RawDescriptionHelpFormatter,
+        )
+        cmd.add_arguments(parsers[name])
+    return parser, parsers
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``taskvar`` console script; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser, parsers = build_parser()
+    if not argv or argv[0] not in parsers:
+        parser.parse_args(argv)  # --help, or an error naming the valid commands
+        return 2
+    name = argv[0]
+    args = parsers[name].parse_intermixed_args(argv[1:])
+    quiet_third_party()
+    with TerminateAsInterrupt():
+        return run_command(name, COMMANDS[name].run, args)

@@ -1,0 +1,122 @@
+"""How a ``taskvar`` command fails: one line on stderr and an exit status (docs/reliability.md).
+
+2 for an input error (a value, a file, a folder, memory), 128 + N for signal N, 1 with the
+traceback for a bug in the package; SIGTERM outside the training loop unwinds like Ctrl-C."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import signal
+import sys
+import threading
+from collections.abc import Callable
+
+from taskvar_torch.checkpoint import CheckpointError
+from taskvar_torch.run_folder import check_out_path
+
+
+def run_command(
+    name: str, run: Callable[[argparse.Namespace], int], args: argparse.Namespace
+) -> int:
+    """``run(args)`` of command ``name``; every failure is one line on stderr and an exit status: 2 for input
+    (a value, a file, a folder, memory), 128 + N for signal N, 1 with the traceback for a bug."""
+    try:
+        if getattr(args, "out", None) is not None:  # --out '' would be the current folder
+            check_out_path(args.out)
+        return run(args)
+    except (ValueError, CheckpointError, RuntimeError) as e:
+        if type(e).__name__ == "TrainingInterrupted":
+            print(f"taskvar {name}: {e}", file=sys.stderr)
+            return 128 + int(e.signum)
+        if isinstance(e, RuntimeError) and type(e).__name__ != "TrainingDiverged":
+            if _out_of_memory(e):
+                return _memory_error(name)
+            return _bug(name, e)
+        print(f"taskvar {name}: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # a folder or file the command cannot write or read
+        where = f" {e.filename!r}" if e.filename else ""
+        print(f"taskvar {name}: error: cannot use{where}: {e.strerror or e}", file=sys.stderr)
+        return 2
+    except MemoryError:
+        return _memory_error(name)
+    except KeyboardInterrupt as e:
+        signum = getattr(e, "signum", signal.SIGINT)
+        text = f": {e}" if str(e) else f" by {signal.Signals(signum).name}"
+        print(f"taskvar {name}: interrupted{text}", file=sys.stderr)
+        return 128 + signum
+    except Exception as e:  # not the input's fault: a bug, reported as one
+        return _bug(name, e)
+
+
+def _out_of_memory(e: BaseException) -> bool:
+    """Whether ``e`` is torch's out-of-memory error (CUDA's, or the CPU allocator's)."""
+    import torch
+
+    text = str(e).lower()
+    return isinstance(e, torch.OutOfMemoryError) or any(
+        marker in text for marker in ("out of memory", "can't allocate memory")
+    )
+
+
+def _memory_error(name: str) -> int:
+    """The one line of an allocation that failed although the memory estimate let it pass."""
+    print(
+        f"taskvar {name}: error: out of memory: lower the sizes (env.num_envs, "
+        "train.buffer_size, heads.hidden, eval.batch_size, --episodes)",
+        file=sys.stderr,
+    )
+    return 2
+
+
+def _bug(name: str, e: BaseException) -> int:
+    """A failure that no input explains: the traceback, then one line saying it is a bug."""
+    import traceback
+
+    from taskvar_torch import __version__
+
+    traceback.print_exception(e)
+    print(
+        f"taskvar {name}: internal error ({type(e).__name__}): this is a bug in taskvar_torch "
+        f"{__version__}, not in your input; please report it to the taskvar_torch issue tracker "
+        "with the command line and the traceback above",
+        file=sys.stderr,
+    )
+    return 1
+
+
+class _Terminated(KeyboardInterrupt):
+    """SIGTERM outside the training loop (which handles its own): unwinds like Ctrl-C, so a run
+    folder taken but not yet used is released and removed, and the command prints one line."""
+
+    signum = signal.SIGTERM
+
+
+class TerminateAsInterrupt:
+    """While a command runs in the main thread with the default SIGTERM handler, SIGTERM raises
+    :class:`_Terminated`; the previous handler is restored after."""
+
+    def __enter__(self) -> TerminateAsInterrupt:
+        self._old = None
+        if threading.current_thread() is threading.main_thread():
+            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+                self._old = signal.signal(signal.SIGTERM, self._raise)
+        return self
+
+    @staticmethod
+    def _raise(signum: int, frame: object) -> None:
+        raise _Terminated
+
+    def __exit__(self, *exc: object) -> None:
+        if self._old is not None:
+            signal.signal(signal.SIGTERM, self._old)
+
+
+def quiet_third_party() -> None:
+    """TorchRL's INFO lines (e.g. "Initialized LazyTensorStorage") are not for this CLI's users;
+    ``RL_LOGGING_LEVEL`` set in the environment still wins."""
+    if "RL_LOGGING_LEVEL" not in os.environ:
+        os.environ["RL_LOGGING_LEVEL"] = "WARNING"  # read when torchrl is first imported
+        logging.getLogger("torchrl").setLevel(logging.WARNING)  # in case it already was

@@ -1,0 +1,298 @@
+"""``taskvar experiment``, ``sweep``, ``plot`` and ``report``: the paper's experiments, grids of
+them, their figures and the claims page (thin wrappers over the experiment registry and the study
+modules, each imported inside its command)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Sequence
+from typing import Any
+
+from taskvar_torch.cli.arguments import (
+    Command,
+    overwrite_argument,
+    set_threads,
+    split_config_and_overrides,
+)
+from taskvar_torch.experiments.registry import EXPERIMENTS as _EXPERIMENTS
+from taskvar_torch.experiments.registry import experiment, experiment_of_folder
+
+EXPERIMENTS = tuple(_EXPERIMENTS)  # the experiment registry's names (experiments/registry.py)
+
+
+def _experiment_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", choices=EXPERIMENTS, help="experiment")
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="[CONFIG] [key.sub=value ...]",
+        help="YAML config (default: the experiment's), then overrides",
+    )
+    p.add_argument(
+        "--out",
+        metavar="DIR",
+        help="results folder (default: results/NAME, or results/NAME-quick with --quick)",
+    )
+    p.add_argument("--checkpoint", metavar="PATH", help="evaluate this bundle instead of training")
+    overwrite_argument(p, "DIR (windy-fig2: DIR/train)")
+    p.add_argument("--quick", action="store_true", help="apply experiment.quick_overrides")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        metavar="N",
+        help="wargus-fig4: split the repetitions into N batches, one process each (default 1: all in one batch)",
+    )
+    p.add_argument(
+        "--threads",
+        type=int,
+        default=1,
+        metavar="N",
+        help="windy-fig2, scale: torch CPU threads (default 1, as the documented timings; the "
+        "large grids' learner gains from 2 free cores, docs/scale.md); wargus-fig4 runs one "
+        "thread per --workers process",
+    )
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bars")
+    p.add_argument(
+        "--no-plots", action="store_true", help="write no PNGs (taskvar plot DIR draws them later)"
+    )
+
+
+def _experiment_run(args: argparse.Namespace) -> int:
+    """``taskvar experiment NAME``: every experiment through its registry entry
+    (experiments/registry.py); an option it does not take is a one-line error."""
+    exp = experiment(args.name)
+    options: dict[str, Any] = {
+        "progress": not args.no_progress,
+        "plots": not args.no_plots,
+        "overwrite": args.overwrite,
+    }
+    if args.checkpoint is not None:
+        exp.refuse("checkpoint", "--checkpoint")
+        options["checkpoint"] = args.checkpoint
+    if args.quick and exp.takes("quick"):  # --quick otherwise only picks the quick overrides
+        options["quick"] = True
+    if args.workers != 1:
+        exp.refuse("workers", "--workers")
+        cores = os.cpu_count() or 1
+        if args.workers > cores:  # >= 1 is checked by the experiment
+            raise ValueError(
+                f"--workers must be in [1, {cores}] (this machine's cores), got {args.workers}"
+            )
+        options["workers"] = args.workers
+    if args.threads != 1 and "threads" in dict(exp.refusals):  # e.g. one thread per worker
+        raise ValueError(dict(exp.refusals)["threads"])
+    set_threads(args)  # default 1: small MLPs, more threads only contend on a shared CPU
+    config_path, overrides = split_config_and_overrides(args.items)
+    if args.checkpoint is not None:
+        _check_checkpoint_overrides(overrides)
+        if config_path is not None:  # its env/heads/train keys would be ignored
+            raise ValueError(
+                f"config file {config_path!r} cannot apply with --checkpoint: the bundle's own "
+                "config is used; pass experiment.*, eval.* or device overrides instead"
+            )
+    cfg = exp.load_config(config_path or exp.default_config_path(), overrides, quick=args.quick)
+    out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
+    exp.call(cfg, out, **options)
+    return 0
+
+
+CHECKPOINT_OVERRIDABLE = ("experiment", "eval", "device")
+"""Config sections an override may change when ``experiment --checkpoint`` evaluates a bundle
+(the rest comes from the bundle's own config)."""
+
+
+def _check_checkpoint_overrides(overrides: Sequence[str]) -> None:
+    """Refuse overrides that a ``--checkpoint`` run would ignore (e.g. ``env.layout=...``)."""
+    for item in overrides:
+        key = item.split("=", 1)[0].strip()
+        if not any(key == k or key.startswith(k + ".") for k in CHECKPOINT_OVERRIDABLE):
+            raise ValueError(
+                f"override {item!r} cannot apply with --checkpoint: the bundle's own config is "
+                f"used; only {', '.join(k + ('.*' if k != 'device' else '') for k in CHECKPOINT_OVERRIDABLE)} "
+                "may be overridden (train a new bundle to change it)"
+            )
+
+
+def _sweep_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "config",
+        metavar="CONFIG",
+        help="YAML config of a family: windy runs windy-fig2, wargus runs wargus-fig4",
+    )
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="key.sub=v1,v2,...",
+        help="swept keys (comma-separated values; the points are their Cartesian product) and "
+        "fixed overrides (key.sub=value)",
+    )
+    p.add_argument(
+        "--backend",
+        required=True,
+        choices=("local", "ray"),
+        help="local: the points one after the other in this process; ray: one Ray task "
+        "(1 CPU) per point",
+    )
+    p.add_argument("--address", metavar="ADDR", help="ray: a Ray cluster (default: a local Ray)")
+    p.add_argument(
+        "--workers",
+        type=int,
+        metavar="N",
+        help="ray: CPUs of the local Ray, i.e. points at once (default: all cores)",
+    )
+    p.add_argument("--quick", action="store_true", help="apply experiment.quick_overrides")
+    p.add_argument(
+        "--out",
+        default="results/sweep",
+        metavar="DIR",
+        help="sweep folder: DIR/<point>/ per point, DIR/summary.csv, DIR/summary.json "
+        "(default: results/sweep)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    p.add_argument(
+        "--no-plots",
+        action="store_true",
+        help="points write no PNGs (faster; taskvar plot DIR/<point> draws them later)",
+    )
+    overwrite_argument(p, "DIR (the sweep and its points)")
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue a sweep already in DIR (e.g. killed part-way): points whose folder holds "
+        "metrics.json and the same config.yaml are kept, the others run (docs/sweeps.md)",
+    )
+    p.add_argument(
+        "--no-batch-seeds",
+        action="store_true",
+        help="train every point alone (default: points differing only in consecutive seeds "
+        "train as one train.seeds=k run in DIR/batches/, docs/sweeps.md)",
+    )
+
+
+def _sweep_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.study.sweep import sweep
+
+    sweep(
+        args.config,
+        args.items,
+        args.out,
+        backend=args.backend,
+        quick=args.quick,
+        address=args.address,
+        workers=args.workers,
+        progress=not args.no_progress,
+        plots=not args.no_plots,
+        overwrite=args.overwrite,
+        resume=args.resume,
+        batch_seeds=not args.no_batch_seeds,
+    )
+    return 0
+
+
+def _plot_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("results", metavar="DIR", help="a results folder of taskvar experiment")
+
+
+def _plot_run(args: argparse.Namespace) -> int:
+    for path in experiment_of_folder(args.results).plot_results(args.results):
+        print(path)
+    return 0
+
+
+def _report_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "dirs",
+        nargs="+",
+        metavar="DIR",
+        help="results folders of taskvar experiment (windy-fig2, wargus-fig4, scale) or taskvar "
+        "eval --out, or folders of seed<k>/ results folders (one training seed each)",
+    )
+    p.add_argument(
+        "--out",
+        metavar="FILE",
+        help="the claims page (docs/claims.md); beside it img/<FILE stem>-profile.png "
+        "(performance profiles), img/<FILE stem>-results.png (regret per method and family) and "
+        "<FILE stem>-results.json (the data of the README's compact tables) (required unless --add)",
+    )
+    p.add_argument(
+        "--readme",
+        metavar="FILE",
+        help="also replace the Results block between <!-- report:results:start --> and "
+        "<!-- report:results:end --> in FILE (README.md): the regret figure, per family a compact "
+        "table (methods as columns, the winner bold) and the table of every result, folded",
+    )
+    p.add_argument(
+        "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace an --out page or profile PNG that taskvar report did not write",
+    )
+    p.add_argument(
+        "--add",
+        action="store_true",
+        help="only add these folders' rows to the --readme Results table (a row of the same "
+        "experiment and config is replaced, the others kept) and write no claims page; for "
+        "results that score none of the paper's claims (--out: the page the rows link to, "
+        "default docs/claims.md beside the README)",
+    )
+
+
+def _report_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.study.report import CLAIMS, ReportError, add_rows, write_report
+
+    if args.add:
+        if args.readme is None:
+            raise ReportError("--add needs --readme FILE: the README whose Results table grows")
+        written, _ = add_rows(args.dirs, args.readme, args.out, args.reps)
+        print("wrote " + ", ".join(str(p) for p in written))
+        return 0
+    if args.out is None:
+        raise ReportError("--out FILE is required (the claims page, docs/claims.md) unless --add")
+    written, report = write_report(args.dirs, args.out, args.readme, args.reps, args.overwrite)
+    for c in report.claims:
+        print(f"{CLAIMS[c.key][0]} [{c.group}]: {c.verdict} ({c.reason})")
+    print("wrote " + ", ".join(str(p) for p in written))
+    return 0
+
+
+EXPERIMENT = Command(
+    help="run one of the paper's experiments (windy-fig2, wargus-fig4, scale)",
+    description="Train (or load --checkpoint), evaluate, write a results folder and print a table.",
+    add_arguments=_experiment_arguments,
+    run=_experiment_run,
+)
+
+
+SWEEP = Command(
+    help="run an experiment over a grid of config overrides (local or Ray)",
+    description="Run the config family's experiment (windy-fig2 or wargus-fig4) once per "
+    "point of the Cartesian product of key=v1,v2 values, locally or as Ray tasks; print and "
+    "write a summary table (DIR/summary.csv, DIR/summary.json).\n\n"
+    "  taskvar sweep configs/windy.yaml --backend ray --quick --out results/sweep seed=0,1",
+    add_arguments=_sweep_arguments,
+    run=_sweep_run,
+)
+
+
+PLOT = Command(
+    help="redraw the figures of an experiment's results folder",
+    description="(Re)draw the PNG figures of a results folder.",
+    add_arguments=_plot_arguments,
+    run=_plot_run,
+)
+
+
+REPORT = Command(
+    help="regenerate the paper's claims page and the README's Results table from results",
+    description="Read results folders (many training seeds), aggregate them with rliable on "
+    "the sealed held-out instances and write the claims page (the paper's figure, ours with "
+    "its 95% CI, a verdict), its performance profiles and, with --readme, the README's "
+    "Results table (docs/report.md).\n\n"
+    "  taskvar report results/fig2-seeds results/fig4 --out docs/claims.md --readme README.md",
+    add_arguments=_report_arguments,
+    run=_report_run,
+)

@@ -1,0 +1,273 @@
+"""``taskvar train``, ``taskvar train-baselines`` and ``taskvar export``: training the heads, the
+baselines beside them, and writing a bundle's shareable heads."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from taskvar_torch.cli.arguments import (
+    Command,
+    overwrite_argument,
+    set_threads,
+    split_config_and_overrides,
+    threads_argument,
+)
+
+# --------------------------------------------------------------------------------------------
+# taskvar train
+
+
+def _train_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--help-all",
+        action=_HelpAll,
+        help="list every config key, grouped by section, with each family's own, and exit",
+    )
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="CONFIG [key.sub=value ...]",
+        help="YAML config (e.g. configs/windy.yaml; optional with --resume), then overrides",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", help="results folder (logs, checkpoints)")
+    p.add_argument(
+        "--resume",
+        metavar="PATH",
+        help="continue exactly from a checkpoint of a previous run (its config is used; only "
+        "runtime keys such as train.total_frames may be overridden)",
+    )
+    p.add_argument(
+        "--seeds",
+        type=_seed_count,
+        metavar="N",
+        help="N independent training runs (seeds seed .. seed + N - 1) in one batched learner, "
+        "written as DIR/seed<k>/ bundles (the config key train.seeds)",
+    )
+    overwrite_argument(p, "DIR")
+    threads_argument(p)
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _seed_count(text: str) -> int:
+    """``--seeds``: a positive integer, else argparse's one-line error."""
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}") from None
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive integer, got {text!r}")
+    return n
+
+
+def _train_epilog() -> str:
+    from taskvar_torch.config.help import config_help, count_keys, user_help
+
+    return (
+        "the config keys a user sets (override any key with key.sub=value):\n"
+        + user_help()
+        + f"\n\ntaskvar train --help-all lists every key ({count_keys(config_help())}), "
+        "grouped by section, with each family's own"
+    )
+
+
+class _HelpAll(argparse.Action):
+    """``--help-all``: every config key, grouped by section, with each family's own; exits."""
+
+    def __init__(self, option_strings: Sequence[str], dest: str, **kwargs: Any) -> None:
+        super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
+
+    def __call__(self, parser: argparse.ArgumentParser, *args: Any, **kwargs: Any) -> None:
+        from taskvar_torch.config import config_help
+
+        print("every config key (override any with key.sub=value):\n" + config_help())
+        parser.exit()
+
+
+def _train_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.config import load_config
+    from taskvar_torch.training import train
+
+    set_threads(args)
+    config_path, overrides = split_config_and_overrides(args.items)
+    if config_path is None and args.resume is None:
+        raise ValueError("give a CONFIG file (e.g. configs/windy.yaml) or --resume PATH")
+    if getattr(args, "seeds", None) is not None:
+        if args.resume is not None:
+            raise ValueError("--seeds starts a new batch; --resume continues the checkpoint's own")
+        overrides = [*overrides, f"train.seeds={args.seeds}"]
+    cfg = load_config(config_path, overrides) if config_path is not None else None
+    result = train(
+        cfg,
+        args.out,
+        resume=args.resume,
+        overrides=overrides if cfg is None else (),
+        progress=not args.no_progress,
+        overwrite=args.overwrite,
+    )
+    if "seeds" in result:  # train.seeds > 1: one bundle per seed
+        print(
+            f"trained {len(result['seeds'])} seeds, {result['updates']} updates on "
+            f"{result['frames']} frames each, in {result['seconds']:.1f} s; bundles: "
+            + ", ".join(str(p) for p in result["seeds"])
+        )
+        for path in result["seeds"]:
+            _print_oracle_summary(path)
+        return 0
+    print(
+        f"trained {result['updates']} updates on {result['frames']} frames in "
+        f"{result['seconds']:.1f} s; final bundle: {result['final']}"
+    )
+    _print_oracle_summary(result["final"])
+    return 0
+
+
+def _print_oracle_summary(path: str | os.PathLike) -> None:
+    """Where the family brings an exact oracle that covers the bundle's env, print the learnt
+    heads beside it (``Family.oracle_summary``; windy: docs/oracle.md)."""
+    from taskvar_torch.factory import load_heads
+    from taskvar_torch.families import family
+
+    heads, cfg = load_heads(path)
+    summary = family(cfg).oracle_summary
+    for line in summary(heads, cfg) if summary is not None else []:
+        print(line)
+
+
+# --------------------------------------------------------------------------------------------
+# taskvar train-baselines (issue 31: docs/memory.md)
+
+
+def _train_baselines_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "items",
+        nargs="*",
+        metavar="[CONFIG] [key.sub=value ...]",
+        help="YAML config (default: DIR/config.yaml of the bundle in --out), then config "
+        "overrides: the baselines read the heads' settings (heads.hidden, train.lr, "
+        "train.total_frames ...) and the recurrent one its own baseline.hidden, "
+        "baseline.slice_len and baseline.burn_in",
+    )
+    p.add_argument(
+        "--out", required=True, metavar="DIR", help="bundle folder (beside final.pt) or a new one"
+    )
+    p.add_argument(
+        "--method",
+        default="all",
+        help="recurrent, informed or all (default: recurrent, and informed where the family "
+        "gives instance features and the heads did not train it with heads.informed)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace DIR/<method>.pt if it exists")
+    threads_argument(p)
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def _train_baselines_run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from taskvar_torch.config import load_config
+    from taskvar_torch.heads.informed import informed_features
+    from taskvar_torch.heads.recurrent import BASELINES, baseline_path
+    from taskvar_torch.run_folder import check_output_folder
+    from taskvar_torch.train_recurrent import heads_only_keys, train_baseline
+
+    set_threads(args)
+    config_path, overrides = split_config_and_overrides(list(args.items))
+    if config_path is None:
+        config_path = str(Path(args.out) / "config.yaml")
+        if not Path(config_path).is_file():
+            raise ValueError(f"give a CONFIG file: {args.out!r} holds no config.yaml")
+    if args.method not in (*BASELINES, "all"):
+        raise ValueError(f"--method must be one of {[*BASELINES, 'all']}, got {args.method!r}")
+    check_output_folder(args.out)
+    cfg = load_config(config_path, overrides)
+    methods = list(BASELINES) if args.method == "all" else [args.method]
+    if "informed" in methods:
+        try:
+            informed_features(cfg)
+        except ValueError as e:
+            if args.method != "all":
+                raise
+            print(f"taskvar train-baselines: skipping informed: {e}", file=sys.stderr)
+            methods.remove("informed")
+    if args.method == "all" and "informed" in methods and cfg.heads.informed:
+        print(
+            "taskvar train-baselines: skipping informed: the heads trained it (heads.informed); "
+            "--method informed trains one apart",
+            file=sys.stderr,
+        )
+        methods.remove("informed")
+    for m in methods:
+        dest = baseline_path(Path(args.out) / "final.pt", m)
+        if dest.exists() and not args.overwrite:
+            raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
+    heads_only = heads_only_keys(cfg)
+    if heads_only:
+        print(
+            f"taskvar train-baselines: {', '.join(heads_only)} shape the heads' replay only; the "
+            "baselines take one-step targets on uniform samples",
+            file=sys.stderr,
+        )
+    for m in methods:
+        r = train_baseline(cfg, m, args.out, progress=not args.no_progress)
+        last = r["mean_train_return"]
+        last_s = "no episode ended" if last != last else f"{last:.3f}"  # NaN: none ended
+        print(
+            f"trained {m}: {r['updates']} updates on {r['frames']} frames in {r['seconds']:.1f} s "
+            f"(mean training return of the last tenth: {last_s}); wrote {r['path']}"
+        )
+    return 0
+
+
+# --------------------------------------------------------------------------------------------
+# taskvar export
+
+
+def _export_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("checkpoint", metavar="PATH", help="a training checkpoint (final.pt)")
+    p.add_argument(
+        "--out", metavar="FILE", help="where to write it (default: heads.pt beside PATH)"
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace FILE if it exists")
+
+
+def _export_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.factory import export_heads
+
+    path = export_heads(args.checkpoint, args.out, overwrite=args.overwrite)
+    print(f"wrote {path} ({path.stat().st_size / 1e6:.2f} MB)")
+    return 0
+
+
+TRAIN = Command(
+    help="train every head (averaging, options, mu_bar, max-value, robustness)",
+    description="Train every head of a family from one stream of experience: "
+    "CSV logs in DIR/logs, periodic checkpoints, DIR/final.pt.",
+    add_arguments=_train_arguments,
+    run=_train_run,
+    epilog=_train_epilog,
+)
+
+
+TRAIN_BASELINES = Command(
+    help="train the recurrent and informed baselines beside a bundle (docs/memory.md)",
+    description="Train a recurrent Q-network (TorchRL GRUModule, SliceSampler, double DQN) and "
+    "an instance-informed Q-network (the learnt ceiling) with the config's frame budget, "
+    "written as DIR/recurrent.pt and DIR/informed.pt; taskvar eval --method all plays them "
+    "beside the paper's methods.\n\n"
+    "  taskvar train-baselines configs/windy.yaml --out runs/windy --method all",
+    add_arguments=_train_baselines_arguments,
+    run=_train_baselines_run,
+)
+
+
+EXPORT = Command(
+    help="write a checkpoint's shareable bundle (heads and config, no replay or optimiser)",
+    description="Write the evaluation bundle of a training checkpoint: the heads, their "
+    "constructor arguments and the config (taskvar train writes it as DIR/heads.pt).",
+    add_arguments=_export_arguments,
+    run=_export_run,
+)

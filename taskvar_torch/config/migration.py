@@ -1,0 +1,171 @@
+"""The one migration of old configs to the current schema, each change with a deprecation line.
+
+What an older taskvar_torch wrote still loads: a YAML file's, a checkpoint's or a results folder's
+config (:func:`migrate_config_data`) and ``key.sub=value`` overrides (:func:`migrate_overrides`).
+Removed keys (:data:`REMOVED_KEYS`) are dropped, renamed ones (:data:`RENAMED_KEYS`) spelt as
+they are now, and a family's own keys move from their old spellings at ``env.*`` to its section
+``env.<name>`` as the families declare it (``Family.legacy_env_keys``, ``legacy_section``;
+docs/families.md). :mod:`taskvar_torch.config.loader` runs it on everything it loads.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+
+from taskvar_torch.config.schema import Config
+from taskvar_torch.families import FAMILIES
+
+REMOVED_KEYS = {
+    "train.switching": (
+        "intra",
+        "it had one allowed value: the switching head always learns by intra-option Q-learning",
+    ),
+}
+"""Config keys that are gone -> ``(the one value an old config could hold, why it went)``
+(docs/changelog.md, issue 45). An old config, checkpoint or override holding one at that value
+loads without it, with a deprecation line; another value is a one-line ``ValueError``."""
+
+
+def _drop_removed(out: dict, source: str) -> list[str]:
+    """Delete the :data:`REMOVED_KEYS` from the plain config dict ``out``; what was dropped."""
+    what = []
+    for dotted, (value, why) in REMOVED_KEYS.items():
+        section, key = dotted.split(".")
+        node = out.get(section)
+        if isinstance(node, Mapping) and key in node:
+            if node[key] != value:
+                raise ValueError(
+                    f"{dotted}={node[key]!r} ({source}) cannot load: {dotted} was removed ({why})"
+                )
+            out[section] = {k: v for k, v in node.items() if k != key}
+            what.append(f"{dotted} is dropped ({why})")
+    return what
+
+
+def _move_env_keys(out: dict) -> list[str]:
+    """The families' old env spellings in the plain config dict ``out`` migrated in place
+    (:func:`migrate_config_data`); what changed."""
+    env = out.get("env")
+    if not isinstance(env, Mapping):
+        return []
+    family = out.get("family", Config.family)
+    families = [FAMILIES[n] for n in FAMILIES]
+    stale = [f.name for f in families if f.legacy_section and f.name in env and f.name != family]
+    moved = {f.name: [k for k in f.legacy_env_keys if k in env] for f in families}
+    moved = {name: keys for name, keys in moved.items() if keys}
+    if not stale and not moved:
+        return []
+    new_env = dict(env)
+    what = []
+    for name in stale:
+        del new_env[name]
+        what.append(f"env.{name} is dropped (read only for family {name!r})")
+    for name, keys in moved.items():
+        legacy = {k: new_env.pop(k) for k in keys}
+        if name == family:
+            new_env[name] = {**legacy, **dict(new_env.get(name) or {})}
+            what.append(f"env.{keys[0]} and the other {name} keys are now env.{name}.* (moved)")
+        else:
+            what.append(f"the {name} keys at env.* ({', '.join(keys)}) are dropped")
+    out["env"] = new_env
+    return what
+
+
+def migrate_config_data(data: Any, source: str = "config", warn: bool = True) -> Any:
+    """The one migration of old config data (a YAML file's, a checkpoint's or a results folder's
+    ``config.yaml``) to the current schema, with one deprecation line (a ``FutureWarning``, unless
+    ``warn`` is false) per config it changes: the :data:`REMOVED_KEYS` are dropped; and, as the
+    families declare it (docs/families.md), a family's ``legacy_env_keys`` found at ``env.*`` move
+    to ``env.<name>.*`` in a config of that family and are dropped in another's (never read
+    there); the section ``env.<name>`` of a family with ``legacy_section`` (every config written
+    before the families became packages held ``env.wargus``) is dropped from another family's
+    config. ``data`` is returned unchanged where nothing applies."""
+    if not isinstance(data, (Mapping, DictConfig)):
+        return data
+    out = OmegaConf.to_container(data) if isinstance(data, DictConfig) else dict(data)
+    what = _drop_removed(out, source) + _move_env_keys(out)
+    if not what:
+        return data
+    if warn:
+        family = out.get("family", Config.family)
+        warnings.warn(
+            f"{source}: written by an older taskvar_torch, family {family!r}: {'; '.join(what)}",
+            FutureWarning,
+            stacklevel=3,
+        )
+    return OmegaConf.create(out) if isinstance(data, DictConfig) else out
+
+
+RENAMED_KEYS = {
+    "baseline.mlp": "heads.hidden",
+    "baseline.lr": "train.lr",
+    "baseline.updates_per_batch": "train.updates_per_batch",
+    "baseline.target_tau": "train.target_tau",
+}
+"""Old override keys -> the key they are now (the baselines read the heads' settings: their old
+``baseline.*`` copies of them, ``taskvar train-baselines baseline.KEY=V``)."""
+
+
+def migrate_overrides(overrides: Sequence[str], family: str | None = None) -> list[str]:
+    """``overrides`` with every renamed key (:data:`RENAMED_KEYS`) spelt as it is now and every
+    removed one (:data:`REMOVED_KEYS`) left out, each with a deprecation line (a
+    ``FutureWarning``); ``baseline.mlp=64+64`` becomes
+    ``heads.hidden=[64,64]``, and a family's ``legacy_env_keys`` at ``env.*`` (``env.layout=X``)
+    their ``env.<name>.*`` spelling in a config of that ``family`` (another family's is a one-line
+    ``ValueError``). A malformed old value is a one-line ``ValueError`` naming it."""
+    out = []
+    for item in overrides:
+        key, sep, value = str(item).partition("=")
+        if sep and key.strip() in REMOVED_KEYS:
+            section, name = key.strip().split(".")
+            _drop_removed({section: {name: value.strip()}}, f"override {item!r}")  # or an error
+            warnings.warn(
+                f"{key.strip()} is deprecated: {REMOVED_KEYS[key.strip()][1]}; the override is "
+                "ignored, remove it",
+                FutureWarning,
+                stacklevel=3,
+            )
+            continue
+        part = key.strip().split(".")
+        owner = next(
+            (n for n in FAMILIES if len(part) == 2 and part[1] in FAMILIES[n].legacy_env_keys),
+            None,
+        )
+        if sep and part[0] == "env" and owner is not None:
+            if family != owner:
+                raise ValueError(
+                    f"{key.strip()} is a {owner} key (env.{owner}.{part[1]}); this config's family "
+                    f"is {family!r}"
+                )
+            warnings.warn(
+                f"{key.strip()} is deprecated: the {owner} family's keys are env.{owner}.*; use "
+                f"env.{owner}.{part[1]}={value}",
+                FutureWarning,
+                stacklevel=3,
+            )
+            out.append(f"env.{owner}.{part[1]}={value}")
+            continue
+        new = RENAMED_KEYS.get(key.strip())
+        if not sep or new is None:
+            out.append(item)
+            continue
+        if key.strip() == "baseline.mlp":
+            parts = [p.strip() for p in value.split("+") if p.strip()]
+            if not all(p.isdigit() and int(p) > 0 for p in parts):
+                raise ValueError(
+                    f"baseline.mlp={value!r} must be widths joined by '+' (e.g. 64+64); it is "
+                    "now heads.hidden, e.g. heads.hidden=[64,64]"
+                )
+            value = "[" + ",".join(parts) + "]"
+        warnings.warn(
+            f"{key.strip()} is deprecated: the baselines read the heads' setting {new}; "
+            f"use {new}={value}",
+            FutureWarning,
+            stacklevel=3,
+        )
+        out.append(f"{new}={value}")
+    return out
