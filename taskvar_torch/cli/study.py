@@ -239,6 +239,14 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
         "results that score none of the paper's claims (--out: the page the rows link to, "
         "default docs/claims.md beside the README)",
     )
+    p.add_argument(
+        "--drop",
+        metavar="DIGEST",
+        action="append",
+        default=[],
+        help="with --add: remove the rows of this config digest (the table's config column), "
+        "results a rerun supersedes; repeatable",
+    )
 
 
 def _report_run(args: argparse.Namespace) -> int:
@@ -247,9 +255,11 @@ def _report_run(args: argparse.Namespace) -> int:
     if args.add:
         if args.readme is None:
             raise ReportError("--add needs --readme FILE: the README whose Results table grows")
-        written, _ = add_rows(args.dirs, args.readme, args.out, args.reps)
+        written, _ = add_rows(args.dirs, args.readme, args.out, args.reps, args.drop)
         print("wrote " + ", ".join(str(p) for p in written))
         return 0
+    if args.drop:
+        raise ReportError("--drop goes with --add (a claims page is rewritten from every folder)")
     if args.out is None:
         raise ReportError("--out FILE is required (the claims page, docs/claims.md) unless --add")
     written, report = write_report(args.dirs, args.out, args.readme, args.reps, args.overwrite)
