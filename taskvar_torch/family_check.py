@@ -4,8 +4,9 @@ It builds the family's env and options from a default config of the family and c
 the declaration (:func:`~taskvar_torch.families.register_family`'s checks), the env's specs at N=1
 and N>1 (``torchrl.envs.utils.check_env_specs``), the hidden ``("instance", ...)`` entry beside
 (never inside) the observation, keyed seeding that does not depend on how the batch is split
-(``index_offset``), the horizon, the subtasks' shapes, the instance features, and every named test
-distribution. The first miss is a one-line ``ValueError`` that names it.
+(``index_offset``), exact resume (an env loaded from another's ``state_dict()`` mid-episode
+steps as that one does), the horizon, the subtasks' shapes, the instance features, and every named
+test distribution. The first miss is a one-line ``ValueError`` that names it.
 
 Examples:
     >>> from taskvar_torch import check_family, family
@@ -13,6 +14,8 @@ Examples:
 """
 
 from __future__ import annotations
+
+import copy
 
 import torch
 from tensordict import TensorDictBase
@@ -24,6 +27,8 @@ from taskvar_torch.families import Family, _check_declaration
 from taskvar_torch.subtasks.base import Subtasks
 
 _STEPS = 24  # steps of the batch-split and subtask checks
+_RESUME_STEPS = 8  # steps before the resume check's partial reset, and after it to the save
+_RESUME_MAX_STEPS = 256  # the resume check steps min(horizon, this) + 1 steps after the load
 
 
 def _fail(fam: Family, what: str) -> ValueError:
@@ -125,6 +130,7 @@ def _check(fam: Family, n: int) -> None:
                     f"{key} at step {t} changes with the batch split: sub-environment i must draw "
                     "from the key (seed, index_offset + i) alone",
                 )
+    _check_resume(fam, cfg, n)
     # the subtasks: names and shapes on a transition batch
     subtasks = fam.subtasks(cfg, env)
     if not isinstance(subtasks, Subtasks) or not subtasks.names:
@@ -171,6 +177,92 @@ def _check(fam: Family, n: int) -> None:
                 fam.make_env(point.cfg, 1, seed=0, instances=point.instances).reset()
         except Exception as e:
             raise _fail(fam, f"test distribution {name!r} does not build: {e}") from None
+
+
+def _check_resume(fam: Family, cfg, n: int) -> None:
+    """Exact resume, as ``taskvar train --resume`` does it: run an env mid-episode (half of its
+    sub-envs after a partial reset), load its ``state_dict()`` into a fresh env of the same size
+    (another seed) that has been reset, then step both under the same actions past the horizon
+    (every sub-env ends an episode; the other half is reset partway): every output must agree. On
+    a miss, name the tensor attributes ``(N, ...)`` of the env that differ right after the load
+    (the state its ``runtime_state`` leaves out)."""
+    g = torch.Generator().manual_seed(0)
+    env = fam.make_env(cfg, n, seed=5)
+    A, shape, T = int(env.action_spec.space.n), env.action_spec.shape, _RESUME_STEPS
+    S = min(env.horizon, _RESUME_MAX_STEPS) + 1  # steps after the load
+
+    def action() -> torch.Tensor:
+        return torch.randint(A, shape, generator=g).to(env.device)
+
+    half = torch.arange(n, device=env.device) % 2 == 0
+    td = env.reset()
+    for t in range(2 * T):
+        if t == T:  # a partial reset: sub-envs 0, 2, ... start a new episode
+            td = env.reset(td.set("_reset", half.reshape(env.done_spec.shape)))
+        _, td = env.step_and_maybe_reset(td.set(keys.ACTION, action()))
+    saved = copy.deepcopy(env.state_dict())
+    fresh = fam.make_env(cfg, n, seed=6)
+    fresh.reset()
+    try:
+        fresh.load_state_dict(saved)
+    except Exception as e:
+        raise _fail(fam, f"env.load_state_dict(other.state_dict()) fails: {e}") from None
+    unsaved = _differing_state(env, fresh, n)
+    twin = td.clone()
+    for t in range(1, S + 1):
+        a = action()
+        try:
+            outputs = []
+            for e, x in ((env, td), (fresh, twin)):
+                if t == S // 2:  # a partial reset: sub-envs 1, 3, ... start anew
+                    x = e.reset(x.set("_reset", ~half.reshape(e.done_spec.shape)))
+                outputs.append(e.step_and_maybe_reset(x.set(keys.ACTION, a.clone())))
+            (out, td), (out_twin, twin) = outputs
+            differs = [k for k in out.keys(True, True) if not _same(out[k], out_twin.get(k, None))]
+        except Exception as e:
+            differs = [f"an error ({type(e).__name__}: {e})"]
+        if not differs:
+            continue
+        what = f"{differs[0]} differs at step {t} after the load"
+        if unsaved:
+            names = ", ".join(repr(name) for name in unsaved)
+            raise _fail(
+                fam,
+                f"env state {names} {'is' if len(unsaved) == 1 else 'are'} not saved for "
+                f"resume: add {'it' if len(unsaved) == 1 else 'them'} to runtime_state "
+                f"(an env loaded from another's state_dict() mid-episode: {what})",
+            )
+        raise _fail(
+            fam,
+            f"an env loaded from another's state_dict() mid-episode steps differently ({what}): "
+            "some state is not saved for resume (runtime_state, get_runtime_state)",
+        )
+
+
+def _same(a, b) -> bool:
+    return isinstance(b, torch.Tensor) and a.shape == b.shape and torch.equal(a, b)
+
+
+def _differing_state(env, fresh, n: int) -> list[str]:
+    """Attributes of ``env`` (tensors ``(n, ...)``, or tuples of them: ``name.field``) that
+    ``fresh`` lacks or holds with other values."""
+    found = []
+    for name, value in vars(env).items():
+        other = vars(fresh).get(name)
+        if isinstance(value, torch.Tensor):
+            if value.dim() and value.shape[0] == n and not _same(value, other):
+                found.append(name)
+        elif (
+            isinstance(value, tuple)
+            and value
+            and all(isinstance(v, torch.Tensor) and v.dim() and v.shape[0] == n for v in value)
+        ):
+            fields = getattr(value, "_fields", range(len(value)))
+            others = other if isinstance(other, tuple) and len(other) == len(value) else ()
+            for i, (field, v) in enumerate(zip(fields, value)):
+                if not _same(v, others[i] if others else None):
+                    found.append(f"{name}.{field}")
+    return found
 
 
 __all__ = ["check_family"]

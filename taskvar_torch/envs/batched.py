@@ -1,6 +1,14 @@
 """What every batched family env shares: the ``EnvBase`` only adds
 specs, seeding and reset around pure dynamics.
 
+A family env implements TorchRL's own hooks ``_reset``, ``_step`` and (rarely) ``_set_seed``, and
+calls this base's public ones: :meth:`~BatchedFamilyEnv.make_done_spec` in its constructor,
+:meth:`~BatchedFamilyEnv.next_episodes` at the start of ``_reset``,
+:meth:`~BatchedFamilyEnv.replace_state` to install new state and
+:meth:`~BatchedFamilyEnv.finish` to build each returned tensordict. It declares in
+:attr:`~BatchedFamilyEnv.runtime_state` the attributes a checkpoint saves for exact resume
+(docs/families.md, "The env").
+
 Subclasses keep their simulator state in tensors that are replaced, never mutated (tensors handed
 out in a tensordict stay valid), and return *every* sub-environment's data from ``_reset``
 (unchanged where not reset), so a partial reset is merged with a plain update instead of TorchRL's
@@ -9,6 +17,7 @@ whole-batch ``where``.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import torch
@@ -19,18 +28,45 @@ from torchrl.envs import EnvBase
 from taskvar_torch import keys, rng
 
 
+def _deprecated(old: str, new: str) -> None:
+    warnings.warn(
+        f"BatchedFamilyEnv.{old} is deprecated; use {new} (docs/families.md)",
+        FutureWarning,
+        stacklevel=3,
+    )
+
+
 class BatchedFamilyEnv(EnvBase):
-    """Base of :class:`WindyGridEnv` and :class:`WargusEnv`: done specs, keys, episode counters."""
+    """Base of every family's batched env: done specs, keyed seeding, episode counters, partial
+    resets and exact resume (``env.state_dict()``)."""
 
     batch_locked = True
-    _RUNTIME_STATE: tuple[str, ...] = ()
-    """Tensor attributes ``(N, ...)`` that change as the env runs (saved for exact resume)."""
+    runtime_state: tuple[str, ...] = ("_base_key", "_episode")
+    """Names of the tensor attributes ``(N, ...)`` that change as the env runs: what
+    ``env.state_dict()`` saves so that a loaded env continues every episode exactly (a training
+    checkpoint's ``env`` entry). List every one your ``_reset`` and ``_step`` write (with
+    :meth:`replace_state`) and read back, the base's ``_base_key`` and ``_episode`` included;
+    :func:`~taskvar_torch.check_family` names one left out. Each is saved under its name without
+    the leading underscore."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        if "_RUNTIME_STATE" in cls.__dict__:  # the name before issue 46
+            warnings.warn(
+                f"{cls.__name__}._RUNTIME_STATE is deprecated; name it runtime_state "
+                "(docs/families.md)",
+                FutureWarning,
+                stacklevel=2,
+            )
+            cls.runtime_state = tuple(cls.__dict__["_RUNTIME_STATE"])
 
     @property
     def num_envs(self) -> int:
         return self.batch_size[0]
 
-    def _make_done_spec(self) -> None:
+    def make_done_spec(self) -> None:
+        """Set the ``done``, ``terminated`` and ``truncated`` specs, each ``(N, 1)`` bool; call it
+        in the constructor beside the observation, action and reward specs."""
         N, dev = self.num_envs, self.device
         flag = Categorical(2, shape=(N, 1), dtype=torch.bool, device=dev)
         self.done_spec = Composite(
@@ -40,7 +76,10 @@ class BatchedFamilyEnv(EnvBase):
         )
 
     def _set_seed(self, seed: int | None) -> None:
-        """Sub-environment ``i`` draws from key ``(seed, index_offset + i)``: any split of N agrees."""
+        """Sub-environment ``i`` draws from key ``(seed, index_offset + i)``: any split of N agrees.
+
+        TorchRL's hook (``env.set_seed``); the constructor calls it with its ``seed``.
+        """
         seed = 0 if seed is None else int(seed)
         index = torch.arange(self.num_envs, device=self.device) + self.index_offset
         self._base_key = rng.sub_env_key(seed, index)  # (N,)
@@ -60,53 +99,65 @@ class BatchedFamilyEnv(EnvBase):
         self._base_key = torch.cat([rng.sub_env_key(int(sd), index) for sd in seeds])
         self._episode = torch.full((self.num_envs,), -1, dtype=torch.int64, device=self.device)
 
-    def _next_episodes(
+    def next_episodes(
         self, tensordict: TensorDictBase | None, started: bool
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """Advance the episode counter of the sub-envs to reset; ``(indices or None, their keys)``.
+        """Start the next episode of the sub-envs ``_reset`` resets; ``(indices or None, keys)``.
 
-        ``indices`` is ``None`` for a full reset (no ``_reset`` mask, or the first reset).
+        Call it first in ``_reset(tensordict)``; ``started`` is whether the env has state yet
+        (e.g. ``hasattr(self, "_cell")``). It advances the episode counter of the sub-envs that
+        the ``"_reset"`` mask of ``tensordict`` names (all of them where there is no mask or
+        ``started`` is false) and returns their indices ``(n,)`` (``None`` for all) and each one's
+        episode key ``(n,)``: draw every random quantity of the new episodes from these keys
+        (``taskvar_torch.rng``), and write the new state of those sub-envs only.
         """
         reset = None if tensordict is None else tensordict.get("_reset", None)
-        return self._next_episodes_where(reset if started else None)
+        return self.next_episodes_where(reset if started else None)
 
-    def _next_episodes_where(
+    def next_episodes_where(
         self, reset: torch.Tensor | None
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """:meth:`_next_episodes` from the reset mask itself (``None``: every sub-environment)."""
+        """:meth:`next_episodes` from the reset mask itself (``(N,)`` or ``(N, 1)`` bool;
+        ``None``: every sub-environment)."""
         if reset is None:
-            self._set_state({"_episode": self._episode + 1})
+            self.replace_state({"_episode": self._episode + 1})
             return None, rng.episode_key(self._base_key, self._episode)
         idx = reset.reshape(-1).nonzero().squeeze(-1)  # (n,) sub-envs to reset
         episode = self._episode.index_select(0, idx).add_(1)
-        self._set_state({"_episode": self._episode.index_put((idx,), episode)})
+        self.replace_state({"_episode": self._episode.index_put((idx,), episode)})
         return idx, rng.episode_key(self._base_key.index_select(0, idx), episode)
 
-    def _set_state(self, state: dict[str, torch.Tensor]) -> None:
-        """Replace simulator state tensors (plain attributes, never parameters or buffers).
+    def replace_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Replace simulator state tensors by name (plain attributes, never parameters or buffers).
 
         Writes the instance dict directly: ``nn.Module.__setattr__`` and ``EnvBase``'s checks cost
-        ~5 us an attribute, a visible share of a step at large N (docs/benchmarks.md).
+        ~5 us an attribute, a visible share of a step at large N (docs/benchmarks.md). Replace a
+        tensor rather than mutate it (``index_put``, not ``index_put_``): a tensordict already
+        handed out holds it.
         """
         self.__dict__.update(state)
 
-    def _runtime_state(self) -> dict[str, torch.Tensor]:
-        return {
-            name[1:]: getattr(self, name) for name in self._RUNTIME_STATE if hasattr(self, name)
-        }
+    def get_runtime_state(self) -> dict[str, torch.Tensor]:
+        """The :attr:`runtime_state` tensors, keyed by name without the leading underscore.
 
-    def _load_runtime_state(self, state: dict[str, torch.Tensor]) -> None:
-        for name in self._RUNTIME_STATE:
+        Override it (with :meth:`set_runtime_state`) only for state that is not a plain tensor
+        attribute (Wargus flattens its ``WargusState`` tuple)."""
+        return {name[1:]: getattr(self, name) for name in self.runtime_state if hasattr(self, name)}
+
+    def set_runtime_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Install what :meth:`get_runtime_state` returned (checked by :meth:`set_extra_state`)."""
+        for name in self.runtime_state:
             if name[1:] in state:
                 setattr(self, name, state[name[1:]])
 
     def get_extra_state(self) -> dict:
         """Runtime state for exact resume (``nn.Module`` extra state, so ``env.state_dict()`` has it).
 
-        Holds the seed and the per-sub-environment keys, episode counters, instances and simulator
-        state: ``env.load_state_dict(other.state_dict())`` continues ``other``'s episodes exactly.
+        Holds the seed and :meth:`get_runtime_state` (the per-sub-environment keys, episode
+        counters, instances and simulator state): ``env.load_state_dict(other.state_dict())``
+        continues ``other``'s episodes exactly.
         """
-        state = {k: v.clone() for k, v in self._runtime_state().items()}
+        state = {k: v.clone() for k, v in self.get_runtime_state().items()}
         state["seed"] = self._seed
         return state
 
@@ -137,17 +188,19 @@ class BatchedFamilyEnv(EnvBase):
                     bad = v64[~(torch.isfinite(v64) & (v64 >= low) & (v64 <= high))][0].item()
                     raise ValueError(f"env state {k!r} holds {bad:g}, outside [{low:g}, {high:g}]")
             tensors[k] = value.clone()
-        self._load_runtime_state(tensors)
+        self.set_runtime_state(tensors)
         self._seed = rng.check_seed(state["seed"], "env state 'seed'")
 
-    def _finish(
+    def finish(
         self,
         td: dict,
         reward: torch.Tensor | None = None,  # (N, 1) float32
         terminated: torch.Tensor | None = None,  # (N, 1) bool
         truncated: torch.Tensor | None = None,  # (N, 1) bool
     ) -> TensorDictBase:
-        """Add reward (after a step) and done flags (all False after a reset); build the tensordict."""
+        """The tensordict ``_reset`` or ``_step`` returns: ``td`` (a plain dict of every
+        sub-environment's observation keys) with the reward (after a step) and the done flags
+        (all False after a reset; ``done = terminated | truncated``)."""
         if terminated is None:
             terminated = torch.zeros(self.num_envs, 1, dtype=torch.bool, device=self.device)
             truncated = terminated
@@ -157,6 +210,23 @@ class BatchedFamilyEnv(EnvBase):
         td[keys.TRUNCATED] = truncated
         td[keys.DONE] = terminated | truncated
         return TensorDict._new_unsafe(td, batch_size=self.batch_size, device=self.device)
+
+    # The names before issue 46, for families written against them.
+    def _make_done_spec(self) -> None:
+        _deprecated("_make_done_spec", "make_done_spec")
+        self.make_done_spec()
+
+    def _next_episodes(self, tensordict, started):
+        _deprecated("_next_episodes", "next_episodes")
+        return self.next_episodes(tensordict, started)
+
+    def _set_state(self, state: dict[str, torch.Tensor]) -> None:
+        _deprecated("_set_state", "replace_state")
+        self.replace_state(state)
+
+    def _finish(self, td, reward=None, terminated=None, truncated=None) -> TensorDictBase:
+        _deprecated("_finish", "finish")
+        return self.finish(td, reward, terminated, truncated)
 
     def _reset_proc_data(self, tensordict, tensordict_reset):
         # ``_reset`` returns every sub-environment's current data, so a plain update is exact.

@@ -88,7 +88,8 @@ class CorridorEnv(BatchedFamilyEnv):
     east) and ``("instance", "slip")``, hidden.
     """
 
-    _RUNTIME_STATE = ("_base_key", "_episode", "_key", "_t", "_cell", "_goal", "_slip")
+    runtime_state = ("_base_key", "_episode", "_key", "_t", "_cell", "_goal", "_slip")
+    """What ``env.state_dict()`` saves for exact resume: every state tensor ``(N, ...)``."""
 
     def __init__(
         self,
@@ -126,7 +127,7 @@ class CorridorEnv(BatchedFamilyEnv):
         )
         self.action_spec = Categorical(2, shape=(N,), dtype=torch.int64, device=dev)
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
-        self._make_done_spec()
+        self.make_done_spec()
         self._set_seed(seed)
 
     def _out(self, reward=None, terminated=None, truncated=None) -> TensorDictBase:
@@ -137,10 +138,10 @@ class CorridorEnv(BatchedFamilyEnv):
                 {"goal": self._goal, "slip": self._slip}, batch_size=self.batch_size
             ),
         }
-        return self._finish(td, reward, terminated, truncated)
+        return self.finish(td, reward, terminated, truncated)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        idx, key = self._next_episodes(tensordict, started=hasattr(self, "_cell"))
+        idx, key = self.next_episodes(tensordict, started=hasattr(self, "_cell"))
         inst = self.instances
         goal = (rng.draw_uniform(key, _C_GOAL) < inst.east_share).to(torch.int64)
         slip = inst.slip_low + (inst.slip_high - inst.slip_low) * rng.draw_uniform(key, _C_SLIP)
@@ -150,7 +151,7 @@ class CorridorEnv(BatchedFamilyEnv):
         state["_slip"] = slip.to(torch.float32)
         if idx is not None:  # out of place: tensors already handed out stay valid
             state = {k: getattr(self, k).index_put((idx,), v) for k, v in state.items()}
-        self._set_state(state)
+        self.replace_state(state)
         return self._out()
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -162,7 +163,7 @@ class CorridorEnv(BatchedFamilyEnv):
         cell = (self._cell + direction).clamp(0, self.length - 1)
         terminated = cell == self._goal * (self.length - 1)
         t = self._t + 1
-        self._set_state({"_cell": cell, "_t": t})
+        self.replace_state({"_cell": cell, "_t": t})
         truncated = (t >= self.horizon) & ~terminated
         reward = torch.full((self.num_envs, 1), -1.0, device=self.device)
         return self._out(reward, terminated.unsqueeze(-1), truncated.unsqueeze(-1))

@@ -117,7 +117,7 @@ class TaxiEnv(BatchedFamilyEnv):
         (torch.Size([8, 10, 1]), torch.int64)
     """
 
-    _RUNTIME_STATE = (
+    runtime_state = (
         "_base_key",
         "_episode",
         "_key32",
@@ -199,7 +199,7 @@ class TaxiEnv(BatchedFamilyEnv):
         )
         self.action_spec = Categorical(taxi.NUM_ACTIONS, shape=(N,), dtype=torch.int64, device=dev)
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
-        self._make_done_spec()
+        self.make_done_spec()
 
     def _out(self, reward=None, terminated=None, truncated=None) -> TensorDictBase:
         instance = {
@@ -214,7 +214,7 @@ class TaxiEnv(BatchedFamilyEnv):
                 instance, batch_size=self.batch_size, device=self.device
             ),
         }
-        return self._finish(td, reward, terminated, truncated)
+        return self.finish(td, reward, terminated, truncated)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         reset = None if tensordict is None else tensordict.get("_reset", None)
@@ -224,7 +224,7 @@ class TaxiEnv(BatchedFamilyEnv):
     def _start_episodes(self, reset: torch.Tensor | None) -> None:
         """Start the next episode of the sub-envs where ``reset`` (``(N,)`` or ``(N, 1)`` bool) is
         set, or of all of them (``None``): new instance, start state, arming, noise key, step 0."""
-        idx, key = self._next_episodes_where(reset)
+        idx, key = self.next_episodes_where(reset)
         bits = rng.draw_bits(key, self._reset_counters)  # (C, n): every reset draw in one pass
         q, f = self.instances.from_bits(bits[:-2])
         if self.start is None:
@@ -249,7 +249,7 @@ class TaxiEnv(BatchedFamilyEnv):
         )
         if idx is not None:  # out-of-place updates: tensors already handed out are never mutated
             new = {k: getattr(self, k).index_put((idx,), v) for k, v in new.items()}
-        self._set_state(new)
+        self.replace_state(new)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(keys.ACTION).reshape(-1)
@@ -272,7 +272,7 @@ class TaxiEnv(BatchedFamilyEnv):
         state, reward, terminated, armed = taxi.step(
             self.model, self._state, action, outcome, self._armed, redraw
         )
-        self._set_state({"_state": state, "_armed": armed, "_t": self._t + 1})
+        self.replace_state({"_state": state, "_armed": armed, "_t": self._t + 1})
         truncated = (self._t >= self.horizon) & ~terminated
         return reward, terminated, truncated
 

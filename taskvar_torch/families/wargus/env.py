@@ -193,9 +193,9 @@ class WargusEnv(BatchedFamilyEnv):
             self.config.num_actions, shape=(N,), dtype=torch.int64, device=dev
         )
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
-        self._make_done_spec()
+        self.make_done_spec()
 
-    _RUNTIME_STATE = ("_base_key", "_episode", "_iseed", "_ikey", "_picked", "_item_lost")
+    runtime_state = ("_base_key", "_episode", "_iseed", "_ikey", "_picked", "_item_lost")
 
     def state_bounds(self) -> dict[str, tuple[float, float]]:
         side = self.config.size - 1
@@ -208,14 +208,16 @@ class WargusEnv(BatchedFamilyEnv):
             "iseed": (0, rng.MASK32),
         }
 
-    def _runtime_state(self) -> dict[str, torch.Tensor]:
-        state = super()._runtime_state()
+    def get_runtime_state(self) -> dict[str, torch.Tensor]:
+        """The base's, and each ``WargusState`` field as ``state_FIELD``."""
+        state = super().get_runtime_state()
         if hasattr(self, "_state"):
             state.update({f"state_{k}": v for k, v in self._state._asdict().items()})
         return state
 
-    def _load_runtime_state(self, state: dict[str, torch.Tensor]) -> None:
-        super()._load_runtime_state(state)
+    def set_runtime_state(self, state: dict[str, torch.Tensor]) -> None:
+        """The base's, the ``WargusState`` back from its fields, and what is a function of it."""
+        super().set_runtime_state(state)
         fields = WargusState._fields
         if all(f"state_{k}" in state for k in fields):
             self._state = WargusState(*(state[f"state_{k}"] for k in fields))
@@ -255,10 +257,10 @@ class WargusEnv(BatchedFamilyEnv):
                 device=self.device,
             ),
         }
-        return self._finish(td, reward, terminated, truncated)
+        return self.finish(td, reward, terminated, truncated)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        idx, ekey = self._next_episodes(tensordict, started=hasattr(self, "_state"))  # (n,) keys
+        idx, ekey = self.next_episodes(tensordict, started=hasattr(self, "_state"))  # (n,) keys
         index = self._index if idx is None else self._index[idx]
         ep = self._episode if idx is None else self._episode[idx]
         iseed = self.instances.sample(ekey, index, ep)  # (n,) instance seeds

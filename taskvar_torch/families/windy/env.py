@@ -239,9 +239,9 @@ class WindyGridEnv(BatchedFamilyEnv):
         )
         self.action_spec = Categorical(4, shape=(N,), dtype=torch.int64, device=dev)
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
-        self._make_done_spec()
+        self.make_done_spec()
 
-    _RUNTIME_STATE = ("_base_key", "_episode", "_key32", "_threshold", "_t", "_p", "_dir", "_cell")
+    runtime_state = ("_base_key", "_episode", "_key32", "_threshold", "_t", "_p", "_dir", "_cell")
     """Simulator state that changes as the env runs (saved for exact resume)."""
 
     def state_bounds(self) -> dict[str, tuple[float, float]]:
@@ -262,7 +262,7 @@ class WindyGridEnv(BatchedFamilyEnv):
                 {"p": p, "direction": direction}, batch_size=self.batch_size, device=self.device
             ),
         }
-        return self._finish(td, reward, terminated, truncated)
+        return self.finish(td, reward, terminated, truncated)
 
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
         reset = None if tensordict is None else tensordict.get("_reset", None)
@@ -272,7 +272,7 @@ class WindyGridEnv(BatchedFamilyEnv):
     def _start_episodes(self, reset: torch.Tensor | None) -> None:
         """Start the next episode of the sub-envs where ``reset`` (``(N,)`` or ``(N, 1)`` bool) is
         set, or of all of them (``None``): new instance, start cell, gust key and step counter."""
-        idx, key = self._next_episodes_where(reset)
+        idx, key = self.next_episodes_where(reset)
         bits = rng.draw_bits(key, self._reset_counters)  # (C, n): every reset draw in one pass
         p, direction = self.instances.from_bits(bits)
         if self.start is None:
@@ -286,7 +286,7 @@ class WindyGridEnv(BatchedFamilyEnv):
         state = dict(_key32=key32, _threshold=threshold, _t=t, _p=p, _dir=direction, _cell=cell)
         if idx is not None:  # out-of-place updates: tensors already handed out are never mutated
             state = {k: getattr(self, k).index_put((idx,), v) for k, v in state.items()}
-        self._set_state(state)
+        self.replace_state(state)
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get(keys.ACTION).reshape(-1)
@@ -308,7 +308,7 @@ class WindyGridEnv(BatchedFamilyEnv):
             raise ValueError(f"action must be in [0, {self.model.num_actions - 1}], got {bad}")
         gust = rng.bernoulli_i32(self._key32, self._t, self._threshold)  # (N,) this step's wind
         cell, terminated = windy.step(self.model, self._cell, action, self._dir, gust)
-        self._set_state({"_cell": cell, "_t": self._t + 1})
+        self.replace_state({"_cell": cell, "_t": self._t + 1})
         truncated = (self._t >= self.horizon) & ~terminated
         return cell, terminated, truncated
 
