@@ -96,9 +96,17 @@ USER_KEYS = (
 docs change, and the budget); ``--help-all`` (:func:`config_help`) shows every key."""
 
 
+@functools.cache
+def _hints(cls: type) -> dict[str, typing.Any]:
+    """``typing.get_type_hints(cls)``, once per class (the help is built by every command)."""
+    return typing.get_type_hints(cls)
+
+
+@functools.cache
 def _key_line(cls: type, name: str, prefix: str) -> str:
-    """``  prefix.name (type, default value): docstring`` of field ``name`` of ``cls``."""
-    t = typing.get_type_hints(cls)[name]
+    """``  prefix.name (type, default value): docstring`` of field ``name`` of ``cls`` (once per
+    key: a class's fields, defaults and docstrings do not change within a process)."""
+    t = _hints(cls)[name]
     value = getattr(cls(), name)
     shown = list(value) if isinstance(value, tuple) else value
     tname = t.__name__ if isinstance(t, type) else str(t).replace("typing.", "")
@@ -114,7 +122,7 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
     """
     lines = []
     docs = field_docs(cls)
-    hints = typing.get_type_hints(cls)
+    hints = _hints(cls)
     for f in dataclasses.fields(cls):
         if dataclasses.is_dataclass(hints[f.name]):
             lines.append(f"{prefix}{f.name}: {docs.get(f.name, '')}")
@@ -139,7 +147,7 @@ def user_help() -> str:
         cls: type = Config
         *path, name = key.split(".")
         for part in path:
-            hints = typing.get_type_hints(cls)
+            hints = _hints(cls)
             if part in hints:
                 cls = hints[part]
             else:  # a family's own section, env.<name>
