@@ -210,7 +210,17 @@ def _value(bundle: dict[str, Any], name: str, value: Any) -> Any:
     return value
 
 
-@pytest.mark.parametrize("name", list(RESUME_TAMPERING))
+PROBE_TAMPERING = list(RESUME_TAMPERING)[: list(RESUME_TAMPERING).index("adam step a string")]
+"""The probe's own cases (make test-fast); the rest, more of the same classes, run in make test."""
+
+
+@pytest.mark.parametrize(
+    "name",
+    [
+        n if n in PROBE_TAMPERING else pytest.param(n, marks=pytest.mark.slow)
+        for n in RESUME_TAMPERING
+    ],
+)
 def test_a_tampered_entry_is_a_one_line_refusal_of_resume(name, bundle, tmp_path, capsys):
     path, value = RESUME_TAMPERING[name]
     ckpt = tampered(bundle, path, _value(bundle, name, value), tmp_path / "x.pt")
@@ -241,6 +251,7 @@ def test_a_bundle_for_a_device_torch_cannot_use_is_refused(command, bundle, tmp_
     refused(run(argv, capsys), command, "device='meta' cannot run taskvar_torch")
 
 
+@pytest.mark.slow  # a process of its own: ~5 s of imports
 def test_the_fused_adam_is_never_given_state_of_the_wrong_shape(bundle, tmp_path):
     """The probe's heap corruption (SIGABRT / SIGSEGV): a ``weights_only``-clean checkpoint whose
     Adam moments have another shape. In a process of its own: a crash cannot take pytest."""
@@ -354,6 +365,7 @@ EXPLORE = os.environ.get("TASKVAR_FUZZ") == "explore"  # as tests/test_fuzz.py: 
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 @given(data=st.data())
+@pytest.mark.slow  # 20 refused resumes
 def test_hypothesis_tampering_with_any_resumed_entry_is_a_one_line_refusal(
     data, bundle, resume_paths, tmp_path, capsys
 ):
@@ -379,6 +391,7 @@ def test_hypothesis_tampering_with_any_resumed_entry_is_a_one_line_refusal(
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
 )
 @given(data=st.data())
+@pytest.mark.slow  # 15 refused evals
 def test_hypothesis_tampering_with_what_eval_reads_is_a_one_line_refusal(
     data, bundle, tmp_path, capsys
 ):
@@ -458,9 +471,10 @@ def test_resume_of_an_untouched_checkpoint_still_works(run_dir, tmp_path, capsys
             "env.windy.obs_encoding=coords_patch env.windy.patch_radius=50",
             "env.windy.patch_radius must be in [0, ",
         ),
-        (
+        pytest.param(  # builds the 1000x1000 layout: ~5 s
             "env.windy.layout=generated env.windy.height=1000 env.windy.width=1000",
             "env.windy asks for too much memory",
+            marks=pytest.mark.slow,
         ),
         ("train.frames_per_batch=2000000000", "asks for too much memory"),
         ("train.seeds=1024", "asks for too much memory"),
@@ -498,6 +512,7 @@ def test_eval_flags_out_of_range_are_refused(argv, needle, run_dir, capsys):
     refused(run(["eval", "--checkpoint", str(run_dir / "final.pt"), *argv], capsys), "eval", needle)
 
 
+@pytest.mark.slow  # a taskvar process of its own (~4 s of imports)
 def test_threads_beyond_the_machine_never_reach_torch(tmp_path):
     """``--threads 100000`` crashed ``torch.set_num_threads``: refused in a process of its own."""
     r = taskvar("train", C, "--out", str(tmp_path / "o"), "--threads", "100000")
@@ -749,6 +764,7 @@ B.write_json = killed
 """
 
 
+@pytest.mark.slow  # a taskvar process of its own (~4 s of imports)
 def test_sigkill_of_an_overwriting_eval_leaves_the_old_results_whole(run_dir, tmp_path, capsys):
     """Killed mid-write, the overwrite left the old ``metrics.json`` beside the new
     ``episodes.csv`` (and ``taskvar report`` read them); the next eval cleans up after it."""
@@ -776,6 +792,7 @@ T.build_run = term
 """
 
 
+@pytest.mark.slow  # a taskvar process of its own (~4 s of imports)
 def test_sigterm_before_the_loop_prints_one_line_and_leaves_no_folder(tmp_path):
     """SIGTERM in the first seconds exited 143 with no line and left a folder a rerun refused."""
     out = tmp_path / "run"
@@ -796,6 +813,7 @@ B.write_csv = term
 """
 
 
+@pytest.mark.slow  # a taskvar process of its own (~4 s of imports)
 def test_sigterm_during_an_overwriting_eval_prints_one_line_and_keeps_the_old_results(
     run_dir, tmp_path
 ):

@@ -501,10 +501,25 @@ def test_failed_config_write_keeps_previous_file(tmp_path: Path, monkeypatch):
 
 
 @pytest.mark.slow
-def test_scale_config_file_loads_strictly():
+def test_scale_config_file_loads_strictly_and_quick_applies_its_overrides():
+    """Against the YAML read on its own: the cases in order, their configs beside the file, and
+    ``quick`` the file's ``quick_overrides`` (the full config keeping the file's values)."""
+    import yaml
 
-    assert isinstance(load_scale_config(SCALE_CONFIG), ScaleConfig)
-    assert isinstance(load_scale_config(SCALE_CONFIG, quick=True), ScaleConfig)
+    raw = yaml.safe_load(SCALE_CONFIG.read_text())
+    full = load_scale_config(SCALE_CONFIG)
+    quick = load_scale_config(SCALE_CONFIG, quick=True)
+    assert isinstance(full, ScaleConfig) and isinstance(quick, ScaleConfig)
+    assert [c.name for c in full.cases] == [c["name"] for c in raw["cases"]]
+    assert [Path(c.config) for c in full.cases] == [
+        SCALE_CONFIG.parent / c["config"] for c in raw["cases"]
+    ]
+    plain = lambda v: list(v) if isinstance(v, tuple) else v  # noqa: E731
+    for item in raw["quick_overrides"]:
+        key, _, value = item.partition("=")
+        assert plain(getattr(quick, key)) == yaml.safe_load(value), key
+        if key in raw:
+            assert plain(getattr(full, key)) == raw[key], key
 
 
 def test_a_list_item_cannot_be_set_alone():

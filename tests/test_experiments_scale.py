@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from taskvar_torch.cli import main
-from taskvar_torch.study import scale, scale_config, scale_eval, scale_report
+from taskvar_torch.study import scale, scale_config, scale_eval
 
 torch.set_num_threads(1)
 
@@ -108,14 +108,6 @@ def test_plot_regenerates_figure(quick_run, capsys):
     assert main(["plot", str(out)]) == 0
     assert (out / "scale.png").is_file()
     assert "scale.png" in capsys.readouterr().out
-
-
-def test_scale_re_exports_the_report():
-    """Names that moved out of ``scale`` (the report) are still importable from it, as the same
-    objects."""
-    for name in scale_report.__all__:
-        assert getattr(scale, name) is getattr(scale_report, name), name
-        assert name in scale.__all__, name
 
 
 def test_evaluation_is_paired_and_deterministic():

@@ -15,20 +15,15 @@ from torchrl.envs import InitTracker, TransformedEnv
 from taskvar_torch import keys
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
-from taskvar_torch.controllers import side_by_side
 from taskvar_torch.experiments import curves
 from taskvar_torch.factory import load_heads, make_env, make_subtasks
 from taskvar_torch.families.wargus import (
     fig4,
     fig4_agent,
-    fig4_metrics,
     fig4_repetition,
-    fig4_report,
-    fig4_trial,
 )
 from taskvar_torch.families.wargus.dynamics import WargusInstances
 from taskvar_torch.families.wargus.env import WargusEnv
-from taskvar_torch.heads import snapshots
 
 torch.set_num_threads(1)
 
@@ -191,15 +186,6 @@ def test_trials_to_90pct_on_known_curves():
     down = np.concatenate([np.full(50, 10.0), np.zeros(5), np.full(5, -1.0)])  # final < 0
     assert curves.trials_to_fraction(down)[0] == 1
     assert curves.final_count(500) == 50 and curves.smoothing_window(500) == 25
-
-
-def test_wargus_fig4_re_exports_the_split_modules():
-    """Names that moved out of ``wargus_fig4`` (trial loops, metrics, report, side by side, head
-    snapshots) are still importable from it, as the same objects."""
-    for module in (fig4_trial, fig4_metrics, fig4_report, side_by_side, snapshots):
-        for name in module.__all__:
-            assert getattr(fig4, name) is getattr(module, name), (module.__name__, name)
-            assert name in fig4.__all__, name
 
 
 def test_nominal_seeds_extend_the_fixed_list():

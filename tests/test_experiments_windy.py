@@ -18,7 +18,6 @@ from taskvar_torch import cli, keys
 from taskvar_torch.config import load_config
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy import fig2 as wf
-from taskvar_torch.families.windy import fig2_metrics, fig2_report
 from taskvar_torch.oracle import table_heads
 
 torch.set_num_threads(1)
@@ -286,15 +285,6 @@ def test_distribution_metrics_count_firings_and_check_theorem1():
         s = m["mean_return"][method]
         assert abs(s["mean"] - m["exact"]["mean_return"][method]) < 4 * max(s["ci95"], 0.5)
     assert "Theorem 1 premise" in wf.format_table({**m, "layout": "default", "south_only": None})
-
-
-def test_windy_fig2_re_exports_the_split_modules():
-    """Names that moved out of ``windy_fig2`` (metrics, report) are still importable from it, as
-    the same objects."""
-    for module in (fig2_metrics, fig2_report):
-        for name in module.__all__:
-            assert getattr(wf, name) is getattr(module, name), (module.__name__, name)
-            assert name in wf.__all__, name
 
 
 # ---- relations a wrong implementation would break (issue 33, item 5) ---------------------------

@@ -17,11 +17,13 @@ from taskvar_torch.factory import build_heads, load_heads, make_env, make_subtas
 from taskvar_torch.heads.recurrent import load_baseline
 from taskvar_torch.training import train
 
-SHORT = [
+SHORT = [  # what these tests check holds for any number of updates: few and small ones
     "train.total_frames=4096",
     "train.init_random_frames=1024",
     "train.eps_decay_frames=2048",
     "train.checkpoint_every=0",
+    "train.updates_per_batch=4",
+    "train.batch_size=64",
 ]
 
 

@@ -116,6 +116,7 @@ def wargus_informed(tmp_path_factory):
     return cfg, out, train_baseline(cfg, "informed", out)
 
 
+@pytest.mark.slow  # trains the informed baseline (module fixture, ~20 s)
 def test_informed_trains_on_wargus_and_beats_random(wargus_informed):
     cfg, _, result = wargus_informed
     ctrl, bcfg = load_baseline(result["path"])
@@ -135,6 +136,7 @@ def test_informed_trains_on_wargus_and_beats_random(wargus_informed):
     assert not torch.allclose(q, ctrl.net(td)["action_value"])
 
 
+@pytest.mark.slow  # trains the informed baseline (module fixture, ~20 s)
 def test_eval_all_plays_informed_beside_the_papers_methods(wargus_informed, tmp_path):
     cfg, folder, _ = wargus_informed
     env = make_env(cfg, 1)
@@ -145,6 +147,7 @@ def test_eval_all_plays_informed_beside_the_papers_methods(wargus_informed, tmp_
     assert point["informed"]["mean_return"] >= 0 and "regret_mean" not in point["informed"]
 
 
+@pytest.mark.slow  # trains the informed baseline (module fixture, ~20 s)
 def test_a_shift_the_informed_head_cannot_read_is_refused_before_any_episode(
     wargus_informed, tmp_path, monkeypatch
 ):

@@ -49,9 +49,10 @@ def test_no_shipped_config_is_refused(path):
         (["env.num_envs=1000000000"], "env.num_envs"),
         (["train.buffer_size=1000000000000"], "train.buffer_size"),
         (["heads.hidden=[100000,100000]"], "heads.hidden"),
-        (
+        pytest.param(  # builds the 1000x1000 layout: ~5 s
             ["env.windy.layout=generated", "env.windy.height=1000", "env.windy.width=1000"],
             "env.windy",
+            marks=pytest.mark.slow,
         ),
     ],
 )
@@ -72,9 +73,47 @@ def test_episode_rows_are_counted_under_the_flag_that_asks_for_them():
     assert "experiment.episodes_per_run" in terms and "train.buffer_size" not in terms
 
 
-def test_the_available_memory_is_read():
+@pytest.mark.parametrize(
+    "files, want",
+    [
+        ({"meminfo": "MemTotal: 16000 kB\nMemAvailable: 8000 kB\n"}, 8000 * 1024),
+        (  # a cgroup limit below MemAvailable: its free part
+            {
+                "meminfo": "MemAvailable: 8000 kB\n",
+                "memory.max": "4096000",
+                "memory.current": "1000",
+            },
+            4096000 - 1000,
+        ),
+        (
+            {"meminfo": "MemAvailable: 8000 kB\n", "memory.max": "max", "memory.current": "5"},
+            8192000,
+        ),
+    ],
+    ids=["meminfo", "cgroup-lower", "cgroup-unlimited"],
+)
+def test_the_available_memory_is_memavailable_or_the_cgroups_free_limit(files, want, monkeypatch):
+    """Read from /proc/meminfo and the cgroup v2 files (here fakes of them, by file name)."""
+    from taskvar_torch.config import memory
+
+    def read_text(path, *args, **kwargs):
+        if path.name not in files:
+            raise FileNotFoundError(path)
+        return files[path.name]
+
+    monkeypatch.setattr(memory.Path, "read_text", read_text)
+    assert available_memory() == want
+
+
+def test_the_available_memory_here_is_at_most_memavailable():
+    meminfo = Path("/proc/meminfo")
+    if not meminfo.is_file():
+        pytest.skip("no /proc/meminfo")
+    fields = {
+        ln.split(":")[0]: int(ln.split()[1]) * 1024 for ln in meminfo.read_text().splitlines()
+    }
     available = available_memory()
-    assert available is None or available > 0
+    assert 0 < available <= 1.05 * fields["MemAvailable"] and available <= fields["MemTotal"]
 
 
 @pytest.mark.parametrize(

@@ -98,7 +98,7 @@ def test_eval_regret_by_step_sums_to_the_regret_column(windy_bundle, tmp_path):
         "all",
         "train",
         shifts=["env.instances.p=1.0"],
-        episodes=120,
+        episodes=40,
         out_dir=tmp_path,
         progress=False,
     )

@@ -7,7 +7,6 @@ import pytest
 import torch
 from gymnasium.envs.toy_text.taxi import TaxiEnv as GymTaxi
 from gymnasium.utils.env_checker import check_env
-from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 from taskvar_torch.families.taxi import dynamics as taxi
@@ -247,17 +246,6 @@ def rollout(env: TaxiEnv, actions: torch.Tensor) -> torch.Tensor:
     return torch.stack(out)
 
 
-def test_same_seed_same_trajectory_different_seeds_differ_and_any_split_agrees():
-    T, N = 150, 8
-    actions = torch.randint(0, 6, (T, N), generator=torch.Generator().manual_seed(0))
-    a = rollout(TaxiEnv(N, instances="storm", seed=7), actions)
-    assert torch.equal(a, rollout(TaxiEnv(N, instances="storm", seed=7), actions))
-    assert not torch.equal(a, rollout(TaxiEnv(N, instances="storm", seed=8), actions))
-    left = rollout(TaxiEnv(3, instances="storm", seed=7), actions[:, :3])
-    right = rollout(TaxiEnv(5, instances="storm", seed=7, index_offset=3), actions[:, 3:])
-    assert torch.equal(a, torch.cat([left, right], -1))
-
-
 def test_noise_seed_keeps_instances_and_starts_and_changes_rain():
     N = 64
     e1 = TaxiEnv(N, instances="heavy_rain", seed=3)
@@ -269,31 +257,12 @@ def test_noise_seed_keeps_instances_and_starts_and_changes_rain():
     assert not torch.equal(rollout(e1, actions), rollout(e2, actions))
 
 
-def test_state_dict_resumes_exactly():
-    actions = torch.randint(0, 6, (60, 4), generator=torch.Generator().manual_seed(1))
-    env = TaxiEnv(4, instances="storm", seed=0)
-    rollout(env, actions[:30])
-    other = TaxiEnv(4, instances="storm", seed=99)
-    other.load_state_dict(env.state_dict())
-
-    def cont(e):
-        td = TensorDict(
-            {"cell": e._state, "done": torch.zeros(4, 1, dtype=torch.bool)}, batch_size=[4]
-        )
-        out = []
-        for a in actions[30:]:
-            step, td = e.step_and_maybe_reset(td.set("action", a))
-            out.append(step["next", "cell"])
-        return torch.stack(out)
-
-    assert torch.equal(cont(env), cont(other))
-
-
 @pytest.mark.parametrize("n", [1, 4])
 @pytest.mark.parametrize("encoding", ["onehot", "factored"])
-def test_check_env_specs(n, encoding):
+def test_observation_keys_and_shapes(n, encoding):
     env = TaxiEnv(n, instances="storm", obs_encoding=encoding, seed=0)
-    check_env_specs(env)
+    if encoding != "onehot":  # the default's: tests/test_family_conformance.py
+        check_env_specs(env)
     td = env.reset()
     assert td["observation"].shape == (n, 500 if encoding == "onehot" else 19)
     assert td["observation"].dtype == torch.float32 and td["cell"].dtype == torch.int64
@@ -381,11 +350,7 @@ def test_bad_inputs_raise_one_line_value_errors(make, match):
     assert "\n" not in str(err.value)
 
 
-def test_action_out_of_range_raises():
-    env = TaxiEnv(2, seed=0)
-    td = env.reset()
-    with pytest.raises(ValueError, match=r"action must be in \[0, 5\]"):
-        env.step(td.set("action", torch.tensor([0, 6])))
+def test_gym_env_refuses_an_action_out_of_range():
     g = TaxiGymEnv()
     g.reset(seed=0)
     with pytest.raises(ValueError, match="action must be in"):

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import math
-import warnings
 
 import gymnasium
 import numpy as np
 import pytest
 import torch
 from gymnasium.envs.registration import EnvSpec
-from gymnasium.utils.env_checker import check_env
 from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
@@ -95,8 +93,7 @@ def _actions(T: int, N: int, seed: int, num_actions: int = 8) -> torch.Tensor:
 
 
 @pytest.mark.parametrize("num_envs", [1, 64])
-def test_check_env_specs(num_envs):
-    check_env_specs(WargusEnv(num_envs, seed=1))
+def test_check_env_specs_without_noop_on_a_small_grid(num_envs):  # default: conformance suite
     check_env_specs(WargusEnv(num_envs, seed=2, noop=True, **SMALL))
 
 
@@ -125,15 +122,6 @@ def test_observation_never_contains_the_instance():
 
 def _gym_make(**kwargs):
     return gymnasium.make(EnvSpec(id="WargusTest-v0", entry_point=WargusGymEnv), **kwargs)
-
-
-@pytest.mark.parametrize("render_mode", [None, "ansi", "rgb_array"])
-def test_gymnasium_check_env(render_mode):
-    env = _gym_make(render_mode=render_mode, size=12, sight=5, shoot_range=3)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        check_env(env.unwrapped, skip_render_check=False)
-    assert not caught, [str(w.message) for w in caught]  # not even a warning
 
 
 def test_render_modes_return_right_type_and_shape():
@@ -177,19 +165,6 @@ def test_batched_equals_looped_for_1000_random_steps():
         single, sroot = _run(WargusEnv(1, seed=11, index_offset=i, **SMALL), actions[:, i : i + 1])
         assert (single == batched[:, i : i + 1]).all(), f"sub-env {i} differs"
         assert torch.equal(sroot, broot[:, i : i + 1])
-
-
-@pytest.mark.slow
-def test_same_seed_same_trajectory_different_seeds_differ():
-    actions = _actions(200, 8, seed=3)
-    a, _ = _run(WargusEnv(8, seed=4, **SMALL), actions)
-    b, _ = _run(WargusEnv(8, seed=4, **SMALL), actions)
-    c, _ = _run(WargusEnv(8, seed=5, **SMALL), actions)
-    assert (a == b).all()
-    assert not torch.equal(a[keys.OBSERVATION], c[keys.OBSERVATION])
-    assert not torch.equal(
-        a[keys.INSTANCE, wargus.INSTANCE_SEED], c[keys.INSTANCE, wargus.INSTANCE_SEED]
-    )
 
 
 def test_gym_and_torchrl_bit_identical():
@@ -517,13 +492,10 @@ def test_invalid_parameters_raise_naming_the_field(kwargs, field):
 
 
 def test_invalid_actions_instances_and_options_raise():
-    env = WargusEnv(3, seed=0)
+    env = WargusEnv(3, seed=0)  # an action above the range: tests/test_family_conformance.py
     td = env.reset()
-    td[keys.ACTION] = torch.tensor([0, 8, 1])
-    with pytest.raises(ValueError, match=r"action must be in \[0, 7\]"):
-        env.step(td)
     td[keys.ACTION] = torch.tensor([0, -1, 1])
-    with pytest.raises(ValueError, match="action"):
+    with pytest.raises(ValueError, match=r"action must be in \[0, 7\]"):
         env.step(td)
     g = WargusGymEnv()
     g.reset(seed=0)
@@ -555,25 +527,3 @@ def test_cuda_matches_cpu_bit_for_bit():
     cpu, croot = _run(WargusEnv(16, seed=8, **SMALL), actions)
     gpu, groot = _run(WargusEnv(16, seed=8, device="cuda", **SMALL), actions.cuda())
     assert (gpu.cpu() == cpu).all() and torch.equal(groot.cpu(), croot)
-
-
-def test_state_dict_continues_the_episodes_exactly():
-    """Exact resume: a fresh env loading another's state_dict continues its episodes bit for bit."""
-    gen = torch.Generator().manual_seed(0)
-    a = WargusEnv(6, seed=3)
-    td = a.reset()
-    for _ in range(40):
-        td["action"] = torch.randint(0, 8, (6,), generator=gen)
-        _, td = a.step_and_maybe_reset(td)
-    b = WargusEnv(6, seed=99)
-    b.reset()
-    b.load_state_dict(a.state_dict())
-    ta, tb = td.clone(), td.clone()
-    for _ in range(150):
-        act = torch.randint(0, 8, (6,), generator=gen)
-        ta["action"], tb["action"] = act, act.clone()
-        oa, ta = a.step_and_maybe_reset(ta)
-        ob, tb = b.step_and_maybe_reset(tb)
-        assert torch.equal(oa["next", "observation"], ob["next", "observation"])
-        assert torch.equal(oa["next", "done"], ob["next", "done"])
-        assert torch.equal(oa["next", wargus.ITEM_LOST], ob["next", wargus.ITEM_LOST])

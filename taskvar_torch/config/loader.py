@@ -104,8 +104,11 @@ def _reduce_config(cfg: Config) -> tuple:
 # schema lookups
 
 
+@functools.cache
 def _structured(schema: type) -> DictConfig:
-    """A writable OmegaConf node of ``schema`` with its defaults (unknown keys refused)."""
+    """A writable OmegaConf node of ``schema`` with its defaults (unknown keys refused), built
+    once per schema (``OmegaConf.structured`` is most of a config load's time). Shared: only ever
+    the first argument of ``OmegaConf.merge``, which merges into a copy of it, never mutated."""
     node = OmegaConf.structured(schema)
     OmegaConf.set_readonly(node, False)
     return node

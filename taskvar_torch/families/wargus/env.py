@@ -93,6 +93,9 @@ class WargusEnv(BatchedFamilyEnv):
         seed: sub-environment ``i`` draws its episode keys from ``(seed, index_offset + i)``, so
             any split of N environments reproduces the same trajectories.
         index_offset: global index of sub-environment 0.
+        noise_seed: must be 0: a Wargus instance seed fixes the whole episode (patrol moves and
+            shots included), so there is no per-step noise to salt apart from the instance
+            (docs/families.md's constructor argument; anything else is a one-line error).
         validate_actions: check actions are in range, raising a one-line error (one host sync
             per step). ``None`` (default): on CPU only, so that on an accelerator the step has no
             host round trip.
@@ -123,11 +126,17 @@ class WargusEnv(BatchedFamilyEnv):
         start: tuple[int, int] | None = None,
         seed: int = 0,
         index_offset: int = 0,
+        noise_seed: int = 0,
         validate_actions: bool | None = None,
         device: torch.device | str = "cpu",
     ):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
+        if int(noise_seed) != 0:
+            raise ValueError(
+                f"noise_seed must be 0 for Wargus, got {noise_seed}: its instance seed fixes the "
+                "whole episode, so there is no per-step noise to redraw"
+            )
         self.config = WargusConfig.from_any(
             config,
             size=size,
