@@ -7,7 +7,7 @@ expectation ``E[V(s')]`` over successor tables; the head report's slowest part
 step gathered every outcome into ``(B, n, K)`` and summed over the last dim (the *gather + sum*
 reference below, the formula as it was); now it gathers one contiguous plane per outcome and adds
 them (:func:`~taskvar_torch.families.windy.sparse_oracle.expect_planes`): the same bits for ``K <= 2`` (checked
-here on every step, and in ``tests/test_oracle_sparse.py``). The chains are the real ones: the
+here on every step, and in ``tests/families/windy/test_oracle_sparse.py``). The chains are the real ones: the
 layout of ``--config``, the options controller's chains with its exact option policies (no
 interruption), one quadrature chunk of instances.
 Runs alternate and the medians are compared. Single-threaded by default; ``--report`` also times

@@ -39,7 +39,7 @@ TRAIN_TINY = [  # tests/test_families.py's budget: ~2 s
     "train.buffer_size=1000",
 ]
 EVAL_TINY = ["experiment.runs=1", "experiment.episodes_per_run=20", "eval.batch_size=10"]
-WARGUS_TINY = [  # tests/test_experiments_wargus.py's budget
+WARGUS_TINY = [  # tests/families/wargus/test_experiments_wargus.py's budget
     "env.wargus.size=12",
     "env.wargus.horizon=60",
     "experiment.runs=2",

@@ -36,7 +36,7 @@ from taskvar_torch.study.scale_config import ScaleConfig
 
 CONFIG_DIR = Path(__file__).resolve().parents[1] / "configs"
 # Training/experiment configs (the `Config` schema); `scale.yaml` is the scale experiment's own
-# schema (`study.scale_config.ScaleConfig`), checked in tests/test_experiments_scale.py.
+# schema (`study.scale_config.ScaleConfig`), checked in tests/study/test_experiments_scale.py.
 CONFIG_FILES = sorted(p for p in CONFIG_DIR.glob("*.yaml") if p.name != "scale.yaml")
 SCALE_CONFIG = CONFIG_DIR / "scale.yaml"
 WINDY = CONFIG_DIR / "windy.yaml"

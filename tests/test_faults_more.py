@@ -51,7 +51,7 @@ TRAIN_TINY = [  # tests/test_faults.py's run: 3000 frames, a checkpoint every 10
     "train.updates_per_batch=2",
     "train.buffer_size=5000",
 ]
-SWEEP_TINY = [  # tests/test_sweep.py's points: about 5 s each on an idle core
+SWEEP_TINY = [  # tests/study/test_sweep.py's points: about 5 s each on an idle core
     "train.total_frames=2048",
     "train.init_random_frames=512",
     "train.eps_decay_frames=1024",
@@ -267,7 +267,7 @@ def test_a_killed_sweep_resumes_keeping_its_complete_points(tmp_path, capsys):
     kills.mkdir()
     argv = ["sweep", WINDY, "--backend", "local", "--quick", "--out", str(out), "--no-progress"]
     # --no-batch-seeds: each point trains in its own run, which the fault kills (a seed batch
-    # trains both seeds in one run, tests/test_sweep_seeds.py)
+    # trains both seeds in one run, tests/study/test_sweep_seeds.py)
     argv += ["--no-plots", "--no-batch-seeds", "seed=0,1", *SWEEP_TINY]
     r = taskvar(tmp_path, *argv, FAULT="kill", KILL_SEEDS="1", KILL_DIR=str(kills))
     assert r.returncode == -signal.SIGKILL, r.stderr[-3000:]

@@ -1,6 +1,6 @@
 """The informed baseline (issue 31, docs/memory.md): the learnt ceiling reaches the exact
 per-instance optimum, reads the family's instance features, is refused where a family has none
-(Wargus's features: tests/test_informed_wargus.py),
+(Wargus's features: tests/families/wargus/test_informed_wargus.py),
 and ``taskvar eval --method all`` plays both baselines on the same paired episodes."""
 
 from __future__ import annotations
@@ -109,7 +109,7 @@ def test_taxi_features_and_unavailable_without_any(monkeypatch):
     assert torch.equal(feats(td), torch.stack([1.0 - q, f], -1).float())
     assert (
         informed_features(load_config("configs/wargus.yaml", []))[0] == 4
-    )  # tests/test_informed_wargus.py
+    )  # tests/families/wargus/test_informed_wargus.py
     cfg = load_config("configs/wargus.yaml", [])
     monkeypatch.setattr(families, "family", _without_informed(families.family))
     with pytest.raises(ValueError, match="family 'wargus' has none, so it is unavailable") as e:

@@ -1,7 +1,7 @@
 """The ``instance`` max-value estimator (Definition 1: a max over instances of per-instance values).
 
 Unit checks of ``heads/max_value.py::instance_max_value_loss`` and of its plumbing (config, replay,
-checkpoint); the learning check against the exact oracle is in ``tests/test_heads_windy.py``.
+checkpoint); the learning check against the exact oracle is in ``tests/families/windy/test_heads_windy.py``.
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ class HeadsConfig:
     """heads.informed: weight of the penalty ``mean_a Delta(s, z, a)^2`` that holds the informed
     head to the averaging head (``Q_inf = Q_avg + Delta``) where the data do not move it
     (heads/informed.py); 0 trains ``Delta`` by the TD loss alone (windy: at the optimum; 1.0 there
-    holds it near the averaging policy, regret 6.2 at tests/test_heads_windy.py's budget).
+    holds it near the averaging policy, regret 6.2 at tests/families/windy/test_heads_windy.py's budget).
     configs/taxi.yaml sets 1.0, chosen on Taxi validation seeds 100 and 101 (0 and 0.3 loop)."""
 
 

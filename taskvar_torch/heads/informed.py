@@ -33,7 +33,7 @@ alone (``informed_anchor=0``) loops too: on validation seeds 100 and 101 (``conf
 and 6.02, moving into walls the behaviour barely tries on rainy and even on dry instances; with
 ``informed_anchor=0.3`` 2.64 and 5.43, with ``1.0`` (``configs/taxi.yaml``) 5.95 and
 6.04 (docs/memory.md). On windy the TD loss alone reaches the optimum (the default, 0; 1.0 there
-holds it near the averaging policy: regret 6.2 at ``tests/test_heads_windy.py``'s budget).
+holds it near the averaging policy: regret 6.2 at ``tests/families/windy/test_heads_windy.py``'s budget).
 
 Its weights are initialised from a generator of their own (:data:`INFORMED_SEED_OFFSET`) and it
 takes no random draw while training, so the paper's heads are the same bits with it on or off

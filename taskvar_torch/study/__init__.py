@@ -1,5 +1,5 @@
 """The study beside the library: the commands that run and summarise many trainings, built on the
-library's public names only (``tests/test_study_boundary.py`` checks it).
+library's public names only (``tests/study/test_study_boundary.py`` checks it).
 
 - the scale study, ``taskvar experiment scale`` (docs/scale.md): :mod:`~taskvar_torch.study.scale`
   (the protocol, the loader), ``scale_config`` (the cases and each cell's config), ``scale_eval``

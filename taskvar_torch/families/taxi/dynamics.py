@@ -15,7 +15,7 @@ fickle passenger is armed this episode (drawn at reset with probability ``f``) i
 state carried by the caller.
 
 The rules, as Gymnasium 1.4's ``taxi.py`` implements them (checked entry for entry in
-``tests/test_taxi_env.py``):
+``tests/families/taxi/test_taxi_env.py``):
 
 * rain: a move whose intended direction is open goes there with probability ``q`` and to either
   lateral neighbour with ``(1 - q) / 2`` each (a lateral move into a wall or edge stays put); a move

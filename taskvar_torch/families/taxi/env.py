@@ -58,7 +58,7 @@ class TaxiEnv(BatchedFamilyEnv):
     Dietterich's Taxi on Taxi-v4's 5x5 map: drive to the passenger at one of the four locations
     R, G, Y, B, pick them up, drive to their destination and drop them off. Each sub-environment
     draws its own hidden instance at every (partial) reset: how rainy the roads are and how fickle
-    the passenger is. The dynamics are Taxi-v4's exactly (``tests/test_taxi_env.py`` checks them
+    the passenger is. The dynamics are Taxi-v4's exactly (``tests/families/taxi/test_taxi_env.py`` checks them
     against Gymnasium's ``P`` and ``step``).
 
     ## Action Space

@@ -44,7 +44,7 @@ class TaxiGymEnv(gym.Env):
     """Taxi-v4 with a hidden rain / fickle-passenger instance per episode, as a Gymnasium env.
 
     ## Description
-    Dietterich's Taxi on Taxi-v4's map and rules (exactly: ``tests/test_taxi_env.py`` checks the
+    Dietterich's Taxi on Taxi-v4's map and rules (exactly: ``tests/families/taxi/test_taxi_env.py`` checks the
     dynamics against Gymnasium's). At every reset an instance is drawn from ``instances``: how
     likely a move slips sideways in the rain, and how likely the passenger changes destination on
     the first move after pickup. The agent does not observe it.

@@ -23,7 +23,7 @@ batched over instances, on any device:
 The conventions are the dense oracle's (discounted values, goal rows 0, lowest index on ties),
 with one difference: values come from iterations stopped at ``tol`` rather than linear solves, so
 ties are snapped at ``tie_atol`` (default ``1e-6``, far above ``tol``) instead of ``1e-9``. On the
-shipped small layouts both oracles agree to ``1e-8`` (tests/test_oracle_sparse.py).
+shipped small layouts both oracles agree to ``1e-8`` (tests/families/windy/test_oracle_sparse.py).
 
 Examples:
     >>> from taskvar_torch.families.windy.dynamics import make_layout
@@ -465,7 +465,7 @@ def outcome_planes(succ: Tensor, prob: Tensor) -> tuple[list[Tensor], list[Tenso
 def expect_planes(V: Tensor, succ: Sequence[Tensor], prob: Sequence[Tensor]) -> Tensor:
     """``sum_j prob_j * V[succ_j]`` ``(B, n)`` for values ``V (B, S)``: one gather per outcome,
     accumulated in outcome order. For ``K <= 2`` outcomes this is bit-equal to gathering all
-    outcomes and ``sum(-1)`` over them (tests/test_oracle_sparse.py), and faster on the CPU, where
+    outcomes and ``sum(-1)`` over them (tests/families/windy/test_oracle_sparse.py), and faster on the CPU, where
     a reduction over a last dim of size 2 is slow (docs/benchmarks.md, "The exact oracle's chain
     step")."""
     out = V.gather(1, succ[0]).mul_(prob[0])

@@ -26,7 +26,7 @@ from taskvar_torch.study.sweep_grid import (
 
 torch.set_num_threads(1)
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "windy.yaml"
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "windy.yaml"
 TINY = [  # on top of --quick: about 5 s per point, and the averaging policy already learns a bit
     "train.total_frames=2048",
     "train.init_random_frames=512",

@@ -128,7 +128,7 @@ def test_csv_has_a_row_per_seed_and_the_aggregate_is_over_the_seeds(two_seeds):
 
 @pytest.mark.slow
 def test_one_seed_writes_todays_keys_and_columns(tmp_path):
-    # held-out off: its block is new keys only (tests/test_scale_heldout.py)
+    # held-out off: its block is new keys only (tests/study/test_scale_heldout.py)
     m = _run(tmp_path, "total_frames=200", "curve_points=0", "heldout_episodes=0")
     assert set(m) == TOP_KEYS
     (c,) = m["cells"]

@@ -22,7 +22,7 @@ from taskvar_torch.oracle import table_heads
 
 torch.set_num_threads(1)
 
-CONFIG = Path(__file__).resolve().parents[1] / "configs" / "windy.yaml"
+CONFIG = Path(__file__).resolve().parents[3] / "configs" / "windy.yaml"
 RUNS, EPISODES = 2, 40
 TINY = [
     "train.total_frames=2048",

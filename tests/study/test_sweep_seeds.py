@@ -21,8 +21,8 @@ from taskvar_torch.study.sweep_jobs import plan_jobs
 
 torch.set_num_threads(1)
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
-TINY = [  # tests/test_sweep.py's points: a few seconds each
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+TINY = [  # tests/study/test_sweep.py's points: a few seconds each
     "train.total_frames=2048",
     "train.init_random_frames=512",
     "train.eps_decay_frames=1024",

@@ -13,7 +13,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PACKAGE = ROOT / "taskvar_torch"
 STUDY = PACKAGE / "study"
 DISPATCH = set((PACKAGE / "cli").glob("*.py"))
