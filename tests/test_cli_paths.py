@@ -356,3 +356,16 @@ def test_eval_batch_size_below_one_is_a_one_line_error(size, bundle, tmp_path, c
     status, _, err = run_cli([*argv, "--no-progress"], capsys)
     assert_one_line_error(status, err, "eval", f"--batch-size must be >= 1, got {size}")
     assert not out.exists()
+
+
+def test_eval_help_names_each_registered_familys_tests():
+    """``taskvar eval --help`` lists every registered family's ``--test`` names, computed only
+    when the help is printed (a command that runs does not load the family registry for it)."""
+    from taskvar_torch.cli import build_parser
+    from taskvar_torch.families import FAMILIES
+
+    _, parsers = build_parser()
+    assert parsers["eval"].epilog is None  # not built yet
+    text = parsers["eval"].format_help()
+    for name, fam in FAMILIES.items():
+        assert f"  {name}: {', '.join(fam.tests)}" in text

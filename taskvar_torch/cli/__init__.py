@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 from taskvar_torch.cli import evaluate, study, train
 from taskvar_torch.cli.arguments import Command
@@ -49,10 +49,19 @@ function); add an entry to add a command."""
 
 
 class _OneLineParser(argparse.ArgumentParser):
-    """``argparse`` whose input errors are one line ``PROG: error: ...`` (no usage block), status 2."""
+    """``argparse`` whose input errors are one line ``PROG: error: ...`` (no usage block), status 2,
+    and whose epilog may be computed only when the help is printed (``lazy_epilog``: the
+    registered families' keys and tests, which a command that runs need not load)."""
+
+    lazy_epilog: Callable[[], str] | None = None
 
     def error(self, message: str):  # argparse API
         self.exit(2, f"{self.prog}: error: {message}\n")
+
+    def format_help(self) -> str:  # argparse API
+        if self.lazy_epilog is not None:
+            self.epilog, self.lazy_epilog = self.lazy_epilog(), None
+        return super().format_help()
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
@@ -69,9 +78,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             name,
             help=cmd.help,
             description=cmd.description,
-            epilog=cmd.epilog() if cmd.epilog else None,
             formatter_class=argparse.RawDescriptionHelpFormatter,
         )
+        parsers[name].lazy_epilog = cmd.epilog
         cmd.add_arguments(parsers[name])
     return parser, parsers
 

@@ -14,7 +14,7 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
         "--checkpoint",
         required=True,
         metavar="PATH",
-        help="bundle of either family: taskvar train's final.pt, an experiment repetition's, or an "
+        help="bundle of any family: taskvar train's final.pt, an experiment repetition's, or an "
         "exported heads.pt",
     )
     p.add_argument(
@@ -29,10 +29,8 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--test",
         default=None,
-        help="named test distribution of the bundle's family (docs/evaluation.md; windy: train, "
-        "south, north, calm, stormy, ...; Wargus: nominal, train, fast_patrol, more_patrols, ...; "
-        "heldout: the sealed held-out episodes); "
-        "default: the family's first (windy train, Wargus nominal)",
+        help="named test distribution of the bundle's family (each registered family's: below; "
+        "heldout: the sealed held-out episodes; docs/evaluation.md); default: the family's first",
     )
     p.add_argument(
         "--shift",
@@ -129,13 +127,24 @@ def _test_name(name: str) -> str:
     return name  # checked against the bundle's family by eval_bundle
 
 
+def _tests_epilog() -> str:
+    """``taskvar eval --help``'s epilog: each registered family's named tests (``--test``)."""
+    from taskvar_torch.families import FAMILIES
+
+    lines = ["--test, per registered family (the first is the default):"]
+    for name, fam in FAMILIES.items():
+        lines.append(f"  {name}: {', '.join(fam.tests)}")
+    return "\n".join(lines)
+
+
 EVAL = Command(
     help="evaluate a trained bundle's methods side by side on test distributions and shifts",
-    description="Evaluate any saved bundle of either family without retraining: every method "
+    description="Evaluate any saved bundle of any family without retraining: every method "
     "on the same paired episodes of a named test distribution, optionally shifted "
     "(--shift env.KEY=V, or V1,V2,... for a shift curve); prints a table and writes "
     "DIR/metrics.json, episodes.csv and eval.png with --out.\n\n"
     "  taskvar eval --checkpoint runs/windy/final.pt --method all --shift env.instances.p=0.2,0.5,0.8",
     add_arguments=_eval_arguments,
     run=_eval_run,
+    epilog=_tests_epilog,
 )
