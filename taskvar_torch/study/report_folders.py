@@ -236,10 +236,17 @@ def collect(dirs: Sequence[str]) -> list[Group]:
     return groups
 
 
+def _layout(env: dict, family: str | None) -> object:
+    """A config's layout: in the family's own env section (``env.windy.layout``), or at ``env.*``
+    where an older version wrote it."""
+    own = env.get(family) if family else None
+    return own.get("layout") if isinstance(own, dict) and "layout" in own else env.get("layout")
+
+
 def _label(g: Group) -> str:
     c = g.config
     if g.kind == "windy-fig2":
-        return f"windy-fig2, layout {c.get('env', {}).get('layout')}"
+        return f"windy-fig2, layout {_layout(c.get('env', {}), 'windy')}"
     if g.kind == "wargus-fig4":
         size = c.get("env", {}).get("wargus", {}).get("size")
         return f"wargus-fig4, {size}x{size}, {c.get('experiment', {}).get('trials')} trials"
@@ -252,7 +259,9 @@ def _label(g: Group) -> str:
     own = env.get(family)  # the family's own env section
     if isinstance(own, dict) and own.get("size") is not None:  # its grid, as Figure 4's label
         family = f"{family} {own['size']}x{own['size']}"
-    layout = env.get("layout")  # a named layout other than the default, as windy-fig2's label
+    layout = _layout(
+        env, e.get("family")
+    )  # a named layout other than the default, as windy-fig2's label
     if isinstance(layout, str) and layout != "default" and "\n" not in layout:
         family = f"{family} {layout}"
     return f"eval {family} --test {e.get('test')}{shifts}"

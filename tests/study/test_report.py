@@ -637,3 +637,17 @@ def test_drop_removes_the_rows_of_a_superseded_config(tmp_path):
     assert block.splitlines() == [*head, rows[1]] and summaries == []
     with pytest.raises(report.ReportError, match="--drop deadbeef: no Results row .* 047e3af1"):
         report.drop_rows("\n".join([*head, *rows]), kept, ["deadbeef"])
+
+
+def test_a_figure2_folder_is_labelled_by_its_layout_where_either_version_wrote_it(tmp_path):
+    """The layout sits in ``env.windy`` since the restructuring, at ``env.*`` before: the label
+    reads either (it read ``layout None`` from today's folders)."""
+    for k in range(5):
+        fig2_folder(tmp_path / "old" / f"seed{k}", k, 0.9, 0.1, layout="middle_exits")
+        folder = fig2_folder(tmp_path / "new" / f"seed{k}", k, 0.9, 0.1)
+        cfg = yaml.safe_load((folder / "config.yaml").read_text())
+        cfg["env"] = {"windy": {"layout": "middle_exits"}}
+        (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
+    for name in ("old", "new"):
+        (group,) = report_folders.collect([str(tmp_path / name)])
+        assert group.label == "windy-fig2, layout middle_exits"
