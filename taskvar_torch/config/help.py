@@ -140,25 +140,30 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
     return "\n".join(lines)
 
 
+def key_line(cls: type, key: str) -> str:
+    """``  key (type, default value): docstring`` of the dotted ``key`` of ``cls`` (a family's own
+    section, ``env.<name>``, read from the registry)."""
+    *path, name = key.split(".")
+    for part in path:
+        hints = _hints(cls)
+        if part in hints:
+            cls = hints[part]
+        else:  # a family's own section, env.<name>
+            from taskvar_torch.families import FAMILIES
+
+            cls = FAMILIES[part].config_class
+    return _key_line(cls, name, "".join(p + "." for p in path))
+
+
 def user_help() -> str:
     """``--help`` text: the :data:`USER_KEYS`, one line each, under their section's header."""
     lines, section = [], None
     for key in USER_KEYS:
-        cls: type = Config
-        *path, name = key.split(".")
-        for part in path:
-            hints = _hints(cls)
-            if part in hints:
-                cls = hints[part]
-            else:  # a family's own section, env.<name>
-                from taskvar_torch.families import FAMILIES
-
-                cls = FAMILIES[part].config_class
-        header = ".".join(path) or "top level"
+        header = key.rpartition(".")[0] or "top level"
         if header != section:
             section = header
             lines.append(f"{header}:")
-        lines.append(_key_line(cls, name, "".join(p + "." for p in path)))
+        lines.append(key_line(Config, key))
     return "\n".join(lines)
 
 
