@@ -167,6 +167,25 @@ def user_help() -> str:
     return "\n".join(lines)
 
 
+def families_help() -> str:
+    """One line per registered family (read from the registry, installed families included): its
+    description, instance distributions (``env.instances``), tests (``eval.test``) and own keys
+    (``env.<name>.*``, documented by ``--help-all``)."""
+    from taskvar_torch.families import FAMILIES
+
+    lines = []
+    for name, fam in FAMILIES.items():
+        own = [f.name for f in dataclasses.fields(fam.config_class)] if fam.config_class else []
+        parts = [
+            f"env.instances {', '.join(fam.instance_names)}",
+            f"eval.test {', '.join(fam.tests)}",
+            f"own keys env.{name}.{{{', '.join(own)}}}" if own else "no own keys",
+        ]
+        about = f"{fam.description}; " if fam.description else ""
+        lines.append(f"  {name}: {about}" + "; ".join(parts))
+    return "\n".join(lines)
+
+
 def count_keys(text: str) -> int:
     """Keys listed in a help text of :func:`config_help` or :func:`user_help`."""
     return sum(1 for line in text.splitlines() if re.match(r"  [a-z][a-z0-9_.]* \(", line))

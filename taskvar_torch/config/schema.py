@@ -27,8 +27,8 @@ class EnvConfig:
     num_envs: int = 16
     """Number of environments simulated in parallel for training (the batch size N)."""
     instances: str = "train"
-    """Training instance distribution; windy: train, test, south or north; Wargus: train, test or
-    nominal."""
+    """Training instance distribution: one of the family's named distributions (each registered
+    family's: taskvar train --help)."""
 
 
 @dataclass(frozen=True)
@@ -303,7 +303,8 @@ class Config:
     override_example: ClassVar[str] = "train.lr=0.01"
     """An override shown in the error for a malformed one (a class constant, not a config key)."""
     family: str = "windy"
-    """MDP family: a registered family's name (windy, wargus, taxi, or one of your own)."""
+    """MDP family: a registered family's name, built in or from an installed package (the
+    registered ones: taskvar train --help)."""
     seed: int = 0
     """Master seed of environments, networks and exploration."""
     device: str = "cpu"
