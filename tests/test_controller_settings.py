@@ -115,3 +115,24 @@ def test_load_heads_builds_mu_bar_from_the_settings(tmp_path):
         controller=["train.mu_bar=softmax", "train.mu_bar_temperature=0.25"],
     )
     assert heads.softmax_temperature == 0.25 and c.train.mu_bar == "softmax"
+
+
+def test_a_family_naming_no_conflict_states_keeps_the_fixed_threshold_at_its_root():
+    """Subtasks.no_conflict is None by default: a calibrated composed subtask then keeps
+    train.robustness_tau (calibrated on every state it would hold control on the keep share of
+    them, whatever its policy is worth); the leaves are calibrated as before."""
+    from taskvar_torch.heads.robustness import calibrate_robustness
+    from taskvar_torch.subtasks.base import Subtasks
+
+    g = torch.Generator().manual_seed(0)
+    r = torch.randn(1000, 3, generator=g) + torch.tensor([0.0, 1.0, -5.0])
+    startable = torch.ones(1000, 3, dtype=torch.bool)
+    composed = torch.tensor([False, False, True])
+    cal = calibrate_robustness(r, startable, None, composed, keep_share=0.9, default_tau=2.0)
+    assert float(cal.tau[2]) == 2.0  # the root: the fixed threshold
+    assert float(cal.tau[0]) == pytest.approx(float(torch.quantile(r[:, 0], 0.1)))
+    every = calibrate_robustness(
+        r, startable, torch.ones(1000, dtype=torch.bool), composed, 0.9, 2.0
+    )
+    assert float((r[:, 2] > every.tau[2]).float().mean()) == pytest.approx(0.9, abs=0.01)
+    assert Subtasks().no_conflict(None) is None
