@@ -105,16 +105,21 @@ def test_settings_reach_mu_bar_and_the_experiment_split():
         _check_checkpoint_overrides(["train.lr=0.1"])
 
 
-def test_load_heads_builds_mu_bar_from_the_settings(tmp_path):
+def test_load_heads_and_the_experiment_build_mu_bar_from_the_settings(tmp_path):
     cfg = load_config("configs/windy.yaml", TINY[:1] + TINY[3:])
-    train(cfg, tmp_path, progress=False)
-    heads, _ = load_heads(tmp_path / "final.pt")
+    train(cfg, tmp_path / "run", progress=False)
+    bundle = tmp_path / "run" / "final.pt"
+    heads, _ = load_heads(bundle)
     assert heads.softmax_temperature is None  # the bundle's greedy mu_bar
-    heads, c = load_heads(
-        tmp_path / "final.pt",
-        controller=["train.mu_bar=softmax", "train.mu_bar_temperature=0.25"],
-    )
+    soft = ["train.mu_bar=softmax", "train.mu_bar_temperature=0.25"]
+    heads, c = load_heads(bundle, controller=soft)
     assert heads.softmax_temperature == 0.25 and c.train.mu_bar == "softmax"
+    out = tmp_path / "fig2"  # experiment windy-fig2 --checkpoint plays them, config.yaml says so
+    sizes = ["experiment.runs=1", "experiment.episodes_per_run=8", "eval.batch_size=8"]
+    argv = ["experiment", "windy-fig2", "--checkpoint", str(bundle), "--out", str(out)]
+    assert main([*argv, *sizes, *soft, "--no-progress", "--no-plots"]) == 0
+    played = load_config(out / "config.yaml")
+    assert played.train.mu_bar == "softmax" and played.train.mu_bar_temperature == 0.25
 
 
 def test_a_family_naming_no_conflict_states_keeps_the_fixed_threshold_at_its_root():
