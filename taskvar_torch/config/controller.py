@@ -40,7 +40,10 @@ def check_controller_overrides(items: Sequence[str]) -> list[str]:
         key, eq, _ = str(item).partition("=")
         key = key.strip()
         if not eq or not key:
-            raise ValueError(f"expected a controller setting key=value, got {item!r}")
+            raise ValueError(
+                f"expected a controller setting key=value, got {item!r} (a bundle is given as "
+                "--checkpoint PATH)"
+            )
         if key not in CONTROLLER_KEYS:
             hint = (
                 " (an env key changes the test distribution: --shift KEY=V)"
