@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,7 @@ from taskvar_torch.checkpoint import (
 )
 from taskvar_torch.checkpoint_checks import load_state_dicts
 from taskvar_torch.config import Config, TrainConfig, config_from_dict
+from taskvar_torch.config.controller import check_controller_overrides, with_controller_settings
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
@@ -385,26 +387,39 @@ def mu_bar_temperature(t: TrainConfig) -> float | None:
 
 
 def load_heads(
-    path: str | os.PathLike, device: str | torch.device | None = None
+    path: str | os.PathLike,
+    device: str | torch.device | None = None,
+    controller: Sequence[str] = (),
 ) -> tuple[Heads, Config]:
     """The trained :class:`Heads` bundle and config of a checkpoint written by ``train`` or an
     experiment. Built from the checkpoint's ``heads_spec`` (no env is made); a checkpoint without
     one (written before it existed) builds a one-environment env to read the spec.
+
+    ``controller``: controller settings (``train.robustness_threshold=fixed``, ...;
+    ``config/controller.py``) applied to the bundle's config, so the heads' mu_bar and every
+    controller built from the returned config use them; a key that is not one is a one-line
+    ``ValueError``.
 
     Raises:
         CheckpointError: unreadable file, foreign content, non-finite heads, or weights that do
             not fit the config.
         ValueError: the bundle's device is not available here.
     """
-    return _heads_of(load_checkpoint(path), path, device)
+    check_controller_overrides(controller)  # a one-line error before any loading
+    return _heads_of(load_checkpoint(path), path, device, controller)
 
 
 def _heads_of(
-    bundle: dict[str, Any], path: str | os.PathLike, device: str | torch.device | None = None
+    bundle: dict[str, Any],
+    path: str | os.PathLike,
+    device: str | torch.device | None = None,
+    controller: Sequence[str] = (),
 ) -> tuple[Heads, Config]:
-    """The heads and config of a loaded checkpoint ``bundle`` (read from ``path``)."""
+    """The heads and config of a loaded checkpoint ``bundle`` (read from ``path``), with the
+    ``controller`` settings applied to the config."""
     require_finite_heads(bundle, path)
     cfg = config_from_dict(bundle["config"], f"checkpoint {path}")
+    cfg = with_controller_settings(cfg, controller)
     if cfg.train.seeds > 1:
         raise CheckpointError(
             f"{str(path)!r} holds a batch of {cfg.train.seeds} training runs (train.seeds): "

@@ -11,6 +11,13 @@ from taskvar_torch.cli.arguments import Command, overwrite_argument, set_threads
 
 def _eval_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
+        "settings",
+        nargs="*",
+        metavar="train.KEY=VALUE",
+        help="controller settings to play instead of the bundle's, without retraining (e.g. "
+        "train.robustness_threshold=fixed train.robustness_tau=1.5); the keys: below",
+    )
+    p.add_argument(
         "--checkpoint",
         required=True,
         metavar="PATH",
@@ -73,6 +80,7 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _eval_run(args: argparse.Namespace) -> int:
+    from taskvar_torch.config.controller import check_controller_overrides
     from taskvar_torch.experiments.bundle_eval import eval_bundle, explain_table, format_table
     from taskvar_torch.experiments.regret_frames import format_by_frames
     from taskvar_torch.experiments.shift import parse_shift
@@ -80,6 +88,7 @@ def _eval_run(args: argparse.Namespace) -> int:
     set_threads(args)
     test = None if args.test is None else _test_name(args.test)
     shifts = [parse_shift(s) for s in args.shift]  # one-line errors before any loading
+    check_controller_overrides(args.settings)
     if args.batch_size is not None and args.batch_size < 1:  # 0 would fall back to the config's
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
     if args.out is not None:
@@ -100,6 +109,7 @@ def _eval_run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         overwrite=args.overwrite,
         by_frames=args.by_frames,
+        controller=args.settings,
     )
     print(format_table(metrics))
     if args.by_frames:
@@ -128,12 +138,18 @@ def _test_name(name: str) -> str:
 
 
 def _tests_epilog() -> str:
-    """``taskvar eval --help``'s epilog: each registered family's named tests (``--test``)."""
+    """``taskvar eval --help``'s epilog: each registered family's named tests (``--test``) and
+    the controller settings an evaluation may change, with their help."""
+    from taskvar_torch.config import Config
+    from taskvar_torch.config.controller import CONTROLLER_KEYS
+    from taskvar_torch.config.help import key_line
     from taskvar_torch.families import FAMILIES
 
     lines = ["--test, per registered family (the first is the default):"]
     for name, fam in FAMILIES.items():
         lines.append(f"  {name}: {', '.join(fam.tests)}")
+    lines.append("\ncontroller settings (train.KEY=VALUE; the bundle's own by default):")
+    lines += [key_line(Config, key) for key in CONTROLLER_KEYS]
     return "\n".join(lines)
 
 
@@ -142,8 +158,11 @@ EVAL = Command(
     description="Evaluate any saved bundle of any family without retraining: every method "
     "on the same paired episodes of a named test distribution, optionally shifted "
     "(--shift env.KEY=V, or V1,V2,... for a shift curve); prints a table and writes "
-    "DIR/metrics.json, episodes.csv and eval.png with --out.\n\n"
-    "  taskvar eval --checkpoint runs/windy/final.pt --method all --shift env.instances.p=0.2,0.5,0.8",
+    "DIR/metrics.json, episodes.csv and eval.png with --out. Controller settings "
+    "(train.KEY=VALUE, listed below) change what the controllers do with the same heads.\n\n"
+    "  taskvar eval --checkpoint runs/windy/final.pt --method all --shift env.instances.p=0.2,0.5,0.8\n"
+    "  taskvar eval --checkpoint runs/wargus/final.pt --method hierarchy "
+    "train.robustness_threshold=fixed",
     add_arguments=_eval_arguments,
     run=_eval_run,
     epilog=_tests_epilog,

@@ -86,7 +86,10 @@ def _experiment_run(args: argparse.Namespace) -> int:
     set_threads(args)  # default 1: small MLPs, more threads only contend on a shared CPU
     config_path, overrides = split_config_and_overrides(args.items)
     if args.checkpoint is not None:
-        _check_checkpoint_overrides(overrides)
+        overrides, controller = _check_checkpoint_overrides(overrides)
+        if controller:  # played by the bundle's controllers (config/controller.py)
+            exp.refuse("controller", "controller settings (train.KEY=VALUE)")
+            options["controller"] = controller
         if config_path is not None:  # its env/heads/train keys would be ignored
             raise ValueError(
                 f"config file {config_path!r} cannot apply with --checkpoint: the bundle's own "
@@ -100,19 +103,31 @@ def _experiment_run(args: argparse.Namespace) -> int:
 
 CHECKPOINT_OVERRIDABLE = ("experiment", "eval", "device")
 """Config sections an override may change when ``experiment --checkpoint`` evaluates a bundle
-(the rest comes from the bundle's own config)."""
+(the rest comes from the bundle's own config, but for the controller settings,
+``config/controller.py``)."""
 
 
-def _check_checkpoint_overrides(overrides: Sequence[str]) -> None:
-    """Refuse overrides that a ``--checkpoint`` run would ignore (e.g. ``env.layout=...``)."""
+def _check_checkpoint_overrides(overrides: Sequence[str]) -> tuple[list[str], list[str]]:
+    """The overrides of a ``--checkpoint`` run split into the config's (experiment.*, eval.*,
+    device) and the controller settings applied to the bundle's config; any other (e.g.
+    ``env.layout=...``, which the run would ignore) is a one-line error."""
+    from taskvar_torch.config.controller import CONTROLLER_KEYS
+
+    kept, controller = [], []
     for item in overrides:
         key = item.split("=", 1)[0].strip()
-        if not any(key == k or key.startswith(k + ".") for k in CHECKPOINT_OVERRIDABLE):
+        if key in CONTROLLER_KEYS:
+            controller.append(item)
+        elif any(key == k or key.startswith(k + ".") for k in CHECKPOINT_OVERRIDABLE):
+            kept.append(item)
+        else:
             raise ValueError(
                 f"override {item!r} cannot apply with --checkpoint: the bundle's own config is "
                 f"used; only {', '.join(k + ('.*' if k != 'device' else '') for k in CHECKPOINT_OVERRIDABLE)} "
-                "may be overridden (train a new bundle to change it)"
+                f"and the controller settings {', '.join(CONTROLLER_KEYS)} may be overridden "
+                "(train a new bundle to change it)"
             )
+    return kept, controller
 
 
 def _sweep_arguments(p: argparse.ArgumentParser) -> None:

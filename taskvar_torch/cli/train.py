@@ -64,11 +64,13 @@ def _seed_count(text: str) -> int:
 
 
 def _train_epilog() -> str:
-    from taskvar_torch.config.help import config_help, count_keys, user_help
+    from taskvar_torch.config.help import config_help, count_keys, families_help, user_help
 
     return (
         "the config keys a user sets (override any key with key.sub=value):\n"
         + user_help()
+        + "\n\nthe registered families (family=NAME; installed packages' included):\n"
+        + families_help()
         + f"\n\ntaskvar train --help-all lists every key ({count_keys(config_help())}), "
         "grouped by section, with each family's own"
     )
@@ -81,9 +83,14 @@ class _HelpAll(argparse.Action):
         super().__init__(option_strings, dest, nargs=0, default=argparse.SUPPRESS, **kwargs)
 
     def __call__(self, parser: argparse.ArgumentParser, *args: Any, **kwargs: Any) -> None:
-        from taskvar_torch.config import config_help
+        from taskvar_torch.config.help import config_help, families_help
 
-        print("every config key (override any with key.sub=value):\n" + config_help())
+        print(
+            "every config key (override any with key.sub=value):\n"
+            + config_help()
+            + "\n\nthe registered families (family=NAME):\n"
+            + families_help()
+        )
         parser.exit()
 
 

@@ -140,25 +140,49 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
     return "\n".join(lines)
 
 
+def key_line(cls: type, key: str) -> str:
+    """``  key (type, default value): docstring`` of the dotted ``key`` of ``cls`` (a family's own
+    section, ``env.<name>``, read from the registry)."""
+    *path, name = key.split(".")
+    for part in path:
+        hints = _hints(cls)
+        if part in hints:
+            cls = hints[part]
+        else:  # a family's own section, env.<name>
+            from taskvar_torch.families import FAMILIES
+
+            cls = FAMILIES[part].config_class
+    return _key_line(cls, name, "".join(p + "." for p in path))
+
+
 def user_help() -> str:
     """``--help`` text: the :data:`USER_KEYS`, one line each, under their section's header."""
     lines, section = [], None
     for key in USER_KEYS:
-        cls: type = Config
-        *path, name = key.split(".")
-        for part in path:
-            hints = _hints(cls)
-            if part in hints:
-                cls = hints[part]
-            else:  # a family's own section, env.<name>
-                from taskvar_torch.families import FAMILIES
-
-                cls = FAMILIES[part].config_class
-        header = ".".join(path) or "top level"
+        header = key.rpartition(".")[0] or "top level"
         if header != section:
             section = header
             lines.append(f"{header}:")
-        lines.append(_key_line(cls, name, "".join(p + "." for p in path)))
+        lines.append(key_line(Config, key))
+    return "\n".join(lines)
+
+
+def families_help() -> str:
+    """One line per registered family (read from the registry, installed families included): its
+    description, instance distributions (``env.instances``), tests (``eval.test``) and own keys
+    (``env.<name>.*``, documented by ``--help-all``)."""
+    from taskvar_torch.families import FAMILIES
+
+    lines = []
+    for name, fam in FAMILIES.items():
+        own = [f.name for f in dataclasses.fields(fam.config_class)] if fam.config_class else []
+        parts = [
+            f"env.instances {', '.join(fam.instance_names)}",
+            f"eval.test {', '.join(fam.tests)}",
+            f"own keys env.{name}.{{{', '.join(own)}}}" if own else "no own keys",
+        ]
+        about = f"{fam.description}; " if fam.description else ""
+        lines.append(f"  {name}: {about}" + "; ".join(parts))
     return "\n".join(lines)
 
 

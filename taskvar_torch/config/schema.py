@@ -27,8 +27,8 @@ class EnvConfig:
     num_envs: int = 16
     """Number of environments simulated in parallel for training (the batch size N)."""
     instances: str = "train"
-    """Training instance distribution; windy: train, test, south or north; Wargus: train, test or
-    nominal."""
+    """Training instance distribution: one of the family's named distributions (each registered
+    family's: taskvar train --help)."""
 
 
 @dataclass(frozen=True)
@@ -124,43 +124,53 @@ class TrainConfig:
     max_value_expectile: float = 0.95
     """Expectile level of the max-value head's upper estimator, in (0, 1)."""
     mu_bar: str = "greedy"
-    """mu_bar over Q_mu: greedy or softmax."""
+    """mu_bar over Q_mu, the switching policy of the options and interruption controllers and the
+    switching head's bootstrap: greedy or softmax. Changed at evaluation, it changes the
+    controllers only."""
     mu_bar_temperature: float = 1.0
-    """Softmax temperature of mu_bar (mu_bar='softmax')."""
+    """Softmax temperature of mu_bar (mu_bar='softmax'), in units of Q_mu."""
     robustness_gamma: float = 0.99
-    """Discount of the robustness critics (Wargus): 0.99 looks ~100 steps ahead, so the root's
-    R(TG+FE) reads survival and future sightings, not only whether the item is in sight now
+    """Discount of the robustness critics (any family whose options define a robustness reward;
+    of the built-in ones, Wargus): 0.99 looks ~100 steps ahead, so on Wargus the root's R(TG+FE)
+    reads survival and future sightings, not only whether the item is in sight now
     (heads/robustness.py "Scale")."""
     robustness_tau: float = 2.0
-    """Robustness threshold tau of the hierarchy controller (Wargus) when
-    robustness_threshold='fixed' (the paper's 2), and the fallback of a calibration with no
-    qualifying state."""
+    """Robustness threshold tau of the hierarchy controller, in the robustness critics' units,
+    when robustness_threshold='fixed' (the paper's 2, on Wargus), and the fallback of a calibration
+    with no qualifying state. Read at evaluation: taskvar eval may change it."""
     robustness_threshold: str = "calibrated"
-    """How the hierarchy's thresholds are set (Wargus): fixed (robustness_tau for every
-    capability) or calibrated (per capability, on training states: a composed subtask keeps
-    control on robustness_keep_share of the training states where its subgoals do not conflict;
-    heads/robustness.py RobustnessCalibration). Never set on the nominal test seeds."""
+    """How the hierarchy controller's thresholds are set, in any family with a composition
+    hierarchy: fixed (robustness_tau for every capability) or calibrated (per capability, on
+    training states: a composed subtask keeps control on robustness_keep_share of the training
+    states where its subgoals do not conflict, Subtasks.no_conflict; heads/robustness.py
+    RobustnessCalibration). Never set on test seeds. Read at evaluation: taskvar eval may change
+    it (the root's share per family: docs/evaluation.md)."""
     robustness_keep_share: float = 0.9
     """robustness_threshold='calibrated': share of no-conflict training states on which a composed
-    subtask keeps control, in (0, 1)."""
+    subtask keeps control, in (0, 1). Read at evaluation."""
     robustness_until: str = "termination"
-    """Horizon of the robustness critics (Wargus): termination (no bootstrap past the option's own
-    termination beta_o or the episode's end) or episode (bootstrap through beta_o)."""
+    """Horizon of the robustness critics (families with a robustness reward): termination (no
+    bootstrap past the option's own termination beta_o or the episode's end) or episode
+    (bootstrap through beta_o)."""
     robustness_target: str = "option"
-    """Next action of the robustness critics' TD target (Wargus): option (pi^o(s'), R of following
-    option o, paper §3.4.3) or greedy (argmax_a' R_o(s', a'), Q-learning on R)."""
+    """Next action of the robustness critics' TD target (families with a robustness reward):
+    option (pi^o(s'), R of following option o, paper §3.4.3) or greedy (argmax_a' R_o(s', a'),
+    Q-learning on R)."""
     hierarchy_root_policy: str = "averaging"
-    """Policy of the hierarchy's root (Wargus), in the controller and in its robustness target:
-    averaging (the averaging head: paper §3.4.2, "the policy of this subtask is the full task
-    averaging policy") or option (the root's own option head). The same root policy is used by
-    the options and interruption controllers and by the behaviour's option episodes."""
+    """Policy of a composition hierarchy's root (families with one), in the controllers and in
+    the root's robustness target: averaging (the averaging head: paper §3.4.2, "the policy of
+    this subtask is the full task averaging policy") or option (the root's own option head). The
+    options and interruption controllers and the behaviour's option episodes use it too; no
+    effect without a hierarchy. Changed at evaluation, it changes the controllers only (the root's
+    critic was trained for the bundle's value)."""
     hierarchy_termination: bool = True
-    """Hierarchy controller (Wargus): honour the options' termination (a component whose beta
-    holds hands control back up; the descent only picks components that can take control there).
-    false: the paper's literal Algorithm 2."""
+    """Hierarchy controller (any family with a composition hierarchy): honour the options'
+    termination (a component whose beta holds hands control back up; the descent only picks
+    components that can take control there). false: the paper's literal Algorithm 2."""
     hierarchy_descent: str = "normalised"
-    """Hierarchy controller (Wargus): metric of the descent to a component, raw (argmax R, the
-    paper) or normalised ((R - tau) / scale per component, a common scale)."""
+    """Hierarchy controller (any family with a composition hierarchy): metric of the descent to
+    a component, raw (argmax R, the paper) or normalised ((R - tau) / scale per component, a
+    common scale)."""
     composed_reward: str = "env"
     """Subtask reward of the composed option TG+FE (Wargus): env (the environment reward: it is
     the full task, paper §3.4.2) or sum (TG's plus FE's subtask rewards)."""
@@ -293,7 +303,8 @@ class Config:
     override_example: ClassVar[str] = "train.lr=0.01"
     """An override shown in the error for a malformed one (a class constant, not a config key)."""
     family: str = "windy"
-    """MDP family: a registered family's name (windy, wargus, taxi, or one of your own)."""
+    """MDP family: a registered family's name, built in or from an installed package (the
+    registered ones: taskvar train --help)."""
     seed: int = 0
     """Master seed of environments, networks and exploration."""
     device: str = "cpu"

@@ -1,5 +1,5 @@
 """``taskvar eval``: every method of a trained bundle, side by side, on test distributions and
-shifts of either family (docs/evaluation.md).
+shifts of any family, with the bundle's controller settings or others (docs/evaluation.md).
 
 :func:`eval_bundle` loads a bundle (``taskvar train``'s ``final.pt``, an experiment repetition's, or
 an exported ``heads.pt``), builds each method's controller with the bundle's settings
@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from taskvar_torch.config.controller import check_controller_overrides, controller_settings
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.experiments.baselines import (
@@ -105,6 +106,7 @@ def eval_bundle(
     overwrite: bool = False,
     exact: bool | None = None,
     by_frames: bool = False,
+    controller: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Evaluate the bundle at ``checkpoint`` with ``method`` (``all``, one, or a comma list) on
     the named test distribution ``test`` (``None``: the family's first) with ``shifts``
@@ -123,11 +125,17 @@ def eval_bundle(
 
     ``by_frames``: also each memoryless method's exact regret on every heads snapshot of the run
     (``train.heads_every``) on the same episodes (``experiments/regret_frames.py``): the
-    ``metrics.json`` key ``regret_by_frames``, ``regret_by_frames.csv`` and ``.png``."""
+    ``metrics.json`` key ``regret_by_frames``, ``regret_by_frames.csv`` and ``.png``.
+
+    ``controller``: controller settings changed from the bundle's without retraining
+    (``train.robustness_threshold=fixed``, ...: ``config/controller.py`` lists them; any other key
+    is a one-line error); ``metrics.json`` records the settings played (``controller``) and
+    these changes (``controller_overrides``)."""
+    controller = check_controller_overrides(controller)  # one-line errors before any loading
     if out_dir is None:
         return _evaluate(
             checkpoint, method, test, shifts, episodes, seed, noise_seed, batch_size, None,
-            progress, plots, exact, by_frames,
+            progress, plots, exact, by_frames, controller,
         )  # fmt: skip
     folder = ResultsFolder(out_dir, overwrite, "taskvar eval")
     refuse_inside(checkpoint, folder.out, "--checkpoint")
@@ -135,7 +143,7 @@ def eval_bundle(
     with folder as staging:  # locked; written in a staging folder, swapped in whole at the end
         return _evaluate(
             checkpoint, method, test, shifts, episodes, seed, noise_seed, batch_size, staging,
-            progress, plots, exact, by_frames,
+            progress, plots, exact, by_frames, controller,
         )  # fmt: skip
 
 
@@ -153,12 +161,13 @@ def _evaluate(
     plots: bool,
     exact: bool | None,
     by_frames: bool,
+    controller: Sequence[str],
 ) -> dict[str, Any]:
     """:func:`eval_bundle` writing into ``out_dir`` (the staging folder) when given."""
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
-    heads, cfg = load_heads(checkpoint)
+    heads, cfg = load_heads(checkpoint, controller=controller)
     fam = family(cfg)
     points = shift_points(cfg, test, shifts)  # every input error before any episode is played
     test_name = test if test is not None else next(iter(fam.tests))
@@ -261,6 +270,8 @@ def _evaluate(
     bar.close()
     metrics = _metrics(checkpoint, cfg, test_name, shifts, methods, seed, noise_seed, episodes)
     metrics["points"] = results
+    metrics["controller"] = controller_settings(cfg)  # the settings played (bundle's or changed)
+    metrics["controller_overrides"] = list(controller)
     if skipped:
         metrics["exact_skipped"] = (
             f"exact returns not computed for {sorted(set(skipped))}: too many distinct instances "
@@ -286,6 +297,7 @@ def _evaluate(
             out_dir=out_dir,
             plots=plots,
             overwrite=True,  # out_dir: refused above if it held any
+            controller=controller,
         )
     if baselines:  # each baseline's own training budget (it may differ from the heads')
         metrics["baseline_frames"] = {m: b.total_frames for m, b in baselines.items()}

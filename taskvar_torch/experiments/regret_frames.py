@@ -117,12 +117,14 @@ def regret_by_frames(
     out_dir: str | os.PathLike | None = None,
     plots: bool = True,
     overwrite: bool = False,
+    controller: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Each memoryless method's mean exact regret with its 95% CI on each heads snapshot of a run
     and on its final heads, all on the same paired test episodes (``test`` with fixed ``shifts``,
     ``seed`` as ``taskvar eval``'s).
 
-    ``checkpoint``: a run folder or its ``final.pt``. ``exact``: as ``taskvar eval``'s (``False``
+    ``checkpoint``: a run folder or its ``final.pt``. ``controller``: controller settings applied
+    to every snapshot (as ``taskvar eval``'s). ``exact``: as ``taskvar eval``'s (``False``
     is refused; ``None``: a one-line error where the oracle's exact returns are too dear).
 
     Returns ``{"test", "seed", "episodes", "methods", "optimum_mean_return", "points": [{"frames",
@@ -135,7 +137,7 @@ def regret_by_frames(
         raise ValueError("--by-frames computes exact returns; drop --no-exact")
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
     final, snapshots = run_paths(checkpoint)
-    heads, cfg = load_heads(final)
+    heads, cfg = load_heads(final, controller=controller)
     test_name = test if test is not None else next(iter(family(cfg).tests))
     points = shift_points(cfg, test_name, shifts)
     oracle = check_by_frames(final, points)
@@ -160,7 +162,7 @@ def regret_by_frames(
     optimum = None
     out_points = []
     for path in [*snapshots, final]:
-        h, c = (heads, cfg) if path == final else load_heads(path)
+        h, c = (heads, cfg) if path == final else load_heads(path, controller=controller)
         counters = load_checkpoint(path).get("counters", {})
         calibration = None  # the hierarchy's thresholds: on the training distribution
         if "hierarchy" in methods and c.train.robustness_threshold == "calibrated":

@@ -118,7 +118,9 @@ class RobustnessCalibration:
     §3.4.3). For a composed subtask it is the ``1 - keep_share`` quantile of its robustness over
     training states where its subgoals do not conflict, so it keeps control on ``keep_share`` of
     them (§3.5.3: the composed capability runs "in every state where the subgoals are not in
-    conflict"); for a leaf, the same quantile over the states where it can take control.
+    conflict"), or the fixed threshold where the family names no such states
+    (``Subtasks.no_conflict`` is ``None``); for a leaf, the same quantile over the states where it
+    can take control.
     ``scale[o]``: the standard deviation of R(o, s, pi^o(s)) over the states where o can take
     control; the hierarchy's descent compares components by ``(R - tau) / scale``, a margin in
     units of each critic's own spread (:meth:`normalise`).
@@ -138,14 +140,16 @@ class RobustnessCalibration:
 def calibrate_robustness(
     robustness: torch.Tensor,  # (B, O) R(o, s, pi^o(s)) under each option's own action
     startable: torch.Tensor,  # (B, O) bool: o can take control at s
-    no_conflict: torch.Tensor,  # (B,) bool: the subgoals do not conflict at s
+    no_conflict: torch.Tensor | None,  # (B,) bool: the subgoals do not conflict at s; None: unnamed
     composed: torch.Tensor,  # (O,) bool: o has components
     keep_share: float,
     default_tau: float,
 ) -> RobustnessCalibration:
     """:class:`RobustnessCalibration` from a sample of training states (see its docstring).
 
-    A capability with no qualifying state keeps ``default_tau`` and a unit scale.
+    A capability with no qualifying state keeps ``default_tau`` and a unit scale; so does every
+    composed one's threshold where ``no_conflict`` is ``None`` (the family names no conflict-free
+    states).
     """
     if not 0.0 < keep_share < 1.0:
         raise ValueError(f"keep_share must be in (0, 1), got {keep_share}")
@@ -155,7 +159,10 @@ def calibrate_robustness(
     scale = torch.ones(O, dtype=torch.float32, device=r.device)
     for o in range(O):
         own = startable[:, o]
-        pool = own & no_conflict if bool(composed[o]) else own
+        if bool(composed[o]):
+            pool = own & no_conflict if no_conflict is not None else torch.zeros_like(own)
+        else:
+            pool = own
         if bool(pool.any()):
             tau[o] = torch.quantile(r[pool, o], 1.0 - keep_share)
         if int(own.sum()) > 1:

@@ -89,6 +89,7 @@ from taskvar_torch.study.scale_cell import (
 )
 from taskvar_torch.study.scale_config import (
     TEST_SEED_OFFSET,
+    ScaleCase,
     ScaleConfig,
     case_config,
     check_case_baselines,
@@ -134,18 +135,32 @@ def load_scale_config(
     ``quick_overrides`` with ``quick``, then ``key=value`` overrides; case config paths are resolved
     beside the YAML file, and every case's family config is loaded (strictly) to fail early.
 
+    ``path`` may also be one family's config (a YAML with a top-level ``family``, any registered
+    family's): it is then the one case (named by the file's stem) of the default scale config
+    (:func:`default_config_path`: its budget, ``num_envs``, sizes and ``--quick`` overrides, but
+    for their ``only``), e.g. ``taskvar experiment scale
+    examples/corridor/configs/corridor.yaml --quick`` (docs/scale.md).
+
     Loading is :func:`taskvar_torch.config.load_strict`, the training configs' loader; the quick
     overrides are read (and checked) only with ``quick``.
     """
     path = Path(path)
+    family_config = _is_family_config(path)
     cfg = load_strict(
         ScaleConfig,
-        path,
+        default_config_path() if family_config else path,
         overrides,
         quick=quick,
-        quick_overrides=lambda c: c.quick_overrides,
+        quick_overrides=lambda c: (
+            [o for o in c.quick_overrides if not o.startswith("only=")]
+            if family_config
+            else c.quick_overrides
+        ),
         check_quick=False,
     )
+    if family_config:  # the one case: a path as given (relative to the working directory)
+        case = ScaleCase(name=path.stem, config=str(path.resolve()))
+        cfg = dataclasses.replace(cfg, cases=[case], only=())
     cases = []
     for c in cfg.cases:
         p = Path(c.config)
@@ -156,6 +171,18 @@ def load_scale_config(
     for c in cfg.selected():  # a typo in a case fails now, not after an hour
         check_case_baselines(cfg, c, case_config(cfg, c, cfg.num_envs[0]))
     return cfg
+
+
+def _is_family_config(path: Path) -> bool:
+    """Whether the YAML at ``path`` is a family config (a mapping with a top-level ``family``)
+    rather than a scale config; an unreadable file is left to the strict loader's error."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(data, dict) and "family" in data
 
 
 def scale(

@@ -129,11 +129,14 @@ class Subtasks:
         Algorithm 2 line 10, only hands control to such a component). Default: I_o."""
         return self.initiation(td)
 
-    def no_conflict(self, td: TensorDictBase) -> torch.Tensor:
+    def no_conflict(self, td: TensorDictBase) -> torch.Tensor | None:
         """``(B,)`` bool: the subgoals of the composed subtasks do not conflict at s (paper
-        §3.5.3); the states on which a calibrated threshold keeps the composed node in control.
-        Default: every state."""
-        return torch.ones(td.batch_size, dtype=torch.bool, device=td.device)
+        §3.5.3); the states on which a calibrated threshold keeps the composed node in control
+        (``train.robustness_keep_share`` of them). Default ``None``: the family names no such
+        states, and a calibrated composed node keeps the fixed ``train.robustness_tau`` (on every
+        state it would be kept in control on the keep share of them whatever its policy is
+        worth: the root held 100% of MiniGrid DoorKey's steps; docs/controllers.md)."""
+        return None
 
     def option_input_mask(self, obs_dim: int) -> torch.Tensor | None:
         """``(O, obs_dim)`` 0/1: the observation features option o's own subtask needs (what its

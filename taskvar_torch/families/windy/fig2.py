@@ -39,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -376,6 +377,7 @@ def windy_fig2(
     plots: bool = True,
     overwrite: bool = False,
     staged: bool = True,
+    controller: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Train (or load ``checkpoint``), evaluate Figure 2's protocol, write the results folder.
 
@@ -393,6 +395,8 @@ def windy_fig2(
             them later from the folder).
         overwrite: replace the results (and training run) already in ``out_dir`` (without it
             such a folder is refused; a killed run leaves them whole).
+        controller: controller settings applied to ``checkpoint``'s config
+            (``config/controller.py``; without a checkpoint they are config overrides).
         staged: ``False``: write into ``out_dir`` directly (a sweep's point: the sweep holds its
             folder; ``overwrite`` then replaces a training run in ``out_dir/train``).
 
@@ -401,16 +405,22 @@ def windy_fig2(
     """
 
     FAMILIES["windy"].require(cfg, "windy-fig2")
+    if controller and checkpoint is None:
+        raise ValueError(
+            "controller settings apply to a --checkpoint; to train, override the config"
+        )
     heldout_seed(cfg, cfg.experiment.runs - 1)  # every held-out run has a sealed seed
     if not staged:
         out = Path(out_dir)
-        heads, tcfg = _check_inputs(cfg, out, checkpoint, overwrite=overwrite)
+        heads, tcfg = _check_inputs(
+            cfg, out, checkpoint, overwrite=overwrite, controller=controller
+        )
         out.mkdir(parents=True, exist_ok=True)
         return _windy_fig2(
             cfg, out, out, checkpoint, heads, tcfg, progress, quick, plots, overwrite
         )  # fmt: skip
     folder = ResultsFolder(out_dir, overwrite, "taskvar experiment windy-fig2")
-    heads, tcfg = _check_inputs(cfg, folder.out, checkpoint, folder=folder)
+    heads, tcfg = _check_inputs(cfg, folder.out, checkpoint, folder=folder, controller=controller)
     with folder as staging:  # locked; written in a staging folder, swapped in whole at the end
         return _windy_fig2(
             cfg, folder.out, staging, checkpoint, heads, tcfg, progress, quick, plots, False
@@ -486,6 +496,7 @@ def _check_inputs(
     checkpoint: str | os.PathLike | None,
     folder: ResultsFolder | None = None,
     overwrite: bool = False,
+    controller: Sequence[str] = (),
 ) -> tuple[Heads | None, Config | None]:
     """Every check before any work or any file written: the output folder (a training run
     already in ``out/train``; results or other files already in ``out``: ``folder.check``, or
@@ -521,7 +532,7 @@ def _check_inputs(
                 f"--checkpoint {str(checkpoint)!r} is a {saved!r} bundle; windy-fig2 "
                 "evaluates windy bundles (wargus-fig4 trains its own)"
             )
-        heads, tcfg = load_heads(checkpoint, device=cfg.device)
+        heads, tcfg = load_heads(checkpoint, device=cfg.device, controller=controller)
     return heads, tcfg
 
 
