@@ -1,10 +1,10 @@
 """MiniGrid's DoorKey as a task family, through taskvar_torch's Gymnasium adapter (docs/gymnasium.md).
 
 Farama's ``minigrid`` package draws a new layout every episode (the wall's column, the door in
-it, the key and the agent's start): from the reset seed, which the adapter draws from the
-library's key, so the layout is the hidden part of each instance. The grid's ``size`` is the
-instance's parameter (a constructor keyword argument: ``gym.make(id, size=...)``): 5 in training,
-6 in the ``larger`` test. The agent sees its egocentric 7x7 view and its direction. Three options,
+it, the key and the agent's start) from the reset seed, which the adapter draws from the
+library's key: the layout is the hidden part of each instance, read back after each reset as
+the door's and the key's cells. The grid's ``size`` is the instance's drawn parameter (a
+constructor keyword argument: ``gym.make(id, size=...)``): 5 in training, 6 in the ``larger`` test. The agent sees its egocentric 7x7 view and its direction. Three options,
 written as functions of the observation and the info that ``state_info`` reads from
 ``env.unwrapped``: get the key, open the door, reach the goal.
 """
@@ -31,6 +31,11 @@ class Size:
 
     def sample(self, rng):
         return {"size": int(rng.integers(self.low, self.high + 1))}
+
+
+def cell_of(kind):
+    """The flat cell of the first object of ``kind`` in the grid (-1: none, a carried key)."""
+    return lambda env: next((i for i, x in enumerate(env.grid.grid) if isinstance(x, kind)), -1)
 
 
 def state_info(env):
@@ -66,6 +71,7 @@ def family():
         instance_via="kwargs",
         encoder=partial(SpaceEncoder, keys=("direction", "image")),  # not the mission's text
         state_info=state_info,
+        instance_info={"door": cell_of(Door), "key": cell_of(Key)},  # the layout drawn
         horizon=100,
         description="MiniGrid DoorKey, the layout hidden (examples/minigrid_doorkey)",
     )

@@ -33,8 +33,8 @@ VECTOR = ("sync", "async")
 process per sub-environment: worth it only where a step costs more than a process round trip)."""
 
 
-def _shareable(sub: SubEnv) -> bool:
-    """Whether ``AsyncVectorEnv`` can pass this env's observations through shared memory (not
+def _shareable(space: gym.Space) -> bool:
+    """Whether ``AsyncVectorEnv`` can pass observations of ``space`` through shared memory (not
     for a space of another package's, such as MiniGrid's ``MissionSpace``)."""
     basic = (gym.spaces.Box, gym.spaces.Discrete, gym.spaces.MultiDiscrete, gym.spaces.MultiBinary)
 
@@ -44,8 +44,7 @@ def _shareable(sub: SubEnv) -> bool:
             return all(ok(s) for s in subs)
         return isinstance(space, basic)
 
-    sub.close()
-    return ok(sub.observation_space)
+    return ok(space)
 
 
 class GymFamilyEnv(BatchedFamilyEnv):
@@ -79,17 +78,25 @@ class GymFamilyEnv(BatchedFamilyEnv):
         self.adapter, self.vector = adapter, vector
         self.instances = adapter.instances.of(instances)
         self.index_offset, self.noise_seed = int(index_offset), int(noise_seed)
+        if self.noise_seed != 0:
+            raise ValueError(
+                f"noise_seed must be 0 for a Gymnasium family, got {noise_seed}: the env draws its "
+                "start and its per-step noise from one reset seed, so no seed keeps the one and "
+                "changes the other"
+            )
         self.validate_actions = (
             self.device.type == "cpu" if validate_actions is None else bool(validate_actions)
         )
-        self.instance_keys = adapter.instances.keys
         first = adapter.instances.draw(self.instances, 0)  # builds the envs; each reset redraws
+        self.instance_keys = adapter.instance_keys  # drawn, then read (instance_info)
         fns = [self._sub_env_fn(i, first) for i in range(self.num_envs)]
         mode = gym.vector.AutoresetMode.DISABLED
         if vector == "sync":
             self.vec = gym.vector.SyncVectorEnv(fns, autoreset_mode=mode, copy=False)
         else:  # observations through shared memory where Gymnasium can share every part
-            shared = _shareable(SubEnv(0, adapter.make, adapter.instance_via, first, (), None))
+            probe = SubEnv(0, adapter, first)
+            probe.close()
+            shared = _shareable(probe.observation_space)
             self.vec = gym.vector.AsyncVectorEnv(
                 fns, autoreset_mode=mode, shared_memory=shared, copy=False
             )
@@ -105,8 +112,8 @@ class GymFamilyEnv(BatchedFamilyEnv):
         self._set_seed(seed)
 
     def _sub_env_fn(self, i: int, first: dict):
-        a = self.adapter
-        return lambda: SubEnv(i, a.make, a.instance_via, first, a.options, a.state_info)
+        adapter = self.adapter
+        return lambda: SubEnv(i, adapter, first)
 
     def _specs(self, D: int, O: int) -> None:  # noqa: E741
         N, dev = self.num_envs, self.device
@@ -144,9 +151,9 @@ class GymFamilyEnv(BatchedFamilyEnv):
         """The options' evaluations in ``info`` (the vector env's: ``(N, 3 O)``, see
         :meth:`SubEnv.report`), written over the current ones at ``rows`` (``None``: every row)."""
         x = torch.as_tensor(info[INFO]).to(device=self.device, dtype=torch.float32)
-        O = x.shape[1] // 3  # noqa: E741
+        O = len(self.adapter.options)  # noqa: E741
         parts = {"_initiation": x[:, :O] > 0, "_termination": x[:, O : 2 * O] > 0}
-        parts["_reward"] = x[:, 2 * O :]
+        parts["_reward"], self._read = x[:, 2 * O : 3 * O], x[:, 3 * O :]
         if rows is None:
             return parts
         at = torch.as_tensor(rows, device=self.device)
@@ -189,7 +196,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
         seeds: list[int | None] = [None] * self.num_envs
         for r, k, inst in zip(rows.tolist(), key.tolist(), drawn):
             instances[r] = inst
-            seeds[r] = self.adapter.reset_seed(k, self.noise_seed)
+            seeds[r] = self.adapter.reset_seed(k)
         if idx is None:
             self._drawn, self._ended = instances, np.zeros(self.num_envs, dtype=bool)
         else:
@@ -199,9 +206,10 @@ class GymFamilyEnv(BatchedFamilyEnv):
         if idx is not None:
             options["reset_mask"] = np.isin(np.arange(self.num_envs), rows)
         obs, info = self.vec.reset(seed=seeds, options=options)
-        values = torch.tensor([[float(v) for v in d.values()] for d in drawn], dtype=torch.float32)
-        values = values.reshape(len(drawn), len(self.instance_keys)).to(self.device)
         state = self._options(info, None if idx is None else rows)
+        values = torch.tensor([[float(v) for v in d.values()] for d in drawn], dtype=torch.float32)
+        values = values.reshape(len(drawn), -1).to(self.device)  # drawn, then read: (n, K + H)
+        values = torch.cat([values, self._read if idx is None else self._read[idx]], dim=1)
         state["_obs"] = self._encode(obs)
         if idx is None:
             state["_instance"], state["_t"] = values, torch.zeros_like(key)

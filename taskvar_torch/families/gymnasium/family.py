@@ -55,8 +55,14 @@ class GymAdapter:
     options: tuple[Option, ...]
     encoder: Callable[[gym.Space], Any]
     state_info: Callable[[gym.Env], dict] | None
+    instance_info: Mapping[str, Callable[[gym.Env], float]]
     horizon: int
-    reset_seed: Callable[[int, int], int] = reset_seed
+    reset_seed: Callable[[int], int] = reset_seed
+
+    @property
+    def instance_keys(self) -> tuple[str, ...]:
+        """The ``("instance", NAME)`` entries: the drawn parameters, then those read after reset."""
+        return self.instances.keys + tuple(self.instance_info)
 
 
 def _instance_features(names: tuple[str, ...]) -> Callable[[Any], torch.Tensor]:
@@ -75,6 +81,7 @@ def gym_family(
     instance_via: str = "kwargs",
     encoder: Callable[[gym.Space], Any] = SpaceEncoder,
     state_info: Callable[[gym.Env], dict] | None = None,
+    instance_info: Mapping[str, Callable[[gym.Env], float]] | None = None,
     horizon: int | None = None,
     tests: Mapping[str, TestDistribution] | None = None,
     description: str = "",
@@ -95,6 +102,9 @@ def gym_family(
             Gymnasium's flatten).
         state_info: ``env.unwrapped -> dict``, merged into the info the options read (state the
             observation does not show, e.g. what the agent carries).
+        instance_info: ``NAME -> f(env.unwrapped) -> number``, read after each reset: parts of the
+            hidden instance the env draws itself (MiniGrid's layout), written under
+            ``("instance", NAME)`` beside the drawn parameters (the instance features).
         horizon: steps before truncation (default: the env id's ``max_episode_steps``).
         tests: the test distributions of ``taskvar eval --test`` (default: one per named
             distribution, ``train`` first).
@@ -120,6 +130,13 @@ def gym_family(
     if int(horizon) < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
     named = Instances(instances)
+    instance_info = dict(instance_info or {})
+    clash = sorted(set(instance_info) & set(named.keys))
+    if clash or not all(callable(f) for f in instance_info.values()):
+        raise ValueError(
+            f"instance_info must map new names to functions of the env, got {sorted(instance_info)}"
+            f" (drawn parameters: {list(named.keys)})"
+        )
     adapter = GymAdapter(
         make=make,
         instances=named,
@@ -127,6 +144,7 @@ def gym_family(
         options=options,
         encoder=encoder,
         state_info=state_info,
+        instance_info=instance_info,
         horizon=int(horizon),
     )
     if tests is None:
@@ -162,8 +180,8 @@ def gym_family(
         tests=dict(tests),
         instance_fields=named.fields if shiftable else None,
         make_instances=named.make if shiftable else None,
-        instance_dim=len(named.keys),
-        instance_features=_instance_features(named.keys),
+        instance_dim=len(adapter.instance_keys),
+        instance_features=_instance_features(adapter.instance_keys),
         resumable=False,
     )
 

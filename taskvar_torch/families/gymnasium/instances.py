@@ -89,11 +89,9 @@ class Instances:
         return dict(instance)
 
 
-def reset_seed(key: int, noise_seed: int) -> int:
-    """The Gymnasium ``reset(seed=...)`` of an episode of key ``key``: from the key itself, salted
-    by ``noise_seed`` (another ``noise_seed``: other per-step noise, the same instance)."""
-    noise = key if noise_seed == 0 else rng.hash32(key ^ rng.hash32(int(noise_seed)))
-    return int(rng.draw_bits(int(noise), rng.RESET_COUNTER + 1))
+def reset_seed(key: int) -> int:
+    """The Gymnasium ``reset(seed=...)`` of the episode of key ``key`` (a uint32)."""
+    return int(rng.draw_bits(int(key), rng.RESET_COUNTER + 1))
 
 
 __all__ = ["Instances", "reset_seed"]

@@ -14,6 +14,7 @@ import gymnasium as gym
 import numpy as np
 import pytest
 import torch
+from minigrid.core.world_object import Door, Key
 
 from taskvar_torch import check_family, keys, rng
 from taskvar_torch.config import load_config
@@ -136,8 +137,9 @@ def test_each_instance_reaches_its_env(name, registered, tmp_path):
 
 def test_a_sub_env_steps_as_the_raw_gymnasium_env_seeded_from_the_key(registered, tmp_path):
     """DoorKey: every observation (the encoded egocentric image and direction), reward and end of
-    the adapter's sub-environments equals MiniGrid's own env reset with the seed the adapter draws
-    from (seed, index, episode), under the same actions, across several episodes."""
+    the adapter's sub-environments, and the layout it reads as the instance, equals MiniGrid's own
+    env reset with the seed the adapter draws from (seed, index, episode), under the same actions,
+    across several episodes."""
     fam = registered(taskvar_doorkey.family())
     seed, n, horizon = 11, 3, 100
     env = fam.make_env(_cfg(fam, tmp_path), n, seed=seed)
@@ -146,14 +148,18 @@ def test_a_sub_env_steps_as_the_raw_gymnasium_env_seeded_from_the_key(registered
 
     def raw_reset(i):
         key = int(rng.episode_key(rng.sub_env_key(seed, torch.tensor(i)), episode[i]))
-        obs, _ = raw[i].reset(seed=reset_seed(key, 0))
+        obs, _ = raw[i].reset(seed=reset_seed(key))
         return obs
 
     def encode(obs):
         image = torch.as_tensor(obs["image"]).reshape(-1).float()
         return torch.cat([torch.nn.functional.one_hot(torch.tensor(obs["direction"]), 4), image])
 
+    def layout(i):
+        return [float(taskvar_doorkey.cell_of(k)(raw[i].unwrapped)) for k in (Door, Key)]
+
     obs = [raw_reset(i) for i in range(n)]
+    layouts = [layout(i) for i in range(n)]
     t = [0] * n
     g = torch.Generator().manual_seed(0)
     td = env.reset()
@@ -161,6 +167,7 @@ def test_a_sub_env_steps_as_the_raw_gymnasium_env_seeded_from_the_key(registered
     for _ in range(250):
         for i in range(n):
             assert torch.equal(td[keys.OBSERVATION][i], encode(obs[i]))
+            assert [float(td[keys.INSTANCE, k][i]) for k in ("door", "key")] == layouts[i]
         action = torch.randint(7, (n,), generator=g)
         step, td = env.step_and_maybe_reset(td.set(keys.ACTION, action))
         for i in range(n):
@@ -177,7 +184,9 @@ def test_a_sub_env_steps_as_the_raw_gymnasium_env_seeded_from_the_key(registered
                 episode[i] += 1
                 t[i] = 0
                 obs[i] = raw_reset(i)
+                layouts[i] = layout(i)
     assert ends >= n  # every sub-environment started a second episode
+    assert len({tuple(x) for x in layouts}) > 1  # the layout is drawn anew
     env.close()
 
 
@@ -200,13 +209,13 @@ def test_sync_and_async_vector_envs_give_the_same_episodes(registered, tmp_path)
     assert (out[0] == out[1]).all()
 
 
-def test_noise_seed_changes_the_reset_seed_and_keeps_the_instance(registered, tmp_path):
+def test_a_noise_seed_is_refused_in_one_line(registered, tmp_path):
+    """The env's start and per-step noise come from one reset seed: no noise_seed keeps the one
+    and changes the other (docs/families.md), so only 0 is taken."""
     fam = registered(taskvar_doorkey.family())
-    cfg, sizes = _cfg(fam, tmp_path), {"low": 5, "high": 6}
-    a, b = (fam.make_env(cfg, 12, seed=1, noise_seed=s, instances=sizes).reset() for s in (0, 9))
-    assert torch.equal(a[keys.INSTANCE, "size"], b[keys.INSTANCE, "size"])
-    assert a[keys.INSTANCE, "size"].unique().numel() == 2  # both sizes drawn
-    assert not torch.equal(a[keys.OBSERVATION], b[keys.OBSERVATION])  # other layouts
+    with pytest.raises(ValueError, match="noise_seed must be 0 for a Gymnasium family") as e:
+        fam.make_env(_cfg(fam, tmp_path), 2, seed=1, noise_seed=9)
+    assert "\n" not in str(e.value)
 
 
 def test_stepping_past_an_episodes_end_leaves_the_next_episode_unchanged(registered, tmp_path):
