@@ -52,7 +52,8 @@ class GymFamilyEnv(BatchedFamilyEnv):
 
     Keys: ``observation`` (the adapter's encoder of the Gymnasium observation, float ``(N, D)``),
     ``("subtask", "initiation" | "termination" | "reward")`` (the options, ``(N, O)``),
-    ``("instance", NAME)`` (each parameter of the hidden instance, float ``(N,)``).
+    ``("instance", NAME)`` (each parameter of the hidden instance, drawn or read by
+    ``instance_info``, float ``(N,)``).
     """
 
     runtime_state = ("_base_key", "_episode", "_t")
@@ -147,17 +148,20 @@ class GymFamilyEnv(BatchedFamilyEnv):
         self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
         self.make_done_spec()
 
-    def _options(self, info: dict, rows: np.ndarray | None) -> dict[str, torch.Tensor]:
-        """The options' evaluations in ``info`` (the vector env's: ``(N, 3 O)``, see
-        :meth:`SubEnv.report`), written over the current ones at ``rows`` (``None``: every row)."""
+    def _options(
+        self, info: dict, rows: np.ndarray | None
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """The options' evaluations in ``info`` (the vector env's ``(N, 3 O + H)``, see
+        :meth:`SubEnv.report`), written over the current ones at ``rows`` (``None``: every row),
+        and the ``(N, H)`` values ``instance_info`` read (meaningful after a reset)."""
         x = torch.as_tensor(info[INFO]).to(device=self.device, dtype=torch.float32)
         O = len(self.adapter.options)  # noqa: E741
         parts = {"_initiation": x[:, :O] > 0, "_termination": x[:, O : 2 * O] > 0}
-        parts["_reward"], self._read = x[:, 2 * O : 3 * O], x[:, 3 * O :]
-        if rows is None:
-            return parts
-        at = torch.as_tensor(rows, device=self.device)
-        return {k: getattr(self, k).index_put((at,), v[at]) for k, v in parts.items()}
+        parts["_reward"] = x[:, 2 * O : 3 * O]
+        if rows is not None:
+            at = torch.as_tensor(rows, device=self.device)
+            parts = {k: getattr(self, k).index_put((at,), v[at]) for k, v in parts.items()}
+        return parts, x[:, 3 * O :]
 
     def _encode(self, obs) -> torch.Tensor:
         """The encoded batch, in a tensor of its own (the vector env, built with ``copy=False``,
@@ -206,10 +210,10 @@ class GymFamilyEnv(BatchedFamilyEnv):
         if idx is not None:
             options["reset_mask"] = np.isin(np.arange(self.num_envs), rows)
         obs, info = self.vec.reset(seed=seeds, options=options)
-        state = self._options(info, None if idx is None else rows)
+        state, read = self._options(info, None if idx is None else rows)
         values = torch.tensor([[float(v) for v in d.values()] for d in drawn], dtype=torch.float32)
         values = values.reshape(len(drawn), -1).to(self.device)  # drawn, then read: (n, K + H)
-        values = torch.cat([values, self._read if idx is None else self._read[idx]], dim=1)
+        values = torch.cat([values, read if idx is None else read[idx]], dim=1)
         state["_obs"] = self._encode(obs)
         if idx is None:
             state["_instance"], state["_t"] = values, torch.zeros_like(key)
@@ -232,14 +236,12 @@ class GymFamilyEnv(BatchedFamilyEnv):
             action.cpu().numpy() + self.action_start
         )
         t = self._t + 1
-        state = self._options(info, None)
+        state, _ = self._options(info, None)
         state["_obs"], state["_t"] = self._encode(obs), t
         self.replace_state(state)
         dev = self.device
         term = torch.as_tensor(terminated, device=dev).reshape(-1, 1)
-        trunc = torch.as_tensor(truncated, device=dev).reshape(-1, 1) | (t >= self.horizon).reshape(
-            -1, 1
-        )
+        trunc = torch.as_tensor(truncated, device=dev).reshape(-1, 1) | (t >= self.horizon)[:, None]
         r = torch.as_tensor(reward, dtype=torch.float32, device=dev).reshape(-1, 1)
         self._ended = (term | trunc).reshape(-1).cpu().numpy()
         return self._out(r, term, trunc & ~term)
