@@ -5,8 +5,9 @@ the declaration (:func:`~taskvar_torch.families.register_family`'s checks), the 
 and N>1 (``torchrl.envs.utils.check_env_specs``), the hidden ``("instance", ...)`` entry beside
 (never inside) the observation, keyed seeding that does not depend on how the batch is split
 (``index_offset``), exact resume (an env loaded from another's ``state_dict()`` mid-episode
-steps as that one does), the horizon, the subtasks' shapes, the instance features, and every named
-test distribution. The first miss is a one-line ``ValueError`` that names it.
+steps as that one does; skipped for a family declared ``resumable=False``), the horizon, the
+subtasks' shapes, the instance features, and every named test distribution. The first miss is
+a one-line ``ValueError`` that names it.
 
 Examples:
     >>> from taskvar_torch import check_family, family
@@ -130,7 +131,8 @@ def _check(fam: Family, n: int) -> None:
                     f"{key} at step {t} changes with the batch split: sub-environment i must draw "
                     "from the key (seed, index_offset + i) alone",
                 )
-    _check_resume(fam, cfg, n)
+    if fam.resumable:
+        _check_resume(fam, cfg, n)
     # the subtasks: names and shapes on a transition batch
     subtasks = fam.subtasks(cfg, env)
     if not isinstance(subtasks, Subtasks) or not subtasks.names:

@@ -58,6 +58,7 @@ from taskvar_torch.config import Config, apply_overrides, config_from_dict, save
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.factory import HEADS_NAME, check_device, write_heads
+from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import (
     RunFolder,
@@ -101,7 +102,8 @@ def train(
 
     Raises:
         ValueError: an unusable ``out_dir`` or device, or a run already there; nothing is written.
-        CheckpointError: an unreadable, foreign or non-finite ``resume`` checkpoint.
+        CheckpointError: an unreadable, foreign or non-finite ``resume`` checkpoint, or one of a
+            family declared ``resumable=False``.
         TrainingDiverged: a loss (checked once per logging interval) or a weight (checked before
             every checkpoint write) became NaN or infinite; the last checkpoint written is intact.
         TrainingInterrupted: SIGINT or SIGTERM; the run stopped after its current batch and wrote
@@ -128,6 +130,11 @@ def train(
             check_runtime_only(bundle, cfg, resume)
     if cfg is None:
         raise ValueError("train needs a config (or a checkpoint to resume)")
+    if resume is not None and not family(cfg).resumable:
+        raise CheckpointError(
+            f"cannot resume {str(resume)!r}: family {cfg.family!r} is not resumable (its envs' "
+            "state is not in a checkpoint); start a new run, or evaluate this checkpoint"
+        )
     check_device(cfg.device)
     check_memory(estimate_memory(cfg))  # before anything is allocated or written
     check_logger(cfg.train.logger)

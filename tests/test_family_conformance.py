@@ -112,7 +112,9 @@ def test_noise_seed_keeps_the_instances_and_starts(fam, cfg):
 
 def test_state_dict_continues_the_episodes_exactly(fam, cfg):
     """Exact resume: a fresh env of another seed, loading ``a.state_dict()``, continues ``a``'s
-    episodes bit for bit."""
+    episodes bit for bit (a family declared ``resumable=False`` makes no such claim)."""
+    if not fam.resumable:
+        pytest.skip(f"family {fam.name!r} is declared resumable=False")
     a = fam.make_env(cfg, N, seed=3)
     actions = _actions(a, 2 * STEPS, seed=1)
     _, td = _rollout(a, actions[:STEPS])

@@ -152,6 +152,10 @@ class Family:
             override ``env.KEY=V`` likewise: :func:`taskvar_torch.config.migration.migrate_overrides`).
         legacy_section: configs of an older version held ``env.<name>`` whatever their family;
             the loader drops it from another family's config with a deprecation line.
+        resumable: a checkpoint's ``env.state_dict()`` continues every episode exactly
+            (``runtime_state``); ``False`` (an env whose state lives outside tensors, e.g. the
+            Gymnasium adapter's): ``taskvar train --resume`` refuses in one line and
+            ``check_family`` skips the resume check.
     """
 
     name: str
@@ -183,6 +187,7 @@ class Family:
     gym_ids: Mapping[str, tuple[str, dict[str, Any]]] = dataclasses.field(default_factory=dict)
     legacy_env_keys: tuple[str, ...] = ()
     legacy_section: bool = False
+    resumable: bool = True
 
     @property
     def exact_oracle(self) -> bool:

@@ -1,0 +1,259 @@
+"""The batched env of a Gymnasium family: ``N`` Gymnasium envs in a Gymnasium vector env, behind
+the family contract (docs/families.md, "The env"; docs/gymnasium.md).
+
+Sub-environment ``i`` draws each episode's instance and its ``reset(seed=...)`` from that episode's
+key (:mod:`taskvar_torch.rng`, ``BatchedFamilyEnv.next_episodes``), so a trajectory depends on
+``(seed, index_offset + i, episode)`` and the user env's own randomness only, never on ``N``.
+The vector env (``SyncVectorEnv``, or ``AsyncVectorEnv``: one process per sub-environment) is
+built with ``autoreset_mode=DISABLED``: it never resets on its own; TorchRL's
+``step_and_maybe_reset`` resets the sub-environments that ended through ``_reset``'s
+``"_reset"`` mask (``reset(options={"reset_mask": ...})``), so an episode ends at its terminal
+observation, as in the batched families. A Gymnasium env's state cannot be saved: the family is
+``resumable=False``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+
+from taskvar_torch import keys
+from taskvar_torch.envs.batched import BatchedFamilyEnv
+from taskvar_torch.families.gymnasium.encoder import SpaceEncoder
+from taskvar_torch.families.gymnasium.options import SUBTASK
+from taskvar_torch.families.gymnasium.sub_env import INFO, SubEnv
+
+VECTOR = ("sync", "async")
+"""``env.NAME.vector``: Gymnasium's ``SyncVectorEnv`` (one process) or ``AsyncVectorEnv`` (one
+process per sub-environment: worth it only where a step costs more than a process round trip)."""
+
+
+def _shareable(space: gym.Space) -> bool:
+    """Whether ``AsyncVectorEnv`` can pass observations of ``space`` through shared memory (not
+    for a space of another package's, such as MiniGrid's ``MissionSpace``)."""
+    basic = (gym.spaces.Box, gym.spaces.Discrete, gym.spaces.MultiDiscrete, gym.spaces.MultiBinary)
+
+    def ok(space: gym.Space) -> bool:
+        if isinstance(space, (gym.spaces.Dict, gym.spaces.Tuple)):
+            subs = space.spaces.values() if isinstance(space, gym.spaces.Dict) else space.spaces
+            return all(ok(s) for s in subs)
+        return isinstance(space, basic)
+
+    return ok(space)
+
+
+class GymFamilyEnv(BatchedFamilyEnv):
+    """``N`` sub-environments of a Gymnasium family (its :class:`~.family.GymAdapter`).
+
+    Keys: ``observation`` (the adapter's encoder of the Gymnasium observation, float ``(N, D)``),
+    ``("subtask", "initiation" | "termination" | "reward")`` (the options, ``(N, O)``),
+    ``("instance", NAME)`` (each parameter of the hidden instance, drawn or read by
+    ``instance_info``, float ``(N,)``).
+    """
+
+    runtime_state = ("_base_key", "_episode", "_t")
+    """Saved by a checkpoint, but not enough to resume: the Gymnasium envs' state is not a tensor
+    (the family declares ``resumable=False``)."""
+
+    def __init__(
+        self,
+        adapter: Any,
+        num_envs: int = 1,
+        instances: Any = "train",
+        seed: int = 0,
+        index_offset: int = 0,
+        noise_seed: int = 0,
+        validate_actions: bool | None = None,
+        vector: str = "sync",
+        horizon: int = 0,
+        device: torch.device | str = "cpu",
+    ):
+        super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
+        if vector not in VECTOR:
+            raise ValueError(f"vector must be one of {list(VECTOR)}, got {vector!r}")
+        self.adapter, self.vector = adapter, vector
+        self.instances = adapter.instances.of(instances)
+        self.index_offset, self.noise_seed = int(index_offset), int(noise_seed)
+        if self.noise_seed != 0:
+            raise ValueError(
+                f"noise_seed must be 0 for a Gymnasium family, got {noise_seed}: the env draws its "
+                "start and its per-step noise from one reset seed, so no seed keeps the one and "
+                "changes the other"
+            )
+        self.validate_actions = (
+            self.device.type == "cpu" if validate_actions is None else bool(validate_actions)
+        )
+        first = adapter.instances.draw(self.instances, 0)  # builds the envs; each reset redraws
+        self.instance_keys = adapter.instance_keys  # drawn, then read (instance_info)
+        fns = [self._sub_env_fn(i, first) for i in range(self.num_envs)]
+        mode = gym.vector.AutoresetMode.DISABLED
+        if vector == "sync":
+            self.vec = gym.vector.SyncVectorEnv(fns, autoreset_mode=mode, copy=False)
+        else:  # observations through shared memory where Gymnasium can share every part
+            probe = SubEnv(0, adapter, first)
+            probe.close()
+            shared = _shareable(probe.observation_space)
+            self.vec = gym.vector.AsyncVectorEnv(
+                fns, autoreset_mode=mode, shared_memory=shared, copy=False
+            )
+        space = self.vec.single_action_space
+        if not isinstance(space, gym.spaces.Discrete):
+            raise ValueError(
+                f"a Gymnasium family needs a Discrete action space, got {type(space).__name__}"
+            )
+        self.num_actions, self.action_start = int(space.n), int(space.start)
+        self.encoder = adapter.encoder(self.vec.single_observation_space)
+        self.horizon = int(horizon) or adapter.horizon
+        self._specs(int(self.encoder.size), len(adapter.options))
+        self._set_seed(seed)
+
+    def _sub_env_fn(self, i: int, first: dict):
+        adapter = self.adapter
+        return lambda: SubEnv(i, adapter, first)
+
+    def _specs(self, D: int, O: int) -> None:  # noqa: E741
+        N, dev = self.num_envs, self.device
+        low, high = getattr(self.encoder, "low", None), getattr(self.encoder, "high", None)
+        obs = (
+            Bounded(low.expand(N, D), high.expand(N, D), shape=(N, D), device=dev)
+            if low is not None and bool(torch.isfinite(low).all() & torch.isfinite(high).all())
+            else Unbounded(shape=(N, D), dtype=torch.float32, device=dev)
+        )
+        flag = Categorical(2, shape=(N, O), dtype=torch.bool, device=dev)
+        self.observation_spec = Composite(
+            {
+                keys.OBSERVATION: obs,
+                SUBTASK: Composite(
+                    initiation=flag,
+                    termination=flag.clone(),
+                    reward=Unbounded(shape=(N, O), dtype=torch.float32, device=dev),
+                    shape=(N,),
+                    device=dev,
+                ),
+                keys.INSTANCE: Composite(
+                    {k: Unbounded(shape=(N,), device=dev) for k in self.instance_keys},
+                    shape=(N,),
+                    device=dev,
+                ),
+            },
+            shape=(N,),
+            device=dev,
+        )
+        self.action_spec = Categorical(self.num_actions, shape=(N,), dtype=torch.int64, device=dev)
+        self.reward_spec = Unbounded(shape=(N, 1), dtype=torch.float32, device=dev)
+        self.make_done_spec()
+
+    def _options(
+        self, info: dict, rows: np.ndarray | None
+    ) -> tuple[dict[str, torch.Tensor], torch.Tensor]:
+        """The options' evaluations in ``info`` (the vector env's ``(N, 3 O + H)``, see
+        :meth:`SubEnv.report`), written over the current ones at ``rows`` (``None``: every row),
+        and the ``(N, H)`` values ``instance_info`` read (meaningful after a reset)."""
+        x = torch.as_tensor(info[INFO]).to(device=self.device, dtype=torch.float32)
+        O = len(self.adapter.options)  # noqa: E741
+        parts = {"_initiation": x[:, :O] > 0, "_termination": x[:, O : 2 * O] > 0}
+        parts["_reward"] = x[:, 2 * O : 3 * O]
+        if rows is not None:
+            at = torch.as_tensor(rows, device=self.device)
+            parts = {k: getattr(self, k).index_put((at,), v[at]) for k, v in parts.items()}
+        return parts, x[:, 3 * O :]
+
+    def _encode(self, obs) -> torch.Tensor:
+        """The encoded batch, in a tensor of its own (the vector env, built with ``copy=False``,
+        reuses its observation buffers; :class:`SpaceEncoder` always writes a new tensor)."""
+        x = self.encoder(obs)
+        x = x if isinstance(self.encoder, SpaceEncoder) else torch.as_tensor(x).clone()
+        return x.to(device=self.device, dtype=torch.float32)
+
+    def _out(self, reward=None, terminated=None, truncated=None) -> TensorDictBase:
+        B = self.batch_size
+        td = {
+            keys.OBSERVATION: self._obs,
+            SUBTASK: TensorDict._new_unsafe(
+                {
+                    "initiation": self._initiation,
+                    "termination": self._termination,
+                    "reward": self._reward,
+                },
+                batch_size=B,
+            ),
+            keys.INSTANCE: TensorDict._new_unsafe(
+                {k: self._instance[:, j] for j, k in enumerate(self.instance_keys)}, batch_size=B
+            ),
+        }
+        return self.finish(td, reward, terminated, truncated)
+
+    def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
+        started = hasattr(self, "_obs")
+        idx, key = self.next_episodes(tensordict, started)
+        rows = np.arange(self.num_envs) if idx is None else idx.cpu().numpy()
+        if not rows.size:
+            return self._out()
+        draw = self.adapter.instances.draw
+        drawn = [draw(self.instances, k) for k in key.tolist()]
+        instances: list[dict | None] = [None] * self.num_envs
+        seeds: list[int | None] = [None] * self.num_envs
+        for r, k, inst in zip(rows.tolist(), key.tolist(), drawn):
+            instances[r] = inst
+            seeds[r] = self.adapter.reset_seed(k)
+        if idx is None:
+            self._drawn, self._ended = instances, np.zeros(self.num_envs, dtype=bool)
+        else:
+            self._drawn = [d if i is None else i for d, i in zip(self._drawn, instances)]
+            self._ended = self._ended & ~np.isin(np.arange(self.num_envs), rows)
+        options: dict[str, Any] = {INFO: instances}
+        if idx is not None:
+            options["reset_mask"] = np.isin(np.arange(self.num_envs), rows)
+        obs, info = self.vec.reset(seed=seeds, options=options)
+        state, read = self._options(info, None if idx is None else rows)
+        values = torch.tensor([[float(v) for v in d.values()] for d in drawn], dtype=torch.float32)
+        values = values.reshape(len(drawn), -1).to(self.device)  # drawn, then read: (n, K + H)
+        values = torch.cat([values, read if idx is None else read[idx]], dim=1)
+        state["_obs"] = self._encode(obs)
+        if idx is None:
+            state["_instance"], state["_t"] = values, torch.zeros_like(key)
+        else:
+            state["_instance"] = self._instance.index_put((idx,), values)
+            state["_t"] = self._t.index_put((idx,), torch.zeros_like(key))
+        self.replace_state(state)
+        return self._out()
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get(keys.ACTION).reshape(-1)
+        if self.validate_actions and bool(((action < 0) | (action >= self.num_actions)).any()):
+            raise ValueError(
+                f"action must be in [0, {self.num_actions - 1}], got {action.tolist()}"
+            )
+        if self._ended.any():  # stepped past its end (an evaluation's finished episodes): restart
+            # it, with the same instance and no new episode key, so the vector env may step it
+            self.vec.reset(options={"reset_mask": self._ended.copy(), INFO: self._drawn})
+        obs, reward, terminated, truncated, info = self.vec.step(
+            action.cpu().numpy() + self.action_start
+        )
+        t = self._t + 1
+        state, _ = self._options(info, None)
+        state["_obs"], state["_t"] = self._encode(obs), t
+        self.replace_state(state)
+        dev = self.device
+        term = torch.as_tensor(terminated, device=dev).reshape(-1, 1)
+        trunc = torch.as_tensor(truncated, device=dev).reshape(-1, 1) | (t >= self.horizon)[:, None]
+        r = torch.as_tensor(reward, dtype=torch.float32, device=dev).reshape(-1, 1)
+        self._ended = (term | trunc).reshape(-1).cpu().numpy()
+        return self._out(r, term, trunc & ~term)
+
+    def state_bounds(self) -> dict[str, tuple[float, float]]:
+        return {**super().state_bounds(), "t": (0, self.horizon)}
+
+    def close(self, *, raise_if_closed: bool = True) -> None:
+        """Close the vector env (its worker processes with ``vector=async``)."""
+        if not getattr(self, "is_closed", True) and hasattr(self, "vec"):
+            self.vec.close()
+        super().close(raise_if_closed=raise_if_closed)
+
+
+__all__ = ["VECTOR", "GymFamilyEnv"]

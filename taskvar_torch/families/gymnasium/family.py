@@ -1,0 +1,189 @@
+"""``gym_family``: a task family from a Gymnasium env id or a ``make(instance)`` callable.
+
+What the user brings (docs/gymnasium.md): the env, its named instance distributions and how an
+instance reaches the env (:mod:`.instances`, :data:`.sub_env.INSTANCE_VIA`), the options as
+functions of observation and info (:mod:`.options`), optionally an observation encoder
+(:mod:`.encoder`) and ``state_info(env.unwrapped) -> dict`` for what the options read beyond the
+observation. What it gets: a :class:`~taskvar_torch.families.Family` that ``taskvar train``,
+``taskvar eval`` (every method, test distributions, ``--shift``) and ``check_family`` take like any
+other, registered through the user package's entry point. Its own config keys live under
+``env.NAME`` (:class:`GymConfig`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import gymnasium as gym
+import torch
+
+from taskvar_torch import keys
+from taskvar_torch.families import Family, TestDistribution, one_of
+from taskvar_torch.families.gymnasium.encoder import SpaceEncoder
+from taskvar_torch.families.gymnasium.env import VECTOR, GymFamilyEnv
+from taskvar_torch.families.gymnasium.instances import Instances, reset_seed
+from taskvar_torch.families.gymnasium.options import GymSubtasks, Option
+from taskvar_torch.families.gymnasium.sub_env import INSTANCE_VIA
+
+
+@dataclass(frozen=True)
+class GymConfig:
+    """A Gymnasium family's own keys (``env.NAME.*``)."""
+
+    vector: str = "sync"
+    """``sync``: ``gymnasium.vector.SyncVectorEnv``; ``async``: ``AsyncVectorEnv`` (one process
+    per sub-environment)."""
+    horizon: int = 0
+    """Steps before truncation; 0: the family's (``gym_family(horizon=...)``, else the env id's
+    ``max_episode_steps``). The env's own truncation ends an episode earlier."""
+
+    def __post_init__(self):
+        one_of("vector", self.vector, VECTOR)
+        if int(self.horizon) < 0:
+            raise ValueError(f"horizon must be >= 0 (0: the family's), got {self.horizon}")
+
+
+@dataclass(frozen=True)
+class GymAdapter:
+    """Everything the env of a Gymnasium family needs from the user (built by :func:`gym_family`)."""
+
+    make: str | Callable[[dict], gym.Env]
+    instances: Instances
+    instance_via: str
+    options: tuple[Option, ...]
+    encoder: Callable[[gym.Space], Any]
+    state_info: Callable[[gym.Env], dict] | None
+    instance_info: Mapping[str, Callable[[gym.Env], float]]
+    horizon: int
+    reset_seed: Callable[[int], int] = reset_seed
+
+    @property
+    def instance_keys(self) -> tuple[str, ...]:
+        """The ``("instance", NAME)`` entries: the drawn parameters, then those read after reset."""
+        return self.instances.keys + tuple(self.instance_info)
+
+
+def _instance_features(names: tuple[str, ...]) -> Callable[[Any], torch.Tensor]:
+    def features(td) -> torch.Tensor:
+        return torch.stack([td.get((keys.INSTANCE, k)).to(torch.float32) for k in names], -1)
+
+    return features
+
+
+def gym_family(
+    name: str,
+    make: str | Callable[[dict], gym.Env],
+    instances: Mapping[str, Any],
+    options: Sequence[Option],
+    *,
+    instance_via: str = "kwargs",
+    encoder: Callable[[gym.Space], Any] = SpaceEncoder,
+    state_info: Callable[[gym.Env], dict] | None = None,
+    instance_info: Mapping[str, Callable[[gym.Env], float]] | None = None,
+    horizon: int | None = None,
+    tests: Mapping[str, TestDistribution] | None = None,
+    description: str = "",
+) -> Family:
+    """A :class:`~taskvar_torch.families.Family` of Gymnasium envs.
+
+    Args:
+        name: the family's name (the config's ``family``; its keys under ``env.NAME``).
+        make: a Gymnasium env id, or ``make(instance) -> gym.Env``.
+        instances: the named instance distributions (``train`` required): objects with
+            ``sample(rng) -> dict`` (:mod:`.instances`); where they are one dataclass, its fields
+            can be shifted (``--shift env.instances.FIELD=V1,V2``).
+        options: the options (:class:`Option`), functions of an observation and its info.
+        instance_via: how an instance reaches the env: ``kwargs`` (constructor keyword arguments),
+            ``attributes`` (set on ``env.unwrapped`` before each reset) or ``options``
+            (``reset(options=instance)``).
+        encoder: ``space -> encoder`` of the observation (default :class:`SpaceEncoder`:
+            Gymnasium's flatten).
+        state_info: ``env.unwrapped -> dict``, merged into the info the options read (state the
+            observation does not show, e.g. what the agent carries).
+        instance_info: ``NAME -> f(env.unwrapped) -> number``, read after each reset: parts of the
+            hidden instance the env draws itself (MiniGrid's layout), written under
+            ``("instance", NAME)`` beside the drawn parameters (the instance features).
+        horizon: steps before truncation (default: the env id's ``max_episode_steps``).
+        tests: the test distributions of ``taskvar eval --test`` (default: one per named
+            distribution, ``train`` first).
+        description: one line for listings.
+
+    Returns:
+        The family, ``resumable=False`` (a Gymnasium env's state is not saved by a checkpoint).
+    """
+    one_of("instance_via", instance_via, INSTANCE_VIA)
+    options = tuple(options)
+    if not options or not all(isinstance(o, Option) for o in options):
+        raise ValueError("options must be a non-empty sequence of Option")
+    names = [o.name for o in options]
+    if len(set(names)) != len(names):
+        raise ValueError(f"option names must be distinct, got {names}")
+    if horizon is None:
+        steps = gym.spec(make).max_episode_steps if isinstance(make, str) else None
+        if steps is None:
+            raise ValueError(
+                f"gym_family {name!r}: give horizon= (the env has no max_episode_steps)"
+            )
+        horizon = int(steps)
+    if int(horizon) < 1:
+        raise ValueError(f"horizon must be >= 1, got {horizon}")
+    named = Instances(instances)
+    instance_info = dict(instance_info or {})
+    clash = sorted(set(instance_info) & set(named.keys))
+    if clash or not all(callable(f) for f in instance_info.values()):
+        raise ValueError(
+            f"instance_info must map new names to functions of the env, got {sorted(instance_info)}"
+            f" (drawn parameters: {list(named.keys)})"
+        )
+    adapter = GymAdapter(
+        make=make,
+        instances=named,
+        instance_via=instance_via,
+        options=options,
+        encoder=encoder,
+        state_info=state_info,
+        instance_info=instance_info,
+        horizon=int(horizon),
+    )
+    if tests is None:
+        tests = {
+            k: TestDistribution(f"instances {k!r}", k)
+            for k in dict.fromkeys(("train", *named.names))
+        }
+
+    def section(cfg) -> GymConfig:
+        return getattr(cfg.env, name, None) or GymConfig()
+
+    def env_kwargs(cfg) -> dict[str, Any]:
+        own = section(cfg)
+        return {
+            "adapter": adapter,
+            "num_envs": cfg.env.num_envs,
+            "instances": cfg.env.instances,
+            "seed": cfg.seed,
+            "vector": own.vector,
+            "horizon": own.horizon,
+            "device": cfg.device,
+        }
+
+    shiftable = named.fields_class is not None
+    return Family(
+        name=name,
+        description=description or f"Gymnasium env {make if isinstance(make, str) else name}",
+        env_class=GymFamilyEnv,
+        env_kwargs=env_kwargs,
+        subtasks=lambda cfg, env: GymSubtasks(tuple(names)),
+        instance_names=named.names,
+        config_class=GymConfig,
+        tests=dict(tests),
+        instance_fields=named.fields if shiftable else None,
+        make_instances=named.make if shiftable else None,
+        instance_dim=len(adapter.instance_keys),
+        instance_features=_instance_features(adapter.instance_keys),
+        resumable=False,
+    )
+
+
+__all__ = ["GymAdapter", "GymConfig", "gym_family"]

@@ -1,0 +1,97 @@
+"""Named instance distributions of a Gymnasium family (paper §2: a family is a distribution over
+MDPs; CARL's contexts).
+
+A distribution is any object with ``sample(rng) -> dict``: given a ``numpy.random.Generator``, the
+parameters of one instance, numbers (bool, int or float) by name, the same names every time. The
+adapter draws one per episode and sub-environment from a generator seeded by that episode's key
+(:mod:`taskvar_torch.rng`), hands the dict to the env (``instance_via``) and writes each
+parameter under ``("instance", name)``. Where the named distributions are instances of one
+dataclass, its fields are the ``--shift env.instances.FIELD=...`` fields.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from taskvar_torch import rng
+
+_SALT = 0x1A57A11CE  # the instance generator's stream, apart from the env's reset seed
+
+
+class Instances:
+    """A family's named distributions and the parameter names they draw.
+
+    Args:
+        named: name -> distribution (``train`` required, the default).
+    """
+
+    def __init__(self, named: Mapping[str, Any]):
+        self.named = dict(named)
+        if "train" not in self.named:
+            raise ValueError(f"instances must name a 'train' distribution, got {sorted(named)}")
+        for name, dist in self.named.items():
+            if not callable(getattr(dist, "sample", None)):
+                raise ValueError(f"instances[{name!r}] must have sample(rng) -> dict")
+        self.names = tuple(self.named)
+        self.keys = tuple(self.draw(self.named["train"], 0, "instances['train']"))
+        classes = {type(d) for d in self.named.values()}
+        one = next(iter(classes))
+        self.fields_class = one if len(classes) == 1 and dataclasses.is_dataclass(one) else None
+
+    def of(self, spec: Any) -> Any:
+        """A distribution from a name, the fields of one (a dict) or a distribution."""
+        if isinstance(spec, str):
+            if spec not in self.named:
+                raise ValueError(f"instances must be one of {list(self.names)}, got {spec!r}")
+            return self.named[spec]
+        if isinstance(spec, Mapping):
+            return self.make(dict(spec))
+        if not callable(getattr(spec, "sample", None)):
+            raise ValueError(f"instances must be a name, fields or a distribution, got {spec!r}")
+        return spec
+
+    def fields(self, spec: Any) -> dict[str, Any]:
+        """A distribution's dataclass fields (``--shift env.instances.FIELD``)."""
+        return dataclasses.asdict(self.of(spec))
+
+    def make(self, fields: dict[str, Any]) -> Any:
+        """The distribution of these dataclass fields (a one-line ``ValueError`` naming an unknown
+        field)."""
+        cls = self.fields_class
+        if cls is None:
+            raise ValueError("these instances are not one dataclass: they have no fields to set")
+        allowed = [f.name for f in dataclasses.fields(cls)]
+        unknown = sorted(set(fields) - set(allowed))
+        if unknown:
+            raise ValueError(f"instance fields must be among {allowed}, got {unknown}")
+        return cls(**fields)
+
+    def draw(self, dist: Any, key: int, where: str = "instances") -> dict[str, Any]:
+        """One instance of ``dist`` from the episode key ``key`` (a uint32)."""
+        instance = dist.sample(np.random.default_rng([int(key), _SALT]))
+        if not isinstance(instance, Mapping) or not instance:
+            raise ValueError(f"{where}.sample(rng) must return a non-empty dict, got {instance!r}")
+        bad = [k for k, v in instance.items() if not isinstance(v, (bool, int, float, np.number))]
+        if bad:
+            raise ValueError(
+                f"{where}.sample(rng) must give numbers (bool, int, float), got {bad[0]!r}="
+                f"{instance[bad[0]]!r}"
+            )
+        if hasattr(self, "keys") and tuple(instance) != self.keys:
+            raise ValueError(
+                f"{where}.sample(rng) must give the parameters {list(self.keys)} (those of "
+                f"'train'), got {list(instance)}"
+            )
+        return dict(instance)
+
+
+def reset_seed(key: int) -> int:
+    """The Gymnasium ``reset(seed=...)`` of the episode of key ``key`` (a uint32)."""
+    return int(rng.draw_bits(int(key), rng.RESET_COUNTER + 1))
+
+
+__all__ = ["Instances", "reset_seed"]

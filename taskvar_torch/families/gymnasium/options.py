@@ -1,0 +1,84 @@
+"""Options of a Gymnasium family as plain functions of an observation and its info (paper §3.2).
+
+An :class:`Option` is three functions of one sub-environment's raw Gymnasium observation and
+``info`` (the env's own info, with what the family's ``state_info(env.unwrapped)`` adds):
+``initiation`` (the state is in I_o), ``termination`` (beta_o = 1 there) and ``reward`` (the
+subtask reward on arriving there, given the env's reward). The adapter evaluates them beside the
+env, in its process (:mod:`.sub_env`), after every reset and step, and writes the results under
+``("subtask", ...)``; :class:`GymSubtasks` reads them back as the batched ``(B, O)`` tensors of
+:class:`~taskvar_torch.subtasks.base.Subtasks`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+
+from taskvar_torch import keys
+from taskvar_torch.subtasks.base import Subtasks
+
+SUBTASK = "subtask"
+"""The tensordict entry holding the options' evaluations: ``("subtask", "initiation")`` and
+``("subtask", "termination")`` ``(N, O)`` bool, ``("subtask", "reward")`` ``(N, O)`` float."""
+
+
+def _always(obs: Any, info: dict) -> bool:
+    return True
+
+
+def _never(obs: Any, info: dict) -> bool:
+    return False
+
+
+def _env_reward(obs: Any, info: dict, reward: float) -> float:
+    return float(reward)
+
+
+@dataclass(frozen=True)
+class Option:
+    """One option, by its three functions (each of one sub-environment's observation and info).
+
+    Attributes:
+        name: the option's name (``taskvar eval`` tables, the heads).
+        initiation: ``(obs, info) -> bool``, the state is in the initiation set (default: always).
+        termination: ``(obs, info) -> bool``, the option ends there (default: never; an episode's
+            end ends every option).
+        reward: ``(obs, info, reward) -> float``, the subtask reward of a transition arriving at
+            ``(obs, info)`` with the env's ``reward`` (default: the env's reward).
+    """
+
+    name: str
+    initiation: Callable[[Any, dict], bool] = _always
+    termination: Callable[[Any, dict], bool] = _never
+    reward: Callable[[Any, dict, float], float] = _env_reward
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise ValueError(f"Option name must be a non-empty string, got {self.name!r}")
+        for field in ("initiation", "termination", "reward"):
+            if not callable(getattr(self, field)):
+                raise ValueError(f"Option {self.name!r}: {field} must be callable")
+
+
+class GymSubtasks(Subtasks):
+    """The options of a Gymnasium family, read from the ``("subtask", ...)`` entries its env
+    writes (no option logic here: it ran beside the env)."""
+
+    def __init__(self, names: tuple[str, ...]):
+        self.names = tuple(names)
+
+    def initiation(self, td: TensorDictBase) -> torch.Tensor:
+        return td.get((SUBTASK, "initiation"))
+
+    def termination(self, td: TensorDictBase) -> torch.Tensor:
+        return td.get((SUBTASK, "termination"))
+
+    def reward(self, td: TensorDictBase) -> torch.Tensor:
+        return td.get((keys.NEXT, SUBTASK, "reward"))
+
+
+__all__ = ["SUBTASK", "GymSubtasks", "Option"]
