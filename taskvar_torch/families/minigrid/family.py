@@ -115,6 +115,20 @@ TESTS = {
 """MiniGrid test distributions (docs/minigrid.md)."""
 
 
+GYM_IDS = {
+    f"taskvar/MiniGrid-{name}-v0": (
+        "taskvar_torch.families.minigrid.gym_env:MiniGridGymEnv",
+        {"task": task, "size": size},
+    )
+    for name, task, size in (
+        ("DoorKey-5x5", "doorkey", 5),
+        ("DoorKey-8x8", "doorkey", 8),
+        ("LavaGapS7", "lavagap", 7),
+    )
+}
+"""The port's Gymnasium ids: MiniGrid's names under ``taskvar/``, MiniGrid's spaces."""
+
+
 def family() -> Family:
     """The MiniGrid :class:`Family` (the package's ``taskvar_torch.families`` entry point)."""
     return Family(
@@ -132,7 +146,8 @@ def family() -> Family:
         cells=lambda cfg: _section(cfg).size ** 2,
         observation=lambda cfg: _section(cfg).obs_encoding,
         conv_patch=_patch,
+        gym_ids=GYM_IDS,
     )
 
 
-__all__ = ["NAME", "TESTS", "MiniGridConfig", "family", "instance_features"]
+__all__ = ["GYM_IDS", "NAME", "TESTS", "MiniGridConfig", "family", "instance_features"]
