@@ -204,7 +204,7 @@ class MiniGridEnv(BatchedFamilyEnv):
 
     def params(self) -> torch.Tensor:
         """``(N, 4)`` int64 layout parameters (:data:`PARAMS`)."""
-        p = self.sampler._params.index_select(0, self._layout)
+        p = self.sampler.params.index_select(0, self._layout)
         return torch.nn.functional.pad(p, (0, PARAMS - p.shape[1]))
 
     def image(self) -> torch.Tensor:

@@ -156,7 +156,8 @@ class LayoutSampler:
         cdf = np.cumsum(self.table.probabilities(instances))
         thresholds = np.minimum(np.round(cdf * (1 << 24)), 1 << 24).astype(np.int64)
         self._thresholds = torch.as_tensor(thresholds, device=device)
-        self._params = torch.as_tensor(self.table.params, device=device)
+        self.params = torch.as_tensor(self.table.params, device=device)
+        """``(M, k)`` every layout's parameters, on ``device``."""
 
     def draw(self, key: torch.Tensor) -> dict[str, torch.Tensor]:
         """The layout index ``(n,)``, grids ``(n, W * H, 3)``, start ``x, y, direction (n,)``
@@ -164,8 +165,8 @@ class LayoutSampler:
         counters = torch.tensor([[_C_LAYOUT], [_C_CELL], [_C_DIR]], device=key.device)
         bits = rng.draw_bits(key, counters)  # (3, n)
         u = bits[0] >> 8  # uniform on [0, 2^24)
-        index = torch.searchsorted(self._thresholds, u, right=True).clamp(max=len(self._params) - 1)
-        params = self._params.index_select(0, index)  # (n, k)
+        index = torch.searchsorted(self._thresholds, u, right=True).clamp(max=len(self.params) - 1)
+        params = self.params.index_select(0, index)  # (n, k)
         grid = build_grids(self.task, self.size, params)
         if self.task == "doorkey":
             H = self.size
