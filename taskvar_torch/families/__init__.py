@@ -50,6 +50,7 @@ BUILTIN = {
     "windy": "taskvar_torch.families.windy.family:family",
     "wargus": "taskvar_torch.families.wargus.family:family",
     "taxi": "taskvar_torch.families.taxi.family:family",
+    "minigrid": "taskvar_torch.families.minigrid.family:family",
 }
 """The package's own families (``families/<name>/``), loaded through the same door as an installed
 package's entry points (and listed in its ``pyproject.toml``); another family of one of these

@@ -1,0 +1,153 @@
+"""The MiniGrid family: Farama's MiniGrid DoorKey and LavaGap, ported to batched torch, the hidden
+parameter the layout (docs/minigrid.md), registered through the public door only.
+
+The package's ``pyproject.toml`` lists :func:`family` in the entry-point group
+``taskvar_torch.families``, as a user's package would (docs/families.md). The family's own keys
+live under ``env.minigrid`` (:class:`MiniGridConfig`)::
+
+    family: minigrid
+    env:
+      num_envs: 64
+      instances: train        # train | heldout | minigrid (layouts.py)
+      minigrid:
+        task: doorkey         # doorkey | lavagap
+        size: 5
+        obs_encoding: onehot  # onehot | image
+        max_steps: 0          # 0: MiniGrid's own (10 size^2 DoorKey, 4 size^2 LavaGap)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+
+from taskvar_torch import keys
+from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution
+from taskvar_torch.families.minigrid import dynamics as D
+from taskvar_torch.families.minigrid.env import OBS_ENCODINGS, ONEHOT_CHANNELS, PARAMS, MiniGridEnv
+from taskvar_torch.families.minigrid.layouts import INSTANCE_NAMES, TASKS, check_task
+from taskvar_torch.heads.networks import PatchLayout
+
+NAME = "minigrid"
+
+
+@dataclass(frozen=True)
+class MiniGridConfig:
+    """The MiniGrid family's own env keys (``env.minigrid.*``)."""
+
+    task: str = "doorkey"
+    """Which MiniGrid env: doorkey (get the key, open the door, reach the goal) or lavagap (cross
+    the lava column through its gap)."""
+    size: int = 5
+    """Grid side (MiniGrid registers DoorKey 5, 6, 8 and LavaGap 5, 6, 7)."""
+    obs_encoding: str = "onehot"
+    """Observation: onehot (direction and the 7 x 7 view, object and door state one-hot: 690
+    values) or image (direction one-hot and MiniGrid's three codes per cell: 151)."""
+    max_steps: int = 0
+    """Steps before truncation; 0: MiniGrid's own (10 size^2 for DoorKey, 4 size^2 LavaGap)."""
+
+    def __post_init__(self):
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {list(TASKS)}, got {self.task!r}")
+        check_task(self.task, self.size)
+        if self.obs_encoding not in OBS_ENCODINGS:
+            raise ValueError(
+                f"obs_encoding must be one of {list(OBS_ENCODINGS)}, got {self.obs_encoding!r}"
+            )
+        if self.max_steps < 0:
+            raise ValueError(f"max_steps must be >= 0 (0: MiniGrid's own), got {self.max_steps}")
+
+
+def _section(cfg: Any) -> MiniGridConfig:
+    section = getattr(cfg.env, NAME, None)
+    return MiniGridConfig() if section is None else section
+
+
+def _env_kwargs(cfg: Any) -> dict[str, Any]:
+    m = _section(cfg)
+    return {
+        "num_envs": cfg.env.num_envs,
+        "instances": cfg.env.instances,
+        "task": m.task,
+        "size": m.size,
+        "max_steps": m.max_steps or None,
+        "obs_encoding": m.obs_encoding,
+        "seed": cfg.seed,
+        "device": cfg.device,
+    }
+
+
+def _subtasks(cfg: Any, env: Any) -> Any:
+    from taskvar_torch.families.minigrid.subtasks import DoorKeySubtasks, LavaGapSubtasks
+
+    m = _section(cfg)
+    return (DoorKeySubtasks if m.task == "doorkey" else LavaGapSubtasks)(m.size)
+
+
+def instance_features(td: TensorDictBase) -> torch.Tensor:
+    """``(B, 4)``: the layout's parameters (``("instance", "params")``) over 8."""
+    params = td.get((keys.INSTANCE, "params"))
+    return params.reshape(-1, PARAMS).to(torch.float32) / 8.0
+
+
+def _patch(cfg: Any) -> PatchLayout:
+    channels = ONEHOT_CHANNELS if _section(cfg).obs_encoding == "onehot" else 3
+    return PatchLayout(coords_dim=4, channels=channels, size=D.VIEW)
+
+
+TESTS = {
+    "train": TestDistribution("fresh episodes on the training layouts"),
+    "heldout": TestDistribution(
+        "sealed: the held-out layouts (never trained on) under the held-out seed",
+        "heldout",
+        seed=HELDOUT_SEED,
+    ),
+    "minigrid": TestDistribution(
+        "sealed: MiniGrid's own layout distribution (held-out layouts included) under the "
+        "held-out seed",
+        "minigrid",
+        seed=HELDOUT_SEED,
+    ),
+}
+"""MiniGrid test distributions (docs/minigrid.md)."""
+
+
+GYM_IDS = {
+    f"taskvar/MiniGrid-{name}-v0": (
+        "taskvar_torch.families.minigrid.gym_env:MiniGridGymEnv",
+        {"task": task, "size": size},
+    )
+    for name, task, size in (
+        ("DoorKey-5x5", "doorkey", 5),
+        ("DoorKey-8x8", "doorkey", 8),
+        ("LavaGapS7", "lavagap", 7),
+    )
+}
+"""The port's Gymnasium ids: MiniGrid's names under ``taskvar/``, MiniGrid's spaces."""
+
+
+def family() -> Family:
+    """The MiniGrid :class:`Family` (the package's ``taskvar_torch.families`` entry point)."""
+    return Family(
+        name=NAME,
+        description="MiniGrid DoorKey / LavaGap ported to batched torch: the layout hidden",
+        env_class=MiniGridEnv,
+        env_kwargs=_env_kwargs,
+        subtasks=_subtasks,
+        instance_names=INSTANCE_NAMES,
+        config_class=MiniGridConfig,
+        tests=TESTS,
+        instance_dim=PARAMS,
+        instance_features=instance_features,
+        grid_side=lambda cfg: _section(cfg).size,
+        cells=lambda cfg: _section(cfg).size ** 2,
+        observation=lambda cfg: _section(cfg).obs_encoding,
+        conv_patch=_patch,
+        gym_ids=GYM_IDS,
+    )
+
+
+__all__ = ["GYM_IDS", "NAME", "TESTS", "MiniGridConfig", "family", "instance_features"]
