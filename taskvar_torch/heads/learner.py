@@ -297,13 +297,14 @@ class MultiHeadLoss(LossModule):
 
     def _distinct_next(self, ahead: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
         """``ahead``'s distinct rows and the index back (:func:`~taskvar_torch.heads.max_value
-        .distinct_rows`), for the detached s' passes of a one-seed stack on the CPU outside
-        ``torch.compile``; else ``None`` (every row runs: an accelerator's ``unique`` waits on the
-        host, and compiled shapes are static). A batch of a small grid holds few distinct s'
-        (windy 5x5: ~12 of 256), and each row's values are the same bits in any batch."""
-        if self.seeds > 1 or ahead.device.type != "cpu" or torch.compiler.is_compiling():
+        .distinct_rows`; ``S`` equal seed-major groups for ``S`` seeds), for the detached s'
+        passes on the CPU outside ``torch.compile``; else ``None`` (every row runs: an
+        accelerator's ``unique`` waits on the host, and compiled shapes are static). A batch of a
+        small grid holds few distinct s' (windy 5x5: ~12 of 256), and each row's values are the
+        same bits in any batch."""
+        if ahead.device.type != "cpu" or torch.compiler.is_compiling():
             return None
-        return distinct_rows(ahead)
+        return distinct_rows(ahead, self.seeds)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:  # LossModule hook; no estimator
         pass
