@@ -18,6 +18,7 @@ from typing import Any, Protocol
 import torch
 from tensordict import TensorDictBase
 
+from taskvar_torch.allocator import keep_freed_memory
 from taskvar_torch.config import TrainConfig
 
 
@@ -72,7 +73,10 @@ def update_phase(
     lr: float | None = None,
 ) -> Any:
     """``updates`` gradient steps of ``learner``, each on a fresh ``sample()``, at learning rate
-    ``lr`` (``None``: as it is); returns the last step's losses (``None`` for no step)."""
+    ``lr`` (``None``: as it is); returns the last step's losses (``None`` for no step). The first
+    call of a process keeps glibc from returning freed memory to the OS between the steps
+    (:func:`~taskvar_torch.allocator.keep_freed_memory`)."""
+    keep_freed_memory()
     if lr is not None:
         learner.set_lr(lr)
     losses = None

@@ -11,6 +11,7 @@ only and is a function of the stored rows and that generator, so :func:`replay_s
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import torch
@@ -113,6 +114,24 @@ def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
     )
 
 
+def sample_many(buffer: ReplayBuffer, n: int) -> list[TensorDictBase]:
+    """``n`` replay samples of ``buffer.batch_size`` rows each: what ``n`` calls of
+    ``buffer.sample()`` return, the same rows and the same generator state after.
+
+    Uniform sampling draws ``n B`` indices in one ``randint`` (the same numbers as ``n`` draws of
+    ``B``) and gathers them in one pass, split into ``n`` views: TorchRL's per-call cost is an
+    index per stored leaf (~20 on windy), not bytes, so one gather for an update phase instead of
+    one per update (windy, 32 updates: ~17 -> ~4.4 ms). Other samplers: ``n`` calls.
+    """
+    B = int(buffer.batch_size)
+    if n <= 1 or type(buffer.sampler) is not RandomSampler:
+        return [buffer.sample() for _ in range(n)]
+    with warnings.catch_warnings():  # "conflicting batch_sizes": n B rows, asked for on purpose
+        warnings.simplefilter("ignore", UserWarning)
+        rows = buffer.sample(n * B)
+    return list(rows.reshape(n, B).unbind(0))
+
+
 def raw_transitions(
     batch: TensorDictBase, keep_instance: bool = False, keep_next_instance: bool = False
 ) -> TensorDictBase:
@@ -195,5 +214,6 @@ __all__ = [
     "load_replay_state",
     "make_replay_buffer",
     "raw_transitions",
+    "sample_many",
     "replay_state",
 ]

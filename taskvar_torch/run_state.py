@@ -42,7 +42,7 @@ from taskvar_torch.heads.nstep import nstep_returns
 from taskvar_torch.heads.recurrent import baseline_path, save_informed_head
 from taskvar_torch.heads.seeds import split_seed
 from taskvar_torch.learning import TrainingDiverged, epsilon_at, learn_batch, non_finite
-from taskvar_torch.replay import EPISODE_REWARD, raw_transitions, replay_state
+from taskvar_torch.replay import EPISODE_REWARD, raw_transitions, replay_state, sample_many
 from taskvar_torch.run_folder import _interrupted, _last_checkpoint_note, _StopSignals
 from taskvar_torch.run_logs import RunLoggers
 
@@ -177,9 +177,14 @@ class TrainingRun:
     def sample(self) -> TensorDictBase:
         """One replay sample for the learner: each seed's buffer sampled with its own generator,
         concatenated seed-major (``S`` groups of ``train.batch_size`` rows)."""
+        return self.samples(1)[0]
+
+    def samples(self, n: int) -> list[TensorDictBase]:
+        """``n`` calls of :meth:`sample` at once (:func:`~taskvar_torch.replay.sample_many`: the
+        same rows, one gather per buffer)."""
         if self.seeds == 1:
-            return self.buffers[0].sample()
-        return torch.cat([b.sample() for b in self.buffers])
+            return sample_many(self.buffers[0], n)
+        return [torch.cat(parts) for parts in zip(*(sample_many(b, n) for b in self.buffers))]
 
     def learn(self) -> None:
         """Every head from one shared sample per update, ``train.updates_per_batch`` updates once
@@ -187,7 +192,14 @@ class TrainingRun:
         the new weights and epsilon to the collector workers before their next batch."""
         t = self.cfg.train
         filled = min(len(b) for b in self.buffers)
-        if learn_batch(self.learner, self.sample, self.counters["frames"], filled, t) is not None:
+        phase: list[TensorDictBase] = []  # this phase's samples, drawn at its first update
+
+        def sample() -> TensorDictBase:
+            if not phase:
+                phase.extend(reversed(self.samples(t.updates_per_batch)))
+            return phase.pop()
+
+        if learn_batch(self.learner, sample, self.counters["frames"], filled, t) is not None:
             self.counters["updates"] += t.updates_per_batch
         self.behaviour.set_epsilon(epsilon_at(self.counters["frames"], t))
         if collects_in_workers(self.cfg):

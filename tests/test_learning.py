@@ -97,3 +97,16 @@ def test_baseline_learner_steps_on_the_sample_it_is_given():
     again = [p.detach().clone() for p in net.parameters()]
     assert loss.ndim == 0 and bool(loss.isfinite())
     assert any(not torch.equal(a, b) for a, b in zip(before, again))
+
+
+def test_allocator_settings_are_set_once_and_can_be_left_alone(monkeypatch):
+    import platform
+
+    from taskvar_torch import allocator
+
+    monkeypatch.setattr(allocator, "_done", False)
+    monkeypatch.setenv("TASKVAR_MALLOC", "default")
+    assert allocator.keep_freed_memory() is False  # glibc's settings left as they are
+    monkeypatch.delenv("TASKVAR_MALLOC")
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert allocator.keep_freed_memory() is True and allocator._done

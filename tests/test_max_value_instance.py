@@ -15,7 +15,13 @@ from taskvar_torch import keys
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, load_heads, make_env, make_subtasks
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLoss
-from taskvar_torch.heads.max_value import OptimismGapHead, instance_max_value_loss
+from taskvar_torch.heads.max_value import (
+    OptimismGapHead,
+    distinct_rows,
+    instance_max,
+    instance_max_value_loss,
+    make_instance_critic,
+)
 from taskvar_torch.heads.networks import head_network
 from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, relabel
 from taskvar_torch.heads.relabel import windy_instance_features as instance_features
@@ -179,3 +185,33 @@ def test_a_fresh_instance_checkpoint_loads_with_its_critic(tmp_path):
     assert head_network(heads.heads["max_value"]).critic is not None
     td = heads(TensorDict({keys.OBSERVATION: torch.eye(25)}, [25]))
     assert (td[keys.MAX_VALUE] >= td[keys.OPTION_VALUE]).all()
+
+
+@pytest.mark.parametrize("seeds", [1, 3])
+def test_grid_on_distinct_states_is_the_grid_on_every_row(seeds):
+    # the max over Z evaluated once per distinct observation and gathered: the same bits as the
+    # (B, M) grid of every row (the CPU shortcut of heads/max_value.py instance_max)
+    torch.manual_seed(0)
+    critic = make_instance_critic(25, WINDY_INSTANCE_DIM, 2)
+    B = 96 * seeds
+    obs = torch.nn.functional.one_hot(torch.randint(0, 25, (B,)), 25).float()
+    direction = torch.nn.functional.one_hot(torch.randint(0, 4, (B,)), 4).float()
+    z = torch.cat([torch.rand(B, 1), direction], -1)
+    distinct = distinct_rows(obs, seeds)
+    assert distinct is not None
+    rows, index = distinct
+    assert torch.equal(rows[index], obs) and rows.shape[0] < B
+    zs = z.view(seeds, -1, z.shape[-1])[:, :64]  # (S, M, F)
+    grid_z = zs.unsqueeze(1).expand(seeds, B // seeds, 64, -1).reshape(B, 64, -1)
+    grid = torch.cat([obs.unsqueeze(1).expand(B, 64, -1), grid_z], -1)
+    with torch.no_grad():
+        every_row = critic(grid).max(1).values
+        assert torch.equal(instance_max(critic, obs, z, seeds, 64), every_row)
+
+
+def test_distinct_rows_falls_back_where_keys_collide(monkeypatch):
+    x = torch.tensor([[1.0, 0.0], [0.0, 1.0], [1.0, 0.0]])
+    rows, index = distinct_rows(x)
+    assert rows.shape[0] == 2 and torch.equal(rows[index], x)
+    monkeypatch.setattr(torch, "unique", lambda k, **kw: (k[:1], torch.zeros_like(k, dtype=int)))
+    assert distinct_rows(x) is None  # two distinct rows under one key: no shortcut

@@ -96,3 +96,27 @@ def test_training_with_it_resumes_bit_for_bit(tmp_path):
     train(uniform, tmp_path / "uniform", progress=False)
     c = load_checkpoint(tmp_path / "uniform" / "final.pt")
     assert any(not torch.equal(t, c["models"]["heads"][n]) for n, t in a["models"]["heads"].items())
+
+
+@pytest.mark.parametrize("sampling", ["uniform", "per_option"])
+def test_sample_many_draws_what_as_many_samples_would(sampling):
+    from taskvar_torch.replay import make_replay_buffer, sample_many
+
+    cfg = load_config(
+        "configs/windy.yaml",
+        [f"train.replay_sampling={sampling}", "train.batch_size=8", "train.buffer_size=64"],
+    )
+    rows = TensorDict(
+        {
+            "observation": torch.arange(64.0).unsqueeze(-1),
+            "behaviour": torch.arange(64) % 3 - 1,
+        },
+        [64],
+    )
+    one, many = (make_replay_buffer(cfg, torch.Generator().manual_seed(3)) for _ in range(2))
+    one.extend(rows)
+    many.extend(rows)
+    expected = [one.sample() for _ in range(5)]
+    got = sample_many(many, 5)
+    assert len(got) == 5 and all((a == b).all() for a, b in zip(expected, got))
+    assert torch.equal(one.sample()["observation"], many.sample()["observation"])  # same stream

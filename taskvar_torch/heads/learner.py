@@ -44,6 +44,7 @@ from taskvar_torch.heads.informed import INFORMED, informed_loss
 from taskvar_torch.heads.max_value import (
     MAX_VALUE_ESTIMATORS,
     OptimismGapHead,
+    distinct_rows,
     instance_max_value_loss,
     max_value_loss,
 )
@@ -246,6 +247,10 @@ class MultiHeadLoss(LossModule):
                     target_ahead = torch.cat(
                         [self.target_stack(next_obs), self.target_stack(far_obs)], 1
                     )
+                elif (distinct := self._distinct_next(ahead)) is not None:
+                    rows, index = distinct  # s' values on its distinct rows, gathered back
+                    out_ahead = self.stack(rows)[:, index]  # (K, B, max_out)
+                    target_ahead = self.target_stack(rows)[:, index]
                 else:
                     out_ahead = self.stack(ahead)  # (K, B or 2B, max_out)
                     target_ahead = self.target_stack(ahead)
@@ -289,6 +294,17 @@ class MultiHeadLoss(LossModule):
                     far[n] = run(online, "far")
                     far_target[n] = run(target, "far_target")
         return cur, nxt, nxt_target, far, far_target
+
+    def _distinct_next(self, ahead: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``ahead``'s distinct rows and the index back (:func:`~taskvar_torch.heads.max_value
+        .distinct_rows`; ``S`` equal seed-major groups for ``S`` seeds), for the detached s'
+        passes on the CPU outside ``torch.compile``; else ``None`` (every row runs: an
+        accelerator's ``unique`` waits on the host, and compiled shapes are static). A batch of a
+        small grid holds few distinct s' (windy 5x5: ~12 of 256), and each row's values are the
+        same bits in any batch."""
+        if ahead.device.type != "cpu" or torch.compiler.is_compiling():
+            return None
+        return distinct_rows(ahead, self.seeds)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:  # LossModule hook; no estimator
         pass

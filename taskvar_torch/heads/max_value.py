@@ -174,19 +174,71 @@ def instance_max_value_loss(
             "(('instance', 'p'), ('instance', 'direction')); the windy trainer keeps it"
         )
     z = batch.instance  # (B, F)
-    B, O = q_hat.shape  # noqa: E741
     c = critic(torch.cat([batch.observation, z], -1))  # (B, O)
     with torch.no_grad():
         c_next = critic_target(torch.cat([batch.next_observation, z], -1))  # (B, O)
         cont = continuation_value(c_next, mu_bar_next, batch.beta_next)  # (B, O)
         y = batch.reward.unsqueeze(-1) + gamma * (1.0 - batch.terminated).unsqueeze(-1) * cont
-        S = batch.seeds  # each run's Z from its own rows (heads/seeds.py)
-        zs = z.view(S, B // S, -1)[:, : min(int(num_instances), B // S)]  # (S, M, F) seen ones
-        M = zs.shape[1]
-        obs = batch.observation.unsqueeze(1).expand(B, M, -1)  # (B, M, D)
-        zs = zs.unsqueeze(1).expand(S, B // S, M, -1).reshape(B, M, -1)  # row b: its run's Z
-        grid = critic_target(torch.cat([obs, zs], -1))  # (B, M, O)
-        q_max = grid.max(1).values  # (B, O): max over instances of Q^{z, mu_bar}(s, o)
+        q_max = instance_max(critic_target, batch.observation, z, batch.seeds, num_instances)
     loss_critic = masked_mean((c - y).pow(2), consistent, batch.seeds)
     loss_hat = masked_mean((q_hat - q_max).pow(2), batch.initiation, batch.seeds)
     return loss_critic, loss_hat
+
+
+def distinct_rows(x: torch.Tensor, seeds: int = 1) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """Each of ``S`` seed-major row groups of ``x`` (B, D) cut to its distinct rows:
+    ``(rows (S U, D), index (B,))`` with ``x == rows[index]`` exactly; every group padded to the
+    largest group's ``U`` distinct rows (with its own first row), so the result is ``S`` equal
+    groups. ``None`` where two distinct rows share a key (then every row is its own).
+
+    Rows are told apart by one float64 key each, ``x @ w`` for fixed random weights (a generator
+    of their own: the global one is untouched), and a 1-D ``torch.unique`` of the keys (``torch.unique(dim=0)`` compares rows one by one on the CPU: ~9
+    ms for 256 rows); the final equality check makes a key collision fall back, never merge.
+    """
+    D = x.shape[-1]
+    w = torch.rand(D, dtype=torch.float64, generator=torch.Generator().manual_seed(D)) + 0.5
+    key = (x.to(torch.float64) @ w.to(x.device)).view(seeds, -1)  # (S, B / S)
+    groups = [torch.unique(k, return_inverse=True) for k in key]  # sorted keys, (B / S,) index
+    U = max(u.shape[0] for u, _ in groups)
+    first = []  # each distinct key's first row, each group padded with its first key's row
+    for s, (u, inv) in enumerate(groups):
+        pos = torch.full((U,), -1, dtype=torch.int64, device=x.device)
+        pos.scatter_reduce_(0, inv, torch.arange(inv.shape[0], device=x.device), "amax")
+        pos[u.shape[0] :] = pos[0]
+        first.append(pos + s * inv.shape[0])
+    index = torch.cat([inv + s * U for s, (_, inv) in enumerate(groups)])  # (B,)
+    rows = x[torch.cat(first)]  # (S U, D)
+    if not torch.equal(rows[index], x):  # a key collision: no shortcut
+        return None
+    return rows, index
+
+
+def instance_max(
+    critic_target: nn.Module,  # target C: (M, D + F) -> (M, O)
+    observation: torch.Tensor,  # (B, D) s of every sampled transition
+    instance: torch.Tensor,  # (B, F) z of every sampled transition
+    seeds: int = 1,
+    num_instances: int = 64,
+) -> torch.Tensor:
+    """``max_{z in Z} C_target(s, o | z)`` at every sampled state, ``(B, O)``; ``Z`` = the
+    instances of the first ``num_instances`` rows (of each run's own rows, ``seeds = S``).
+
+    The grid depends on the state and ``Z`` only, and a batch holds few distinct states (a 5x5
+    windy batch of 256 holds about a dozen): on the CPU the critic runs on the batch's distinct
+    observations (:func:`distinct_rows`) times ``Z`` and the max is gathered back to the rows, the
+    same values as the ``(B, M)`` grid in a fraction of the rows; on an accelerator (where
+    ``unique`` waits on the host) and under ``torch.compile`` (static shapes) every row runs.
+    """
+    B, S = observation.shape[0], seeds  # each run's Z from its own rows (heads/seeds.py)
+    zs = instance.view(S, B // S, -1)[:, : min(int(num_instances), B // S)]  # (S, M, F) seen ones
+    M = zs.shape[1]
+    obs, index = observation, None
+    if observation.device.type == "cpu" and not torch.compiler.is_compiling():
+        distinct = distinct_rows(observation, S)
+        if distinct is not None:
+            obs, index = distinct  # (S U, D), (B,)
+    R = obs.shape[0]  # rows per run: R / S
+    grid_obs = obs.unsqueeze(1).expand(R, M, -1)  # (R, M, D)
+    grid_z = zs.unsqueeze(1).expand(S, R // S, M, -1).reshape(R, M, -1)  # row r: its run's Z
+    q_max = critic_target(torch.cat([grid_obs, grid_z], -1)).max(1).values  # (R, O)
+    return q_max if index is None else q_max[index]  # (B, O)

@@ -1,0 +1,54 @@
+"""glibc's allocator kept from returning freed memory to the OS between learner updates.
+
+Each update allocates and frees the same few MB of tensors (activations, gradients, targets). With
+glibc's defaults, a freed block at the top of the heap over ``M_TRIM_THRESHOLD`` (128 KiB, raised
+dynamically) is handed back to the kernel and the next update faults it in again, page by page, and
+blocks over ``M_MMAP_THRESHOLD`` are mapped and unmapped on every call: the windy heads' training
+spent ~12 M minor page faults and a quarter of its wall in system time so (docs/benchmarks.md,
+Learner). :func:`keep_freed_memory` raises both thresholds once (``mallopt`` through ``ctypes``),
+so freed memory is reused from the heap: the process keeps up to ``trim_mib`` of free heap
+instead of returning it. No effect on any number computed.
+
+Every training loop calls it before its first gradient step (:func:`~taskvar_torch.learning
+.update_phase`); ``TASKVAR_MALLOC=default`` in the environment leaves glibc's settings as they
+are. Off glibc (macOS, Windows, musl) it does nothing.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import os
+
+M_TRIM_THRESHOLD = -1  # glibc malloc.h
+M_MMAP_THRESHOLD = -3
+MMAP_MAX_MIB = 32  # glibc's ceiling for M_MMAP_THRESHOLD on 64-bit (DEFAULT_MMAP_THRESHOLD_MAX)
+
+_done = False
+
+
+def keep_freed_memory(trim_mib: int = 512, mmap_mib: int = MMAP_MAX_MIB) -> bool:
+    """Set glibc's ``M_TRIM_THRESHOLD`` to ``trim_mib`` and ``M_MMAP_THRESHOLD`` to ``mmap_mib``
+    MiB (once per process); returns whether the settings are in place (``False`` off glibc or
+    with ``TASKVAR_MALLOC=default``)."""
+    global _done
+    if _done:
+        return True
+    if os.environ.get("TASKVAR_MALLOC", "") == "default":
+        return False
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return False
+    try:
+        libc = ctypes.CDLL(name)
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):  # not glibc
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    ok = mallopt(M_MMAP_THRESHOLD, min(mmap_mib, MMAP_MAX_MIB) << 20) == 1
+    ok = mallopt(M_TRIM_THRESHOLD, trim_mib << 20) == 1 and ok
+    _done = ok
+    return ok
+
+
+__all__ = ["keep_freed_memory"]
