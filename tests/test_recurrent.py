@@ -163,7 +163,7 @@ def test_old_bundle_spec_still_loads():
     spec = BaselineSpec.from_dict(old)
     assert (spec.hidden, spec.mlp, spec.prev_reward) == (64, (64,), False)
     net, _ = make_recurrent_qnet(5, 4, 64, (64,), prev_reward=False)
-    gru = next(m for m in net.modules() if m.__class__.__name__ == "GRU")
+    gru = next(m for m in net.modules() if isinstance(m, torch.nn.RNNBase))
     assert gru.input_size == 5 + 4
     assert BaselineSpec.from_dict(spec.to_dict()) == spec
 
