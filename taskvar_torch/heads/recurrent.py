@@ -142,9 +142,9 @@ class PaddedGRU(nn.RNNBase):
     packed GRU's backward builds a zero copy of the whole input projection at every time step
     (``narrow``'s gradient; 24 fills of ``(384, 384)`` per update on windy), the padded one
     unbinds it once; the input is made time-major first, so the input projection is one matmul in
-    every pass (a batched one in the no-grad passes otherwise). Outputs are causal, so padded steps change no valid one (``GRUModule`` drops
-    them), and each slice's last hidden state is its output at its last valid step, as packing
-    gives."""
+    every pass (a batched one in the no-grad passes otherwise). Outputs are causal, so padded
+    steps change no valid one (``GRUModule`` drops them), and each slice's last hidden state is
+    its output at its last valid step, as packing gives."""
 
     def __init__(self, input_size: int, hidden_size: int):
         super().__init__("GRU", input_size, hidden_size, batch_first=True)
@@ -454,6 +454,7 @@ __all__ = [
     "BaselineController",
     "BaselineSpec",
     "InstanceFeatures",
+    "PaddedGRU",
     "PreviousStep",
     "baseline_path",
     "build_baseline",
