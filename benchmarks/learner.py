@@ -15,7 +15,8 @@ Per update, single-threaded, on windy replay data of ``configs/windy.yaml`` (bat
 (ii') as (ii) with the s' passes and the critic grid on every row (B and B x 64 rows), what the
       learner ran before (issue 47);
 (iii) taskvar's update: ``MultiHeadLearner.update`` on replay samples drawn beforehand
-      (relabelling included); ``--recurrent`` adds the recurrent baseline's ``BaselineLearner``,
+      (relabelling included); ``--recurrent`` adds the recurrent baseline's ``BaselineLearner``
+      update (r) and the same as it ran before issue 47 (r': packed ``nn.GRU``, per-tensor Adam),
       ``--seeds N`` the update of ``taskvar train --seeds N`` (N runs' heads in one stack).
 
 Rounds interleave the paths (i, ii, ii', iii, i, ...) and the medians are compared, so a loaded
@@ -272,19 +273,36 @@ def check_same_losses(bare: BareHeads, learner, batch) -> None:
             sys.exit(f"bare heads differ from the learner on {k}: {ours[k]} vs {v}")
 
 
-def recurrent_update(cfg):
-    """The recurrent baseline's ``BaselineLearner`` update on its own replay (``--recurrent``)."""
+def recurrent_updates(cfg) -> dict:
+    """The recurrent baseline's ``BaselineLearner`` update on replay slices drawn beforehand
+    (``--recurrent``; as (iii), sampling outside the timing): (r) as shipped (its GRU run over the
+    padded slices, ``heads/recurrent.py`` ``PaddedGRU``), (r') as before issue 47 (the same bits): the same
+    weights and slices through ``nn.GRU`` on a packed sequence, and per-tensor Adam (not foreach)."""
     from torchrl.collectors import Collector
 
     from taskvar_torch.train_recurrent import BaselineLearner, build_for_training
 
     net, _, env = build_for_training(cfg, "recurrent")
+    packed_net = copy.deepcopy(net)
+    padded = packed_net[1].gru
+    packed = nn.GRU(padded.input_size, padded.hidden_size, batch_first=True)
+    packed.load_state_dict(padded.state_dict())
+    packed_net[1].gru = packed
     learner = BaselineLearner(net, env.action_spec, cfg, True)
+    before = BaselineLearner(packed_net, env.action_spec, cfg, True)
+    before.optim = torch.optim.Adam(before.loss.parameters(), lr=float(cfg.train.lr), foreach=False)
     collector = Collector(env, net, frames_per_batch=1024, total_frames=4096)
     for data in collector:
         learner.store(data)
     collector.shutdown()
-    return lambda: learner.update(learner.sample())
+    samples = [learner.sample() for _ in range(64)]
+    it = iter(range(10**9))
+    return {
+        "(r) recurrent BaselineLearner.update": lambda: learner.update(samples[next(it) % 64]),
+        "(r') recurrent as before (packed, per-tensor)": lambda: before.update(
+            samples[next(it) % 64]
+        ),
+    }
 
 
 def seeds_update(cfg, seeds: int, samples):
@@ -301,12 +319,12 @@ def seeds_update(cfg, seeds: int, samples):
     return lambda: learner.update(batches[next(it) % len(batches)])
 
 
-def timed(fn, n: int) -> float:
-    """ms per call over ``n`` calls."""
-    start = time.perf_counter()
+def timed(fn, n: int) -> tuple[float, float]:
+    """ms per call over ``n`` calls: wall and this thread's CPU time."""
+    start, cpu = time.perf_counter(), time.thread_time()
     for _ in range(n):
         fn()
-    return (time.perf_counter() - start) / n * 1e3
+    return (time.perf_counter() - start) / n * 1e3, (time.thread_time() - cpu) / n * 1e3
 
 
 def update_benchmark(args) -> None:
@@ -331,7 +349,7 @@ def update_benchmark(args) -> None:
         "(iii) taskvar MultiHeadLearner.update": lambda: learner.update(nxt(samples)),
     }
     if args.recurrent:
-        paths["(r) recurrent BaselineLearner.update"] = recurrent_update(cfg)
+        paths.update(recurrent_updates(cfg))
     if args.seeds > 1:
         paths[f"(s) --seeds {args.seeds}: one batched update"] = seeds_update(
             cfg, args.seeds, samples
@@ -339,22 +357,33 @@ def update_benchmark(args) -> None:
     distinct = statistics.median(torch.unique(b.observation, dim=0).shape[0] for b in batches)
     for fn in paths.values():  # warm-up
         timed(fn, 3)
-    times: dict[str, list[float]] = {k: [] for k in paths}
+    times: dict[str, list[tuple[float, float]]] = {k: [] for k in paths}
     for _ in range(args.rounds):
         for k, fn in paths.items():
             times[k].append(timed(fn, args.updates))
-    med = {k: statistics.median(v) for k, v in times.items()}
+    med = {k: statistics.median(w for w, _ in v) for k, v in times.items()}
+    cpu = {k: statistics.median(c for _, c in v) for k, v in times.items()}
     B = batches[0].observation.shape[0]
     print(
         f"windy learner, batch {B} ({distinct:.0f} distinct states per batch, median), "
         f"{torch.get_num_threads()} thread(s), {args.rounds} rounds x {args.updates} updates"
     )
     for k, v in med.items():
-        print(f"  {k:42s} {v:7.3f} ms/update")
+        print(f"  {k:42s} {v:7.3f} ms/update ({cpu[k]:7.3f} CPU ms)")
     i, ii, ii_full, iii = (med[k] for k in list(paths)[:4])
     print(f"  ratio (iii)/(ii)  = {iii / ii:.2f}   (the package over its own arithmetic)")
     print(f"  ratio (ii)/(i)    = {ii / i:.2f}   (the heads' arithmetic over one bare MLP)")
     print(f"  ratio (ii')/(ii)  = {ii_full / ii:.2f}   (every row over distinct states)")
+    if args.recurrent:
+        r, r_packed = (k for k in paths if k.startswith("(r"))
+        heads = list(paths)[3]
+        for what, x, y, about in (
+            ("(r)/(iii)", r, heads, "the recurrent baseline's update over the heads'"),
+            ("(r')/(r) ", r_packed, r, "before over after"),
+        ):
+            print(
+                f"  ratio {what}  = {med[x] / med[y]:.2f} ({cpu[x] / cpu[y]:.2f} CPU)   ({about})"
+            )
     if args.seeds > 1:
         k = f"(s) --seeds {args.seeds}: one batched update"
         print(

@@ -194,7 +194,7 @@ class BaselineLearner:
             self.updater = SoftUpdate(self.loss, tau=float(t.target_tau))
         else:  # TorchRL's HardUpdate copies every interval + 1 steps (heads/learner.py)
             self.updater = HardUpdate(self.loss, value_network_update_interval=t.target_period - 1)
-        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr))
+        self.optim = torch.optim.Adam(self.loss.parameters(), lr=float(t.lr), foreach=True)
         self.updates_per_batch = int(t.updates_per_batch)
         self.device = next(net.parameters()).device
         self.net = net
@@ -254,7 +254,8 @@ class BaselineLearner:
         self.optim.zero_grad(set_to_none=True)
         value.backward()
         if self.max_grad_norm is not None:
-            torch.nn.utils.clip_grad_norm_(self.loss.parameters(), float(self.max_grad_norm))
+            params = self.loss.parameters()
+            torch.nn.utils.clip_grad_norm_(params, float(self.max_grad_norm), foreach=True)
         self.optim.step()
         self.updater.step()
         if self.eval_net is not self.net:

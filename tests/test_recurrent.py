@@ -163,7 +163,7 @@ def test_old_bundle_spec_still_loads():
     spec = BaselineSpec.from_dict(old)
     assert (spec.hidden, spec.mlp, spec.prev_reward) == (64, (64,), False)
     net, _ = make_recurrent_qnet(5, 4, 64, (64,), prev_reward=False)
-    gru = next(m for m in net.modules() if m.__class__.__name__ == "GRU")
+    gru = next(m for m in net.modules() if isinstance(m, torch.nn.RNNBase))
     assert gru.input_size == 5 + 4
     assert BaselineSpec.from_dict(spec.to_dict()) == spec
 
@@ -215,3 +215,34 @@ def test_train_baselines_cli_errors(tmp_path, capsys, monkeypatch):
     (tmp_path / "recurrent.pt").write_bytes(b"x")
     r = _cli("train-baselines", CORRIDOR, "--out", str(tmp_path), "--method", "recurrent")
     assert r.returncode == 2 and "exists; pass --overwrite" in r.stderr
+
+
+def test_padded_gru_matches_packed_nn_gru():
+    """``PaddedGRU`` in ``GRUModule``'s recurrent mode gives ``nn.GRU``'s outputs, final hidden
+    states and gradients on slices of unequal lengths (the packed path it replaces)."""
+    from tensordict import TensorDict
+    from torchrl.modules import GRUModule, set_recurrent_mode
+
+    from taskvar_torch.heads.recurrent import PaddedGRU
+
+    torch.manual_seed(0)
+    padded = PaddedGRU(5, 8)
+    packed = torch.nn.GRU(5, 8, batch_first=True)
+    packed.load_state_dict(padded.state_dict())
+    is_init = torch.zeros(1, 20, 1, dtype=torch.bool)
+    is_init[0, [0, 7, 15]] = True  # slices of 7, 8 and 5 steps
+    x, h0 = torch.randn(1, 20, 5), torch.randn(1, 20, 1, 8)
+    outs = []
+    for gru in (padded, packed):
+        mod = GRUModule(gru=gru, in_keys=["x", "h"], out_keys=["y", ("next", "h")])
+        td = TensorDict({"x": x, "h": h0, "is_init": is_init}, batch_size=[1, 20])
+        with set_recurrent_mode(True):
+            out = mod(td)
+        out["y"].square().sum().backward()
+        outs.append((out["y"], out["next", "h"], [p.grad for p in gru.parameters()]))
+    (y, h, g), (y_ref, h_ref, g_ref) = outs
+    torch.testing.assert_close(y, y_ref)
+    torch.testing.assert_close(h, h_ref)
+    for a, b in zip(g, g_ref):
+        torch.testing.assert_close(a, b)
+    assert not torch.equal(h, torch.zeros_like(h))
