@@ -9,6 +9,7 @@ import json
 
 import pytest
 import torch
+from budgets import TINY  # tests/budgets.py
 
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
@@ -18,18 +19,6 @@ from taskvar_torch.factory import export_heads, load_heads, make_env
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
 
 
 @pytest.fixture(scope="module")

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from budgets import TINY  # tests/budgets.py
 
 from taskvar_torch import cli
 from taskvar_torch.config import load_config
@@ -66,20 +67,6 @@ def test_the_held_out_range_is_disjoint_from_the_nominal_and_config_seeds():
         assert s + 1000 + HELDOUT_SIZE < HELDOUT_SEED, cfg_path
     for fam in ("windy", "wargus", "taxi"):  # every family declares it, under the sealed seed
         assert FAMILIES[fam].tests["heldout"].seed == HELDOUT_SEED
-
-
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
 
 
 @pytest.fixture(scope="module")

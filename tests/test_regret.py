@@ -9,6 +9,7 @@ import csv
 import numpy as np
 import pytest
 import torch
+from budgets import TINY  # tests/budgets.py
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
@@ -24,18 +25,6 @@ from taskvar_torch.oracle.mdp import greedy
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
 
 
 @pytest.mark.parametrize("layout", ["default", "whole_column_windy"])
