@@ -56,3 +56,20 @@ SWEEP_POINT = [  # a windy-fig2 sweep point on top of --quick: ~5 s, averaging a
     "eval.batch_size=20",
     "train.compile=false",
 ]
+
+FIG4 = [  # a small Wargus Figure 4 protocol; a test adds the grid, horizon, runs and trials
+    "experiment.learning_episodes_per_trial=8",
+    "train.init_random_frames=100",
+    "train.batch_size=32",
+    "train.frames_per_batch=64",
+    "train.buffer_size=5000",
+    "heads.hidden=[32]",
+    "train.compile=false",
+]
+
+CORRIDOR_BUDGET = [  # configs/windy_corridor.yaml's baselines at a test budget: 8192 frames
+    "train.total_frames=8192",
+    "train.init_random_frames=1000",
+    "train.eps_decay_frames=4096",
+    "train.updates_per_batch=8",
+]

@@ -22,17 +22,11 @@ torch.set_num_threads(1)
 
 
 @pytest.fixture(scope="module")
-def bundles(tmp_path_factory):
-    out = {}
-    for name, config in (("wargus", "configs/wargus.yaml"), ("windy", "configs/windy.yaml")):
-        d = tmp_path_factory.mktemp(name)
-        train(
-            load_config(config, [*TINY, "env.wargus.horizon=60"] if name == "wargus" else TINY),
-            d,
-            progress=False,
-        )
-        out[name] = d
-    return out
+def bundles(tmp_path_factory, windy_tiny_bundle):
+    """Run folders: Wargus trained here, windy's shared (tests/conftest.py; read only)."""
+    d = tmp_path_factory.mktemp("wargus")
+    train(load_config("configs/wargus.yaml", [*TINY, "env.wargus.horizon=60"]), d, progress=False)
+    return {"wargus": d, "windy": windy_tiny_bundle.parent}
 
 
 def _rows(path):

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
-from budgets import TINY  # tests/budgets.py
+from budgets import FIG4, TINY  # tests/budgets.py
 
 from taskvar_torch import cli
 from taskvar_torch.config import load_config
@@ -29,17 +29,12 @@ torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
 WINDY = str(ROOT / "configs" / "windy.yaml")
 EVAL_TINY = ["experiment.runs=1", "experiment.episodes_per_run=20", "eval.batch_size=10"]
-WARGUS_TINY = [  # tests/families/wargus/test_experiments_wargus.py's budget
+WARGUS_TINY = [  # a small Figure 4 run: 2 repetitions of 2 trials
     "env.wargus.size=12",
     "env.wargus.horizon=60",
     "experiment.runs=2",
     "experiment.trials=2",
-    "experiment.learning_episodes_per_trial=8",
-    "train.init_random_frames=100",
-    "train.batch_size=32",
-    "train.frames_per_batch=64",
-    "train.buffer_size=5000",
-    "heads.hidden=[32]",
+    *FIG4,
 ]
 
 

@@ -70,13 +70,11 @@ def test_the_held_out_range_is_disjoint_from_the_nominal_and_config_seeds():
 
 
 @pytest.fixture(scope="module")
-def bundles(tmp_path_factory):
-    out = {}
-    for name, extra in (("wargus", ["env.wargus.horizon=40"]), ("windy", [])):
-        d = tmp_path_factory.mktemp(name)
-        train(load_config(f"configs/{name}.yaml", [*TINY, *extra]), d, progress=False)
-        out[name] = d / "final.pt"
-    return out
+def bundles(tmp_path_factory, windy_tiny_bundle):
+    """Bundles: Wargus trained here, windy's shared (tests/conftest.py; read only)."""
+    d = tmp_path_factory.mktemp("wargus")
+    train(load_config("configs/wargus.yaml", [*TINY, "env.wargus.horizon=40"]), d, progress=False)
+    return {"wargus": d / "final.pt", "windy": windy_tiny_bundle}
 
 
 def _rows(path: Path) -> list[dict[str, str]]:

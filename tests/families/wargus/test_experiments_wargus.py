@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from budgets import FIG4  # tests/budgets.py
 from torchrl.envs import InitTracker, TransformedEnv
 
 from taskvar_torch import keys
@@ -38,13 +39,7 @@ TINY = [
     "env.wargus.horizon=60",
     f"experiment.runs={REPS}",
     f"experiment.trials={TRIALS}",
-    "experiment.learning_episodes_per_trial=8",
-    "train.init_random_frames=100",
-    "train.batch_size=32",
-    "train.frames_per_batch=64",
-    "train.buffer_size=5000",
-    "heads.hidden=[32]",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
+    *FIG4,
 ]
 FILES = (
     "config.yaml",
