@@ -73,9 +73,8 @@ def test_a_seed_sweep_trains_once_and_each_point_evaluates_its_seed(tmp_path, mo
     monkeypatch.setattr(sweep_jobs, "train", counted(sweep_jobs.train))
     monkeypatch.setattr(windy_fig2, "train", counted(windy_fig2.train))
     out = tmp_path / "sweep"
-    rows = sweep(
-        CONFIGS / "windy.yaml", ["seed=0,1", *SWEEP_POINT], out, progress=False, plots=False
-    )
+    items = ["seed=0,1", *SWEEP_POINT]
+    rows = sweep(CONFIGS / "windy.yaml", items, out, progress=False, plots=False)
     assert calls == [2]  # one training run, of both seeds
     assert "seed batches: 1 training run(s) for 2 points" in capsys.readouterr().out
     batch = out / "batches" / "seed=0-1"
@@ -100,25 +99,11 @@ def test_a_seed_sweep_trains_once_and_each_point_evaluates_its_seed(tmp_path, mo
     assert calls == [2]
 
     # --resume: the batched points' config.yaml is the sweep's, so nothing runs again
-    sweep(
-        CONFIGS / "windy.yaml",
-        ["seed=0,1", *SWEEP_POINT],
-        out,
-        progress=False,
-        plots=False,
-        resume=True,
-    )
+    sweep(CONFIGS / "windy.yaml", items, out, progress=False, plots=False, resume=True)
     assert "2 of 2 points complete, running 0" in capsys.readouterr().out and calls == [2]
     # a lost point runs alone on --resume: a real train/ folder, the batch left as it was
     (out / "seed=1" / "metrics.json").unlink()
-    sweep(
-        CONFIGS / "windy.yaml",
-        ["seed=0,1", *SWEEP_POINT],
-        out,
-        progress=False,
-        plots=False,
-        resume=True,
-    )
+    sweep(CONFIGS / "windy.yaml", items, out, progress=False, plots=False, resume=True)
     assert calls == [2, 1]
     assert (
         not (out / "seed=1" / "train").is_symlink()
