@@ -6,6 +6,9 @@ BIN := $(VENV)/bin
 OUT ?= results/windy-fig2-quick
 DEMO ?= results/demo
 DEMO_FRAMES := 10240
+WORKERS ?= 2
+PYTEST = OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(WORKERS) \
+	--dist loadfile --no-loadscope-reorder
 DEMO_TRAIN := train.total_frames=$(DEMO_FRAMES) train.eps_decay_frames=6000 \
 	train.init_random_frames=1024 train.checkpoint_every=0
 
@@ -61,18 +64,21 @@ fig2: install
 	$(BIN)/taskvar experiment windy-fig2 --quick --overwrite --out $(OUT)
 
 ## test: install the test extras, check lint and formatting, run the whole suite, slow tests
-## included, with a timeout per test, and print the 20 slowest (what .ci/run calls)
+## included, with a timeout per test, and print the 20 slowest (what .ci/run calls). The files
+## run on $(WORKERS) pytest-xdist workers (whole files each, slow files first: tests/conftest.py),
+## one torch thread each; WORKERS=0 runs them in this process
 test: install-test
 	$(BIN)/ruff check taskvar_torch tests benchmarks scripts
 	$(BIN)/ruff format --check taskvar_torch tests benchmarks scripts
-	$(BIN)/python -m pytest -q --durations=20
+	$(PYTEST) --durations=20
 
 ## test-fast: the developer's loop, under two minutes on a 2-core CPU: lint and formatting, then
-## every test not marked slow (-m "not slow"); installs the test extras only when needed
+## every test not marked slow (-m "not slow"), on $(WORKERS) workers as make test; installs the
+## test extras only when needed
 test-fast: $(VENV)/.test-extras
 	$(BIN)/ruff check taskvar_torch tests benchmarks scripts
 	$(BIN)/ruff format --check taskvar_torch tests benchmarks scripts
-	$(BIN)/python -m pytest -q -m "not slow" --durations=10
+	$(PYTEST) -m "not slow" --durations=10
 
 ## notebooks: install the test extras (nbclient, ipykernel), execute the four notebooks with the
 ## test suite's small settings (tests/test_notebooks.py SETTINGS; each notebook's table lists its

@@ -43,7 +43,7 @@ from torchrl.envs import InitTracker, TransformedEnv
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import SideBySide
 from taskvar_torch.factory import make_env
-from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition
+from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition, fig4_trial
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 
 CORES = 2  # this project's machine
@@ -151,7 +151,7 @@ class Path:
         a, u, device = self.agent, self.agent.updates, self.cfg.device
         sync(device)
         t = time.process_time()
-        learned = fig4.learning_phase(a, self.env)
+        learned = fig4_trial.learning_phase(a, self.env)
         sync(device)
         c = time.process_time()
         self.calibrations.append(fig4_agent.trial_calibration(a))
@@ -176,7 +176,7 @@ class Path:
                 self.calibrations[g : g + fig4_repetition.TEST_GROUP],
             )
             env = fig4_agent.make_test_env(self.cfg, k, 0, g, len(snaps))
-            fig4.test_trials(self.policy, env, k, snaps, cals)
+            fig4_trial.test_trials(self.policy, env, k, snaps, cals)
         sync(self.cfg.device)
         s = (time.process_time() - t) / n
         self.seconds += s * trials
@@ -242,8 +242,8 @@ def main() -> None:
         if args.torchrl:
             sync(cfg.device)
             t = time.process_time()
-            fig4.learning_phase_torchrl(ref_agent, ref_env)
-            fig4.test_phase_torchrl(ref_policy, ref_test_env, k)
+            fig4_trial.learning_phase_torchrl(ref_agent, ref_env)
+            fig4_trial.test_phase_torchrl(ref_policy, ref_test_env, k)
             sync(cfg.device)
             ref_s += (time.process_time() - t) * on
     old.test(args.trials)

@@ -20,8 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from taskvar_torch.config import METHODS
 from taskvar_torch.experiments.curves import trials_to_fraction, trials_to_fraction_of_max
-from taskvar_torch.families.wargus.fig4_metrics import METHODS, mean_over_trials
+from taskvar_torch.families.wargus.fig4_metrics import mean_over_trials
 
 
 def rows_of(

@@ -22,7 +22,6 @@ from torchrl.data.replay_buffers.samplers import Sampler
 
 from taskvar_torch import keys
 from taskvar_torch.config import Config
-from taskvar_torch.config.choices import REPLAY_SAMPLINGS
 from taskvar_torch.heads.behaviour import BEHAVIOUR
 
 EPISODE_REWARD = "episode_reward"  # RewardSum's running return
@@ -209,7 +208,6 @@ def load_replay_state(buffer: ReplayBuffer, state: dict[str, Any]) -> None:
 
 __all__ = [
     "EPISODE_REWARD",
-    "REPLAY_SAMPLINGS",
     "PerOptionSampler",
     "load_replay_state",
     "make_replay_buffer",

@@ -9,6 +9,7 @@ import json
 
 import pytest
 import torch
+from budgets import TINY  # tests/budgets.py
 
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
@@ -18,32 +19,14 @@ from taskvar_torch.factory import export_heads, load_heads, make_env
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
 
 
 @pytest.fixture(scope="module")
-def bundles(tmp_path_factory):
-    out = {}
-    for name, config in (("wargus", "configs/wargus.yaml"), ("windy", "configs/windy.yaml")):
-        d = tmp_path_factory.mktemp(name)
-        train(
-            load_config(config, [*TINY, "env.wargus.horizon=60"] if name == "wargus" else TINY),
-            d,
-            progress=False,
-        )
-        out[name] = d
-    return out
+def bundles(tmp_path_factory, windy_tiny_bundle):
+    """Run folders: Wargus trained here, windy's shared (tests/conftest.py; read only)."""
+    d = tmp_path_factory.mktemp("wargus")
+    train(load_config("configs/wargus.yaml", [*TINY, "env.wargus.horizon=60"]), d, progress=False)
+    return {"wargus": d, "windy": windy_tiny_bundle.parent}
 
 
 def _rows(path):

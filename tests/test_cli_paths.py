@@ -17,6 +17,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from budgets import FIG4, TINY  # tests/budgets.py
 
 from taskvar_torch import cli
 from taskvar_torch.config import load_config
@@ -27,29 +28,13 @@ torch.set_num_threads(1)
 
 ROOT = Path(__file__).resolve().parents[1]
 WINDY = str(ROOT / "configs" / "windy.yaml")
-TRAIN_TINY = [  # tests/test_families.py's budget: ~2 s
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-]
 EVAL_TINY = ["experiment.runs=1", "experiment.episodes_per_run=20", "eval.batch_size=10"]
-WARGUS_TINY = [  # tests/families/wargus/test_experiments_wargus.py's budget
+WARGUS_TINY = [  # a small Figure 4 run: 2 repetitions of 2 trials
     "env.wargus.size=12",
     "env.wargus.horizon=60",
     "experiment.runs=2",
     "experiment.trials=2",
-    "experiment.learning_episodes_per_trial=8",
-    "train.init_random_frames=100",
-    "train.batch_size=32",
-    "train.frames_per_batch=64",
-    "train.buffer_size=5000",
-    "heads.hidden=[32]",
+    *FIG4,
 ]
 
 
@@ -78,9 +63,7 @@ def bundle(tmp_path_factory) -> Path:
     """A tiny trained windy bundle (``final.pt``), ~2 s; 30-step episodes keep its evaluation
     short."""
     out = tmp_path_factory.mktemp("bundle")
-    return train(load_config(WINDY, [*TRAIN_TINY, "env.windy.horizon=30"]), out, progress=False)[
-        "final"
-    ]
+    return train(load_config(WINDY, [*TINY, "env.windy.horizon=30"]), out, progress=False)["final"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -126,8 +109,8 @@ def test_overwrite_of_the_checkpoint_being_resumed_is_refused(bundle, capsys):
 @pytest.mark.parametrize(
     "command",
     [
-        ["train", WINDY, *TRAIN_TINY],
-        ["experiment", "windy-fig2", *TRAIN_TINY],
+        ["train", WINDY, *TINY],
+        ["experiment", "windy-fig2", *TINY],
         ["sweep", WINDY, "--backend", "local", "seed=0,1"],
         ["eval", "--checkpoint", "BUNDLE", "--episodes", "4"],
     ],
@@ -154,7 +137,7 @@ def test_train_out_in_a_read_only_folder_is_a_one_line_error(tmp_path, capsys):
     parent.mkdir()
     parent.chmod(0o500)
     try:
-        argv = ["train", WINDY, *TRAIN_TINY, "--out", str(parent / "run"), "--no-progress"]
+        argv = ["train", WINDY, *TINY, "--out", str(parent / "run"), "--no-progress"]
         status, _, err = run_cli(argv, capsys)
     finally:
         parent.chmod(0o700)
@@ -172,7 +155,7 @@ def test_train_out_where_even_root_cannot_write_is_a_one_line_error(tmp_path, ca
     else:  # pragma: no cover - a writable /sys: nothing here to test with
         target.rmdir()
         pytest.skip("/sys is writable on this machine")
-    argv = ["train", WINDY, *TRAIN_TINY, "--out", str(target), "--no-progress"]
+    argv = ["train", WINDY, *TINY, "--out", str(target), "--no-progress"]
     status, _, err = run_cli(argv, capsys)
     assert_one_line_error(status, err, "train", str(target))
     assert "choose another --out" in err
@@ -185,7 +168,7 @@ def test_train_out_locked_by_another_run_is_a_one_line_error(tmp_path, capsys):
     out = tmp_path / "run"
     holder = RunFolder(out, resume=None, overwrite=False).acquire()
     try:
-        argv = ["train", WINDY, *TRAIN_TINY, "--out", str(out), "--no-progress"]
+        argv = ["train", WINDY, *TINY, "--out", str(out), "--no-progress"]
         status, _, err = run_cli(argv, capsys)
         assert_one_line_error(status, err, "train", "is in use by another taskvar run")
         assert f"pid {os.getpid()}" in err
@@ -279,7 +262,7 @@ def test_wargus_fig4_workers_below_one_is_a_one_line_error(tmp_path, capsys):
 # taskvar sweep: --overwrite and its refusal; the Ray options
 
 
-SWEEP_TINY = [*TRAIN_TINY, "env.windy.horizon=30", *EVAL_TINY]
+SWEEP_TINY = [*TINY, "env.windy.horizon=30", *EVAL_TINY]
 
 
 @pytest.mark.slow

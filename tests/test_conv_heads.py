@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from budgets import SMALL  # tests/budgets.py
 from tensordict import TensorDict
 from torch import nn
 
@@ -20,21 +21,7 @@ from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 LARGE = "configs/windy_large.yaml"
-TINY = [
-    "heads.network=conv",
-    "heads.conv_channels=[4, 8]",
-    "heads.hidden=[32]",
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=600",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=200",
-    "train.batch_size=32",
-    "train.updates_per_batch=2",
-    "train.buffer_size=2000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
+TINY = ["heads.network=conv", "heads.conv_channels=[4, 8]", "heads.hidden=[32]", *SMALL]
 
 
 def _stack(seed: int = 0) -> tuple[StackedConvMLP, PatchLayout]:

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from budgets import TINY  # tests/budgets.py
 
 from taskvar_torch import factory
 from taskvar_torch.checkpoint import load_checkpoint, save_checkpoint
@@ -19,18 +20,6 @@ from taskvar_torch.training import train
 
 torch.set_num_threads(1)
 PACKAGE = Path(__file__).resolve().parents[1] / "taskvar_torch"
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
 
 
 def test_no_family_name_branches_outside_the_registry():

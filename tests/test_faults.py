@@ -21,6 +21,7 @@ from pathlib import Path
 import gymnasium as gym
 import pytest
 import torch
+from budgets import CHECKPOINTED  # tests/budgets.py
 from test_train import assert_same  # tests/ is on sys.path (rootdir import mode)
 
 import taskvar_torch.run_setup as B
@@ -35,18 +36,6 @@ from taskvar_torch.training import train
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = str(ROOT / "configs" / "windy.yaml")
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=3000",
-    "train.checkpoint_every=1000",
-    "train.log_every=500",
-    "train.init_random_frames=300",
-    "train.batch_size=32",
-    "train.updates_per_batch=2",
-    "train.buffer_size=5000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
 
 HOOK = textwrap.dedent(
     """
@@ -118,7 +107,7 @@ def assert_equals_reference(folder: Path, reference: Path) -> None:
 def reference(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     """The uninterrupted run."""
     out = tmp_path_factory.mktemp("reference") / "run"
-    r = taskvar("train", CONFIG, "--out", str(out), *TINY)
+    r = taskvar("train", CONFIG, "--out", str(out), *CHECKPOINTED)
     assert r.returncode == 0, r.stderr[-2000:]
     return out, r
 
@@ -143,7 +132,7 @@ def test_sigkill_then_resume_equals_the_uninterrupted_run(
     tmp_path, reference, fault, frame, resume_from
 ):
     out = tmp_path / "run"
-    r = taskvar("train", CONFIG, "--out", str(out), *TINY, fault=fault, frame=frame)
+    r = taskvar("train", CONFIG, "--out", str(out), *CHECKPOINTED, fault=fault, frame=frame)
     assert r.returncode == -signal.SIGKILL, r.stderr[-2000:]
     if fault == "kill-in-write":  # the killed write left its temporary file, not a partial one
         assert any(p.name.endswith(".tmp") for p in out.iterdir())
@@ -160,7 +149,7 @@ def test_sigkill_then_resume_equals_the_uninterrupted_run(
 @pytest.mark.parametrize("fault, status", [("int", 130), ("term", 143)])
 def test_signal_writes_a_checkpoint_and_the_resume_line(tmp_path, reference, fault, status):
     out = tmp_path / "run"
-    r = taskvar("train", CONFIG, "--out", str(out), *TINY, fault=fault, frame=1300)
+    r = taskvar("train", CONFIG, "--out", str(out), *CHECKPOINTED, fault=fault, frame=1300)
     assert r.returncode == status, r.stderr[-2000:]
     ckpt = out / "checkpoint_000001300.pt"  # mid logging interval: pending loss sums are saved
     lines = r.stderr.strip().splitlines()
@@ -179,7 +168,9 @@ def test_signal_writes_a_checkpoint_and_the_resume_line(tmp_path, reference, fau
 @pytest.mark.slow
 def test_second_sigint_during_the_write_aborts_without_a_partial_file(tmp_path):
     out = tmp_path / "run"
-    r = taskvar("train", CONFIG, "--out", str(out), *TINY, fault="int-int-in-write", frame=1300)
+    r = taskvar(
+        "train", CONFIG, "--out", str(out), *CHECKPOINTED, fault="int-int-in-write", frame=1300
+    )
     assert r.returncode == 130, r.stderr[-2000:]
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "aborted by a second signal" in lines[0], r.stderr
@@ -217,7 +208,7 @@ def test_nan_weights_are_never_written(tmp_path, monkeypatch, frame, group):
         return epsilon_at(frames, t)
 
     monkeypatch.setattr(T, "epsilon_at", inject)
-    cfg = load_config(CONFIG, TINY)
+    cfg = load_config(CONFIG, CHECKPOINTED)
     with pytest.raises(
         TrainingDiverged, match=f"non-finite values in the {group} at frame {frame}"
     ):
@@ -267,7 +258,15 @@ def _copy_run(src: Path, dst: Path) -> Path:
 def test_a_folder_holding_a_run_is_refused_and_left_as_it_was(reference, tmp_path, capsys):
     out = _copy_run(reference[0], tmp_path / "run")
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
-    argv = ["train", CONFIG, "--out", str(out), *TINY, "train.total_frames=400", "--no-progress"]
+    argv = [
+        "train",
+        CONFIG,
+        "--out",
+        str(out),
+        *CHECKPOINTED,
+        "train.total_frames=400",
+        "--no-progress",
+    ]
     assert main(argv) == 2
     _one_line_error(capsys, "already holds a run", f"--resume {out / 'final.pt'}", "--overwrite")
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
@@ -278,7 +277,7 @@ def test_overwrite_removes_the_old_run_first(reference, tmp_path, capsys):
     out = _copy_run(reference[0], tmp_path / "run")
     (out / ".final.pt.0123456789ab.tmp").write_bytes(b"left by a SIGKILL")
     (out / "notes.txt").write_text("not a run file: kept")
-    argv = ["train", CONFIG, "--out", str(out), *TINY, "train.total_frames=400",
+    argv = ["train", CONFIG, "--out", str(out), *CHECKPOINTED, "train.total_frames=400",
             "train.checkpoint_every=0", "--overwrite", "--no-progress"]  # fmt: skip
     assert main(argv) == 0
     assert sorted(p.name for p in out.iterdir()) == [
@@ -296,7 +295,7 @@ def test_overwrite_removes_the_old_run_first(reference, tmp_path, capsys):
 def test_a_second_run_on_a_locked_folder_is_refused(tmp_path, capsys):
     held = RunFolder(tmp_path / "run", None, False).acquire()
     try:
-        argv = ["train", CONFIG, "--out", str(tmp_path / "run"), *TINY, "--no-progress"]
+        argv = ["train", CONFIG, "--out", str(tmp_path / "run"), *CHECKPOINTED, "--no-progress"]
         assert main(argv) == 2
         _one_line_error(capsys, "in use by another taskvar run", f"pid {os.getpid()}")
         assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [LOCK_NAME]
@@ -318,7 +317,7 @@ def test_bad_input_is_one_line_and_leaves_nothing(tmp_path, capsys, case, needle
     if case == "cuda" and torch.cuda.is_available():
         pytest.skip("this machine has CUDA")
     out = tmp_path / "run"
-    argv = ["train", CONFIG, "--out", str(out), *TINY, "--no-progress"]
+    argv = ["train", CONFIG, "--out", str(out), *CHECKPOINTED, "--no-progress"]
     if case == "out_is_a_file":
         out.write_text("a file")
     elif case == "bad_resume":
@@ -377,7 +376,7 @@ def test_train_output_has_no_third_party_noise(reference):
 
 
 def test_progress_bar_ends_at_its_total(tmp_path, capsys):
-    cfg = load_config(CONFIG, [*TINY, "train.total_frames=450", "train.checkpoint_every=0"])
+    cfg = load_config(CONFIG, [*CHECKPOINTED, "train.total_frames=450", "train.checkpoint_every=0"])
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         result = train(cfg, tmp_path, progress=True)

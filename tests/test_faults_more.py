@@ -25,6 +25,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from budgets import CHECKPOINTED, SWEEP_POINT  # tests/budgets.py
 
 from taskvar_torch import cli
 from taskvar_torch.checkpoint import (
@@ -40,29 +41,6 @@ from taskvar_torch.factory import load_heads
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
 WINDY = str(ROOT / "configs" / "windy.yaml")
-TRAIN_TINY = [  # tests/test_faults.py's run: 3000 frames, a checkpoint every 1000
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=3000",
-    "train.checkpoint_every=1000",
-    "train.log_every=500",
-    "train.init_random_frames=300",
-    "train.batch_size=32",
-    "train.updates_per_batch=2",
-    "train.buffer_size=5000",
-]
-SWEEP_TINY = [  # tests/study/test_sweep.py's points: about 5 s each on an idle core
-    "train.total_frames=2048",
-    "train.init_random_frames=512",
-    "train.eps_decay_frames=1024",
-    "train.updates_per_batch=8",
-    "train.lr=0.005",
-    "train.log_every=1024",
-    "env.windy.horizon=30",
-    "experiment.runs=1",
-    "experiment.episodes_per_run=20",
-    "eval.batch_size=20",
-]
 
 HOOK = textwrap.dedent(
     """
@@ -158,7 +136,7 @@ def disk_full(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     """``taskvar train`` that writes ``checkpoint_000001000.pt``, then cannot write the next."""
     tmp = tmp_path_factory.mktemp("fsize")
     out = tmp / "run"
-    r = taskvar(tmp, "train", WINDY, "--out", str(out), *TRAIN_TINY, "--threads", "1",
+    r = taskvar(tmp, "train", WINDY, "--out", str(out), *CHECKPOINTED, "--threads", "1",
                 "--no-progress", FAULT="fsize", FAULT_OUT=str(out))  # fmt: skip
     return out, r
 
@@ -268,7 +246,7 @@ def test_a_killed_sweep_resumes_keeping_its_complete_points(tmp_path, capsys):
     argv = ["sweep", WINDY, "--backend", "local", "--quick", "--out", str(out), "--no-progress"]
     # --no-batch-seeds: each point trains in its own run, which the fault kills (a seed batch
     # trains both seeds in one run, tests/study/test_sweep_seeds.py)
-    argv += ["--no-plots", "--no-batch-seeds", "seed=0,1", *SWEEP_TINY]
+    argv += ["--no-plots", "--no-batch-seeds", "seed=0,1", *SWEEP_POINT]
     r = taskvar(tmp_path, *argv, FAULT="kill", KILL_SEEDS="1", KILL_DIR=str(kills))
     assert r.returncode == -signal.SIGKILL, r.stderr[-3000:]
     assert (out / "seed=0" / "metrics.json").is_file()  # the first point completed
@@ -281,8 +259,9 @@ def test_a_killed_sweep_resumes_keeping_its_complete_points(tmp_path, capsys):
     status, err = _cli([*argv, "--resume", "--overwrite"], capsys)
     assert status == 2
     one_line(err, "--resume keeps the completed points and --overwrite replaces them")
-    assert argv[-1] == "eval.batch_size=20"
-    status, err = _cli([*argv[:-1], "eval.batch_size=10", "--resume"], capsys)  # another sweep
+    other = [a.replace("eval.batch_size=20", "eval.batch_size=10") for a in argv]
+    assert other != argv
+    status, err = _cli([*other, "--resume"], capsys)  # another sweep
     assert status == 2
     one_line(err, "holds results of another config", "eval.batch_size differs", "seed=0")
 
@@ -324,7 +303,7 @@ def test_a_ray_worker_killed_in_a_point_is_retried_or_reported(tmp_path):
     kills = tmp_path / "kills"
     kills.mkdir()
     argv = ["sweep", WINDY, "--backend", "ray", "--workers", "2", "--quick", "--out", str(out)]
-    argv += ["--no-progress", "--no-plots", "--no-batch-seeds", "seed=0,1", *SWEEP_TINY]
+    argv += ["--no-progress", "--no-plots", "--no-batch-seeds", "seed=0,1", *SWEEP_POINT]
     r = taskvar(tmp_path, *argv, FAULT="kill", KILL_SEEDS="0,1", KILL_ONCE="0", KILL_DIR=str(kills))
     assert r.returncode == 0, r.stderr[-3000:]
     assert len((kills / "seed=0").read_text().split()) == 1

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from budgets import TINY  # tests/budgets.py
 
 from taskvar_torch import cli
 from taskvar_torch.config import load_config
@@ -68,28 +69,12 @@ def test_the_held_out_range_is_disjoint_from_the_nominal_and_config_seeds():
         assert FAMILIES[fam].tests["heldout"].seed == HELDOUT_SEED
 
 
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
-
-
 @pytest.fixture(scope="module")
-def bundles(tmp_path_factory):
-    out = {}
-    for name, extra in (("wargus", ["env.wargus.horizon=40"]), ("windy", [])):
-        d = tmp_path_factory.mktemp(name)
-        train(load_config(f"configs/{name}.yaml", [*TINY, *extra]), d, progress=False)
-        out[name] = d / "final.pt"
-    return out
+def bundles(tmp_path_factory, windy_tiny_bundle):
+    """Bundles: Wargus trained here, windy's shared (tests/conftest.py; read only)."""
+    d = tmp_path_factory.mktemp("wargus")
+    train(load_config("configs/wargus.yaml", [*TINY, "env.wargus.horizon=40"]), d, progress=False)
+    return {"wargus": d / "final.pt", "windy": windy_tiny_bundle}
 
 
 def _rows(path: Path) -> list[dict[str, str]]:

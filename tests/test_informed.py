@@ -11,6 +11,7 @@ import dataclasses
 import numpy as np
 import pytest
 import torch
+from budgets import CORRIDOR_BUDGET  # tests/budgets.py
 from torchrl.envs import TransformedEnv
 
 from taskvar_torch import families
@@ -31,12 +32,6 @@ from taskvar_torch.oracle.episodes import optimal_episode_returns
 from taskvar_torch.train_recurrent import train_baseline
 
 CORRIDOR = "configs/windy_corridor.yaml"
-FAST = [
-    "train.total_frames=8192",
-    "train.init_random_frames=1000",
-    "train.eps_decay_frames=4096",
-    "train.updates_per_batch=8",
-]
 BOUND = 0.05
 """Stated bound on the informed head's mean regret against the exact per-instance optimum on the
 corridor (measured: 0.003 +- 0.013 at 8192 frames, 4000 paired episodes)."""
@@ -45,7 +40,7 @@ corridor (measured: 0.003 +- 0.013 at 8192 frames, 4000 paired episodes)."""
 @pytest.fixture(scope="module")
 def corridor_informed(tmp_path_factory):
     torch.set_num_threads(1)
-    cfg = load_config(CORRIDOR, FAST)
+    cfg = load_config(CORRIDOR, CORRIDOR_BUDGET)
     out = tmp_path_factory.mktemp("informed")
     return cfg, out, train_baseline(cfg, "informed", out)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from budgets import SMALL  # tests/budgets.py
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
@@ -24,20 +25,7 @@ from taskvar_torch.training import train
 torch.set_num_threads(1)
 WARGUS = "configs/wargus.yaml"
 SUBTASK = ["heads.option_inputs=subtask"]
-TINY = [
-    *SUBTASK,
-    "heads.hidden=[32]",
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=600",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=200",
-    "train.batch_size=32",
-    "train.updates_per_batch=2",
-    "train.buffer_size=2000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
+TINY = [*SUBTASK, "heads.hidden=[32]", *SMALL]
 
 
 def _heads(overrides):

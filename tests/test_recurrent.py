@@ -16,6 +16,7 @@ import dataclasses
 
 import pytest
 import torch
+from budgets import CORRIDOR_BUDGET  # tests/budgets.py
 from torchrl.envs import TransformedEnv
 
 from taskvar_torch import families
@@ -34,12 +35,6 @@ from taskvar_torch.heads.recurrent import (
 from taskvar_torch.train_recurrent import train_baseline
 
 CORRIDOR = "configs/windy_corridor.yaml"
-FAST = [
-    "train.total_frames=8192",
-    "train.init_random_frames=1000",
-    "train.eps_decay_frames=4096",
-    "train.updates_per_batch=8",
-]
 MARGIN = 0.05
 """How far the recurrent head's return must be above the best memoryless value (the gap to the
 best memory policy is 1/6; measured: -1.824 to -1.858 on seeds 0, 4, 6, 7, 8 at 8192 frames)."""
@@ -81,7 +76,7 @@ def _returns(ctrl, cfg, episodes=4000):
 @pytest.fixture(scope="module")
 def corridor_recurrent(tmp_path_factory):
     torch.set_num_threads(1)
-    cfg = load_config(CORRIDOR, FAST)
+    cfg = load_config(CORRIDOR, CORRIDOR_BUDGET)
     out = tmp_path_factory.mktemp("recurrent")
     result = train_baseline(cfg, "recurrent", out)
     return cfg, result

@@ -21,21 +21,8 @@ from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.oracle import WindyOracle
 from taskvar_torch.oracle.episodes import exact_episode_returns, optimal_episode_returns
 from taskvar_torch.oracle.mdp import greedy
-from taskvar_torch.training import train
 
 torch.set_num_threads(1)
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
 
 
 @pytest.mark.parametrize("layout", ["default", "whole_column_windy"])
@@ -84,15 +71,10 @@ def test_taxi_regret_with_the_oracles_own_heads_on_fickle():
     assert abs(regret["options"] - 7.2) < 5e-3
 
 
-@pytest.fixture(scope="module")
-def windy_bundle(tmp_path_factory):
-    d = tmp_path_factory.mktemp("windy")
-    train(load_config("configs/windy.yaml", TINY), d, progress=False)
-    return d / "final.pt"
-
-
-def test_eval_reports_regret_per_method_and_episode(windy_bundle, tmp_path):
-    m = eval_bundle(windy_bundle, "all", "south", episodes=60, out_dir=tmp_path, progress=False)
+def test_eval_reports_regret_per_method_and_episode(windy_tiny_bundle, tmp_path):
+    m = eval_bundle(
+        windy_tiny_bundle, "all", "south", episodes=60, out_dir=tmp_path, progress=False
+    )
     per = m["points"][0]["methods"]
     with open(tmp_path / "episodes.csv") as f:
         rows = list(csv.DictReader(f))
@@ -107,12 +89,16 @@ def test_eval_reports_regret_per_method_and_episode(windy_bundle, tmp_path):
             assert min(regret) >= -1e-9, name
         assert abs(np.mean(regret) - r["regret_mean"]) < 1e-9
     assert "regret" in format_table(m).splitlines()[1]
-    one = eval_bundle(windy_bundle, "options", "south", episodes=20, progress=False)
+    one = eval_bundle(windy_tiny_bundle, "options", "south", episodes=20, progress=False)
     assert one["regret_mean"] >= -1e-9 and "regret_ci95" in one
 
 
-def test_regret_by_the_hidden_parameter_is_recomputed_from_the_episodes(windy_bundle, tmp_path):
-    m = eval_bundle(windy_bundle, "all", "train", episodes=80, out_dir=tmp_path, progress=False)
+def test_regret_by_the_hidden_parameter_is_recomputed_from_the_episodes(
+    windy_tiny_bundle, tmp_path
+):
+    m = eval_bundle(
+        windy_tiny_bundle, "all", "train", episodes=80, out_dir=tmp_path, progress=False
+    )
     data = m["regret_by_instance"]
     assert data["field"] == "p" and len(data["groups"]) == 8
     assert (tmp_path / "regret.png").exists() and "regret.png" in m["figures"]

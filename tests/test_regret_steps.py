@@ -9,24 +9,11 @@ import numpy as np
 import pytest
 import torch
 
-from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.families.windy.oracle import WindyOracle
 from taskvar_torch.oracle.mdp import greedy
-from taskvar_torch.training import train
 
 torch.set_num_threads(1)
-TINY = [
-    "env.num_envs=4",
-    "train.frames_per_batch=100",
-    "train.total_frames=300",
-    "train.checkpoint_every=0",
-    "train.log_every=300",
-    "train.init_random_frames=100",
-    "train.batch_size=16",
-    "train.updates_per_batch=1",
-    "train.buffer_size=1000",
-]
 
 
 def _rollouts(oracle, policy, p, d, n, seed):
@@ -82,19 +69,12 @@ def test_step_regret_sums_to_the_regret_against_the_optimum(layout):
     assert not bool(gap[~alive].any())  # nothing after an episode ended
 
 
-@pytest.fixture(scope="module")
-def windy_bundle(tmp_path_factory):
-    d = tmp_path_factory.mktemp("windy")
-    train(load_config("configs/windy.yaml", TINY), d, progress=False)
-    return d / "final.pt"
-
-
-def test_eval_regret_by_step_sums_to_the_regret_column(windy_bundle, tmp_path):
+def test_eval_regret_by_step_sums_to_the_regret_column(windy_tiny_bundle, tmp_path):
     """Under whole-strength winds (p = 1: every instance deterministic) each method's per-step
     regret summed over the steps is its ``regret_mean`` to float tolerance; the plot and the
     existing keys are written beside it."""
     m = eval_bundle(
-        windy_bundle,
+        windy_tiny_bundle,
         "all",
         "train",
         shifts=["env.instances.p=1.0"],
@@ -118,16 +98,16 @@ def test_eval_regret_by_step_sums_to_the_regret_column(windy_bundle, tmp_path):
     assert "optimum" in table and f"{m['points'][0]['optimum_mean_return']:9.3f}" in table
 
 
-def test_eval_regret_by_step_on_the_training_winds(windy_bundle, tmp_path):
+def test_eval_regret_by_step_on_the_training_winds(windy_tiny_bundle, tmp_path):
     """Gusty instances: the steps' sum is the regret in expectation (within the CIs); a shift curve
     (several test points) writes no per-step regret."""
-    m = eval_bundle(windy_bundle, "averaging,options", "train", episodes=400, progress=False)
+    m = eval_bundle(windy_tiny_bundle, "averaging,options", "train", episodes=400, progress=False)
     for name, d in m["regret_by_step"]["methods"].items():
         r = m["points"][0]["methods"][name]
         band = 2 * (r["regret_ci95"] + np.sum(d["ci95"])) + 1e-9  # the steps are correlated
         assert abs(d["total"] - r["regret_mean"]) < band, name
     curve = eval_bundle(
-        windy_bundle,
+        windy_tiny_bundle,
         "averaging",
         "train",
         shifts=["env.instances.p=0.2,0.8"],

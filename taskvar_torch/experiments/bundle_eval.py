@@ -604,8 +604,6 @@ __all__ = [
     "eval_bundle",
     "explain_table",
     "format_table",
-    "parse_methods",
-    "play",
     "plot_eval",
     "summarise",
 ]

@@ -56,8 +56,7 @@ This module is the protocol (:func:`scale`) and the registry's entry points (the
 default config); the config is :mod:`taskvar_torch.study.scale_config`, the evaluation and
 the references :mod:`taskvar_torch.study.scale_eval`, one cell (training, seeds, baselines,
 held-out block) :mod:`taskvar_torch.study.scale_cell`, and the report (``scale.csv``'s rows,
-the table, ``scale.png``) :mod:`taskvar_torch.study.scale_report`, whose public names are
-re-exported here.
+the table, ``scale.png``) :mod:`taskvar_torch.study.scale_report`.
 
 Examples:
     >>> cfg = load_scale_config(default_config_path(), quick=True)  # doctest: +SKIP
@@ -99,26 +98,14 @@ from taskvar_torch.study.scale_eval import (
     references,
 )
 from taskvar_torch.study.scale_report import (
-    COLOURS,
-    CSV_FIELDS,
     CSV_NAME,
-    CURVES_FIGURE,
     EXPERIMENT,
-    FAMILY_STYLE,
     FIGURE,
     METRICS_NAME,
-    SEED_FIELD,
     csv_fields,
     csv_rows,
-    final_return,
-    format_heads,
-    format_heldout,
-    format_seeds,
     format_table,
-    is_results_folder,
-    plot_curves,
     plot_results,
-    report_methods,
 )
 
 
@@ -292,28 +279,9 @@ def _scale(cfg: ScaleConfig, out: Path, progress: bool, quick: bool, plots: bool
     return metrics
 
 
-__all__ = [  # the experiment's entry points, then the names of scale_report it re-exports
+__all__ = [  # the registry's entry points (experiments/registry.py): run, loader, config, plot
     "default_config_path",
     "load_scale_config",
-    "scale",
-    "COLOURS",
-    "CSV_FIELDS",
-    "CSV_NAME",
-    "CURVES_FIGURE",
-    "EXPERIMENT",
-    "FAMILY_STYLE",
-    "FIGURE",
-    "METRICS_NAME",
-    "SEED_FIELD",
-    "csv_fields",
-    "csv_rows",
-    "final_return",
-    "format_heads",
-    "format_heldout",
-    "format_seeds",
-    "format_table",
-    "is_results_folder",
-    "plot_curves",
     "plot_results",
-    "report_methods",
+    "scale",
 ]

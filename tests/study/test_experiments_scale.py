@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from taskvar_torch.cli import main
+from taskvar_torch.config import METHODS
 from taskvar_torch.study import scale, scale_config, scale_eval
 
 torch.set_num_threads(1)
@@ -51,7 +52,7 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
         assert c["frames_per_batch"] % c["num_envs"] == 0
         assert (out / "cells" / f"{c['case']}-n{c['num_envs']}" / "config.yaml").is_file()
         horizon = 100 if c["family"] == "windy" else 40
-        for method in scale.METHODS:
+        for method in METHODS:
             r = c["methods"][method]
             if c["family"] == "windy" and method == "hierarchy":
                 assert r is None  # no composition hierarchy in the windy family: n/a
@@ -95,7 +96,7 @@ def test_quick_run_writes_files_and_sane_metrics(quick_run):
     assert m["references"]["wargus-32x32"]["oracle_averaging"] is None
     with open(out / "scale.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == len(m["cells"]) * len(scale.METHODS)
+    assert len(rows) == len(m["cells"]) * len(METHODS)
     assert {
         r["mean_return"] for r in rows if r["case"] == "windy-5x5" and r["method"] == "hierarchy"
     } == {"n/a"}

@@ -8,18 +8,18 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 from pathlib import Path
 
 import pytest
 import torch
+from scale_runs import assert_same, record_episodes, run_scale, stack_episodes, without_timing
 
-from taskvar_torch import families, keys
-from taskvar_torch.cli import main
+from taskvar_torch import families
+from taskvar_torch.config import METHODS
 from taskvar_torch.families import FAMILIES
 from taskvar_torch.heads.recurrent import BASELINES
 from taskvar_torch.run_state import seed_config
-from taskvar_torch.study import scale, scale_cell, scale_config, scale_eval
+from taskvar_torch.study import scale, scale_cell, scale_config, scale_report
 
 torch.set_num_threads(1)
 
@@ -38,19 +38,7 @@ TINY = [  # one tiny windy cell, two seeds, a few hundred frames, short episodes
     "head_report=false",
     'overrides=["heads.hidden=[32]",train.batch_size=32,env.horizon=30]',
 ]
-TIMING = {  # measured times and memory: not reproducible, so not compared
-    "wall_seconds", "train_seconds", "eval_seconds", "frames_per_second", "peak_rss_mb",
-    "frames_per_second_all_seeds", "seconds",
-}  # fmt: skip
 NEW_CELL_KEYS = {"baseline_training", "baseline_train_seconds", "baseline_eval_seconds"}
-
-
-def _without_timing(x):
-    if isinstance(x, dict):
-        return {k: _without_timing(v) for k, v in x.items() if k not in TIMING}
-    if isinstance(x, list):
-        return [_without_timing(v) for v in x]
-    return x
 
 
 def _strip_baselines(x):
@@ -63,61 +51,36 @@ def _strip_baselines(x):
     return x
 
 
-def _run(out, *extra, spy=None):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(scale_cell, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
-        if spy is not None:
-            spy(mp)
-        argv = ["experiment", "scale", "--quick", "--out", str(out), "--no-progress", "--no-plots"]
-        assert main([*argv, *TINY, *extra]) == 0
-    return json.loads((out / "metrics.json").read_text())
-
-
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """The tiny run with both baselines (every episode batch played and every baseline trained
     recorded) and the same run without them."""
-    played = []  # (env seed, policy name, instance fields, start cells) per batch of episodes
+    played = []  # (family, env seed, policy name, instance fields, start cells) per batch
     trained = []  # (config, method, folder) per train_baseline call
-    envs = {}
-    make_test_env, run_episodes = scale_eval.make_test_env, scale_eval.run_episodes
     train_baseline = scale_cell.train_baseline
 
     def spy(mp):
-        def made(cfg, num_envs, seed, index_offset=0, instances="test"):
-            env = make_test_env(cfg, num_envs, seed, index_offset, instances)
-            envs[id(env)] = seed
-            return env
-
-        def ran(env, policy, *args, **kwargs):
-            out = run_episodes(env, policy, *args, **kwargs)
-            seed = envs[id(getattr(env, "base_env", env))]
-            name = getattr(policy, "name", type(policy).__name__)
-            played.append((seed, name, out[keys.INSTANCE].clone(), out["start"].clone()))
-            return out
-
         def trains(cfg, method, out_dir, *args, **kwargs):
             trained.append((cfg, method, out_dir))
             return train_baseline(cfg, method, out_dir, *args, **kwargs)
 
-        mp.setattr(scale_eval, "make_test_env", made)
-        mp.setattr(scale_eval, "run_episodes", ran)
+        record_episodes(mp, played)
         mp.setattr(scale_cell, "train_baseline", trains)
 
     on = tmp_path_factory.mktemp("baselines-on")
     off = tmp_path_factory.mktemp("baselines-off")
-    m_on = _run(on, f"baselines=[{','.join(BASES)}]", spy=spy)
-    m_off = _run(off)
+    m_on = run_scale(on, *TINY, f"baselines=[{','.join(BASES)}]", spy=spy)
+    m_off = run_scale(off, *TINY)
     return {"on": (on, m_on), "off": (off, m_off), "played": played, "trained": trained}
 
 
 @pytest.mark.slow
 def test_every_cell_and_seed_has_the_baseline_entries(runs):
     out, m = runs["on"]
-    assert m["baselines"] == BASES and m["methods"] == list(scale.METHODS)
+    assert m["baselines"] == BASES and m["methods"] == list(METHODS)
     assert "baselines" in m["notes"]
     for c in m["cells"]:
-        assert list(c["methods"]) == [*scale.METHODS, *BASES]  # new entries after the methods'
+        assert list(c["methods"]) == [*METHODS, *BASES]  # new entries after the methods'
         blocks = [
             (c["methods"], 8),
             *((run["methods"], 8) for run in c["per_seed"]),
@@ -132,7 +95,7 @@ def test_every_cell_and_seed_has_the_baseline_entries(runs):
                 assert set(r) == {"mean_return", "ci95", "mean_length", "episodes", "gap_closed"}
                 assert r["gap_closed"] is not None  # windy has the exact averaging optimum
         for over in (c["over_seeds"], c["heldout"]["over_seeds"]):
-            assert list(over) == [*scale.METHODS, *BASES]
+            assert list(over) == [*METHODS, *BASES]
             for b in BASES:
                 assert len(over[b]["returns"]) == 2 and over[b]["gap_closed"] is not None
         assert [(t["seed"], t["method"]) for t in c["baseline_training"]] == [
@@ -148,18 +111,18 @@ def test_every_cell_and_seed_has_the_baseline_entries(runs):
         assert c["baseline_eval_seconds"] > 0
     for b in BASES:  # keep_checkpoints=false: the baselines' bundles are removed once read
         assert not list(out.glob(f"cells/*/seed*/{b}.pt"))
-    table = scale.format_table(m)
+    table = scale_report.format_table(m)
     heads = [x for x in table.splitlines() if x.startswith("case ")]
     assert len(heads) == 2 and all("recurrent" in h and "informed" in h for h in heads)
     seeds_lines = [x for x in table.splitlines() if "seeds 0-1:" in x]
     assert seeds_lines and all("recurrent" in x and "informed" in x for x in seeds_lines)
     assert "Held-out instances" in table  # its header is the second "case" line above
-    off_table = scale.format_table(runs["off"][1])
+    off_table = scale_report.format_table(runs["off"][1])
     assert "recurrent" not in off_table and "informed" not in off_table
     with open(out / "scale.csv") as f:
         rows = list(csv.DictReader(f))
     assert {(r["seed"], r["method"]) for r in rows} == {
-        (str(s), name) for s in (0, 1) for name in (*scale.METHODS, *BASES)
+        (str(s), name) for s in (0, 1) for name in (*METHODS, *BASES)
     }
 
 
@@ -169,30 +132,16 @@ def test_the_methods_numbers_are_bit_for_bit_those_of_a_run_without_baselines(ru
     assert set(m_on) - set(m_off) == {"baselines"}
     for c_on, c_off in zip(m_on["cells"], m_off["cells"]):
         assert set(c_on) - set(c_off) == NEW_CELL_KEYS
-    assert _without_timing(_strip_baselines(m_on)) == _without_timing(m_off)
+    assert without_timing(_strip_baselines(m_on)) == without_timing(m_off)
     with open(on / "scale.csv") as f:
         rows_on = [r for r in csv.DictReader(f) if r["method"] not in BASES]
     with open(off / "scale.csv") as f:
         rows_off = list(csv.DictReader(f))
-    assert [_without_timing(r) for r in rows_on] == [_without_timing(r) for r in rows_off]
+    assert [without_timing(r) for r in rows_on] == [without_timing(r) for r in rows_off]
     for k in range(2):  # the trained heads too: every bit
         a = torch.load(on / "cells" / CELL / f"seed{k}" / "heads.pt", weights_only=False)
         b = torch.load(off / "cells" / CELL / f"seed{k}" / "heads.pt", weights_only=False)
-        _assert_same(a, b)
-
-
-def _assert_same(a, b):
-    if isinstance(a, torch.Tensor):
-        assert torch.equal(a, b)
-    elif isinstance(a, dict):
-        assert a.keys() == b.keys()
-        for k in a:
-            if k not in TIMING:
-                _assert_same(a[k], b[k])
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b)
-        for x, y in zip(a, b):
-            _assert_same(x, y)
+        assert_same(a, b)
 
 
 @pytest.mark.slow
@@ -219,25 +168,16 @@ def test_the_baselines_play_the_methods_paired_episodes(runs):
     held_seed = FAMILIES["windy"].tests["heldout"].seed
     for seed, episodes in ((nominal_seed, 8), (held_seed, HELD)):
         by_policy: dict[str, list] = {}
-        for s, name, inst, start in played:
+        for _, s, name, inst, start in played:
             if s == seed:
                 by_policy.setdefault(name, []).append((inst, start))
         assert {"averaging", "options", "interruption", *BASES} <= set(by_policy)
-        want = _episodes(by_policy["averaging"])
+        want = stack_episodes(by_policy["averaging"])
         for b in BASES:
-            got = _episodes(by_policy[b])
+            got = stack_episodes(by_policy[b])
             assert len(got[0]) == 2 * episodes  # two seeds' controllers, the same episodes
             for a, w in zip(got, want):
                 assert torch.equal(a, w), b
-
-
-def _episodes(batches):
-    """(instance fields stacked per episode, start cells) of a list of played batches."""
-    flat = [
-        torch.cat([v.reshape(len(v), -1).double() for _, v in sorted(i.items())], -1)
-        for i, _ in batches
-    ]
-    return torch.cat(flat), torch.cat([s for _, s in batches])
 
 
 def test_the_baseline_phase_leaves_the_global_random_streams_alone(tmp_path):

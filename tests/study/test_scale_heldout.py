@@ -5,15 +5,20 @@ numbers are bit for bit those of a run with the held-out block off (``heldout_ep
 
 from __future__ import annotations
 
-import json
-
 import pytest
 import torch
+from scale_runs import (
+    TIMING,
+    assert_same,
+    record_episodes,
+    run_scale,
+    stack_episodes,
+    without_timing,
+)
 
-from taskvar_torch import keys
-from taskvar_torch.cli import main
+from taskvar_torch.config import METHODS
 from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE
-from taskvar_torch.study import scale, scale_cell, scale_config, scale_eval
+from taskvar_torch.study import scale, scale_cell, scale_config, scale_eval, scale_report
 
 torch.set_num_threads(1)
 
@@ -29,59 +34,19 @@ TINY = [  # two tiny cases (windy 5x5, Wargus 12x12 with 40-step episodes), two 
     "head_report=false",
     'overrides=[env.wargus.size=12,env.wargus.horizon=40,"heads.hidden=[32]",train.batch_size=32]',
 ]
-TIMING = {  # measured times and memory: not reproducible, so not compared
-    "wall_seconds", "train_seconds", "eval_seconds", "frames_per_second", "peak_rss_mb",
-    "frames_per_second_all_seeds", "seconds",
-}  # fmt: skip
-
-
-def _without_timing(x):
-    if isinstance(x, dict):
-        return {k: _without_timing(v) for k, v in x.items() if k not in TIMING}
-    if isinstance(x, list):
-        return [_without_timing(v) for v in x]
-    return x
-
-
-def _run(out, *extra, spy=None):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(scale_cell, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
-        if spy is not None:
-            spy(mp)
-        argv = ["experiment", "scale", "--quick", "--out", str(out), "--no-progress", "--no-plots"]
-        assert main([*argv, *TINY, *extra]) == 0
-    return json.loads((out / "metrics.json").read_text())
 
 
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     """The tiny run with the held-out block (every test env and episode it played recorded) and
     the same run with it off."""
-    played = []  # (family, env seed, policy, instance tensordict) per batch of episodes
-    envs = {}
-    make_test_env, run_episodes = scale_eval.make_test_env, scale_eval.run_episodes
-
-    def spy(mp):
-        def made(cfg, num_envs, seed, index_offset=0, instances="test"):
-            env = make_test_env(cfg, num_envs, seed, index_offset, instances)
-            envs[id(env)] = (cfg.family, seed)
-            return env
-
-        def ran(env, policy, *args, **kwargs):
-            out = run_episodes(env, policy, *args, **kwargs)
-            fam, seed = envs[id(getattr(env, "base_env", env))]
-            name = getattr(policy, "name", type(policy).__name__)
-            start = out.get("start", torch.zeros(out.batch_size, dtype=torch.int64))  # Wargus: none
-            played.append((fam, seed, name, out[keys.INSTANCE].clone(), start.clone()))
-            return out
-
-        mp.setattr(scale_eval, "make_test_env", made)
-        mp.setattr(scale_eval, "run_episodes", ran)
-
+    played = []  # (family, env seed, policy name, instance fields, start cells) per batch
     on = tmp_path_factory.mktemp("heldout-on")
     off = tmp_path_factory.mktemp("heldout-off")
-    m_on = _run(on, f"heldout_episodes={EPISODES}", spy=spy)
-    m_off = _run(off, "heldout_episodes=0")
+    m_on = run_scale(
+        on, *TINY, f"heldout_episodes={EPISODES}", spy=lambda mp: record_episodes(mp, played)
+    )
+    m_off = run_scale(off, *TINY, "heldout_episodes=0")
     return {"on": (on, m_on), "off": (off, m_off), "played": played}
 
 
@@ -100,16 +65,16 @@ def test_every_cell_and_seed_has_a_heldout_block_for_every_method(runs):
         assert h["per_seed"][0]["methods"] == h["methods"]
         assert [run["seed"] for run in h["per_seed"]] == c["seeds"]
         for methods in blocks:  # the nominal block's shape: the same methods, n/a alike
-            assert list(methods) == list(c["methods"]) == list(scale.METHODS)
+            assert list(methods) == list(c["methods"]) == list(METHODS)
             for name, r in methods.items():
                 assert (r is None) == (c["methods"][name] is None), name
                 if r is not None:
                     assert r["episodes"] == EPISODES
                     assert set(r) == set(c["methods"][name])
         assert set(h["over_seeds"]) == set(c["over_seeds"])
-    table = scale.format_table(m)
+    table = scale_report.format_table(m)
     assert "Held-out instances" in table
-    assert "Held-out instances" not in scale.format_table(runs["off"][1])
+    assert "Held-out instances" not in scale_report.format_table(runs["off"][1])
 
 
 @pytest.mark.slow
@@ -120,36 +85,22 @@ def test_the_nominal_results_are_bit_for_bit_those_of_a_run_without_it(runs):
         assert set(c_on) - set(c_off) == {"heldout"} and set(c_off) <= set(c_on)
     strip = {k: v for k, v in m_on.items() if k != "heldout"}
     strip["cells"] = [{k: v for k, v in c.items() if k != "heldout"} for c in m_on["cells"]]
-    assert _without_timing(strip) == _without_timing(m_off)
+    assert without_timing(strip) == without_timing(m_off)
     assert (on / "scale.csv").read_text() != "" and (
-        _csv_without_timing(on) == _csv_without_timing(off)
+        _csvwithout_timing(on) == _csvwithout_timing(off)
     )
     for cell in ("windy-5x5-n4", "wargus-32x32-n4"):  # the trained heads too: every bit
         for k in range(2):
             a = torch.load(on / "cells" / cell / f"seed{k}" / "heads.pt", weights_only=False)
             b = torch.load(off / "cells" / cell / f"seed{k}" / "heads.pt", weights_only=False)
-            _assert_same(a, b)
+            assert_same(a, b)
 
 
-def _csv_without_timing(out):
+def _csvwithout_timing(out):
     lines = (out / "scale.csv").read_text().splitlines()
     head = lines[0].split(",")
     keep = [i for i, k in enumerate(head) if k not in TIMING]
     return [[row.split(",")[i] for i in keep] for row in lines]
-
-
-def _assert_same(a, b):
-    if isinstance(a, torch.Tensor):
-        assert torch.equal(a, b)
-    elif isinstance(a, dict):
-        assert a.keys() == b.keys()
-        for k in a:
-            if k not in TIMING:
-                _assert_same(a[k], b[k])
-    elif isinstance(a, (list, tuple)):
-        assert len(a) == len(b)
-        for x, y in zip(a, b):
-            _assert_same(x, y)
 
 
 @pytest.mark.slow
@@ -166,9 +117,9 @@ def test_the_heldout_episodes_are_the_sealed_ones_paired_across_methods(runs):
             by_policy.setdefault(name, []).append((inst, start))
         # the references (random, oracle) and the methods: two seeds x the methods per cell
         assert {"RandomPolicy", "averaging", "options", "interruption"} <= set(by_policy)
-        first = _episodes(next(iter(by_policy.values())))
+        first = stack_episodes(next(iter(by_policy.values())))
         for name, batches in by_policy.items():
-            eps = _episodes(batches)
+            eps = stack_episodes(batches)
             assert len(eps[0]) % EPISODES == 0, name
             for a, b in zip(eps, first):  # paired: every policy plays the same episodes
                 n = min(len(a), len(b))
@@ -181,18 +132,8 @@ def test_the_heldout_episodes_are_the_sealed_ones_paired_across_methods(runs):
                 assert (seeds == want).all(), name
                 assert ((seeds >= HELDOUT_SEED) & (seeds < HELDOUT_SEED + HELDOUT_SIZE)).all()
         else:  # windy: the training winds under the sealed seed, not the nominal episodes
-            nominal_eps = _episodes([(inst, start) for *_, inst, start in nominal])
+            nominal_eps = stack_episodes([(inst, start) for *_, inst, start in nominal])
             assert not torch.equal(first[0][:EPISODES], nominal_eps[0][:EPISODES])
-
-
-def _episodes(batches):
-    """(instance fields stacked per episode, start cells) of a list of played batches."""
-    flat = [
-        torch.cat([v.reshape(len(v), -1).double() for _, v in sorted(i.items())], -1)
-        for i, _ in batches
-    ]
-    inst = torch.cat(flat)
-    return inst, torch.cat([s for _, s in batches])
 
 
 def test_heldout_references_leave_the_nominal_random_streams_alone():

@@ -6,16 +6,16 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import json
 
 import numpy as np
 import pytest
 import torch
+from scale_runs import run_scale
 
 from taskvar_torch.checkpoint import CheckpointError
-from taskvar_torch.cli import main
+from taskvar_torch.config import METHODS
 from taskvar_torch.factory import load_heads
-from taskvar_torch.study import scale, scale_cell, scale_eval
+from taskvar_torch.study import scale, scale_eval, scale_report
 
 torch.set_num_threads(1)
 
@@ -41,18 +41,12 @@ CELL_KEYS = {
 }  # fmt: skip
 
 
-def _run(out, *extra):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(scale_cell, "SEED_CI_REPS", 200)  # the bootstrap's replications: the test's time
-        argv = ["experiment", "scale", "--quick", "--out", str(out), "--no-progress", "--no-plots"]
-        assert main([*argv, *TINY, *extra]) == 0
-    return json.loads((out / "metrics.json").read_text())
-
-
 @pytest.fixture(scope="module")
 def two_seeds(tmp_path_factory):
     out = tmp_path_factory.mktemp("scale-seeds")
-    m = _run(out, "seeds=2", "total_frames=600", "curve_points=2", "keep_checkpoints=true")
+    m = run_scale(
+        out, *TINY, "seeds=2", "total_frames=600", "curve_points=2", "keep_checkpoints=true"
+    )
     return out, m
 
 
@@ -72,7 +66,7 @@ def test_each_seed_row_is_its_bundle_evaluated_on_the_same_episodes(two_seeds):
         heads.append(h)
         # evaluated directly from the bundle's own config, on the scale's test episodes (seed 0's)
         ecfg = dataclasses.replace(bcfg, seed=0)
-        for method in scale.METHODS:
+        for method in METHODS:
             direct = scale_eval.evaluate(ecfg, method, 8, 8, h)
             row = run["methods"][method]
             if direct is None:
@@ -99,8 +93,8 @@ def test_csv_has_a_row_per_seed_and_the_aggregate_is_over_the_seeds(two_seeds):
     with open(out / "scale.csv", newline="") as f:
         reader = csv.DictReader(f)
         rows = list(reader)
-    assert tuple(reader.fieldnames) == scale.csv_fields(m) and "seed" in reader.fieldnames
-    assert len(rows) == 2 * len(scale.METHODS)
+    assert tuple(reader.fieldnames) == scale_report.csv_fields(m) and "seed" in reader.fieldnames
+    assert len(rows) == 2 * len(METHODS)
     for r in rows:
         v = c["per_seed"][int(r["seed"])]["methods"][r["method"]]
         assert r["mean_return"] == ("n/a" if v is None else str(v["mean_return"]))
@@ -117,24 +111,24 @@ def test_csv_has_a_row_per_seed_and_the_aggregate_is_over_the_seeds(two_seeds):
         lo, hi = agg["mean_ci95"]
         assert min(returns) - 1e-9 <= lo <= agg["mean_return"] <= hi <= max(returns) + 1e-9
         assert agg["gap_closed"] == pytest.approx((agg["mean_return"] - rand) / (orc - rand))
-    assert "Over the training seeds" in scale.format_table(m)
+    assert "Over the training seeds" in scale_report.format_table(m)
     # the figure's final returns are the means over the seeds, with their bootstrap CI
-    mean, (below, above) = scale.final_return(c, "averaging")
+    mean, (below, above) = scale_report.final_return(c, "averaging")
     agg = c["over_seeds"]["averaging"]
     assert mean == agg["mean_return"]
     assert [mean - below, mean + above] == pytest.approx(agg["mean_ci95"])
-    assert [p.name for p in scale.plot_results(out)] == ["scale.png", "scale_curves.png"]
+    assert [p.name for p in scale_report.plot_results(out)] == ["scale.png", "scale_curves.png"]
 
 
 @pytest.mark.slow
 def test_one_seed_writes_todays_keys_and_columns(tmp_path):
     # held-out off: its block is new keys only (tests/study/test_scale_heldout.py)
-    m = _run(tmp_path, "total_frames=200", "curve_points=0", "heldout_episodes=0")
+    m = run_scale(tmp_path, *TINY, "total_frames=200", "curve_points=0", "heldout_episodes=0")
     assert set(m) == TOP_KEYS
     (c,) = m["cells"]
     assert set(c) == CELL_KEYS
     with open(tmp_path / "scale.csv", newline="") as f:
-        assert tuple(csv.DictReader(f).fieldnames) == scale.CSV_FIELDS
+        assert tuple(csv.DictReader(f).fieldnames) == scale_report.CSV_FIELDS
     cell = tmp_path / "cells" / CELL
     assert (cell / "heads.pt").is_file() and not list(cell.glob("seed*"))
 

@@ -1,102 +1,23 @@
 """The study beside the library (issue 45): ``taskvar_torch/study/`` (scale, report, sweep),
 ``benchmarks/`` and ``scripts/`` read ``taskvar_torch`` only through its public names; the library
 imports nothing from the study; no import circle. Read from the import statements (AST), lazy ones
-inside functions too.
-
-A name ``N`` taken from module ``M`` is *public* when no part of ``M`` and not ``N`` starts with an
-underscore and ``M`` declares ``N`` in its ``__all__``, or, where ``M`` has no ``__all__``, defines
-``N`` itself (PEP 8: a name ``M`` merely imports is its implementation detail).
+inside functions too (what a public name is: tests/public_names.py).
 """
 
 from __future__ import annotations
 
-import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-PACKAGE = ROOT / "taskvar_torch"
+from public_names import MODULES, PACKAGE, ROOT, imported_modules, private_uses
+
 STUDY = PACKAGE / "study"
 DISPATCH = set((PACKAGE / "cli").glob("*.py"))
 """Library modules allowed to import the study: the command line, which runs its commands."""
 
 
-def _module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-
-
-MODULES = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
-
-
-def _public_names(module: str) -> set[str]:
-    """``module``'s ``__all__``, or the names it defines where it declares none."""
-    tree = ast.parse(MODULES[module].read_text())
-    defined: set[str] = set()
-    for node in tree.body:
-        inner = node.body + node.orelse if isinstance(node, (ast.If, ast.Try)) else []
-        for n in [node, *inner]:
-            if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-                defined.add(n.name)
-            elif isinstance(n, (ast.Assign, ast.AnnAssign)):
-                targets = n.targets if isinstance(n, ast.Assign) else [n.target]
-                if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
-                    return set(ast.literal_eval(n.value))
-                defined |= {x.id for t in targets for x in ast.walk(t) if isinstance(x, ast.Name)}
-    return {n for n in defined if not n.startswith("_")}
-
-
 def _private_uses(path: Path) -> list[str]:
-    """Every non-public name of ``taskvar_torch`` that ``path`` imports or reads off a module."""
-    tree = ast.parse(path.read_text())
-    modules: dict[str, str] = {}  # local name -> module it stands for
-    taken: list[tuple[int, str, str]] = []  # (line, module, name)
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
-            for a in node.names:
-                if a.name.split(".")[0] == "taskvar_torch":
-                    taken.append((node.lineno, a.name, ""))
-                    if a.asname or "." not in a.name:
-                        modules[a.asname or a.name] = a.name
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            if node.module.split(".")[0] != "taskvar_torch":
-                continue
-            for a in node.names:
-                sub = f"{node.module}.{a.name}"
-                if sub in MODULES:
-                    modules[a.asname or a.name] = sub
-                    taken.append((node.lineno, sub, ""))
-                else:
-                    taken.append((node.lineno, node.module, a.name))
-    for node in ast.walk(tree):
-        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name):
-            module = modules.get(node.value.id)
-            if module and f"{module}.{node.attr}" not in MODULES:
-                taken.append((node.lineno, module, node.attr))
-    hits = []
-    for line, module, name in taken:
-        shown = path.relative_to(ROOT) if ROOT in path.parents else path
-        where = f"{shown}:{line}: {module}{'.' + name if name else ''}"
-        if any(p.startswith("_") for p in module.split(".")) or name.startswith("_"):
-            hits.append(f"{where} is private")
-        elif module not in MODULES:
-            hits.append(f"{where}: no such module")
-        elif name and name not in _public_names(module):
-            hits.append(f"{where} is not in its __all__ (or not defined there)")
-    return hits
-
-
-def _imports(path: Path) -> list[tuple[int, str]]:
-    """``(line, module)`` of every module of ``taskvar_torch`` that ``path`` imports (``from P
-    import m`` counts as ``P.m`` where ``m`` is a module, else as ``P``)."""
-    found = []
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            found += [(node.lineno, a.name) for a in node.names if a.name in MODULES]
-        elif isinstance(node, ast.ImportFrom) and node.module in MODULES and node.level == 0:
-            for a in node.names:
-                sub = f"{node.module}.{a.name}"
-                found.append((node.lineno, sub if sub in MODULES else node.module))
-    return found
+    shown = path.relative_to(ROOT) if ROOT in path.parents else path
+    return private_uses(path.read_text(), str(shown))
 
 
 def test_the_study_benchmarks_and_scripts_read_only_public_names():
@@ -115,7 +36,7 @@ def test_the_library_imports_nothing_from_the_study():
         f"{p.relative_to(ROOT)}:{line} imports {module}"
         for p in PACKAGE.rglob("*.py")
         if STUDY not in p.parents and p not in DISPATCH
-        for line, module in _imports(p)
+        for line, module in imported_modules(p)
         if module.startswith("taskvar_torch.study")
     ]
     assert not hits, hits
@@ -123,7 +44,7 @@ def test_the_library_imports_nothing_from_the_study():
 
 def test_no_import_circle():
     """The package's modules import one another without a circle (lazy imports counted)."""
-    graph = {m: {n for _, n in _imports(p) if n != m} for m, p in MODULES.items()}
+    graph = {m: {n for _, n in imported_modules(p) if n != m} for m, p in MODULES.items()}
     done: set[str] = set()
     path: list[str] = []
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from budgets import SWEEP_POINT  # tests/budgets.py
 
 from taskvar_torch import cli
 from taskvar_torch.factory import load_heads
@@ -27,19 +28,6 @@ from taskvar_torch.study.sweep_grid import (
 torch.set_num_threads(1)
 
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "windy.yaml"
-TINY = [  # on top of --quick: about 5 s per point, and the averaging policy already learns a bit
-    "train.total_frames=2048",
-    "train.init_random_frames=512",
-    "train.eps_decay_frames=1024",
-    "train.updates_per_batch=8",
-    "train.lr=0.005",
-    "train.log_every=1024",
-    "env.windy.horizon=30",
-    "experiment.runs=1",
-    "experiment.episodes_per_run=20",
-    "eval.batch_size=20",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
-]
 TIMING = ("train_seconds", "eval_seconds", "wall_seconds", "checkpoint")
 
 
@@ -180,7 +168,7 @@ def local_sweep(ray_session, tmp_path_factory):
             str(out),
             "--no-progress",
             "seed=0,1",
-            *TINY,
+            *SWEEP_POINT,
         ]
     )
     assert status == 0
@@ -215,7 +203,7 @@ def test_ray_sweep_gives_the_local_sweeps_numbers(local_sweep, ray_session, tmp_
     pytest.importorskip("ray")
     rows = sweep(
         CONFIG,
-        ["seed=0,1", *TINY],
+        ["seed=0,1", *SWEEP_POINT],
         tmp_path,
         backend="ray",
         quick=True,

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from budgets import SWEEP_POINT  # tests/budgets.py
 
 from taskvar_torch.factory import load_heads
 from taskvar_torch.families.windy import fig2 as windy_fig2
@@ -22,18 +23,6 @@ from taskvar_torch.study.sweep_jobs import plan_jobs
 torch.set_num_threads(1)
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
-TINY = [  # tests/study/test_sweep.py's points: a few seconds each
-    "train.total_frames=2048",
-    "train.init_random_frames=512",
-    "train.eps_decay_frames=1024",
-    "train.updates_per_batch=8",
-    "train.lr=0.005",
-    "train.log_every=1024",
-    "env.windy.horizon=30",
-    "experiment.runs=1",
-    "experiment.episodes_per_run=20",
-    "eval.batch_size=20",
-]
 TIMING = ("train_seconds", "eval_seconds", "wall_seconds", "checkpoint", "train_batch")
 
 
@@ -84,7 +73,8 @@ def test_a_seed_sweep_trains_once_and_each_point_evaluates_its_seed(tmp_path, mo
     monkeypatch.setattr(sweep_jobs, "train", counted(sweep_jobs.train))
     monkeypatch.setattr(windy_fig2, "train", counted(windy_fig2.train))
     out = tmp_path / "sweep"
-    rows = sweep(CONFIGS / "windy.yaml", ["seed=0,1", *TINY], out, progress=False, plots=False)
+    items = ["seed=0,1", *SWEEP_POINT]
+    rows = sweep(CONFIGS / "windy.yaml", items, out, progress=False, plots=False)
     assert calls == [2]  # one training run, of both seeds
     assert "seed batches: 1 training run(s) for 2 points" in capsys.readouterr().out
     batch = out / "batches" / "seed=0-1"
@@ -101,7 +91,7 @@ def test_a_seed_sweep_trains_once_and_each_point_evaluates_its_seed(tmp_path, mo
         assert rows[k]["fraction_no_worse"] == m["fraction_no_worse"]
     assert _metrics(out / "seed=0") != _metrics(out / "seed=1")
     # a point's results are its seed bundle evaluated directly
-    cfg1 = load_point_configs(CONFIGS / "windy.yaml", expand_points(["seed=1", *TINY]))[0]
+    cfg1 = load_point_configs(CONFIGS / "windy.yaml", expand_points(["seed=1", *SWEEP_POINT]))[0]
     windy_fig2.windy_fig2(
         cfg1, tmp_path / "direct", batch / "seed1" / "final.pt", progress=False, plots=False
     )
@@ -109,15 +99,11 @@ def test_a_seed_sweep_trains_once_and_each_point_evaluates_its_seed(tmp_path, mo
     assert calls == [2]
 
     # --resume: the batched points' config.yaml is the sweep's, so nothing runs again
-    sweep(
-        CONFIGS / "windy.yaml", ["seed=0,1", *TINY], out, progress=False, plots=False, resume=True
-    )
+    sweep(CONFIGS / "windy.yaml", items, out, progress=False, plots=False, resume=True)
     assert "2 of 2 points complete, running 0" in capsys.readouterr().out and calls == [2]
     # a lost point runs alone on --resume: a real train/ folder, the batch left as it was
     (out / "seed=1" / "metrics.json").unlink()
-    sweep(
-        CONFIGS / "windy.yaml", ["seed=0,1", *TINY], out, progress=False, plots=False, resume=True
-    )
+    sweep(CONFIGS / "windy.yaml", items, out, progress=False, plots=False, resume=True)
     assert calls == [2, 1]
     assert (
         not (out / "seed=1" / "train").is_symlink()

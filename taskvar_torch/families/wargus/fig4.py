@@ -79,16 +79,11 @@ import torch
 import torch.multiprocessing as mp
 
 from taskvar_torch.config import Config, save_config_yaml
-from taskvar_torch.controllers.side_by_side import SideBySide
-from taskvar_torch.experiments.evaluation import run_episodes  # noqa: F401  (read from here)
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
 from taskvar_torch.families import FAMILIES
 from taskvar_torch.families.wargus.family import section
 from taskvar_torch.families.wargus.fig4_metrics import (
     EXPERIMENT,
-    METHODS,
-    mean_over_trials,
-    method_summary,
     summarise,
 )
 from taskvar_torch.families.wargus.fig4_recurrent import run_recurrent_batch
@@ -104,26 +99,13 @@ from taskvar_torch.families.wargus.fig4_repetition import (
 )
 from taskvar_torch.families.wargus.fig4_report import (
     CSV_FIELDS,
-    STYLES,
     csv_rows,
     format_table,
-    is_results_folder,
     plot_results,
 )
 from taskvar_torch.families.wargus.fig4_trial import (
-    LifelongAgent,
-    learn_due,
-    learning_phase,
-    learning_phase_torchrl,
-    learning_phases,
-    nominal_seeds,
     repetition_seed,
-    test_phase,
-    test_phase_torchrl,
-    test_trials,
-    trial_seeds,
 )
-from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder
 
@@ -340,34 +322,10 @@ def _wargus_fig4(
     return metrics
 
 
-__all__ = [  # the protocol, then the names of fig4_trial, side_by_side, snapshots, fig4_metrics,
-    # fig4_report it re-exports
-    "EXPERIMENT",
-    "METHODS",
+__all__ = [  # the protocol and the registry's entry points (experiments/registry.py)
     "default_config_path",
-    "nominal_seeds",
-    "trial_seeds",
-    "method_summary",
-    "repetition_seed",
+    "plot_results",
     "repetition_batches",
     "run_repetitions",
     "wargus_fig4",
-    "LifelongAgent",
-    "learn_due",
-    "learning_phase",
-    "learning_phases",
-    "learning_phase_torchrl",
-    "test_phase",
-    "test_phase_torchrl",
-    "test_trials",
-    "HeadValues",
-    "SideBySide",
-    "mean_over_trials",
-    "summarise",
-    "CSV_FIELDS",
-    "STYLES",
-    "csv_rows",
-    "format_table",
-    "is_results_folder",
-    "plot_results",
 ]

@@ -149,7 +149,6 @@ def summarise(
 
 __all__ = [
     "EXPERIMENT",
-    "METHODS",
     "mean_over_trials",
     "method_summary",
     "summarise",

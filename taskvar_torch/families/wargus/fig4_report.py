@@ -18,9 +18,10 @@ from typing import Any
 
 import numpy as np
 
+from taskvar_torch.config import METHODS
 from taskvar_torch.experiments.curves import moving_average
 from taskvar_torch.experiments.plots import pyplot, save_figure
-from taskvar_torch.families.wargus.fig4_metrics import EXPERIMENT, METHODS
+from taskvar_torch.families.wargus.fig4_metrics import EXPERIMENT
 
 CSV_FIELDS = ("rep", "trial", "method", "items", "interruptions")
 

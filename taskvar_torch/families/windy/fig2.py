@@ -60,14 +60,12 @@ from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE
 from taskvar_torch.families.windy import (
     WindyOracle,
     exact_returns,
-    firing_values,
     learnt_vs_oracle_by_start,
 )
 from taskvar_torch.families.windy.config import section
 from taskvar_torch.families.windy.env import WindyGridEnv
 from taskvar_torch.families.windy.family import EXACT_ORACLE_CELLS, windy_layout
 from taskvar_torch.families.windy.fig2_metrics import (
-    EXACT_ATOL,
     METHODS,
     run_summary,
     summarise,
@@ -76,18 +74,14 @@ from taskvar_torch.families.windy.fig2_metrics import (
 from taskvar_torch.families.windy.fig2_report import (
     CSV_FIELDS,
     CSV_NAME,
-    FIGURES,
-    HEATMAP,
     METRICS_NAME,
     csv_rows,
     format_start_table,
     format_table,
     plot_results,
-    read_csv_columns,
 )
 from taskvar_torch.families.windy.instances import WindyInstances
 from taskvar_torch.heads.bundle import Heads
-from taskvar_torch.oracle import discounted_chain_values
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import (
     RESULT_MARKERS,
@@ -599,7 +593,7 @@ def eval_checkpoint(
     )
 
 
-__all__ = [  # the protocol, then the names of fig2_metrics, fig2_report and oracle it re-exports
+__all__ = [  # the protocol, and the registry's plot (experiments/registry.py)
     "DISTRIBUTIONS",
     "EXACT_MAX_CELLS",
     "HELDOUT",
@@ -613,27 +607,8 @@ __all__ = [  # the protocol, then the names of fig2_metrics, fig2_report and ora
     "make_eval_env",
     "make_oracle",
     "play_run",
+    "plot_results",
     "run_distribution",
     "test_seed",
     "windy_fig2",
-    "EXACT_ATOL",
-    "METHODS",
-    "run_summary",
-    "summarise",
-    "theorem1_check",
-    "CSV_FIELDS",
-    "CSV_NAME",
-    "FIGURES",
-    "HEATMAP",
-    "METRICS_NAME",
-    "csv_rows",
-    "format_start_table",
-    "format_table",
-    "plot_results",
-    "read_csv_columns",
-    "WindyOracle",
-    "discounted_chain_values",
-    "exact_returns",
-    "firing_values",
-    "learnt_vs_oracle_by_start",
 ]

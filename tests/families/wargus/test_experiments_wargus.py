@@ -10,17 +10,23 @@ import math
 import numpy as np
 import pytest
 import torch
+from budgets import FIG4  # tests/budgets.py
 from torchrl.envs import InitTracker, TransformedEnv
 
 from taskvar_torch import keys
 from taskvar_torch.cli import main
-from taskvar_torch.config import load_config
+from taskvar_torch.config import METHODS, load_config
+from taskvar_torch.controllers.side_by_side import SideBySide
 from taskvar_torch.experiments import curves
+from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.factory import load_heads, make_env, make_subtasks
 from taskvar_torch.families.wargus import (
     fig4,
     fig4_agent,
+    fig4_metrics,
     fig4_repetition,
+    fig4_report,
+    fig4_trial,
 )
 from taskvar_torch.families.wargus.dynamics import WargusInstances
 from taskvar_torch.families.wargus.env import WargusEnv
@@ -33,13 +39,7 @@ TINY = [
     "env.wargus.horizon=60",
     f"experiment.runs={REPS}",
     f"experiment.trials={TRIALS}",
-    "experiment.learning_episodes_per_trial=8",
-    "train.init_random_frames=100",
-    "train.batch_size=32",
-    "train.frames_per_batch=64",
-    "train.buffer_size=5000",
-    "heads.hidden=[32]",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
+    *FIG4,
 ]
 FILES = (
     "config.yaml",
@@ -75,17 +75,17 @@ def test_cli_run_writes_every_file(results):
     for name in FILES:
         assert (results / name).is_file(), name
     rows = list(csv.DictReader((results / "per_trial.csv").open()))
-    assert len(rows) == REPS * TRIALS * len(fig4.METHODS)
-    assert set(rows[0]) == set(fig4.CSV_FIELDS)
-    assert {r["method"] for r in rows} == set(fig4.METHODS)
+    assert len(rows) == REPS * TRIALS * len(METHODS)
+    assert set(rows[0]) == set(fig4_report.CSV_FIELDS)
+    assert {r["method"] for r in rows} == set(METHODS)
     heads, cfg = load_heads(results / "rep1" / "final.pt")  # a bundle `taskvar eval` can read
     assert heads.has("robustness") and cfg.seed == 1  # repetition 1's own seed
 
 
 def test_metrics_have_every_method_and_key(results):
     m = json.loads((results / "metrics.json").read_text())
-    assert m["experiment"] == fig4.EXPERIMENT
-    assert set(m["methods"]) == set(fig4.METHODS)
+    assert m["experiment"] == fig4_metrics.EXPERIMENT
+    assert set(m["methods"]) == set(METHODS)
     for name, s in m["methods"].items():
         for key in METHOD_KEYS:
             assert key in s, (name, key)
@@ -127,7 +127,7 @@ def test_repetitions_differ_and_same_seed_reproduces(results, tmp_path):
     again = fig4_repetition.run_repetition(
         cfg, 1, tmp_path
     )  # repetition 1 alone, in a fresh process state
-    for i, name in enumerate(fig4.METHODS):
+    for i, name in enumerate(METHODS):
         assert again["items"][:, i].tolist() == m["methods"][name]["curve_per_rep"][1]
     assert again["learn_items"].tolist() == learn[1]
     assert int(again["frames"].sum()) == frames[1]
@@ -145,20 +145,18 @@ def test_side_by_side_equals_each_controller_alone():
         base = WargusEnv(
             n,
             config=dataclasses.asdict(cfg.env.wargus),
-            instances=WargusInstances(seeds=fig4.nominal_seeds(k)),
+            instances=WargusInstances(seeds=fig4_trial.nominal_seeds(k)),
             seed=0,
         )
         return TransformedEnv(base, primer)
 
     primer = controllers[-1].primer
     trace = ("action", ("next", "running_option"))
-    together = fig4.run_episodes(
-        nominal_env(len(controllers) * k, primer()), fig4.SideBySide(controllers, k), 40, trace
+    together = run_episodes(
+        nominal_env(len(controllers) * k, primer()), SideBySide(controllers, k), 40, trace
     )
     for i, c in enumerate(controllers):
-        alone = fig4.run_episodes(
-            nominal_env(k, primer()), c, 40, trace if c.stateful else trace[:1]
-        )
+        alone = run_episodes(nominal_env(k, primer()), c, 40, trace if c.stateful else trace[:1])
         rows = together[i * k : (i + 1) * k]
         T = alone["trace", "alive"].shape[-1]
         for key in ("return", "length", ("trace", "action"), ("trace", "alive")):
@@ -189,9 +187,9 @@ def test_trials_to_90pct_on_known_curves():
 
 
 def test_nominal_seeds_extend_the_fixed_list():
-    assert fig4.nominal_seeds(5) == (0, 1, 2, 3, 4)
-    assert fig4.nominal_seeds(3) == (0, 1, 2)
-    assert fig4.nominal_seeds(7) == (0, 1, 2, 3, 4, 5, 6)
+    assert fig4_trial.nominal_seeds(5) == (0, 1, 2, 3, 4)
+    assert fig4_trial.nominal_seeds(3) == (0, 1, 2)
+    assert fig4_trial.nominal_seeds(7) == (0, 1, 2, 3, 4, 5, 6)
 
 
 def test_no_plots_writes_everything_but_the_png(tmp_path):
@@ -235,7 +233,7 @@ def _trailing_mean(x: list[float], w: int) -> list[float]:
 def _recompute(rows: list[dict[str, str]]) -> dict[str, dict[str, float]]:
     """Each method's figures from ``per_trial.csv``'s rows, by plain loops (not fig4_metrics)."""
     out = {}
-    for name in fig4.METHODS:
+    for name in METHODS:
         mine = [r for r in rows if r["method"] == name]
         reps = sorted({int(r["rep"]) for r in mine})
         trials = sorted({int(r["trial"]) for r in mine})
@@ -264,7 +262,7 @@ def test_metrics_recomputed_from_the_csv_equal_metrics_json(results, csv_name, b
     m = json.loads((results / "metrics.json").read_text())
     m = m if block is None else m[block]
     rows = list(csv.DictReader((results / csv_name).open()))
-    assert len(rows) == REPS * TRIALS * len(fig4.METHODS)
+    assert len(rows) == REPS * TRIALS * len(METHODS)
     for name, want in _recompute(rows).items():
         got = m["methods"][name]
         assert got["curve_mean"] == pytest.approx(want["curve_mean"], rel=1e-12, abs=1e-12)
@@ -282,7 +280,7 @@ def test_held_out_test_phases_play_sealed_instances_paired_and_apart_from_nomina
     cfg = load_config(fig4.default_config_path(), TINY)
     k, trials = 5, len(HELDOUT_SEEDS) // 5
     env = fig4_agent.make_heldout_test_env(cfg, k, seed=0, first_trial=0, trials=trials)
-    seeds = env.reset()["instance", "seed"].view(trials, len(fig4.METHODS), k)
+    seeds = env.reset()["instance", "seed"].view(trials, len(METHODS), k)
     assert (seeds == seeds[:, :1]).all()  # every method plays the same instances (paired)
     assert sorted(seeds[:, 0].flatten().tolist()) == list(HELDOUT_SEEDS)  # each sealed one once
     nominal = fig4_agent.make_test_env(cfg, k, seed=0, trials=2).reset()["instance", "seed"]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from budgets import FIG4  # tests/budgets.py
 
 from taskvar_torch.config import load_config
 from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition
@@ -16,13 +17,7 @@ TINY = [
     "env.wargus.horizon=60",
     "experiment.runs=3",
     "experiment.trials=4",
-    "experiment.learning_episodes_per_trial=8",
-    "train.init_random_frames=100",
-    "train.batch_size=32",
-    "train.frames_per_batch=64",
-    "train.buffer_size=5000",
-    "heads.hidden=[32]",
-    "train.compile=false",  # configs/wargus.yaml compiles; a test run does not pay it off
+    *FIG4,
 ]
 KEYS = ("items", "interruptions", "control_steps", "item_lost", "learn_items", "frames", "updates")
 

@@ -8,8 +8,9 @@ from torchrl.envs import InitTracker, TransformedEnv
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
+from taskvar_torch.controllers.side_by_side import SideBySide
 from taskvar_torch.factory import make_env
-from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition
+from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition, fig4_trial
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 
@@ -57,7 +58,7 @@ def _agent(cfg, torchrl: bool):
     if torchrl:
         env = TransformedEnv(env, InitTracker())
     agent = fig4_agent.make_agent(cfg, env, SEED)
-    return env, agent, fig4.SideBySide(fig4_agent.make_test_controllers(agent), K)
+    return env, agent, SideBySide(fig4_agent.make_test_controllers(agent), K)
 
 
 def _plain(tested: dict) -> dict:
@@ -76,8 +77,10 @@ def test_fast_trials_equal_torchrl_trials():
     torch.manual_seed(11)
     ref = []
     for _ in range(TRIALS):
-        learned = fig4.learning_phase_torchrl(agent, env)
-        ref.append((learned, agent.updates, _plain(fig4.test_phase_torchrl(policy, test_env, K))))
+        learned = fig4_trial.learning_phase_torchrl(agent, env)
+        ref.append(
+            (learned, agent.updates, _plain(fig4_trial.test_phase_torchrl(policy, test_env, K)))
+        )
     ref_agent, ref_rng = agent, torch.get_rng_state()
 
     env, agent, policy = _agent(cfg, torchrl=False)
@@ -85,9 +88,9 @@ def test_fast_trials_equal_torchrl_trials():
     torch.manual_seed(11)
     learned, snapshots = [], []
     for _ in range(TRIALS):
-        learned.append((fig4.learning_phase(agent, env), agent.updates))
+        learned.append((fig4_trial.learning_phase(agent, env), agent.updates))
         snapshots.append(policy.head_values.snapshot())
-    tested = fig4.test_trials(
+    tested = fig4_trial.test_trials(
         policy, fig4_agent.make_test_env(cfg, K, SEED, 0, TRIALS), K, snapshots
     )
     fast = [(lrn, u, _plain(t)) for (lrn, u), t in zip(learned, tested)]
@@ -103,7 +106,7 @@ def test_fast_trials_equal_torchrl_trials():
     for p, q in zip(agent.heads.parameters(), ref_agent.heads.parameters()):
         assert torch.equal(p, q)
     # the last trial alone, on the live heads, as the batch gave it
-    alone = fig4.test_phase(policy, fig4_agent.make_test_env(cfg, K, SEED, TRIALS - 1), K)
+    alone = fig4_trial.test_phase(policy, fig4_agent.make_test_env(cfg, K, SEED, TRIALS - 1), K)
     assert _plain(alone) == fast[-1][2]
 
 

@@ -17,8 +17,9 @@ import torch
 from taskvar_torch import cli, keys
 from taskvar_torch.config import load_config
 from taskvar_torch.families.windy import dynamics as windy
+from taskvar_torch.families.windy import exact_returns, fig2_metrics, fig2_report
 from taskvar_torch.families.windy import fig2 as wf
-from taskvar_torch.oracle import table_heads
+from taskvar_torch.oracle import discounted_chain_values, table_heads
 
 torch.set_num_threads(1)
 
@@ -83,8 +84,8 @@ def test_quick_experiment_writes_every_file(results):
         "train/final.pt",
         "episodes.csv",
         "metrics.json",
-        *wf.FIGURES.values(),
-        wf.HEATMAP,
+        *fig2_report.FIGURES.values(),
+        fig2_report.HEATMAP,
     ):
         path = results / name
         assert path.is_file() and path.stat().st_size > 0, name
@@ -163,7 +164,7 @@ def test_eval_reproduces_the_experiment(results, tmp_path, capsys, method, test,
 
 @pytest.mark.slow
 def test_plot_regenerates_the_figures(results, capsys):
-    paths = [results / f for f in (*wf.FIGURES.values(), wf.HEATMAP)]
+    paths = [results / f for f in (*fig2_report.FIGURES.values(), fig2_report.HEATMAP)]
     for p in paths:
         p.unlink()
     rc, out, err = _cli(["plot", str(results)], capsys)
@@ -238,7 +239,7 @@ def test_exact_returns_match_the_oracle_for_the_averaging_policy():
     p = np.array([0.1, 0.5, 0.9])
     d = np.array([0, 1, 1])
     start = oracle.start_cells[:3].numpy()
-    got = wf.exact_returns(oracle, ctrl, cfg, p, d, start)
+    got = exact_returns(oracle, ctrl, cfg, p, d, start)
     pi = oracle.averaging_policy()
     want = [
         oracle.episode_return(pi, float(p[i]), int(d[i]), start=int(start[i])).item()
@@ -254,7 +255,7 @@ def test_discounted_chain_values_match_policy_evaluation():
 
     p, d = torch.tensor([0.3, 0.8], dtype=torch.float64), torch.tensor([0, 1])
     P, R = windy.transition_tensors(oracle.model, p, d, dtype=torch.float64)
-    V = wf.discounted_chain_values(P, R, chain, oracle.gamma)[..., 0]
+    V = discounted_chain_values(P, R, chain, oracle.gamma)[..., 0]
     want = oracle.evaluate(oracle.averaging_policy(), p, d)
     torch.testing.assert_close(V, want, atol=1e-8, rtol=0)
 
@@ -281,10 +282,12 @@ def test_distribution_metrics_count_firings_and_check_theorem1():
     failed = th["outcome_premise_failed_somewhere"]["episodes"]
     assert held + failed == th["episodes_with_firing"]
     # the sampled mean return agrees with the exact expected return of the same episodes
-    for method in wf.METHODS:
+    for method in fig2_metrics.METHODS:
         s = m["mean_return"][method]
         assert abs(s["mean"] - m["exact"]["mean_return"][method]) < 4 * max(s["ci95"], 0.5)
-    assert "Theorem 1 premise" in wf.format_table({**m, "layout": "default", "south_only": None})
+    assert "Theorem 1 premise" in fig2_report.format_table(
+        {**m, "layout": "default", "south_only": None}
+    )
 
 
 # ---- relations a wrong implementation would break (issue 33, item 5) ---------------------------
