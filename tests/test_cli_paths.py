@@ -352,3 +352,33 @@ def test_eval_help_names_each_registered_familys_tests():
     text = parsers["eval"].format_help()
     for name, fam in FAMILIES.items():
         assert f"  {name}: {', '.join(fam.tests)}" in text
+
+
+def test_an_interrupt_inside_a_torchrl_loss_is_the_interrupt_not_a_bug(capsys):
+    """SIGTERM inside TorchRL's DQN loss: tensordict's ``to_module`` exit fails on the way out
+    (a TensorDict's truth value raises); the command still ends with the interrupt's one line and
+    status 143, not an internal error (found stopping ``train-baselines --method recurrent``)."""
+    import argparse
+
+    from tensordict import TensorDict
+
+    from taskvar_torch.cli.failures import _Terminated, run_command
+
+    module = torch.nn.Linear(2, 2)
+    params = TensorDict.from_module(module).clone()
+
+    def run(args):
+        with params.to_module(module):
+            raise _Terminated
+
+    code = run_command("train-baselines", run, argparse.Namespace())
+    err = capsys.readouterr().err.strip()
+    assert code == 143, err
+    assert err == "taskvar train-baselines: interrupted by SIGTERM"
+
+    def bug(args):
+        with params.to_module(module):
+            raise ZeroDivisionError("a bug")
+
+    assert run_command("eval", bug, argparse.Namespace()) == 1  # a bug stays a bug
+    assert "internal error (ZeroDivisionError)" in capsys.readouterr().err

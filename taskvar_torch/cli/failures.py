@@ -27,6 +27,8 @@ def run_command(
             check_out_path(args.out)
         return run(args)
     except (ValueError, CheckpointError, RuntimeError) as e:
+        if (interrupt := _interrupt_behind(e)) is not None:
+            return _interrupted(name, interrupt)
         if type(e).__name__ == "TrainingInterrupted":
             print(f"taskvar {name}: {e}", file=sys.stderr)
             return 128 + int(e.signum)
@@ -43,12 +45,32 @@ def run_command(
     except MemoryError:
         return _memory_error(name)
     except KeyboardInterrupt as e:
-        signum = getattr(e, "signum", signal.SIGINT)
-        text = f": {e}" if str(e) else f" by {signal.Signals(signum).name}"
-        print(f"taskvar {name}: interrupted{text}", file=sys.stderr)
-        return 128 + signum
+        return _interrupted(name, e)
     except Exception as e:  # not the input's fault: a bug, reported as one
+        if (interrupt := _interrupt_behind(e)) is not None:
+            return _interrupted(name, interrupt)
         return _bug(name, e)
+
+
+def _interrupt_behind(e: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C or SIGTERM that ``e`` was raised while unwinding, if any: a context manager's
+    exit can fail on the way out (tensordict's ``to_module`` inside TorchRL's losses returns a
+    TensorDict whose truth value raises), and that failure is the interrupt, not a bug."""
+    seen = set()
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__context__
+    return None
+
+
+def _interrupted(name: str, e: KeyboardInterrupt) -> int:
+    """The one line of a command stopped by Ctrl-C or SIGTERM; status 128 + N."""
+    signum = getattr(e, "signum", signal.SIGINT)
+    text = f": {e}" if str(e) else f" by {signal.Signals(signum).name}"
+    print(f"taskvar {name}: interrupted{text}", file=sys.stderr)
+    return 128 + signum
 
 
 def _out_of_memory(e: BaseException) -> bool:
