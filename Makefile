@@ -7,7 +7,7 @@ OUT ?= results/windy-fig2-quick
 DEMO ?= results/demo
 DEMO_FRAMES := 10240
 WORKERS ?= 2
-PYTEST = OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(BIN)/python -m pytest -q -n $(WORKERS) \
+PYTEST = OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE $(BIN)/python -m pytest -q -n $(WORKERS) \
 	--dist loadfile --no-loadscope-reorder
 DEMO_TRAIN := train.total_frames=$(DEMO_FRAMES) train.eps_decay_frames=6000 \
 	train.init_random_frames=1024 train.checkpoint_every=0
@@ -66,7 +66,8 @@ fig2: install
 ## test: install the test extras, check lint and formatting, run the whole suite, slow tests
 ## included, with a timeout per test, and print the 20 slowest (what .ci/run calls). The files
 ## run on $(WORKERS) pytest-xdist workers (whole files each, slow files first: tests/conftest.py),
-## one torch thread each; WORKERS=0 runs them in this process
+## one torch thread each, OpenMP threads that sleep rather than spin when they wait (a test that
+## asks for 2 threads beside the other worker ran 137 s instead of 3); WORKERS=0 runs them in this process
 test: install-test
 	$(BIN)/ruff check taskvar_torch tests benchmarks scripts
 	$(BIN)/ruff format --check taskvar_torch tests benchmarks scripts
