@@ -104,9 +104,9 @@ def test_allocator_settings_are_set_once_and_can_be_left_alone(monkeypatch):
 
     from taskvar_torch import allocator
 
-    monkeypatch.setattr(allocator, "_done", False)
+    monkeypatch.setattr(allocator, "_result", None)
     monkeypatch.setenv("TASKVAR_MALLOC", "default")
     assert allocator.keep_freed_memory() is False  # glibc's settings left as they are
     monkeypatch.delenv("TASKVAR_MALLOC")
     if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
-        assert allocator.keep_freed_memory() is True and allocator._done
+        assert allocator.keep_freed_memory() is True and allocator._result
