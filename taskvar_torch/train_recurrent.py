@@ -125,11 +125,12 @@ def build_for_training(cfg: Config, method: str) -> tuple[TensorDictSequential, 
 def stored_keys(method: str) -> tuple:
     """What the replay keeps of each transition: the step (observation, action, next reward and
     done flags, episode starts) and, for ``recurrent``, the GRU's stored hidden state and the
-    previous action and reward; for ``informed``, the hidden instance its features are read from
+    previous action and reward (the state a step starts from and the one it hands on, so both
+    passes of the loss start a slice from the state stored at collection); for ``informed``, the hidden instance its features are read from
     (at ``s`` and ``s'``)."""
     if method == "recurrent":
         prev = (PREV_ACTION, PREV_REWARD, (keys.NEXT, PREV_ACTION), (keys.NEXT, PREV_REWARD))
-        return (*_STORE, RECURRENT_STATE, *prev)
+        return (*_STORE, RECURRENT_STATE, (keys.NEXT, RECURRENT_STATE), *prev)
     return (*_STORE, keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
 
 
@@ -238,14 +239,23 @@ class BaselineLearner:
         """One replay sample: ``train.batch_size`` transitions, or (recurrent) the slices."""
         return self.buffer.sample()
 
+    def slices(self, sample: TensorDictBase) -> torch.Tensor:
+        """Ready a recurrent ``sample`` for the loss and return its loss rows (:func:`burn_in_mask`).
+
+        Each slice's first row is marked ``("next", "is_init")`` too, so the next-state pass runs
+        the GRU slice by slice like the online pass; in recurrent mode ``GRUModule`` starts each
+        slice from the hidden state stored at its first row (it zeroes no state there), which is
+        ``("next", "recurrent_state")`` for the next-state pass: the state the collected step handed
+        on, the online pass's next state as of collection (R2D2's stored state)."""
+        nxt = (keys.NEXT, "is_init")
+        sample.set(nxt, sample.get(nxt) | sample.get("is_init"))
+        return burn_in_mask(sample, self.burn_in)
+
     def update(self, sample: TensorDictBase) -> torch.Tensor:
         """One gradient step on ``sample`` (:meth:`sample`); returns the loss (detached)."""
         sample = sample.to(self.device)
         if self.recurrent:
-            # slice starts are init steps for the next-state pass too (stored hidden state)
-            nxt = (keys.NEXT, "is_init")
-            sample.set(nxt, sample.get(nxt) | sample.get("is_init"))
-            mask = burn_in_mask(sample, self.burn_in).to(torch.float32)
+            mask = self.slices(sample).to(torch.float32)
             with set_recurrent_mode(True):
                 per_row = self.loss(sample)["loss"].reshape(-1)
             value = (per_row * mask).sum() / mask.sum().clamp_min(1.0)

@@ -91,3 +91,29 @@ def test_burn_in_mask_skips_the_warm_up_unless_the_slice_starts_an_episode():
     expected = torch.tensor([0, 0, 1, 1, 1, 1, 1, 1, 1, 1], dtype=torch.bool)
     assert torch.equal(mask, expected)
     assert bool(burn_in_mask(td, 0).all())
+
+
+@pytest.mark.parametrize("config,batches", [("configs/windy.yaml", 40), ("configs/taxi.yaml", 30)])
+def test_both_passes_start_a_slice_from_the_stored_state(config, batches):
+    """With the weights of collection, the loss's next-state pass at row j of a slice gives the
+    online pass's Q-values at row j + 1: both start from the stored GRU state (a next-state pass
+    started from zeros differs at every slice that does not start an episode)."""
+    from torchrl.modules import set_recurrent_mode
+
+    cfg, learner, _ = _filled_learner(config, batches, ["train.compile=false"])
+    net = learner.net
+    checked = 0
+    for _ in range(5):
+        s = learner.buffer.sample()
+        learner.slices(s)
+        starts = s["is_init"].reshape(-1)
+        with torch.no_grad(), set_recurrent_mode(True):
+            online = net(s.clone())["action_value"]
+            nxt = net(s["next"].clone())["action_value"]
+        inner = ~starts[1:]
+        torch.testing.assert_close(nxt[:-1][inner], online[1:][inner], atol=1e-5, rtol=1e-5)
+        # the rows that test the slice's start: its first row, where the slice is mid-episode
+        first = starts.nonzero().squeeze(-1)
+        mid = ~s[EPISODE_START].reshape(-1)[first]
+        checked += int((mid & inner[first.clamp_max(len(inner) - 1)]).sum())
+    assert checked > 0
