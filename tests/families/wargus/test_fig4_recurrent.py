@@ -58,6 +58,10 @@ def test_learning_phase_stores_whole_episodes_and_takes_the_due_updates():
         nxt, now = s["next", "observation"][:-1][inner], s["observation"][1:][inner]
         assert inner.any() and torch.equal(now, nxt)
         assert not bool(s["next", "done"].reshape(-1)[:-1][inner].any())
+        # the state each step hands on is stored, and is the next step's (both loss passes
+        # start a slice from stored states)
+        handed, taken = s["next", "recurrent_state"][:-1][inner], s["recurrent_state"][1:][inner]
+        assert torch.equal(handed, taken) and bool(handed.abs().sum() > 0)
 
 
 @pytest.mark.slow
