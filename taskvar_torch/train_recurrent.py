@@ -27,13 +27,16 @@ keys are set.
 **recurrent** (DRQN; Ni et al. 2022's recipe for a strong recurrent model-free baseline, with
 the choices made here): one GRU encoder shared by the Q-values (a value-based agent has no actor
 to separate it from); inputs the observation, the previous action and the previous reward; the
-replay holds each sub-env's stream in time order (``LazyTensorStorage(ndim=2)`` over the
-collector's ``(N, T)`` batch, whose time dimension it finds by name), sampled by
+replay holds each sub-env's stream in time order (``LazyTensorStorage(ndim=2)``, the
+collector's ``(N, T)`` batches extended along their time dimension), sampled by
 :class:`~torchrl.data.replay_buffers.SliceSampler` in slices of ``baseline.burn_in +
-baseline.slice_len`` consecutive steps of one sub-env within one episode; each slice starts from
-the GRU state stored at collection (R2D2) and its first ``baseline.burn_in`` steps only warm the
-GRU up (no loss there), unless the slice starts an episode, whose state is exactly zero. Stored
-states and burn-in rather than zero-start full episodes: Wargus episodes run 500 steps.
+baseline.slice_len`` consecutive steps of one sub-env within one episode (a stored episode
+uniformly, then a start in it: a step of a short episode is drawn more often than one of a long
+one); both passes of the loss start each slice from the GRU states stored at collection (R2D2;
+:func:`loss_network`), and its first ``baseline.burn_in`` steps carry no loss (gradients of the
+later steps flow back through them), unless the slice starts an episode, whose state is exactly
+zero. Stored states and burn-in rather than zero-start full episodes: Wargus episodes run 500
+steps.
 
 **informed** (a bundle whose heads did not train it): the same network as the informed head,
 on uniformly sampled transitions of its own epsilon-greedy stream.
@@ -56,7 +59,7 @@ from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler, SliceSampler
-from torchrl.modules import EGreedyModule, set_recurrent_mode
+from torchrl.modules import EGreedyModule, GRUModule, set_recurrent_mode
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from taskvar_torch import keys
@@ -160,6 +163,29 @@ def burn_in_mask(sample: TensorDictBase, burn_in: int) -> torch.Tensor:
     return (position >= int(burn_in)) | from_start
 
 
+LOSS_STATE = "recurrent_state_out"
+"""Where the loss network's GRU writes the state it hands on (:func:`loss_network`)."""
+
+
+def loss_network(net: TensorDictSequential) -> TensorDictSequential:
+    """The recurrent Q-network as the loss runs it: the same modules and weights, its
+    ``GRUModule`` writing the state it hands on to :data:`LOSS_STATE` instead of
+    ``("next", "recurrent_state")``.
+
+    In recurrent mode ``GRUModule`` writes zeros to its state key at every row but a slice's last,
+    and ``DQNLoss`` runs the next-state passes on the tensordict its online pass wrote to, so
+    through ``net`` those passes would start each slice from zeros, not from the stored
+    ``("next", "recurrent_state")`` (``tests/test_recurrent_replay.py``)."""
+    modules = []
+    for m in net:
+        if isinstance(m, GRUModule):
+            m = GRUModule(
+                gru=m.gru, in_keys=list(m.in_keys[:2]), out_keys=[m.out_keys[0], LOSS_STATE]
+            )
+        modules.append(m)
+    return TensorDictSequential(*modules)
+
+
 class BaselineLearner:
     """A baseline's replay and update rule (module docstring): ``DQNLoss`` with a target network
     on ``net``, Adam, gradient clipping and the config's target update, all from ``cfg``.
@@ -188,7 +214,11 @@ class BaselineLearner:
         self.max_grad_norm = t.max_grad_norm
         self.burn_in = int(cfg.baseline.burn_in)
         self.loss = DQNLoss(
-            net, action_space=action_spec, delay_value=True, double_dqn=t.double_q, reduction="none"
+            loss_network(net) if recurrent else net,
+            action_space=action_spec,
+            delay_value=True,
+            double_dqn=t.double_q,
+            reduction="none",
         )
         self.loss.make_value_estimator(gamma=float(t.gamma))
         if t.target_update == "soft":
@@ -246,7 +276,8 @@ class BaselineLearner:
         the GRU slice by slice like the online pass; in recurrent mode ``GRUModule`` starts each
         slice from the hidden state stored at its first row (it zeroes no state there), which is
         ``("next", "recurrent_state")`` for the next-state pass: the state the collected step handed
-        on, the online pass's next state as of collection (R2D2's stored state)."""
+        on, the online pass's next state as of collection (R2D2's stored state; the loss's network
+        leaves it in place: :func:`loss_network`)."""
         nxt = (keys.NEXT, "is_init")
         sample.set(nxt, sample.get(nxt) | sample.get("is_init"))
         return burn_in_mask(sample, self.burn_in)

@@ -95,13 +95,16 @@ def test_burn_in_mask_skips_the_warm_up_unless_the_slice_starts_an_episode():
 
 @pytest.mark.parametrize("config,batches", [("configs/windy.yaml", 40), ("configs/taxi.yaml", 30)])
 def test_both_passes_start_a_slice_from_the_stored_state(config, batches):
-    """With the weights of collection, the loss's next-state pass at row j of a slice gives the
-    online pass's Q-values at row j + 1: both start from the stored GRU state (a next-state pass
-    started from zeros differs at every slice that does not start an episode)."""
+    """With the weights of collection, the next-state pass at row j of a slice gives the online
+    pass's Q-values at row j + 1: both start from the stored GRU state (a next-state pass started
+    from zeros differs at every slice that does not start an episode). Checked on the network and
+    through the loss itself: ``DQNLoss``'s per-row loss is the squared TD error against the double-Q
+    target from the stored-state next pass (target weights = online ones before any update)."""
     from torchrl.modules import set_recurrent_mode
 
     cfg, learner, _ = _filled_learner(config, batches, ["train.compile=false"])
     net = learner.net
+    assert cfg.train.double_q
     checked = 0
     for _ in range(5):
         s = learner.buffer.sample()
@@ -110,8 +113,15 @@ def test_both_passes_start_a_slice_from_the_stored_state(config, batches):
         with torch.no_grad(), set_recurrent_mode(True):
             online = net(s.clone())["action_value"]
             nxt = net(s["next"].clone())["action_value"]
+            loss = learner.loss(s.clone())["loss"].reshape(-1)
         inner = ~starts[1:]
         torch.testing.assert_close(nxt[:-1][inner], online[1:][inner], atol=1e-5, rtol=1e-5)
+        # the loss: (Q(s, a) - r - gamma (1 - terminated) Q(s', argmax Q(s', .)))^2 per row
+        pred = online.gather(-1, s["action"].long().reshape(-1, 1)).reshape(-1)
+        bootstrap = nxt.gather(-1, nxt.argmax(-1, keepdim=True)).reshape(-1)
+        alive = (~s["next", "terminated"].reshape(-1)).float()
+        target = s["next", "reward"].reshape(-1) + cfg.train.gamma * alive * bootstrap
+        torch.testing.assert_close(loss, (pred - target) ** 2, atol=1e-5, rtol=1e-4)
         # the rows that test the slice's start: its first row, where the slice is mid-episode
         first = starts.nonzero().squeeze(-1)
         mid = ~s[EPISODE_START].reshape(-1)[first]
