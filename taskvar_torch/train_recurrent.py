@@ -129,8 +129,8 @@ def stored_keys(method: str) -> tuple:
     """What the replay keeps of each transition: the step (observation, action, next reward and
     done flags, episode starts) and, for ``recurrent``, the GRU's stored hidden state and the
     previous action and reward (the state a step starts from and the one it hands on, so both
-    passes of the loss start a slice from the state stored at collection); for ``informed``, the hidden instance its features are read from
-    (at ``s`` and ``s'``)."""
+    passes of the loss start a slice from the state stored at collection); for ``informed``, the
+    hidden instance its features are read from (at ``s`` and ``s'``)."""
     if method == "recurrent":
         prev = (PREV_ACTION, PREV_REWARD, (keys.NEXT, PREV_ACTION), (keys.NEXT, PREV_REWARD))
         return (*_STORE, RECURRENT_STATE, (keys.NEXT, RECURRENT_STATE), *prev)
@@ -211,6 +211,7 @@ class BaselineLearner:
         t = cfg.train
         self.cfg = cfg
         self.recurrent = recurrent
+        self.time_major = time_major
         self.max_grad_norm = t.max_grad_norm
         self.burn_in = int(cfg.baseline.burn_in)
         self.loss = DQNLoss(
@@ -243,6 +244,7 @@ class BaselineLearner:
                     slice_len=length, end_key=(keys.NEXT, keys.DONE), strict_length=False
                 ),
                 batch_size=slices * length,
+                dim_extend=0,  # store() hands the time-major (T, N) view
             )
         else:
             self.buffer = TensorDictReplayBuffer(
@@ -252,10 +254,13 @@ class BaselineLearner:
             )
 
     def store(self, batch: TensorDictBase) -> None:
-        """Add a batch: a collector's ``(N, T)`` batch as it comes (recurrent, ``time_major``),
-        else flat rows; the recurrent replay also keeps which steps start an episode."""
+        """Add a batch: a collector's ``(N, T)`` batch as ``T`` rows of the ``(time, sub-env)``
+        storage (recurrent, ``time_major``: each sub-env's stream stays in time order), else flat
+        rows; the recurrent replay also keeps which steps start an episode."""
         if self.recurrent:
             batch = batch.set(EPISODE_START, batch.get("is_init").clone())
+            if self.time_major:  # (N, T) -> (T, N): rows of the (time, sub-env) storage; TorchRL's
+                batch = batch.transpose(0, 1)  # own transpose (dim_extend=1) fails when T = 1
         elif batch.ndim > 1:
             batch = batch.reshape(-1)
         self.buffer.extend(batch)

@@ -48,11 +48,17 @@ def _filled_learner(config: str, batches: int, overrides=()):
 
 
 @pytest.mark.parametrize(
-    "config,batches",
-    [("configs/taxi.yaml", 30), ("configs/windy.yaml", 40), ("configs/wargus.yaml", 4)],
+    "config,batches,overrides",
+    [
+        ("configs/taxi.yaml", 30, []),
+        ("configs/windy.yaml", 40, []),
+        ("configs/wargus.yaml", 4, []),
+        # one step per sub-env a batch, as the scale experiment's cells collect ((N, 1) batches)
+        ("configs/windy.yaml", 400, ["env.num_envs=16", "train.frames_per_batch=16"]),
+    ],
 )
-def test_sampled_slices_are_one_sub_env_trajectories(config, batches):
-    cfg, learner, newest = _filled_learner(config, batches, ["train.compile=false"])
+def test_sampled_slices_are_one_sub_env_trajectories(config, batches, overrides):
+    cfg, learner, newest = _filled_learner(config, batches, ["train.compile=false", *overrides])
     length = cfg.baseline.burn_in + cfg.baseline.slice_len
     slices = max(1, cfg.train.batch_size // cfg.baseline.slice_len)
     assert learner.buffer.batch_size == slices * length
