@@ -259,8 +259,10 @@ class BaselineLearner:
         rows; the recurrent replay also keeps which steps start an episode."""
         if self.recurrent:
             batch = batch.set(EPISODE_START, batch.get("is_init").clone())
-            if self.time_major:  # (N, T) -> (T, N): rows of the (time, sub-env) storage; TorchRL's
-                batch = batch.transpose(0, 1)  # own transpose (dim_extend=1) fails when T = 1
+            if self.time_major:
+                # (N, T) -> (T, N), rows of the (time, sub-env) storage. Done here, not by
+                # TorchRL (dim_extend=1), whose index bookkeeping fails when T = 1.
+                batch = batch.transpose(0, 1)
         elif batch.ndim > 1:
             batch = batch.reshape(-1)
         self.buffer.extend(batch)
