@@ -1,7 +1,7 @@
 """Every method beside memory and the ceiling, over many training seeds (docs/memory.md).
 
 For one family config: ``taskvar train CONFIG --seeds N`` (one batched learner, docs/seeds.md),
-``taskvar train-baselines`` in each ``seed<k>/`` (the recurrent and informed baselines), then
+``taskvar train-baselines`` in each ``seed<k>/`` (the recurrent, informed and blind baselines), then
 ``taskvar eval --method all`` of each seed's bundle on each named test distribution (one seed's
 methods share paired episodes; eval's default test seed is each bundle's own ``seed + 1``, so
 the seeds play different episodes, but a held-out test plays its sealed seed for all), each into
@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from taskvar_torch.heads.recurrent import BASELINES
 from taskvar_torch.study.aggregate import interval_estimates
 
 COLUMNS = (("mean_return", "return"), ("exact_mean_return", "exact"), ("regret_mean", "regret"))
@@ -68,12 +69,11 @@ def run(args: argparse.Namespace) -> Path:
                 "--out",
                 str(train_dir),
             )
-    wanted = {"all": ("recurrent", "informed"), "none": ()}.get(args.baselines, (args.baselines,))
+    wanted = {"all": BASELINES, "none": ()}.get(args.baselines, (args.baselines,))
     for s in seeds:
         missing = [m for m in wanted if not (s / f"{m}.pt").exists()]
-        if missing:
-            method = "all" if len(missing) == 2 else missing[0]
-            config = [str(s / "config.yaml")] if (s / "config.yaml").is_file() else []
+        config = [str(s / "config.yaml")] if (s / "config.yaml").is_file() else []
+        for method in ["all"] if len(missing) == len(BASELINES) else missing:
             taskvar(
                 "train-baselines",
                 *config,
@@ -144,7 +144,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument(
         "--baselines",
         default="all",
-        choices=("all", "recurrent", "informed", "none"),
+        choices=("all", *BASELINES, "none"),
         help="the baselines each bundle trains where its file is missing (default all)",
     )
     p.add_argument(

@@ -46,7 +46,6 @@ from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.families import family
 from taskvar_torch.heads.bundle import Heads, with_root_row
-from taskvar_torch.heads.informed import informed_features, make_informed_head
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
 from taskvar_torch.heads.networks import head_network, make_stacked_heads
@@ -224,7 +223,9 @@ class HeadSpec:
     """The constructor arguments of a head bundle beside the config (what a checkpoint records
     as ``heads_spec``, so loading needs no env): observation size, number of actions, the options'
     names, whether there are robustness critics, the options' input masks
-    (``heads.option_inputs=subtask``) and the informed head's feature width (``heads.informed``)."""
+    (``heads.option_inputs=subtask``). ``informed_dim`` and ``informed_residual`` are read from
+    checkpoints written while the learner trained an informed head (removed: its tensors are
+    dropped on loading, :func:`_heads_of`); new ones leave them unset."""
 
     obs_dim: int
     num_actions: int
@@ -253,8 +254,6 @@ class HeadSpec:
             option_names=tuple(subtasks.names),
             robustness=has_robustness(subtasks),
             option_input_mask=mask,
-            informed_dim=informed_features(cfg)[0] if cfg.heads.informed else None,
-            informed_residual=bool(cfg.heads.informed) and cfg.heads.network == "mlp",
         )
 
     def to_dict(self) -> dict[str, Any]:
@@ -362,20 +361,6 @@ def build_heads(cfg: Config, env: EnvBase | HeadSpec, subtasks: Subtasks | None 
         in_keys=[keys.OBSERVATION],
         out_keys=[keys.MAX_VALUE],
     )
-    if cfg.heads.informed:  # the informed baseline as one more head (its own generator)
-        if spec.informed_dim is None:
-            raise CheckpointError(
-                "heads.informed=true but the heads' spec records no informed feature width"
-            )
-        heads["informed"] = make_informed_head(
-            spec.obs_dim,
-            spec.informed_dim,
-            A,
-            tuple(cfg.heads.hidden),
-            cfg.heads.activation,
-            cfg.seed,
-            residual=spec.informed_residual,
-        )
     bundle = Heads(spec.option_names, **heads, softmax_temperature=mu_bar_temperature(cfg.train))
     bundle.spec = spec  # what a checkpoint records beside the weights (load_heads)
     return bundle.to(cfg.device)
@@ -446,8 +431,19 @@ def _heads_of(
         env = make_env(cfg, num_envs=1)
         spec = HeadSpec.of(cfg, env, make_subtasks(cfg, env))
     heads = build_heads(cfg, spec)
-    load_state_dicts(bundle, models={evaluation_heads_key(bundle): heads})
+    key = evaluation_heads_key(bundle)
+    models = bundle.get("models")
+    if isinstance(models, dict) and isinstance(models.get(key), dict):
+        # a checkpoint whose learner trained the informed head (removed; its own informed.pt
+        # still evaluates): its tensors are not the paper's heads
+        state = {k: v for k, v in models[key].items() if not k.startswith(OLD_INFORMED_PREFIX)}
+        bundle = {**bundle, "models": {**models, key: state}}
+    load_state_dicts(bundle, models={key: heads})
     return heads.eval(), cfg
+
+
+OLD_INFORMED_PREFIX = "heads.informed."
+"""State-dict prefix of the informed head the learner trained before it was removed (issue 56)."""
 
 
 HEADS_NAME = "heads.pt"
@@ -514,10 +510,8 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
         max_value_estimator=t.max_value_estimator,
         max_value_instances=t.max_value_instances,
         matmul_dtype=t.matmul_dtype,
-        informed_anchor=cfg.heads.informed_anchor,
     )
-    informed = informed_features(cfg)[1] if cfg.heads.informed else None
-    loss = MultiHeadLoss(heads, subtasks, settings, family(cfg).instance_features, informed)
+    loss = MultiHeadLoss(heads, subtasks, settings, family(cfg).instance_features)
     return MultiHeadLearner(
         loss.to(cfg.device),
         lr=t.lr,

@@ -29,8 +29,6 @@ OPTION_ACTION_VALUE = "option_action_value"
 OPTION_VALUE = "option_value"
 MAX_VALUE = "max_value"
 ROBUSTNESS = "robustness"
-# The informed baseline's head (B, A): the averaging head given the hidden instance (heads/informed.py).
-INFORMED_ACTION_VALUE = "informed_action_value"
 
 # Controller carried state and decision traces (paper §3.3-3.4).
 OPTION = "option"

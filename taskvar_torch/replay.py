@@ -131,19 +131,14 @@ def sample_many(buffer: ReplayBuffer, n: int) -> list[TensorDictBase]:
     return list(rows.reshape(n, B).unbind(0))
 
 
-def raw_transitions(
-    batch: TensorDictBase, keep_instance: bool = False, keep_next_instance: bool = False
-) -> TensorDictBase:
+def raw_transitions(batch: TensorDictBase, keep_instance: bool = False) -> TensorDictBase:
     """Flatten a collector batch ``(N, T)`` to ``(N*T,)`` raw transitions, minus what no head may read.
 
     Dropped: RewardSum's running returns, and the hidden instance (``("instance", ...)``) unless
-    ``keep_instance`` (the ``instance`` max-value estimator's critic and the informed head read
-    it, offline only); ``next``'s copy unless ``keep_next_instance`` (the informed head reads its
-    features at ``s'``: a Wargus item or patrol moves within an episode).
+    ``keep_instance`` (the ``instance`` max-value estimator's critic reads it, offline only), and
+    always ``next``'s copy.
     """
-    drop = [EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD)]
-    if not keep_next_instance:
-        drop.append((keys.NEXT, keys.INSTANCE))
+    drop = [EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD), (keys.NEXT, keys.INSTANCE)]
     if not keep_instance:
         drop.append(keys.INSTANCE)
     return batch.exclude(*drop).reshape(-1)

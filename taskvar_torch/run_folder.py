@@ -42,13 +42,14 @@ from taskvar_torch.config import atomic_write
 LOCK_NAME = ".taskvar.lock"
 """Lock file of a run folder: ``flock``-ed by the run writing there (released by the kernel when
 the process dies, even by SIGKILL), holding its pid; removed when the run ends."""
-# the baselines' bundles belong to the run they were trained beside (heads.informed, or
-# taskvar train-baselines): an overwrite removes them with it, never leaving another run's
+# the baselines' bundles belong to the run they were trained beside (taskvar
+# train-baselines): an overwrite removes them with it, never leaving another run's
 _RUN_NAMES = (
     "config.yaml",
     "final.pt",
     "heads.pt",
     "informed.pt",
+    "blind.pt",
     "recurrent.pt",
     "logs",
     "heads",

@@ -36,10 +36,8 @@ from taskvar_torch.factory import HEADS_NAME, build_heads, write_heads
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.first_visit import FirstVisitFilter
-from taskvar_torch.heads.informed import INFORMED
 from taskvar_torch.heads.learner import MultiHeadLearner
 from taskvar_torch.heads.nstep import nstep_returns
-from taskvar_torch.heads.recurrent import baseline_path, save_informed_head
 from taskvar_torch.heads.seeds import split_seed
 from taskvar_torch.learning import TrainingDiverged, epsilon_at, learn_batch, non_finite
 from taskvar_torch.replay import EPISODE_REWARD, raw_transitions, replay_state, sample_many
@@ -334,7 +332,6 @@ class TrainingRun:
             )
             finals.append(save_checkpoint(folder / "final.pt", bundle))
             write_heads(folder / HEADS_NAME, models.get(EVAL_HEADS, heads), cfg_k, self.counters)
-            write_informed(folder, models.get(EVAL_HEADS, heads), cfg_k, self.counters)
         return finals
 
     def bundle(self, replay: bool = True) -> dict[str, Any]:
@@ -363,27 +360,9 @@ class TrainingRun:
 
 def replay_rows(cfg: Config, batch: TensorDictBase) -> TensorDictBase:
     """The raw transitions a run of ``cfg`` replays from a collector batch ``(N, T)``: the hidden
-    instance kept for the ``instance`` max-value estimator and the informed head, its ``next``
-    copy for the informed head (it reads the features at ``s'``)."""
-    informed = cfg.heads.informed
-    instance = cfg.train.max_value_estimator == "instance" or informed
-    return raw_transitions(batch, keep_instance=instance, keep_next_instance=informed)
-
-
-def write_informed(folder: Path, heads: Heads, cfg: Config, counters: dict[str, int]) -> None:
-    """``folder/informed.pt``, the informed baseline's bundle, from the bundle's informed head
-    (its evaluation weights), where the run trained one (``heads.informed``)."""
-    if heads.has(INFORMED):
-        spec = heads.spec
-        save_informed_head(
-            baseline_path(folder / "final.pt", INFORMED),
-            heads.heads[INFORMED],
-            spec.obs_dim,
-            spec.num_actions,
-            cfg,
-            counters=dict(counters),
-            averaging=heads.heads["averaging"] if heads.has("averaging") else None,
-        )
+    instance kept for the ``instance`` max-value estimator."""
+    instance = cfg.train.max_value_estimator == "instance"
+    return raw_transitions(batch, keep_instance=instance)
 
 
 def seed_config(cfg: Config, k: int) -> Config:
@@ -429,5 +408,4 @@ __all__ = [
     "replay_rows",
     "run_models",
     "seed_config",
-    "write_informed",
 ]

@@ -1,13 +1,14 @@
-"""Training the baselines beside a bundle (docs/memory.md): ``recurrent``, and ``informed`` for a
-bundle whose heads did not train it (``heads.informed``, :mod:`taskvar_torch.heads.informed`).
+"""Training the baselines beside a bundle (docs/memory.md): ``recurrent``, ``informed`` and
+``blind``, each a DQN agent of its own on its own epsilon-greedy stream.
 
-Both learn with TorchRL's own pieces, on the family's batched training env (each sub-env draws a
+They learn with TorchRL's own pieces, on the family's batched training env (each sub-env draws a
 new hidden instance at every reset, the distribution the paper's heads train on, §2), and read
 every setting they share with the heads from the config, so a baseline and the heads it is
 compared with differ only where they must:
 
-* the budget ``train.total_frames`` and ``train.frames_per_batch``; epsilon-greedy exploration
-  (:class:`~torchrl.modules.EGreedyModule`) at the heads' schedule
+* the budget ``train.total_frames`` (the recurrent baseline's ``baseline.recurrent_frames`` where
+  a family's config gives it more: :func:`baseline_train_config`) and ``train.frames_per_batch``;
+  epsilon-greedy exploration (:class:`~torchrl.modules.EGreedyModule`) at the heads' schedule
   (:func:`~taskvar_torch.learning.epsilon_at`: uniform for ``train.init_random_frames``, then
   ``eps_start -> eps_end`` by ``eps_decay_frames``); ``train.updates_per_batch`` gradient steps
   per batch of ``train.batch_size`` rows from a replay of ``train.buffer_size``;
@@ -17,12 +18,15 @@ compared with differ only where they must:
   ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.learning.lr_at`), gradients clipped at
   ``train.max_grad_norm``, and the evaluation weights a Polyak average where
   ``train.eval_ema_tau`` is set;
+* ``train.n_step`` targets for ``informed`` and ``blind`` (TorchRL's
+  :class:`~torchrl.envs.transforms.MultiStepTransform` on each sub-env's stream: up to n rewards,
+  cut at the episode's end, then the bootstrap at ``gamma^k``; the loss reads
+  ``steps_to_next_obs``), uniform samples;
 * the Q head's widths and activation ``heads.hidden``, ``heads.activation``.
 
-The heads' ``train.n_step``, ``train.first_visit`` and ``train.replay_sampling`` shape the
-heads' own replay; the baselines use one-step targets on uniform samples (a recurrent replay keeps
-whole trajectories, which first-visit filtering would cut), and say so in one line when those
-keys are set.
+The heads' ``train.first_visit`` and ``train.replay_sampling`` shape the heads' own replay only;
+the recurrent baseline takes one-step targets on its slices (:func:`heads_only_keys` names what
+it does not use, in one line).
 
 **recurrent** (DRQN; Ni et al. 2022's recipe for a strong recurrent model-free baseline, with
 the choices made here): one GRU encoder shared by the Q-values (a value-based agent has no actor
@@ -38,16 +42,19 @@ later steps flow back through them), unless the slice starts an episode, whose s
 zero. Stored states and burn-in rather than zero-start full episodes: Wargus episodes run 500
 steps.
 
-**informed** (a bundle whose heads did not train it): the same network as the informed head,
-on uniformly sampled transitions of its own epsilon-greedy stream.
+**informed**: a plain MLP of the heads' widths over ``[observation; instance features]``
+(:func:`~taskvar_torch.heads.recurrent.make_informed_qnet`), the features read from the hidden
+instance the replay keeps at ``s`` and ``s'``. **blind**: the same network and trainer with the
+features zeroed, so "memory helps" is told apart from "learning on one's own stream helps".
 
-:func:`train_baseline` writes ``DIR/recurrent.pt`` or ``DIR/informed.pt``
+:func:`train_baseline` writes ``DIR/recurrent.pt``, ``DIR/informed.pt`` or ``DIR/blind.pt``
 (``heads.recurrent.save_baseline``: atomic, plain data).
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import os
 import time
 from pathlib import Path
@@ -59,12 +66,13 @@ from tensordict.nn import TensorDictSequential
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.data.replay_buffers import RandomSampler, SliceSampler
+from torchrl.envs.transforms import MultiStepTransform
 from torchrl.modules import EGreedyModule, GRUModule, set_recurrent_mode
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from taskvar_torch import keys
 from taskvar_torch.collection import make_training_env
-from taskvar_torch.config import Config
+from taskvar_torch.config import Config, TrainConfig
 from taskvar_torch.heads.informed import family_instance_keys, informed_features
 from taskvar_torch.heads.recurrent import (
     BASELINES,
@@ -115,10 +123,11 @@ def build_for_training(cfg: Config, method: str) -> tuple[TensorDictSequential, 
         env.append_transform(PreviousStep(num_actions))
         env.append_transform(gru.make_tensordict_primer())
         spec = BaselineSpec(method, obs_dim, num_actions, mlp, hidden=hidden)
-    else:
+    else:  # informed, blind: the same network, blind's features zeroed
         dim, feats = informed_features(cfg)
         ikeys = family_instance_keys(cfg)
-        net = make_informed_qnet(obs_dim, num_actions, dim, feats, ikeys, mlp, act)
+        blind = method == "blind"
+        net = make_informed_qnet(obs_dim, num_actions, dim, feats, ikeys, mlp, act, blind=blind)
         spec = BaselineSpec(
             method, obs_dim, num_actions, mlp, instance_dim=dim, instance_keys=ikeys
         )
@@ -129,24 +138,43 @@ def stored_keys(method: str) -> tuple:
     """What the replay keeps of each transition: the step (observation, action, next reward and
     done flags, episode starts) and, for ``recurrent``, the GRU's stored hidden state and the
     previous action and reward (the state a step starts from and the one it hands on, so both
-    passes of the loss start a slice from the state stored at collection); for ``informed``, the
-    hidden instance its features are read from (at ``s`` and ``s'``)."""
+    passes of the loss start a slice from the state stored at collection); for ``informed`` and
+    ``blind``, the hidden instance the features are read from (at ``s`` and ``s'``)."""
     if method == "recurrent":
         prev = (PREV_ACTION, PREV_REWARD, (keys.NEXT, PREV_ACTION), (keys.NEXT, PREV_REWARD))
         return (*_STORE, RECURRENT_STATE, (keys.NEXT, RECURRENT_STATE), *prev)
     return (*_STORE, keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
 
 
-def heads_only_keys(cfg: Config) -> list[str]:
-    """The ``train`` keys set away from their defaults that shape the heads' replay only (the
-    baselines take one-step targets on uniform samples: module docstring)."""
+def heads_only_keys(cfg: Config, methods: tuple[str, ...] | list[str] = BASELINES) -> list[str]:
+    """The ``train`` keys set away from their defaults that the baselines ``methods`` do not use
+    (module docstring): ``replay_sampling`` (the heads' replay only), and ``n_step`` where the
+    recurrent baseline is among them (one-step targets on its slices)."""
     t = cfg.train
     out = []
-    if t.n_step != 1:
-        out.append(f"train.n_step={t.n_step}")
+    if t.n_step != 1 and "recurrent" in methods:
+        out.append(f"train.n_step={t.n_step} (recurrent)")
     if t.replay_sampling != "uniform":
         out.append(f"train.replay_sampling={t.replay_sampling}")
     return out
+
+
+def baseline_train_config(cfg: Config, method: str) -> TrainConfig:
+    """The ``train`` settings ``method`` trains with: the heads' (an equal budget), except the
+    recurrent baseline's frame budget ``baseline.recurrent_frames`` where set, its epsilon decay
+    and the learning-rate decay's start scaled by the same factor (the same share of its budget
+    as the heads')."""
+    frames = cfg.baseline.recurrent_frames
+    t = cfg.train
+    if method != "recurrent" or frames is None or int(frames) == int(t.total_frames):
+        return t
+    scale = int(frames) / max(int(t.total_frames), 1)
+    return dataclasses.replace(
+        t,
+        total_frames=int(frames),
+        eps_decay_frames=round(t.eps_decay_frames * scale),
+        lr_decay_start_frames=round(t.lr_decay_start_frames * scale),
+    )
 
 
 def burn_in_mask(sample: TensorDictBase, burn_in: int) -> torch.Tensor:
@@ -197,7 +225,9 @@ class BaselineLearner:
     (:func:`burn_in_mask`). ``time_major`` (the default) stores the collector's ``(N, T)``
     batches as they come (``LazyTensorStorage(ndim=2)``), else flat batches whose episodes are
     already whole and contiguous (the Figure 4 protocol's, ``families/wargus/fig4_recurrent.py``).
-    Otherwise uniform transitions of ``train.batch_size``.
+    Otherwise uniform transitions of ``train.batch_size``, with ``train.n_step`` targets where it
+    is above 1 (:class:`~torchrl.envs.transforms.MultiStepTransform` over each sub-env's stream in
+    :meth:`store`, which holds the last ``n_step`` steps back until the next batch).
     """
 
     def __init__(
@@ -252,6 +282,11 @@ class BaselineLearner:
                 sampler=RandomSampler(),
                 batch_size=int(t.batch_size),
             )
+        self.multistep = None
+        if not recurrent and int(t.n_step) > 1:
+            # done_keys=[]: the done flags are taken at the step the target bootstraps from (TorchRL
+            # leaves them at the first step by default, which would bootstrap past an episode's end)
+            self.multistep = MultiStepTransform(int(t.n_step), float(t.gamma), done_keys=[])
 
     def store(self, batch: TensorDictBase) -> None:
         """Add a batch: a collector's ``(N, T)`` batch as ``T`` rows of the ``(time, sub-env)``
@@ -263,6 +298,11 @@ class BaselineLearner:
                 # (N, T) -> (T, N), rows of the (time, sub-env) storage. Done here, not by
                 # TorchRL (dim_extend=1), whose index bookkeeping fails when T = 1.
                 batch = batch.transpose(0, 1)
+        elif self.multistep is not None:
+            batch = self.multistep.inv(batch)  # (N, T) -> (N, T'), T' = T minus the held-back steps
+            if batch is None:  # fewer than n_step + 1 steps seen yet
+                return
+            batch = batch.reshape(-1)
         elif batch.ndim > 1:
             batch = batch.reshape(-1)
         self.buffer.extend(batch)
@@ -321,16 +361,16 @@ def train_baseline(
     progress: bool = False,
     log: Any = None,
 ) -> dict[str, Any]:
-    """Train the ``recurrent`` or ``informed`` baseline of ``cfg`` for ``train.total_frames``
-    frames and write it to ``out_dir/<method>.pt``; returns ``{"path", "frames", "updates",
-    "seconds", "mean_train_return"}`` (the mean return of the episodes that ended in the last
-    tenth of training, exploration included).
+    """Train the ``recurrent``, ``informed`` or ``blind`` baseline of ``cfg`` for its budget
+    (:func:`baseline_train_config`) and write it to ``out_dir/<method>.pt``; returns ``{"path",
+    "frames", "budget", "updates", "seconds", "mean_train_return"}`` (the mean return of the
+    episodes that ended in the last tenth of training, exploration included).
 
     The loop: a TorchRL ``Collector`` of ``train.frames_per_batch`` frames; each batch stored
     (:meth:`BaselineLearner.store`), then the heads' learning step
     (:func:`~taskvar_torch.learning.learn_batch`) and epsilon (:func:`~taskvar_torch.learning.epsilon_at`).
     Seeded by ``cfg.seed`` (torch's global generator and the env's keyed streams)."""
-    t = cfg.train
+    t = baseline_train_config(cfg, method)
     torch.manual_seed(int(cfg.seed))
     net, spec, env = build_for_training(cfg, method)
     recurrent = method == "recurrent"
@@ -381,12 +421,18 @@ def train_baseline(
         learner.eval_net,
         spec,
         cfg,
-        counters={"frames": frames, "updates": updates, "seconds": seconds},
+        counters={
+            "frames": frames,
+            "budget": int(t.total_frames),
+            "updates": updates,
+            "seconds": seconds,
+        },
     )
     rets = torch.cat(returns) if returns else torch.zeros(0)
     return {
         "path": str(path),
         "frames": frames,
+        "budget": int(t.total_frames),
         "updates": updates,
         "seconds": seconds,
         "mean_train_return": float(rets.mean()) if rets.numel() else float("nan"),
@@ -396,6 +442,7 @@ def train_baseline(
 __all__ = [
     "EPISODE_START",
     "BaselineLearner",
+    "baseline_train_config",
     "build_for_training",
     "burn_in_mask",
     "heads_only_keys",

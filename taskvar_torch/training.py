@@ -69,7 +69,6 @@ from taskvar_torch.run_folder import (
 )
 from taskvar_torch.run_logs import RunLoggers, check_logger
 from taskvar_torch.run_setup import build_run, check_runtime_only, restore_collection
-from taskvar_torch.run_state import write_informed
 
 
 def train(
@@ -230,7 +229,6 @@ def _train_loop(
                 run.save(final, replay=keep_replay)
                 if t.seeds == 1:
                     write_heads(out / HEADS_NAME, run.learner.eval_heads, cfg, run.counters)
-                    write_informed(out, run.learner.eval_heads, cfg, run.counters)
                 else:  # the batch's final.pt resumes; each seed<k>/ evaluates
                     seed_finals = run.write_seed_bundles()
             except KeyboardInterrupt:

@@ -25,12 +25,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
 
 @pytest.fixture(scope="session")
 def windy_tiny_bundle(tmp_path_factory) -> Path:
-    """``final.pt`` of ``configs/windy.yaml`` trained on :data:`budgets.TINY` (~2 s), once per
-    session (per worker) for the tests that only evaluate a bundle; they must not write into its
-    folder."""
+    """``final.pt`` of ``configs/windy.yaml`` trained on :data:`budgets.TINY` (~2 s), with the
+    informed baseline beside it (``informed.pt``, the same budget), once per session (per worker)
+    for the tests that only evaluate a bundle; they must not write into its folder."""
     from taskvar_torch.config import load_config
+    from taskvar_torch.train_recurrent import train_baseline
     from taskvar_torch.training import train
 
     out = tmp_path_factory.mktemp("windy-tiny")
-    train(load_config(ROOT / "configs" / "windy.yaml", TINY), out, progress=False)
+    cfg = load_config(ROOT / "configs" / "windy.yaml", TINY)
+    train(cfg, out, progress=False)
+    train_baseline(cfg, "informed", out)
     return out / "final.pt"

@@ -69,7 +69,7 @@ def test_windy_shift_curve_with_exact_values_and_paired_instances(bundles, tmp_p
         out_dir=tmp_path,
         progress=False,
     )
-    # no hierarchy on windy; the informed baseline trained with the heads (heads.informed)
+    # no hierarchy on windy; the informed baseline beside the bundle (tests/conftest.py)
     assert m["methods"] == ["averaging", "options", "interruption", "informed"]
     memoryless = m["methods"][:3]
     assert all("exact_mean_return" in p["methods"][k] for p in m["points"] for k in memoryless)

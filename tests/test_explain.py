@@ -59,9 +59,7 @@ def test_the_demo_table_is_explained_from_its_numbers():
     assert "interruption never fired" in flat and "ran exit_south on every step" in flat
     assert "recurrent (memory" in flat and "is better than every memoryless method" in flat
     assert "(best: averaging, 2.211 +-0.312)" in flat
-    assert (
-        "informed (it sees the hidden instance: the learnt ceiling): at the exact optimum" in flat
-    )
+    assert "informed (it sees the hidden instance; a ceiling here): at the exact optimum" in flat
     assert "averaging, options, interruption draw on top of each other" in flat
     assert "docs/memory.md" in flat and "docs/evaluation.md" in flat
     assert max(len(line) for line in text.splitlines()) <= 100
@@ -79,6 +77,20 @@ def test_memory_is_said_to_win_only_where_the_cis_are_apart():
     assert "is worse than the best memoryless method, 95% CIs apart" in flat
     ms["informed"].update(regret_mean=0.4, regret_ci95=0.1)
     assert "regret 0.400 +-0.100: short of the exact optimum" in " ".join(explain_table(m).split())
+
+
+def test_informed_below_a_memoryless_method_is_said_to_be_no_ceiling_and_blind_is_the_control():
+    m = corridor_like()
+    ms = m["points"][0]["methods"]
+    ms["blind"] = _method(-3.0, 0.1, None, 1.5, 0.1, regret_sampled=True)
+    ms["informed"].update(regret_mean=2.0, regret_ci95=0.1)  # behind blind, CIs apart
+    flat = " ".join(explain_table(m).split())
+    assert "informed (it sees the hidden instance; no ceiling here: it is behind blind" in flat
+    assert "recurrent is ahead of blind, 95% CIs apart: memory, not its own stream, pays" in flat
+    assert "(best: blind, 1.500 +-0.100)" in flat  # blind is memoryless: it can be the best one
+    ms["recurrent"].update(regret_mean=1.45, regret_ci95=0.1)
+    flat = " ".join(explain_table(m).split())
+    assert "recurrent ties with blind within their 95% CIs: no gain from memory shown here" in flat
 
 
 def test_methods_that_differ_are_not_called_alike_and_ties_need_overlapping_cis():

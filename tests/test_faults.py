@@ -284,7 +284,6 @@ def test_overwrite_removes_the_old_run_first(reference, tmp_path, capsys):
         "config.yaml",
         "final.pt",
         "heads.pt",
-        "informed.pt",  # heads.informed (the config's)
         "logs",
         "notes.txt",
     ]

@@ -39,7 +39,7 @@ CONFIG = "configs/windy.yaml"
 
 @pytest.fixture(scope="module")
 def windy():
-    cfg = load_config(CONFIG, ["env.num_envs=4", "heads.informed=false"])  # the paper's heads
+    cfg = load_config(CONFIG, ["env.num_envs=4"])  # the paper's heads
     env = make_env(cfg)
     subtasks = make_subtasks(cfg, env)
     return cfg, env, subtasks

@@ -1,162 +1,212 @@
-"""The informed baseline as one more head of the learner (``heads.informed``; docs/memory.md):
-the paper's heads are the same bits with it on or off, it is written as ``informed.pt`` beside
-``final.pt`` (and in every seed's folder), a family without instance features refuses it in one
-line, and on Taxi it reaches the exact optimum of the dry instances within a stated bound."""
+"""The baselines as agents of their own (docs/memory.md): ``informed`` is a plain network over
+[observation; instance features] on its own epsilon-greedy stream, ``blind`` the same network told
+nothing, both with the heads' n-step targets; the recurrent baseline's budget key; and what the
+learner's removed informed head leaves behind (its config keys and its bundles) still loads."""
 
 from __future__ import annotations
 
-import dataclasses
+import warnings
 
 import pytest
 import torch
+from tensordict import TensorDict
 
-from taskvar_torch import families
-from taskvar_torch.checkpoint import load_checkpoint
+from taskvar_torch.checkpoint import load_checkpoint, save_checkpoint
+from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
-from taskvar_torch.factory import build_heads, load_heads, make_env, make_subtasks
-from taskvar_torch.heads.recurrent import load_baseline
+from taskvar_torch.factory import load_heads
+from taskvar_torch.heads.informed import informed_features
+from taskvar_torch.heads.recurrent import (
+    BaselineSpec,
+    load_baseline,
+    make_informed_qnet,
+    save_baseline,
+)
+from taskvar_torch.train_recurrent import BaselineLearner, baseline_train_config, train_baseline
 from taskvar_torch.training import train
 
-SHORT = [  # what these tests check holds for any number of updates: few and small ones
-    "train.total_frames=4096",
-    "train.init_random_frames=1024",
-    "train.eps_decay_frames=2048",
+SHORT = [
+    "train.total_frames=2048",
+    "train.init_random_frames=512",
+    "train.eps_decay_frames=1024",
     "train.checkpoint_every=0",
-    "train.updates_per_batch=4",
+    "train.updates_per_batch=2",
     "train.batch_size=64",
+    "env.num_envs=4",
 ]
 
 
-def _train(tmp_path, config, *overrides):
-    torch.set_num_threads(1)
-    cfg = load_config(config, [*SHORT, *overrides])
-    return train(cfg, tmp_path, progress=False)
-
-
-@pytest.mark.parametrize("config", ["configs/windy.yaml", "configs/wargus.yaml"])
-def test_paper_heads_are_the_same_bits_with_the_informed_head(tmp_path, config):
-    extra = ["train.compile=false"]
-    off = _train(tmp_path / "off", config, "heads.informed=false", *extra)
-    on = _train(tmp_path / "on", config, "heads.informed=true", *extra)
-    a = load_checkpoint(off["final"])["models"]["heads"]
-    b = load_checkpoint(on["final"])["models"]["heads"]
-    informed = [k for k in b if k.startswith("heads.informed.")]
-    assert informed and not any(k.startswith("heads.informed.") for k in a)
-    assert set(b) - set(informed) == set(a)
-    for k in a:
-        assert torch.equal(a[k], b[k]), k
-    assert "loss_informed" in on["last_log"] and "loss_informed" not in off["last_log"]
-    assert not (tmp_path / "off" / "informed.pt").exists()
-    ctrl, cfg = load_baseline(tmp_path / "on" / "informed.pt")
-    assert ctrl.spec.mlp == tuple(cfg.heads.hidden)  # the averaging head's widths
-
-
-def test_informed_bundle_holds_the_heads_evaluation_weights(tmp_path):
-    """``informed.pt`` plays the learner's informed head ``Q_avg + Delta``: its ``Delta`` is the
-    head's Polyak-averaged weights (``train.eval_ema_tau``), its ``Q_avg`` a copy of the
-    averaging head's, and it gives the heads' Q-values on the same input (self-contained)."""
-    _train(tmp_path, "configs/windy_corridor.yaml", "heads.informed=true", "train.eval_ema_tau=0.1")
-    bundle = load_checkpoint(tmp_path / "final.pt")
-    ema = {
-        k.removeprefix("heads.informed.module.mlp."): v
-        for k, v in bundle["models"]["eval_heads"].items()
-        if k.startswith("heads.informed.")
-    }
-    ctrl, _ = load_baseline(tmp_path / "informed.pt")
-    assert ctrl.spec.residual
-    q = ctrl.net[1].module
-    delta = q.delta.state_dict()
-    assert set(delta) == set(ema)
-    for k in delta:
-        assert torch.equal(delta[k], ema[k])
-    online = bundle["models"]["heads"]["heads.informed.module.mlp.0.weight"]
-    assert not torch.equal(online, ema["0.weight"])  # the average, not the online weights
-    heads, _ = load_heads(tmp_path / "heads.pt")  # the evaluation heads
-    gen = torch.Generator().manual_seed(0)
-    obs = torch.rand(32, heads.spec.obs_dim, generator=gen)
-    z = torch.rand(32, heads.spec.informed_dim, generator=gen)
-    with torch.no_grad():
-        want = heads.heads["averaging"].module(obs) + heads.heads["informed"].module(obs, z)
-        assert torch.allclose(q(obs, z), want, atol=1e-5)
-
-
-def test_informed_head_starts_as_the_averaging_head():
-    """``Delta``'s last layer is zero at initialisation: ``Q_inf = Q_avg`` before any update."""
-    cfg = load_config("configs/taxi.yaml", ["env.num_envs=2"])
-    env = make_env(cfg, 2)
-    heads = build_heads(cfg, env, make_subtasks(cfg, env))
-    net = heads.heads["informed"].module
-    assert net.residual
-    obs = torch.rand(8, heads.spec.obs_dim)
-    z = torch.rand(8, heads.spec.informed_dim)
-    assert torch.equal(net(obs, z), torch.zeros(8, heads.spec.num_actions))
-
-
-def test_every_seed_folder_gets_its_informed_bundle(tmp_path):
-    _train(tmp_path, "configs/windy.yaml", "heads.informed=true", "train.seeds=2")
-    for k in (0, 1):
-        ctrl, cfg = load_baseline(tmp_path / f"seed{k}" / "informed.pt")
-        assert cfg.seed == k and ctrl.spec.method == "informed"
-
-
-def test_a_family_without_instance_features_refuses_it_in_one_line(monkeypatch):
-    from taskvar_torch.config import validate
-
-    fam = families.family
-    bare = lambda c: dataclasses.replace(fam(c), informed_features=None, instance_features=None)  # noqa: E731
-    monkeypatch.setattr(validate, "family", bare)
-    with pytest.raises(ValueError) as e:
+def test_the_old_heads_informed_keys_load_with_one_deprecation_line(tmp_path):
+    path = tmp_path / "old.yaml"
+    path.write_text("family: windy\nheads:\n  informed: true\n  informed_anchor: 1.0\n")
+    with pytest.warns(FutureWarning) as rec:
+        cfg = load_config(str(path))
+    text = " ".join(str(w.message) for w in rec)
+    assert "heads.informed is dropped" in text and "train-baselines --method informed" in text
+    assert not hasattr(cfg.heads, "informed")
+    with pytest.warns(FutureWarning, match="heads.informed is deprecated"):
         load_config("configs/windy.yaml", ["heads.informed=true"])
-    msg = str(e.value)
-    assert "\n" not in msg and "heads.informed=true needs a family" in msg
-    assert "set heads.informed=false" in msg
 
 
-DRY_BUDGET = [
-    "env.instances=dry",
-    "train.total_frames=150000",
-    "train.eps_decay_frames=75000",
-    "train.lr=0.002",
-    "train.max_value_estimator=expectile",
-    "train.checkpoint_every=0",
-]
-DRY_BOUND = 0.08
-"""Stated bound on the informed head's exact expected return below the exact optimum on Taxi's dry
-instances (7.930 per episode over Taxi-v4's starts): 1%, as the options' dry test."""
-
-
-def informed_dry_policy(folder, cfg) -> torch.Tensor:
-    """The greedy action ``(500,)`` of ``folder/informed.pt`` (the file ``taskvar eval`` plays) in
-    every Taxi state of a dry instance (its features as a dry env's reset gives them)."""
-    from tensordict import TensorDict
-
-    from taskvar_torch.families.taxi.env import observation_table
-
-    ctrl, _ = load_baseline(folder / "informed.pt")
-    dry = make_env(cfg, 1).reset()["instance"]
-    obs = torch.as_tensor(observation_table(cfg.env.taxi.obs_encoding))
-    td = TensorDict({"observation": obs, "instance": dry.expand(obs.shape[0]).clone()}, [500])
-    return ctrl(td)["action"].long()
-
-
-@pytest.mark.slow
-def test_informed_reaches_the_exact_optimum_on_dry_taxi(tmp_path):
-    """A learning test against the exact oracle, with its bound stated: trained on dry instances
-    (150k frames, lr 0.002, the expectile max-value head, the shipped config otherwise), the
-    informed head's greedy policy from ``informed.pt`` is within :data:`DRY_BOUND` of the exact
-    optimum (7.930) in expectation over Taxi-v4's starts.
-
-    Measured (exact, seeds 0, 1, 2): 7.930 on all three at this budget; the test takes 44 s on
-    one core of the 2-core CPU (60-100 s of training with a third process on it); at 120k frames 1.79, 7.93, 2.45 and at 100k -68.2, -21.7 (seeds 0, 1):
-    the flat heads (averaging, and so informed = averaging + Delta) need about this budget on
-    dry Taxi, so no cheaper run held it."""
-    from taskvar_torch.families.taxi.oracle import TaxiOracle
-
+def test_a_checkpoint_with_the_learners_old_informed_head_still_evaluates(tmp_path):
+    """A ``final.pt`` written while the learner trained the informed head holds its tensors
+    (``heads.informed.*``) beside the paper's heads: they are dropped on loading."""
     torch.set_num_threads(1)
-    cfg = load_config("configs/taxi.yaml", DRY_BUDGET)
-    train(cfg, tmp_path, progress=False)
-    oracle = TaxiOracle(train_instances="dry", obs_encoding=cfg.env.taxi.obs_encoding)
-    best = float(oracle.expected_optimal_return("dry"))
-    assert abs(best - 7.93) < 1e-3
-    got = float(oracle.expected_return(informed_dry_policy(tmp_path, cfg), "dry"))
-    assert got >= best - DRY_BOUND, (got, best)
+    cfg = load_config("configs/windy.yaml", SHORT)
+    run = train(cfg, tmp_path, progress=False)
+    heads, _ = load_heads(run["final"])
+    bundle = load_checkpoint(run["final"])
+    key = "eval_heads" if "eval_heads" in bundle["models"] else "heads"
+    bundle["models"][key]["heads.informed.module.mlp.0.weight"] = torch.zeros(3, 3)
+    bundle["heads_spec"]["informed_dim"] = 5
+    bundle["heads_spec"]["informed_residual"] = True
+    old = tmp_path / "old.pt"
+    save_checkpoint(old, {k: v for k, v in bundle.items() if k not in ("format", "format_version")})
+    again, _ = load_heads(old)
+    a, b = heads.state_dict(), again.state_dict()
+    assert set(a) == set(b) and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def _nets(cfg):
+    dim, feats = informed_features(cfg)
+    ikeys = ("p", "direction")
+    args = (25, 4, dim, feats, ikeys, (16,), "relu")
+    torch.manual_seed(0)
+    informed = make_informed_qnet(*args)
+    blind = make_informed_qnet(*args, blind=True)
+    blind.load_state_dict(informed.state_dict())
+    return informed, blind, dim
+
+
+def _batch(n: int) -> TensorDict:
+    gen = torch.Generator().manual_seed(1)
+    return TensorDict(
+        {
+            "observation": torch.rand(n, 25, generator=gen),
+            "instance": {
+                "p": torch.rand(n, generator=gen),
+                "direction": torch.randint(0, 4, (n,), generator=gen),
+            },
+        },
+        [n],
+    )
+
+
+def test_blind_is_the_informed_network_with_the_features_zeroed():
+    cfg = load_config("configs/windy.yaml")
+    informed, blind, dim = _nets(cfg)
+    td = _batch(16)
+    q_blind = blind(td.clone())["action_value"]
+    other = td.clone()
+    other["instance", "p"] = 1 - other["instance", "p"]
+    assert torch.equal(blind(other)["action_value"], q_blind)  # it reads nothing of the instance
+    zeroed = td.clone()
+    q_informed = informed(zeroed)["action_value"]
+    assert not torch.equal(q_informed, q_blind)  # informed reads it
+    net = informed[2].module  # the MLP over [observation; features]
+    want = net(torch.cat([td["observation"], torch.zeros(16, dim)], -1))
+    assert torch.allclose(q_blind, want)
+
+
+def test_an_old_residual_informed_bundle_still_evaluates(tmp_path):
+    """``informed.pt`` bundles the learner wrote as ``Q_avg + Delta`` (``residual``) load and play."""
+    cfg = load_config("configs/windy.yaml")
+    dim, feats = informed_features(cfg)
+    net = make_informed_qnet(25, 4, dim, feats, ("p", "direction"), (16,), "relu", residual=True)
+    spec = BaselineSpec("informed", 25, 4, (16,), instance_dim=dim)
+    spec.instance_keys, spec.residual = ("p", "direction"), True
+    path = save_baseline(tmp_path / "informed.pt", net, spec, cfg)
+    ctrl, _ = load_baseline(path)
+    td = _batch(8)
+    assert ctrl.spec.residual
+    assert torch.equal(ctrl(td.clone())["action_value"], net(td.clone())["action_value"])
+
+
+def _stream(n_env: int, steps: int, done_at: dict[int, list[int]]) -> TensorDict:
+    """A collector-like ``(N, T)`` batch: observation = a running step id, reward = 1 + step id,
+    the episodes of env ``i`` ending (terminated) after the steps ``done_at[i]``."""
+    obs = torch.arange(n_env * steps, dtype=torch.float32).reshape(n_env, steps, 1)
+    done = torch.zeros(n_env, steps, 1, dtype=torch.bool)
+    for i, ts in done_at.items():
+        done[i, ts] = True
+    return TensorDict(
+        {
+            "observation": obs,
+            "action": torch.zeros(n_env, steps, dtype=torch.long),
+            "next": {
+                "observation": obs + 0.5,
+                "reward": (obs + 1.0),
+                "done": done,
+                "terminated": done.clone(),
+                "truncated": torch.zeros_like(done),
+            },
+        },
+        [n_env, steps],
+    )
+
+
+def test_n_step_targets_follow_each_sub_env_and_stop_at_the_episode_end():
+    """``train.n_step=3``: each stored row's reward is the discounted sum of up to 3 rewards of
+    its own sub-env (cut at the episode's end), its next observation and done flags those of the
+    step the target bootstraps from, ``steps_to_next_obs`` how many steps that is; the last 3 steps
+    of a batch wait for the next one (checked against a loop over each sub-env)."""
+    from torchrl.data.tensor_specs import Categorical
+
+    cfg = load_config("configs/windy.yaml", ["train.n_step=3", "train.gamma=0.5"])
+    net = make_informed_qnet(1, 2, 0, lambda td: torch.zeros(td.shape[0], 0), (), (4,), "relu")
+    learner = BaselineLearner(net, Categorical(2), cfg, recurrent=False)
+    first, second = _stream(2, 6, {0: [1]}), _stream(2, 6, {1: [0]})
+    second["observation"] += 100
+    second["next", "observation"] += 100
+    second["next", "reward"] += 100
+    learner.store(first)
+    learner.store(second)
+    rows = learner.buffer[:]
+    whole = torch.cat([first, second], 1)  # (2, 12) each sub-env's stream
+    got = {float(o): r for o, r in zip(rows["observation"].reshape(-1), rows.unbind(0))}
+    assert len(got) == 2 * (12 - 3)
+    for i in range(2):
+        for t in range(12 - 3):
+            k, ret = 0, 0.0
+            while True:
+                ret += 0.5**k * float(whole["next", "reward"][i, t + k])
+                k += 1
+                if k == 3 or bool(whole["next", "done"][i, t + k - 1]):
+                    break
+            r = got[float(whole["observation"][i, t])]
+            assert float(r["next", "reward"]) == pytest.approx(ret), (i, t)
+            assert int(r["steps_to_next_obs"]) == k
+            assert float(r["next", "observation"]) == float(
+                whole["next", "observation"][i, t + k - 1]
+            )
+            assert bool(r["next", "terminated"]) == bool(whole["next", "terminated"][i, t + k - 1])
+
+
+def test_the_recurrent_budget_key_scales_its_schedule_and_nothing_else():
+    cfg = load_config("configs/taxi.yaml")
+    assert cfg.baseline.recurrent_frames == 1_200_000
+    t = baseline_train_config(cfg, "recurrent")
+    assert (t.total_frames, t.eps_decay_frames) == (1_200_000, 600_000)
+    for m in ("informed", "blind"):
+        assert baseline_train_config(cfg, m) is cfg.train  # the heads' budget
+    windy = load_config("configs/windy.yaml")
+    assert baseline_train_config(windy, "recurrent") is windy.train
+    with pytest.raises(ValueError, match="baseline.recurrent_frames"):
+        load_config("configs/windy.yaml", ["baseline.recurrent_frames=0"])
+
+
+def test_train_baselines_all_writes_the_three_agents_and_eval_plays_them(tmp_path):
+    torch.set_num_threads(1)
+    out = tmp_path / "run"
+    tiny = ["train.total_frames=1024", "train.init_random_frames=256", "env.num_envs=4"]
+    argv = ["configs/windy.yaml", *tiny, "--out", str(out), "--no-progress"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        assert main(["train", *argv, "train.checkpoint_every=0"]) == 0
+        assert main(["train-baselines", *argv, "--method", "all", "--threads", "1"]) == 0
+    for m in ("recurrent", "informed", "blind"):
+        ctrl, _ = load_baseline(out / f"{m}.pt")
+        assert ctrl.spec.method == m and ctrl.total_frames == 1024
+    assert not (out / "informed.pt").samefile(out / "blind.pt")
+    r = train_baseline(load_config("configs/windy.yaml", tiny), "blind", tmp_path / "b")
+    assert r["budget"] == 1024

@@ -28,7 +28,7 @@ from taskvar_torch.heads.relabel import windy_instance_features as instance_feat
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
-INSTANCE = ["train.max_value_estimator=instance", "env.num_envs=4", "heads.informed=false"]
+INSTANCE = ["train.max_value_estimator=instance", "env.num_envs=4"]
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +151,7 @@ def test_instance_estimator_needs_instances_and_a_critic(windy):
     )
     with pytest.raises(ValueError, match="hidden instance"):
         loss(batch)
-    expectile = ["env.num_envs=4", "train.max_value_estimator=expectile", "heads.informed=false"]
+    expectile = ["env.num_envs=4", "train.max_value_estimator=expectile"]
     plain = build_heads(load_config("configs/windy.yaml", expectile), env, subtasks)
     with pytest.raises(ValueError, match="instance critic"):
         MultiHeadLoss(plain, subtasks, LossSettings(max_value_estimator="instance"))

@@ -80,7 +80,7 @@ def test_eval_reports_regret_per_method_and_episode(windy_tiny_bundle, tmp_path)
         rows = list(csv.DictReader(f))
     optimum = {r["episode"]: float(r["optimum_return"]) for r in rows if r["optimum_return"]}
     assert len(optimum) == 60  # once per episode
-    assert "informed" in per  # heads.informed: the baseline plays beside the paper's methods
+    assert "informed" in per  # informed.pt beside the bundle: it plays beside the paper's methods
     for name, r in per.items():
         assert {"regret_mean", "regret_ci95"} <= set(r)
         column = "return" if r.get("regret_sampled") else "exact_return"  # baselines: sampled

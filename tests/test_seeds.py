@@ -11,7 +11,6 @@ from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
 from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, load_heads, make_learner, make_subtasks
-from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.seeds import split_seed, stack_seeds
 from taskvar_torch.replay import raw_transitions
 from taskvar_torch.run_state import seed_config
@@ -60,11 +59,6 @@ def test_each_seed_rows_meet_its_own_weights_and_its_losses_are_its_runs(path):
         y = batch.heads[name].module(obs)
         parts = [runs[k].heads[name].module(obs[k * n : (k + 1) * n]) for k in range(3)]
         assert torch.equal(y, torch.cat(parts)), name  # the same matmul per row: the same bits
-    z = informed_features(cfg)[1](raw)  # the informed head (heads.informed) reads the instance
-    y = batch.heads["informed"].module(obs, z)
-    rows = [slice(k * n, (k + 1) * n) for k in range(3)]
-    parts = [runs[k].heads["informed"].module(obs[r], z[r]) for k, r in enumerate(rows)]
-    torch.testing.assert_close(y, torch.cat(parts), rtol=1e-6, atol=1e-6)
     subtasks = make_subtasks(cfg, make_training_env(cfg).base_env)
     lb = make_learner(cfg, batch, subtasks).loss
     ones = [make_learner(cfg, r, subtasks).loss for r in runs]

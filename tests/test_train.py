@@ -88,7 +88,7 @@ def test_2k_frames_equal_1k_then_resume_in_a_new_process_for_1k(tmp_path):
     # digit as the uninterrupted run's
     la, lb = read_scalars(straight), read_scalars(resumed)
     heads = {"loss_averaging", "loss_options", "loss_switching", "loss_max_value"}
-    assert set(la) == heads | {"loss_informed"}  # heads.informed: the config trains it too
+    assert set(la) == heads
     for name, rows in la.items():
         assert any(row[0] > 1000 for row in rows) and rows == lb[name], name
 
@@ -193,7 +193,6 @@ def test_final_bundle_reloads_the_trained_heads(tmp_path):
         "config.yaml",
         "final.pt",
         "heads.pt",
-        "informed.pt",  # heads.informed (configs/windy.yaml)
         "logs",
     ]
     bundle = load_checkpoint(tmp_path / "final.pt")

@@ -155,8 +155,8 @@ def _train_baselines_arguments(p: argparse.ArgumentParser) -> None:
         metavar="[CONFIG] [key.sub=value ...]",
         help="YAML config (default: DIR/config.yaml of the bundle in --out), then config "
         "overrides: the baselines read the heads' settings (heads.hidden, train.lr, "
-        "train.total_frames ...) and the recurrent one its own baseline.hidden, "
-        "baseline.slice_len and baseline.burn_in",
+        "train.total_frames, train.n_step ...) and their own baseline.* keys (the recurrent "
+        "one's baseline.hidden, baseline.slice_len, baseline.burn_in, baseline.recurrent_frames)",
     )
     p.add_argument(
         "--out", required=True, metavar="DIR", help="bundle folder (beside final.pt) or a new one"
@@ -164,8 +164,8 @@ def _train_baselines_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--method",
         default="all",
-        help="recurrent, informed or all (default: recurrent, and informed where the family "
-        "gives instance features and the heads did not train it with heads.informed)",
+        help="recurrent, informed, blind or all (default: recurrent, and informed and blind "
+        "where the family gives instance features)",
     )
     p.add_argument("--overwrite", action="store_true", help="replace DIR/<method>.pt if it exists")
     threads_argument(p)
@@ -192,30 +192,23 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
     check_output_folder(args.out)
     cfg = load_config(config_path, overrides)
     methods = list(BASELINES) if args.method == "all" else [args.method]
-    if "informed" in methods:
+    if "informed" in methods or "blind" in methods:  # blind: the same network, features zeroed
         try:
             informed_features(cfg)
         except ValueError as e:
             if args.method != "all":
                 raise
-            print(f"taskvar train-baselines: skipping informed: {e}", file=sys.stderr)
-            methods.remove("informed")
-    if args.method == "all" and "informed" in methods and cfg.heads.informed:
-        print(
-            "taskvar train-baselines: skipping informed: the heads trained it (heads.informed); "
-            "--method informed trains one apart",
-            file=sys.stderr,
-        )
-        methods.remove("informed")
+            print(f"taskvar train-baselines: skipping informed and blind: {e}", file=sys.stderr)
+            methods = [m for m in methods if m not in ("informed", "blind")]
     for m in methods:
         dest = baseline_path(Path(args.out) / "final.pt", m)
         if dest.exists() and not args.overwrite:
             raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
-    heads_only = heads_only_keys(cfg)
+    heads_only = heads_only_keys(cfg, methods)
     if heads_only:
         print(
-            f"taskvar train-baselines: {', '.join(heads_only)} shape the heads' replay only; the "
-            "baselines take one-step targets on uniform samples",
+            f"taskvar train-baselines: {', '.join(heads_only)} not used: the recurrent baseline "
+            "takes one-step targets on its slices, every baseline samples uniformly",
             file=sys.stderr,
         )
     for m in methods:
@@ -260,10 +253,12 @@ TRAIN = Command(
 
 
 TRAIN_BASELINES = Command(
-    help="train the recurrent and informed baselines beside a bundle (docs/memory.md)",
-    description="Train a recurrent Q-network (TorchRL GRUModule, SliceSampler, double DQN) and "
-    "an instance-informed Q-network (the learnt ceiling) with the config's frame budget, "
-    "written as DIR/recurrent.pt and DIR/informed.pt; taskvar eval --method all plays them "
+    help="train the recurrent, informed and blind baselines beside a bundle (docs/memory.md)",
+    description="Train the baselines, each a DQN agent on its own epsilon-greedy stream with the "
+    "heads' width, target settings and frame budget: a recurrent Q-network (TorchRL GRUModule, "
+    "SliceSampler), an instance-informed Q-network (the learnt ceiling, where a validation run "
+    "shows it is one) and blind (the same network, the instance features zeroed); written as "
+    "DIR/recurrent.pt, DIR/informed.pt and DIR/blind.pt; taskvar eval --method all plays them "
     "beside the paper's methods.\n\n"
     "  taskvar train-baselines configs/windy.yaml --out runs/windy --method all",
     add_arguments=_train_baselines_arguments,

@@ -67,7 +67,6 @@ USER_KEYS = (
     "heads.hidden",
     "heads.activation",
     "heads.network",
-    "heads.informed",
     "train.total_frames",
     "train.lr",
     "train.gamma",

@@ -19,15 +19,26 @@ from omegaconf import DictConfig, OmegaConf
 from taskvar_torch.config.schema import Config
 from taskvar_torch.families import FAMILIES
 
+ANY = object()
+"""A :data:`REMOVED_KEYS` value: the key is dropped whatever it holds."""
+
+_INFORMED_GONE = (
+    "the informed baseline is an agent of its own on its own stream now, not a head of the "
+    "learner: taskvar train-baselines --method informed (docs/memory.md)"
+)
+
 REMOVED_KEYS = {
     "train.switching": (
         "intra",
         "it had one allowed value: the switching head always learns by intra-option Q-learning",
     ),
+    "heads.informed": (ANY, _INFORMED_GONE),
+    "heads.informed_anchor": (ANY, _INFORMED_GONE),
 }
-"""Config keys that are gone -> ``(the one value an old config could hold, why it went)``
-(docs/changelog.md, issue 45). An old config, checkpoint or override holding one at that value
-loads without it, with a deprecation line; another value is a one-line ``ValueError``."""
+"""Config keys that are gone -> ``(the one value an old config could hold, or ANY, why it
+went)`` (docs/changelog.md, issues 45 and 56). An old config, checkpoint or override holding one
+at that value (at any value: ``ANY``) loads without it, with a deprecation line; another value
+is a one-line ``ValueError``."""
 
 
 def _drop_removed(out: dict, source: str) -> list[str]:
@@ -37,7 +48,7 @@ def _drop_removed(out: dict, source: str) -> list[str]:
         section, key = dotted.split(".")
         node = out.get(section)
         if isinstance(node, Mapping) and key in node:
-            if node[key] != value:
+            if value is not ANY and node[key] != value:
                 raise ValueError(
                     f"{dotted}={node[key]!r} ({source}) cannot load: {dotted} was removed ({why})"
                 )

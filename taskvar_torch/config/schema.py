@@ -48,20 +48,6 @@ class HeadsConfig:
     """full (every option's policy sees the whole observation) or subtask (wargus, mlp: each
     option's policy is its own network that sees its subtask's features only: TG the item's, FE
     the patrol's, both the agent's position; the composed root sees everything)."""
-    informed: bool = False
-    """Train the informed baseline as one more head of the learner: the averaging head plus a
-    correction Delta (an MLP of heads.hidden, heads.activation) reading the family's features of
-    the hidden instance beside the observation, on the same samples with the same settings
-    (heads.informed_anchor); written as DIR/informed.pt, the learnt ceiling of ``taskvar eval
-    --method all`` (docs/memory.md). The paper's heads are the same bits with it on or off. Needs a
-    family with instance features (windy, Taxi, Wargus); with heads.network=conv it is a plain MLP
-    over the whole observation and the features (no residual)."""
-    informed_anchor: float = 0.0
-    """heads.informed: weight of the penalty ``mean_a Delta(s, z, a)^2`` that holds the informed
-    head to the averaging head (``Q_inf = Q_avg + Delta``) where the data do not move it
-    (heads/informed.py); 0 trains ``Delta`` by the TD loss alone (windy: at the optimum; 1.0 there
-    holds it near the averaging policy, regret 6.2 at tests/families/windy/test_heads_windy.py's budget).
-    configs/taxi.yaml sets 1.0, chosen on Taxi validation seeds 100 and 101 (0 and 0.3 loop)."""
 
 
 @dataclass(frozen=True)
@@ -227,11 +213,12 @@ class TrainConfig:
 
 @dataclass(frozen=True)
 class BaselineConfig:
-    """The recurrent baseline's own settings (``taskvar train-baselines``; docs/memory.md). Every
-    setting it shares with the heads is read from ``heads`` and ``train``: the Q head's widths and
-    activation, gamma, lr and its schedule, batch and buffer sizes, updates per batch, the target
-    update, double Q, gradient clipping, the epsilon schedule, the frame budget and the evaluation
-    weights (``train.eval_ema_tau``)."""
+    """The baselines' own settings (``taskvar train-baselines``: recurrent, informed, blind;
+    docs/memory.md). Every setting a baseline shares with the heads is read from ``heads`` and
+    ``train``: the Q head's widths and activation, gamma, lr and its schedule, batch and buffer
+    sizes, updates per batch, the target update, n-step targets (informed and blind), double Q,
+    gradient clipping, the epsilon schedule, the frame budget and the evaluation weights
+    (``train.eval_ema_tau``)."""
 
     hidden: int = 128
     """GRU hidden size of the recurrent Q-network."""
@@ -241,6 +228,11 @@ class BaselineConfig:
     burn_in: int = 8
     """Steps before each slice that only warm the GRU up from the hidden state stored at
     collection (R2D2's burn-in); a slice that starts an episode needs none (its state is zero)."""
+    recurrent_frames: int | None = None
+    """The recurrent baseline's frame budget where it needs more than the heads' to deliver;
+    null: train.total_frames, the heads' (an equal budget). Its epsilon decays over the same share
+    of it as the heads' (train.eps_decay_frames scaled). A report labels a row whose budget differs
+    from the heads' with its frames (docs/memory.md#budgets)."""
 
 
 @dataclass(frozen=True)

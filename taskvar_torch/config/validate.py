@@ -183,14 +183,6 @@ def _check_heads(cfg: Config, fam: Family) -> None:
             f"({_families_with('option_inputs')}) and heads.network='mlp', "
             f"got family={cfg.family!r}, heads.network={cfg.heads.network!r}"
         )
-    _at_least("heads.informed_anchor", cfg.heads.informed_anchor, 0.0, 1e6)
-    if cfg.heads.informed:
-        if fam.informed_features is None and fam.instance_features is None:
-            raise ValueError(
-                f"heads.informed=true needs a family with features of the hidden instance "
-                f"(Family.instance_features or informed_features); family {cfg.family!r} has "
-                "none: set heads.informed=false"
-            )
 
 
 def _check_baseline(cfg: Config) -> None:
@@ -198,6 +190,8 @@ def _check_baseline(cfg: Config) -> None:
     _at_least("baseline.hidden", cfg.baseline.hidden, 1, 2**20)  # as heads.hidden's widths
     _at_least("baseline.slice_len", cfg.baseline.slice_len, 1, MAX_HORIZON)
     _at_least("baseline.burn_in", cfg.baseline.burn_in, 0, MAX_HORIZON)
+    if cfg.baseline.recurrent_frames is not None:
+        _at_least("baseline.recurrent_frames", cfg.baseline.recurrent_frames, 1, MAX_FRAMES)
 
 
 def _check_train(cfg: Config, fam: Family) -> None:

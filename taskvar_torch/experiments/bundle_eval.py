@@ -65,7 +65,6 @@ from taskvar_torch.factory import (
     training_states,
 )
 from taskvar_torch.families import family
-from taskvar_torch.heads.recurrent import BASELINES
 from taskvar_torch.oracle.episodes import optimal_episode_returns
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder, refuse_inside
@@ -539,7 +538,7 @@ def _explain_point(ms: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     regret = all("regret_mean" in r for r in ms.values())
     what = "regret" if regret else "mean return"
     sign = 1.0 if regret else -1.0  # the best is the smallest regret, the largest return
-    memoryless = [m for m in ms if m not in BASELINES]
+    memoryless = [m for m in ms if m not in SEES_MORE]
     alike: list[list[str]] = []
     for m in memoryless:
         for g in alike:
@@ -588,6 +587,18 @@ def _explain_point(ms: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
             f"{verdict} (best: {best}, {b[0]:.3f} +-{b[1]:.3f}); where and why memory pays: "
             "docs/memory.md"
         )
+    if "recurrent" in ms and "blind" in ms:
+        a, b = _score(ms["recurrent"], regret), _score(ms["blind"], regret)
+        if not _apart(a, b):
+            verdict = "ties with blind within their 95% CIs: no gain from memory shown here"
+        elif sign * a[0] < sign * b[0]:
+            verdict = "is ahead of blind, 95% CIs apart: memory, not its own stream, pays here"
+        else:
+            verdict = "is behind blind, 95% CIs apart"
+        shows.append(
+            f"recurrent {verdict} (blind: the same trainer on its own stream, no memory and no "
+            f"instance; {what} {b[0]:.3f} +-{b[1]:.3f})"
+        )
     if "informed" in ms:
         v, ci = _score(ms["informed"], regret)
         if not regret:
@@ -596,11 +607,40 @@ def _explain_point(ms: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
             where = f"at the exact optimum (regret {v:.3f} +-{ci:.3f}: the CI contains 0)"
         else:
             where = f"regret {v:.3f} +-{ci:.3f}: short of the exact optimum"
-        shows.append(f"informed (it sees the hidden instance: the learnt ceiling): {where}")
+        ok, why = ceiling_gate({m: _score(r, regret) for m, r in ms.items()}, lower=regret)
+        role = "a ceiling here" if ok else f"no ceiling here: {why}"
+        shows.append(f"informed (it sees the hidden instance; {role}): {where}")
     return shows, alike
 
 
+SEES_MORE = ("recurrent", "informed")
+"""The baselines that see more than the observation (the episode so far; the hidden instance):
+every other method, ``blind`` included, is memoryless."""
+
+
+def ceiling_gate(scores: dict[str, tuple[float, float]], lower: bool = False) -> tuple[bool, str]:
+    """Whether ``informed`` is a ceiling on these scores (docs/memory.md#the-ceiling-gate): at
+    least as good as every memoryless method (every method but :data:`SEES_MORE`) within their
+    95% CIs, ``scores`` each method's ``(value, CI half-width)``, ``lower``: lower is better
+    (regret). Returns ``(ok, why)``, ``why`` naming the method it is behind."""
+    if "informed" not in scores:
+        return False, "no informed result"
+    sign = 1.0 if lower else -1.0
+    inf = scores["informed"]
+    for m, s in scores.items():
+        if m in SEES_MORE:
+            continue
+        if _apart(inf, s) and sign * inf[0] > sign * s[0]:
+            return False, (
+                f"it is behind {m} ({inf[0]:.3f} +-{inf[1]:.3f} against {s[0]:.3f} +-{s[1]:.3f}, "
+                "95% CIs apart), so its features or budget do not let it use the instance"
+            )
+    return True, ""
+
+
 __all__ = [
+    "SEES_MORE",
+    "ceiling_gate",
     "eval_bundle",
     "explain_table",
     "format_table",

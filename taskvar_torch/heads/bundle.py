@@ -12,11 +12,6 @@ max_value      Q_hat(s, o)  (§3.3, Def. 1)    max_value       (B, O)
 robustness     R(o, s, a)   (§3.4.3)          robustness      (B, O, A)
 =============  =============================  ==============  =============================
 
-With ``heads.informed``, a bundle also carries the ``informed`` baseline's network (the averaging
-head given the hidden instance, ``heads/informed.py``) for the learner to train beside the others;
-it is no head of the paper: no controller reads it, and the bundle's keys and ``forward`` leave it
-out (evaluation plays it from ``DIR/informed.pt``).
-
 Trained networks (``heads/``) and the exact oracle's tables (``oracle/``) both build a
 :class:`Heads`, so the same controller code runs on either.
 """
@@ -39,7 +34,6 @@ HEAD_OUT_KEYS = {
     "switching": keys.OPTION_VALUE,
     "max_value": keys.MAX_VALUE,
     "robustness": keys.ROBUSTNESS,
-    "informed": keys.INFORMED_ACTION_VALUE,
 }
 
 
@@ -68,7 +62,6 @@ class Heads(TensorDictModuleBase):
         max_value: nn.Module | None = None,
         robustness: nn.Module | None = None,
         softmax_temperature: float | None = None,
-        informed: nn.Module | None = None,
     ):
         super().__init__()
         self.option_names = tuple(option_names)
@@ -79,7 +72,6 @@ class Heads(TensorDictModuleBase):
             switching=switching,
             max_value=max_value,
             robustness=robustness,
-            informed=informed,
         )
         self.heads = nn.ModuleDict({k: m for k, m in mods.items() if m is not None})
         in_keys: list = []
@@ -94,7 +86,7 @@ class Heads(TensorDictModuleBase):
         return name in self.heads
 
     def paper_heads(self) -> dict[str, nn.Module]:
-        """The heads of the paper (every head but the ``informed`` baseline's), in order."""
+        """The heads of the paper, in order (every head of the bundle)."""
         return {k: m for k, m in self.heads.items() if k in HEAD_NAMES}
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:

@@ -37,10 +37,9 @@ from torch import nn
 from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 
 from taskvar_torch.compiling import Compiled
-from taskvar_torch.config.schema import HeadsConfig, TrainConfig
+from taskvar_torch.config.schema import TrainConfig
 from taskvar_torch.heads.averaging import averaging_loss
 from taskvar_torch.heads.bundle import Heads, with_root_row
-from taskvar_torch.heads.informed import INFORMED, informed_loss
 from taskvar_torch.heads.max_value import (
     MAX_VALUE_ESTIMATORS,
     OptimismGapHead,
@@ -70,9 +69,8 @@ MATMUL_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
 @dataclass(frozen=True)
 class LossSettings:
     """Hyper-parameters of the head losses: the ``TrainConfig`` fields of the same names (the
-    root's policy is ``train.hierarchy_root_policy``, the informed anchor
-    ``heads.informed_anchor``), whose defaults are these defaults; ``factory.make_learner`` sets
-    every one from the config."""
+    root's policy is ``train.hierarchy_root_policy``), whose defaults are these defaults;
+    ``factory.make_learner`` sets every one from the config."""
 
     gamma: float = TrainConfig.gamma
     robustness_gamma: float = TrainConfig.robustness_gamma
@@ -85,7 +83,6 @@ class LossSettings:
     max_value_estimator: str = TrainConfig.max_value_estimator  # expectile | instance
     max_value_instances: int = TrainConfig.max_value_instances  # |Z| of the instance max
     matmul_dtype: str = TrainConfig.matmul_dtype  # or bfloat16: network passes under autocast
-    informed_anchor: float = HeadsConfig.informed_anchor  # lambda of mean_a Delta^2 (informed.py)
 
 
 def _unique_params(module: nn.Module) -> TensorDictParams:
@@ -103,8 +100,8 @@ def _stack_members(net: nn.Module) -> list[nn.Module]:
 
 def _shared_stack(heads: nn.ModuleDict) -> StackedMLP | None:
     """The :class:`StackedMLP` every head of the paper is made of, if there is one (else
-    ``None``; the informed head, over other inputs, is never in it)."""
-    nets = [m for n, h in heads.items() if n != INFORMED for m in _stack_members(head_network(h))]
+    ``None``)."""
+    nets = [m for h in heads.values() for m in _stack_members(head_network(h))]
     if nets and all(isinstance(n, StackedHead) for n in nets):
         if len({id(n.stack) for n in nets}) == 1:
             return nets[0].stack
@@ -120,8 +117,6 @@ class MultiHeadLoss(LossModule):
         settings: discounts, double-Q, expectile level, mu_bar temperature.
         instance_features: the family's features of the hidden instance (``Family
             .instance_features``), read offline by the ``instance`` max-value estimator only.
-        informed_features: the informed head's features of the hidden instance
-            (:func:`~taskvar_torch.heads.informed.informed_features`), where the bundle has one.
 
     Returns (``forward``): a ``TensorDict`` of scalar losses ``loss_<head>`` for the heads present.
 
@@ -136,19 +131,9 @@ class MultiHeadLoss(LossModule):
         subtasks: Subtasks,
         settings: LossSettings,
         instance_features: InstanceFeatures | None = None,
-        informed_features: InstanceFeatures | None = None,
     ):
         super().__init__()
         self.instance_features = instance_features
-        self.informed_features = informed_features
-        if heads.has(INFORMED) and informed_features is None:
-            raise ValueError("the informed head needs the family's informed_features")
-        if (
-            heads.has(INFORMED)
-            and getattr(head_network(heads.heads[INFORMED]), "residual", False)
-            and not heads.has("averaging")
-        ):
-            raise ValueError("the informed head (Q_avg + Delta) needs the ['averaging'] head")
         for name, needs in _NEEDS.items():
             missing = [n for n in needs if heads.has(name) and not heads.has(n)]
             if missing:
@@ -210,7 +195,7 @@ class MultiHeadLoss(LossModule):
         self.heads = heads
         self.subtasks = subtasks
         self.settings = settings
-        self.head_names = tuple(n for n in heads.heads.keys() if n != INFORMED)  # the paper's
+        self.head_names = tuple(heads.heads.keys())
         # one deepcopy, so heads that share a StackedMLP share it in the targets too
         self.target_heads = copy.deepcopy(heads.heads).requires_grad_(False)
         # TorchRL naming (<name>_params / target_<name>_params), so SoftUpdate/HardUpdate find the
@@ -320,7 +305,6 @@ class MultiHeadLoss(LossModule):
             self.subtasks,
             robustness=self.heads.has("robustness"),
             instance_features=self.instance_features,
-            informed_features=self.informed_features if self.heads.has(INFORMED) else None,
         )
         if self.seeds > 1:
             batch = dataclasses.replace(batch, seeds=self.seeds)
@@ -337,18 +321,6 @@ class MultiHeadLoss(LossModule):
         # head's values back in float32 before any target or loss
         with torch.autocast(obs.device.type, dtype=dtype, enabled=dtype != torch.float32):
             outputs = self._head_outputs(obs, batch.next_observation, far_obs)
-            if self.heads.has(INFORMED):  # the informed baseline, on the same sample
-                loss_informed = informed_loss(
-                    head_network(self.heads.heads[INFORMED]),
-                    head_network(self.target_heads[INFORMED]),
-                    batch,
-                    s.gamma,
-                    s.double_q,
-                    tuple(out.get("averaging") for out in outputs[:3])
-                    if "averaging" in outputs[0]
-                    else None,
-                    s.informed_anchor,
-                ).float()
         cur, nxt, nxt_target, far, far_target = (
             {k: v.float() for k, v in out.items()} for out in outputs
         )
@@ -428,8 +400,6 @@ class MultiHeadLoss(LossModule):
                 next_action,
                 until_termination=s.robustness_until == "termination",
             )
-        if self.heads.has(INFORMED):
-            losses["loss_informed"] = loss_informed
         return losses
 
 
@@ -543,10 +513,6 @@ class MultiHeadLearner:
             if self._stacked
             else [list(m.parameters()) for m in self.heads.paper_heads().values()]
         )
-        # the informed head (heads.informed), clipped on its own: per seed where it is a stack
-        informed = head_network(self.heads.heads[INFORMED]) if self.heads.has(INFORMED) else None
-        self._informed = None if informed is None else list(informed.parameters())
-        self._informed_stacked = informed is not None and isinstance(informed.mlp, StackedHead)
         self.optimizer = torch.optim.Adam(self.heads.parameters(), lr=lr, fused=True)
         if target_update == "soft":
             self.target_updater = ForeachSoftUpdate(loss, tau=target_tau)
@@ -583,10 +549,6 @@ class MultiHeadLearner:
                 clip_grad_norm_stacked(self._groups[0], self.max_grad_norm)
             else:
                 clip_grad_norm_per_group(self._groups, self.max_grad_norm)
-            if self._informed is not None and self._informed_stacked:
-                clip_grad_norm_stacked(self._informed, self.max_grad_norm)
-            elif self._informed is not None:
-                clip_grad_norm_per_group([self._informed], self.max_grad_norm)
         self.optimizer.step()
         self.target_updater.step()
         if self.eval_ema_tau is not None:

@@ -9,14 +9,16 @@ instance-informed ceiling, built from TorchRL's own modules.
   the trajectory (a gust, a sighting), which no memoryless controller of the paper can.
 * ``informed``: a feed-forward Q-network reading the observation *and* the family's features of
   the hidden instance (:func:`~taskvar_torch.heads.informed.informed_features`). It is the learnt
-  ceiling: the paper's averaging head (§3.1) given what the paper's agent never sees; trained as
-  one more head of the learner (``heads.informed``, :mod:`taskvar_torch.heads.informed`) and
-  written here as a bundle (:func:`save_informed_head`).
+  ceiling candidate: a DQN agent of its own given what the paper's agent never sees (a column
+  calls it a ceiling only where a validation run shows it is one: docs/memory.md).
+* ``blind``: the same network with the instance features zeroed: a memoryless DQN on its own
+  stream, the control that separates "memory helps" from "learning on one's own stream helps".
 
-Both are greedy in their Q-values at evaluation (:class:`BaselineController`), act step by step
+All are greedy in their Q-values at evaluation (:class:`BaselineController`), act step by step
 on the batched env (the recurrent one resets its hidden state at every episode start through
 TorchRL's ``InitTracker`` and the GRU's tensordict primer) and are saved as their own bundles
-(``DIR/recurrent.pt``, ``DIR/informed.pt``: :func:`save_baseline`, :func:`load_baseline`), loadable
+(``DIR/recurrent.pt``, ``DIR/informed.pt``, ``DIR/blind.pt``: :func:`save_baseline`,
+:func:`load_baseline`), loadable
 with ``torch.load(weights_only=True)``. Training: :mod:`taskvar_torch.train_recurrent`.
 """
 
@@ -40,16 +42,10 @@ from torchrl.modules import GRUModule, QValueModule
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint, make_bundle, save_checkpoint
 from taskvar_torch.config import Config, config_from_dict
-from taskvar_torch.heads.informed import (
-    INSTANCE_FEATURES,
-    ResidualInformedQ,
-    family_instance_keys,
-    informed_features,
-    plain_member_mlp,
-)
+from taskvar_torch.heads.informed import INSTANCE_FEATURES, ResidualInformedQ, informed_features
 from taskvar_torch.heads.networks import make_mlp
 
-BASELINES = ("recurrent", "informed")
+BASELINES = ("recurrent", "informed", "blind")
 """The baseline methods, in the order ``taskvar eval --method all`` plays them after the paper's."""
 
 EMBED = "recurrent_embed"
@@ -120,17 +116,26 @@ class InstanceFeatures(TensorDictModuleBase):
     """Writes the family's informed features (:func:`informed_features`) of the tensordict's
     ``("instance", ...)`` entries as ``instance_features`` ``(*batch, F)`` (any batch shape; the
     family function sees a flat batch). Only the ``informed`` baseline reads them: the hidden
-    instance, given away on purpose."""
+    instance, given away on purpose. ``blind=True`` writes zeros of the same shape (the ``blind``
+    baseline: the same network, told nothing)."""
 
-    def __init__(self, features: Callable[[TensorDictBase], torch.Tensor], instance_keys):
+    def __init__(
+        self,
+        features: Callable[[TensorDictBase], torch.Tensor],
+        instance_keys,
+        blind: bool = False,
+    ):
         super().__init__()
         self.features = features
+        self.blind = bool(blind)
         self.in_keys = [(keys.INSTANCE, k) for k in instance_keys]
         self.out_keys = [INSTANCE_FEATURES]
 
     def forward(self, td: TensorDictBase) -> TensorDictBase:
         flat = td.reshape(-1) if td.batch_dims != 1 else td
         f = self.features(flat)
+        if self.blind:
+            f = torch.zeros_like(f)
         td.set(INSTANCE_FEATURES, f.reshape(*td.batch_size, f.shape[-1]))
         return td
 
@@ -216,12 +221,13 @@ def make_informed_qnet(
     mlp: tuple[int, ...],
     activation: str = "relu",
     residual: bool = False,
+    blind: bool = False,
 ) -> TensorDictSequential:
-    """The informed Q-network: ``[observation, instance_features] -> MLP -> QValueModule`` (its
-    MLP has the informed head's layout: :class:`~taskvar_torch.heads.informed.InformedNet`);
+    """The informed Q-network: ``[observation, instance_features] -> MLP -> QValueModule``, a
+    plain MLP of ``mlp`` widths; ``blind``: the features zeroed (the ``blind`` baseline).
     ``residual``: ``Q_avg(observation) + Delta([observation, instance_features])``
-    (:class:`~taskvar_torch.heads.informed.ResidualInformedQ`, both MLPs of ``mlp`` widths), what
-    the learner's informed head is evaluated as."""
+    (:class:`~taskvar_torch.heads.informed.ResidualInformedQ`), the form of informed bundles
+    written by the learner's informed head before it was removed; they still evaluate."""
     if residual:
         return TensorDictSequential(
             InstanceFeatures(features, instance_keys),
@@ -236,7 +242,7 @@ def make_informed_qnet(
             QValueModule(action_space="categorical", action_value_key=keys.ACTION_VALUE),
         )
     return TensorDictSequential(
-        InstanceFeatures(features, instance_keys),
+        InstanceFeatures(features, instance_keys, blind),
         TensorDictModule(_Concat(), in_keys=[keys.OBSERVATION, INSTANCE_FEATURES], out_keys=["x"]),
         TensorDictModule(
             make_mlp(obs_dim + instance_dim, num_actions, tuple(mlp), activation),
@@ -252,17 +258,19 @@ class BaselineSpec:
     """What a baseline bundle records beside its weights: enough to rebuild the network.
 
     Attributes:
-        method: ``recurrent`` or ``informed``.
+        method: ``recurrent``, ``informed`` or ``blind``.
         obs_dim, num_actions: the family's observation width and number of actions.
         mlp: hidden widths of the Q head (``heads.hidden``; recurrent: after the GRU).
         hidden: GRU hidden size (``baseline.hidden``; recurrent only).
         instance_dim, instance_keys: the informed network's feature width and the
-            ``("instance", key)`` entries they are read from (informed only).
+            ``("instance", key)`` entries they are read from (informed and blind, whose features
+            are zeros of that width).
         prev_reward: the recurrent network reads the previous reward (bundles written before it
             did load with ``False``).
-        residual: the informed network is ``Q_avg + Delta`` (the learner's informed head,
-            :class:`~taskvar_torch.heads.informed.ResidualInformedQ`); bundles written before it,
-            and ``train-baselines --method informed``, are a plain MLP (``False``).
+        residual: the informed network is ``Q_avg + Delta``
+            (:class:`~taskvar_torch.heads.informed.ResidualInformedQ`): bundles written by the
+            learner's informed head before it was removed (they still evaluate); every informed
+            network trained now is a plain MLP (``False``).
     """
 
     method: str
@@ -310,7 +318,7 @@ def build_baseline(spec: BaselineSpec, cfg: Config) -> TensorDictSequential:
         return make_recurrent_qnet(
             spec.obs_dim, spec.num_actions, spec.hidden, spec.mlp, act, spec.prev_reward
         )[0]
-    if spec.method == "informed":
+    if spec.method in ("informed", "blind"):
         _, feats = informed_features(cfg)
         return make_informed_qnet(
             spec.obs_dim,
@@ -321,6 +329,7 @@ def build_baseline(spec: BaselineSpec, cfg: Config) -> TensorDictSequential:
             spec.mlp,
             act,
             spec.residual,
+            blind=spec.method == "blind",
         )
     raise ValueError(f"baseline method must be one of {list(BASELINES)}, got {spec.method!r}")
 
@@ -344,7 +353,7 @@ class BaselineController(TensorDictModuleBase):
         self.out_keys = list(net.out_keys)
 
     def primer(self) -> Transform:
-        """The env transforms this controller needs (empty for ``informed``)."""
+        """The env transforms this controller needs (empty for ``informed`` and ``blind``)."""
         if self.spec.method != "recurrent":
             return Compose()
         gru = next(m for m in self.net.modules() if isinstance(m, GRUModule))
@@ -355,7 +364,7 @@ class BaselineController(TensorDictModuleBase):
         return self.net(td)
 
 
-BUNDLE_NAMES = {"recurrent": "recurrent.pt", "informed": "informed.pt"}
+BUNDLE_NAMES = {"recurrent": "recurrent.pt", "informed": "informed.pt", "blind": "blind.pt"}
 """File name of each baseline's bundle beside ``final.pt``."""
 
 
@@ -383,40 +392,6 @@ def save_baseline(
     return save_checkpoint(path, bundle)
 
 
-def save_informed_head(
-    path: str | os.PathLike,
-    informed: nn.Module,
-    obs_dim: int,
-    num_actions: int,
-    cfg: Config,
-    counters: dict[str, Any] | None = None,
-    averaging: nn.Module | None = None,
-) -> Path:
-    """Write the learner's informed head (:class:`~taskvar_torch.heads.informed.InformedNet`, or
-    the ``TensorDictModule`` around it, of one run) as the ``informed`` baseline bundle ``path``:
-    the same weights in :func:`make_informed_qnet`'s network, which ``taskvar eval`` plays. A
-    residual head (``Q_avg + Delta``) needs the same bundle's ``averaging`` head, whose weights
-    the file then holds too (it is self-contained)."""
-    net_in = informed.module if isinstance(informed, TensorDictModule) else informed
-    residual = bool(getattr(net_in, "residual", False))
-    dim, feats = informed_features(cfg)
-    ikeys = family_instance_keys(cfg)
-    spec = BaselineSpec("informed", int(obs_dim), int(num_actions), tuple(cfg.heads.hidden))
-    spec.instance_dim, spec.instance_keys, spec.residual = int(dim), ikeys, residual
-    net = make_informed_qnet(
-        spec.obs_dim, spec.num_actions, dim, feats, ikeys, spec.mlp, cfg.heads.activation, residual
-    )
-    if residual:
-        if averaging is None:
-            raise ValueError("a residual informed head is written with its averaging head")
-        q = net[1].module
-        q.base.load_state_dict(plain_member_mlp(averaging, cfg.heads.activation).state_dict())
-        q.delta.load_state_dict(net_in.mlp.state_dict())
-    else:
-        net[2].module.load_state_dict(net_in.mlp.state_dict())
-    return save_baseline(path, net, spec, cfg, counters)
-
-
 def load_baseline(
     path: str | os.PathLike, device: str | torch.device = "cpu"
 ) -> tuple[BaselineController, Config]:
@@ -441,7 +416,8 @@ def load_baseline(
             f"{str(path)!r} weights do not fit its spec: {str(e).splitlines()[0]}"
         ) from None
     ctrl = BaselineController(net.to(device).eval(), spec)
-    ctrl.total_frames = int(cfg.train.total_frames)
+    budget = bundle.get("counters", {}).get("budget")  # its frame budget (baseline_budget)
+    ctrl.total_frames = int(budget) if budget is not None else int(cfg.train.total_frames)
     return ctrl, cfg
 
 
@@ -463,5 +439,4 @@ __all__ = [
     "make_recurrent_qnet",
     "recurrent_transforms",
     "save_baseline",
-    "save_informed_head",
 ]

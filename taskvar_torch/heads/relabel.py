@@ -34,8 +34,6 @@ class Transitions:
     subtask_reward: torch.Tensor  # (B, O)
     robustness_reward: torch.Tensor | None  # (B, O) or None when the family has no robustness
     instance: torch.Tensor | None = None  # (B, F) hidden instance features, or None (see below)
-    informed: torch.Tensor | None = None  # (B, F') the informed head's features at s, or None
-    informed_next: torch.Tensor | None = None  # (B, F') its features at s'
     nstep: NStep | None = None  # multi-step window quantities (heads/nstep.py), or None
     seeds: int = 1  # S: the rows are S equal seed-major groups, one per run (heads/seeds.py)
 
@@ -94,18 +92,12 @@ def relabel(
     subtasks: Subtasks,
     robustness: bool = False,
     instance_features: InstanceFeatures | None = None,
-    informed_features: InstanceFeatures | None = None,
 ) -> Transitions:
     """Relabel a sampled batch ``td`` (B,) of raw transitions for every head; with
     ``instance_features`` (the family's), also the hidden instance's features where the batch
-    holds the ``("instance", ...)`` entries; with ``informed_features`` (the informed head's), its
-    features at ``s`` and, from ``("next", "instance", ...)`` where the batch holds it, at ``s'``.
+    holds the ``("instance", ...)`` entries.
     """
     nxt = td.get(keys.NEXT)
-    informed = informed_next = None
-    if informed_features is not None and keys.INSTANCE in td.keys():
-        informed = informed_features(td)
-        informed_next = informed_features(nxt) if keys.INSTANCE in nxt.keys() else informed
     terminated = nxt.get(keys.TERMINATED).reshape(-1).to(torch.float32)  # (B,)
     nstep = None
     if "nstep" in td.keys():
@@ -138,7 +130,5 @@ def relabel(
             if instance_features is not None and keys.INSTANCE in td.keys()
             else None
         ),
-        informed=informed,
-        informed_next=informed_next,
         nstep=nstep,
     )

@@ -5,8 +5,7 @@ learner's fused pass). :func:`stack_seeds` concatenates ``S`` runs' stacks along
 seed-major, and marks the result ``seeds = S``: every pass then reads its rows as ``S`` equal
 seed-major groups, group ``s`` through run ``s``'s weights only (``StackedMLP.forward_snapshots``
 with the seeds as its weight copies). The plain MLPs outside the stack (the instance estimator's
-critic, ``heads/max_value.py``; the informed head's network, ``heads/informed.py``) each become a
-one-member stack of ``S`` seeds the same way. So one optimiser
+critic, ``heads/max_value.py``) each become a one-member stack of ``S`` seeds the same way. So one optimiser
 step on the sum of the ``S`` runs' losses is ``S`` independent steps: Adam, the per-member gradient
 clip and the target and Polyak updates are elementwise or per member, and each run's loss reads its
 own rows only (``Transitions.seeds``, ``heads/targets.py`` ``group_mean``).
@@ -29,7 +28,6 @@ import torch
 from torch import nn
 
 from taskvar_torch.heads.bundle import Heads
-from taskvar_torch.heads.informed import INFORMED
 from taskvar_torch.heads.max_value import OptimismGapHead
 from taskvar_torch.heads.networks import ACTIVATIONS, StackedHead, StackedMLP, head_network
 
@@ -45,14 +43,12 @@ def _stacks(heads: Heads) -> list[StackedMLP]:
 
 def _loose(heads: Heads) -> list[tuple[nn.Module, str]]:
     """The plain MLPs of a bundle outside its stack, as ``(owner, attribute)``: the instance
-    estimator's critic inside the max-value head, the informed head's network."""
+    estimator's critic inside the max-value head."""
     out = []
     if heads.has("max_value"):
         net = head_network(heads.heads["max_value"])
         if isinstance(net, OptimismGapHead) and net.critic is not None:
             out.append((net, "critic"))
-    if heads.has(INFORMED):
-        out.append((head_network(heads.heads[INFORMED]), "mlp"))
     return out
 
 

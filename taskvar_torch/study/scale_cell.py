@@ -26,7 +26,6 @@ from taskvar_torch.factory import load_heads
 from taskvar_torch.families import family
 from taskvar_torch.heads.recurrent import (
     BaselineController,
-    baseline_path,
     load_baseline,
 )
 from taskvar_torch.run_state import HEADS_SNAPSHOTS, seed_config
@@ -150,21 +149,6 @@ def run_cell(
     return cell
 
 
-def _heads_informed(folder: Path) -> dict[str, Any]:
-    """The informed head the cell's heads trained (``folder/informed.pt``), in
-    ``train_baseline``'s result layout (its training is the heads')."""
-    path = baseline_path(folder / "final.pt", "informed")
-    counters = load_checkpoint(path).get("counters", {})
-    return {
-        "path": str(path),
-        "frames": int(counters.get("frames", 0)),
-        "updates": int(counters.get("updates", 0)),
-        "seconds": 0.0,  # its time is the heads' (train_seconds of the cell)
-        "mean_train_return": float("nan"),
-        "with_heads": True,
-    }
-
-
 def baseline_phase(
     cfg: ScaleConfig,
     ccfg: Config,
@@ -182,16 +166,15 @@ def baseline_phase(
     ``seed_config(ccfg, k)`` into that seed's bundle folder (``folders[k]``, beside the heads'
     ``final.pt``), exactly as ``taskvar train-baselines CONFIG --out FOLDER --method NAME`` does:
     the cell's own config, so the **same frame budget** and settings as the heads
-    (``train_recurrent``'s module docstring); ``informed`` where the heads trained it
-    (``heads.informed``) is their ``informed.pt``, not trained again. The bundles (``recurrent.pt``, ``informed.pt``) are removed
-    once loaded unless ``keep_checkpoints``.
+    (``train_recurrent``'s module docstring). The bundles (``recurrent.pt``, ``informed.pt``,
+    ``blind.pt``) are removed once loaded unless ``keep_checkpoints``.
 
     Scoring: each baseline on the cell's test episodes (``evaluate`` at the test seed: the
     methods' paired episodes), with ``gap_closed``, added to every seed's ``methods`` as a new
     entry (so to ``cell["methods"]`` and ``per_seed``) and, with several seeds, to
     ``over_seeds``. New keys: ``baseline_training`` (per seed and baseline: frames, updates,
-    seconds, the mean training return of the last tenth, ``with_heads``: trained as one more head,
-    its seconds counted in the heads'), ``baseline_train_seconds`` (their
+    seconds, the mean training return of the last tenth, ``with_heads``: always false now, true
+    in results written while the heads trained the informed head), ``baseline_train_seconds`` (their
     total) and ``baseline_eval_seconds``. Every call runs under :func:`isolated_rng`, so the
     methods' numbers are bit for bit those of a run without baselines."""
     controllers: list[dict[str, BaselineController]] = []
@@ -201,10 +184,7 @@ def baseline_phase(
         ctrls = {}
         for b in cfg.baselines:
             with isolated_rng(ccfg.device):  # loading draws too: the network's initial weights
-                if b == "informed" and ccfg.heads.informed:  # trained with the heads
-                    r = _heads_informed(folder)
-                else:
-                    r = train_baseline(scfg, b, folder)
+                r = train_baseline(scfg, b, folder)
                 ctrls[b], _ = load_baseline(r["path"], device=ccfg.device)
             if not cfg.keep_checkpoints:
                 Path(r["path"]).unlink(missing_ok=True)
@@ -217,7 +197,7 @@ def baseline_phase(
                     "updates": int(r["updates"]),
                     "train_seconds": float(r["seconds"]),
                     "mean_train_return": None if last != last else float(last),  # NaN: none ended
-                    "with_heads": bool(r.get("with_heads", False)),
+                    "with_heads": False,
                 }
             )
         controllers.append(ctrls)

@@ -101,10 +101,9 @@ def test_every_cell_and_seed_has_the_baseline_entries(runs):
         assert [(t["seed"], t["method"]) for t in c["baseline_training"]] == [
             (s, b) for s in c["seeds"] for b in BASES
         ]
-        for t in c["baseline_training"]:  # informed: one more head (heads.informed)
+        for t in c["baseline_training"]:  # each an agent of its own, trained apart
             assert t["frames"] >= 200 and t["updates"] > 0
-            assert t["with_heads"] is (t["method"] == "informed")
-            assert (t["train_seconds"] > 0) is not t["with_heads"]
+            assert t["with_heads"] is False and t["train_seconds"] > 0
         assert c["baseline_train_seconds"] == pytest.approx(
             sum(t["train_seconds"] for t in c["baseline_training"])
         )
@@ -150,8 +149,8 @@ def test_each_seed_trains_its_baselines_on_the_cells_config_and_budget(runs):
     cfg = scale.load_scale_config(scale.default_config_path(), TINY, quick=True)
     ccfg = scale_config.case_config(cfg, cfg.selected()[0], 4)
     trained = runs["trained"]
-    # informed is the heads' own (heads.informed): only recurrent trains apart
-    assert [(c.seed, meth) for c, meth, *_ in trained] == [(s, "recurrent") for s in (0, 1)]
+    # each baseline trains apart, seed by seed
+    assert [(c.seed, meth) for c, meth, *_ in trained] == [(s, b) for s in (0, 1) for b in BASES]
     for bcfg, _, folder in trained:
         k = bcfg.seed - ccfg.seed
         assert bcfg == seed_config(ccfg, k)  # the cell's own config: the heads' settings
@@ -190,8 +189,6 @@ def test_the_baseline_phase_leaves_the_global_random_streams_alone(tmp_path):
     extra = ["seeds=1", "baselines=[recurrent,informed]", "heldout_episodes=0"]
     cfg = scale.load_scale_config(scale.default_config_path(), [*TINY, *extra], quick=True)
     ccfg = scale_config.case_config(cfg, cfg.selected()[0], 4)
-    # no heads trained here: informed trains apart (train_baseline), as on a bundle without it
-    ccfg = dataclasses.replace(ccfg, heads=dataclasses.replace(ccfg.heads, informed=False))
     ecfg = seed_config(ccfg, 0)
     states = lambda: (torch.get_rng_state(), np.random.get_state()[1].copy(), random.getstate())  # noqa: E731
     torch.manual_seed(3), np.random.seed(3), random.seed(3)

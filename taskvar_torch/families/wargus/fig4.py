@@ -229,11 +229,6 @@ def wargus_fig4(
             f"train.eval_ema_tau={cfg.train.eval_ema_tau}: wargus-fig4 tests the live heads after "
             "every trial (paper §3.5.1), it has no averaged weights to test; set it to null"
         )
-    if cfg.heads.informed:
-        raise ValueError(
-            "heads.informed=true: wargus-fig4 runs the paper's lifelong agents (its baselines are "
-            "experiment.baselines' curves); set heads.informed=false"
-        )
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     if not staged:

@@ -18,6 +18,7 @@ from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.families.taxi.env import TaxiEnv
 from taskvar_torch.families.taxi.oracle import TaxiOracle
 from taskvar_torch.families.taxi.subtasks import TaxiSubtasks
+from taskvar_torch.train_recurrent import train_baseline
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
@@ -37,7 +38,9 @@ TINY = [
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory):
     out = tmp_path_factory.mktemp("taxi")
-    result = train(load_config(CONFIG, TINY), out, progress=False)
+    cfg = load_config(CONFIG, TINY)
+    result = train(cfg, out, progress=False)
+    train_baseline(cfg, "informed", out)  # the informed baseline beside it, the same budget
     return result["final"]
 
 
@@ -65,7 +68,7 @@ def test_shifts_pin_the_rain_and_the_passenger():
 def test_eval_all_methods_prints_the_exact_oracle_beside_the_sampled_returns(bundle):
     metrics = eval_bundle(bundle, method="all", episodes=200, test="fickle", progress=False)
     per = metrics["points"][0]["methods"]
-    assert set(per) == {"averaging", "options", "interruption", "informed"}  # heads.informed
+    assert set(per) == {"averaging", "options", "interruption", "informed"}
     assert per["informed"]["regret_sampled"] and "exact_mean_return" not in per["informed"]
     for m, r in per.items():
         if m == "informed":  # not memoryless: no exact value
