@@ -32,7 +32,7 @@ $(VENV)/.test-extras: pyproject.toml
 	$(MAKE) install-test
 
 ## demo: install everything, then on the windy corridor (configs/windy_corridor.yaml, docs/memory.md)
-## train the paper's heads with the informed baseline, then the recurrent one (10240 frames each), and evaluate
+## train the paper's heads, then the recurrent, informed and blind baselines (10240 frames each), and evaluate
 ## every method on 2000 paired episodes of the training winds: the table puts each method's return
 ## and exact value beside the exact per-instance optimum (the ceiling) and its regret, and --explain
 ## says what it shows, from its numbers; the plots go to $(DEMO)/eval. The first lines say what is
@@ -45,14 +45,15 @@ demo: install
 	@echo "the best memoryless policy returns -2.0 per episode (a stochastic one, which greedy Q-heads cannot"
 	@echo "represent), the best with memory -1.833, one that knows the wind -1.5 (docs/memory.md)."
 	@echo "Compared on the same 2000 episodes: the paper's memoryless methods (averaging, options,"
-	@echo "interruption), a recurrent policy (memory) and the informed head, which sees the hidden wind."
+	@echo "interruption), a recurrent policy (memory), blind (the same learner with no memory: its control)"
+	@echo "and informed, which sees the hidden wind."
 	@echo "Look at the last table's regret column: steps per episode lost to an agent that knows the wind."
 	@echo "The budget is small ($(DEMO_FRAMES) frames per model): the training lines compare the heads with the"
 	@echo "exact oracle and name what is not learnt yet. Three steps, each command printed as it starts:"
-	@echo "taskvar train (the paper's heads and the informed one), taskvar train-baselines (the recurrent"
-	@echo "policy, same budget), taskvar eval --explain (every method on 2000 paired episodes)."
+	@echo "taskvar train (the paper's heads), taskvar train-baselines (recurrent, informed and blind, each"
+	@echo "on its own stream, same budget), taskvar eval --explain (every method on 2000 paired episodes)."
 	$(BIN)/taskvar train configs/windy_corridor.yaml --overwrite --out $(DEMO) $(DEMO_TRAIN)
-	$(BIN)/taskvar train-baselines --out $(DEMO) --method recurrent --overwrite
+	$(BIN)/taskvar train-baselines --out $(DEMO) --method all --overwrite
 	$(BIN)/taskvar eval --checkpoint $(DEMO)/final.pt --method all --test train --episodes 2000 \
 		--overwrite --out $(DEMO)/eval --explain
 	@echo "Next: make fig2 (the paper's Figure 2 protocol: interruption vs averaging); notebooks/ (read"

@@ -139,11 +139,13 @@ def stored_keys(method: str) -> tuple:
     done flags, episode starts) and, for ``recurrent``, the GRU's stored hidden state and the
     previous action and reward (the state a step starts from and the one it hands on, so both
     passes of the loss start a slice from the state stored at collection); for ``informed`` and
-    ``blind``, the hidden instance the features are read from (at ``s`` and ``s'``)."""
+    ``blind``, the hidden instance the features are read from (at ``s`` and ``s'``) and the
+    agent's ``cell`` where the env has one (a family's egocentric features read it)."""
     if method == "recurrent":
         prev = (PREV_ACTION, PREV_REWARD, (keys.NEXT, PREV_ACTION), (keys.NEXT, PREV_REWARD))
         return (*_STORE, RECURRENT_STATE, (keys.NEXT, RECURRENT_STATE), *prev)
-    return (*_STORE, keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
+    # the agent's cell too, where the env has one: egocentric features read it (MiniGrid's)
+    return (*_STORE, keys.INSTANCE, (keys.NEXT, keys.INSTANCE), keys.CELL, (keys.NEXT, keys.CELL))
 
 
 def heads_only_keys(cfg: Config, methods: tuple[str, ...] | list[str] = BASELINES) -> list[str]:

@@ -93,6 +93,35 @@ def instance_features(td: TensorDictBase) -> torch.Tensor:
     return params.reshape(-1, PARAMS).to(torch.float32) / 8.0
 
 
+def informed_features(cfg: Any) -> tuple[int, Any]:
+    """``(6, features)``: what the informed baseline reads (docs/memory.md), in the agent's own
+    frame as its egocentric view is: the offsets ``(forward, right) / (size - 1)`` from the agent
+    to the door (DoorKey) or gap (LavaGap), to the key (DoorKey; zeros in LavaGap) and to the goal
+    (``(size - 2, size - 2)``), read from ``("instance", "params")`` and the agent's ``cell``
+    (``(x * size + y) * 4 + direction``). The layout's absolute parameters
+    (:func:`instance_features`) say nothing to a policy that does not know where it stands."""
+    m = _section(cfg)
+    size, doorkey = int(m.size), m.task == "doorkey"
+
+    def features(td: TensorDictBase) -> torch.Tensor:
+        params = td.get((keys.INSTANCE, "params")).reshape(-1, PARAMS).long()  # (B, 4)
+        cell = td.get(keys.CELL).reshape(-1).long()  # (B,)
+        d, xy = cell % 4, cell // 4
+        x, y = xy // size, xy % size
+        vec = torch.tensor(D.DIR_TO_VEC, device=cell.device)  # (4, 2)
+        fx, fy = vec[d, 0], vec[d, 1]
+        goal = torch.full_like(x, size - 2)
+        points = [(params[:, 0], params[:, 1]), (params[:, 2], params[:, 3]), (goal, goal)]
+        out = []
+        for i, (px, py) in enumerate(points):
+            dx, dy = px - x, py - y
+            rel = torch.stack([dx * fx + dy * fy, dx * -fy + dy * fx], -1).to(torch.float32)
+            out.append(rel if doorkey or i != 1 else torch.zeros_like(rel))
+        return torch.cat(out, -1) / float(size - 1)  # (B, 6)
+
+    return 6, features
+
+
 def _patch(cfg: Any) -> PatchLayout:
     channels = ONEHOT_CHANNELS if _section(cfg).obs_encoding == "onehot" else 3
     return PatchLayout(coords_dim=4, channels=channels, size=D.VIEW)
@@ -142,6 +171,7 @@ def family() -> Family:
         tests=TESTS,
         instance_dim=PARAMS,
         instance_features=instance_features,
+        informed_features=informed_features,
         grid_side=lambda cfg: _section(cfg).size,
         cells=lambda cfg: _section(cfg).size ** 2,
         observation=lambda cfg: _section(cfg).obs_encoding,
@@ -150,4 +180,12 @@ def family() -> Family:
     )
 
 
-__all__ = ["GYM_IDS", "NAME", "TESTS", "MiniGridConfig", "family", "instance_features"]
+__all__ = [
+    "GYM_IDS",
+    "NAME",
+    "TESTS",
+    "MiniGridConfig",
+    "family",
+    "informed_features",
+    "instance_features",
+]
