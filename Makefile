@@ -12,7 +12,7 @@ PYTEST = OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 OMP_WAIT_POLICY=PASSIVE $(BIN)/pyth
 DEMO_TRAIN := train.total_frames=$(DEMO_FRAMES) train.eps_decay_frames=6000 \
 	train.init_random_frames=1024 train.checkpoint_every=0
 
-.PHONY: demo fig2 test test-fast notebooks install install-test lint clean
+.PHONY: demo fig2 results test test-fast notebooks install install-test lint clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -63,6 +63,13 @@ demo: install
 ## table, write the plot); --overwrite: a rerun replaces the previous results in $(OUT)
 fig2: install
 	$(BIN)/taskvar experiment windy-fig2 --quick --overwrite --out $(OUT)
+
+## results: install everything and regenerate every README Results row from scratch at this commit
+## (scripts/results.py: each row's train, baselines and eval steps, then taskvar report; hours on
+## 2 cores, so run it in the background; an interrupted run goes on where it stopped; RESULTS=DIR)
+RESULTS ?= results/regen
+results: install
+	$(BIN)/python scripts/results.py --out $(RESULTS)
 
 ## test: install the test extras, check lint and formatting, run the whole suite, slow tests
 ## included, with a timeout per test, and print the 20 slowest (what .ci/run calls). The files
