@@ -498,6 +498,12 @@ def write_heads(
 def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLearner:
     """The fused multi-head learner of ``cfg.train``."""
     t = cfg.train
+    if subtasks.given is not None and t.n_step > 1:
+        given = [n for n, g in zip(subtasks.names, subtasks.given) if g]
+        raise ValueError(
+            f"train.n_step={t.n_step} with given-policy options ({', '.join(given)}): their "
+            "n-step bootstrap is not supported yet; set train.n_step=1"
+        )
     settings = LossSettings(
         gamma=t.gamma,
         robustness_gamma=t.robustness_gamma,

@@ -40,6 +40,10 @@ INTERRUPTED = "interrupted"
 # option o's initiation set I_o (Subtasks.initiation), the options mu_bar may pick (paper §3.2).
 INITIABLE = "initiable"
 
+# Option controllers' input where options act by given policies (Subtasks.given_actions): (B, O)
+# int64, each given-policy option's action at s_t (-1 for a learnt option).
+GIVEN_ACTION = "given_action"
+
 # Hierarchy inputs besides the heads (option-first inside the kernels): where each option can take
 # control (Subtasks.startable), and per-row calibrated thresholds / scales of the robustness critics.
 STARTABLE = "startable"

@@ -41,7 +41,7 @@ from torchrl.data import Bounded, Composite
 from torchrl.envs import TensorDictPrimer
 
 from taskvar_torch import keys
-from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads
+from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads, with_given_policies
 from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
 Tensor = torch.Tensor
@@ -423,7 +423,14 @@ class Controller(TensorDictModuleBase):
     def decide(
         self, values: Mapping[str, Tensor], running: Tensor | None, terminated: Tensor | None
     ) -> dict[str, Tensor]:
-        """Batched decision from head outputs in the bundle layout (``(B, O)``, ``(B, O, A)``)."""
+        """Batched decision from head outputs in the bundle layout (``(B, O)``, ``(B, O, A)``);
+        a given-policy option's row of ``Q_o`` is its controller's action (:func:`with_given_policies`)."""
+        values = dict(values)
+        given = values.pop(keys.GIVEN_ACTION, None)
+        if given is not None and keys.OPTION_ACTION_VALUE in values:
+            values[keys.OPTION_ACTION_VALUE] = with_given_policies(
+                values[keys.OPTION_ACTION_VALUE], given
+            )
         of = {k: option_first(v) for k, v in values.items()}
         if self.root_index is not None:  # pi^root = pi^avg (paper §3.4.2)
             of[keys.OPTION_ACTION_VALUE] = with_root_policy(
@@ -432,9 +439,11 @@ class Controller(TensorDictModuleBase):
         return self.decide_of(of, running, terminated)
 
     def extra_inputs(self, td: TensorDictBase) -> dict[str, Tensor]:
-        """Decision inputs besides the heads, batch first, read from the state ``td`` (none here;
-        the hierarchy adds where each option can take control)."""
-        return {}
+        """Decision inputs besides the heads, batch first, read from the state ``td``: the given
+        policies' actions where options have them (``Subtasks.given_actions``); subclasses add
+        theirs (the hierarchy: where each option can take control)."""
+        given = None if self.subtasks is None else self.subtasks.given_actions(td)
+        return {} if given is None else {keys.GIVEN_ACTION: given}
 
     def _terminated(self, td: TensorDictBase, running: Tensor) -> Tensor | None:
         """``beta_{o_run}(s_t)`` ``(B,)`` bool from ``subtasks`` (None without subtasks)."""
@@ -532,6 +541,13 @@ class Controller(TensorDictModuleBase):
             if self.subtasks is not None:
                 td = TensorDict(dict(inputs), batch_size=[1])
                 values.update({k: v[0].tolist() for k, v in self.extra_inputs(td).items()})
+        given = values.pop(keys.GIVEN_ACTION, None)
+        if given is not None and keys.OPTION_ACTION_VALUE in values:  # a given controller acts
+            low = float(torch.finfo(torch.float32).min)
+            values[keys.OPTION_ACTION_VALUE] = [
+                row if g < 0 else [v if a == g else low for a, v in enumerate(row)]
+                for row, g in zip(values[keys.OPTION_ACTION_VALUE], given)
+            ]
         if self.root_index is not None:  # pi^root = pi^avg (paper §3.4.2)
             q = list(values[keys.OPTION_ACTION_VALUE])
             q[self.root_index] = values[keys.ACTION_VALUE]

@@ -385,10 +385,11 @@ class HierarchyController(Controller):
         return t
 
     def extra_inputs(self, td: TensorDictBase) -> dict[str, Tensor]:
-        """``startable`` ``(B, O)`` when the controller honours termination."""
+        """``startable`` ``(B, O)`` when the controller honours termination, beside the base's
+        inputs (given policies' actions)."""
         if self.subtasks is None:
             return {}
-        return {keys.STARTABLE: self.subtasks.startable(td)}
+        return {**super().extra_inputs(td), keys.STARTABLE: self.subtasks.startable(td)}
 
     def thresholds(self, device: torch.device) -> tuple[float | Tensor, Tensor | None]:
         """``(tau, scale)``: per-option ``(O, 1)`` tensors from the calibration, else ``(tau, None)``."""

@@ -134,10 +134,12 @@ class InterruptionController(Controller):
         return self.interrupt and self.heads.softmax_temperature is not None
 
     def extra_inputs(self, td: TensorDictBase) -> dict[str, Tensor]:
-        """``initiable`` ``(B, O)`` bool (``Subtasks.initiation``) when the subtasks define it."""
-        if not self.honours_initiation:
-            return {}
-        return {keys.INITIABLE: self.subtasks.initiation(td)}
+        """``initiable`` ``(B, O)`` bool (``Subtasks.initiation``) when the subtasks define it,
+        beside the base's inputs (given policies' actions)."""
+        out = super().extra_inputs(td)
+        if self.honours_initiation:
+            out[keys.INITIABLE] = self.subtasks.initiation(td)
+        return out
 
     def decide_of(
         self, values: Mapping[str, Tensor], running: Tensor, terminated: Tensor | None

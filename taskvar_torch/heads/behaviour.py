@@ -32,7 +32,7 @@ from torchrl.modules import EGreedyModule
 
 from taskvar_torch import keys
 from taskvar_torch.compiling import Compiled
-from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads, with_root_row
+from taskvar_torch.heads.bundle import HEAD_OUT_KEYS, Heads, with_given_policies, with_root_row
 from taskvar_torch.heads.networks import head_network
 from taskvar_torch.heads.snapshots import HeadValues
 from taskvar_torch.heads.switching import mu_bar_probs
@@ -183,6 +183,8 @@ class BehaviourPolicy(TensorDictModuleBase):
         explore: torch.Tensor | None = None,  # (N,) bool pick the option uniformly
         run_options: torch.Tensor | None = None,  # (N,) bool a new episode runs options
         ended: torch.Tensor | None = None,  # (N, O) bool termination beta_o(s)
+        given: torch.Tensor
+        | None = None,  # (N, O) int64 given-policy options' actions (-1: learnt)
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The greedy action and the behaviour mode from the heads and the step's draws (no random
         draws: a pure function, what ``compile=True`` compiles)."""
@@ -210,6 +212,7 @@ class BehaviourPolicy(TensorDictModuleBase):
         q_opt = head("options")  # (N, O, A)
         if self.root is not None:  # pi^root = pi^avg
             q_opt = with_root_row(q_opt, q_avg, self.root)
+        q_opt = with_given_policies(q_opt, given)  # a given controller's own action
         opt_action = q_opt.argmax(-1).gather(-1, mode.clamp(0, init.shape[-1] - 1).unsqueeze(-1))
         return torch.where(mode >= 0, opt_action.squeeze(-1), action), mode  # (N,), (N,)
 
@@ -234,7 +237,10 @@ class BehaviourPolicy(TensorDictModuleBase):
             explore = self._rand(N, obs.device) < self.egreedy.eps.clamp_min(self.option_coverage)
             run_options = self._rand(N, obs.device) < self.option_prob
             ended = self.subtasks.termination(td)  # (N, O) bool
-            action, mode = decide(obs, mode, init, is_init, uniform, explore, run_options, ended)
+            given = self.subtasks.given_actions(td)  # (N, O) or None
+            action, mode = decide(
+                obs, mode, init, is_init, uniform, explore, run_options, ended, given
+            )
         td.set(keys.ACTION, action)
         td.set(BEHAVIOUR, mode)
         return self._explore(td)

@@ -43,6 +43,18 @@ def with_root_row(q_options: torch.Tensor, q_avg: torch.Tensor, root: int) -> to
     return torch.cat([q_options[:, :root], q_avg.unsqueeze(1), q_options[:, root + 1 :]], 1)
 
 
+def with_given_policies(q_options: torch.Tensor, given: torch.Tensor | None) -> torch.Tensor:
+    """``Q_o`` ``(B, O, A)`` as the options' policies see it: where option o acts by a given
+    policy (``given`` ``(B, O)`` its action, -1 for a learnt option), every other action's value is
+    the dtype's lowest, so ``argmax`` is the given action and ``max`` its value ``Q_o(s, pi_o(s))``
+    (the value of following the given controller); ``given=None``: ``q_options`` itself."""
+    if given is None:
+        return q_options
+    hot = torch.nn.functional.one_hot(given.clamp_min(0), q_options.shape[-1]).bool()  # (B, O, A)
+    keep = hot | (given < 0).unsqueeze(-1)
+    return q_options.masked_fill(~keep, torch.finfo(q_options.dtype).min)
+
+
 class Heads(TensorDictModuleBase):
     """A bundle of heads; calling it writes every present head's output into the tensordict.
 

@@ -39,7 +39,7 @@ from torchrl.objectives import HardUpdate, LossModule, SoftUpdate
 from taskvar_torch.compiling import Compiled
 from taskvar_torch.config.schema import TrainConfig
 from taskvar_torch.heads.averaging import averaging_loss
-from taskvar_torch.heads.bundle import Heads, with_root_row
+from taskvar_torch.heads.bundle import Heads, with_given_policies, with_root_row
 from taskvar_torch.heads.max_value import (
     MAX_VALUE_ESTIMATORS,
     OptimismGapHead,
@@ -324,6 +324,9 @@ class MultiHeadLoss(LossModule):
         cur, nxt, nxt_target, far, far_target = (
             {k: v.float() for k, v in out.items()} for out in outputs
         )
+        if batch.given_next is not None and "options" in nxt:  # given-policy options: pi_o(s')
+            nxt["options"] = with_given_policies(nxt["options"], batch.given_next)
+            nxt_target["options"] = with_given_policies(nxt_target["options"], batch.given_next)
 
         losses: dict[str, torch.Tensor] = {}
         if "averaging" in cur:
@@ -349,7 +352,7 @@ class MultiHeadLoss(LossModule):
                 far_target.get("options"),
             )
         if "switching" in cur:
-            q_options = cur["options"].detach()  # (B, O, A)
+            q_options = with_given_policies(cur["options"].detach(), batch.given)  # (B, O, A)
             if self.avg_root is not None:  # pi^root = pi^avg
                 q_options = with_root_row(q_options, cur["averaging"].detach(), self.avg_root)
             consistent = consistent_with_option(batch.action, q_options, batch.initiation)  # (B, O)

@@ -35,6 +35,10 @@ class Transitions:
     robustness_reward: torch.Tensor | None  # (B, O) or None when the family has no robustness
     instance: torch.Tensor | None = None  # (B, F) hidden instance features, or None (see below)
     nstep: NStep | None = None  # multi-step window quantities (heads/nstep.py), or None
+    given: torch.Tensor | None = (
+        None  # (B, O) int64 given-policy options' actions at s (-1: learnt)
+    )
+    given_next: torch.Tensor | None = None  # (B, O) int64 their actions at s'
     seeds: int = 1  # S: the rows are S equal seed-major groups, one per run (heads/seeds.py)
 
 
@@ -131,4 +135,6 @@ def relabel(
             else None
         ),
         nstep=nstep,
+        given=subtasks.given_actions(td),
+        given_next=subtasks.given_actions(nxt),
     )

@@ -138,6 +138,16 @@ class Subtasks:
         worth: the root held 100% of MiniGrid DoorKey's steps; docs/controllers.md)."""
         return None
 
+    given: tuple[bool, ...] | None = None
+    """Which options act by a policy the family gives (a hand-written controller) rather than one
+    learnt from Q_o: ``None`` (the default) when none does. Their actions are
+    :meth:`given_actions`; their values are learnt like any option's (docs/gymnasium.md)."""
+
+    def given_actions(self, td: TensorDictBase) -> torch.Tensor | None:
+        """``(B, O)`` int64: the action each given-policy option takes at the state at the root
+        of ``td`` (-1 for a learnt option); ``None`` where no option has a given policy."""
+        return None
+
     def option_input_mask(self, obs_dim: int) -> torch.Tensor | None:
         """``(O, obs_dim)`` 0/1: the observation features option o's own subtask needs (what its
         policy sees with ``heads.option_inputs=subtask``); ``None``: the family defines none."""

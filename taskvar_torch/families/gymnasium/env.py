@@ -109,6 +109,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
         self.num_actions, self.action_start = int(space.n), int(space.start)
         self.encoder = adapter.encoder(self.vec.single_observation_space)
         self.horizon = int(horizon) or adapter.horizon
+        self.given = any(o.policy is not None for o in adapter.options)  # given-policy options
         self._specs(int(self.encoder.size), len(adapter.options))
         self._set_seed(seed)
 
@@ -125,16 +126,21 @@ class GymFamilyEnv(BatchedFamilyEnv):
             else Unbounded(shape=(N, D), dtype=torch.float32, device=dev)
         )
         flag = Categorical(2, shape=(N, O), dtype=torch.bool, device=dev)
+        subtask = Composite(
+            initiation=flag,
+            termination=flag.clone(),
+            reward=Unbounded(shape=(N, O), dtype=torch.float32, device=dev),
+            shape=(N,),
+            device=dev,
+        )
+        if self.given:  # each given policy's action index (-1: a learnt option)
+            subtask["given_action"] = Bounded(
+                -1, self.num_actions - 1, shape=(N, O), dtype=torch.int64, device=dev
+            )
         self.observation_spec = Composite(
             {
                 keys.OBSERVATION: obs,
-                SUBTASK: Composite(
-                    initiation=flag,
-                    termination=flag.clone(),
-                    reward=Unbounded(shape=(N, O), dtype=torch.float32, device=dev),
-                    shape=(N,),
-                    device=dev,
-                ),
+                SUBTASK: subtask,
                 keys.INSTANCE: Composite(
                     {k: Unbounded(shape=(N,), device=dev) for k in self.instance_keys},
                     shape=(N,),
@@ -154,14 +160,17 @@ class GymFamilyEnv(BatchedFamilyEnv):
         """The options' evaluations in ``info`` (the vector env's ``(N, 3 O + H)``, see
         :meth:`SubEnv.report`), written over the current ones at ``rows`` (``None``: every row),
         and the ``(N, H)`` values ``instance_info`` read (meaningful after a reset)."""
-        x = torch.as_tensor(info[INFO]).to(device=self.device, dtype=torch.float32)
+        raw = torch.as_tensor(info[INFO]).to(device=self.device)
+        x = raw.to(torch.float32)
         O = len(self.adapter.options)  # noqa: E741
         parts = {"_initiation": x[:, :O] > 0, "_termination": x[:, O : 2 * O] > 0}
         parts["_reward"] = x[:, 2 * O : 3 * O]
+        if self.given:
+            parts["_given"] = raw[:, 3 * O : 4 * O].to(torch.int64)
         if rows is not None:
             at = torch.as_tensor(rows, device=self.device)
             parts = {k: getattr(self, k).index_put((at,), v[at]) for k, v in parts.items()}
-        return parts, x[:, 3 * O :]
+        return parts, x[:, 4 * O :]
 
     def _encode(self, obs) -> torch.Tensor:
         """The encoded batch, in a tensor of its own (the vector env, built with ``copy=False``,
@@ -179,6 +188,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
                     "initiation": self._initiation,
                     "termination": self._termination,
                     "reward": self._reward,
+                    **({"given_action": self._given} if self.given else {}),
                 },
                 batch_size=B,
             ),

@@ -58,6 +58,7 @@ class GymAdapter:
     instance_info: Mapping[str, Callable[[gym.Env], float]]
     horizon: int
     reset_seed: Callable[[int], int] = reset_seed
+    apply: Callable[[gym.Env, dict], None] | None = None
 
     @property
     def instance_keys(self) -> tuple[str, ...]:
@@ -85,6 +86,7 @@ def gym_family(
     horizon: int | None = None,
     tests: Mapping[str, TestDistribution] | None = None,
     description: str = "",
+    apply: Callable[[gym.Env, dict], None] | None = None,
 ) -> Family:
     """A :class:`~taskvar_torch.families.Family` of Gymnasium envs.
 
@@ -109,11 +111,21 @@ def gym_family(
         tests: the test distributions of ``taskvar eval --test`` (default: one per named
             distribution, ``train`` first).
         description: one line for listings.
+        apply: ``apply(env.unwrapped, instance)``, with ``instance_via="attributes"``: installs an
+            instance whose parameters the env derives other quantities from (CartPole's
+            ``polemass_length = masspole * length``, cached by its constructor), in place of
+            setting each key as an attribute (default: ``setattr`` of each key, which must be an
+            attribute the env has).
 
     Returns:
         The family, ``resumable=False`` (a Gymnasium env's state is not saved by a checkpoint).
     """
     one_of("instance_via", instance_via, INSTANCE_VIA)
+    if apply is not None and (instance_via != "attributes" or not callable(apply)):
+        raise ValueError(
+            f"apply must be a function (env, instance) -> None, with instance_via='attributes'; "
+            f"got apply={apply!r}, instance_via={instance_via!r}"
+        )
     options = tuple(options)
     if not options or not all(isinstance(o, Option) for o in options):
         raise ValueError("options must be a non-empty sequence of Option")
@@ -146,6 +158,7 @@ def gym_family(
         state_info=state_info,
         instance_info=instance_info,
         horizon=int(horizon),
+        apply=apply,
     )
     if tests is None:
         tests = {
@@ -174,7 +187,9 @@ def gym_family(
         description=description or f"Gymnasium env {make if isinstance(make, str) else name}",
         env_class=GymFamilyEnv,
         env_kwargs=env_kwargs,
-        subtasks=lambda cfg, env: GymSubtasks(tuple(names)),
+        subtasks=lambda cfg, env: GymSubtasks(
+            tuple(names), tuple(o.policy is not None for o in options)
+        ),
         instance_names=named.names,
         config_class=GymConfig,
         tests=dict(tests),

@@ -3,8 +3,12 @@
 An :class:`Option` is three functions of one sub-environment's raw Gymnasium observation and
 ``info`` (the env's own info, with what the family's ``state_info(env.unwrapped)`` adds):
 ``initiation`` (the state is in I_o), ``termination`` (beta_o = 1 there) and ``reward`` (the
-subtask reward on arriving there, given the env's reward). The adapter evaluates them beside the
-env, in its process (:mod:`.sub_env`), after every reset and step, and writes the results under
+subtask reward on arriving there, given the env's reward); and optionally a fourth, ``policy``
+(``(obs, info) -> action``: a controller the user already has, such as a PD or LQR balancer),
+which the option then acts by instead of a policy learnt from ``Q_o``. Its values (``Q_o`` of the
+given policy, ``Q^mu_bar``, the max-values, robustness) are learnt over the family like any
+option's; learnt and given options mix in one family. The adapter evaluates them beside the env,
+in its process (:mod:`.sub_env`), after every reset and step, and writes the results under
 ``("subtask", ...)``; :class:`GymSubtasks` reads them back as the batched ``(B, O)`` tensors of
 :class:`~taskvar_torch.subtasks.base.Subtasks`.
 """
@@ -23,7 +27,9 @@ from taskvar_torch.subtasks.base import Subtasks
 
 SUBTASK = "subtask"
 """The tensordict entry holding the options' evaluations: ``("subtask", "initiation")`` and
-``("subtask", "termination")`` ``(N, O)`` bool, ``("subtask", "reward")`` ``(N, O)`` float."""
+``("subtask", "termination")`` ``(N, O)`` bool, ``("subtask", "reward")`` ``(N, O)`` float and,
+where an option has a given policy, ``("subtask", "given_action")`` ``(N, O)`` int64 (its action,
+as an index from 0; -1 for a learnt option)."""
 
 
 def _always(obs: Any, info: dict) -> bool:
@@ -49,12 +55,19 @@ class Option:
             end ends every option).
         reward: ``(obs, info, reward) -> float``, the subtask reward of a transition arriving at
             ``(obs, info)`` with the env's ``reward`` (default: the env's reward).
+        policy: ``(obs, info) -> action``, a given controller the option acts by (an action of
+            the env's ``Discrete`` action space, ``start`` included); default ``None``: the
+            option's policy is learnt (greedy in ``Q_o``).
+
+    Examples:
+        >>> balance = Option("balance", policy=lambda obs, info: int(obs[2] + 0.5 * obs[3] > 0))
     """
 
     name: str
     initiation: Callable[[Any, dict], bool] = _always
     termination: Callable[[Any, dict], bool] = _never
     reward: Callable[[Any, dict, float], float] = _env_reward
+    policy: Callable[[Any, dict], Any] | None = None
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -62,14 +75,20 @@ class Option:
         for field in ("initiation", "termination", "reward"):
             if not callable(getattr(self, field)):
                 raise ValueError(f"Option {self.name!r}: {field} must be callable")
+        if self.policy is not None and not callable(self.policy):
+            raise ValueError(
+                f"Option {self.name!r}: policy must be callable (obs, info) -> action or None, "
+                f"got {type(self.policy).__name__}"
+            )
 
 
 class GymSubtasks(Subtasks):
     """The options of a Gymnasium family, read from the ``("subtask", ...)`` entries its env
     writes (no option logic here: it ran beside the env)."""
 
-    def __init__(self, names: tuple[str, ...]):
+    def __init__(self, names: tuple[str, ...], given: tuple[bool, ...] | None = None):
         self.names = tuple(names)
+        self.given = tuple(given) if given is not None and any(given) else None
 
     def initiation(self, td: TensorDictBase) -> torch.Tensor:
         return td.get((SUBTASK, "initiation"))
@@ -79,6 +98,9 @@ class GymSubtasks(Subtasks):
 
     def reward(self, td: TensorDictBase) -> torch.Tensor:
         return td.get((keys.NEXT, SUBTASK, "reward"))
+
+    def given_actions(self, td: TensorDictBase) -> torch.Tensor | None:
+        return None if self.given is None else td.get((SUBTASK, "given_action"))
 
 
 __all__ = ["SUBTASK", "GymSubtasks", "Option"]

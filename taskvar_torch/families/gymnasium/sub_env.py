@@ -63,9 +63,17 @@ class SubEnv(gym.Env):
         if self.via == "kwargs" and instance != self.instance:
             self.env.close()
             self.env = build(self.adapter.make, instance, self.via)
+        elif self.via == "attributes" and getattr(self.adapter, "apply", None) is not None:
+            self.adapter.apply(self.env.unwrapped, instance)  # the family's own installation
         elif self.via == "attributes":
+            env = self.env.unwrapped
             for name, value in instance.items():
-                setattr(self.env.unwrapped, name, value)
+                if not hasattr(env, name):  # a misspelt key would set a new attribute: no variation
+                    raise ValueError(
+                        f"instance key {name!r} is not an attribute of {type(env).__name__} "
+                        f"(instance_via='attributes' sets existing ones only)"
+                    )
+                setattr(env, name, value)
         self.instance = instance
         obs, info = self.env.reset(seed=seed, options=instance if self.via == "options" else None)
         self.hidden = np.array(list(self.instance_info().values()), dtype=np.float64)
@@ -80,23 +88,42 @@ class SubEnv(gym.Env):
         env = self.env.unwrapped
         return {name: float(read(env)) for name, read in self.adapter.instance_info.items()}
 
+    def given_action(self, option: Any, obs: Any, info: dict) -> int:
+        """The action index (from 0) of ``option``'s given policy at ``(obs, info)``; anything
+        but an action of the env's ``Discrete`` space is a one-line ``ValueError`` naming the
+        option."""
+        a = option.policy(obs, info)
+        space = self.action_space
+        ok = isinstance(a, (int, np.integer)) or (
+            isinstance(a, np.ndarray) and a.shape == () and np.issubdtype(a.dtype, np.integer)
+        )
+        if not ok or isinstance(a, bool) or not space.contains(np.int64(a)):
+            raise ValueError(
+                f"option {option.name!r}: policy(obs, info) returned {a!r} "
+                f"({type(a).__name__}), not an action of {space} (an int in [{space.start}, "
+                f"{space.start + space.n - 1}])"
+            )
+        return int(a) - int(space.start)
+
     def report(self, obs: Any, info: dict, reward: float | None) -> dict:
-        """``{"taskvar": x}``, ``x`` a ``(3 O + H,)`` float64 array: the options' initiation and
+        """``{"taskvar": x}``, ``x`` a ``(4 O + H,)`` float64 array: the options' initiation and
         termination at ``(obs, info)`` (0/1), the subtask rewards of the transition that arrived
-        there (zeros after a reset), then the episode's ``H`` values of ``instance_info``. One
-        flat array: the vector env merges it cheaply."""
+        there (zeros after a reset), the given policies' actions there (-1 for a learnt option),
+        then the episode's ``H`` values of ``instance_info``. One flat array: the vector env
+        merges it cheaply."""
         state_info = self.adapter.state_info
         if state_info is not None:
             info = {**info, **state_info(self.env.unwrapped)}
         opts = self.adapter.options
         O = len(opts)  # noqa: E741
-        out = np.zeros(3 * O + self.hidden.size)
+        out = np.zeros(4 * O + self.hidden.size)
         for j, o in enumerate(opts):
             out[j] = bool(o.initiation(obs, info))
             out[O + j] = bool(o.termination(obs, info))
             if reward is not None:
                 out[2 * O + j] = float(o.reward(obs, info, float(reward)))
-        out[3 * O :] = self.hidden
+            out[3 * O + j] = -1 if o.policy is None else self.given_action(o, obs, info)
+        out[4 * O :] = self.hidden
         return {INFO: out}
 
     def close(self):

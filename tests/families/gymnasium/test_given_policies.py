@@ -1,0 +1,174 @@
+"""Options that are the user's own controllers (``Option(name, policy=fn)``; docs/gymnasium.md):
+a family whose only option is a given balancing controller plays it exactly (its ``options``
+return equals the controller's own in the raw Gymnasium env), the learner learns that option's
+values under the given policy, a policy that returns no action of the space is refused in one
+line naming the option, and a misspelt attribute instance key is refused in one line."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from torchrl.envs import TransformedEnv
+
+from taskvar_torch import check_family, keys, rng
+from taskvar_torch.config import load_config
+from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.factory import load_heads, make_method_controller, make_subtasks
+from taskvar_torch.families import FAMILIES, register_family
+from taskvar_torch.families.gymnasium import Option, gym_family
+from taskvar_torch.families.gymnasium.instances import reset_seed
+from taskvar_torch.heads.bundle import with_given_policies
+from taskvar_torch.training import train
+
+torch.set_num_threads(1)
+HORIZON = 60
+
+
+@dataclass(frozen=True)
+class PoleLength:
+    low: float = 0.3
+    high: float = 0.7
+
+    def sample(self, rng):
+        return {"length": float(rng.uniform(self.low, self.high))}
+
+
+def balance(obs, info) -> int:
+    """A hand-written PD balancer of CartPole's pole: push towards where the pole falls."""
+    return int(obs[2] + 0.5 * obs[3] > 0)
+
+
+def apply_length(env, instance):
+    """CartPole caches ``polemass_length = masspole * length`` in its constructor."""
+    env.length = instance["length"]
+    env.polemass_length = env.masspole * env.length
+
+
+def given_cartpole(name="given_cartpole", policy=balance, **kw):
+    return gym_family(
+        name, "CartPole-v1", {"train": PoleLength()}, [Option("balance", policy=policy)],
+        instance_via="attributes", apply=apply_length, horizon=HORIZON, **kw,
+    )  # fmt: skip
+
+
+@pytest.fixture
+def registered():
+    names = []
+
+    def add(fam):
+        register_family(fam, replace=True)
+        names.append(fam.name)
+        return fam
+
+    yield add
+    for name in names:
+        FAMILIES._families.pop(name, None)
+
+
+def _cfg(fam, tmp_path, *overrides):
+    path = tmp_path / "cfg.yaml"
+    path.write_text(f"family: {fam.name}\nenv:\n  num_envs: 4\n")
+    return load_config(path, list(overrides))
+
+
+def test_the_given_controllers_action_wins_every_argmax_and_max():
+    q = torch.tensor([[[1.0, 5.0, 2.0], [1.0, 5.0, 2.0]]])  # (B=1, O=2, A=3)
+    given = torch.tensor([[2, -1]])  # option 0 given (action 2), option 1 learnt
+    m = with_given_policies(q, given)
+    assert m.argmax(-1).tolist() == [[2, 1]]
+    assert m.max(-1).values.tolist() == [[2.0, 5.0]]  # Q_o(s, pi_o(s)) for the given one
+    assert with_given_policies(q, None) is q
+
+
+def test_a_family_whose_only_option_is_a_given_controller_plays_it_exactly(registered, tmp_path):
+    """Trained briefly (its values are learnt, its actions are the controller's), the options
+    controller's return on each sub-environment's first episode equals running ``balance`` in the
+    raw CartPole-v1 with that episode's pole length and reset seed."""
+    fam = registered(given_cartpole())
+    check_family(fam)
+    tiny = ["train.total_frames=1024", "train.init_random_frames=256", "train.checkpoint_every=0"]
+    cfg = _cfg(fam, tmp_path, *tiny)
+    train(cfg, tmp_path / "run", progress=False)
+    heads, cfg = load_heads(tmp_path / "run" / "final.pt")
+    n, seed = 6, 5
+    env = fam.make_env(cfg, n, seed=seed)
+    ctrl = make_method_controller(cfg, "options", heads, make_subtasks(cfg, env))
+    out = run_episodes(TransformedEnv(env, ctrl.primer()), ctrl, max_steps=HORIZON)
+    env.close()
+    for i in range(n):
+        key = int(rng.episode_key(rng.sub_env_key(seed, torch.tensor(i)), 0))
+        raw = gym.make("CartPole-v1")
+        apply_length(raw.unwrapped, {"length": float(out["instance", "length"][i])})
+        obs, info = raw.reset(seed=reset_seed(key))
+        total, t, done = 0.0, 0, False
+        while not done and t < HORIZON:
+            obs, r, term, trunc, info = raw.step(balance(obs, info))
+            total, t, done = total + r, t + 1, term or trunc
+        assert float(out["return"][i]) == total, (i, float(out["return"][i]), total)
+    assert float(out["return"].min()) > 20  # the balancer holds the pole for a while
+
+
+def test_a_policy_that_returns_no_action_is_refused_naming_the_option(registered, tmp_path):
+    for bad in (lambda o, i: "left", lambda o, i: None, lambda o, i: 7, lambda o, i: np.zeros(2)):
+        fam = registered(given_cartpole("bad_policy", policy=bad))
+        env = None
+        with pytest.raises(ValueError) as e:
+            env = fam.make_env(_cfg(fam, tmp_path), 2, seed=0)
+            env.reset()
+        msg = str(e.value)
+        assert "\n" not in msg and "option 'balance': policy(obs, info) returned" in msg
+        assert "not an action of Discrete(2)" in msg
+        if env is not None:
+            env.close()
+    with pytest.raises(ValueError, match="policy must be callable"):
+        Option("x", policy=3)
+
+
+def test_a_misspelt_attribute_instance_key_is_refused_in_one_line(registered, tmp_path):
+    @dataclass(frozen=True)
+    class Typo:
+        def sample(self, rng):
+            return {"lenght": 0.5}
+
+    fam = registered(
+        gym_family(
+            "typo",
+            "CartPole-v1",
+            {"train": Typo()},
+            [Option("balance", policy=balance)],
+            instance_via="attributes",
+            horizon=HORIZON,
+        )  # fmt: skip
+    )
+    with pytest.raises(ValueError) as e:
+        fam.make_env(_cfg(fam, tmp_path), 2, seed=0).reset()
+    msg = str(e.value)
+    assert "\n" not in msg and "instance key 'lenght' is not an attribute of CartPoleEnv" in msg
+
+
+def test_given_actions_reach_the_tensordict_as_indices_from_zero(registered, tmp_path):
+    """A learnt option beside a given one: -1 for the learnt, the controller's action for the
+    given one, an index from 0 even where the action space starts elsewhere."""
+    fam = registered(
+        gym_family(
+            "mixed",
+            "CartPole-v1",
+            {"train": PoleLength()},
+            [Option("free"), Option("balance", policy=balance)],
+            instance_via="attributes",
+            horizon=HORIZON,
+        )  # fmt: skip
+    )
+    env = fam.make_env(_cfg(fam, tmp_path), 3, seed=1)
+    td = env.reset()
+    given = td["subtask", "given_action"]
+    obs = td[keys.OBSERVATION]
+    assert given[:, 0].tolist() == [-1, -1, -1]
+    assert given[:, 1].tolist() == [balance(o.numpy(), {}) for o in obs]
+    sub = make_subtasks(load_config(tmp_path / "cfg.yaml"), env)
+    assert sub.given == (False, True) and torch.equal(sub.given_actions(td), given)
+    env.close()
