@@ -168,6 +168,12 @@ def _evaluate(
     shifts = [s if isinstance(s, Shift) else parse_shift(s) for s in shifts]
     heads, cfg = load_heads(checkpoint, controller=controller)
     fam = family(cfg)
+    if (exact or by_frames) and not fam.exact_oracle:  # what needs the per-instance optimum
+        flag = "--by-frames (exact regret by training frames)" if by_frames else "--exact"
+        raise ValueError(
+            f"{flag} needs an exact oracle of the family, and family {fam.name!r} has none "
+            "(Family.oracle, docs/families.md): drop it; sampled returns are reported without it"
+        )
     points = shift_points(cfg, test, shifts)  # every input error before any episode is played
     test_name = test if test is not None else next(iter(fam.tests))
     train_subtasks = make_subtasks(cfg, make_env(cfg, 1))

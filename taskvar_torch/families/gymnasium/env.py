@@ -110,6 +110,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
         self.encoder = adapter.encoder(self.vec.single_observation_space)
         self.horizon = int(horizon) or adapter.horizon
         self.given = any(o.policy is not None for o in adapter.options)  # given-policy options
+        self.robust = adapter.hierarchy is not None  # robustness rewards for its critics
         self._specs(int(self.encoder.size), len(adapter.options))
         self._set_seed(seed)
 
@@ -133,6 +134,8 @@ class GymFamilyEnv(BatchedFamilyEnv):
             shape=(N,),
             device=dev,
         )
+        if self.robust:  # the robustness rewards of a declared hierarchy's options
+            subtask["robustness"] = Unbounded(shape=(N, O), dtype=torch.float32, device=dev)
         if self.given:  # each given policy's action index (-1: a learnt option)
             subtask["given_action"] = Bounded(
                 -1, self.num_actions - 1, shape=(N, O), dtype=torch.int64, device=dev
@@ -167,10 +170,12 @@ class GymFamilyEnv(BatchedFamilyEnv):
         parts["_reward"] = x[:, 2 * O : 3 * O]
         if self.given:
             parts["_given"] = raw[:, 3 * O : 4 * O].to(torch.int64)
+        if self.robust:
+            parts["_robustness"] = x[:, 4 * O : 5 * O]
         if rows is not None:
             at = torch.as_tensor(rows, device=self.device)
             parts = {k: getattr(self, k).index_put((at,), v[at]) for k, v in parts.items()}
-        return parts, x[:, 4 * O :]
+        return parts, x[:, 5 * O :]
 
     def _encode(self, obs) -> torch.Tensor:
         """The encoded batch, in a tensor of its own (the vector env, built with ``copy=False``,
@@ -189,6 +194,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
                     "termination": self._termination,
                     "reward": self._reward,
                     **({"given_action": self._given} if self.given else {}),
+                    **({"robustness": self._robustness} if self.robust else {}),
                 },
                 batch_size=B,
             ),

@@ -24,8 +24,9 @@ from taskvar_torch.families import Family, TestDistribution, one_of
 from taskvar_torch.families.gymnasium.encoder import SpaceEncoder
 from taskvar_torch.families.gymnasium.env import VECTOR, GymFamilyEnv
 from taskvar_torch.families.gymnasium.instances import Instances, reset_seed
-from taskvar_torch.families.gymnasium.options import GymSubtasks, Option
+from taskvar_torch.families.gymnasium.options import GymHierarchySubtasks, GymSubtasks, Option
 from taskvar_torch.families.gymnasium.sub_env import INSTANCE_VIA
+from taskvar_torch.subtasks.base import Hierarchy
 
 
 @dataclass(frozen=True)
@@ -59,6 +60,7 @@ class GymAdapter:
     horizon: int
     reset_seed: Callable[[int], int] = reset_seed
     apply: Callable[[gym.Env, dict], None] | None = None
+    hierarchy: Hierarchy | None = None
 
     @property
     def instance_keys(self) -> tuple[str, ...]:
@@ -71,6 +73,27 @@ def _instance_features(names: tuple[str, ...]) -> Callable[[Any], torch.Tensor]:
         return torch.stack([td.get((keys.INSTANCE, k)).to(torch.float32) for k in names], -1)
 
     return features
+
+
+def _hierarchy(spec: Mapping[str, Any] | Hierarchy | None, options: Sequence[Option]):
+    """The declared hierarchy, checked against the options: a one-line ``ValueError`` naming an
+    unknown option or one without a ``robustness`` function."""
+    if spec is None:
+        return None
+    tree = spec if isinstance(spec, Hierarchy) else Hierarchy.from_dict(dict(spec))
+    by_name = {o.name: o for o in options}
+    unknown = [n for n in tree.options if n not in by_name]
+    if unknown:
+        raise ValueError(
+            f"hierarchy names {unknown[0]!r}, which is not an option; the options: {list(by_name)}"
+        )
+    bare = [n for n in tree.options if by_name[n].robustness is None]
+    if bare:
+        raise ValueError(
+            f"hierarchy option {bare[0]!r} has no robustness function: give Option(..., "
+            "robustness=fn(obs, info, reward) -> float) to every option of the hierarchy"
+        )
+    return tree
 
 
 def gym_family(
@@ -87,6 +110,7 @@ def gym_family(
     tests: Mapping[str, TestDistribution] | None = None,
     description: str = "",
     apply: Callable[[gym.Env, dict], None] | None = None,
+    hierarchy: Mapping[str, Any] | Hierarchy | None = None,
 ) -> Family:
     """A :class:`~taskvar_torch.families.Family` of Gymnasium envs.
 
@@ -116,6 +140,10 @@ def gym_family(
             ``polemass_length = masspole * length``, cached by its constructor), in place of
             setting each key as an attribute (default: ``setattr`` of each key, which must be an
             attribute the env has).
+        hierarchy: a composition hierarchy over the options (paper §3.4.2, Algorithm 2):
+            ``{"root": NAME, "children": {NAME: [NAMES]}}`` (or a
+            :class:`~taskvar_torch.subtasks.base.Hierarchy`); every option in it needs a
+            ``robustness`` function. ``taskvar eval --method all`` then plays ``hierarchy`` too.
 
     Returns:
         The family, ``resumable=False`` (a Gymnasium env's state is not saved by a checkpoint).
@@ -141,6 +169,7 @@ def gym_family(
         horizon = int(steps)
     if int(horizon) < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
+    tree = _hierarchy(hierarchy, options)
     named = Instances(instances)
     instance_info = dict(instance_info or {})
     clash = sorted(set(instance_info) & set(named.keys))
@@ -159,6 +188,7 @@ def gym_family(
         instance_info=instance_info,
         horizon=int(horizon),
         apply=apply,
+        hierarchy=tree,
     )
     if tests is None:
         tests = {
@@ -182,13 +212,16 @@ def gym_family(
         }
 
     shiftable = named.fields_class is not None
+    given = tuple(o.policy is not None for o in options)
     return Family(
         name=name,
         description=description or f"Gymnasium env {make if isinstance(make, str) else name}",
         env_class=GymFamilyEnv,
         env_kwargs=env_kwargs,
-        subtasks=lambda cfg, env: GymSubtasks(
-            tuple(names), tuple(o.policy is not None for o in options)
+        subtasks=lambda cfg, env: (
+            GymSubtasks(tuple(names), given)
+            if tree is None
+            else GymHierarchySubtasks(tuple(names), given, tree)
         ),
         instance_names=named.names,
         config_class=GymConfig,

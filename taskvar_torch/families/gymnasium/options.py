@@ -23,7 +23,7 @@ import torch
 from tensordict import TensorDictBase
 
 from taskvar_torch import keys
-from taskvar_torch.subtasks.base import Subtasks
+from taskvar_torch.subtasks.base import Hierarchy, Subtasks
 
 SUBTASK = "subtask"
 """The tensordict entry holding the options' evaluations: ``("subtask", "initiation")`` and
@@ -58,6 +58,9 @@ class Option:
         policy: ``(obs, info) -> action``, a given controller the option acts by (an action of
             the env's ``Discrete`` action space, ``start`` included); default ``None``: the
             option's policy is learnt (greedy in ``Q_o``).
+        robustness: ``(obs, info, reward) -> float``, the robustness reward (paper §3.4.3) of a
+            transition arriving at ``(obs, info)``: what the hierarchy's robustness critic of this
+            option learns (needed by every option of a declared ``hierarchy``; default ``None``).
 
     Examples:
         >>> balance = Option("balance", policy=lambda obs, info: int(obs[2] + 0.5 * obs[3] > 0))
@@ -68,6 +71,7 @@ class Option:
     termination: Callable[[Any, dict], bool] = _never
     reward: Callable[[Any, dict, float], float] = _env_reward
     policy: Callable[[Any, dict], Any] | None = None
+    robustness: Callable[[Any, dict, float], float] | None = None
 
     def __post_init__(self):
         if not isinstance(self.name, str) or not self.name:
@@ -75,6 +79,8 @@ class Option:
         for field in ("initiation", "termination", "reward"):
             if not callable(getattr(self, field)):
                 raise ValueError(f"Option {self.name!r}: {field} must be callable")
+        if self.robustness is not None and not callable(self.robustness):
+            raise ValueError(f"Option {self.name!r}: robustness must be callable or None")
         if self.policy is not None and not callable(self.policy):
             raise ValueError(
                 f"Option {self.name!r}: policy must be callable (obs, info) -> action or None, "
@@ -103,4 +109,16 @@ class GymSubtasks(Subtasks):
         return None if self.given is None else td.get((SUBTASK, "given_action"))
 
 
-__all__ = ["SUBTASK", "GymSubtasks", "Option"]
+class GymHierarchySubtasks(GymSubtasks):
+    """The options of a Gymnasium family that declares a composition hierarchy (paper §3.4.2):
+    its tree, and the robustness rewards its options' functions gave beside the env."""
+
+    def __init__(self, names, given, hierarchy: Hierarchy):
+        super().__init__(names, given)
+        self.hierarchy = hierarchy
+
+    def robustness_reward(self, td: TensorDictBase) -> torch.Tensor:
+        return td.get((keys.NEXT, SUBTASK, "robustness"))
+
+
+__all__ = ["SUBTASK", "GymHierarchySubtasks", "GymSubtasks", "Option"]

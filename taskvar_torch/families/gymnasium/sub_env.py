@@ -106,24 +106,27 @@ class SubEnv(gym.Env):
         return int(a) - int(space.start)
 
     def report(self, obs: Any, info: dict, reward: float | None) -> dict:
-        """``{"taskvar": x}``, ``x`` a ``(4 O + H,)`` float64 array: the options' initiation and
+        """``{"taskvar": x}``, ``x`` a ``(5 O + H,)`` float64 array: the options' initiation and
         termination at ``(obs, info)`` (0/1), the subtask rewards of the transition that arrived
         there (zeros after a reset), the given policies' actions there (-1 for a learnt option),
-        then the episode's ``H`` values of ``instance_info``. One flat array: the vector env
-        merges it cheaply."""
+        the robustness rewards of that transition (zeros where an option has none), then the
+        episode's ``H`` values of ``instance_info``. One flat array: the vector env merges it
+        cheaply."""
         state_info = self.adapter.state_info
         if state_info is not None:
             info = {**info, **state_info(self.env.unwrapped)}
         opts = self.adapter.options
         O = len(opts)  # noqa: E741
-        out = np.zeros(4 * O + self.hidden.size)
+        out = np.zeros(5 * O + self.hidden.size)
         for j, o in enumerate(opts):
             out[j] = bool(o.initiation(obs, info))
             out[O + j] = bool(o.termination(obs, info))
             if reward is not None:
                 out[2 * O + j] = float(o.reward(obs, info, float(reward)))
             out[3 * O + j] = -1 if o.policy is None else self.given_action(o, obs, info)
-        out[4 * O :] = self.hidden
+            if reward is not None and o.robustness is not None:
+                out[4 * O + j] = float(o.robustness(obs, info, float(reward)))
+        out[5 * O :] = self.hidden
         return {INFO: out}
 
     def close(self):

@@ -172,3 +172,81 @@ def test_given_actions_reach_the_tensordict_as_indices_from_zero(registered, tmp
     sub = make_subtasks(load_config(tmp_path / "cfg.yaml"), env)
     assert sub.given == (False, True) and torch.equal(sub.given_actions(td), given)
     env.close()
+
+
+def cartpole_hierarchy():
+    """A composition hierarchy through the adapter (paper §3.4.2): the given balancer and a learnt
+    centring option under the full task, each with its robustness reward as a function."""
+
+    def upright(obs, info, reward):  # +1 while the pole stays within 6 degrees
+        return 1.0 if abs(obs[2]) < 0.1 else -1.0
+
+    def centred(obs, info, reward):
+        return 1.0 if abs(obs[0]) < 0.5 else -1.0
+
+    opts = [
+        Option("balance", policy=balance, robustness=upright),
+        Option("center", reward=lambda o, i, r: 1.0 - abs(float(o[0])), robustness=centred),
+        Option("task", robustness=lambda o, i, r: upright(o, i, r) + centred(o, i, r)),
+    ]
+    return gym_family(
+        "cartpole_tree", "CartPole-v1", {"train": PoleLength()}, opts,
+        instance_via="attributes", apply=apply_length, horizon=HORIZON,
+        hierarchy={"root": "task", "children": {"task": ["balance", "center"]}},
+    )  # fmt: skip
+
+
+def test_a_declared_hierarchy_makes_eval_all_play_the_hierarchy(registered, tmp_path):
+    from taskvar_torch.cli import main
+
+    fam = registered(cartpole_hierarchy())
+    check_family(fam)
+    path = tmp_path / "cfg.yaml"
+    path.write_text(f"family: {fam.name}\nenv:\n  num_envs: 4\n")
+    tiny = ["train.total_frames=1024", "train.init_random_frames=256", "train.checkpoint_every=0"]
+    run = tmp_path / "run"
+    assert main(["train", str(path), *tiny, "--out", str(run), "--no-progress"]) == 0
+    ev = ["eval", "--checkpoint", str(run / "final.pt"), "--method", "all", "--episodes", "8"]
+    assert main([*ev, "--out", str(tmp_path / "eval"), "--no-progress"]) == 0
+    import json
+
+    m = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert m["methods"] == ["averaging", "options", "interruption", "hierarchy"]
+    control = m["points"][0]["methods"]["hierarchy"]["control"]
+    assert abs(sum(control.values()) - 1.0) < 1e-9
+
+
+def test_a_hierarchy_of_options_without_robustness_is_refused_in_one_line():
+    with pytest.raises(ValueError) as e:
+        gym_family(
+            "bad_tree", "CartPole-v1", {"train": PoleLength()},
+            [Option("balance", policy=balance), Option("task")], instance_via="attributes",
+            horizon=HORIZON, hierarchy={"root": "task", "children": {"task": ["balance"]}},
+        )  # fmt: skip
+    assert "hierarchy option 'task' has no robustness function" in str(e.value)
+    with pytest.raises(ValueError, match="'nope', which is not an option"):
+        gym_family(
+            "bad_tree", "CartPole-v1", {"train": PoleLength()}, [Option("balance")],
+            instance_via="attributes", horizon=HORIZON,
+            hierarchy={"root": "nope", "children": {}},
+        )  # fmt: skip
+
+
+def test_exact_and_by_frames_on_a_family_without_an_oracle_are_one_line_errors(
+    registered, tmp_path, capsys
+):
+    from taskvar_torch.cli import main
+
+    fam = registered(given_cartpole("no_oracle"))
+    path = tmp_path / "cfg.yaml"
+    path.write_text(f"family: {fam.name}\nenv:\n  num_envs: 4\n")
+    tiny = ["train.total_frames=512", "train.init_random_frames=256", "train.checkpoint_every=0"]
+    run = tmp_path / "run"
+    assert main(["train", str(path), *tiny, "--out", str(run), "--no-progress"]) == 0
+    capsys.readouterr()
+    for flag in ("--exact", "--by-frames"):
+        argv = ["eval", "--checkpoint", str(run / "final.pt"), flag, "--episodes", "4"]
+        assert main([*argv, "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "needs an exact oracle" in err
+        assert "family 'no_oracle' has none" in err
