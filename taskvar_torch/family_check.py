@@ -74,16 +74,15 @@ def check_family(fam: Family, num_envs: int = 4) -> None:
     if "train" not in fam.instance_names:
         raise _fail(fam, "instance_names must include 'train' (the default of env.instances)")
     registered = FAMILIES._families.get(fam.name)
-    if registered is not None and registered is not fam:
-        raise _fail(fam, "another family of this name is registered; check that one instead")
-    temporary = registered is None
-    if temporary:
-        register_family(fam)
+    if registered is not fam:  # checked under its name (an installed family's new object too)
+        register_family(fam, replace=True)
     try:
         _check(fam, max(2, int(num_envs)))
     finally:
-        if temporary:
+        if registered is None:
             FAMILIES._families.pop(fam.name, None)
+        elif registered is not fam:  # the registered one back, as it was
+            FAMILIES._families[fam.name] = registered
 
 
 def _check(fam: Family, n: int) -> None:

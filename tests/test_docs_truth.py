@@ -21,8 +21,8 @@ torch.set_num_threads(1)
 
 
 def test_wargus_bearings_are_observed_out_of_sight_and_offsets_only_within_it():
-    """memory-results.md: 'for the nearest item and the nearest patrol an 8-sector bearing,
-    always, plus the offset only within 7 cells (sight 8)'."""
+    """memory-results.md: 'for the nearest item and patrol, an 8-sector bearing always, the
+    offset only within 7 cells (sight 8)'."""
     cfg = load_config("configs/wargus_large.yaml", ["env.num_envs=64"])
     assert cfg.env.wargus.sight == 8 and cfg.env.wargus.size == 64
     env = make_env(cfg, 64)
@@ -45,8 +45,8 @@ def test_wargus_bearings_are_observed_out_of_sight_and_offsets_only_within_it():
 
 
 def test_wargus_informed_features_are_the_current_positions():
-    """memory.md / memory-results.md: 'every item's and patrol's current (row, col) / (size - 1)'
-    (not routes): after patrols move, the features follow the instance's positions at that step."""
+    """memory.md: 'every item's and patrol's current (row, col) / (size - 1)' (not routes): after
+    patrols move, the features follow the instance's positions at that step."""
     cfg = load_config("configs/wargus.yaml", ["env.wargus.size=12", "env.num_envs=8"])
     dim, feats = informed_features(cfg)
     env = make_env(cfg, 8)

@@ -250,3 +250,11 @@ def test_exact_and_by_frames_on_a_family_without_an_oracle_are_one_line_errors(
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "needs an exact oracle" in err
         assert "family 'no_oracle' has none" in err
+
+
+def test_check_family_takes_a_new_object_of_an_installed_family(registered):
+    """An installed family's ``family()`` returns a new object each call: ``check_family`` checks
+    it under its name and leaves the registered one in place."""
+    installed = registered(given_cartpole("installed"))
+    check_family(given_cartpole("installed"))
+    assert FAMILIES._families["installed"] is installed
