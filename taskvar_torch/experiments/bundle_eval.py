@@ -307,7 +307,7 @@ def _evaluate(
 
 
 def _metrics(checkpoint, cfg, test, shifts, methods, seed, noise_seed, episodes) -> dict[str, Any]:
-    return {
+    out = {
         "experiment": "eval",
         "checkpoint": str(checkpoint),
         "family": cfg.family,
@@ -320,6 +320,10 @@ def _metrics(checkpoint, cfg, test, shifts, methods, seed, noise_seed, episodes)
         "noise_seed": 0 if noise_seed is None else int(noise_seed),
         "episodes": int(episodes),
     }
+    sealed = family(cfg).tests[test].seed
+    if sealed is not None:  # the held-out seed this bundle's own draw comes from (``seed``)
+        out["sealed_seed"] = int(sealed)
+    return out
 
 
 CSV_FIELDS = ("shift", "method", "episode", "return", "length", "interruptions")

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 from torchrl.envs import EnvBase
 
+from taskvar_torch import rng
 from taskvar_torch.heads.networks import PatchLayout
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -65,6 +66,18 @@ HELDOUT_SIZE = 300
 """Seeds in the sealed range: Wargus's held-out instances, and the most held-out runs."""
 HELDOUT_SEEDS = tuple(range(HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE))
 """The sealed held-out seeds, in order (Wargus's held-out instance seeds)."""
+
+
+def sealed_episode_seed(sealed: int, training_seed: int) -> int:
+    """The env seed under which the bundle of training seed ``training_seed`` plays the sealed
+    test seed ``sealed`` (docs/evaluation.md, Seed): ``rng.sub_env_key(sealed, training_seed)``,
+    a 32-bit hash. Each training seed thus plays its own independent draw of the sealed test
+    distribution (its instances' distribution unchanged, other episodes), so a CI over training
+    seeds counts the episodes' noise too; every method of one bundle plays the same draw (paired).
+    Distinct training seeds always get distinct seeds (the hash is a bijection of the key)."""
+    return int(
+        rng.sub_env_key(rng.check_seed(sealed, "sealed seed"), rng.check_seed(training_seed))
+    )
 
 
 @dataclass(frozen=True)
@@ -468,5 +481,6 @@ __all__ = [
     "family",
     "one_of",
     "register_family",
+    "sealed_episode_seed",
     "register_gym_ids",
 ]
