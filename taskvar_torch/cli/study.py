@@ -236,7 +236,7 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="also replace the Results block between <!-- report:results:start --> and "
         "<!-- report:results:end --> in FILE (README.md): the regret figure, per family a compact "
-        "table (methods as columns, the winner bold) and the table of every result, folded",
+        "table (methods as columns, the best mean bold, ≈ not separated from it) and the table of every result, folded",
     )
     p.add_argument(
         "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"

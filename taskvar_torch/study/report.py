@@ -28,9 +28,10 @@ table alone (:func:`add_rows`, ``taskvar report --add``), the other rows kept.
 
 The README's Results block is read in a minute (issue 48,
 :mod:`~taskvar_torch.study.report_results`): the regret figure, per family one compact table
-(methods as columns, a row per group, mean [95% CI] over seeds, the winners bold), and the table of
-every result folded away; the per-group summaries behind them are kept beside the claims page
-(``<stem>-results.json``) so that ``--add`` draws them again with the groups it adds.
+(methods as columns, a row per group, mean [95% CI] over seeds, the best bold, ``≈`` on those not
+separated from it), and the table of every result folded away; the per-group summaries behind
+them are kept beside the claims page (``<stem>-results.json``) so that ``--add`` draws them again
+with the groups it adds.
 
 Bad input is one line (:class:`ReportError`, a ``ValueError``) and nothing is written: a folder
 that is not a results folder, results of different configs under one ``DIR`` (one claim), a
