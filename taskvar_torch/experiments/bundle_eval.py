@@ -54,7 +54,7 @@ from taskvar_torch.experiments.regret_steps import (
     step_regret_affordable,
     supports_step_regret,
 )
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import code_version, write_csv, write_json
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
     calibrate,
@@ -309,6 +309,7 @@ def _evaluate(
 def _metrics(checkpoint, cfg, test, shifts, methods, seed, noise_seed, episodes) -> dict[str, Any]:
     out = {
         "experiment": "eval",
+        "code": code_version(),
         "checkpoint": str(checkpoint),
         "family": cfg.family,
         "test": test,

@@ -27,7 +27,13 @@ from taskvar_torch.config.choices import FIG4_BASELINES
 from taskvar_torch.experiments.curves import trials_to_fraction_of_max
 from taskvar_torch.study import aggregate
 from taskvar_torch.study import report_results as at_a_glance
-from taskvar_torch.study.report_folders import Group, ReportError, Result, collect
+from taskvar_torch.study.report_folders import (
+    Group,
+    ReportError,
+    Result,
+    check_commits,
+    collect,
+)
 
 NO_WORSE = 0.75
 """Figure 2: the least fraction no worse that reads as the paper's "almost 80%"."""
@@ -351,9 +357,14 @@ class Report:
     summaries: list[dict[str, Any]] = field(default_factory=list)
 
 
-def build_report(dirs: Sequence[str], reps: int = aggregate.REPS) -> Report:
-    """Read and check every ``DIR`` (:func:`collect`), then compute every group's figures."""
+def build_report(
+    dirs: Sequence[str], reps: int = aggregate.REPS, mixed_commits: bool = False
+) -> Report:
+    """Read and check every ``DIR`` (:func:`collect`; results of different commits refused
+    unless ``mixed_commits``, :func:`~taskvar_torch.study.report_folders.check_commits`), then
+    compute every group's figures (docs/report.md)."""
     groups = collect(dirs)
+    check_commits([(r.commit, str(r.path)) for g in groups for r in g.results], mixed_commits)
     claims: list[Claim] = []
     rows: list[tuple[str, str, int, str]] = []
     profiles: list[tuple[str, dict[str, Any], str]] = []
@@ -395,6 +406,7 @@ def _group_info(g: Group, family: Any, row: str, budget: str, score: str) -> dic
         "budget": budget,
         "seeds": len(g.seeds),
         "score": score,
+        "commit": g.commit if len({r.commit for r in g.results}) == 1 else None,
     }
 
 

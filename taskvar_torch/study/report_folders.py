@@ -41,6 +41,14 @@ class Result:
     config: dict[str, Any]
     seeds: tuple[int, ...]
 
+    @property
+    def commit(self) -> str | None:
+        """The commit the results were computed at (``metrics.json``'s ``code.commit``,
+        :func:`~taskvar_torch.experiments.results.code_version`); ``None`` where none is recorded."""
+        code = self.metrics.get("code")
+        commit = code.get("commit") if isinstance(code, dict) else None
+        return str(commit) if commit else None
+
 
 @dataclass
 class Group:
@@ -54,6 +62,12 @@ class Group:
     @property
     def seeds(self) -> list[int]:
         return [s for r in self.results for s in r.seeds]
+
+    @property
+    def commit(self) -> str | None:
+        """The commit of its results (:attr:`Result.commit`; ``None``: none recorded), once
+        :func:`check_commits` has found them one."""
+        return self.results[0].commit if self.results else None
 
     @property
     def digest(self) -> str:
@@ -236,6 +250,31 @@ def collect(dirs: Sequence[str]) -> list[Group]:
     return groups
 
 
+def commit_text(commit: str | None) -> str:
+    """A commit as a table or an error names it: its first 7 characters (``-dirty`` kept), or
+    ``no recorded commit``."""
+    if not commit:
+        return "no recorded commit"
+    return commit[:7] + ("-dirty" if commit.endswith("-dirty") else "")
+
+
+def check_commits(sources: Sequence[tuple[str | None, str]], mixed: bool = False) -> None:
+    """Refuse results of different commits (docs/report.md: one commit per table) in one line
+    naming both, unless ``mixed`` (``taskvar report --mixed-commits``). ``sources``: ``(commit,
+    where)`` pairs (``None``: none recorded, which differs from any recorded one; results that
+    all record none pass)."""
+    if mixed or not sources:
+        return
+    first, where = sources[0]
+    for commit, other in sources[1:]:
+        if commit != first:
+            raise ReportError(
+                f"results of different commits: {commit_text(first)} ({where}) and "
+                f"{commit_text(commit)} ({other}); rerun them at one commit, or pass "
+                "--mixed-commits to report them together"
+            )
+
+
 def _layout(env: dict, family: str | None) -> object:
     """A config's layout: in the family's own env section (``env.windy.layout``), or at ``env.*``
     where an older version wrote it."""
@@ -269,6 +308,8 @@ def _label(g: Group) -> str:
 
 __all__ = [
     "KINDS",
+    "check_commits",
+    "commit_text",
     "MIN_SEEDS",
     "Group",
     "ReportError",

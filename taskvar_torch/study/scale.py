@@ -79,7 +79,7 @@ from taskvar_torch.config import (
     load_strict,
     save_config_yaml,
 )
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import code_version, write_csv, write_json
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder
 from taskvar_torch.study.scale_cell import (
@@ -229,6 +229,7 @@ def _scale(cfg: ScaleConfig, out: Path, progress: bool, quick: bool, plots: bool
     bar.close()
     metrics = {
         "experiment": EXPERIMENT,
+        "code": code_version(),
         "quick": bool(quick),
         "methods": list(METHODS),
         "total_frames": cfg.total_frames,

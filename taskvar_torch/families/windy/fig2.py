@@ -55,7 +55,12 @@ from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.experiments.bundle_eval import eval_bundle
 from taskvar_torch.experiments.evaluation import run_episodes
-from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.results import (
+    code_version,
+    refuse_existing_results,
+    write_csv,
+    write_json,
+)
 from taskvar_torch.factory import check_device, load_heads, make_env, make_subtasks
 from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE, sealed_episode_seed
 from taskvar_torch.families.windy import (
@@ -454,6 +459,7 @@ def _windy_fig2(
     oracle = make_oracle(cfg)
     metrics: dict[str, Any] = {
         "experiment": "windy-fig2",
+        "code": code_version(),
         "quick": bool(quick),
         "layout": section(cfg).layout,
         "checkpoint": str(checkpoint),
