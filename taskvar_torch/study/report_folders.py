@@ -10,8 +10,11 @@ written by :mod:`~taskvar_torch.study.report`.
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import io
 import json
+import math
 import os
 import re
 from collections.abc import Sequence
@@ -91,6 +94,63 @@ def read_json(path: Path) -> dict[str, Any]:
     return data
 
 
+NOT_FINITE = "not a finite number: taskvar report aggregates finite results only; rerun it"
+"""The end of the one-line refusal of a non-finite input (issue 58)."""
+_NON_FINITE_TEXT = re.compile(r"(?i)(?<![\w.])[-+]?(?:nan|inf(?:inity)?)(?![\w.])")
+
+
+def _json_path(prefix: str, key: Any) -> str:
+    return f"{prefix}[{key}]" if isinstance(key, int) else (f"{prefix}.{key}" if prefix else key)
+
+
+def check_finite_json(path: Path, data: Any, where: str = "") -> None:
+    """A one-line :class:`ReportError` naming ``path`` and the key (``points[0].methods.x``) of
+    the first ``NaN`` or infinite number in ``data`` (a ``metrics.json`` read with Python's
+    ``json``, which accepts ``NaN`` and ``Infinity``; the library writes ``null`` instead)."""
+    if isinstance(data, float) and not math.isfinite(data):
+        raise ReportError(f"{path}: {where or 'the file'} is {data!r}, {NOT_FINITE}")
+    items = (
+        data.items()
+        if isinstance(data, dict)
+        else enumerate(data)
+        if isinstance(data, list)
+        else ()
+    )
+    for k, v in items:
+        if isinstance(v, (dict, list, float)):
+            check_finite_json(path, v, _json_path(where, k))
+
+
+def check_finite_csv(path: Path) -> None:
+    """A one-line :class:`ReportError` naming ``path``, the row (its line in the file, the header
+    line 1) and the column of the first cell that reads as a non-finite number (``nan``, ``inf``,
+    ``-Infinity``...); a file without such text is not parsed."""
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as e:
+        raise ReportError(f"{path} cannot be read ({e.strerror})") from None
+    if not _NON_FINITE_TEXT.search(text):
+        return
+    reader = csv.reader(io.StringIO(text))
+    header = next(reader, [])
+    for line, row in enumerate(reader, start=2):
+        for name, cell in zip(header, row):
+            if _NON_FINITE_TEXT.fullmatch(cell.strip()):
+                raise ReportError(
+                    f"{path}: row {line}, column {name!r} is {cell.strip()!r}, {NOT_FINITE}"
+                )
+
+
+def check_finite_inputs(folder: Path, metrics: dict[str, Any]) -> None:
+    """Every number ``taskvar report`` may aggregate from a results folder is finite: its
+    ``metrics.json`` (:func:`check_finite_json`) and the CSV files beside it (``episodes.csv``,
+    ``per_trial*.csv``, :func:`check_finite_csv`); else one line naming the file, row and column
+    (docs/report.md)."""
+    check_finite_json(folder / "metrics.json", metrics)
+    for path in sorted({*folder.glob("episodes.csv"), *folder.glob("per_trial*.csv")}):
+        check_finite_csv(path)
+
+
 def _config_yaml(folder: Path) -> dict[str, Any]:
     path = folder / "config.yaml"
     try:
@@ -126,6 +186,7 @@ def load_result(folder: str | os.PathLike) -> Result:
     """One results folder (``folder/metrics.json`` of a :data:`KINDS` kind)."""
     folder = Path(folder)
     metrics = read_json(folder / "metrics.json")
+    check_finite_inputs(folder, metrics)
     kind = metrics.get("experiment")
     if kind not in KINDS:
         raise ReportError(
@@ -308,6 +369,10 @@ def _label(g: Group) -> str:
 
 __all__ = [
     "KINDS",
+    "NOT_FINITE",
+    "check_finite_csv",
+    "check_finite_inputs",
+    "check_finite_json",
     "check_commits",
     "commit_text",
     "MIN_SEEDS",
