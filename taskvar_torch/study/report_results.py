@@ -142,7 +142,8 @@ TIE_MARK = "≈"
 """The mark of a method not separated from the best (:func:`marks`)."""
 LEGEND = (
     f"**Bold**: the best mean of the methods that do not see the hidden instance; {TIE_MARK}: not "
-    "separated from it (the 95% CI of the paired difference over training seeds reaches 0). "
+    "separated from it (the 95% CI of the paired difference over training seeds reaches 0; "
+    "unpaired: the CIs overlap). "
     f"`{CEILING}` sees the instance (the learnt ceiling) and is never marked."
 )
 """The line under each compact table."""
