@@ -60,8 +60,8 @@ HELDOUT_SEED = 7_000_000
 """First seed of the sealed held-out range ``[HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE)``
 (docs/claims.md): no config, doc, test or tuning script names a seed in it
 (``tests/test_heldout.py`` checks), so no design choice was ever made on its episodes. Windy and
-Taxi play their test distribution under env seed ``HELDOUT_SEED + run``; Wargus plays the
-instance seeds of the range."""
+Taxi play their test distribution under env seed ``HELDOUT_SEED + run`` drawn per training seed
+(:func:`sealed_episode_seed`); Wargus plays the instance seeds of the range."""
 HELDOUT_SIZE = 300
 """Seeds in the sealed range: Wargus's held-out instances, and the most held-out runs."""
 HELDOUT_SEEDS = tuple(range(HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE))
@@ -89,8 +89,9 @@ class TestDistribution:
         description: what it shifts, in one line (docs/evaluation.md lists them all).
         instances: a named instance distribution or the fields of one (a dict).
         overrides: config overrides of ``env`` keys (``key=value``), validated like a config.
-        seed: a sealed test seed (``HELDOUT_SEED``): ``taskvar eval`` plays under it and refuses
-            another ``--seed``; ``None``: the evaluation's seed (the bundle's ``seed + 1``).
+        seed: a sealed test seed (``HELDOUT_SEED``): ``taskvar eval`` plays it, drawn for the
+            bundle's training seed (:func:`sealed_episode_seed`), and refuses another ``--seed``;
+            ``None``: the evaluation's seed (the bundle's ``seed + 1``).
     """
 
     __test__ = False  # not a pytest test class
