@@ -4,7 +4,7 @@ For one family config: ``taskvar train CONFIG --seeds N`` (one batched learner, 
 ``taskvar train-baselines`` in each ``seed<k>/`` (the recurrent, informed and blind baselines), then
 ``taskvar eval --method all`` of each seed's bundle on each named test distribution (one seed's
 methods share paired episodes; eval's default test seed is each bundle's own ``seed + 1``, so
-the seeds play different episodes, but a held-out test plays its sealed seed for all), each into
+the seeds play different episodes; a held-out test, its sealed seed drawn apart per seed), each into
 ``OUT/eval-<test>/seed<k>/``: the layout ``taskvar report`` reads. Steps already done are skipped,
 so an interrupted run continues. Finally one table per test: each method's mean return, exact
 value and regret against the exact per-instance optimum (where the family has an oracle), as the

@@ -15,8 +15,16 @@ from budgets import TINY  # tests/budgets.py
 from taskvar_torch import cli
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle
-from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SEEDS, HELDOUT_SIZE
+from taskvar_torch.factory import load_heads
+from taskvar_torch.families import (
+    FAMILIES,
+    HELDOUT_SEED,
+    HELDOUT_SEEDS,
+    HELDOUT_SIZE,
+    sealed_episode_seed,
+)
 from taskvar_torch.families.wargus.dynamics import NOMINAL_SEEDS
+from taskvar_torch.families.windy.fig2 import heldout_seed, windy_fig2
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
@@ -86,7 +94,9 @@ def test_wargus_heldout_plays_the_sealed_instances_paired(bundles, tmp_path):
     m = eval_bundle(
         bundles["wargus"], "all", "heldout", episodes=6, out_dir=tmp_path, progress=False
     )
-    assert m["seed"] == HELDOUT_SEED and m["test"] == "heldout"
+    seed = load_heads(bundles["wargus"])[1].seed  # the bundle's own draw of the sealed seed
+    assert m["sealed_seed"] == HELDOUT_SEED and m["test"] == "heldout"
+    assert m["seed"] == sealed_episode_seed(HELDOUT_SEED, seed)
     rows = _rows(tmp_path / "episodes.csv")
     per_method: dict[str, list[int]] = {}
     for r in rows:
@@ -121,9 +131,71 @@ def test_windy_heldout_is_the_training_distribution_under_the_sealed_seed(
         return by_method["averaging"]
 
     held = episodes("heldout", None, "held")
-    assert held == episodes("train", HELDOUT_SEED, "same")  # the training winds, sealed seed
+    own = sealed_episode_seed(HELDOUT_SEED, load_heads(bundles["windy"])[1].seed)
+    assert held == episodes("train", own, "same")  # the training winds, the bundle's sealed draw
     assert held != episodes("train", None, "nominal")  # not the nominal test episodes
     argv = ["eval", "--checkpoint", str(bundles["windy"]), "--test", "heldout", "--seed", "3"]
     assert cli.main([*argv, "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "sealed held-out seed" in err
+
+
+def test_sealed_draws_differ_per_training_seed_and_stay_out_of_the_range():
+    """Issue 56: each training seed plays its own draw of a sealed test (a CI over seeds then counts
+    the episodes' noise); a deterministic one, never a seed of the sealed range itself."""
+    draws = [sealed_episode_seed(HELDOUT_SEED, k) for k in range(1000)]
+    assert len(set(draws)) == 1000 and draws == [
+        sealed_episode_seed(HELDOUT_SEED, k) for k in range(1000)
+    ]
+    assert not set(draws) & set(HELDOUT_SEEDS)
+    assert sealed_episode_seed(HELDOUT_SEED + 1, 0) != draws[0]  # each sealed run its own
+
+
+@pytest.fixture(scope="module")
+def windy_seed1(tmp_path_factory):
+    """A windy bundle like tests/conftest.py's but of training seed 1."""
+    d = tmp_path_factory.mktemp("windy-seed1")
+    train(load_config("configs/windy.yaml", [*TINY, "seed=1"]), d, progress=False)
+    return d / "final.pt"
+
+
+def test_each_bundle_plays_its_own_heldout_episodes_paired_across_its_methods(
+    bundles, windy_seed1, tmp_path
+):
+    def played(bundle, name):
+        m = eval_bundle(
+            bundle, "averaging,options", "heldout", episodes=40, out_dir=tmp_path / name,
+            plots=False, progress=False,
+        )  # fmt: skip
+        by_method: dict[str, list] = {}
+        for r in _rows(tmp_path / name / "episodes.csv"):
+            by_method.setdefault(r["method"], []).append(
+                (r["instance_p"], r["instance_direction"], r["start"])
+            )
+        assert by_method["averaging"] == by_method["options"]  # paired within the bundle
+        return m, by_method["averaging"]
+
+    m0, eps0 = played(bundles["windy"], "seed0")
+    m1, eps1 = played(windy_seed1, "seed1")
+    assert load_heads(windy_seed1)[1].seed == 1 + load_heads(bundles["windy"])[1].seed
+    assert m0["sealed_seed"] == m1["sealed_seed"] == HELDOUT_SEED
+    assert m0["seed"] != m1["seed"] and eps0 != eps1  # independent draws per training seed
+
+
+def test_figure2_heldout_run0_is_eval_heldout(windy_seed1, tmp_path):
+    """The Figure 2 protocol's held-out row and ``taskvar eval --test heldout`` are one measurement
+    on the same bundle: its run 0 is the evaluation's episodes (the row pools ``runs`` of them)."""
+    heads, cfg = load_heads(windy_seed1)
+    cfg = load_config("configs/windy.yaml", [*TINY, "seed=1", "experiment.runs=2",
+                                             "experiment.episodes_per_run=40"])  # fmt: skip
+    fig = windy_fig2(cfg, tmp_path / "fig2", windy_seed1, progress=False, plots=False)
+    ev = eval_bundle(
+        windy_seed1, "averaging,options,interruption", "heldout", episodes=40,
+        out_dir=tmp_path / "eval", plots=False, progress=False,
+    )  # fmt: skip
+    held = fig["heldout"]
+    assert held["seeds"] == [heldout_seed(cfg, 0), heldout_seed(cfg, 1)]
+    assert held["seeds"][0] == ev["seed"]
+    run0 = held["per_run"][0]["mean_return"]
+    for m in ("averaging", "options", "interruption"):
+        assert run0[m] == pytest.approx(ev["points"][0]["methods"][m]["mean_return"], abs=1e-9)

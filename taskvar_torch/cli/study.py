@@ -236,7 +236,7 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="also replace the Results block between <!-- report:results:start --> and "
         "<!-- report:results:end --> in FILE (README.md): the regret figure, per family a compact "
-        "table (methods as columns, the winner bold) and the table of every result, folded",
+        "table (methods as columns, the best mean bold, ≈ not separated from it) and the table of every result, folded",
     )
     p.add_argument(
         "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"
@@ -255,6 +255,12 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
         "default docs/claims.md beside the README)",
     )
     p.add_argument(
+        "--mixed-commits",
+        action="store_true",
+        help="report results computed at different commits together (metrics.json's "
+        "code.commit; by default they are refused, naming both)",
+    )
+    p.add_argument(
         "--drop",
         metavar="DIGEST",
         action="append",
@@ -270,14 +276,18 @@ def _report_run(args: argparse.Namespace) -> int:
     if args.add:
         if args.readme is None:
             raise ReportError("--add needs --readme FILE: the README whose Results table grows")
-        written, _ = add_rows(args.dirs, args.readme, args.out, args.reps, args.drop)
+        written, _ = add_rows(
+            args.dirs, args.readme, args.out, args.reps, args.drop, args.mixed_commits
+        )
         print("wrote " + ", ".join(str(p) for p in written))
         return 0
     if args.drop:
         raise ReportError("--drop goes with --add (a claims page is rewritten from every folder)")
     if args.out is None:
         raise ReportError("--out FILE is required (the claims page, docs/claims.md) unless --add")
-    written, report = write_report(args.dirs, args.out, args.readme, args.reps, args.overwrite)
+    written, report = write_report(
+        args.dirs, args.out, args.readme, args.reps, args.overwrite, args.mixed_commits
+    )
     for c in report.claims:
         print(f"{CLAIMS[c.key][0]} [{c.group}]: {c.verdict} ({c.reason})")
     print("wrote " + ", ".join(str(p) for p in written))

@@ -54,7 +54,7 @@ from taskvar_torch.experiments.regret_steps import (
     step_regret_affordable,
     supports_step_regret,
 )
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import code_version, write_csv, write_json
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
     calibrate,
@@ -312,8 +312,9 @@ def _evaluate(
 
 
 def _metrics(checkpoint, cfg, test, shifts, methods, seed, noise_seed, episodes) -> dict[str, Any]:
-    return {
+    out = {
         "experiment": "eval",
+        "code": code_version(),
         "checkpoint": str(checkpoint),
         "family": cfg.family,
         "test": test,
@@ -325,6 +326,10 @@ def _metrics(checkpoint, cfg, test, shifts, methods, seed, noise_seed, episodes)
         "noise_seed": 0 if noise_seed is None else int(noise_seed),
         "episodes": int(episodes),
     }
+    sealed = family(cfg).tests[test].seed
+    if sealed is not None:  # the held-out seed this bundle's own draw comes from (``seed``)
+        out["sealed_seed"] = int(sealed)
+    return out
 
 
 CSV_FIELDS = ("shift", "method", "episode", "return", "length", "interruptions")

@@ -24,7 +24,7 @@ from taskvar_torch.experiments.shift import EvalPoint
 from taskvar_torch.factory import (
     make_env,
 )
-from taskvar_torch.families import family
+from taskvar_torch.families import family, sealed_episode_seed
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.recurrent import BASELINES
@@ -65,15 +65,23 @@ def parse_methods(
 
 
 def episode_seed(cfg: Config, test: str, seed: int | None) -> int:
-    """The seed of the test episodes (docs/evaluation.md): ``seed``, by default the bundle's
-    ``seed + 1`` (the experiments' first test run); a held-out distribution plays its sealed seed
-    only (another ``seed`` is a one-line error)."""
+    """The seed of the test episodes (docs/evaluation.md, Seed): ``seed``, by default the
+    bundle's ``seed + 1`` (the experiments' first test run); a held-out distribution plays its
+    sealed seed only, drawn apart for each training seed
+    (:func:`~taskvar_torch.families.sealed_episode_seed` of the sealed seed and ``cfg.seed``: each
+    bundle its own episodes, the same for all its methods). Another ``seed`` is a one-line error."""
     if seed is not None:
         seed = rng.check_seed(seed, "--seed")  # 32-bit keys: a larger seed is refused, not wrapped
     sealed = family(cfg).tests[test].seed
-    if sealed is not None and seed is not None and int(seed) != sealed:
-        raise ValueError(f"--test {test} plays its sealed held-out seed; drop --seed {seed}")
-    return (int(cfg.seed) + 1 if sealed is None else sealed) if seed is None else int(seed)
+    if sealed is None:
+        return int(cfg.seed) + 1 if seed is None else int(seed)
+    own = sealed_episode_seed(sealed, int(cfg.seed))
+    if seed is not None and int(seed) != own:
+        raise ValueError(
+            f"--test {test} plays its sealed held-out seed (drawn for the bundle's training seed "
+            f"{int(cfg.seed)}); drop --seed {seed}"
+        )
+    return own
 
 
 def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:

@@ -3,14 +3,43 @@
 from __future__ import annotations
 
 import csv
+import functools
 import io
 import json
 import math
+import subprocess
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from taskvar_torch.io import atomic_write
+
+
+@functools.lru_cache(maxsize=1)
+def code_version() -> dict[str, Any]:
+    """The code a results folder was computed with, for ``metrics.json``'s ``code``
+    (docs/report.md, one commit per table): the package ``version`` and, where the package runs
+    from a git checkout, its ``commit`` (the full hash, with ``-dirty`` appended where tracked
+    files differ from it); ``commit`` is ``None`` for an installed package or without git.
+    ``taskvar report`` refuses rows of different commits unless told (``--mixed-commits``)."""
+    import taskvar_torch
+
+    root = Path(taskvar_torch.__file__).resolve().parents[1]
+    commit = None
+    try:
+        head = subprocess.run(
+            ["git", "-C", str(root), "rev-parse", "--show-toplevel", "HEAD"],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout.split()  # fmt: skip
+        if len(head) == 2 and Path(head[0]).resolve() == root:  # the package's own checkout
+            dirty = subprocess.run(
+                ["git", "-C", str(root), "status", "--porcelain", "--untracked-files=no"],
+                capture_output=True, text=True, timeout=10, check=True,
+            ).stdout.strip()  # fmt: skip
+            commit = head[1] + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"version": str(taskvar_torch.__version__), "commit": commit}
 
 
 def write_csv(path: Path, rows: Sequence[dict[str, Any]], fields: Sequence[str]) -> None:

@@ -32,6 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 from torchrl.envs import EnvBase
 
+from taskvar_torch import rng
 from taskvar_torch.heads.networks import PatchLayout
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -59,12 +60,24 @@ HELDOUT_SEED = 7_000_000
 """First seed of the sealed held-out range ``[HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE)``
 (docs/claims.md): no config, doc, test or tuning script names a seed in it
 (``tests/test_heldout.py`` checks), so no design choice was ever made on its episodes. Windy and
-Taxi play their test distribution under env seed ``HELDOUT_SEED + run``; Wargus plays the
-instance seeds of the range."""
+Taxi play their test distribution under env seed ``HELDOUT_SEED + run`` drawn per training seed
+(:func:`sealed_episode_seed`); Wargus plays the instance seeds of the range."""
 HELDOUT_SIZE = 300
 """Seeds in the sealed range: Wargus's held-out instances, and the most held-out runs."""
 HELDOUT_SEEDS = tuple(range(HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE))
 """The sealed held-out seeds, in order (Wargus's held-out instance seeds)."""
+
+
+def sealed_episode_seed(sealed: int, training_seed: int) -> int:
+    """The env seed under which the bundle of training seed ``training_seed`` plays the sealed
+    test seed ``sealed`` (docs/evaluation.md, Seed): ``rng.sub_env_key(sealed, training_seed)``,
+    a 32-bit hash. Each training seed thus plays its own independent draw of the sealed test
+    distribution (its instances' distribution unchanged, other episodes), so a CI over training
+    seeds counts the episodes' noise too; every method of one bundle plays the same draw (paired).
+    Distinct training seeds always get distinct seeds (the hash is a bijection of the key)."""
+    return int(
+        rng.sub_env_key(rng.check_seed(sealed, "sealed seed"), rng.check_seed(training_seed))
+    )
 
 
 @dataclass(frozen=True)
@@ -76,8 +89,9 @@ class TestDistribution:
         description: what it shifts, in one line (docs/evaluation.md lists them all).
         instances: a named instance distribution or the fields of one (a dict).
         overrides: config overrides of ``env`` keys (``key=value``), validated like a config.
-        seed: a sealed test seed (``HELDOUT_SEED``): ``taskvar eval`` plays under it and refuses
-            another ``--seed``; ``None``: the evaluation's seed (the bundle's ``seed + 1``).
+        seed: a sealed test seed (``HELDOUT_SEED``): ``taskvar eval`` plays it, drawn for the
+            bundle's training seed (:func:`sealed_episode_seed`), and refuses another ``--seed``;
+            ``None``: the evaluation's seed (the bundle's ``seed + 1``).
     """
 
     __test__ = False  # not a pytest test class
@@ -468,5 +482,6 @@ __all__ = [
     "family",
     "one_of",
     "register_family",
+    "sealed_episode_seed",
     "register_gym_ids",
 ]

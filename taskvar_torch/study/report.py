@@ -28,9 +28,10 @@ table alone (:func:`add_rows`, ``taskvar report --add``), the other rows kept.
 
 The README's Results block is read in a minute (issue 48,
 :mod:`~taskvar_torch.study.report_results`): the regret figure, per family one compact table
-(methods as columns, a row per group, mean [95% CI] over seeds, the winners bold), and the table of
-every result folded away; the per-group summaries behind them are kept beside the claims page
-(``<stem>-results.json``) so that ``--add`` draws them again with the groups it adds.
+(methods as columns, a row per group, mean [95% CI] over seeds, the best bold, ``≈`` on those not
+separated from it), and the table of every result folded away; the per-group summaries behind
+them are kept beside the claims page (``<stem>-results.json``) so that ``--add`` draws them again
+with the groups it adds.
 
 Bad input is one line (:class:`ReportError`, a ``ValueError``) and nothing is written: a folder
 that is not a results folder, results of different configs under one ``DIR`` (one claim), a
@@ -63,6 +64,8 @@ from taskvar_torch.study.report_claims import CLAIMS, RULES, Report, build_repor
 from taskvar_torch.study.report_folders import (
     MIN_SEEDS,
     ReportError,
+    check_commits,
+    commit_text,
     read_json,
 )
 
@@ -118,13 +121,15 @@ def claims_markdown(
         lines.append("")
         lines += [f"- {d}" for d in c.details]
         lines.append("")
-    lines += ["## Results read", "", "| results | kind | training seeds | config | folders |"]
-    lines.append("| --- | --- | --- | --- | --- |")
+    lines += ["## Results read", ""]
+    lines.append("| results | kind | training seeds | config | commit | folders |")
+    lines.append("| --- | --- | --- | --- | --- | --- |")
     for g in report.groups:
         folders = ", ".join(f"`{r.path}`" for r in g.results)
+        commits = ", ".join(dict.fromkeys(commit_text(r.commit) for r in g.results))
         lines.append(
             f"| {_cell(g.label)} | {g.kind} | {', '.join(map(str, g.seeds))} | {g.digest} | "
-            f"{folders} |"
+            f"{commits} | {folders} |"
         )
     if png_name:
         lines += ["", f"![performance profiles]({png_name})", ""]
@@ -267,6 +272,7 @@ def add_rows(
     claims: str | os.PathLike | None = None,
     reps: int = aggregate.REPS,
     drop: Sequence[str] = (),
+    mixed_commits: bool = False,
 ) -> tuple[list[Path], Report]:
     """``taskvar report --add``: add these folders' rows to the README's Results, keeping the
     rows of results not given (each row names its config digest), and write no claims page.
@@ -275,7 +281,8 @@ def add_rows(
     :func:`drop_rows`), and the compact tables and the regret figure are drawn again from them
     all. Refused where a folder scores one of the paper's claims: the claims
     page must then be rewritten from every folder. ``claims``: the claims page the rows link to
-    (default ``docs/claims.md`` beside the README)."""
+    (default ``docs/claims.md`` beside the README). Rows of another commit than the kept
+    ones' are refused unless ``mixed_commits`` (docs/report.md)."""
     if int(reps) < 100:
         raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
     _refuse_inside_results(dirs, readme, "--readme")
@@ -290,7 +297,7 @@ def add_rows(
             f"{str(png)!r} exists and was not written by taskvar report; move it or rerun without "
             "--add and with --overwrite"
         )
-    report = build_report(dirs, reps)
+    report = build_report(dirs, reps, mixed_commits)
     if report.claims:
         scored = sorted({c.group for c in report.claims})
         raise ReportError(
@@ -300,6 +307,12 @@ def add_rows(
     link = Path(os.path.relpath(claims_path, Path(readme).parent)).as_posix()
     details = merge_rows(old_rows, results_table(report, link))
     new = {(s["label"], s["digest"]): s for s in report.summaries}
+    others = [s for s in kept if (s["label"], s["digest"]) not in new]
+    check_commits(
+        [(r.commit, str(r.path)) for g in report.groups for r in g.results[:1]]
+        + [(s.get("commit"), f"the README row {s['label']!r}") for s in others],
+        mixed_commits,
+    )
     summaries = [new.pop((s["label"], s["digest"]), s) for s in kept] + list(new.values())
     image = at_a_glance.results_png(summaries, PNG_SOFTWARE)
     block = _results_block(summaries, details, png if image is not None else None, readme)
@@ -362,11 +375,13 @@ def write_report(
     readme: str | os.PathLike | None = None,
     reps: int = aggregate.REPS,
     overwrite: bool = False,
+    mixed_commits: bool = False,
 ) -> tuple[list[Path], Report]:
     """``taskvar report``: check everything, compute everything, then write the regret figure
     and the summaries behind it and the compact tables (:func:`results_files`), the claims page
     ``out``, its profile PNG (``img/<out stem>-profile.png`` beside it) and, with ``readme``, the
-    README's Results block. Returns the files written and the report."""
+    README's Results block. Results of different commits are refused unless ``mixed_commits``
+    (docs/report.md). Returns the files written and the report."""
     out = check_out_path(out)
     _refuse_inside_results(dirs, out, "--out")
     if readme is not None:
@@ -389,7 +404,7 @@ def write_report(
     if not overwrite:
         _read_summaries(data)  # refused where it is someone else's
     readme_text = None if readme is None else _read_readme(readme)
-    report = build_report(dirs, reps)
+    report = build_report(dirs, reps, mixed_commits)
     image = profile_png(report, reps)
     results_image = at_a_glance.results_png(report.summaries, PNG_SOFTWARE)
     rel = os.path.relpath(png, out.parent) if image is not None else None

@@ -17,6 +17,7 @@ writes them.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,7 +28,14 @@ from taskvar_torch.config.choices import FIG4_BASELINES
 from taskvar_torch.experiments.curves import trials_to_fraction_of_max
 from taskvar_torch.study import aggregate
 from taskvar_torch.study import report_results as at_a_glance
-from taskvar_torch.study.report_folders import Group, ReportError, Result, collect
+from taskvar_torch.study.report_folders import (
+    NOT_FINITE,
+    Group,
+    ReportError,
+    Result,
+    check_commits,
+    collect,
+)
 
 NO_WORSE = 0.75
 """Figure 2: the least fraction no worse that reads as the paper's "almost 80%"."""
@@ -95,6 +103,36 @@ def _num(x: Any) -> float:
     return float("nan") if x is None else float(x)
 
 
+def _score(r: Result, *path: str | int) -> float:
+    """The number at ``path`` in ``r``'s ``metrics.json``; a ``null`` there (the library writes a
+    non-finite number as ``null``) or a non-number is a one-line :class:`ReportError` naming the
+    file and the key (issue 58: ``taskvar report`` refuses non-finite inputs)."""
+    x: Any = r.metrics
+    for k in path:
+        x = x[k]
+    key = "".join(f"[{k}]" if isinstance(k, int) else f".{k}" for k in path).lstrip(".")
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+        raise ReportError(f"{r.path / 'metrics.json'}: {key} is {x!r}, {NOT_FINITE}")
+    return float(x)
+
+
+def _curves(r: Result, m: str) -> np.ndarray:
+    """Repetition ``r``'s held-out ``curve_per_rep`` of method ``m`` ``(R, T)``, every value
+    finite (a ``null`` or ``NaN`` is one line naming the file and the entry, issue 58)."""
+    c = r.metrics["heldout"]["methods"][m]["curve_per_rep"]
+    a = np.asarray(c, dtype=float)  # a null reads as NaN
+    if not np.isfinite(a).all():
+        bad = np.argwhere(~np.isfinite(a))[0]
+        value = a[tuple(bad)]
+        where = "".join(f"[{i}]" for i in bad.tolist())
+        shown = None if np.isnan(value) else float(value)  # written as null, or NaN by hand
+        raise ReportError(
+            f"{r.path / 'metrics.json'}: heldout.methods.{m}.curve_per_rep{where} is {shown!r}, "
+            f"{NOT_FINITE}"
+        )
+    return a
+
+
 def _ci(e: dict[str, Any], fmt: str = ".3f", which: str = "mean") -> str:
     lo, hi = e[f"{which}_ci95"]
     return f"{e[which]:{fmt}} [{lo:{fmt}}, {hi:{fmt}}]"
@@ -115,16 +153,18 @@ def _held(r: Result) -> dict[str, Any]:
 
 
 def _fig2(g: Group, reps: int) -> tuple[Claim, str, dict[str, Any]]:
-    held = [_held(r) for r in g.results]
-    per_seed = {
-        "no worse": [_num(h["fraction_no_worse"]) for h in held],
-        "better": [_num(h["fraction_better"]) for h in held],
-        "null no worse": [_num(h["fraction_no_worse_null"]) for h in held],
-        "interruption - averaging": [_num(h["mean_difference"]) for h in held],
+    for r in g.results:
+        _held(r)
+    keys = {
+        "no worse": "fraction_no_worse",
+        "better": "fraction_better",
+        "null no worse": "fraction_no_worse_null",
+        "interruption - averaging": "mean_difference",
     }
+    per_seed = {k: [_score(r, "heldout", key) for r in g.results] for k, key in keys.items()}
     est = aggregate.interval_estimates(per_seed, reps)
     returns = {
-        m: [_num(h["mean_return"][m]["mean"]) for h in held]
+        m: [_score(r, "heldout", "mean_return", m, "mean") for r in g.results]
         for m in ("averaging", "options", "interruption")
     }
     poi = aggregate.probability_of_improvement(returns, "averaging", reps)
@@ -171,8 +211,7 @@ def _fig4(g: Group, reps: int) -> tuple[list[Claim], str, dict[str, Any]]:
     held = [_held(r) for r in g.results]
     extra = [m for m in FIG4_BASELINES if all(m in h["methods"] for h in held)]
     curves = {
-        m: np.concatenate([np.asarray(h["methods"][m]["curve_per_rep"], dtype=float) for h in held])
-        for m in (*PAPER_METHODS, *extra)
+        m: np.concatenate([_curves(r, m) for r in g.results]) for m in (*PAPER_METHODS, *extra)
     }  # (R, T) items per held-out test episode; experiment.baselines' curves in the evidence
     T = curves["averaging"].shape[1]
     half = max(T // 2, 1)
@@ -255,7 +294,12 @@ def _eval(g: Group, reps: int) -> tuple[Claim | None, str, dict[str, Any]]:
     methods = list(g.config["eval"]["methods"] or [])
     points = [r.metrics["points"] for r in g.results]
     scores = {
-        m: np.array([[_num(p["methods"][m]["mean_return"]) for p in pts] for pts in points])
+        m: np.array(
+            [
+                [_score(r, "points", i, "methods", m, "mean_return") for i in range(len(pts))]
+                for r, pts in zip(g.results, points)
+            ]
+        )
         for m in methods
     }  # (seeds, points)
     est = aggregate.interval_estimates(scores, reps)
@@ -351,9 +395,14 @@ class Report:
     summaries: list[dict[str, Any]] = field(default_factory=list)
 
 
-def build_report(dirs: Sequence[str], reps: int = aggregate.REPS) -> Report:
-    """Read and check every ``DIR`` (:func:`collect`), then compute every group's figures."""
+def build_report(
+    dirs: Sequence[str], reps: int = aggregate.REPS, mixed_commits: bool = False
+) -> Report:
+    """Read and check every ``DIR`` (:func:`collect`; results of different commits refused
+    unless ``mixed_commits``, :func:`~taskvar_torch.study.report_folders.check_commits`), then
+    compute every group's figures (docs/report.md)."""
     groups = collect(dirs)
+    check_commits([(r.commit, str(r.path)) for g in groups for r in g.results], mixed_commits)
     claims: list[Claim] = []
     rows: list[tuple[str, str, int, str]] = []
     profiles: list[tuple[str, dict[str, Any], str]] = []
@@ -395,6 +444,7 @@ def _group_info(g: Group, family: Any, row: str, budget: str, score: str) -> dic
         "budget": budget,
         "seeds": len(g.seeds),
         "score": score,
+        "commit": g.commit if len({r.commit for r in g.results}) == 1 else None,
     }
 
 
@@ -472,7 +522,15 @@ def _eval_summary(g: Group, scores: dict[str, np.ndarray], reps: int) -> dict[st
     if all("regret_mean" in r for r in rows):  # the exact per-instance optimum, every point
         arrays = {
             m: np.array(
-                [np.mean([_num(p["methods"][m]["regret_mean"]) for p in pts]) for pts in points]
+                [
+                    np.mean(
+                        [
+                            _score(r, "points", i, "methods", m, "regret_mean")
+                            for i in range(len(pts))
+                        ]
+                    )
+                    for r, pts in zip(g.results, points)
+                ]
             )
             for m in scores
         }

@@ -10,8 +10,11 @@ written by :mod:`~taskvar_torch.study.report`.
 
 from __future__ import annotations
 
+import csv
 import hashlib
+import io
 import json
+import math
 import os
 import re
 from collections.abc import Sequence
@@ -41,6 +44,14 @@ class Result:
     config: dict[str, Any]
     seeds: tuple[int, ...]
 
+    @property
+    def commit(self) -> str | None:
+        """The commit the results were computed at (``metrics.json``'s ``code.commit``,
+        :func:`~taskvar_torch.experiments.results.code_version`); ``None`` where none is recorded."""
+        code = self.metrics.get("code")
+        commit = code.get("commit") if isinstance(code, dict) else None
+        return str(commit) if commit else None
+
 
 @dataclass
 class Group:
@@ -54,6 +65,12 @@ class Group:
     @property
     def seeds(self) -> list[int]:
         return [s for r in self.results for s in r.seeds]
+
+    @property
+    def commit(self) -> str | None:
+        """The commit of its results (:attr:`Result.commit`; ``None``: none recorded), once
+        :func:`check_commits` has found them one."""
+        return self.results[0].commit if self.results else None
 
     @property
     def digest(self) -> str:
@@ -75,6 +92,63 @@ def read_json(path: Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ReportError(f"{path} is not a metrics.json (not an object)")
     return data
+
+
+NOT_FINITE = "not a finite number: taskvar report aggregates finite results only; rerun it"
+"""The end of the one-line refusal of a non-finite input (issue 58)."""
+_NON_FINITE_TEXT = re.compile(r"(?i)(?<![\w.])[-+]?(?:nan|inf(?:inity)?)(?![\w.])")
+
+
+def _json_path(prefix: str, key: Any) -> str:
+    return f"{prefix}[{key}]" if isinstance(key, int) else (f"{prefix}.{key}" if prefix else key)
+
+
+def check_finite_json(path: Path, data: Any, where: str = "") -> None:
+    """A one-line :class:`ReportError` naming ``path`` and the key (``points[0].methods.x``) of
+    the first ``NaN`` or infinite number in ``data`` (a ``metrics.json`` read with Python's
+    ``json``, which accepts ``NaN`` and ``Infinity``; the library writes ``null`` instead)."""
+    if isinstance(data, float) and not math.isfinite(data):
+        raise ReportError(f"{path}: {where or 'the file'} is {data!r}, {NOT_FINITE}")
+    items = (
+        data.items()
+        if isinstance(data, dict)
+        else enumerate(data)
+        if isinstance(data, list)
+        else ()
+    )
+    for k, v in items:
+        if isinstance(v, (dict, list, float)):
+            check_finite_json(path, v, _json_path(where, k))
+
+
+def check_finite_csv(path: Path) -> None:
+    """A one-line :class:`ReportError` naming ``path``, the row (its line in the file, the header
+    line 1) and the column of the first cell that reads as a non-finite number (``nan``, ``inf``,
+    ``-Infinity``...); a file without such text is not parsed."""
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except OSError as e:
+        raise ReportError(f"{path} cannot be read ({e.strerror})") from None
+    if not _NON_FINITE_TEXT.search(text):
+        return
+    reader = csv.reader(io.StringIO(text))
+    header = next(reader, [])
+    for line, row in enumerate(reader, start=2):
+        for name, cell in zip(header, row):
+            if _NON_FINITE_TEXT.fullmatch(cell.strip()):
+                raise ReportError(
+                    f"{path}: row {line}, column {name!r} is {cell.strip()!r}, {NOT_FINITE}"
+                )
+
+
+def check_finite_inputs(folder: Path, metrics: dict[str, Any]) -> None:
+    """Every number ``taskvar report`` may aggregate from a results folder is finite: its
+    ``metrics.json`` (:func:`check_finite_json`) and the CSV files beside it (``episodes.csv``,
+    ``per_trial*.csv``, :func:`check_finite_csv`); else one line naming the file, row and column
+    (docs/report.md)."""
+    check_finite_json(folder / "metrics.json", metrics)
+    for path in sorted({*folder.glob("episodes.csv"), *folder.glob("per_trial*.csv")}):
+        check_finite_csv(path)
 
 
 def _config_yaml(folder: Path) -> dict[str, Any]:
@@ -112,6 +186,7 @@ def load_result(folder: str | os.PathLike) -> Result:
     """One results folder (``folder/metrics.json`` of a :data:`KINDS` kind)."""
     folder = Path(folder)
     metrics = read_json(folder / "metrics.json")
+    check_finite_inputs(folder, metrics)
     kind = metrics.get("experiment")
     if kind not in KINDS:
         raise ReportError(
@@ -236,6 +311,31 @@ def collect(dirs: Sequence[str]) -> list[Group]:
     return groups
 
 
+def commit_text(commit: str | None) -> str:
+    """A commit as a table or an error names it: its first 7 characters (``-dirty`` kept), or
+    ``no recorded commit``."""
+    if not commit:
+        return "no recorded commit"
+    return commit[:7] + ("-dirty" if commit.endswith("-dirty") else "")
+
+
+def check_commits(sources: Sequence[tuple[str | None, str]], mixed: bool = False) -> None:
+    """Refuse results of different commits (docs/report.md: one commit per table) in one line
+    naming both, unless ``mixed`` (``taskvar report --mixed-commits``). ``sources``: ``(commit,
+    where)`` pairs (``None``: none recorded, which differs from any recorded one; results that
+    all record none pass)."""
+    if mixed or not sources:
+        return
+    first, where = sources[0]
+    for commit, other in sources[1:]:
+        if commit != first:
+            raise ReportError(
+                f"results of different commits: {commit_text(first)} ({where}) and "
+                f"{commit_text(commit)} ({other}); rerun them at one commit, or pass "
+                "--mixed-commits to report them together"
+            )
+
+
 def _layout(env: dict, family: str | None) -> object:
     """A config's layout: in the family's own env section (``env.windy.layout``), or at ``env.*``
     where an older version wrote it."""
@@ -269,6 +369,12 @@ def _label(g: Group) -> str:
 
 __all__ = [
     "KINDS",
+    "NOT_FINITE",
+    "check_finite_csv",
+    "check_finite_inputs",
+    "check_finite_json",
+    "check_commits",
+    "commit_text",
     "MIN_SEEDS",
     "Group",
     "ReportError",

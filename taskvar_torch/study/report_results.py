@@ -3,8 +3,8 @@
 
 - per family, one compact table: the methods as columns, one row per results group (a test
   distribution, a protocol), each cell the method's score as the mean over training seeds with its
-  95% stratified-bootstrap CI (rliable), the winner in bold (the best method that does not see the
-  hidden instance, and every method whose paired difference to it has a CI reaching 0);
+  95% stratified-bootstrap CI (rliable), the best mean of the methods that do not see the hidden
+  instance in bold and a ``≈`` on every method not separated from it (:func:`marks`);
 - one figure: the regret of each method per family and row, with its CI, to the exact per-instance
   optimum where the results have it (exact for memoryless methods, from sampled returns for the
   baselines: hollow markers), else to the ``informed`` head (a learnt ceiling);
@@ -52,19 +52,13 @@ def summarise(
     """One group's summary: ``group`` (its ``label``, ``digest``, ``kind``, ``family``, ``row``,
     ``budget``, ``seeds``, ``score``) with each method's mean score and 95% CI over training seeds
     (``per_seed[m]``: one score per seed, the same seeds and episodes for every method), the
-    winners, and ``regret`` (its reference, ``{method: per-seed regret}``, the methods whose
+    marks (:func:`marks`), and ``regret`` (its reference, ``{method: per-seed regret}``, the methods whose
     regret comes from sampled returns) summarised the same way."""
     scores = {m: np.asarray(per_seed[m], dtype=np.float64) for m in _ordered(list(per_seed))}
     est = aggregate.interval_estimates(scores, reps)
     out = dict(group)
     out["methods"] = {m: {"mean": est[m]["mean"], "ci95": est[m]["mean_ci95"]} for m in scores}
-    contenders = [m for m in scores if m != CEILING]
-    out["winners"] = []
-    if contenders:
-        best = max(contenders, key=lambda m: est[m]["mean"])
-        others = [m for m in contenders if m != best]
-        diffs = aggregate.paired_differences(scores, [(best, m) for m in others], reps)
-        out["winners"] = [best] + [m for m in others if diffs[f"{best} - {m}"]["mean_ci95"][0] <= 0]
+    out.update(marks(scores, est, reps))
     out["regret"] = None
     if regret is not None:
         reference, arrays, sampled = regret
@@ -82,6 +76,36 @@ def summarise(
             },
         }
     return out
+
+
+def marks(
+    scores: Mapping[str, np.ndarray], est: Mapping[str, Mapping[str, Any]], reps: int
+) -> dict[str, Any]:
+    """The table's marks of one group (docs/report.md, the Results at a glance): ``best``, the
+    method of the highest mean among those that do not see the hidden instance (bold), and
+    ``not_separated``, every other such method whose 95% CI is not separated from the best's
+    (``≈``): the CI of its paired difference to the best over training seeds reaches 0 where
+    both have one score per seed of the group (the same seeds, each seed's methods on the same
+    episodes: ``separation`` is ``"paired"``), else (unpaired scores) the two means' CIs overlap
+    (``"overlap"``). ``est``: :func:`~taskvar_torch.study.aggregate.interval_estimates` of
+    ``scores``. The ceiling (:data:`CEILING`) is never marked."""
+    contenders = [m for m in scores if m != CEILING]
+    if not contenders:
+        return {"best": None, "not_separated": [], "separation": None}
+    best = max(contenders, key=lambda m: est[m]["mean"])
+    others = [m for m in contenders if m != best]
+    paired = [m for m in others if np.shape(scores[m]) == np.shape(scores[best])]
+    diffs = aggregate.paired_differences(scores, [(best, m) for m in paired], reps)
+    tied = []
+    for m in others:
+        if m in paired:
+            close = diffs[f"{best} - {m}"]["mean_ci95"][0] <= 0
+        else:  # no pairing: the two means' CIs overlap
+            close = est[m]["mean_ci95"][1] >= est[best]["mean_ci95"][0]
+        if close:
+            tied.append(m)
+    how = "paired" if len(paired) == len(others) else "overlap"
+    return {"best": best, "not_separated": tied, "separation": how}
 
 
 def regret_to_ceiling(per_seed: Mapping[str, np.ndarray]) -> tuple[str, dict[str, np.ndarray]]:
@@ -114,12 +138,35 @@ def frames_text(frames: Any) -> str:
     return f"{n} frames"
 
 
+TIE_MARK = "≈"
+"""The mark of a method not separated from the best (:func:`marks`)."""
+LEGEND = (
+    f"**Bold**: the best mean of the methods that do not see the hidden instance; {TIE_MARK}: not "
+    "separated from it (the 95% CI of the paired difference over training seeds reaches 0; "
+    "unpaired: the CIs overlap). "
+    f"`{CEILING}` sees the instance (the learnt ceiling) and is never marked."
+)
+"""The line under each compact table."""
+
+
+def _marked(s: Mapping[str, Any]) -> tuple[str | None, list[str]]:
+    """A summary's best and not-separated methods (a summary kept by an older ``taskvar report``
+    holds ``winners``: the best, then those not separated from it)."""
+    if "best" in s:
+        return s["best"], list(s.get("not_separated") or [])
+    winners = list(s.get("winners") or [])
+    return (winners[0] if winners else None), winners[1:]
+
+
 def _cell(s: Mapping[str, Any], m: str) -> str:
     e = s["methods"].get(m)
     if e is None:
         return "-"
     text = f"{e['mean']:.2f} [{e['ci95'][0]:.2f}, {e['ci95'][1]:.2f}]"
-    return f"**{text}**" if m in s["winners"] else text
+    best, tied = _marked(s)
+    if m == best:
+        return f"**{text}**"
+    return f"{text} {TIE_MARK}" if m in tied else text
 
 
 def _by_family(summaries: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping[str, Any]]]:
@@ -133,9 +180,7 @@ def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
     """Per family one table: a row per group, the methods as columns (``-``: not evaluated)."""
     parts = [
         "Each cell: the method's score, mean over training seeds [95% stratified-bootstrap CI] "
-        "(rliable). **Bold**: the best method that does not see the hidden instance, and every "
-        "method whose paired difference to it has a 95% CI reaching 0 (not separated from it). "
-        f"`{CEILING}` sees the instance (the learnt ceiling) and is never marked."
+        "(rliable); each seed plays its own test episodes, all its methods the same ones."
     ]
     for family, rows in _by_family(summaries).items():
         methods = _ordered(sorted({m for s in rows for m in s["methods"]}))
@@ -154,6 +199,8 @@ def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
                         + " |"
                         for s in rows
                     ),
+                    "",
+                    LEGEND,
                 ]
             )
         )
@@ -307,9 +354,12 @@ __all__ = [
     "EXACT",
     "FIGURE_CAPTION",
     "FIGURE_TITLE",
+    "LEGEND",
     "ORDER",
+    "TIE_MARK",
     "details_of",
     "frames_text",
+    "marks",
     "regret_to_ceiling",
     "results_block",
     "results_png",

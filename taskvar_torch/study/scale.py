@@ -21,10 +21,10 @@ The protocol, top to bottom (:func:`scale`), for each *case* (a family config: w
    random, 1 is the best averaging policy (interruption may exceed 1).
 
 Held-out (``heldout_episodes``, default ``eval_episodes``; 0: off): every cell also plays the same
-methods on the family's sealed held-out test distribution (``Family.tests["heldout"]``, the
-episodes of ``taskvar eval --test heldout``: windy and Taxi the training distribution under env
-seed ``HELDOUT_SEED``, Wargus the held-out instance seeds ``HELDOUT_SEEDS``, cycled), paired
-across methods, with the random policy and the exact averaging optimum (where the family has one)
+methods on the family's sealed held-out test distribution (``Family.tests["heldout"]``: windy
+and Taxi the training distribution under env seed ``HELDOUT_SEED`` itself, Wargus the held-out
+instance seeds ``HELDOUT_SEEDS``, cycled; the same episodes for every seed, like the nominal test
+seed, where ``taskvar eval --test heldout`` draws each bundle's own), paired across methods, with the random policy and the exact averaging optimum (where the family has one)
 on the same held-out episodes; new keys only (:func:`heldout_block`): ``metrics["heldout"]`` (the
 distribution, its seed, the references per case) and each cell's ``heldout`` (``methods``, like
 the cell's own, and with ``seeds > 1`` ``per_seed`` and ``over_seeds``). It draws no random number
@@ -79,7 +79,7 @@ from taskvar_torch.config import (
     load_strict,
     save_config_yaml,
 )
-from taskvar_torch.experiments.results import write_csv, write_json
+from taskvar_torch.experiments.results import code_version, write_csv, write_json
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder
 from taskvar_torch.study.scale_cell import (
@@ -229,6 +229,7 @@ def _scale(cfg: ScaleConfig, out: Path, progress: bool, quick: bool, plots: bool
     bar.close()
     metrics = {
         "experiment": EXPERIMENT,
+        "code": code_version(),
         "quick": bool(quick),
         "methods": list(METHODS),
         "total_frames": cfg.total_frames,
@@ -267,8 +268,9 @@ def _scale(cfg: ScaleConfig, out: Path, progress: bool, quick: bool, plots: bool
             "references": held_refs,
             "note": (
                 "per cell, heldout holds every method on the family's sealed held-out test "
-                "distribution (taskvar eval --test heldout: its sealed seed, HELDOUT_SEED), the "
-                "same episodes for every method and seed; gap_closed against these references"
+                "distribution under its sealed seed itself (HELDOUT_SEED; taskvar eval --test "
+                "heldout draws each bundle's own episodes from it), the same episodes for every "
+                "method and seed; gap_closed against these references"
             ),
         }
     write_csv(out / CSV_NAME, csv_rows(metrics), csv_fields(metrics))

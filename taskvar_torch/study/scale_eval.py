@@ -86,9 +86,11 @@ class HeldoutTest:
 
 
 def heldout_test(cfg: Config) -> HeldoutTest | None:
-    """The held-out test of ``cfg``'s family, as ``taskvar eval --test heldout`` plays it (its
-    overrides and instances, :func:`taskvar_torch.experiments.shift.shift_points`; its sealed
-    seed); ``None`` where the family declares no sealed ``heldout`` distribution."""
+    """The held-out test of ``cfg``'s family: ``taskvar eval --test heldout``'s overrides and
+    instances (:func:`taskvar_torch.experiments.shift.shift_points`) under the sealed seed itself,
+    the same episodes for every training seed of a cell (its gap closed divides by references on
+    those episodes; ``taskvar eval`` draws each bundle's own, docs/report.md); ``None`` where the
+    family declares no sealed ``heldout`` distribution."""
     dist = family(cfg).tests.get(HELDOUT_TEST)
     if dist is None or dist.seed is None:
         return None

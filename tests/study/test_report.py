@@ -494,8 +494,8 @@ def _table(block: str, family: str) -> list[str]:
 @pytest.mark.slow  # ~10 s: three groups' bootstraps, twice
 def test_results_at_a_glance_follow_the_per_seed_numbers(tmp_path, capsys):
     """Per family one table (methods as columns, a row per group, mean [95% CI] over seeds, the
-    winners bold: the best that does not see the instance and every method not separated from it;
-    informed never), and the regret figure's data: to the exact optimum where the results have it
+    the best mean of those that do not see the instance bold, a mark on every method not
+    separated from it; informed never), and the regret figure's data: to the exact optimum where the results have it
     (the baselines' from sampled returns), to informed elsewhere, none without either."""
     for k in range(5):
         methods_folder(tmp_path / "windy" / f"seed{k}", k, "windy", "train", WINDY, WINDY_REGRET)
@@ -529,8 +529,10 @@ def test_results_at_a_glance_follow_the_per_seed_numbers(tmp_path, capsys):
     cells = [c.strip() for c in row.strip("|").split("|")]
     want = np.mean([-5.0 + 0.01 * k for k in range(5)])  # the per-seed numbers' own mean
     assert cells[0] == "train" and cells[1] == "50k frames, 5"
-    assert cells[2].startswith(f"**{want:.2f} [") and cells[2] == cells[3]  # a tie: both bold
+    assert cells[2].startswith(f"**{want:.2f} [")  # the best mean: bold (the first of a tie)
+    assert cells[3] == f"{cells[2].strip('*')} {glance.TIE_MARK}"  # not separated: the mark
     assert not cells[4].startswith("**") and not cells[5].startswith("**")  # behind, CIs apart
+    assert glance.TIE_MARK not in cells[4] + cells[5]
     assert cells[6].startswith(f"{want + 1:.2f} [")  # informed: highest, never marked
     _, _, wargus, plain_row = _table(block, "wargus")
     wargus_cells = [c.strip() for c in wargus.strip("|").split("|")]
@@ -546,7 +548,9 @@ def test_results_at_a_glance_follow_the_per_seed_numbers(tmp_path, capsys):
     assert wargus_group["regret"]["reference"] == glance.CEILING
     assert wargus_group["regret"]["methods"]["recurrent"]["mean"] == pytest.approx(1.0)
     assert "informed" not in wargus_group["regret"]["methods"]
-    assert plain_group["regret"] is None and plain_group["winners"] == ["hierarchy"]
+    assert plain_group["regret"] is None and plain_group["best"] == "hierarchy"
+    assert plain_group["not_separated"] == [] and plain_group["separation"] == "paired"
+    assert glance.LEGEND in block
     details = glance.details_of(block)
     assert details.count("| eval ") == 3 and "<details>" in block and "</details>" in block
     page = out.read_text()

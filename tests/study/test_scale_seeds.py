@@ -33,6 +33,7 @@ TINY = [  # one small windy cell, a few hundred frames, short episodes
 TOP_KEYS = {
     "experiment", "quick", "methods", "total_frames", "num_envs", "eval_episodes", "test_seed",
     "threads", "references", "cells", "wall_seconds", "notes",
+    "code",  # the code's version and commit, in every results folder (taskvar report, issue 56)
 }  # fmt: skip
 CELL_KEYS = {
     "peak_rss_mb", "peak_cuda_mb", "case", "family", "grid_side", "cells", "num_envs", "frames",

@@ -36,6 +36,7 @@ from taskvar_torch.experiments.curves import (
     trials_to_fraction,
     trials_to_fraction_of_max,
 )
+from taskvar_torch.experiments.results import code_version
 
 EXPERIMENT = "wargus-fig4"  # metrics.json's "experiment" (a results folder's kind)
 
@@ -125,6 +126,7 @@ def summarise(
 
     return {
         "experiment": EXPERIMENT,
+        "code": code_version(),
         "methods": methods,
         "smoothing_window": w,
         "final_trials": nf,

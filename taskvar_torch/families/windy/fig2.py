@@ -9,7 +9,8 @@ The protocol, top to bottom (:func:`windy_fig2`):
    every method on *paired* rollouts: envs with the same seed give each method the same instance,
    start cell and gust stream per episode (common random numbers, ``rng.py``);
    The same again on the sealed held-out episodes (``heldout``: training winds under the seeds
-   ``HELDOUT_SEED + run``, :func:`heldout_seed`), reported beside the nominal ones;
+   ``HELDOUT_SEED + run``, each drawn apart for the training seed, :func:`heldout_seed`),
+   reported beside the nominal ones;
 4. the *null* curve: averaging against itself with an independent gust stream (``noise_seed=1``,
    same instances and starts) -- what "no worse" looks like for two equally good policies;
 5. the *exact* figure (layouts small enough for the oracle): per episode, the exact expected
@@ -54,9 +55,14 @@ from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.experiments.bundle_eval import eval_bundle
 from taskvar_torch.experiments.evaluation import run_episodes
-from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.results import (
+    code_version,
+    refuse_existing_results,
+    write_csv,
+    write_json,
+)
 from taskvar_torch.factory import check_device, load_heads, make_env, make_subtasks
-from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE
+from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE, sealed_episode_seed
 from taskvar_torch.families.windy import (
     WindyOracle,
     exact_returns,
@@ -96,7 +102,8 @@ DISTRIBUTIONS = {"train": "train", "south_only": "south"}
 """metrics.json key -> test instance distribution (``train``: the training distribution)."""
 HELDOUT = {"heldout": "train"}
 """metrics.json key -> the sealed held-out test: the training distribution under the held-out
-seeds (:func:`heldout_seed`; ``taskvar eval --test heldout`` replays its run 0)."""
+seeds, drawn apart per training seed (:func:`heldout_seed`; ``taskvar eval --test heldout`` with
+``--episodes experiment.episodes_per_run`` replays its run 0 exactly)."""
 NULL_NOISE_SEED = 1
 """Gust-stream salt of the null comparison's second averaging rollout (same instances, starts)."""
 EXACT_MAX_CELLS = EXACT_ORACLE_CELLS
@@ -116,11 +123,13 @@ def test_seed(cfg: Config, run: int) -> int:
 
 
 def heldout_seed(cfg: Config, run: int) -> int:
-    """Seed of held-out run ``run``: ``HELDOUT_SEED + run``, in the sealed range whatever the
-    training seed (every training seed's heads play the same held-out episodes)."""
+    """Seed of held-out run ``run``: the sealed seed ``HELDOUT_SEED + run`` drawn apart for the
+    training seed ``cfg.seed`` (:func:`~taskvar_torch.families.sealed_episode_seed`), so each
+    training seed's heads play their own held-out episodes (a CI over seeds counts the episodes'
+    noise), every method the same ones. Run 0 is ``taskvar eval --test heldout``'s episodes."""
     if not 0 <= int(run) < HELDOUT_SIZE:
         raise ValueError(f"experiment.runs must be at most {HELDOUT_SIZE} (the held-out seeds)")
-    return HELDOUT_SEED + int(run)
+    return sealed_episode_seed(HELDOUT_SEED + int(run), int(cfg.seed))
 
 
 # --------------------------------------------------------------------------------------------
@@ -450,6 +459,7 @@ def _windy_fig2(
     oracle = make_oracle(cfg)
     metrics: dict[str, Any] = {
         "experiment": "windy-fig2",
+        "code": code_version(),
         "quick": bool(quick),
         "layout": section(cfg).layout,
         "checkpoint": str(checkpoint),

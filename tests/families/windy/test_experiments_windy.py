@@ -303,11 +303,10 @@ def test_learnt_averaging_beats_random_by_a_margin_on_held_out(results):
     from torchrl.modules import RandomPolicy
 
     from taskvar_torch.experiments.evaluation import run_episodes
-    from taskvar_torch.families import HELDOUT_SEED
 
     m = json.loads((results / "metrics.json").read_text())
     cfg = load_config(results / "config.yaml")
-    env = wf.make_eval_env(cfg, "train", EPISODES, HELDOUT_SEED)  # held-out run 0's episodes
+    env = wf.make_eval_env(cfg, "train", EPISODES, wf.heldout_seed(cfg, 0))  # held-out run 0's
     torch.manual_seed(0)
     random = float(run_episodes(env, RandomPolicy(env.action_spec))["return"].double().mean())
     learnt = m["heldout"]["per_run"][0]["mean_return"]["averaging"]
@@ -316,9 +315,10 @@ def test_learnt_averaging_beats_random_by_a_margin_on_held_out(results):
 
 @pytest.mark.slow
 def test_metrics_recomputed_from_episodes_csv_equal_metrics_json(results):
-    from taskvar_torch.families import HELDOUT_SEED
+    from taskvar_torch.families import HELDOUT_SEED, sealed_episode_seed
 
     m = json.loads((results / "metrics.json").read_text())
+    cfg = load_config(results / "config.yaml")
     with open(results / "episodes.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     for dist in (*wf.DISTRIBUTIONS, *wf.HELDOUT):
@@ -337,8 +337,11 @@ def test_metrics_recomputed_from_episodes_csv_equal_metrics_json(results):
             want = float(col[f"return_{name}"].mean())
             assert block["mean_return"][name]["mean"] == pytest.approx(want, abs=1e-9)
         seeds = {(int(r["run"]), int(r["seed"])) for r in mine}
-        base = HELDOUT_SEED if dist in wf.HELDOUT else int(m["seeds"][0])
-        assert seeds == {(run, base + run) for run in range(RUNS)}
+        if dist in wf.HELDOUT:  # the sealed seeds, drawn apart for this training seed
+            want = {(run, sealed_episode_seed(HELDOUT_SEED + run, cfg.seed)) for run in range(RUNS)}
+        else:
+            want = {(run, int(m["seeds"][0]) + run) for run in range(RUNS)}
+        assert seeds == want
     held = [
         (r["p"], r["direction"], r["start_row"]) for r in rows if r["distribution"] == "heldout"
     ]
