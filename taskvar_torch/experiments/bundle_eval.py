@@ -65,6 +65,7 @@ from taskvar_torch.factory import (
     training_states,
 )
 from taskvar_torch.families import family
+from taskvar_torch.heads.recurrent import SEES_MORE
 from taskvar_torch.oracle.episodes import optimal_episode_returns
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder, refuse_inside
@@ -624,11 +625,6 @@ def _explain_point(ms: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
     return shows, alike
 
 
-SEES_MORE = ("recurrent", "informed")
-"""The baselines that see more than the observation (the episode so far; the hidden instance):
-every other method, ``blind`` included, is memoryless."""
-
-
 def ceiling_gate(scores: dict[str, tuple[float, float]], lower: bool = False) -> tuple[bool, str]:
     """Whether ``informed`` is a ceiling on these scores (docs/memory.md#the-ceiling-gate): at
     least as good as every memoryless method (every method but :data:`SEES_MORE`) within their
@@ -650,7 +646,6 @@ def ceiling_gate(scores: dict[str, tuple[float, float]], lower: bool = False) ->
 
 
 __all__ = [
-    "SEES_MORE",
     "ceiling_gate",
     "eval_bundle",
     "explain_table",

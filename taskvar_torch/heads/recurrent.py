@@ -47,6 +47,9 @@ from taskvar_torch.heads.networks import make_mlp
 
 BASELINES = ("recurrent", "informed", "blind")
 """The baseline methods, in the order ``taskvar eval --method all`` plays them after the paper's."""
+SEES_MORE = ("recurrent", "informed")
+"""The baselines that see more than the observation (the episode so far; the hidden instance):
+every other method, ``blind`` included, is memoryless."""
 
 EMBED = "recurrent_embed"
 """Key of the GRU's output (the Q head's input)."""
@@ -423,6 +426,7 @@ def load_baseline(
 
 __all__ = [
     "BASELINES",
+    "SEES_MORE",
     "BUNDLE_NAMES",
     "PREV_ACTION",
     "PREV_REWARD",

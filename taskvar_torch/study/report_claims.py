@@ -454,9 +454,13 @@ def _frames(train: Any) -> str:
 
 
 def _with_ceiling(per_seed: dict[str, np.ndarray]) -> tuple[str, Any, set[str]] | None:
-    """The regret to the ``informed`` head where it was evaluated (the results' learnt ceiling),
-    from sampled returns."""
+    """The regret to the ``informed`` head where it was evaluated and its mean is at least every
+    memoryless method's (a ceiling in this row, ``report_results.is_ceiling_row``), from sampled
+    returns; ``None`` elsewhere: no regret is taken against what is no ceiling."""
     if at_a_glance.CEILING not in per_seed:
+        return None
+    means = {m: {"mean": float(np.mean(v))} for m, v in per_seed.items()}
+    if not at_a_glance.is_ceiling_row(means):
         return None
     reference, arrays = at_a_glance.regret_to_ceiling(per_seed)
     return reference, arrays, set(arrays)

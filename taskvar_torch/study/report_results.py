@@ -24,11 +24,54 @@ from typing import Any
 import numpy as np
 
 from taskvar_torch.config import METHODS
-from taskvar_torch.heads.recurrent import BASELINES
+from taskvar_torch.heads.recurrent import BASELINES, SEES_MORE
 from taskvar_torch.study import aggregate
 
 CEILING = "informed"
-"""The baseline that sees the hidden instance: a ceiling, shown but never marked the winner."""
+"""The baseline that sees the hidden instance: a ceiling where :func:`ceiling_gate` says so, shown
+but never marked the winner."""
+NO_CEILING = "no ceiling"
+"""The informed cell's note in a row where it is not a ceiling (:func:`ceiling_gate`)."""
+
+
+def is_ceiling_row(methods: Mapping[str, Mapping[str, Any]]) -> bool:
+    """Whether ``informed``'s mean in one row is at least every memoryless method's (the row's
+    half of the gate, docs/memory.md#the-ceiling-gate); a row without it is none."""
+    if CEILING not in methods:
+        return False
+    top = [e["mean"] for m, e in methods.items() if m not in SEES_MORE]
+    return not top or methods[CEILING]["mean"] >= max(top)
+
+
+def _validation_label(label: str) -> str:
+    """The label of the same bundles' validation row: its ``--test`` made ``train``."""
+    return re.sub(r"--test \S+", "--test train", label)
+
+
+def ceiling_gate(s: Mapping[str, Any], summaries: Sequence[Mapping[str, Any]]) -> tuple[bool, str]:
+    """Whether a row may call ``informed`` a ceiling (docs/memory.md#the-ceiling-gate): on the
+    validation row of the same bundles (``--test train``: fresh instances of the training
+    distribution, never a test seed) its 95% CI reaches up to every memoryless method's mean or
+    beyond, and in this row its mean is at least every memoryless method's. Returns ``(ok,
+    why)``; ``why`` says which half failed, or that the gate could not run (no validation row)."""
+    ms = s["methods"]
+    if CEILING not in ms:
+        return False, ""
+    want = _validation_label(str(s.get("label", "")))
+    val = next((v for v in summaries if v.get("label") == want and CEILING in v["methods"]), None)
+    if val is None:
+        return False, "the gate did not run: no --test train row of these bundles"
+    inf = val["methods"][CEILING]
+    behind = [
+        m for m, e in val["methods"].items() if m not in SEES_MORE and inf["ci95"][1] < e["mean"]
+    ]
+    if behind:
+        return False, f"behind {behind[0]} on the validation row (--test train)"
+    if not is_ceiling_row(ms):
+        return False, "its mean is below a memoryless method's in this row"
+    return True, ""
+
+
 ORDER = (*METHODS, *BASELINES)
 """The columns' order: the paper's methods, then the baselines."""
 COLORS = dict(zip(ORDER, ("#4c72b0", "#dd8452", "#55a868", "#8172b3", "#c44e52", "#7f7f7f")))
@@ -144,7 +187,9 @@ LEGEND = (
     f"**Bold**: the best mean of the methods that do not see the hidden instance; {TIE_MARK}: not "
     "separated from it (the 95% CI of the paired difference over training seeds reaches 0; "
     "unpaired: the CIs overlap). "
-    f"`{CEILING}` sees the instance (the learnt ceiling) and is never marked."
+    f"`{CEILING}` sees the instance and is never marked; it is a ceiling only where its cell does "
+    f"not say '{NO_CEILING}' (docs/memory.md#the-ceiling-gate: on the validation row it is at least "
+    "as good as every memoryless method within its CI, and in the row its mean is at least theirs)."
 )
 """The line under each compact table."""
 
@@ -158,11 +203,13 @@ def _marked(s: Mapping[str, Any]) -> tuple[str | None, list[str]]:
     return (winners[0] if winners else None), winners[1:]
 
 
-def _cell(s: Mapping[str, Any], m: str) -> str:
+def _cell(s: Mapping[str, Any], m: str, summaries: Sequence[Mapping[str, Any]] = ()) -> str:
     e = s["methods"].get(m)
     if e is None:
         return "-"
     text = f"{e['mean']:.2f} [{e['ci95'][0]:.2f}, {e['ci95'][1]:.2f}]"
+    if m == CEILING and not ceiling_gate(s, summaries)[0]:
+        return f"{text} ({NO_CEILING})"
     best, tied = _marked(s)
     if m == best:
         return f"**{text}**"
@@ -185,7 +232,7 @@ def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
     for family, rows in _by_family(summaries).items():
         methods = _ordered(sorted({m for s in rows for m in s["methods"]}))
         scores = list(dict.fromkeys(s["score"] for s in rows))
-        head = [m if m != CEILING else f"{m} (ceiling)" for m in methods]
+        head = list(methods)
         parts.append(
             "\n".join(
                 [
@@ -195,7 +242,7 @@ def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
                     "| --- | --- | " + " | ".join("---" for _ in head) + " |",
                     *(
                         f"| {s['row']} | {s['budget']}, {s['seeds']} | "
-                        + " | ".join(_cell(s, m) for m in methods)
+                        + " | ".join(_cell(s, m, summaries) for m in methods)
                         + " |"
                         for s in rows
                     ),
@@ -351,6 +398,9 @@ def details_of(block: str) -> str:
 
 __all__ = [
     "CEILING",
+    "NO_CEILING",
+    "ceiling_gate",
+    "is_ceiling_row",
     "EXACT",
     "FIGURE_CAPTION",
     "FIGURE_TITLE",

@@ -523,8 +523,7 @@ def test_results_at_a_glance_follow_the_per_seed_numbers(tmp_path, capsys):
     assert png.is_file() and report._ours_png(png)
     head, _, row = _table(block, "windy")
     assert head == (
-        "| results | budget, seeds | averaging | options | interruption | recurrent | "
-        "informed (ceiling) |"
+        "| results | budget, seeds | averaging | options | interruption | recurrent | informed |"
     )
     cells = [c.strip() for c in row.strip("|").split("|")]
     want = np.mean([-5.0 + 0.01 * k for k in range(5)])  # the per-seed numbers' own mean
@@ -534,9 +533,11 @@ def test_results_at_a_glance_follow_the_per_seed_numbers(tmp_path, capsys):
     assert not cells[4].startswith("**") and not cells[5].startswith("**")  # behind, CIs apart
     assert glance.TIE_MARK not in cells[4] + cells[5]
     assert cells[6].startswith(f"{want + 1:.2f} [")  # informed: highest, never marked
+    assert glance.NO_CEILING not in cells[6]  # its own train row validates it: a ceiling
     _, _, wargus, plain_row = _table(block, "wargus")
     wargus_cells = [c.strip() for c in wargus.strip("|").split("|")]
     assert wargus_cells[0] == "heldout" and wargus_cells[4].startswith("**3.02 [")
+    assert wargus_cells[-1].endswith(f"({glance.NO_CEILING})")  # no train row: the gate never ran
     assert not wargus_cells[2].startswith("**") and not wargus_cells[5].startswith("**")
     assert plain_row.split("|")[-2].strip() == "-"  # informed not evaluated there
     groups = json.loads((tmp_path / "docs" / "claims-results.json").read_text())["groups"]

@@ -61,3 +61,31 @@ def test_a_summary_kept_by_an_older_report_keeps_its_marks():
     assert cells["recurrent"].startswith("**") and cells["averaging"].endswith(glance.TIE_MARK)
     assert not cells["interruption"].startswith("**")
     assert glance.TIE_MARK not in cells["interruption"]
+
+
+def _row(label, **means):
+    return {
+        "label": label,
+        "methods": {m: {"mean": v, "ci95": [v - 0.1, v + 0.1]} for m, v in means.items()},
+    }
+
+
+def test_informed_is_called_a_ceiling_only_where_the_gate_holds():
+    """docs/memory.md#the-ceiling-gate: on the validation row (--test train) informed's CI
+    reaches every memoryless method's mean (blind included, recurrent not), and in the row its
+    mean is at least theirs; else the cell says 'no ceiling' and the gate says why."""
+    from taskvar_torch.study.report_results import NO_CEILING, _cell, ceiling_gate
+
+    train = _row("eval x --test train", averaging=3.0, blind=2.5, recurrent=9.0, informed=2.95)
+    held = _row("eval x --test heldout", averaging=3.0, blind=2.5, recurrent=9.0, informed=3.2)
+    rows = [train, held]
+    assert ceiling_gate(held, rows) == (True, "")  # 2.95 + 0.1 >= 3.0; 3.2 >= 3.0 here
+    ok, why = ceiling_gate(train, rows)
+    assert not ok and "below a memoryless method's in this row" in why
+    assert _cell(train, "informed", rows).endswith(f"({NO_CEILING})")
+    behind = _row("eval x --test train", averaging=2.0, blind=3.5, informed=2.3)
+    ok, why = ceiling_gate(held, [behind, held])
+    assert not ok and "behind blind on the validation row" in why
+    ok, why = ceiling_gate(held, [held])
+    assert not ok and "no --test train row" in why
+    assert NO_CEILING not in _cell(held, "informed", rows)

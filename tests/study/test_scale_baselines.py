@@ -218,7 +218,7 @@ def test_informed_without_features_is_a_one_line_error_before_any_training(tmp_p
     )
     with pytest.raises(ValueError, match="family 'wargus'") as e:
         scale.load_scale_config(path, ["only=[windy-5x5,wargus-32x32]", "baselines=[informed]"])
-    assert "\n" not in str(e.value) and "['recurrent']" in str(e.value)
+    assert "\n" not in str(e.value) and "['recurrent', 'blind']" in str(e.value)
     cfg = scale.load_scale_config(path, ["only=[windy-5x5,wargus-32x32]"])
     cfg = dataclasses.replace(cfg, baselines=("recurrent", "informed"))  # past the loader
 
