@@ -25,6 +25,8 @@ Examples:
     >>> heads, cfg = tv.load_heads("runs/windy/final.pt")  # doctest: +SKIP
 """
 
+from taskvar_torch import _startup  # noqa: F401, I001  (first: the command's start-up signals)
+
 from importlib import import_module
 from typing import Any
 

@@ -30,6 +30,7 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from taskvar_torch._startup import hand_over
 from taskvar_torch.cli import evaluate, study, train
 from taskvar_torch.cli.arguments import Command
 from taskvar_torch.cli.failures import TerminateAsInterrupt, quiet_third_party, run_command
@@ -96,4 +97,5 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = parsers[name].parse_intermixed_args(argv[1:])
     quiet_third_party()
     with TerminateAsInterrupt():
+        hand_over()  # Ctrl-C raises KeyboardInterrupt again; SIGTERM is TerminateAsInterrupt's
         return run_command(name, COMMANDS[name].run, args)

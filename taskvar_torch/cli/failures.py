@@ -13,6 +13,7 @@ import sys
 import threading
 from collections.abc import Callable
 
+from taskvar_torch import _startup
 from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.run_folder import check_out_path
 
@@ -123,8 +124,10 @@ class TerminateAsInterrupt:
     def __enter__(self) -> TerminateAsInterrupt:
         self._old = None
         if threading.current_thread() is threading.main_thread():
-            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
-                self._old = signal.signal(signal.SIGTERM, self._raise)
+            current = signal.getsignal(signal.SIGTERM)
+            if current == signal.SIG_DFL or current is _startup._interrupted_at_start:
+                signal.signal(signal.SIGTERM, self._raise)
+                self._old = signal.SIG_DFL
         return self
 
     @staticmethod
