@@ -110,3 +110,58 @@ def test_a_program_importing_the_package_keeps_its_signal_handlers():
     code = "import signal, taskvar_torch; print(signal.getsignal(signal.SIGTERM) is signal.SIG_DFL)"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
     assert done.stdout.strip() == "True", done.stderr[-2000:]
+
+
+# --------------------------------------------------------------------------------------------
+# a broken installed plugin: imported only when its family is asked for by name
+
+PLUGINS = {
+    "hangs": "import time\nwhile True:\n    time.sleep(1)\n",
+    "segfaults": "import ctypes\nctypes.string_at(0)\n",
+    "exits": "import os\nos._exit(5)\n",
+    "interrupts": "raise KeyboardInterrupt\n",
+    "terminates": "import os, signal, time\nos.kill(os.getpid(), signal.SIGTERM)\ntime.sleep(30)\n",
+}
+
+
+def installed_plugin(root: Path, body: str, name: str = "bad_plugin") -> dict[str, str]:
+    """A package installed the way pip leaves one (a ``*.dist-info`` with ``entry_points.txt``
+    on the path), whose ``taskvar_torch.families`` entry point runs ``body`` on import; the
+    environment of a process that has it installed."""
+    site = root / "site"
+    dist = site / f"{name}-1.0.dist-info"
+    dist.mkdir(parents=True)
+    (site / f"{name}.py").write_text(body)
+    (dist / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 1.0\n")
+    (dist / "entry_points.txt").write_text(f"[taskvar_torch.families]\n{name} = {name}:family\n")
+    path = [str(ROOT), str(site), os.environ.get("PYTHONPATH", "")]
+    return {"PYTHONPATH": os.pathsep.join(p for p in path if p)}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", sorted(PLUGINS))
+def test_a_broken_plugin_cannot_take_down_a_command_that_does_not_use_it(kind, tmp_path):
+    env = installed_plugin(tmp_path, PLUGINS[kind])
+    listing = command("train", "--help", env=env, timeout=60)
+    assert listing.returncode == 0, listing.stderr[-2000:]
+    assert "bad_plugin: installed from 'bad_plugin:family'" in listing.stdout  # named, not run
+    assert listing.stderr == ""
+    taxi = str(ROOT / "configs" / "taxi.yaml")
+    other = command("train", taxi, "--out", str(tmp_path / "o"), "seed=-1", env=env, timeout=60)
+    assert other.returncode == 2, other.stderr[-2000:]
+    lines = other.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("taskvar train: error: seed must be"), lines
+
+
+@pytest.mark.slow
+def test_a_plugin_raising_keyboardinterrupt_is_one_warning_when_asked_for(tmp_path):
+    env = installed_plugin(tmp_path, PLUGINS["interrupts"])
+    taxi = str(ROOT / "configs" / "taxi.yaml")
+    done = command("train", taxi, "--out", str(tmp_path / "o"), "family=bad_plugin", env=env)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr
+    warning = [x for x in done.stderr.splitlines() if "Warning" in x]
+    assert len(warning) == 1 and "family 'bad_plugin'" in warning[0], done.stderr
+    last = done.stderr.strip().splitlines()[-1]
+    assert last.startswith("taskvar train: error: family 'bad_plugin' is installed but could not")
+    assert not (tmp_path / "o").exists()
