@@ -165,3 +165,73 @@ def test_a_plugin_raising_keyboardinterrupt_is_one_warning_when_asked_for(tmp_pa
     last = done.stderr.strip().splitlines()[-1]
     assert last.startswith("taskvar train: error: family 'bad_plugin' is installed but could not")
     assert not (tmp_path / "o").exists()
+
+
+# --------------------------------------------------------------------------------------------
+# train-baselines: one writer per folder, of the bundle's family
+
+
+@pytest.fixture
+def bundle_dir(tmp_path) -> Path:
+    """A folder holding a windy bundle's config (what train-baselines reads of it)."""
+    from taskvar_torch.config import load_config, save_config_yaml
+
+    out = tmp_path / "bundle"
+    out.mkdir()
+    save_config_yaml(
+        load_config(str(ROOT / "configs" / "windy_corridor.yaml")), out / "config.yaml"
+    )
+    return out
+
+
+def test_a_second_train_baselines_on_a_folder_in_use_is_refused(bundle_dir, capsys):
+    from taskvar_torch.run_folder import LOCK_NAME, lock_folder, unlock_folder
+
+    fd = lock_folder(bundle_dir)  # the first train-baselines, still running
+    try:
+        argv = ["train-baselines", "--out", str(bundle_dir), "--method", "recurrent", *TINY]
+        refused(
+            run(argv, capsys),
+            "train-baselines",
+            "in use by another taskvar run",
+            f"pid {os.getpid()}",
+        )
+        assert sorted(p.name for p in bundle_dir.iterdir()) == sorted(["config.yaml", LOCK_NAME])
+    finally:
+        unlock_folder(bundle_dir, fd)
+
+
+@pytest.mark.parametrize(
+    "items, needle",
+    [
+        (["configs/taxi.yaml"], "family 'taxi' differs from the bundle's 'windy'"),
+        (["configs/windy.yaml"], "env.windy.layout="),
+        (["configs/windy_corridor.yaml", "env.windy.horizon=7"], "env.windy.horizon=7"),
+        (["HEADS"], "heads.hidden=[32]"),
+    ],
+)
+def test_train_baselines_refuses_a_config_of_another_task_than_the_bundle(
+    items, needle, bundle_dir, capsys
+):
+    if items == ["HEADS"]:  # the bundle's config with other heads, in a file of its own
+        text = (ROOT / "configs" / "windy_corridor.yaml").read_text()
+        assert "hidden: [64, 64]" in text
+        (bundle_dir.parent / "other.yaml").write_text(
+            text.replace("hidden: [64, 64]", "hidden: [32]")
+        )
+        items = [str(bundle_dir.parent / "other.yaml")]
+    argv = ["train-baselines", *[str(ROOT / i) if i.startswith("configs/") else i for i in items]]
+    outcome = run([*argv, "--out", str(bundle_dir), *TINY, "--no-progress"], capsys)
+    refused(outcome, "train-baselines", needle, str(bundle_dir))
+    assert sorted(p.name for p in bundle_dir.iterdir()) == ["config.yaml"]
+
+
+@pytest.mark.slow
+def test_train_baselines_with_the_bundle_config_and_a_heads_override_trains(bundle_dir, capsys):
+    """The help's documented use: the heads' settings as overrides shape the baselines."""
+    argv = ["train-baselines", str(ROOT / "configs" / "windy_corridor.yaml"), "--out"]
+    argv += [str(bundle_dir), "--method", "recurrent", "heads.hidden=[16]", *TINY, "--no-progress"]
+    status, stdout, lines = run(argv, capsys)
+    assert status == 0, lines
+    assert "trained recurrent" in stdout
+    assert sorted(p.name for p in bundle_dir.iterdir()) == ["config.yaml", "recurrent.pt"]
