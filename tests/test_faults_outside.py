@@ -235,3 +235,51 @@ def test_train_baselines_with_the_bundle_config_and_a_heads_override_trains(bund
     assert status == 0, lines
     assert "trained recurrent" in stdout
     assert sorted(p.name for p in bundle_dir.iterdir()) == ["config.yaml", "recurrent.pt"]
+
+
+# --------------------------------------------------------------------------------------------
+# gym.make: the bounds and memory estimate of the CLI's config
+
+
+@pytest.mark.parametrize(
+    "env_id, kwargs, needle",
+    [
+        ("taskvar/WindyGrid-v0", {"horizon": 0}, "env.windy.horizon must be in [1, "),
+        ("taskvar/WindyGrid-v0", {"horizon": -5}, "env.windy.horizon must be in [1, "),
+        ("taskvar/WindyGrid-v0", {"horizon": 2.5}, "env.windy.horizon"),
+        ("taskvar/WindyGrid-v0", {"patch_radius": 10**6}, "env.windy.patch_radius must be in"),
+        ("taskvar/WindyGrid-v0", {"obs_encoding": "pixels"}, "env.windy.obs_encoding"),
+        ("taskvar/WindyGrid-v0", {"layout": "BIG"}, "asks for too much memory"),
+        ("taskvar/WindyGrid-v0", {"layout": "BIGMAP"}, "asks for too much memory"),
+        ("taskvar/Taxi-v0", {"horizon": 0}, "env.taxi.horizon must be in [1, "),
+        ("taskvar/Wargus-v0", {"size": 10**6}, "env.wargus.size must be"),
+        ("taskvar/Wargus-v0", {"hit_prob": float("nan")}, "env.wargus.hit_prob"),
+    ],
+)
+def test_gym_make_refuses_what_the_config_refuses(env_id, kwargs, needle):
+    import gymnasium as gym
+
+    from taskvar_torch.families.windy import dynamics as windy
+
+    if kwargs.get("layout") == "BIG":  # 3000 x 3000 cells, one-hot: 324 TB of observations
+        kwargs = {"layout": windy.make_layout(3000, 3000)}
+    elif kwargs.get("layout") == "BIGMAP":  # the same as a map string
+        kwargs = {"layout": "\n".join(windy.make_layout(3000, 3000).rows)}
+    start = time.perf_counter()
+    with pytest.raises(ValueError) as caught:
+        gym.make(env_id, **kwargs)
+    message = str(caught.value)
+    assert needle in message and "\n" not in message, message
+    assert "checked as config keys" in message
+    assert time.perf_counter() - start < 30  # the exits of a big map are found in a second
+
+
+@pytest.mark.parametrize(
+    "kwargs", [{}, {"horizon": None}, {"horizon": 7}, {"obs_encoding": "coords_patch"}]
+)
+def test_gym_make_accepts_what_the_config_accepts(kwargs):
+    import gymnasium as gym
+
+    env = gym.make("taskvar/WindyGrid-v0", **kwargs)
+    env.reset(seed=0)
+    assert env.unwrapped.horizon == (kwargs.get("horizon") or 100)
