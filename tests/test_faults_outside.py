@@ -283,3 +283,77 @@ def test_gym_make_accepts_what_the_config_accepts(kwargs):
     env = gym.make("taskvar/WindyGrid-v0", **kwargs)
     env.reset(seed=0)
     assert env.unwrapped.horizon == (kwargs.get("horizon") or 100)
+
+
+# --------------------------------------------------------------------------------------------
+# one-liners that say what to change: the locale, a full disk, a dangling link
+
+EVAL = ["--episodes", "8", "--batch-size", "8", "--no-progress"]
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory) -> Path:
+    """A tiny trained windy bundle (``final.pt``)."""
+    out = tmp_path_factory.mktemp("outside") / "run"
+    config = str(ROOT / "configs" / "windy_corridor.yaml")
+    assert cli.main(["train", config, "--out", str(out), *TINY, "--no-progress"]) == 0
+    return out / "final.pt"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("utf8_mode", ["1", "0"])
+def test_a_non_ascii_out_under_an_ascii_locale_exits_0(utf8_mode, bundle, tmp_path):
+    """All results written, then the last line "wrote ..." failed to print: exit 2."""
+    out = tmp_path / "résultats"
+    env = {"LC_ALL": "C", "LANG": "C", "PYTHONIOENCODING": "ascii", "PYTHONUTF8": utf8_mode}
+    done = command("eval", "--checkpoint", str(bundle), *EVAL, "--out", str(out), env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert (out / "metrics.json").is_file()
+    assert "wrote " in done.stdout and "metrics.json" in done.stdout
+    assert "Traceback" not in done.stderr
+
+
+def test_a_full_disk_names_the_file_it_could_not_write(bundle, tmp_path, capsys, monkeypatch):
+    import errno
+
+    out = tmp_path / "E"
+
+    def full(fd):  # every write reaches the disk at fsync: the disk is full
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(os, "fsync", full)
+    argv = ["eval", "--checkpoint", str(bundle), *EVAL, "--out", str(out)]
+    line = refused(run(argv, capsys), "eval", "No space left on device")
+    assert f"'{out}{os.sep}" in line, line  # the file, in --out (not the staging folder)
+    assert not out.exists()
+
+
+def test_atomic_write_and_save_figure_name_the_file_a_full_disk_refused(tmp_path, monkeypatch):
+    import errno
+
+    from taskvar_torch.experiments.plots import pyplot, save_figure
+    from taskvar_torch.io import atomic_write
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    with pytest.raises(OSError) as caught:
+        atomic_write(tmp_path / "a.json", full)
+    assert caught.value.filename == str(tmp_path / "a.json")
+    fig = pyplot().figure()
+    monkeypatch.setattr(fig, "savefig", full)
+    with pytest.raises(OSError) as caught:
+        save_figure(fig, tmp_path / "b.png")
+    assert caught.value.filename == str(tmp_path / "b.png")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("where", ["out", "parent"])
+def test_a_dangling_symlink_out_says_so_and_where_it_points(where, bundle, tmp_path, capsys):
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "nowhere" / "x")
+    out = link if where == "out" else link / "E"
+    argv = ["eval", "--checkpoint", str(bundle), *EVAL, "--out", str(out)]
+    line = refused(run(argv, capsys), "eval", "dangling symbolic link", str(tmp_path / "nowhere"))
+    assert "File exists" not in line
+    assert link.is_symlink() and not (tmp_path / "nowhere").exists()
