@@ -25,6 +25,8 @@ Examples:
     >>> heads, cfg = tv.load_heads("runs/windy/final.pt")  # doctest: +SKIP
 """
 
+from taskvar_torch import _startup  # noqa: I001  (first: the command's start-up signals)
+
 from importlib import import_module
 from typing import Any
 
@@ -80,4 +82,9 @@ __all__ = [
 
 __version__ = "0.1.0"
 
-register_envs()
+if _startup.AS_COMMAND:  # the command imports an installed family when it asks for it by name
+    from taskvar_torch.envs.registration import register_builtin_envs
+
+    register_builtin_envs()
+else:
+    register_envs()

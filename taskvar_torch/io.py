@@ -14,7 +14,8 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], Any]) -> P
     """Call ``write(f)`` on a temporary file beside ``path``, fsync it, then rename it to ``path``.
 
     Readers see the old file or the new one, never a partial one; on any failure (exceptions and
-    KeyboardInterrupt included) the temporary file is removed and ``path`` is untouched. The new
+    KeyboardInterrupt included) the temporary file is removed and ``path`` is untouched, and an
+    ``OSError`` that names no file (a full disk's ``write``) is given ``path``. The new
     file gets the usual permissions (0666 minus the umask). Parent folders are created.
     """
     path = Path(path)
@@ -32,8 +33,10 @@ def atomic_write(path: str | os.PathLike, write: Callable[[BinaryIO], Any]) -> P
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         tmp.unlink(missing_ok=True)
+        if isinstance(e, OSError) and e.filename is None and e.errno is not None:
+            e.filename = str(path)  # a full disk's write names no file: the CLI's line names it
         raise
     try:  # make the rename itself durable
         dir_fd = os.open(path.parent, os.O_RDONLY)

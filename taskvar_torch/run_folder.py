@@ -148,7 +148,21 @@ def check_out_path(path: str | os.PathLike, flag: str = "--out") -> Path:
     folder) is a one-line ``ValueError``."""
     if not str(path).strip():
         raise ValueError(f"{flag} is empty; name where to write (the current folder is {flag} .)")
+    _refuse_dangling(Path(path), flag)
     return Path(path)
+
+
+def _refuse_dangling(path: Path, flag: str) -> None:
+    """A one-line ``ValueError`` when ``path`` or a folder above it is a symbolic link to nothing
+    (creating it said only "File exists"; issue 58)."""
+    for p in (path, *path.parents):
+        if p.is_symlink() and not p.exists():
+            where = "" if p == path else f" (in {flag} {str(path)!r})"
+            raise ValueError(
+                f"{flag} {str(p)!r}{where} is a dangling symbolic link: it points to "
+                f"{os.readlink(p)!r}, which does not exist; create that folder, remove the link, "
+                f"or choose another {flag}"
+            )
 
 
 def refuse_inside(source: str | os.PathLike, out: str | os.PathLike, flag: str) -> None:
@@ -412,7 +426,14 @@ class ResultsFolder:
         if kind is None:
             self.commit()
             return
+        staging = self.staging
         self.abandon()
+        if isinstance(error, OSError) and staging is not None and error.filename:
+            try:  # the file as the user knows it: in --out, not in the staging folder removed
+                rel = Path(error.filename).relative_to(staging)
+                error.filename = str(self.out / rel)
+            except ValueError:
+                pass
         if isinstance(error, TrainingInterrupted):  # its checkpoint was in the staging folder
             name = signal.Signals(error.signum).name
             raise TrainingInterrupted(

@@ -568,16 +568,28 @@ def _broken_plugin(tmp_path: Path, monkeypatch, body: str):
             "import os\nos.environ['X'] = '1'\nfamily = 42\n",
             "TypeError: 'int' object is not callable",
         ),
+        ("raise KeyboardInterrupt\n", "it raised KeyboardInterrupt on import"),
     ],
 )
 def test_a_plugin_failing_on_import_is_a_warning_naming_it(
     body, reason, tmp_path, monkeypatch, capsys
 ):
+    """Imported only when its family is asked for (issue 58): a command of another family never
+    imports it; one that names it gets one warning and a one-line refusal naming it."""
+    import warnings
+
     _broken_plugin(tmp_path, monkeypatch, body)
-    taxi = str(ROOT / "configs" / "taxi.yaml")  # its first lookup loads the plugins
-    with pytest.warns(UserWarning, match="family 'bad_plugin'") as caught:
+    taxi = str(ROOT / "configs" / "taxi.yaml")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
         outcome = run(["train", taxi, "--out", str(tmp_path / "o"), "seed=-1"], capsys)
-    refused(outcome, "train", "seed must be")  # the command went on to its own outcome
+    refused(outcome, "train", "seed must be")
+    assert not [w for w in caught if "bad_plugin" in str(w.message)]
+    assert "bad_plugin" not in sys.modules
+    with pytest.warns(UserWarning, match="family 'bad_plugin'") as caught:
+        argv = ["train", taxi, "--out", str(tmp_path / "o"), "family=bad_plugin"]
+        outcome = run(argv, capsys)
+    refused(outcome, "train", "'bad_plugin'", reason)
     assert any(reason in str(w.message) for w in caught), [str(w.message) for w in caught]
 
 

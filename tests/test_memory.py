@@ -49,6 +49,7 @@ def test_no_shipped_config_is_refused(path):
         (["env.num_envs=1000000000"], "env.num_envs"),
         (["train.buffer_size=1000000000000"], "train.buffer_size"),
         (["heads.hidden=[100000,100000]"], "heads.hidden"),
+        (["train.batch_size=100000000", "train.buffer_size=100000000"], "train.batch_size"),
         pytest.param(  # builds the 1000x1000 layout: ~5 s
             ["env.windy.layout=generated", "env.windy.height=1000", "env.windy.width=1000"],
             "env.windy",

@@ -30,9 +30,15 @@ import argparse
 import sys
 from collections.abc import Callable, Sequence
 
+from taskvar_torch._startup import hand_over
 from taskvar_torch.cli import evaluate, study, train
 from taskvar_torch.cli.arguments import Command
-from taskvar_torch.cli.failures import TerminateAsInterrupt, quiet_third_party, run_command
+from taskvar_torch.cli.failures import (
+    TerminateAsInterrupt,
+    locale_safe_output,
+    quiet_third_party,
+    run_command,
+)
 
 COMMANDS: dict[str, Command] = {
     "train": train.TRAIN,
@@ -95,5 +101,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     name = argv[0]
     args = parsers[name].parse_intermixed_args(argv[1:])
     quiet_third_party()
+    locale_safe_output()
     with TerminateAsInterrupt():
+        hand_over()  # Ctrl-C raises KeyboardInterrupt again; SIGTERM is TerminateAsInterrupt's
         return run_command(name, COMMANDS[name].run, args)

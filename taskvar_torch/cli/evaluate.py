@@ -142,12 +142,14 @@ def _tests_epilog() -> str:
     the controller settings an evaluation may change, with their help."""
     from taskvar_torch.config import Config
     from taskvar_torch.config.controller import CONTROLLER_KEYS
-    from taskvar_torch.config.help import key_line
+    from taskvar_torch.config.help import key_line, unloaded_plugin
     from taskvar_torch.families import FAMILIES
 
     lines = ["--test, per registered family (the first is the default):"]
-    for name, fam in FAMILIES.items():
+    for name, fam in FAMILIES.loaded().items():
         lines.append(f"  {name}: {', '.join(fam.tests)}")
+    for name, value in sorted(FAMILIES.entry_points().items()):
+        lines.append(f"  {name}: {unloaded_plugin(name, value)}")
     lines.append("\ncontroller settings (train.KEY=VALUE; the bundle's own by default):")
     lines += [key_line(Config, key) for key in CONTROLLER_KEYS]
     return "\n".join(lines)

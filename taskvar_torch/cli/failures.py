@@ -6,6 +6,7 @@ traceback for a bug in the package; SIGTERM outside the training loop unwinds li
 from __future__ import annotations
 
 import argparse
+import codecs
 import logging
 import os
 import signal
@@ -13,6 +14,7 @@ import sys
 import threading
 from collections.abc import Callable
 
+from taskvar_torch import _startup
 from taskvar_torch.checkpoint import CheckpointError
 from taskvar_torch.run_folder import check_out_path
 
@@ -123,8 +125,10 @@ class TerminateAsInterrupt:
     def __enter__(self) -> TerminateAsInterrupt:
         self._old = None
         if threading.current_thread() is threading.main_thread():
-            if signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
-                self._old = signal.signal(signal.SIGTERM, self._raise)
+            current = signal.getsignal(signal.SIGTERM)
+            if current == signal.SIG_DFL or current is _startup._interrupted_at_start:
+                signal.signal(signal.SIGTERM, self._raise)
+                self._old = signal.SIG_DFL
         return self
 
     @staticmethod
@@ -134,6 +138,32 @@ class TerminateAsInterrupt:
     def __exit__(self, *exc: object) -> None:
         if self._old is not None:
             signal.signal(signal.SIGTERM, self._old)
+
+
+def _locale_safe(error: UnicodeEncodeError) -> tuple[str | bytes, int]:
+    """A character the output's encoding lacks: a path's undecodable byte as it was
+    (``surrogateescape``), anything else as ``\\xe9`` (``backslashreplace``)."""
+    try:
+        return codecs.lookup_error("surrogateescape")(error)
+    except UnicodeEncodeError:
+        return codecs.backslashreplace_errors(error)
+
+
+codecs.register_error("taskvar_locale_safe", _locale_safe)
+
+
+def locale_safe_output() -> None:
+    """stdout and stderr print any text whatever the locale: under an ASCII one (``LC_ALL=C``
+    with UTF-8 mode off, ``PYTHONIOENCODING=ascii``) a non-ASCII ``--out`` in the command's last
+    line ("wrote ...") was an encoding error after every result had been written (issue 58)."""
+    for stream in (sys.stdout, sys.stderr):
+        encoding = getattr(stream, "encoding", None)
+        try:
+            if encoding is None or codecs.lookup(encoding).name == "utf-8":
+                continue
+            stream.reconfigure(errors="taskvar_locale_safe")
+        except (AttributeError, LookupError, ValueError, OSError):
+            continue  # a stream that cannot be reconfigured keeps its own errors
 
 
 def quiet_third_party() -> None:

@@ -4,9 +4,11 @@ baselines beside them, and writing a bundle's shareable heads."""
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from pathlib import Path
 from typing import Any
 
 from taskvar_torch.cli.arguments import (
@@ -191,6 +193,7 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
         raise ValueError(f"--method must be one of {[*BASELINES, 'all']}, got {args.method!r}")
     check_output_folder(args.out)
     cfg = load_config(config_path, overrides)
+    _check_bundle_config(cfg, Path(args.out), overrides)
     methods = list(BASELINES) if args.method == "all" else [args.method]
     if "informed" in methods or "blind" in methods:  # blind: the same network, features zeroed
         try:
@@ -200,26 +203,88 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
                 raise
             print(f"taskvar train-baselines: skipping informed and blind: {e}", file=sys.stderr)
             methods = [m for m in methods if m not in ("informed", "blind")]
-    for m in methods:
-        dest = baseline_path(Path(args.out) / "final.pt", m)
-        if dest.exists() and not args.overwrite:
-            raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
-    heads_only = heads_only_keys(cfg, methods)
-    if heads_only:
-        print(
-            f"taskvar train-baselines: {', '.join(heads_only)} not used: the recurrent baseline "
-            "takes one-step targets on its slices, every baseline samples uniformly",
-            file=sys.stderr,
-        )
-    for m in methods:
-        r = train_baseline(cfg, m, args.out, progress=not args.no_progress)
-        last = r["mean_train_return"]
-        last_s = "no episode ended" if last != last else f"{last:.3f}"  # NaN: none ended
-        print(
-            f"trained {m}: {r['updates']} updates on {r['frames']} frames in {r['seconds']:.1f} s "
-            f"(mean training return of the last tenth: {last_s}); wrote {r['path']}"
-        )
+    with _baselines_lock(Path(args.out)):  # one writer at a time (issue 58)
+        for m in methods:
+            dest = baseline_path(Path(args.out) / "final.pt", m)
+            if dest.exists() and not args.overwrite:
+                raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
+        heads_only = heads_only_keys(cfg, methods)
+        if heads_only:
+            print(
+                f"taskvar train-baselines: {', '.join(heads_only)} not used: the recurrent "
+                "baseline takes one-step targets on its slices, every baseline samples uniformly",
+                file=sys.stderr,
+            )
+        for m in methods:
+            r = train_baseline(cfg, m, args.out, progress=not args.no_progress)
+            last = r["mean_train_return"]
+            last_s = "no episode ended" if last != last else f"{last:.3f}"  # NaN: none ended
+            print(
+                f"trained {m}: {r['updates']} updates on {r['frames']} frames in "
+                f"{r['seconds']:.1f} s (mean training return of the last tenth: {last_s}); "
+                f"wrote {r['path']}"
+            )
     return 0
+
+
+@contextlib.contextmanager
+def _baselines_lock(out: Path) -> Iterator[None]:
+    """The run-folder lock on ``out`` (created if new, and removed again if the command left it
+    empty) for the ``with`` block: a second writer is refused in one line naming the holder."""
+    from taskvar_torch.run_folder import folder_lock
+
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        with folder_lock(out):
+            yield
+    finally:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+
+
+def _check_bundle_config(cfg: Any, out: Path, overrides: Sequence[str]) -> None:
+    """A one-line ``ValueError`` when ``out`` holds a bundle (its ``config.yaml``) whose family,
+    environment or heads differ from ``cfg``'s: the baselines would be trained on another task
+    than the heads they are compared with. A ``heads.*`` key set by an override on the command
+    line is the user's choice of the baselines' width (the help's documented use)."""
+    from taskvar_torch.config import config_to_dict, load_config
+
+    saved = out / "config.yaml"
+    if not saved.is_file():
+        return
+    mine, theirs = config_to_dict(cfg), config_to_dict(load_config(saved))
+    if mine["family"] != theirs["family"]:
+        raise ValueError(
+            f"the config's family {mine['family']!r} differs from the bundle's "
+            f"{theirs['family']!r} in --out {str(out)!r}; give the bundle's config (or none: "
+            f"{str(saved)!r} is read) or another --out"
+        )
+    set_here = [o.partition("=")[0].strip() for o in overrides]
+    for section in ("env", "heads"):
+        for key, value, other in _differences(mine[section], theirs[section], section):
+            if key in ("env.num_envs",) or (
+                section == "heads" and any(key == s or key.startswith(s + ".") for s in set_here)
+            ):
+                continue
+            raise ValueError(
+                f"the config's {key}={value!r} differs from the bundle's {other!r} in --out "
+                f"{str(out)!r}; give the bundle's config (or none: {str(saved)!r} is read), "
+                f"override {key} on the command line, or choose another --out"
+                if section == "heads"
+                else f"the config's {key}={value!r} differs from the bundle's {other!r} in --out "
+                f"{str(out)!r}; give the bundle's config (or none: {str(saved)!r} is read) or "
+                "another --out"
+            )
+
+
+def _differences(a: Any, b: Any, prefix: str) -> Iterator[tuple[str, Any, Any]]:
+    """``(dotted key, a's value, b's value)`` where two plain config dicts differ."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b)):
+            yield from _differences(a.get(k), b.get(k), f"{prefix}.{k}")
+    elif a != b:
+        yield prefix, a, b
 
 
 # --------------------------------------------------------------------------------------------

@@ -131,11 +131,14 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
     if cls is Config and not prefix:  # each registered family's own keys, read for it only
         from taskvar_torch.families import FAMILIES
 
-        for name in sorted(FAMILIES):
-            section = FAMILIES[name].config_class
+        known = FAMILIES.loaded()  # an installed plugin is named, not imported (issue 58)
+        for name in sorted(known):
+            section = known[name].config_class
             if section is not None:
                 lines.append(f"env.{name}: the {name} family's own keys (read when family={name})")
                 lines.append(config_help(section, f"env.{name}."))
+        for name, value in sorted(FAMILIES.entry_points().items()):
+            lines.append(f"env.{name}: {unloaded_plugin(name, value)}")
     return "\n".join(lines)
 
 
@@ -173,7 +176,7 @@ def families_help() -> str:
     from taskvar_torch.families import FAMILIES
 
     lines = []
-    for name, fam in FAMILIES.items():
+    for name, fam in FAMILIES.loaded().items():
         own = [f.name for f in dataclasses.fields(fam.config_class)] if fam.config_class else []
         parts = [
             f"env.instances {', '.join(fam.instance_names)}",
@@ -182,7 +185,14 @@ def families_help() -> str:
         ]
         about = f"{fam.description}; " if fam.description else ""
         lines.append(f"  {name}: {about}" + "; ".join(parts))
+    lines += [f"  {n}: {unloaded_plugin(n, v)}" for n, v in sorted(FAMILIES.entry_points().items())]
     return "\n".join(lines)
+
+
+def unloaded_plugin(name: str, value: str) -> str:
+    """A listing's line for an installed family not imported (a listing imports no plugin: one
+    that hangs or crashes on import cannot take ``--help`` down)."""
+    return f"installed from {value!r}, not imported by a listing (read when family={name})"
 
 
 def count_keys(text: str) -> int:

@@ -321,7 +321,8 @@ def overrides_for(overrides: Sequence[str], family_name: str) -> list[str]:
         if len(part) >= 2 and part[0] == "env":
             owner = part[1] if part[1] in FAMILIES and len(part) > 2 else None
             if len(part) == 2:
-                owner = next((n for n in FAMILIES if part[1] in FAMILIES[n].legacy_env_keys), None)
+                known = FAMILIES.loaded()  # an unused plugin is not imported for this
+                owner = next((n for n, f in known.items() if part[1] in f.legacy_env_keys), None)
             if owner is not None and owner != family_name:
                 continue
         out.append(item)

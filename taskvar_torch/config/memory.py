@@ -13,7 +13,8 @@ env.<family>        the family's per-cell observation table (cells x observation
 env.num_envs        the environments' observations, first-visit flags and the collected batch
 train.buffer_size   the replay rows (observation, next observation and the other keys)
 heads.hidden        every head's weights with their gradients, targets, Adam moments and
-                    average, and the activations of a training batch
+                    average
+train.batch_size    the activations of a training batch (``eval.batch_size`` in an evaluation)
 --episodes          per-episode result rows of an evaluation (``taskvar eval --episodes``,
                     ``experiment.episodes_per_run`` x runs in the experiments)
 ==================  ===========================================================================
@@ -95,8 +96,11 @@ def estimate(
     params = sum((a + 1) * b for a, b in zip(widths, widths[1:])) * HEADS * seeds
     copies = PARAM_COPIES if training else 1
     batch = t.batch_size * seeds if training else cfg.eval.batch_size
-    activations = batch * sum(widths) * FLOAT * HEADS * 4
-    terms["heads.hidden"] = params * FLOAT * copies + activations
+    terms["heads.hidden"] = params * FLOAT * copies
+    # a batch's activations: named by the batch size, which they grow with as much as with the
+    # widths (train.batch_size=10**8 said "lower heads.hidden"; issue 58)
+    batch_key = "train.batch_size" if training else "eval.batch_size"
+    terms[batch_key] = terms.get(batch_key, 0) + batch * sum(widths) * FLOAT * HEADS * 4
     if training:
         terms["env.num_envs"] += t.frames_per_batch * seeds * row * 2  # batch and its n-step copy
         if t.first_visit:  # heads/first_visit.py: a bool per hash bucket per environment

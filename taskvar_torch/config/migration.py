@@ -64,7 +64,10 @@ def _move_env_keys(out: dict) -> list[str]:
     if not isinstance(env, Mapping):
         return []
     family = out.get("family", Config.family)
-    families = [FAMILIES[n] for n in FAMILIES]
+    known = FAMILIES.loaded()  # an installed plugin is imported only for its own configs
+    if isinstance(family, str) and family not in known and family in FAMILIES:
+        known[family] = FAMILIES[family]
+    families = list(known.values())
     stale = [f.name for f in families if f.legacy_section and f.name in env and f.name != family]
     moved = {f.name: [k for k in f.legacy_env_keys if k in env] for f in families}
     moved = {name: keys for name, keys in moved.items() if keys}
@@ -143,7 +146,11 @@ def migrate_overrides(overrides: Sequence[str], family: str | None = None) -> li
             continue
         part = key.strip().split(".")
         owner = next(
-            (n for n in FAMILIES if len(part) == 2 and part[1] in FAMILIES[n].legacy_env_keys),
+            (
+                n
+                for n, f in FAMILIES.loaded().items()
+                if len(part) == 2 and part[1] in f.legacy_env_keys
+            ),
             None,
         )
         if sep and part[0] == "env" and owner is not None:

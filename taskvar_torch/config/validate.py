@@ -94,7 +94,8 @@ def _within(
 
 def _families_with(feature: str) -> str:
     """``family='windy'`` (or several, joined by "or"): the families that support ``feature``."""
-    return " or ".join(f"family={f.name!r}" for f in _REGISTRY.values() if getattr(f, feature))
+    families = _REGISTRY.loaded().values()  # an unused plugin is not imported for a message
+    return " or ".join(f"family={f.name!r}" for f in families if getattr(f, feature))
 
 
 def _validate(cfg: Config) -> None:

@@ -90,3 +90,27 @@ def check_cell(value: Any, height: int, width: int, name: str = "start") -> tupl
             f"col in [0, {width - 1}]), got {value!r}"
         )
     return r, c
+
+
+def check_as_config(family: str, section: Mapping[str, Any], instances: Any = None) -> None:
+    """A Gymnasium env's constructor arguments checked exactly as a config's ``env.<family>``
+    keys are (issue 58): the same bounds (the family's ``config_class`` and ``Family.validate``,
+    through :func:`taskvar_torch.config.config_from_dict`) and the same memory estimate of what
+    the env allocates (the family's per-cell observation table, ``config/memory.py``), so
+    ``gym.make`` accepts nothing ``taskvar train`` refuses. A one-line ``ValueError`` names the
+    argument by its config key (``env.windy.horizon`` is the ``horizon`` argument)."""
+    from taskvar_torch.config import config_from_dict
+    from taskvar_torch.config.memory import check_memory, estimate
+
+    plain = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in section.items()}
+    env: dict[str, Any] = {"num_envs": 1, family: plain}
+    if isinstance(instances, str):
+        env["instances"] = instances
+    source = f"the {family} env's arguments, checked as config keys"
+    try:
+        cfg = config_from_dict({"family": family, "env": env}, source)
+        table = f"env.{family}"
+        check_memory({table: estimate(cfg, training=False).get(table, 0)})
+    except ValueError as e:
+        msg = str(e).strip().splitlines()[0]
+        raise ValueError(msg if source in msg else f"{msg} ({source})") from None

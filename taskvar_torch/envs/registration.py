@@ -1,19 +1,32 @@
 """Gymnasium registration of every family's ids (``Family.gym_ids``), done on ``import
-taskvar_torch``: the built-in families' ``taskvar/`` ids and those of installed families alike."""
+taskvar_torch``: the built-in families' ``taskvar/`` ids and those of installed families alike.
+
+Started as the ``taskvar`` command, only the built-in families' ids are registered at import: an
+installed family's entry point is imported (and its ids registered) when the command asks for the
+family by name, so a broken plugin cannot take down a command that does not use it (issue 58)."""
 
 from __future__ import annotations
 
 
 def register_envs() -> None:
-    """Register the Gymnasium ids of every registered family (idempotent)."""
+    """Register the Gymnasium ids of every registered family (idempotent); each installed
+    family's entry point is imported, a broken one is a warning naming it."""
     from taskvar_torch.families import FAMILIES, register_gym_ids
 
-    for name in FAMILIES:
-        register_gym_ids(FAMILIES[name])
+    for fam in FAMILIES.values():
+        register_gym_ids(fam)
+
+
+def register_builtin_envs() -> None:
+    """Register the Gymnasium ids of the built-in families and of those already imported."""
+    from taskvar_torch.families import FAMILIES, register_gym_ids
+
+    for fam in FAMILIES.loaded().values():
+        register_gym_ids(fam)
 
 
 def env_ids() -> dict[str, tuple[str, dict]]:
     """Every registered family's Gymnasium ids: id -> ``(entry point, kwargs)``."""
     from taskvar_torch.families import FAMILIES
 
-    return {i: spec for name in FAMILIES for i, spec in FAMILIES[name].gym_ids.items()}
+    return {i: spec for fam in FAMILIES.values() for i, spec in fam.gym_ids.items()}

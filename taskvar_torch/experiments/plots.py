@@ -27,8 +27,14 @@ def save_figure(fig, path: str | Path, dpi: int = 120) -> Path:
     """Save ``fig`` as PNG via a temporary file and a rename."""
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp.png")
-    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
-    os.replace(tmp, path)
+    try:
+        fig.savefig(tmp, dpi=dpi, bbox_inches="tight")
+        os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        if e.filename is None and e.errno is not None:
+            e.filename = str(path)  # a full disk's write names no file: the CLI's line names it
+        raise
     return path
 
 

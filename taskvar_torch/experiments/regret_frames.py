@@ -69,7 +69,7 @@ def run_paths(checkpoint: str | os.PathLike) -> tuple[Path, list[Path]]:
 
 def oracle_families() -> list[str]:
     """The families that bring an exact oracle (``Family.oracle``)."""
-    return sorted(n for n in FAMILIES if FAMILIES[n].exact_oracle)
+    return sorted(n for n, f in FAMILIES.loaded().items() if f.exact_oracle)
 
 
 def check_by_frames(checkpoint: str | os.PathLike, points: Sequence[EvalPoint]) -> Any:

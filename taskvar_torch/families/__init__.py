@@ -292,65 +292,113 @@ def _entry_points() -> list[importlib.metadata.EntryPoint]:
 
 
 class _Registry(Mapping):
-    """Every family by name: the ones registered in this process and, loaded at the first lookup,
-    those of installed packages' ``taskvar_torch.families`` entry points."""
+    """Every family by name: the ones registered in this process and those of installed packages'
+    ``taskvar_torch.families`` entry points.
+
+    An entry point is imported only when its family is asked for by name (``FAMILIES[name]``,
+    ``name in FAMILIES``, :func:`family`): a plugin that hangs, crashes or exits on import cannot
+    take down a command that does not use it. Iterating gives every name (the entry points' read
+    from the installed metadata, nothing imported); :meth:`values` and :meth:`items` import every
+    family, :meth:`loaded` only those already imported and the built-in ones. A plugin that fails
+    to load is one warning naming it, and its name is in :attr:`broken`.
+    """
 
     def __init__(self) -> None:
         self._families: dict[str, Family] = {}
         self._entry_points_loaded = False
+        """Whether the installed metadata was read into ``_pending`` (reset to read it again)."""
+        self._pending: dict[str, importlib.metadata.EntryPoint] = {}
         self.broken: dict[str, str] = {}
         """Entry points that failed to load: name -> the one-line reason (warned once)."""
 
-    def _load_entry_points(self) -> None:
-        if self._entry_points_loaded:
+    def _read_entry_points(self) -> dict[str, importlib.metadata.EntryPoint]:
+        """The entry points by name (the first of a name wins), read once; none imported."""
+        if not self._entry_points_loaded:
+            self._entry_points_loaded = True
+            self._pending = {}
+            for ep in _entry_points():
+                self._pending.setdefault(ep.name, ep)
+        return self._pending
+
+    def entry_points(self) -> dict[str, str]:
+        """Every entry-point family not imported yet: name -> ``module:attr`` (from metadata)."""
+        return {
+            name: ep.value
+            for name, ep in self._read_entry_points().items()
+            if name not in self._families and name not in self.broken
+        }
+
+    def _load(self, name: str) -> None:
+        """Import the entry point of family ``name``, if any and not yet done; a failure of any
+        kind (an exception, ``sys.exit``, ``KeyboardInterrupt`` raised on import, a wrong
+        declaration) is a warning naming it and an entry in :attr:`broken`."""
+        if name in self._families or name in self.broken:
             return
-        self._entry_points_loaded = True
-        for ep in _entry_points():
-            if ep.name in self._families:
-                continue
-            try:
-                obj = ep.load()
-                fam = obj if isinstance(obj, Family) else obj()
-                if not isinstance(fam, Family):
-                    raise TypeError(f"it gives {type(fam).__name__}, not a Family")
-                if fam.name != ep.name:
-                    raise ValueError(
-                        f"the entry point is named {ep.name!r}, its family {fam.name!r}"
-                    )
-                _check_declaration(fam)
-            except (Exception, SystemExit) as e:  # a broken plugin must not break the others
-                reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-                if isinstance(e, SystemExit):  # sys.exit() on import: not the command's exit
-                    reason = f"it called sys.exit({e.code!r}) on import"
-                else:
-                    reason = f"{type(e).__name__}: {reason}"
-                self.broken[ep.name] = f"entry point {ep.value!r}: {reason}"
-                warnings.warn(
-                    f"taskvar_torch: family {ep.name!r} from {ep.value!r} could not be loaded: "
-                    f"{reason}",
-                    stacklevel=2,
-                )
-                continue
+        ep = self._read_entry_points().get(name)
+        if ep is None:
+            return
+        try:
+            obj = ep.load()
+            fam = obj if isinstance(obj, Family) else obj()
+            if not isinstance(fam, Family):
+                raise TypeError(f"it gives {type(fam).__name__}, not a Family")
+            if fam.name != ep.name:
+                raise ValueError(f"the entry point is named {ep.name!r}, its family {fam.name!r}")
+            _check_declaration(fam)
+        except (Exception, SystemExit, KeyboardInterrupt) as e:  # not the command's failure
+            if isinstance(e, KeyboardInterrupt) and hasattr(e, "signum"):
+                raise  # SIGTERM, turned into an interrupt by the command: the command's to report
+            reason = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+            if isinstance(e, SystemExit):  # sys.exit() on import: not the command's exit
+                reason = f"it called sys.exit({e.code!r}) on import"
+            elif isinstance(e, KeyboardInterrupt):
+                reason = "it raised KeyboardInterrupt on import"
+            else:
+                reason = f"{type(e).__name__}: {reason}"
+            self.broken[ep.name] = f"entry point {ep.value!r}: {reason}"
+            warnings.warn(
+                f"taskvar_torch: family {ep.name!r} from {ep.value!r} could not be loaded: "
+                f"{reason}",
+                stacklevel=3,
+            )
+            return
+        if fam.name not in self._families:  # registered while importing: that one stays
             self._families[fam.name] = fam
             register_gym_ids(fam)
 
+    def loaded(self) -> dict[str, Family]:
+        """The built-in families and those imported so far: what a pass over every family's
+        declaration (renamed keys, messages) reads without importing an unused plugin."""
+        for name in BUILTIN:
+            self._load(name)
+        return dict(self._families)
+
     def __getitem__(self, name: str) -> Family:
-        if name not in self._families:
-            self._load_entry_points()
+        if isinstance(name, str):
+            self._load(name)
         return self._families[name]
 
     def __iter__(self) -> Iterator[str]:
-        self._load_entry_points()
-        return iter(dict(self._families))
+        names = dict.fromkeys([*self._families, *self._read_entry_points()])
+        return iter([n for n in names if n not in self.broken])
 
     def __len__(self) -> int:
-        self._load_entry_points()
-        return len(self._families)
+        return len(list(iter(self)))
 
     def __contains__(self, name: object) -> bool:
-        if name not in self._families:
-            self._load_entry_points()
+        if isinstance(name, str):
+            self._load(name)
         return name in self._families
+
+    def values(self) -> list[Family]:  # type: ignore[override]
+        """Every family, each entry point imported (a broken one warned about and left out)."""
+        return [fam for _, fam in self.items()]
+
+    def items(self) -> list[tuple[str, Family]]:  # type: ignore[override]
+        """``(name, family)`` of every family, each entry point imported (a broken one left out)."""
+        for name in list(self):
+            self._load(name)
+        return list(self._families.items())
 
     def __repr__(self) -> str:
         return f"FAMILIES({sorted(self)})"

@@ -95,6 +95,7 @@ class TaxiGymEnv(gym.Env):
             raise ValueError(
                 f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}"
             )
+        gym_checks.check_as_config("taxi", {"horizon": horizon}, instances)
         self.instances = taxi_instances(instances)
         self.horizon = int(horizon)
         if self.horizon < 1:

@@ -89,17 +89,19 @@ class WargusGymEnv(gym.Env):
                 f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}"
             )
         self.render_mode = render_mode
-        self.config = WargusConfig(
-            size=size,
-            num_patrols=num_patrols,
-            num_items=num_items,
-            sight=sight,
-            shoot_range=shoot_range,
-            hit_prob=hit_prob,
-            patrol_speed=patrol_speed,
-            horizon=horizon,
-            noop=noop,
-        )
+        settings = {
+            "size": size,
+            "num_patrols": num_patrols,
+            "num_items": num_items,
+            "sight": sight,
+            "shoot_range": shoot_range,
+            "hit_prob": hit_prob,
+            "patrol_speed": patrol_speed,
+            "horizon": horizon,
+            "noop": noop,
+        }
+        gym_checks.check_as_config("wargus", settings, instances)
+        self.config = WargusConfig(**settings)
         self.instances = wargus.wargus_instances(instances)
         self.model = wargus.WargusModel(self.config, "cpu")
         self.action_space = gym.spaces.Discrete(self.config.num_actions)

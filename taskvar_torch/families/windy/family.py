@@ -228,7 +228,7 @@ def _windy_summary(heads: Any, cfg: Config) -> list[str]:
     from taskvar_torch.heads.validate import compare_with_oracle
 
     r = compare_with_oracle(heads.cpu(), oracle)
-    horizon = section(cfg).horizon
+    horizon = oracle.horizon  # the layout's default where env.windy.horizon is null
     lines = [
         "learnt heads vs exact oracle (exact expected returns of the greedy policies, not sampled; "
         "training instances, uniform start):",

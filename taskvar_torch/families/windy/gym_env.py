@@ -70,6 +70,18 @@ class WindyGridGymEnv(gym.Env):
             raise ValueError(
                 f"render_mode must be one of {self.metadata['render_modes']} or None, got {render_mode!r}"
             )
+        gym_checks.check_as_config(
+            "windy",
+            {
+                "layout": "\n".join(layout.rows)
+                if isinstance(layout, windy.WindyLayout)
+                else layout,
+                "horizon": horizon,
+                "obs_encoding": obs_encoding,
+                "patch_radius": patch_radius,
+            },
+            instances,
+        )
         self.layout = resolve_layout(layout)
         self.model = windy.WindyModel(self.layout, "cpu")
         self.instances = windy_instances(instances)
