@@ -223,17 +223,15 @@ class HeadSpec:
     """The constructor arguments of a head bundle beside the config (what a checkpoint records
     as ``heads_spec``, so loading needs no env): observation size, number of actions, the options'
     names, whether there are robustness critics, the options' input masks
-    (``heads.option_inputs=subtask``). ``informed_dim`` and ``informed_residual`` are read from
-    checkpoints written while the learner trained an informed head (removed: its tensors are
-    dropped on loading, :func:`_heads_of`); new ones leave them unset."""
+    (``heads.option_inputs=subtask``). The ``informed_dim`` and ``informed_residual`` entries of
+    checkpoints written while the learner trained an informed head are ignored (that head was
+    removed: its tensors are dropped on loading, :func:`_heads_of`)."""
 
     obs_dim: int
     num_actions: int
     option_names: tuple[str, ...]
     robustness: bool
     option_input_mask: tuple[tuple[float, ...], ...] | None = None
-    informed_dim: int | None = None
-    informed_residual: bool = False
 
     @classmethod
     def of(cls, cfg: Config, env: EnvBase, subtasks: Subtasks) -> HeadSpec:
@@ -270,15 +268,12 @@ class HeadSpec:
         range is a one-line ``ValueError`` naming it (``heads_spec['obs_dim']``)."""
         check_heads_spec(d)
         mask = d.get("option_input_mask")
-        informed = d.get("informed_dim")
         return cls(
             obs_dim=int(d["obs_dim"]),
             num_actions=int(d["num_actions"]),
             option_names=tuple(d["option_names"]),
             robustness=bool(d["robustness"]),
             option_input_mask=None if mask is None else tuple(tuple(r) for r in mask),
-            informed_dim=None if informed is None else int(informed),
-            informed_residual=bool(d.get("informed_residual", False)),  # False: written before
         )
 
 

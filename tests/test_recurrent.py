@@ -194,7 +194,7 @@ def test_train_baselines_cli_errors(tmp_path, capsys, monkeypatch):
 
     r = _cli("train-baselines", CORRIDOR, "--out", str(tmp_path), "--method", "lstm")
     assert r.returncode == 2 and r.stderr.count("\n") == 1
-    assert "--method must be one of ['recurrent', 'informed', 'all']" in r.stderr
+    assert "--method must be one of ['recurrent', 'informed', 'blind', 'all']" in r.stderr
     r = _cli("train-baselines", CORRIDOR, "--out", str(tmp_path), "baseline.size=3")
     assert r.returncode == 2 and "baseline.size" in r.stderr and r.stderr.count("\n") == 1
     r = _cli("train-baselines", "--out", str(tmp_path / "new"))
