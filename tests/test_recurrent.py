@@ -20,7 +20,7 @@ from budgets import CORRIDOR_BUDGET  # tests/budgets.py
 from torchrl.envs import TransformedEnv
 
 from taskvar_torch import families
-from taskvar_torch.checkpoint import CheckpointError
+from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.factory import make_env
@@ -210,6 +210,31 @@ def test_train_baselines_cli_errors(tmp_path, capsys, monkeypatch):
     (tmp_path / "recurrent.pt").write_bytes(b"x")
     r = _cli("train-baselines", CORRIDOR, "--out", str(tmp_path), "--method", "recurrent")
     assert r.returncode == 2 and "exists; pass --overwrite" in r.stderr
+
+
+def test_train_baselines_on_a_seeds_folder_trains_every_seed(tmp_path, capsys):
+    """``train --seeds 2`` writes ``seed0/`` and ``seed1/``: ``train-baselines`` on that folder
+    trains the baseline beside each, with each seed's own config, one line per seed."""
+    from taskvar_torch.cli import main
+
+    tiny = ["train.total_frames=512", "train.init_random_frames=128", "train.frames_per_batch=64"]
+    tiny += ["train.eps_decay_frames=256", "train.checkpoint_every=0", "env.num_envs=4"]
+    assert (
+        main(["train", CORRIDOR, *tiny, "--seeds", "2", "--out", str(tmp_path), "--no-progress"])
+        == 0
+    )
+    capsys.readouterr()
+    args = ["train-baselines", "--out", str(tmp_path), "--method", "blind", "--no-progress"]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "(1/2 of train.seeds)" in out and "(2/2 of train.seeds)" in out
+    seeds = []
+    for k in (0, 1):
+        assert (tmp_path / f"seed{k}" / "blind.pt").is_file(), k
+        seeds.append(load_checkpoint(tmp_path / f"seed{k}" / "blind.pt")["config"]["seed"])
+    assert seeds[1] == seeds[0] + 1
+    assert not (tmp_path / "blind.pt").exists()
+    assert main(args) == 2 and "exists; pass --overwrite" in capsys.readouterr().err
 
 
 def test_padded_gru_matches_packed_nn_gru():

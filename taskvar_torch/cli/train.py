@@ -181,6 +181,7 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
     from taskvar_torch.heads.informed import informed_features
     from taskvar_torch.heads.recurrent import BASELINES, baseline_path
     from taskvar_torch.run_folder import check_output_folder
+    from taskvar_torch.run_state import seed_config
     from taskvar_torch.train_recurrent import heads_only_keys, train_baseline
 
     set_threads(args)
@@ -203,27 +204,37 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
                 raise
             print(f"taskvar train-baselines: skipping informed and blind: {e}", file=sys.stderr)
             methods = [m for m in methods if m not in ("informed", "blind")]
-    with _baselines_lock(Path(args.out)):  # one writer at a time (issue 58)
-        for m in methods:
-            dest = baseline_path(Path(args.out) / "final.pt", m)
+    out = Path(args.out)
+    runs = [(out, cfg)]
+    if cfg.train.seeds > 1:  # a --seeds batch: a baseline beside every seed's bundle (issue 59)
+        runs = [(out / f"seed{k}", seed_config(cfg, k)) for k in range(cfg.train.seeds)]
+        for folder, cfg_k in runs:
+            _check_bundle_config(cfg_k, folder, overrides)
+    for m in methods:  # nothing is trained if any would be replaced unasked
+        for folder, _ in runs:
+            dest = baseline_path(folder / "final.pt", m)
             if dest.exists() and not args.overwrite:
                 raise ValueError(f"{str(dest)!r} exists; pass --overwrite to replace it")
-        heads_only = heads_only_keys(cfg, methods)
-        if heads_only:
-            print(
-                f"taskvar train-baselines: {', '.join(heads_only)} not used: the recurrent "
-                "baseline takes one-step targets on its slices, every baseline samples uniformly",
-                file=sys.stderr,
-            )
-        for m in methods:
-            r = train_baseline(cfg, m, args.out, progress=not args.no_progress)
-            last = r["mean_train_return"]
-            last_s = "no episode ended" if last != last else f"{last:.3f}"  # NaN: none ended
-            print(
-                f"trained {m}: {r['updates']} updates on {r['frames']} frames in "
-                f"{r['seconds']:.1f} s (mean training return of the last tenth: {last_s}); "
-                f"wrote {r['path']}"
-            )
+    heads_only = heads_only_keys(cfg, methods)
+    if heads_only:
+        print(
+            f"taskvar train-baselines: {', '.join(heads_only)} not used: the recurrent "
+            "baseline takes one-step targets on its slices, every baseline samples uniformly",
+            file=sys.stderr,
+        )
+    for i, (folder, cfg_k) in enumerate(runs):
+        if len(runs) > 1:
+            print(f"seed {cfg_k.seed} ({i + 1}/{len(runs)} of train.seeds): {folder}", flush=True)
+        with _baselines_lock(folder):  # one writer at a time (issue 58)
+            for m in methods:
+                r = train_baseline(cfg_k, m, folder, progress=not args.no_progress)
+                last = r["mean_train_return"]
+                last_s = "no episode ended" if last != last else f"{last:.3f}"  # NaN: none ended
+                print(
+                    f"trained {m}: {r['updates']} updates on {r['frames']} frames in "
+                    f"{r['seconds']:.1f} s (mean training return of the last tenth: {last_s}); "
+                    f"wrote {r['path']}"
+                )
     return 0
 
 
