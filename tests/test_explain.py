@@ -128,6 +128,44 @@ def test_without_an_optimum_the_best_is_the_highest_return():
     assert "is better than every memoryless method, 95% CIs apart (best: averaging" in flat
 
 
+def test_without_an_oracle_only_what_was_measured_and_a_zero_wide_ci_is_explained():
+    """A family with no exact oracle (the Gymnasium adapter): alike methods share a mean return,
+    never an 'exact value'; a CI that is 0 wide (every episode ran to the cap) is named where a
+    separation rests on it; interruption's firing is said either way (issue 59)."""
+    stay = dict(interruptions_per_episode=0.0, control={"upright": 1.0, "centre": 0.0})
+    m = {
+        "episodes": 100,
+        "points": [
+            {
+                "shift": "",
+                "methods": {
+                    "averaging": _method(50.0, 3.1),
+                    "options": _method(1000.0, 0.0, **stay),
+                    "interruption": _method(1000.0, 0.0, **stay),
+                },
+            }
+        ],
+    }
+    m["points"][0]["methods"]["options"]["mean_length"] = 1000.0
+    flat = " ".join(explain_table(m).split())
+    assert "options, interruption: the same mean return (1000.000 +-0.000)" in flat
+    assert "exact value" not in flat
+    assert "interruption never fired" in flat
+    assert "averaging (mean return 50.000 +-3.100) is behind options" in flat
+    assert (
+        "the 95% CI of options is 0 wide: every one of its episodes scored the same, 1000" in flat
+    )
+    ms = m["points"][0]["methods"]
+    ms["interruption"].update(
+        mean_return=990.0, mean_return_ci95=5.0, interruptions_per_episode=0.0
+    )
+    flat = " ".join(explain_table(m).split())
+    assert "interruption never fired on these episodes (0 interruptions per episode)" in flat
+    ms["interruption"]["interruptions_per_episode"] = 2.5
+    flat = " ".join(explain_table(m).split())
+    assert "interruption cut a running option short 2.50 times per episode" in flat
+
+
 def test_a_shift_curve_gets_the_columns_only():
     m = corridor_like()
     m["points"].append(copy.deepcopy(m["points"][0]))

@@ -480,6 +480,25 @@ def _apart(a: tuple[float, float], b: tuple[float, float]) -> bool:
     return abs(a[0] - b[0]) > a[1] + b[1]
 
 
+def _and(words: Sequence[str]) -> str:
+    """``a``, ``a and b``, ``a, b and c``."""
+    return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} and {words[-1]}"
+
+
+def _zero_width(ms: dict[str, Any], pair: Sequence[str], regret: bool) -> str:
+    """A note where one of ``pair``'s 95% CIs is 0 wide (every episode scored the same, as when
+    each ran to the step cap): the separation rests on the other's spread alone."""
+    flat = [m for m in pair if _score(ms[m], regret)[1] == 0.0]
+    if not flat:
+        return ""
+    m = flat[0]
+    return (
+        f" (the 95% CI of {m} is 0 wide: every one of its episodes scored the same, "
+        f"{ms[m].get('mean_length', float('nan')):.0f} steps on average, as when each runs to "
+        "the step cap; 'apart' rests on the other's spread alone)"
+    )
+
+
 def _wrap(text: str, indent: str = "  ") -> str:
     return textwrap.fill(text, 100, initial_indent=indent, subsequent_indent=indent + "  ")
 
@@ -570,8 +589,11 @@ def _explain_point(ms: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
             ran = [o for o, share in ms["options"].get("control", {}).items() if share == 1.0]
             if ran:
                 why.append(f"the options controller ran {ran[0]} on every step")
+        same = ["mean return"]  # only what was measured (a family with no oracle has no exact)
+        same += ["exact value"] if "exact_mean_return" in ms[g[0]] else []
+        same += ["regret"] if regret else []
         shows.append(
-            f"{', '.join(g)}: the same mean return, exact value and {what} ({v:.3f} +-{ci:.3f}): "
+            f"{', '.join(g)}: the same {_and(same)} ({v:.3f} +-{ci:.3f}): "
             "on these episodes they acted alike" + (f" ({'; '.join(why)})" if why else "")
         )
     first = [g[0] for g in alike]
@@ -585,6 +607,7 @@ def _explain_point(ms: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
             + ("is behind" if _apart(a, b) else "ties with")
             + f" {best} ({b[0]:.3f} +-{b[1]:.3f})"
             + (", 95% CIs apart" if _apart(a, b) else " within their 95% CIs")
+            + (_zero_width(ms, (m, best), regret) if _apart(a, b) else "")
         )
     if "recurrent" in ms and best is not None:
         a, b = _score(ms["recurrent"], regret), _score(ms[best], regret)
@@ -599,6 +622,14 @@ def _explain_point(ms: dict[str, Any]) -> tuple[list[str], list[list[str]]]:
             f"{verdict} (best: {best}, {b[0]:.3f} +-{b[1]:.3f}); where and why memory pays: "
             "docs/memory.md"
         )
+    fired = ms.get("interruption", {}).get("interruptions_per_episode")
+    if fired == 0 and not any({"options", "interruption"} <= set(g) for g in alike):
+        shows.append(
+            "interruption never fired on these episodes (0 interruptions per episode): it ran "
+            "as the options controller would have, so where they differ it is the random draws"
+        )
+    elif fired:
+        shows.append(f"interruption cut a running option short {fired:.2f} times per episode")
     if "recurrent" in ms and "blind" in ms:
         a, b = _score(ms["recurrent"], regret), _score(ms["blind"], regret)
         if not _apart(a, b):
