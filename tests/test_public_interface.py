@@ -108,3 +108,23 @@ def test_the_rule_catches_an_internal_module_and_a_name_outside_all():
     assert [h.split(": ", 1)[1] for h in private_uses(src, "probe")] == [
         "taskvar_torch.factory.torch is not in its __all__ (or not defined there)"
     ]
+
+
+def test_every_name_in_every_modules_all_exists_and_star_imports_work():
+    """A name in a module's ``__all__`` that the module does not define makes ``from M import *``
+    raise (``taskvar_torch.families`` listed windy's ``GENERATED``; issue 57): every package
+    module's ``__all__`` is checked, and the front door and the family contract star-imported."""
+    import importlib
+    import pkgutil
+
+    import taskvar_torch
+
+    missing = []
+    for info in pkgutil.walk_packages(taskvar_torch.__path__, "taskvar_torch."):
+        if info.name.endswith("__main__") or "._" in info.name:
+            continue
+        mod = importlib.import_module(info.name)
+        missing += [f"{info.name}.{n}" for n in getattr(mod, "__all__", ()) if not hasattr(mod, n)]
+    assert not missing, missing
+    for name in ("taskvar_torch", "taskvar_torch.families"):
+        exec(f"from {name} import *", {})

@@ -521,7 +521,6 @@ __all__ = [
     "BUILTIN",
     "ENTRY_POINT_GROUP",
     "FAMILIES",
-    "GENERATED",
     "HELDOUT_SEED",
     "HELDOUT_SEEDS",
     "HELDOUT_SIZE",
