@@ -26,6 +26,7 @@ import numpy as np
 from taskvar_torch.config import METHODS
 from taskvar_torch.heads.recurrent import BASELINES, SEES_MORE
 from taskvar_torch.study import aggregate
+from taskvar_torch.study.report_folders import MIN_SEEDS, exploratory_note
 
 CEILING = "informed"
 """The baseline that sees the hidden instance: a ceiling where :func:`ceiling_gate` says so, shown
@@ -223,6 +224,12 @@ def _by_family(summaries: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping
     return out
 
 
+def _seeds(s: Mapping[str, Any]) -> str:
+    """A row's training seeds, labelled exploratory below ``MIN_SEEDS`` (no claims, issue 59)."""
+    n = int(s["seeds"])
+    return str(n) if n >= MIN_SEEDS else f"{n} ({exploratory_note(n)})"
+
+
 def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
     """Per family one table: a row per group, the methods as columns (``-``: not evaluated)."""
     parts = [
@@ -241,7 +248,7 @@ def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
                     "| results | budget, seeds | " + " | ".join(head) + " |",
                     "| --- | --- | " + " | ".join("---" for _ in head) + " |",
                     *(
-                        f"| {s['row']} | {s['budget']}, {s['seeds']} | "
+                        f"| {s['row']} | {s['budget']}, {_seeds(s)} | "
                         + " | ".join(_cell(s, m, summaries) for m in methods)
                         + " |"
                         for s in rows
