@@ -1,4 +1,4 @@
-"""``taskvar report``: the paper's claims and the README's Results table, regenerated from results
+"""``taskvar report``: the paper's claims and the Results tables, regenerated from results
 folders by one command (issue 33; docs/claims.md is its output, docs/report.md its guide).
 
 It reads results folders -- ``taskvar experiment windy-fig2`` / ``wargus-fig4`` / ``scale`` and
@@ -23,10 +23,11 @@ the nominal ones the designs were iterated on:
 
 Each claim gets the paper's figure, ours with its CI, and a verdict (``reproduced``, ``partly``,
 ``not``, or ``not measured`` where no results were given) by the rules in :data:`RULES`.
-Results that score no claim (other families' evaluations, the baselines) can also join the README's
+Results that score no claim (other families' evaluations, the baselines) can also join the Results
 table alone (:func:`add_rows`, ``taskvar report --add``), the other rows kept.
 
-The README's Results block is read in a minute (issue 48,
+The Results block is read in a minute (issue 48; it lives on docs/results.md, which the README
+links, issue 57;
 :mod:`~taskvar_torch.study.report_results`): the regret figure, per family one compact table
 (methods as columns, a row per group, mean [95% CI] over seeds, the best bold, ``≈`` on those not
 separated from it), and the table of every result folded away; the per-group summaries behind
@@ -35,12 +36,16 @@ with the groups it adds.
 
 Bad input is one line (:class:`ReportError`, a ``ValueError``) and nothing is written: a folder
 that is not a results folder, results of different configs under one ``DIR`` (one claim), a
-training seed twice, fewer than :data:`MIN_SEEDS` seeds, results without held-out scores, a
-README without the marker comments, an output file (page, PNG, results JSON) that ``taskvar report``
-did not write (unless ``overwrite``). Every file is written atomically (``taskvar_torch/io.py``).
+training seed twice, results without held-out scores, a page with one marker only, an output
+file (page, PNG, results JSON) that ``taskvar report`` did not write (unless ``overwrite``).
+Every file is written atomically (``taskvar_torch/io.py``).
 
-This module writes the page, the README block and the figures; the folders are read and grouped by
-:mod:`~taskvar_torch.study.report_folders`, the claims scored by
+A group of fewer than :data:`MIN_SEEDS` seeds is tabled as exploratory and scores no claim; a
+page without the marker comments gets the block on a page of its own (:func:`target_page`); each
+row names the test distribution it was measured on (issue 59).
+
+This module writes the pages, the Results block and the figures; the folders are read and
+grouped by :mod:`~taskvar_torch.study.report_folders`, the claims scored by
 :mod:`~taskvar_torch.study.report_claims`.
 """
 
@@ -332,7 +337,7 @@ def _summaries_json(summaries: Sequence[dict[str, Any]]) -> bytes:
 def _results_block(
     summaries: Sequence[dict[str, Any]], details: str, png: Path | None, readme: str | os.PathLike
 ) -> str:
-    """The README's Results block: the figure (linked from the README), the compact tables, the
+    """The Results block: the figure (linked from the page), the compact tables, the
     table of every result ``details`` folded away, and a note on rows without a summary."""
     known = {(s["label"], s["digest"]) for s in summaries}
     keys = [_row_key(line) for line in details.splitlines()]
@@ -421,7 +426,7 @@ def add_rows(
     others = [s for s in kept if (s["label"], s["digest"]) not in new]
     check_commits(
         [(r.commit, str(r.path)) for g in report.groups for r in g.results[:1]]
-        + [(s.get("commit"), f"the README row {s['label']!r}") for s in others],
+        + [(s.get("commit"), f"the Results row {s['label']!r}") for s in others],
         mixed_commits,
     )
     summaries = [new.pop((s["label"], s["digest"]), s) for s in kept] + list(new.values())

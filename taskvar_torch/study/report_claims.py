@@ -13,7 +13,7 @@ smaller group is exploratory: its figures shown, its verdict ``not measured``):
 
 each aggregated over training seeds with ``rliable`` (:mod:`taskvar_torch.study.aggregate`)
 and given a verdict by the rules in :data:`RULES`. :func:`build_report` computes every group's
-claims, README row, profile panel and the per-group summaries behind the compact tables
+claims, Results row, profile panel and the per-group summaries behind the compact tables
 (:mod:`~taskvar_torch.study.report_results`); :mod:`~taskvar_torch.study.report`
 writes them.
 """
@@ -384,7 +384,7 @@ def _scale(g: Group, reps: int) -> str:
 
 @dataclass
 class Report:
-    """What ``taskvar report`` writes: the claims, the README rows, the profile panels and the
+    """What ``taskvar report`` writes: the claims, the Results rows, the profile panels and the
     per-group summaries behind the compact tables and the regret figure
     (:mod:`~taskvar_torch.study.report_results`)."""
 

@@ -1,5 +1,6 @@
-"""The README's Results at a glance (issue 48), written by ``taskvar report``
-(:mod:`taskvar_torch.study.report`) from the same results folders as the claims:
+"""The Results at a glance (issue 48; docs/results.md, linked from the README), written by
+``taskvar report`` (:mod:`taskvar_torch.study.report`) from the same results folders as the
+claims:
 
 - per family, one compact table: the methods as columns, one row per results group (a test
   distribution, a protocol), each cell the method's score as the mean over training seeds with its
@@ -373,7 +374,7 @@ def _regret_methods(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 def results_block(
     summaries: Sequence[Mapping[str, Any]], details: str, figure: str | None, missing: int = 0
 ) -> str:
-    """The README's Results block: the regret figure (``figure``: its path from the README) and
+    """The Results block: the regret figure (``figure``: its path from the page) and
     its caption, the per-family tables, then ``details`` (the table of every result) folded
     away; ``missing``: detail rows whose group has no summary (kept from an older README)."""
     parts = []
