@@ -165,8 +165,8 @@ def _scope(report: Report) -> str:
         on = f"on {held}"
     elif sealed == 0:
         on = (
-            "on each family's own test distributions, named in each row: none of these results "
-            "has a sealed held-out split, so they score none of the paper's claims"
+            "on each family's own test distributions, named in each row (none of these results "
+            "has a sealed held-out split, so they score none of the paper's claims)"
         )
     else:
         on = (
@@ -185,8 +185,8 @@ def results_table(report: Report, claims_link: str | None = None) -> str:
     table, linked from the rows that have a verdict there (``None``: no claims page is written,
     as with ``--add``, so no row links one)."""
     lines = [
-        "| experiment | headline (IQM or mean [95% CI] over seeds; held-out instances unless the "
-        "row names another --test) | training seeds | config | claims |",
+        "| experiment | headline (IQM or mean [95% CI] over seeds, on the test each row names; "
+        "held-out: the sealed instances) | training seeds | config | claims |",
         "| --- | --- | --- | --- | --- |",
     ]
     for label, headline, n, digest in report.rows:

@@ -90,7 +90,8 @@ def test_a_family_without_a_sealed_split_is_not_called_held_out(tmp_path, capsys
     assert "]: " not in stdout  # no claim scored
     claims = out.read_text()
     assert "on the sealed held-out instances" not in claims
-    assert "on each family's own test distributions, named in each row" in claims
+    assert "on each family's own test distributions, named in each row (none" in claims
+    assert "held-out instances unless" not in claims + _block(page)  # no header says otherwise
     assert "| §3.2: a capability is less affected by variability than the full task |" in claims
     assert "| none given | - | not measured |" in claims
     row = next(line for line in _block(page).splitlines() if line.startswith("| eval pendulum"))
