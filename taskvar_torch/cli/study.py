@@ -258,8 +258,8 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
         help="only add these folders' rows to the --page Results table (a row of the same "
         "experiment and config is replaced, the others kept) and write no claims page; for "
         "results that score none of the paper's claims (--out: the claims page whose "
-        "<stem>-results.json keeps the rows' data, default claims.md beside the page, else "
-        "docs/claims.md under its folder)",
+        "<stem>-results.json keeps the rows' data, default claims.md beside the page where it "
+        "is there or the page is in docs/, else docs/claims.md under its folder)",
     )
     p.add_argument(
         "--mixed-commits",

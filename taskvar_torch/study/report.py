@@ -366,15 +366,13 @@ def drop_rows(block: str, summaries: list[dict[str, Any]], digests: Sequence[str
 
 def default_claims(page: str | os.PathLike) -> Path:
     """The claims page ``taskvar report --add`` keeps its summaries beside where no ``--out`` is
-    given: ``claims.md`` beside the page where there is one (``docs/results.md``), else
-    ``docs/claims.md`` under the page's folder (a README's)."""
+    given: ``claims.md`` beside the page where there is one or the page lies in ``docs/``
+    (``docs/results.md``), else ``docs/claims.md`` under the page's folder (a README's)."""
     page = Path(page)
     here = page.with_name("claims.md")
-    return (
-        here
-        if here.is_file() and here.resolve() != page.resolve()
-        else page.parent / "docs" / "claims.md"
-    )
+    if here.resolve() != page.resolve() and (here.is_file() or page.parent.name == "docs"):
+        return here
+    return page.parent / "docs" / "claims.md"
 
 
 def add_rows(
