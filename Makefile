@@ -57,14 +57,14 @@ demo: install
 	$(BIN)/taskvar eval --checkpoint $(DEMO)/final.pt --method all --test train --episodes 2000 \
 		--overwrite --out $(DEMO)/eval --explain
 	@echo "Next: make fig2 (the paper's Figure 2 protocol: interruption vs averaging); notebooks/ (read"
-	@echo "rendered); the README's Results (every family, many training seeds)"
+	@echo "rendered); docs/results.md (every family, many training seeds)"
 
 ## fig2: install everything and run the paper's Figure 2 protocol, quick (train, evaluate, print the
 ## table, write the plot); --overwrite: a rerun replaces the previous results in $(OUT)
 fig2: install
 	$(BIN)/taskvar experiment windy-fig2 --quick --overwrite --out $(OUT)
 
-## results: install everything and regenerate every README Results row from scratch at this commit
+## results: install everything and regenerate every Results row (docs/results.md) at this commit
 ## (scripts/results.py: each row's train, baselines and eval steps, then taskvar report; hours on
 ## 2 cores, so run it in the background; an interrupted run goes on where it stopped; RESULTS=DIR)
 RESULTS ?= results/regen

@@ -1,11 +1,13 @@
-"""Regenerate every README Results row from scratch at one commit (``make results``; docs/report.md).
+"""Regenerate every Results row (docs/results.md) from scratch at one commit (``make results``;
+docs/report.md).
 
 Each row is a list of steps (``taskvar`` commands and ``scripts/evidence.py``), run in order into
 ``OUT/<row>/``; a step whose output is already there is skipped, so an interrupted run goes on
 where it stopped. The commit is written to ``OUT/.commit`` at the start, and a run refuses an
 ``OUT`` made at another commit (or from a working tree with uncommitted changes to the package or
-the configs): every row of the README then names the same code. Last, the two ``taskvar report``
-commands rewrite ``docs/claims.md`` and the README Results block from these folders only.
+the configs): every row of the Results then names the same code. Last, ``taskvar report``
+rewrites ``docs/claims.md`` and the Results block of ``docs/results.md`` (where ``taskvar report``
+writes it since issue 57; the README links it) from these folders only.
 
 Hours of CPU on the project's 2-core machine (measured per row in docs/report.md): run it in the
 background, ``nohup make results > results.log &``; ``--list`` prints the plan with no work,
@@ -27,6 +29,9 @@ from pathlib import Path
 EVIDENCE = [sys.executable, "scripts/evidence.py"]
 TASKVAR = [sys.executable, "-m", "taskvar_torch.cli"]
 SEEDS = 5
+CLAIMS_PAGE = "docs/claims.md"
+RESULTS_PAGE = "docs/results.md"
+"""The page whose markers hold every Results row (the README links it, issue 57)."""
 FIG4_RUNS = 10
 """Figure 4's repetitions: >= 10, so its verdicts do not flip between realisations of 5."""
 
@@ -44,7 +49,7 @@ class Step:
 
 @dataclass
 class Row:
-    """A README row group: its steps and the folders ``taskvar report`` reads."""
+    """A Results row group: its steps and the folders ``taskvar report`` reads."""
 
     name: str
     what: str
@@ -65,7 +70,7 @@ def _evidence(name: str, config: str, tests: str, out: Path, *extra: str) -> Row
 
 
 def rows(out: Path) -> list[Row]:
-    """Every README Results row, in the README's order."""
+    """Every Results row, in docs/results.md's order."""
     windy = _evidence("windy", "configs/windy.yaml", "train,south,heldout", out)
     for k in range(SEEDS):
         bundle = str(out / "windy" / "train" / f"seed{k}" / "final.pt")
@@ -105,14 +110,10 @@ def rows(out: Path) -> list[Row]:
 
 
 def report_steps(out: Path, chosen: list[Row]) -> list[Step]:
-    """The report over every row's folders: the claims page and the README Results block."""
+    """The report over every row's folders: the claims page and the Results block of
+    :data:`RESULTS_PAGE`."""
     folders = [str(out / r) for row in chosen for r in row.reads]
-    return [
-        Step(
-            [*TASKVAR, "report", *folders, "--out", "docs/claims.md", "--readme", "README.md"],
-            "",
-        )
-    ]
+    return [Step([*TASKVAR, "report", *folders, "--out", CLAIMS_PAGE, "--page", RESULTS_PAGE], "")]
 
 
 def commit() -> tuple[str, bool]:

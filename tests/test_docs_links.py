@@ -62,3 +62,42 @@ def test_checker_finds_broken_links(tmp_path: Path) -> None:
     bad = broken_links(tmp_path / "README.md")
     assert [b.split(" ")[0] for b in bad] == ["docs/b.md", "docs/a.md#nowhere"]
     assert broken_links(tmp_path / "docs" / "a.md") == []
+
+
+def hour_path(root: Path = ROOT) -> list[tuple[list[Path], list[str]]]:
+    """docs/design.md's "Read this codebase in an hour" items: each item's files (paths under
+    ``taskvar_torch/``; a bare name beside the item's previous path where it is there) and the
+    functions or classes it names (``TrainingRun.store``: ``store``; ``.learn``: ``learn``)."""
+    text = (root / "docs" / "design.md").read_text(encoding="utf-8")
+    section = text.split("## Read this codebase in an hour", 1)[1].split("\n## ", 1)[0]
+    items = re.split(r"\n(?=\d+\. )", section)
+    out = []
+    for item in items:
+        item = item.strip().split("\n\n")[0]  # the item, not the paragraph after it
+        if not re.match(r"\d+\. ", item):
+            continue
+        files: list[Path] = []
+        names = []
+        for code in re.findall(r"`([^`]+)`", item):
+            if code.endswith(".py"):
+                here = files[-1].parent / code if "/" not in code and files else None
+                files.append(here if here and here.is_file() else root / "taskvar_torch" / code)
+            elif re.fullmatch(r"[\w.]+", code) and not code.startswith("taskvar"):
+                names.append(code.rsplit(".", 1)[-1])
+        out.append((files, names))
+    return out
+
+
+def test_the_hour_path_names_modules_and_functions_that_exist() -> None:
+    """Every module of the hour path exists, and every function or class it names is defined in
+    one of its item's modules (issue 57: one update and one ``taskvar eval``, end to end)."""
+    items = hour_path()
+    assert len(items) >= 10
+    named = {p.relative_to(ROOT).as_posix() for files, _ in items for p in files}
+    for module in ("run_state.py", "factory.py", "experiments/paired.py", "cli/evaluate.py"):
+        assert f"taskvar_torch/{module}" in named, module  # the two paths' missing stops
+    for files, names in items:
+        assert files and all(p.is_file() for p in files), files
+        source = "\n".join(p.read_text(encoding="utf-8") for p in files)
+        for name in names:
+            assert re.search(rf"^\s*(?:def|class) {name}\b", source, re.MULTILINE), (name, files)

@@ -56,8 +56,9 @@ def _results():
 
 
 def test_make_results_lists_every_readme_row_then_the_report(tmp_path, capsys):
-    """scripts/results.py (make results): every README Results family has a row, each row's
-    folders are what the report reads, Figure 4 runs >= 10 repetitions."""
+    """scripts/results.py (make results): every Results family has a row, each row's folders are
+    what the report reads, into the page whose markers ``taskvar report`` fills (docs/results.md,
+    which the README links), Figure 4 runs >= 10 repetitions."""
     res = _results()
     assert res.main(["--list", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out
@@ -68,6 +69,10 @@ def test_make_results_lists_every_readme_row_then_the_report(tmp_path, capsys):
     for row in res.rows(tmp_path):
         for folder in row.reads:
             assert str(tmp_path / folder) in report
+    assert report.endswith(f"--out docs/claims.md --page {res.RESULTS_PAGE}")
+    page = (ROOT / res.RESULTS_PAGE).read_text()
+    assert page.count("<!-- report:results:start -->") == 1  # the markers the report fills
+    assert res.RESULTS_PAGE in (ROOT / "README.md").read_text()
     assert res.FIG4_RUNS >= 10
     with pytest.raises(SystemExit) as e:
         res.main(["--list", "--only", "nope", "--out", str(tmp_path)])

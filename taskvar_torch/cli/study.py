@@ -229,14 +229,20 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help="the claims page (docs/claims.md); beside it img/<FILE stem>-profile.png "
         "(performance profiles), img/<FILE stem>-results.png (regret per method and family) and "
-        "<FILE stem>-results.json (the data of the README's compact tables) (required unless --add)",
+        "<FILE stem>-results.json (the data of the Results page's compact tables) (required "
+        "unless --add)",
     )
     p.add_argument(
+        "--page",
         "--readme",
+        dest="page",
         metavar="FILE",
         help="also replace the Results block between <!-- report:results:start --> and "
-        "<!-- report:results:end --> in FILE (README.md): the regret figure, per family a compact "
-        "table (methods as columns, the best mean bold, ≈ not separated from it) and the table of every result, folded",
+        "<!-- report:results:end --> in FILE (docs/results.md; --readme: its older name): the "
+        "regret figure, per family a compact table (methods as columns, the best mean bold, ≈ "
+        "not separated from it) and the table of every result, folded. A FILE that does not "
+        "exist is written as a page of its own; one without the markers is left alone and the "
+        "Results go to results.md beside the claims page instead (said on stdout)",
     )
     p.add_argument(
         "--reps", type=int, default=2000, help="bootstrap resamples per CI (default 2000)"
@@ -249,10 +255,11 @@ def _report_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--add",
         action="store_true",
-        help="only add these folders' rows to the --readme Results table (a row of the same "
+        help="only add these folders' rows to the --page Results table (a row of the same "
         "experiment and config is replaced, the others kept) and write no claims page; for "
-        "results that score none of the paper's claims (--out: the page the rows link to, "
-        "default docs/claims.md beside the README)",
+        "results that score none of the paper's claims (--out: the claims page whose "
+        "<stem>-results.json keeps the rows' data, default claims.md beside the page where it "
+        "is there or the page is in docs/, else docs/claims.md under its folder)",
     )
     p.add_argument(
         "--mixed-commits",
@@ -274,11 +281,16 @@ def _report_run(args: argparse.Namespace) -> int:
     from taskvar_torch.study.report import CLAIMS, ReportError, add_rows, write_report
 
     if args.add:
-        if args.readme is None:
-            raise ReportError("--add needs --readme FILE: the README whose Results table grows")
-        written, _ = add_rows(
-            args.dirs, args.readme, args.out, args.reps, args.drop, args.mixed_commits
+        if args.page is None:
+            raise ReportError(
+                "--add needs --readme/--page FILE: the page whose Results table grows "
+                "(docs/results.md)"
+            )
+        written, report = add_rows(
+            args.dirs, args.page, args.out, args.reps, args.drop, args.mixed_commits
         )
+        for note in report.notes:
+            print(note)
         print("wrote " + ", ".join(str(p) for p in written))
         return 0
     if args.drop:
@@ -286,10 +298,12 @@ def _report_run(args: argparse.Namespace) -> int:
     if args.out is None:
         raise ReportError("--out FILE is required (the claims page, docs/claims.md) unless --add")
     written, report = write_report(
-        args.dirs, args.out, args.readme, args.reps, args.overwrite, args.mixed_commits
+        args.dirs, args.out, args.page, args.reps, args.overwrite, args.mixed_commits
     )
     for c in report.claims:
         print(f"{CLAIMS[c.key][0]} [{c.group}]: {c.verdict} ({c.reason})")
+    for note in report.notes:
+        print(note)
     print("wrote " + ", ".join(str(p) for p in written))
     return 0
 
@@ -322,12 +336,13 @@ PLOT = Command(
 
 
 REPORT = Command(
-    help="regenerate the paper's claims page and the README's Results table from results",
-    description="Read results folders (many training seeds), aggregate them with rliable on "
-    "the sealed held-out instances and write the claims page (the paper's figure, ours with "
-    "its 95% CI, a verdict), its performance profiles and, with --readme, the README's "
-    "Results table (docs/report.md).\n\n"
-    "  taskvar report results/fig2-seeds results/fig4 --out docs/claims.md --readme README.md",
+    help="regenerate the paper's claims page and the Results page's tables from results",
+    description="Read results folders (training seeds; fewer than 5: an exploratory table, no "
+    "claims), aggregate them with rliable on each result's own test distribution (the claims on "
+    "the sealed held-out instances only) and write the claims page (the paper's figure, ours "
+    "with its 95% CI, a verdict), its performance profiles and, with --page, the Results "
+    "tables (docs/report.md).\n\n"
+    "  taskvar report results/fig2-seeds results/fig4 --out docs/claims.md --page docs/results.md",
     add_arguments=_report_arguments,
     run=_report_run,
 )

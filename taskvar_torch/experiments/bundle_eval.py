@@ -553,7 +553,7 @@ def explain_table(metrics: dict[str, Any]) -> str:
     lines.append(
         _wrap(
             "Further: docs/evaluation.md (this table, named tests, --shift curves), docs/memory.md "
-            "(memory and the ceiling), the README's Results (many training seeds)",
+            "(memory and the ceiling), docs/results.md (many training seeds)",
             "",
         )
     )

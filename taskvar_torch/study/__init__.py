@@ -6,7 +6,7 @@ library's public names only (``tests/study/test_study_boundary.py`` checks it).
   (evaluation, references), ``scale_cell`` (one cell), ``scale_report`` (table, CSV, figures);
 - ``taskvar report`` (docs/report.md): :mod:`~taskvar_torch.study.report` (the pages),
   ``report_folders`` (the results folders read and grouped), ``report_claims`` (the paper's
-  claims scored), ``report_results`` (the README's Results), ``aggregate`` (rliable's statistics);
+  claims scored), ``report_results`` (the Results tables), ``aggregate`` (rliable's statistics);
 - ``taskvar sweep`` (docs/sweeps.md): :mod:`~taskvar_torch.study.sweep` (the backends),
   ``sweep_grid`` (points, configs, resume, summary), ``sweep_jobs`` (what a worker runs).
 

@@ -1,4 +1,4 @@
-"""``taskvar report``: the paper's claims and the README's Results table, regenerated from results
+"""``taskvar report``: the paper's claims and the Results tables, regenerated from results
 folders by one command (issue 33; docs/claims.md is its output, docs/report.md its guide).
 
 It reads results folders -- ``taskvar experiment windy-fig2`` / ``wargus-fig4`` / ``scale`` and
@@ -23,10 +23,11 @@ the nominal ones the designs were iterated on:
 
 Each claim gets the paper's figure, ours with its CI, and a verdict (``reproduced``, ``partly``,
 ``not``, or ``not measured`` where no results were given) by the rules in :data:`RULES`.
-Results that score no claim (other families' evaluations, the baselines) can also join the README's
+Results that score no claim (other families' evaluations, the baselines) can also join the Results
 table alone (:func:`add_rows`, ``taskvar report --add``), the other rows kept.
 
-The README's Results block is read in a minute (issue 48,
+The Results block is read in a minute (issue 48; it lives on docs/results.md, which the README
+links, issue 57;
 :mod:`~taskvar_torch.study.report_results`): the regret figure, per family one compact table
 (methods as columns, a row per group, mean [95% CI] over seeds, the best bold, ``≈`` on those not
 separated from it), and the table of every result folded away; the per-group summaries behind
@@ -35,12 +36,16 @@ with the groups it adds.
 
 Bad input is one line (:class:`ReportError`, a ``ValueError``) and nothing is written: a folder
 that is not a results folder, results of different configs under one ``DIR`` (one claim), a
-training seed twice, fewer than :data:`MIN_SEEDS` seeds, results without held-out scores, a
-README without the marker comments, an output file (page, PNG, results JSON) that ``taskvar report``
-did not write (unless ``overwrite``). Every file is written atomically (``taskvar_torch/io.py``).
+training seed twice, results without held-out scores, a page with one marker only, an output
+file (page, PNG, results JSON) that ``taskvar report`` did not write (unless ``overwrite``).
+Every file is written atomically (``taskvar_torch/io.py``).
 
-This module writes the page, the README block and the figures; the folders are read and grouped by
-:mod:`~taskvar_torch.study.report_folders`, the claims scored by
+A group of fewer than :data:`MIN_SEEDS` seeds is tabled as exploratory and scores no claim; a
+page without the marker comments gets the block on a page of its own (:func:`target_page`); each
+row names the test distribution it was measured on (issue 59).
+
+This module writes the pages, the Results block and the figures; the folders are read and
+grouped by :mod:`~taskvar_torch.study.report_folders`, the claims scored by
 :mod:`~taskvar_torch.study.report_claims`.
 """
 
@@ -94,12 +99,11 @@ def claims_markdown(
         GENERATED,
         "# The paper's claims against ours",
         "",
-        f"Written by `taskvar report {' '.join(dirs)}`. Every figure is over training seeds "
-        f"(>= {MIN_SEEDS}), on the sealed held-out instances (`families.HELDOUT_SEED`: no design "
-        "choice was made on them), aggregated with rliable: interquartile mean (IQM) and mean "
-        f"with stratified-bootstrap 95% CIs ({report.reps} resamples, seeded), paired per seed "
-        "where the methods played the same episodes; probability of improvement over the "
-        "averaging policy as rliable defines it (unpaired).",
+        f"Written by `taskvar report {' '.join(dirs)}`. {_scope(report)}, aggregated with "
+        "rliable: interquartile mean (IQM) and mean with stratified-bootstrap 95% CIs "
+        f"({report.reps} resamples, seeded), paired per seed where the methods played the same "
+        "episodes; probability of improvement over the averaging policy as rliable defines it "
+        "(unpaired).",
         "",
         "| claim | paper | results | ours (mean [95% CI]) | verdict | why |",
         "| --- | --- | --- | --- | --- | --- |",
@@ -144,24 +148,54 @@ def claims_markdown(
     return "\n".join(lines) + "\n"
 
 
+def _scope(report: Report) -> str:
+    """What every figure is over and on: training seeds (an exploratory group's fewer), and each
+    result's own test distribution: the sealed held-out instances only where the results have
+    them (issue 59: an outside family without a sealed split is not called held-out)."""
+    n = len(report.groups)
+    sealed = sum(g.sealed for g in report.groups)
+    few = sum(g.exploratory for g in report.groups)
+    seeds = f"over training seeds (>= {MIN_SEEDS} for a claim" + (
+        f"; {few} exploratory result(s) of fewer seeds, labelled, score none)" if few else ")"
+    )
+    held = (
+        "the sealed held-out instances (`families.HELDOUT_SEED`: no design choice was made on them)"
+    )
+    if sealed == n:
+        on = f"on {held}"
+    elif sealed == 0:
+        on = (
+            "on each family's own test distributions, named in each row (none of these results "
+            "has a sealed held-out split, so they score none of the paper's claims)"
+        )
+    else:
+        on = (
+            f"on {held} for {sealed} of the {n} results, on their family's own test distributions "
+            "(named in each row) for the others; claims are scored on the sealed instances only"
+        )
+    return f"Every figure is {seeds}, {on}"
+
+
 SHORT = {"fig2": "Fig. 2", "fig4_order": "order", "fig4_speed": "speed", "premise": "§3.2"}
 
 
-def results_table(report: Report, claims_link: str = "docs/claims.md") -> str:
-    """The README's Results table (between :data:`README_START` and :data:`README_END`);
-    ``claims_link``: the claims page, relative to the README."""
+def results_table(report: Report, claims_link: str | None = None) -> str:
+    """The table of every result (in the Results block between :data:`README_START` and
+    :data:`README_END`); ``claims_link``: the claims page, relative to the page holding the
+    table, linked from the rows that have a verdict there (``None``: no claims page is written,
+    as with ``--add``, so no row links one)."""
     lines = [
-        "| experiment | headline (IQM or mean [95% CI] over seeds; held-out instances unless the "
-        "row names another --test) | training seeds | config | claims |",
+        "| experiment | headline (IQM or mean [95% CI] over seeds, on the test each row names; "
+        "held-out: the sealed instances) | training seeds | config | claims |",
         "| --- | --- | --- | --- | --- |",
     ]
     for label, headline, n, digest in report.rows:
         verdicts = ", ".join(
             f"{SHORT[c.key]} {c.verdict}" for c in report.claims if c.group == label
         )
+        link = f" ([claims]({claims_link}))" if verdicts and claims_link else ""
         lines.append(
-            f"| {_cell(label)} | {_cell(headline)} | {n} | {digest} | "
-            f"{verdicts or '-'} ([claims]({claims_link})) |"
+            f"| {_cell(label)} | {_cell(headline)} | {n} | {digest} | {verdicts or '-'}{link} |"
         )
     return "\n".join(lines)
 
@@ -180,14 +214,78 @@ def replace_block(text: str, block: str, where: str) -> str:
     return text[:a] + "\n" + block + "\n" + text[b:]
 
 
-def _read_readme(readme: str | os.PathLike) -> str:
-    """The README's text, checked for the Results markers before anything is computed."""
+RESULTS_PAGE = "results.md"
+"""The page of its own, beside the claims page, that takes the Results where the page given
+(``--page``/``--readme``) exists without the marker comments (issue 59)."""
+
+
+def own_page() -> str:
+    """A Results page of ``taskvar report``'s own: its first line :data:`GENERATED`, a title,
+    one line on what it holds, and the markers the Results block goes between."""
+    return (
+        f"{GENERATED}\n# Results\n\nWritten by `taskvar report` (docs/report.md): every results "
+        "group over its training seeds, each on the test distribution its row names; rerun it, or "
+        f"`taskvar report --add`, rather than editing between the markers.\n\n{README_START}\n"
+        f"{README_END}\n"
+    )
+
+
+def _read_page(path: Path, flag: str) -> str | None:
+    """``path``'s text, ``None`` where there is no such file."""
+    if not path.exists():
+        return None
     try:
-        text = Path(readme).read_text(encoding="utf-8")
-    except OSError as e:
-        raise ReportError(f"--readme {str(readme)!r} cannot be read ({e.strerror})") from None
-    replace_block(text, "", str(readme))
-    return text
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        why = getattr(e, "strerror", None) or "not UTF-8 text"
+        raise ReportError(f"{flag} {str(path)!r} cannot be read ({why})") from None
+
+
+def _has_markers(text: str) -> bool:
+    return README_START in text or README_END in text
+
+
+def target_page(
+    page: str | os.PathLike, beside: str | os.PathLike, flag: str = "--page"
+) -> tuple[Path, str, str | None]:
+    """Where the Results block goes, checked before anything is computed: ``(path, its text with
+    the markers, a note for stdout or None)``. ``page`` itself where it holds both markers (a
+    README or docs page); where it does not exist, or is a page ``taskvar report`` wrote, a page of
+    its own there (:func:`own_page`); where it is someone else's page without markers, the page
+    :data:`RESULTS_PAGE` beside the claims page ``beside`` instead, said in the note. Markers
+    present but broken, or no page left to write, are one line (:class:`ReportError`)."""
+    page = Path(page)
+    text = _read_page(page, flag)
+    if text is not None and _has_markers(text):
+        replace_block(text, "", str(page))  # both markers, once each, in order
+        return page, text, None
+    if text is None or _ours_md(page):
+        return (
+            page,
+            own_page(),
+            f"{page}: no Results markers there, wrote a Results page of its own",
+        )
+    other = Path(beside).with_name(RESULTS_PAGE)
+    note = (
+        f"{page} has no Results markers ({README_START} ... {README_END}): wrote the Results to "
+        f"{other} instead"
+    )
+    if other.resolve() == Path(beside).resolve():
+        raise ReportError(
+            f"{flag} {str(page)!r} has no Results markers and the page beside the claims page is "
+            f"the claims page itself; give {flag} a page with the markers"
+        )
+    found = _read_page(other, flag)
+    if found is not None and _has_markers(found):
+        replace_block(found, "", str(other))
+        return other, found, note
+    if found is None or _ours_md(other):
+        return other, own_page(), note
+    raise ReportError(
+        f"{flag} {str(page)!r} has no {README_START} and {README_END} markers, and {str(other)!r} "
+        "(where the Results would go instead) was not written by taskvar report; add the markers "
+        f"to one of them, or give another {flag}"
+    )
 
 
 def _row_key(line: str) -> tuple[str, str] | None:
@@ -239,7 +337,7 @@ def _summaries_json(summaries: Sequence[dict[str, Any]]) -> bytes:
 def _results_block(
     summaries: Sequence[dict[str, Any]], details: str, png: Path | None, readme: str | os.PathLike
 ) -> str:
-    """The README's Results block: the figure (linked from the README), the compact tables, the
+    """The Results block: the figure (linked from the page), the compact tables, the
     table of every result ``details`` folded away, and a note on rows without a summary."""
     known = {(s["label"], s["digest"]) for s in summaries}
     keys = [_row_key(line) for line in details.splitlines()]
@@ -266,6 +364,17 @@ def drop_rows(block: str, summaries: list[dict[str, Any]], digests: Sequence[str
     return "\n".join(kept), [s for s in summaries if s["digest"] not in gone]
 
 
+def default_claims(page: str | os.PathLike) -> Path:
+    """The claims page ``taskvar report --add`` keeps its summaries beside where no ``--out`` is
+    given: ``claims.md`` beside the page where there is one or the page lies in ``docs/``
+    (``docs/results.md``), else ``docs/claims.md`` under the page's folder (a README's)."""
+    page = Path(page)
+    here = page.with_name("claims.md")
+    if here.resolve() != page.resolve() and (here.is_file() or page.parent.name == "docs"):
+        return here
+    return page.parent / "docs" / "claims.md"
+
+
 def add_rows(
     dirs: Sequence[str],
     readme: str | os.PathLike,
@@ -274,20 +383,26 @@ def add_rows(
     drop: Sequence[str] = (),
     mixed_commits: bool = False,
 ) -> tuple[list[Path], Report]:
-    """``taskvar report --add``: add these folders' rows to the README's Results, keeping the
-    rows of results not given (each row names its config digest), and write no claims page.
+    """``taskvar report --add``: add these folders' rows to the Results of the page ``readme``
+    (``--page``/``--readme``: docs/results.md, or an older README that still holds the markers;
+    without them, :func:`target_page`), keeping the rows of results not given (each row names
+    its config digest), and write no claims page, so no row links one.
     Their summaries join those kept beside the claims page (``<stem>-results.json``; a group of
     the same label and config replaced; ``drop``: config digests whose rows go, see
     :func:`drop_rows`), and the compact tables and the regret figure are drawn again from them
     all. Refused where a folder scores one of the paper's claims: the claims
-    page must then be rewritten from every folder. ``claims``: the claims page the rows link to
-    (default ``docs/claims.md`` beside the README). Rows of another commit than the kept
-    ones' are refused unless ``mixed_commits`` (docs/report.md)."""
+    page must then be rewritten from every folder (an exploratory group's, which scores none, may
+    join). ``claims``: the claims page the summaries are kept beside (default
+    :func:`default_claims`). Rows of another commit than the kept ones' are refused unless
+    ``mixed_commits`` (docs/report.md)."""
     if int(reps) < 100:
         raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
-    _refuse_inside_results(dirs, readme, "--readme")
-    text = _read_readme(readme)
-    claims_path = Path(readme).parent / "docs" / "claims.md" if claims is None else Path(claims)
+    claims_path = default_claims(readme) if claims is None else Path(claims)
+    _refuse_inside_results(dirs, readme, "--page")
+    readme, text, note = target_page(readme, claims_path)
+    _refuse_inside_results(dirs, readme, "--page")
+    if readme.resolve() == claims_path.resolve():
+        raise ReportError(f"--page {str(readme)!r} is the claims page; give the Results page")
     png, data = results_files(claims_path)
     kept = _read_summaries(data)
     a = text.index(README_START) + len(README_START)
@@ -298,19 +413,18 @@ def add_rows(
             "--add and with --overwrite"
         )
     report = build_report(dirs, reps, mixed_commits)
-    if report.claims:
-        scored = sorted({c.group for c in report.claims})
+    if report.scored:
+        scored = sorted({c.group for c in report.scored})
         raise ReportError(
             f"--add: {'; '.join(scored)} score the paper's claims; rerun taskvar report with "
             "every results folder and --out docs/claims.md instead"
         )
-    link = Path(os.path.relpath(claims_path, Path(readme).parent)).as_posix()
-    details = merge_rows(old_rows, results_table(report, link))
+    details = merge_rows(old_rows, results_table(report))  # no claims page: no link
     new = {(s["label"], s["digest"]): s for s in report.summaries}
     others = [s for s in kept if (s["label"], s["digest"]) not in new]
     check_commits(
         [(r.commit, str(r.path)) for g in report.groups for r in g.results[:1]]
-        + [(s.get("commit"), f"the README row {s['label']!r}") for s in others],
+        + [(s.get("commit"), f"the Results row {s['label']!r}") for s in others],
         mixed_commits,
     )
     summaries = [new.pop((s["label"], s["digest"]), s) for s in kept] + list(new.values())
@@ -319,11 +433,13 @@ def add_rows(
     new_text = replace_block(text, block, str(readme)).encode()
     written = []
     data_bytes = _summaries_json(summaries)
-    with folder_lock(Path(readme).resolve().parent, "--readme"):
+    readme.parent.mkdir(parents=True, exist_ok=True)
+    with folder_lock(readme.resolve().parent, "--page"):
         if image is not None:
             written.append(atomic_write(png, lambda f: f.write(image)))
         written.append(atomic_write(data, lambda f: f.write(data_bytes)))
-        written.append(atomic_write(Path(readme), lambda f: f.write(new_text)))
+        written.append(atomic_write(readme, lambda f: f.write(new_text)))
+    report.notes += [note] if note else []
     return written, report
 
 
@@ -379,13 +495,16 @@ def write_report(
 ) -> tuple[list[Path], Report]:
     """``taskvar report``: check everything, compute everything, then write the regret figure
     and the summaries behind it and the compact tables (:func:`results_files`), the claims page
-    ``out``, its profile PNG (``img/<out stem>-profile.png`` beside it) and, with ``readme``, the
-    README's Results block. Results of different commits are refused unless ``mixed_commits``
-    (docs/report.md). Returns the files written and the report."""
+    ``out``, its profile PNG (``img/<out stem>-profile.png`` beside it) and, with ``readme``
+    (``--page``/``--readme``), the Results block of that page (:func:`target_page`: a page of
+    its own where it has no markers). Results of different commits are refused unless
+    ``mixed_commits`` (docs/report.md). Returns the files written and the report (its
+    ``notes``: where the Results went, when not to ``readme``)."""
     out = check_out_path(out)
     _refuse_inside_results(dirs, out, "--out")
+    note = None
     if readme is not None:
-        _refuse_inside_results(dirs, readme, "--readme")
+        _refuse_inside_results(dirs, readme, "--page")
     png = out.parent / "img" / f"{out.stem}-profile.png"
     results_png, data = results_files(out)
     if int(reps) < 100:
@@ -403,7 +522,12 @@ def write_report(
             )
     if not overwrite:
         _read_summaries(data)  # refused where it is someone else's
-    readme_text = None if readme is None else _read_readme(readme)
+    readme_text = None
+    if readme is not None:
+        readme, readme_text, note = target_page(readme, out)
+        _refuse_inside_results(dirs, readme, "--page")
+        if readme.resolve() == out.resolve():
+            raise ReportError(f"--page {str(readme)!r} is the claims page --out; give another")
     report = build_report(dirs, reps, mixed_commits)
     image = profile_png(report, reps)
     results_image = at_a_glance.results_png(report.summaries, PNG_SOFTWARE)
@@ -432,7 +556,9 @@ def write_report(
         written.append(atomic_write(data, lambda f: f.write(data_bytes)))
         written.append(atomic_write(out, lambda f: f.write(page)))
         if new_readme is not None:
+            Path(readme).parent.mkdir(parents=True, exist_ok=True)
             written.append(atomic_write(Path(readme), lambda f: f.write(new_readme)))
+    report.notes += [note] if note else []
     return written, report
 
 
@@ -454,7 +580,11 @@ __all__ = [
     "PNG_SOFTWARE",
     "README_END",
     "README_START",
+    "RESULTS_PAGE",
     "add_rows",
+    "default_claims",
+    "own_page",
+    "target_page",
     "claims_markdown",
     "merge_rows",
     "replace_block",

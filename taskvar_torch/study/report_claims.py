@@ -1,5 +1,8 @@
 """The paper's claims scored on the groups of results folders ``taskvar report`` reads (issue 33;
-docs/claims.md is the page, docs/report.md its guide), on the **sealed held-out** instances:
+docs/claims.md is the page, docs/report.md its guide), on the **sealed held-out** instances only
+(:attr:`~taskvar_torch.study.report_folders.Group.sealed`; a family's other test distributions
+are tabled under their own names) and on groups of >= ``MIN_SEEDS`` training seeds only (a
+smaller group is exploratory: its figures shown, its verdict ``not measured``):
 
 - **Figure 2** (§3.3.1): offline interruption no worse than the averaging policy in almost 80% of
   held-out episodes (:func:`_fig2`);
@@ -10,7 +13,7 @@ docs/claims.md is the page, docs/report.md its guide), on the **sealed held-out*
 
 each aggregated over training seeds with ``rliable`` (:mod:`taskvar_torch.study.aggregate`)
 and given a verdict by the rules in :data:`RULES`. :func:`build_report` computes every group's
-claims, README row, profile panel and the per-group summaries behind the compact tables
+claims, Results row, profile panel and the per-group summaries behind the compact tables
 (:mod:`~taskvar_torch.study.report_results`); :mod:`~taskvar_torch.study.report`
 writes them.
 """
@@ -29,12 +32,14 @@ from taskvar_torch.experiments.curves import trials_to_fraction_of_max
 from taskvar_torch.study import aggregate
 from taskvar_torch.study import report_results as at_a_glance
 from taskvar_torch.study.report_folders import (
+    MIN_SEEDS,
     NOT_FINITE,
     Group,
     ReportError,
     Result,
     check_commits,
     collect,
+    exploratory_note,
 )
 
 NO_WORSE = 0.75
@@ -304,16 +309,12 @@ def _eval(g: Group, reps: int) -> tuple[Claim | None, str, dict[str, Any]]:
     }  # (seeds, points)
     est = aggregate.interval_estimates(scores, reps)
     test = g.config["eval"]["test"]
-    where = "held-out" if test == "heldout" else f"--test {test}"
+    where = "held-out" if g.sealed else f"--test {test}"  # a family's own test, where not sealed
     headline = f"IQM mean return ({where}, {scores[methods[0]].shape[1]} point(s)): " + ", ".join(
         f"{m} {_ci(est[m], '.3f', 'iqm')}" for m in methods
     )
     claim = None
-    if (
-        test == "heldout"
-        and scores[methods[0]].shape[1] >= 2
-        and {"averaging", "options"} <= set(methods)
-    ):
+    if g.sealed and scores[methods[0]].shape[1] >= 2 and {"averaging", "options"} <= set(methods):
         spread = {m: scores[m].max(1) - scores[m].min(1) for m in ("averaging", "options")}
         d = aggregate.paired_differences(spread, [("averaging", "options")], reps)[
             "averaging - options"
@@ -383,7 +384,7 @@ def _scale(g: Group, reps: int) -> str:
 
 @dataclass
 class Report:
-    """What ``taskvar report`` writes: the claims, the README rows, the profile panels and the
+    """What ``taskvar report`` writes: the claims, the Results rows, the profile panels and the
     per-group summaries behind the compact tables and the regret figure
     (:mod:`~taskvar_torch.study.report_results`)."""
 
@@ -393,6 +394,23 @@ class Report:
     profiles: list[tuple[str, dict[str, Any], str]]  # (title, scores, x label)
     reps: int
     summaries: list[dict[str, Any]] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    """One-line notes for stdout (where the Results went when a page had no markers)."""
+
+    @property
+    def scored(self) -> list[Claim]:
+        """The claims given a verdict (an exploratory group's are ``not measured``)."""
+        return [c for c in self.claims if c.verdict != NOT_MEASURED]
+
+
+NOT_MEASURED = "not measured"
+"""The verdict of a claim with no results, or only an exploratory group's (< ``MIN_SEEDS``)."""
+
+
+def _exploratory(claims: list[Claim], g: Group) -> list[Claim]:
+    """An exploratory group's claims: its figures kept, the verdict ``not measured`` and why."""
+    why = f"{exploratory_note(len(g.seeds))} (a claim needs >= {MIN_SEEDS} training seeds)"
+    return [Claim(c.key, c.group, c.ours, NOT_MEASURED, why, c.details) for c in claims]
 
 
 def build_report(
@@ -426,6 +444,10 @@ def build_report(
             summaries.append(_eval_summary(g, scores, reps))
         else:  # the scale experiment's gap closed: its row of the table of every result only
             headline = _scale(g, reps)
+        if g.exploratory:  # tabled and labelled, no verdict (issue 59)
+            mine = [c for c in claims if c.group == g.label]
+            claims = [c for c in claims if c.group != g.label] + _exploratory(mine, g)
+            headline = f"{exploratory_note(len(g.seeds))}; {headline}"
         rows.append((g.label, headline, len(g.seeds), g.digest))
     return Report(groups, claims, rows, profiles, reps, summaries)
 
@@ -552,6 +574,7 @@ def _eval_summary(g: Group, scores: dict[str, np.ndarray], reps: int) -> dict[st
 __all__ = [
     "CLAIMS",
     "NO_WORSE",
+    "NOT_MEASURED",
     "PAPER_METHODS",
     "RULES",
     "SPEED_RATIO",

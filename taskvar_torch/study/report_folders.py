@@ -1,8 +1,10 @@
 """The results folders ``taskvar report`` reads (issue 33; docs/report.md): :func:`load_result` reads
 one folder's ``metrics.json`` and config, :func:`collect` expands every ``DIR`` (a results folder
 or a folder of ``seed<k>/`` results folders) and groups the results by experiment and config (the
-config without its seed), checked: one config per ``DIR``, no training seed twice, at least
-:data:`MIN_SEEDS` seeds. Bad input is one line (:class:`ReportError`, a ``ValueError``).
+config without its seed), checked: one config per ``DIR``, no training seed twice. A group of
+fewer than :data:`MIN_SEEDS` seeds is read too, as exploratory (:attr:`Group.exploratory`: its
+rows say so and it scores no claim, issue 59). Bad input is one line (:class:`ReportError`, a
+``ValueError``).
 
 The claims are scored from these groups by :mod:`~taskvar_torch.study.report_claims` and
 written by :mod:`~taskvar_torch.study.report`.
@@ -25,7 +27,8 @@ from typing import Any
 import yaml
 
 MIN_SEEDS = 5
-"""Training seeds a group needs before it is quoted (issue 33: every headline over >= 5)."""
+"""Training seeds a group needs before it scores a claim (issue 33: every claim over >= 5); a
+group of fewer is exploratory (issue 59): tabled and labelled, no verdict."""
 KINDS = ("windy-fig2", "wargus-fig4", "scale", "eval")
 """``metrics.json`` ``experiment`` values of the results folders it reads."""
 
@@ -52,10 +55,20 @@ class Result:
         commit = code.get("commit") if isinstance(code, dict) else None
         return str(commit) if commit else None
 
+    @property
+    def sealed(self) -> bool:
+        """Whether its scores come from a sealed held-out split (``families.HELDOUT_SEED``): the
+        Figure 2 and Figure 4 experiments' ``heldout`` scores, and a ``taskvar eval`` of a test
+        distribution with a sealed seed (``metrics.json``'s ``sealed_seed``); not a family's other
+        tests, nor an outside family's that has no sealed split (issue 59)."""
+        if self.kind == "eval":
+            return self.metrics.get("sealed_seed") is not None
+        return self.kind in ("windy-fig2", "wargus-fig4")
+
 
 @dataclass
 class Group:
-    """Results of one kind and one config: the unit a claim or a README row is computed on."""
+    """Results of one kind and one config: the unit a claim or a Results row is computed on."""
 
     kind: str
     config: dict[str, Any]
@@ -71,6 +84,16 @@ class Group:
         """The commit of its results (:attr:`Result.commit`; ``None``: none recorded), once
         :func:`check_commits` has found them one."""
         return self.results[0].commit if self.results else None
+
+    @property
+    def exploratory(self) -> bool:
+        """Fewer than :data:`MIN_SEEDS` training seeds: tabled, labelled, and scoring no claim."""
+        return len(self.seeds) < MIN_SEEDS
+
+    @property
+    def sealed(self) -> bool:
+        """Every result of the group scored on a sealed held-out split (:attr:`Result.sealed`)."""
+        return all(r.sealed for r in self.results)
 
     @property
     def digest(self) -> str:
@@ -302,13 +325,12 @@ def collect(dirs: Sequence[str]) -> list[Group]:
         labels.append(label)
     for g, label in zip(groups, labels):
         g.label = label
-    for g in groups:
-        if len(g.seeds) < MIN_SEEDS:
-            raise ReportError(
-                f"{g.label}: {len(g.seeds)} training seed(s) ({', '.join(str(r.path) for r in g.results)}); "
-                f"a claim needs >= {MIN_SEEDS}"
-            )
     return groups
+
+
+def exploratory_note(seeds: int) -> str:
+    """How an exploratory group (fewer than :data:`MIN_SEEDS` training seeds) is labelled."""
+    return f"exploratory: {seeds} seed{'s' if seeds != 1 else ''}, no claims"
 
 
 def commit_text(commit: str | None) -> str:
@@ -375,6 +397,7 @@ __all__ = [
     "check_finite_json",
     "check_commits",
     "commit_text",
+    "exploratory_note",
     "MIN_SEEDS",
     "Group",
     "ReportError",

@@ -1,5 +1,6 @@
-"""The README's Results at a glance (issue 48), written by ``taskvar report``
-(:mod:`taskvar_torch.study.report`) from the same results folders as the claims:
+"""The Results at a glance (issue 48; docs/results.md, linked from the README), written by
+``taskvar report`` (:mod:`taskvar_torch.study.report`) from the same results folders as the
+claims:
 
 - per family, one compact table: the methods as columns, one row per results group (a test
   distribution, a protocol), each cell the method's score as the mean over training seeds with its
@@ -26,6 +27,7 @@ import numpy as np
 from taskvar_torch.config import METHODS
 from taskvar_torch.heads.recurrent import BASELINES, SEES_MORE
 from taskvar_torch.study import aggregate
+from taskvar_torch.study.report_folders import MIN_SEEDS, exploratory_note
 
 CEILING = "informed"
 """The baseline that sees the hidden instance: a ceiling where :func:`ceiling_gate` says so, shown
@@ -223,6 +225,12 @@ def _by_family(summaries: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping
     return out
 
 
+def _seeds(s: Mapping[str, Any]) -> str:
+    """A row's training seeds, labelled exploratory below ``MIN_SEEDS`` (no claims, issue 59)."""
+    n = int(s["seeds"])
+    return str(n) if n >= MIN_SEEDS else f"{n} ({exploratory_note(n)})"
+
+
 def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
     """Per family one table: a row per group, the methods as columns (``-``: not evaluated)."""
     parts = [
@@ -241,7 +249,7 @@ def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
                     "| results | budget, seeds | " + " | ".join(head) + " |",
                     "| --- | --- | " + " | ".join("---" for _ in head) + " |",
                     *(
-                        f"| {s['row']} | {s['budget']}, {s['seeds']} | "
+                        f"| {s['row']} | {s['budget']}, {_seeds(s)} | "
                         + " | ".join(_cell(s, m, summaries) for m in methods)
                         + " |"
                         for s in rows
@@ -366,7 +374,7 @@ def _regret_methods(rows: Sequence[Mapping[str, Any]]) -> list[str]:
 def results_block(
     summaries: Sequence[Mapping[str, Any]], details: str, figure: str | None, missing: int = 0
 ) -> str:
-    """The README's Results block: the regret figure (``figure``: its path from the README) and
+    """The Results block: the regret figure (``figure``: its path from the page) and
     its caption, the per-family tables, then ``details`` (the table of every result) folded
     away; ``missing``: detail rows whose group has no summary (kept from an older README)."""
     parts = []

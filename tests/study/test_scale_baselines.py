@@ -228,7 +228,7 @@ def test_informed_without_features_is_a_one_line_error_before_any_training(tmp_p
     monkeypatch.setattr(scale_cell, "train", no_training)
     with pytest.raises(ValueError, match="family 'wargus'") as e:
         scale.scale(cfg, tmp_path / "out", progress=False, plots=False)
-    assert "\n" not in str(e.value) and "['recurrent']" in str(e.value)
+    assert "\n" not in str(e.value) and "['recurrent', 'blind']" in str(e.value)
     assert scale.load_scale_config(path, ["only=[wargus-32x32]", "baselines=[recurrent]"])
 
 
