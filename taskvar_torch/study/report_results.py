@@ -235,8 +235,7 @@ def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
     """Per family one table: a row per group, the methods as columns (``-``: not evaluated)."""
     parts = [
         "Each cell: the method's score, mean over training seeds [95% stratified-bootstrap CI] "
-        "(rliable); each seed plays its own test episodes, all its methods the same ones. "
-        + LEGEND
+        "(rliable); each seed plays its own test episodes, all its methods the same ones. " + LEGEND
     ]
     for family, rows in _by_family(summaries).items():
         methods = _ordered(sorted({m for s in rows for m in s["methods"]}))
