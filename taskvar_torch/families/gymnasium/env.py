@@ -27,6 +27,7 @@ from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.families.gymnasium.encoder import SpaceEncoder
 from taskvar_torch.families.gymnasium.options import SUBTASK
 from taskvar_torch.families.gymnasium.sub_env import INFO, SubEnv
+from taskvar_torch.guest import UserCodeError, guest, user_error
 
 VECTOR = ("sync", "async")
 """``env.NAME.vector``: Gymnasium's ``SyncVectorEnv`` (one process) or ``AsyncVectorEnv`` (one
@@ -103,11 +104,26 @@ class GymFamilyEnv(BatchedFamilyEnv):
             )
         space = self.vec.single_action_space
         if not isinstance(space, gym.spaces.Discrete):
-            raise ValueError(
-                f"a Gymnasium family needs a Discrete action space, got {type(space).__name__}"
+            raise UserCodeError(
+                f"family {adapter.name!r}: a Gymnasium family needs a Discrete action space, "
+                f"the env's is {space}"
             )
-        self.num_actions, self.action_start = int(space.n), int(space.start)
-        self.encoder = adapter.encoder(self.vec.single_observation_space)
+        self.num_actions, self.action_start = int(space.n), int(space.start)  # start: mapped
+        obs_space = self.vec.single_observation_space
+        self.encoder = (
+            adapter.encoder(obs_space)
+            if adapter.encoder is SpaceEncoder
+            else guest(adapter.name, "encoder(observation_space)", adapter.encoder, obs_space)
+        )
+        self.own_encoder = not isinstance(self.encoder, SpaceEncoder)  # the user's: a guest
+        size = getattr(self.encoder, "size", None)
+        if not isinstance(size, (int, np.integer)) or isinstance(size, bool) or size < 1:
+            raise user_error(
+                adapter.name,
+                "encoder(observation_space)",
+                f"returned an encoder whose size is {size!r}, not an int >= 1 (the observation's "
+                "length)",
+            )
         self.horizon = int(horizon) or adapter.horizon
         self.given = any(o.policy is not None for o in adapter.options)  # given-policy options
         self.robust = adapter.hierarchy is not None  # robustness rewards for its critics
@@ -179,9 +195,26 @@ class GymFamilyEnv(BatchedFamilyEnv):
 
     def _encode(self, obs) -> torch.Tensor:
         """The encoded batch, in a tensor of its own (the vector env, built with ``copy=False``,
-        reuses its observation buffers; :class:`SpaceEncoder` always writes a new tensor)."""
-        x = self.encoder(obs)
-        x = x if isinstance(self.encoder, SpaceEncoder) else torch.as_tensor(x).clone()
+        reuses its observation buffers; :class:`SpaceEncoder` always writes a new tensor). Each
+        sub-environment checked its observation against the space (:mod:`.sub_env`); an encoder
+        of the user's is a guest, and its output must be a finite ``(N, size)``."""
+        if not self.own_encoder:
+            return self.encoder(obs).to(device=self.device, dtype=torch.float32)
+        name, what = self.adapter.name, "encoder(obs)"
+        x = guest(name, what, self.encoder, obs)
+        try:
+            x = torch.as_tensor(x).clone()
+        except (TypeError, ValueError, RuntimeError) as e:
+            raise user_error(
+                name, what, f"returned {type(x).__name__}, not a tensor or array ({e})"
+            ) from None
+        shape = (self.num_envs, int(self.encoder.size))
+        if tuple(x.shape) != shape:
+            raise user_error(
+                name, what, f"returned shape {tuple(x.shape)}, not {shape} (N, encoder.size)"
+            )
+        if not bool(torch.isfinite(x).all()):
+            raise user_error(name, what, "returned a non-finite value (nan or inf)")
         return x.to(device=self.device, dtype=torch.float32)
 
     def _out(self, reward=None, terminated=None, truncated=None) -> TensorDictBase:
