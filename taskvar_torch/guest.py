@@ -86,8 +86,8 @@ def guest(
     except (Exception, SystemExit, KeyboardInterrupt) as e:
         if isinstance(e, KeyboardInterrupt) and _from_a_signal(e):
             raise
-        text = str(e).strip().splitlines()
-        detail = f": {short(text[0], 160)}" if text else ""
+        text = " ".join(str(e).split())
+        detail = f": {text if len(text) <= 160 else text[:157] + '...'}" if text else ""
         if isinstance(e, SystemExit):
             detail = f" (sys.exit({e.code!r}))"
         raise user_error(family, what, f"raised {type(e).__name__}{detail}", where) from e

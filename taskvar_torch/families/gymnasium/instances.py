@@ -78,7 +78,8 @@ class Instances:
         a non-empty dict of numbers with the parameters of the first draw of ``train``."""
         name = next((f"instances[{n!r}]" for n, d in self.named.items() if d is dist), "instances")
         what, where = f"{name}.sample(rng)", f"episode key {int(key)}"
-        instance = guest(self.family, what, dist.sample, np.random.default_rng([int(key), _SALT]))
+        gen = np.random.default_rng([int(key), _SALT])
+        instance = guest(self.family, what, dist.sample, gen, where=where)
         if not isinstance(instance, Mapping) or not instance:
             problem = f"{short(instance, 48)}, not a non-empty dict"
             raise user_error(self.family, what, f"returned {problem}", where)

@@ -23,7 +23,7 @@ from taskvar_torch.families.gymnasium.returns import (
     number_problem,
     observation_problem,
 )
-from taskvar_torch.guest import UserCodeError, guest, short, user_error
+from taskvar_torch.guest import guest, short, user_error
 
 INSTANCE_VIA = ("kwargs", "attributes", "options")
 """How an instance reaches the user's env: ``kwargs``: ``make(instance)`` builds the env anew
@@ -103,9 +103,12 @@ class SubEnv(gym.Env):
             env = self.env.unwrapped
             for name, value in instance.items():
                 if not hasattr(env, name):  # a misspelt key would set a new attribute: no variation
-                    raise UserCodeError(
-                        f"family {self.family!r}: instance key {name!r} is not an attribute of "
-                        f"{type(env).__name__} (instance_via='attributes' sets existing ones only)"
+                    raise user_error(
+                        self.family,
+                        f"instance key {name!r}",
+                        f"is not an attribute of {type(env).__name__} (instance_via='attributes' "
+                        "sets existing ones only)",
+                        self._where(),
                     )
                 self._call(f"setattr(env, {name!r}, value)", setattr, env, name, value)
         self.instance = instance
@@ -120,8 +123,8 @@ class SubEnv(gym.Env):
         return obs, self.report(obs, info, None)
 
     def step(self, action):
+        self.t += 1  # the step being taken, named in a failure's line
         out = self._call("env.step(action)", self.env.step, action)
-        self.t += 1
         obs, reward, terminated, truncated, info = self._unpack("env.step(action)", out, 5)
         for name, value in (("terminated", terminated), ("truncated", truncated)):
             if (problem := flag_problem(value)) is not None:
