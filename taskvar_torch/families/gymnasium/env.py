@@ -14,11 +14,13 @@ observation, as in the batched families. A Gymnasium env's state cannot be saved
 
 from __future__ import annotations
 
+import signal
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
+from gymnasium.vector.async_vector_env import AsyncState
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
@@ -46,6 +48,36 @@ def _shareable(space: gym.Space) -> bool:
         return isinstance(space, basic)
 
     return ok(space)
+
+
+class _AsyncVectorEnv(gym.vector.AsyncVectorEnv):
+    """Gymnasium's ``AsyncVectorEnv``, whose worker errors that are a user's code's
+    (:class:`~taskvar_torch.guest.UserCodeError`: already one line naming the family, the function
+    and where) come back without Gymnasium's log of the worker's traceback."""
+
+    def _raise_if_errors(self, successes) -> None:
+        if all(successes):
+            return
+        errors = [self.error_queue.get() for _ in range(self.num_envs - sum(successes))]
+        for index, *_ in errors:
+            self.parent_pipes[index].close()
+            self.parent_pipes[index] = None
+        self._state = AsyncState.DEFAULT
+        user = [e for e in errors if issubclass(e[1], UserCodeError)]
+        if user:
+            raise user[0][2]
+        for index, _, _, trace in errors:  # as Gymnasium reports them
+            gym.logger.error(f"Received the following error from Worker-{index}: {trace}")
+        raise errors[-1][1](errors[-1][2])
+
+
+def _sub_env(index: int, adapter: Any, first: dict, worker: bool) -> SubEnv:
+    """Sub-environment ``index``; in a worker process (``vector=async``) Ctrl-C is ignored: the
+    command's process handles it and closes the workers, and a ``KeyboardInterrupt`` raised there
+    is the user's code's own (:func:`~taskvar_torch.guest.guest`)."""
+    if worker:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return SubEnv(index, adapter, first)
 
 
 class GymFamilyEnv(BatchedFamilyEnv):
@@ -99,9 +131,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
             probe = SubEnv(0, adapter, first)
             probe.close()
             shared = _shareable(probe.observation_space)
-            self.vec = gym.vector.AsyncVectorEnv(
-                fns, autoreset_mode=mode, shared_memory=shared, copy=False
-            )
+            self.vec = _AsyncVectorEnv(fns, autoreset_mode=mode, shared_memory=shared, copy=False)
         space = self.vec.single_action_space
         if not isinstance(space, gym.spaces.Discrete):
             raise UserCodeError(
@@ -131,8 +161,8 @@ class GymFamilyEnv(BatchedFamilyEnv):
         self._set_seed(seed)
 
     def _sub_env_fn(self, i: int, first: dict):
-        adapter = self.adapter
-        return lambda: SubEnv(i, adapter, first)
+        adapter, worker = self.adapter, self.vector == "async"
+        return lambda: _sub_env(i, adapter, first, worker)
 
     def _specs(self, D: int, O: int) -> None:  # noqa: E741
         N, dev = self.num_envs, self.device

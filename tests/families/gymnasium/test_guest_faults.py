@@ -456,7 +456,9 @@ def test_nothing_written_is_lost(registered, tmp_path, capsys):
     assert _fingerprint(results) == before
 
 
-def _subprocess(attack: str, tmp_path: Path, extra: str = "") -> subprocess.CompletedProcess:
+def _subprocess(
+    attack: str, tmp_path: Path, extra: str = "", *overrides: str
+) -> subprocess.CompletedProcess:
     """``taskvar train`` in a new process (``python -c``: the real ``main`` and exit status), the
     family of ``ATTACKS[attack]`` (or ``extra``'s) registered first."""
     hook = f"""
@@ -470,14 +472,24 @@ def _subprocess(attack: str, tmp_path: Path, extra: str = "") -> subprocess.Comp
         sys.exit(main(sys.argv[1:]))
     """
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    argv = ["train", _config(tmp_path), "--out", str(tmp_path / "run"), *TINY]
+    argv = ["train", _config(tmp_path), "--out", str(tmp_path / "run"), *TINY, *overrides]
     cmd = [sys.executable, "-c", textwrap.dedent(hook), *argv]
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=ROOT)
 
 
-@pytest.mark.parametrize("attack", ["step calls sys.exit(7)", "step raises KeyboardInterrupt"])
-def test_an_exit_or_interrupt_from_the_users_code_is_its_line_in_a_real_process(attack, tmp_path):
-    done = _subprocess(attack, tmp_path)
+@pytest.mark.parametrize(
+    "attack, overrides",
+    [
+        ("step calls sys.exit(7)", ()),
+        ("step raises KeyboardInterrupt", ("env.guest.vector=async",)),  # in a worker process
+    ],
+)
+def test_an_exit_or_interrupt_from_the_users_code_is_its_line_in_a_real_process(
+    attack, overrides, tmp_path
+):
+    """The real ``main`` in a new process: its exit status and its whole stderr (with
+    ``vector=async``, the failure comes from a worker process, without Gymnasium's log)."""
+    done = _subprocess(attack, tmp_path, "", *overrides)
     lines = [x for x in done.stderr.splitlines() if x.strip()]
     assert done.returncode == 2, done.stderr[-3000:]
     assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr[-3000:]
