@@ -67,7 +67,12 @@ def user_error(family: str, what: str, problem: str, where: str = "") -> UserCod
 
 
 def guest(
-    family: str, what: str, fn: Callable[..., Any], *args: Any, where: str = "", **kwargs: Any
+    family: str,
+    what: str,
+    fn: Callable[..., Any],
+    *args: Any,
+    where: str | Callable[[], str] = "",
+    **kwargs: Any,
 ) -> Any:
     """``fn(*args, **kwargs)``, a call into a user's code: any exception it raises (``SystemExit`` and a
     ``KeyboardInterrupt`` of its own included) becomes a one-line :class:`UserCodeError`
@@ -77,7 +82,8 @@ def guest(
         family: the family's name.
         what: the function, as the user knows it (``env.step``, ``option 'upright' policy``).
         fn, args, kwargs: the call.
-        where: where it was called (``sub-environment 0, step 3, observation [...]``).
+        where: where it was called (``sub-environment 0, step 3, observation [...]``), or a
+            function that says it (called on a failure only: the call itself stays cheap).
     """
     try:
         return fn(*args, **kwargs)
@@ -90,7 +96,8 @@ def guest(
         detail = f": {text if len(text) <= 160 else text[:157] + '...'}" if text else ""
         if isinstance(e, SystemExit):
             detail = f" (sys.exit({e.code!r}))"
-        raise user_error(family, what, f"raised {type(e).__name__}{detail}", where) from e
+        at = where() if callable(where) else where
+        raise user_error(family, what, f"raised {type(e).__name__}{detail}", at) from e
 
 
 __all__ = ["SUFFIX", "SignalInterrupt", "UserCodeError", "guest", "short", "user_error"]

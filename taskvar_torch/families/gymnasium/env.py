@@ -29,7 +29,7 @@ from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.families.gymnasium.encoder import SpaceEncoder
 from taskvar_torch.families.gymnasium.options import SUBTASK
 from taskvar_torch.families.gymnasium.sub_env import INFO, SubEnv
-from taskvar_torch.guest import UserCodeError, guest, user_error
+from taskvar_torch.guest import UserCodeError, guest, short, user_error
 
 VECTOR = ("sync", "async")
 """``env.NAME.vector``: Gymnasium's ``SyncVectorEnv`` (one process) or ``AsyncVectorEnv`` (one
@@ -223,28 +223,34 @@ class GymFamilyEnv(BatchedFamilyEnv):
             parts = {k: getattr(self, k).index_put((at,), v[at]) for k, v in parts.items()}
         return parts, x[:, 5 * O :]
 
-    def _encode(self, obs) -> torch.Tensor:
+    def _encode(self, obs, what: str, t: torch.Tensor | None = None) -> torch.Tensor:
         """The encoded batch, in a tensor of its own (the vector env, built with ``copy=False``,
         reuses its observation buffers; :class:`SpaceEncoder` always writes a new tensor). Each
-        sub-environment checked its observation against the space (:mod:`.sub_env`); an encoder
-        of the user's is a guest, and its output must be a finite ``(N, size)``."""
-        if not self.own_encoder:
-            return self.encoder(obs).to(device=self.device, dtype=torch.float32)
-        name, what = self.adapter.name, "encoder(obs)"
-        x = guest(name, what, self.encoder, obs)
-        try:
-            x = torch.as_tensor(x).clone()
-        except (TypeError, ValueError, RuntimeError) as e:
-            raise user_error(
-                name, what, f"returned {type(x).__name__}, not a tensor or array ({e})"
-            ) from None
-        shape = (self.num_envs, int(self.encoder.size))
-        if tuple(x.shape) != shape:
-            raise user_error(
-                name, what, f"returned shape {tuple(x.shape)}, not {shape} (N, encoder.size)"
-            )
-        if not bool(torch.isfinite(x).all()):
-            raise user_error(name, what, "returned a non-finite value (nan or inf)")
+        sub-environment checked its observation's type, dtype and shape against the space
+        (:mod:`.sub_env`); here, once per batch, its values are checked finite (``what`` returned
+        them, at steps ``t``; ``None``: a reset). An encoder of the user's is a guest, and its
+        output must be a finite ``(N, size)``."""
+        name = self.adapter.name
+        if self.own_encoder:
+            x = guest(name, "encoder(obs)", self.encoder, obs)
+            try:
+                x = torch.as_tensor(x).clone()
+            except (TypeError, ValueError, RuntimeError) as e:
+                problem = f"returned {type(x).__name__}, not a tensor or array ({e})"
+                raise user_error(name, "encoder(obs)", problem) from None
+            shape = (self.num_envs, int(self.encoder.size))
+            if tuple(x.shape) != shape:
+                problem = f"returned shape {tuple(x.shape)}, not {shape} (N, encoder.size)"
+                raise user_error(name, "encoder(obs)", problem)
+            what = "encoder(obs)"
+        else:
+            x = self.encoder(obs)
+        finite = torch.isfinite(x).all(dim=1)
+        if not bool(finite.all()):
+            i = int((~finite).nonzero()[0, 0])
+            step = "reset" if t is None else f"step {int(t[i])}"
+            problem = f"returned an observation with a non-finite value (nan or inf): {short(x[i].numpy())}"
+            raise user_error(name, what, problem, f"sub-environment {i}, {step}")
         return x.to(device=self.device, dtype=torch.float32)
 
     def _out(self, reward=None, terminated=None, truncated=None) -> TensorDictBase:
@@ -293,7 +299,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
         values = torch.tensor([[float(v) for v in d.values()] for d in drawn], dtype=torch.float32)
         values = values.reshape(len(drawn), -1).to(self.device)  # drawn, then read: (n, K + H)
         values = torch.cat([values, read if idx is None else read[idx]], dim=1)
-        state["_obs"] = self._encode(obs)
+        state["_obs"] = self._encode(obs, "env.reset(seed, options)")
         if idx is None:
             state["_instance"], state["_t"] = values, torch.zeros_like(key)
         else:
@@ -316,7 +322,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
         )
         t = self._t + 1
         state, _ = self._options(info, None)
-        state["_obs"], state["_t"] = self._encode(obs), t
+        state["_obs"], state["_t"] = self._encode(obs, "env.step(action)", t), t
         self.replace_state(state)
         dev = self.device
         term = torch.as_tensor(terminated, device=dev).reshape(-1, 1)

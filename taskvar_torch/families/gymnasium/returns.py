@@ -5,8 +5,10 @@ problem, as the words after ``returned`` in a one-line
 function and where).
 
 Checked at every reset and step, so they are cheap: an observation's type, dtype and shape against
-the observation space, and finite values in it (a float ``Box``); ``terminated`` and ``truncated``
-bools; a finite number for a reward; a bool for an option's initiation or termination.
+the observation space (its values are checked finite once per batch, on the encoded batch:
+:meth:`~taskvar_torch.families.gymnasium.env.GymFamilyEnv._encode`); ``terminated`` and
+``truncated`` bools; a finite number for a reward; a bool for an option's initiation or
+termination.
 """
 
 from __future__ import annotations
@@ -32,9 +34,7 @@ def _box(space: spaces.Box, obs: Any, where: str) -> str | None:
             f"{where}dtype {obs.dtype}, the observation space's is {space.dtype} ({space}): "
             f"return obs.astype(np.{space.dtype}) or declare that dtype"
         )
-    if obs.dtype.kind == "f" and not np.isfinite(obs).all():
-        return f"{where}a non-finite value (nan or inf): {_cut(obs)}"
-    return None
+    return None  # its values' finiteness: once per batch, on the encoded batch (.env)
 
 
 def _discrete(space: spaces.Discrete, obs: Any, where: str) -> str | None:
@@ -59,7 +59,7 @@ def _multi(space: spaces.MultiDiscrete | spaces.MultiBinary, obs: Any, where: st
 
 def observation_problem(space: spaces.Space, obs: Any, where: str = "") -> str | None:
     """What is wrong with ``obs`` as an element of ``space`` (``None``: nothing): its type, shape
-    or dtype, a non-finite float, a ``Discrete``/``MultiDiscrete`` value outside the space (what
+    or dtype, a ``Discrete``/``MultiDiscrete`` value outside the space (what
     the encoder one-hots); the parts of a ``Dict``/``Tuple`` in turn (``where`` names the part).
     Bounds of a ``Box`` are not checked (envs often step past them); a space of another package's
     (MiniGrid's ``MissionSpace``) is not checked."""

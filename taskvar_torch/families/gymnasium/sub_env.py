@@ -77,6 +77,10 @@ class SubEnv(gym.Env):
         self.metadata = getattr(self.env, "metadata", {})
         self.hidden = np.zeros(0)
         self.t = 0  # steps since the last reset (named in a failure's line)
+        self._calls = self._option_calls(adapter.options)
+        O, H = len(adapter.options), len(adapter.instance_info)  # noqa: E741
+        self._blank = np.zeros(5 * O + H)  # report's array before the calls: -1 for learnt ones
+        self._blank[3 * O : 4 * O] = [-1 if o.policy is None else 0 for o in adapter.options]
 
     def _where(self, obs: Any = _NONE) -> str:
         at = f"sub-environment {self.index}, " + ("reset" if self.t == 0 else f"step {self.t}")
@@ -85,7 +89,7 @@ class SubEnv(gym.Env):
     def _call(
         self, what: str, fn: Callable[..., Any], *args: Any, obs: Any = _NONE, **kwargs: Any
     ) -> Any:
-        return guest(self.family, what, fn, *args, where=self._where(obs), **kwargs)
+        return guest(self.family, what, fn, *args, where=lambda: self._where(obs), **kwargs)
 
     def _refuse(self, what: str, problem: str | None, obs: Any = _NONE) -> None:
         if problem is not None:
@@ -159,12 +163,32 @@ class SubEnv(gym.Env):
             out[name] = float(value)
         return out
 
-    def given_action(self, option: Any, obs: Any, info: dict) -> int:
-        """The action index (from 0) of ``option``'s given policy at ``(obs, info)``; anything
-        but an action of the env's ``Discrete`` action space is a one-line ``UserCodeError``
-        naming the option."""
-        what = f"option {option.name!r} policy(obs, info)"
-        a = self._call(what, option.policy, obs, info, obs=obs)
+    def _option_calls(self, opts: Any) -> list[tuple[int, str, str, Callable[..., Any]]]:
+        """Each option function's place in :meth:`report`'s array, what it returns (``flag``,
+        ``number``, ``action``), its name in a failure's line, and the function, in the order
+        they are called."""
+        O = len(opts)  # noqa: E741
+        calls = []
+        for j, o in enumerate(opts):
+            calls += [
+                (j, "flag", f"option {o.name!r} initiation(obs, info)", o.initiation),
+                (O + j, "flag", f"option {o.name!r} termination(obs, info)", o.termination),
+                (2 * O + j, "number", f"option {o.name!r} reward(obs, info, reward)", o.reward),
+            ]
+            if o.robustness is not None:
+                what = f"option {o.name!r} robustness(obs, info, reward)"
+                calls.append((4 * O + j, "number", what, o.robustness))
+            if o.policy is not None:
+                calls.append(
+                    (3 * O + j, "action", f"option {o.name!r} policy(obs, info)", o.policy)
+                )
+        return calls
+
+    def _given_action(self, what: str, policy: Callable, obs: Any, info: dict, where) -> int:
+        """The action index (from 0) of a given policy at ``(obs, info)``; anything but an action
+        of the env's ``Discrete`` action space is a one-line ``UserCodeError`` naming the
+        option."""
+        a = guest(self.family, what, policy, obs, info, where=where)
         space = self.action_space
         ok = isinstance(a, (int, np.integer)) or (
             isinstance(a, np.ndarray) and a.shape == () and np.issubdtype(a.dtype, np.integer)
@@ -195,30 +219,28 @@ class SubEnv(gym.Env):
                     obs,
                 )
             info = {**info, **extra}
-        opts = self.adapter.options
-        O = len(opts)  # noqa: E741
-        out = np.zeros(5 * O + self.hidden.size)
-        call, refuse = self._call, self._refuse
-        for j, o in enumerate(opts):
-            for k, field in ((j, "initiation"), (O + j, "termination")):
-                what = f"option {o.name!r} {field}(obs, info)"
-                value = call(what, getattr(o, field), obs, info, obs=obs)
+        out = self._blank.copy()
+        family, r = self.family, None if reward is None else float(reward)
+
+        def where() -> str:
+            return self._where(obs)
+
+        for k, kind, what, fn in self._calls:  # (index in out, kind, function's name, function)
+            if kind == "flag":
+                value = guest(family, what, fn, obs, info, where=where)
                 if (problem := flag_problem(value)) is not None:
-                    refuse(what, problem, obs)
+                    self._refuse(what, problem, obs)
                 out[k] = bool(value)
-            for k, field, fn in (
-                (2 * O + j, "reward", o.reward),
-                (4 * O + j, "robustness", o.robustness),
-            ):
-                if reward is None or fn is None:
-                    continue
-                what = f"option {o.name!r} {field}(obs, info, reward)"
-                value = call(what, fn, obs, info, float(reward), obs=obs)
+            elif kind == "number":
+                if r is None:
+                    continue  # after a reset: no transition, no subtask reward
+                value = guest(family, what, fn, obs, info, r, where=where)
                 if (problem := number_problem(value)) is not None:
-                    refuse(what, problem, obs)
+                    self._refuse(what, problem, obs)
                 out[k] = float(value)
-            out[3 * O + j] = -1 if o.policy is None else self.given_action(o, obs, info)
-        out[5 * O :] = self.hidden
+            else:
+                out[k] = self._given_action(what, fn, obs, info, where)
+        out[out.size - self.hidden.size :] = self.hidden
         return {INFO: out}
 
     def close(self):

@@ -194,11 +194,11 @@ ATTACKS: dict[str, tuple[Callable[[], Any], tuple[str, ...]]] = {
     # what the env returns, against its declared spaces
     "nan observation": (
         lambda: faulty_family(step=_obs(lambda o: np.full_like(o, np.nan))),
-        ("env.step(action) returned an observation of a non-finite value", "step 1"),
+        ("env.step(action) returned an observation with a non-finite value", "step 1"),
     ),
     "inf observation at step 2": (
         lambda: faulty_family(step=_obs(lambda o: o * np.float32(np.inf)), at=2),
-        ("returned an observation of a non-finite value", "step 2"),
+        ("returned an observation with a non-finite value", "step 2"),
     ),
     "inf reward": (
         lambda: faulty_family(step=lambda out: (out[0], float("inf"), *out[2:])),
