@@ -56,7 +56,7 @@ def short(value: Any, width: int = 72) -> str:
         text = "{" + ", ".join(f"{k!r}: {short(v, width)}" for k, v in value.items()) + "}"
     else:
         text = repr(value)
-    text = re.sub(r"\s+,", ",", re.sub(r"\[\s+", "[", " ".join(text.split())))
+    text = re.sub(r"\s+([,\]])", r"\1", re.sub(r"\[\s+", "[", " ".join(text.split())))
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
