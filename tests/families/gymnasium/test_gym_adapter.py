@@ -196,7 +196,8 @@ def test_sync_and_async_vector_envs_give_the_same_episodes(registered, tmp_path)
     out = []
     for vector in ("sync", "async"):
         env = fam.make_env(_cfg(fam, tmp_path, f"env.frozenlake.vector={vector}"), 2, seed=4)
-        assert type(env.vec).__name__ == ("SyncVectorEnv" if vector == "sync" else "AsyncVectorEnv")
+        kind = gym.vector.SyncVectorEnv if vector == "sync" else gym.vector.AsyncVectorEnv
+        assert isinstance(env.vec, kind)
         g = torch.Generator().manual_seed(1)
         td, steps = env.reset(), []
         for _ in range(30):
