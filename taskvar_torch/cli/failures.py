@@ -30,7 +30,8 @@ def run_command(
             check_out_path(args.out)
         return run(args)
     except UserCodeError as e:  # a family's own code failed: its line, even behind an interrupt
-        print(f"taskvar {name}: error: {e}", file=sys.stderr)
+        line = (str(e).splitlines() or [""])[0]  # TorchRL appends a collector worker's traceback
+        print(f"taskvar {name}: error: {line}", file=sys.stderr)
         return 2
     except (ValueError, CheckpointError, RuntimeError) as e:
         if (interrupt := _interrupt_behind(e)) is not None:
