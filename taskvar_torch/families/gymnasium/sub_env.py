@@ -175,13 +175,13 @@ class SubEnv(gym.Env):
                 (O + j, "flag", f"option {o.name!r} termination(obs, info)", o.termination),
                 (2 * O + j, "number", f"option {o.name!r} reward(obs, info, reward)", o.reward),
             ]
-            if o.robustness is not None:
-                what = f"option {o.name!r} robustness(obs, info, reward)"
-                calls.append((4 * O + j, "number", what, o.robustness))
             if o.policy is not None:
                 calls.append(
                     (3 * O + j, "action", f"option {o.name!r} policy(obs, info)", o.policy)
                 )
+            if o.robustness is not None:
+                what = f"option {o.name!r} robustness(obs, info, reward)"
+                calls.append((4 * O + j, "number", what, o.robustness))
         return calls
 
     def _given_action(self, what: str, policy: Callable, obs: Any, info: dict, where) -> int:

@@ -197,7 +197,7 @@ ATTACKS: dict[str, tuple[Callable[[], Any], tuple[str, ...]]] = {
         ("env.step(action) returned an observation with a non-finite value", "step 1"),
     ),
     "inf observation at step 2": (
-        lambda: faulty_family(step=_obs(lambda o: o * np.float32(np.inf)), at=2),
+        lambda: faulty_family(step=_obs(lambda o: np.array([np.inf, 0], np.float32)), at=2),
         ("returned an observation with a non-finite value", "step 2"),
     ),
     "inf reward": (
