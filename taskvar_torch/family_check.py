@@ -7,7 +7,9 @@ and N>1 (``torchrl.envs.utils.check_env_specs``), the hidden ``("instance", ...)
 (``index_offset``), exact resume (an env loaded from another's ``state_dict()`` mid-episode
 steps as that one does; skipped for a family declared ``resumable=False``), the horizon, the
 subtasks' shapes, the instance features, and every named test distribution. The first miss is
-a one-line ``ValueError`` that names it.
+a one-line ``ValueError`` that names it; a failure of a user's code inside the family (a
+Gymnasium family's env, options, instances: :mod:`taskvar_torch.guest`) is its own one-line
+``UserCodeError``, naming the function and where.
 
 Examples:
     >>> from taskvar_torch import check_family, family
@@ -25,6 +27,7 @@ from torchrl.envs.utils import check_env_specs
 from taskvar_torch import keys
 from taskvar_torch.config.loader import config_schema
 from taskvar_torch.families import Family, _check_declaration
+from taskvar_torch.guest import UserCodeError
 from taskvar_torch.subtasks.base import Subtasks
 
 _STEPS = 24  # steps of the batch-split and subtask checks
@@ -94,12 +97,16 @@ def _check(fam: Family, n: int) -> None:
     for size in (1, n):
         try:
             env = fam.make_env(cfg, size, seed=0)
+        except UserCodeError:  # its own line: the family, the function, where
+            raise
         except Exception as e:
             raise _fail(fam, f"env_class(**env_kwargs(cfg)) failed at num_envs={size}: {e}") from e
         if tuple(env.batch_size) != (size,):
             raise _fail(fam, f"the env's batch_size must be ({size},), got {tuple(env.batch_size)}")
         try:
             check_env_specs(env, seed=None)
+        except UserCodeError:
+            raise
         except Exception as e:
             msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
             raise _fail(fam, f"check_env_specs fails at num_envs={size}: {msg}") from None
@@ -176,6 +183,8 @@ def _check(fam: Family, n: int) -> None:
         try:
             for point in shift_points(cfg, name):
                 fam.make_env(point.cfg, 1, seed=0, instances=point.instances).reset()
+        except UserCodeError:
+            raise
         except Exception as e:
             raise _fail(fam, f"test distribution {name!r} does not build: {e}") from None
 
@@ -220,6 +229,8 @@ def _check_resume(fam: Family, cfg, n: int) -> None:
                 outputs.append(e.step_and_maybe_reset(x.set(keys.ACTION, a.clone())))
             (out, td), (out_twin, twin) = outputs
             differs = [k for k in out.keys(True, True) if not _same(out[k], out_twin.get(k, None))]
+        except UserCodeError:
+            raise
         except Exception as e:
             differs = [f"an error ({type(e).__name__}: {e})"]
         if not differs:

@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from taskvar_torch.config import atomic_write
+from taskvar_torch.guest import SignalInterrupt
 
 # --------------------------------------------------------------------------------------------
 # the run folder: one run per folder, locked, never silently reused
@@ -535,7 +536,7 @@ class _StopSignals:
 
     def _handle(self, signum: int, frame: Any) -> None:
         if self.signum is not None:
-            raise KeyboardInterrupt
+            raise SignalInterrupt(signum)  # a signal's, not one a family's code raised
         self.signum = signum
 
     def __exit__(self, *exc: Any) -> None:

@@ -16,6 +16,7 @@ from collections.abc import Callable
 
 from taskvar_torch import _startup
 from taskvar_torch.checkpoint import CheckpointError
+from taskvar_torch.guest import SignalInterrupt, UserCodeError
 from taskvar_torch.run_folder import check_out_path
 
 
@@ -28,6 +29,10 @@ def run_command(
         if getattr(args, "out", None) is not None:  # --out '' would be the current folder
             check_out_path(args.out)
         return run(args)
+    except UserCodeError as e:  # a family's own code failed: its line, even behind an interrupt
+        line = (str(e).splitlines() or [""])[0]  # TorchRL appends a collector worker's traceback
+        print(f"taskvar {name}: error: {line}", file=sys.stderr)
+        return 2
     except (ValueError, CheckpointError, RuntimeError) as e:
         if (interrupt := _interrupt_behind(e)) is not None:
             return _interrupted(name, interrupt)
@@ -120,24 +125,36 @@ class _Terminated(KeyboardInterrupt):
 
 class TerminateAsInterrupt:
     """While a command runs in the main thread with the default SIGTERM handler, SIGTERM raises
-    :class:`_Terminated`; the previous handler is restored after."""
+    :class:`_Terminated`; with the default SIGINT handler, Ctrl-C raises a
+    :class:`~taskvar_torch.guest.SignalInterrupt` (a ``KeyboardInterrupt`` that says it is a
+    signal's, not one a family's own code raised: :func:`~taskvar_torch.guest.guest`). The
+    previous handlers are restored after."""
 
     def __enter__(self) -> TerminateAsInterrupt:
-        self._old = None
+        self._old: dict[int, object] = {}
         if threading.current_thread() is threading.main_thread():
+            early = _startup._interrupted_at_start
             current = signal.getsignal(signal.SIGTERM)
-            if current == signal.SIG_DFL or current is _startup._interrupted_at_start:
+            if current == signal.SIG_DFL or current is early:
                 signal.signal(signal.SIGTERM, self._raise)
-                self._old = signal.SIG_DFL
+                self._old[signal.SIGTERM] = signal.SIG_DFL
+            current = signal.getsignal(signal.SIGINT)
+            if current is signal.default_int_handler or current is early:
+                signal.signal(signal.SIGINT, self._interrupt)
+                self._old[signal.SIGINT] = signal.default_int_handler
         return self
 
     @staticmethod
     def _raise(signum: int, frame: object) -> None:
         raise _Terminated
 
+    @staticmethod
+    def _interrupt(signum: int, frame: object) -> None:
+        raise SignalInterrupt(signum)
+
     def __exit__(self, *exc: object) -> None:
-        if self._old is not None:
-            signal.signal(signal.SIGTERM, self._old)
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
 
 
 def _locale_safe(error: UnicodeEncodeError) -> tuple[str | bytes, int]:

@@ -14,11 +14,13 @@ observation, as in the batched families. A Gymnasium env's state cannot be saved
 
 from __future__ import annotations
 
+import signal
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 import torch
+from gymnasium.vector.async_vector_env import AsyncState
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
@@ -27,6 +29,7 @@ from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.families.gymnasium.encoder import SpaceEncoder
 from taskvar_torch.families.gymnasium.options import SUBTASK
 from taskvar_torch.families.gymnasium.sub_env import INFO, SubEnv
+from taskvar_torch.guest import UserCodeError, guest, short, user_error
 
 VECTOR = ("sync", "async")
 """``env.NAME.vector``: Gymnasium's ``SyncVectorEnv`` (one process) or ``AsyncVectorEnv`` (one
@@ -45,6 +48,36 @@ def _shareable(space: gym.Space) -> bool:
         return isinstance(space, basic)
 
     return ok(space)
+
+
+class _AsyncVectorEnv(gym.vector.AsyncVectorEnv):
+    """Gymnasium's ``AsyncVectorEnv``, whose worker errors that are a user's code's
+    (:class:`~taskvar_torch.guest.UserCodeError`: already one line naming the family, the function
+    and where) come back without Gymnasium's log of the worker's traceback."""
+
+    def _raise_if_errors(self, successes) -> None:
+        if all(successes):
+            return
+        errors = [self.error_queue.get() for _ in range(self.num_envs - sum(successes))]
+        for index, *_ in errors:
+            self.parent_pipes[index].close()
+            self.parent_pipes[index] = None
+        self._state = AsyncState.DEFAULT
+        user = [e for e in errors if issubclass(e[1], UserCodeError)]
+        if user:
+            raise user[0][2]
+        for index, _, _, trace in errors:  # as Gymnasium reports them
+            gym.logger.error(f"Received the following error from Worker-{index}: {trace}")
+        raise errors[-1][1](errors[-1][2])
+
+
+def _sub_env(index: int, adapter: Any, first: dict, worker: bool) -> SubEnv:
+    """Sub-environment ``index``; in a worker process (``vector=async``) Ctrl-C is ignored: the
+    command's process handles it and closes the workers, and a ``KeyboardInterrupt`` raised there
+    is the user's code's own (:func:`~taskvar_torch.guest.guest`)."""
+    if worker:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return SubEnv(index, adapter, first)
 
 
 class GymFamilyEnv(BatchedFamilyEnv):
@@ -98,16 +131,29 @@ class GymFamilyEnv(BatchedFamilyEnv):
             probe = SubEnv(0, adapter, first)
             probe.close()
             shared = _shareable(probe.observation_space)
-            self.vec = gym.vector.AsyncVectorEnv(
-                fns, autoreset_mode=mode, shared_memory=shared, copy=False
-            )
+            self.vec = _AsyncVectorEnv(fns, autoreset_mode=mode, shared_memory=shared, copy=False)
         space = self.vec.single_action_space
         if not isinstance(space, gym.spaces.Discrete):
-            raise ValueError(
-                f"a Gymnasium family needs a Discrete action space, got {type(space).__name__}"
+            raise UserCodeError(
+                f"family {adapter.name!r}: a Gymnasium family needs a Discrete action space, "
+                f"the env's is {space}"
             )
-        self.num_actions, self.action_start = int(space.n), int(space.start)
-        self.encoder = adapter.encoder(self.vec.single_observation_space)
+        self.num_actions, self.action_start = int(space.n), int(space.start)  # start: mapped
+        obs_space = self.vec.single_observation_space
+        self.encoder = (
+            adapter.encoder(obs_space)
+            if adapter.encoder is SpaceEncoder
+            else guest(adapter.name, "encoder(observation_space)", adapter.encoder, obs_space)
+        )
+        self.own_encoder = not isinstance(self.encoder, SpaceEncoder)  # the user's: a guest
+        size = getattr(self.encoder, "size", None)
+        if not isinstance(size, (int, np.integer)) or isinstance(size, bool) or size < 1:
+            raise user_error(
+                adapter.name,
+                "encoder(observation_space)",
+                f"returned an encoder whose size is {size!r}, not an int >= 1 (the observation's "
+                "length)",
+            )
         self.horizon = int(horizon) or adapter.horizon
         self.given = any(o.policy is not None for o in adapter.options)  # given-policy options
         self.robust = adapter.hierarchy is not None  # robustness rewards for its critics
@@ -115,8 +161,8 @@ class GymFamilyEnv(BatchedFamilyEnv):
         self._set_seed(seed)
 
     def _sub_env_fn(self, i: int, first: dict):
-        adapter = self.adapter
-        return lambda: SubEnv(i, adapter, first)
+        adapter, worker = self.adapter, self.vector == "async"
+        return lambda: _sub_env(i, adapter, first, worker)
 
     def _specs(self, D: int, O: int) -> None:  # noqa: E741
         N, dev = self.num_envs, self.device
@@ -177,11 +223,34 @@ class GymFamilyEnv(BatchedFamilyEnv):
             parts = {k: getattr(self, k).index_put((at,), v[at]) for k, v in parts.items()}
         return parts, x[:, 5 * O :]
 
-    def _encode(self, obs) -> torch.Tensor:
+    def _encode(self, obs, what: str, t: torch.Tensor | None = None) -> torch.Tensor:
         """The encoded batch, in a tensor of its own (the vector env, built with ``copy=False``,
-        reuses its observation buffers; :class:`SpaceEncoder` always writes a new tensor)."""
-        x = self.encoder(obs)
-        x = x if isinstance(self.encoder, SpaceEncoder) else torch.as_tensor(x).clone()
+        reuses its observation buffers; :class:`SpaceEncoder` always writes a new tensor). Each
+        sub-environment checked its observation's type, dtype and shape against the space
+        (:mod:`.sub_env`); here, once per batch, its values are checked finite (``what`` returned
+        them, at steps ``t``; ``None``: a reset). An encoder of the user's is a guest, and its
+        output must be a finite ``(N, size)``."""
+        name = self.adapter.name
+        if self.own_encoder:
+            x = guest(name, "encoder(obs)", self.encoder, obs)
+            try:
+                x = torch.as_tensor(x).clone()
+            except (TypeError, ValueError, RuntimeError) as e:
+                problem = f"returned {type(x).__name__}, not a tensor or array ({e})"
+                raise user_error(name, "encoder(obs)", problem) from None
+            shape = (self.num_envs, int(self.encoder.size))
+            if tuple(x.shape) != shape:
+                problem = f"returned shape {tuple(x.shape)}, not {shape} (N, encoder.size)"
+                raise user_error(name, "encoder(obs)", problem)
+            what = "encoder(obs)"
+        else:
+            x = self.encoder(obs)
+        finite = torch.isfinite(x).all(dim=1)
+        if not bool(finite.all()):
+            i = int((~finite).nonzero()[0, 0])
+            step = "reset" if t is None else f"step {int(t[i])}"
+            problem = f"returned an observation with a non-finite value (nan or inf): {short(x[i].numpy())}"
+            raise user_error(name, what, problem, f"sub-environment {i}, {step}")
         return x.to(device=self.device, dtype=torch.float32)
 
     def _out(self, reward=None, terminated=None, truncated=None) -> TensorDictBase:
@@ -230,7 +299,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
         values = torch.tensor([[float(v) for v in d.values()] for d in drawn], dtype=torch.float32)
         values = values.reshape(len(drawn), -1).to(self.device)  # drawn, then read: (n, K + H)
         values = torch.cat([values, read if idx is None else read[idx]], dim=1)
-        state["_obs"] = self._encode(obs)
+        state["_obs"] = self._encode(obs, "env.reset(seed, options)")
         if idx is None:
             state["_instance"], state["_t"] = values, torch.zeros_like(key)
         else:
@@ -253,7 +322,7 @@ class GymFamilyEnv(BatchedFamilyEnv):
         )
         t = self._t + 1
         state, _ = self._options(info, None)
-        state["_obs"], state["_t"] = self._encode(obs), t
+        state["_obs"], state["_t"] = self._encode(obs, "env.step(action)", t), t
         self.replace_state(state)
         dev = self.device
         term = torch.as_tensor(terminated, device=dev).reshape(-1, 1)

@@ -61,6 +61,8 @@ class GymAdapter:
     reset_seed: Callable[[int], int] = reset_seed
     apply: Callable[[gym.Env, dict], None] | None = None
     hierarchy: Hierarchy | None = None
+    name: str = "gymnasium"
+    """The family's name, in every one-line failure of the user's code (:mod:`taskvar_torch.guest`)."""
 
     @property
     def instance_keys(self) -> tuple[str, ...]:
@@ -170,7 +172,7 @@ def gym_family(
     if int(horizon) < 1:
         raise ValueError(f"horizon must be >= 1, got {horizon}")
     tree = _hierarchy(hierarchy, options)
-    named = Instances(instances)
+    named = Instances(instances, family=name)
     instance_info = dict(instance_info or {})
     clash = sorted(set(instance_info) & set(named.keys))
     if clash or not all(callable(f) for f in instance_info.values()):
@@ -189,6 +191,7 @@ def gym_family(
         horizon=int(horizon),
         apply=apply,
         hierarchy=tree,
+        name=name,
     )
     if tests is None:
         tests = {

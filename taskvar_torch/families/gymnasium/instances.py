@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from taskvar_torch import rng
+from taskvar_torch.guest import guest, short, user_error
 
 _SALT = 0x1A57A11CE  # the instance generator's stream, apart from the env's reset seed
 
@@ -27,17 +28,18 @@ class Instances:
 
     Args:
         named: name -> distribution (``train`` required, the default).
+        family: the family's name (named in a one-line failure of ``sample``).
     """
 
-    def __init__(self, named: Mapping[str, Any]):
-        self.named = dict(named)
+    def __init__(self, named: Mapping[str, Any], family: str = "gymnasium"):
+        self.named, self.family = dict(named), family
         if "train" not in self.named:
             raise ValueError(f"instances must name a 'train' distribution, got {sorted(named)}")
         for name, dist in self.named.items():
             if not callable(getattr(dist, "sample", None)):
                 raise ValueError(f"instances[{name!r}] must have sample(rng) -> dict")
         self.names = tuple(self.named)
-        self.keys = tuple(self.draw(self.named["train"], 0, "instances['train']"))
+        self.keys = tuple(self.draw(self.named["train"], 0))
         classes = {type(d) for d in self.named.values()}
         one = next(iter(classes))
         self.fields_class = one if len(classes) == 1 and dataclasses.is_dataclass(one) else None
@@ -70,22 +72,27 @@ class Instances:
             raise ValueError(f"instance fields must be among {allowed}, got {unknown}")
         return cls(**fields)
 
-    def draw(self, dist: Any, key: int, where: str = "instances") -> dict[str, Any]:
-        """One instance of ``dist`` from the episode key ``key`` (a uint32)."""
-        instance = dist.sample(np.random.default_rng([int(key), _SALT]))
+    def draw(self, dist: Any, key: int) -> dict[str, Any]:
+        """One instance of ``dist`` from the episode key ``key`` (a uint32): a one-line
+        :class:`~taskvar_torch.guest.UserCodeError` where ``sample`` fails or returns anything but
+        a non-empty dict of numbers with the parameters of the first draw of ``train``."""
+        name = next((f"instances[{n!r}]" for n, d in self.named.items() if d is dist), "instances")
+        what, where = f"{name}.sample(rng)", f"episode key {int(key)}"
+        gen = np.random.default_rng([int(key), _SALT])
+        instance = guest(self.family, what, dist.sample, gen, where=where)
         if not isinstance(instance, Mapping) or not instance:
-            raise ValueError(f"{where}.sample(rng) must return a non-empty dict, got {instance!r}")
+            problem = f"{short(instance, 48)}, not a non-empty dict"
+            raise user_error(self.family, what, f"returned {problem}", where)
         bad = [k for k, v in instance.items() if not isinstance(v, (bool, int, float, np.number))]
         if bad:
-            raise ValueError(
-                f"{where}.sample(rng) must give numbers (bool, int, float), got {bad[0]!r}="
-                f"{instance[bad[0]]!r}"
-            )
+            problem = f"{bad[0]!r}={short(instance[bad[0]], 48)}, not a number (bool, int, float)"
+            raise user_error(self.family, what, f"returned {problem}", where)
         if hasattr(self, "keys") and tuple(instance) != self.keys:
-            raise ValueError(
-                f"{where}.sample(rng) must give the parameters {list(self.keys)} (those of "
-                f"'train'), got {list(instance)}"
+            problem = (
+                f"the parameters {list(instance)}, not {list(self.keys)} (those of the first draw "
+                "of 'train': every draw must give the same names, in the same order)"
             )
+            raise user_error(self.family, what, f"returned {problem}", where)
         return dict(instance)
 
 

@@ -120,7 +120,7 @@ def test_a_policy_that_returns_no_action_is_refused_naming_the_option(registered
             env = fam.make_env(_cfg(fam, tmp_path), 2, seed=0)
             env.reset()
         msg = str(e.value)
-        assert "\n" not in msg and "option 'balance': policy(obs, info) returned" in msg
+        assert "\n" not in msg and "option 'balance' policy(obs, info) returned" in msg
         assert "not an action of Discrete(2)" in msg
         if env is not None:
             env.close()
