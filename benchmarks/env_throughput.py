@@ -7,7 +7,7 @@
         every iteration);
     c1: the improved collector: a ``TensorDictModuleBase`` policy (no ``TensorDictModule`` output
         wrapping), ``track_traj_ids=False``, ``return_same_td=True`` (the batch's memory reused);
-    c2: the fast path ``WindyGridEnv.rollout_fast`` (same batch layout and values as the
+    c2: the fast path ``rollout_fast`` (benchmarks/reference/windy_fast_rollout.py) (same batch layout and values as the
         collector, tested), writing into the previous batch (``out=``).
     All use ``compact_obs=True`` and 16 steps per batch.
 
@@ -19,7 +19,9 @@ from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -33,6 +35,9 @@ import taskvar_torch  # noqa: F401
 from taskvar_torch import rng
 from taskvar_torch.families.windy import WindyGridEnv, WindyLayout, WindyModel
 from taskvar_torch.families.windy import dynamics as windy
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "reference"))
+from windy_fast_rollout import rollout_fast  # noqa: E402  (the reference loop, path c2)
 
 
 def sync(device: torch.device) -> None:
@@ -153,11 +158,11 @@ def bench_collector(n_envs: int, seconds: float, device: torch.device, improved:
 def bench_fast(n_envs: int, seconds: float, device: torch.device) -> float:
     env = WindyGridEnv(num_envs=n_envs, seed=0, validate_actions=False, device=device)
     policy = _RandomPolicy(n_envs, device)
-    batch = env.rollout_fast(policy, STEPS_PER_BATCH, compact_obs=True)
+    batch = rollout_fast(env, policy, STEPS_PER_BATCH, compact_obs=True)
     sync(device)
     frames, t0 = 0, time.perf_counter()
     while time.perf_counter() - t0 < seconds:
-        batch = env.rollout_fast(policy, STEPS_PER_BATCH, compact_obs=True, out=batch)
+        batch = rollout_fast(env, policy, STEPS_PER_BATCH, compact_obs=True, out=batch)
         frames += batch.numel()
     sync(device)
     return frames / (time.perf_counter() - t0)

@@ -17,7 +17,7 @@ raises, the path is reported ``SYNC`` with the error, and the script exits 1. Ho
 - learner updates: ``MultiHeadLearner.update`` on replay samples drawn beforehand (the replay
   buffer's sampling and the logging interval's ``pop_losses`` sync by design and are left out).
 
-Left out: TorchRL's ``step_and_maybe_reset`` / ``rollout`` and ``WindyGridEnv.rollout_fast``, which
+Left out: TorchRL's ``step_and_maybe_reset`` / ``rollout`` and the reference ``rollout_fast``, which
 ask ``done.any()`` on the host to decide on partial resets.
 
 Without CUDA it prints one line saying it was skipped and exits 0 (the paths still run once on

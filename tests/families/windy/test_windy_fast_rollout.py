@@ -1,7 +1,11 @@
-"""``WindyGridEnv.rollout_fast`` gives TorchRL's ``Collector`` batches bit for bit, and the env's
+"""``rollout_fast`` (benchmarks/reference/windy_fast_rollout.py, the reference loop the speed
+benchmark times) gives TorchRL's ``Collector`` batches bit for bit, and the env's
 speed-ups (batched reset draws, in-place hashing, direct state writes) keep its transitions."""
 
 from __future__ import annotations
+
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -10,6 +14,9 @@ from torchrl.collectors import Collector
 
 from taskvar_torch import rng
 from taskvar_torch.families.windy import WindyGridEnv, WindyInstances, make_layout
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks" / "reference"))
+from windy_fast_rollout import rollout_fast  # noqa: E402  (a reference loop, not the library)
 
 CONFIGS = {
     "default": dict(num_envs=64, seed=3),
@@ -72,7 +79,7 @@ def test_rollout_fast_equals_collector(config, policy, compact, reuse):
     )
     batch, ended = None, 0
     for ref in collector:
-        batch = env_f.rollout_fast(pol, T, compact_obs=compact, out=batch if reuse else None)
+        batch = rollout_fast(env_f, pol, T, compact_obs=compact, out=batch if reuse else None)
         _assert_same(ref, batch)
         ended += int(ref["next", "done"].sum())
     collector.shutdown()
@@ -93,14 +100,14 @@ def test_rollout_fast_stores_extra_policy_outputs_and_checks_out():
             return td.set("score", td["cell"].float().unsqueeze(-1) * 0.5)
 
     env = WindyGridEnv(num_envs=8, seed=0)
-    batch = env.rollout_fast(Policy(), 5)
+    batch = rollout_fast(env, Policy(), 5)
     assert batch["score"].shape == (8, 5, 1)
     assert torch.equal(batch["score"].squeeze(-1), batch["cell"].float() * 0.5)
     assert torch.equal(batch["action"], batch["cell"] % 4)
     with pytest.raises(ValueError, match="out has batch size"):
-        env.rollout_fast(Policy(), 6, out=batch)
+        rollout_fast(env, Policy(), 6, out=batch)
     with pytest.raises(ValueError, match="steps must be >= 1"):
-        env.rollout_fast(Policy(), 0)
+        rollout_fast(env, Policy(), 0)
 
 
 def test_reset_draws_equal_the_reference_draws():
