@@ -29,9 +29,10 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
-Config = Any  # taskvar_torch.config.Config (this module is imported by the config package)
+if TYPE_CHECKING:  # this module is imported by the config package: for types only
+    from taskvar_torch.config.schema import Config
 
 FLOAT = 4
 """Bytes of a float32 value."""
