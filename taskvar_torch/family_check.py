@@ -26,7 +26,7 @@ from torchrl.envs.utils import check_env_specs
 
 from taskvar_torch import keys
 from taskvar_torch.config.loader import config_schema
-from taskvar_torch.families import Family, _check_declaration
+from taskvar_torch.families import Family, check_declaration
 from taskvar_torch.guest import UserCodeError
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -73,7 +73,7 @@ def check_family(fam: Family, num_envs: int = 4) -> None:
     """
     from taskvar_torch.families import FAMILIES, register_family
 
-    _check_declaration(fam)
+    check_declaration(fam)
     if "train" not in fam.instance_names:
         raise _fail(fam, "instance_names must include 'train' (the default of env.instances)")
     registered = FAMILIES._families.get(fam.name)

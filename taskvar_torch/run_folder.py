@@ -5,9 +5,9 @@ reused; an interrupted run leaves a resumable checkpoint (docs/design.md, "Train
   on the folder is refused), removes the temporary files a killed write left, and refuses a folder
   already holding a run (:func:`run_files`) unless the run continues from a checkpoint inside it or
   ``--overwrite`` removes the old run first.
-* :func:`_restore_logs` cuts a resumed run's CSV logs back to its checkpoint's frame, so they equal
+* :func:`restore_logs` cuts a resumed run's CSV logs back to its checkpoint's frame, so they equal
   those of an uninterrupted run.
-* :class:`_StopSignals` turns the first SIGINT / SIGTERM into "stop after the current batch"; the
+* :class:`StopSignals` turns the first SIGINT / SIGTERM into "stop after the current batch"; the
   trainer then writes ``checkpoint_<frame>.pt`` and raises :class:`TrainingInterrupted`
   (:func:`_interrupted`) carrying the exact :func:`resume_command`.
 
@@ -481,7 +481,7 @@ def _exchange(a: Path, b: Path) -> bool:
     raise OSError(err, os.strerror(err), str(b))
 
 
-def _restore_logs(src: Path, out: Path, frame: int) -> None:
+def restore_logs(src: Path, out: Path, frame: int) -> None:
     """Write ``out/logs`` as the rows of run folder ``src``'s logs up to ``frame`` (the checkpoint
     a run resumes from): rows a killed or interrupted run logged after it are dropped, so the
     logs of a resumed run equal those of an uninterrupted one. ``src`` may be ``out``."""
@@ -515,12 +515,12 @@ class TrainingInterrupted(RuntimeError):
         self.signum = signum
 
 
-def _last_checkpoint_note(path: Path | None) -> str:
+def last_checkpoint_note(path: Path | None) -> str:
     """What a stopped run's message says of the checkpoint it leaves on disk."""
     return f"the last checkpoint {str(path)!r} is intact" if path else "no checkpoint was written"
 
 
-class _StopSignals:
+class StopSignals:
     """While active (main thread only): the first SIGINT or SIGTERM is recorded in ``signum`` for
     the loop to stop after its current batch; a second one raises ``KeyboardInterrupt`` at once."""
 
@@ -528,7 +528,7 @@ class _StopSignals:
         self.signum: int | None = None
         self._old: dict[int, Any] = {}
 
-    def __enter__(self) -> _StopSignals:
+    def __enter__(self) -> StopSignals:
         if threading.current_thread() is threading.main_thread():
             for sig in (signal.SIGINT, signal.SIGTERM):
                 self._old[sig] = signal.signal(sig, self._handle)

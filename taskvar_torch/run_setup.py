@@ -42,7 +42,7 @@ from taskvar_torch.heads.nstep import nstep_returns
 from taskvar_torch.heads.seeds import stack_seeds
 from taskvar_torch.learning import epsilon_at
 from taskvar_torch.replay import check_replay_state, load_replay_state, make_replay_buffer
-from taskvar_torch.run_folder import _restore_logs
+from taskvar_torch.run_folder import restore_logs
 from taskvar_torch.run_state import (
     TrainingRun,
     collector_carrier,
@@ -234,7 +234,7 @@ def restore_collection(run: TrainingRun, bundle: dict[str, Any], resume: str | o
         ) from None
     carrier.update(TensorDict(bundle["carrier"], batch_size=run.env.batch_size))
     set_rng_state(bundle["rng"], replay_rngs(run.replay_generators))
-    _restore_logs(Path(resume).parent, run.out, run.counters["frames"])
+    restore_logs(Path(resume).parent, run.out, run.counters["frames"])
     if Path(resume).parent.resolve() == run.out.resolve() and Path(resume).name.startswith(
         "checkpoint_"
     ):

@@ -41,7 +41,7 @@ from taskvar_torch.heads.nstep import nstep_returns
 from taskvar_torch.heads.seeds import split_seed
 from taskvar_torch.learning import TrainingDiverged, epsilon_at, learn_batch, non_finite
 from taskvar_torch.replay import EPISODE_REWARD, raw_transitions, replay_state, sample_many
-from taskvar_torch.run_folder import _interrupted, _last_checkpoint_note, _StopSignals
+from taskvar_torch.run_folder import StopSignals, _interrupted, last_checkpoint_note
 from taskvar_torch.run_logs import RunLoggers
 
 HEADS_SNAPSHOTS = "heads"
@@ -103,7 +103,7 @@ def _require_finite(
             which = f" of seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))}"
         raise TrainingDiverged(
             f"non-finite values in the {' and '.join(bad)}{which} at frame {frames}: training "
-            f"diverged (lower train.lr?); nothing written, {_last_checkpoint_note(last)}"
+            f"diverged (lower train.lr?); nothing written, {last_checkpoint_note(last)}"
         )
 
 
@@ -206,7 +206,7 @@ class TrainingRun:
     def report(
         self,
         frames_before: int,
-        stop: _StopSignals,
+        stop: StopSignals,
         logger: RunLoggers,
         pbar: Any,
         start_time: float,
@@ -261,7 +261,7 @@ class TrainingRun:
                     which += f"{', '.join(map(str, bad))})"
             raise TrainingDiverged(
                 f"{e}{which}; stopped at frame {counters['frames']}, "
-                f"{_last_checkpoint_note(self.last_checkpoint)}"
+                f"{last_checkpoint_note(self.last_checkpoint)}"
             ) from None
         if seeds > 1:  # the learner's losses add the seeds' own: log their mean
             row = {k: v / seeds for k, v in row.items()}

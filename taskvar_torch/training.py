@@ -62,10 +62,10 @@ from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import (
     RunFolder,
-    _last_checkpoint_note,
-    _StopSignals,
+    StopSignals,
     check_out_path,
     check_output_folder,
+    last_checkpoint_note,
 )
 from taskvar_torch.run_logs import RunLoggers, check_logger
 from taskvar_torch.run_setup import build_run, check_runtime_only, restore_collection
@@ -214,7 +214,7 @@ def _train_loop(
         )
         start_time, last_log = time.perf_counter(), {}
         on_start()
-        with _StopSignals() as stop:
+        with StopSignals() as stop:
             try:
                 for batch in run.collector:
                     frames_before = run.store(batch)
@@ -234,7 +234,7 @@ def _train_loop(
             except KeyboardInterrupt:
                 raise KeyboardInterrupt(
                     f"aborted by a second signal; nothing written, "
-                    f"{_last_checkpoint_note(run.last_checkpoint)}"
+                    f"{last_checkpoint_note(run.last_checkpoint)}"
                 ) from None
     finally:
         if pbar is not None:

@@ -12,7 +12,7 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments.bundle_eval import _exact_oracle, eval_bundle, format_table
+from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table, point_oracle
 from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import make_method_controller
 from taskvar_torch.families.taxi.oracle import TaxiOracle
@@ -132,7 +132,7 @@ def test_no_regret_without_an_oracle():
     for config in ("configs/wargus.yaml", "configs/windy_large.yaml"):
         cfg = load_config(config)
         (point,) = shift_points(cfg, None, [])
-        assert _exact_oracle(cfg, point) is None, config
+        assert point_oracle(cfg, point) is None, config
     row = {"mean_return": 1.0, "mean_return_ci95": 0.1, "mean_length": 5.0}
     table = format_table(
         {

@@ -16,7 +16,7 @@ import torch
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle
-from taskvar_torch.experiments.paired import _exact_oracle
+from taskvar_torch.experiments.paired import point_oracle
 from taskvar_torch.experiments.regret_frames import (
     CSV_NAME,
     PNG_NAME,
@@ -109,7 +109,7 @@ def test_no_regret_beats_the_optimum_and_a_snapshot_recomputes(run, evaluated):
     heads, cfg = load_heads(snap)
     point = shift_points(cfg, "train", [])[0]
     subtasks = make_subtasks(point.cfg, make_env(point.cfg, 1))
-    oracle = _exact_oracle(cfg, point)
+    oracle = point_oracle(cfg, point)
     for name in data["methods"]:
         ctrl = make_method_controller(point.cfg, name, heads, subtasks)
         exact = exact_episode_returns(oracle, ctrl, point.cfg, instance, start)

@@ -15,7 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from taskvar_torch.config.validate import _validate
+from taskvar_torch.config.validate import validate_config
 
 
 @dataclass(frozen=True)
@@ -317,4 +317,4 @@ class Config:
     """The recurrent baseline's own settings (the rest are the heads' and train's)."""
 
     def __post_init__(self):
-        _validate(self)
+        validate_config(self)

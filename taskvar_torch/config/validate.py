@@ -1,7 +1,7 @@
 """Range and choice checks of a :class:`~taskvar_torch.config.schema.Config`
 (docs/design.md, Configs).
 
-:func:`_validate` runs in ``Config.__post_init__``, so every way of building a config (YAML,
+:func:`validate_config` runs in ``Config.__post_init__``, so every way of building a config (YAML,
 overrides, a checkpoint's dict, ``dataclasses.replace``) is checked. Each error is one line naming
 the dotted key and what is allowed there. The family's own ``env`` keys are checked by the family
 registry (``Family.validate``, taskvar_torch/families/); the other family's keys are never read.
@@ -40,7 +40,9 @@ from taskvar_torch.families import FAMILIES as _REGISTRY
 from taskvar_torch.families import Family, family
 from taskvar_torch.families import one_of as _one_of
 
-if TYPE_CHECKING:  # the schema calls _validate in Config.__post_init__: imported for types only
+if (
+    TYPE_CHECKING
+):  # the schema calls validate_config in Config.__post_init__: imported for types only
     from taskvar_torch.config.schema import Config
 
 
@@ -97,7 +99,7 @@ def _families_with(feature: str) -> str:
     return " or ".join(f"family={f.name!r}" for f in families if getattr(f, feature))
 
 
-def _validate(cfg: Config) -> None:
+def validate_config(cfg: Config) -> None:
     """Check value ranges and choices; every error names the dotted key and what is allowed.
 
     The sections are checked in schema order (top level and env, heads, train, collector, eval

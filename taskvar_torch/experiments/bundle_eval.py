@@ -34,14 +34,14 @@ from taskvar_torch.experiments.baselines import (
 )
 from taskvar_torch.experiments.evaluation import mean_ci95
 from taskvar_torch.experiments.paired import (
-    _affordable,
-    _check_baseline_fits,
-    _check_fits,
-    _exact_oracle,
+    affordable,
+    check_baseline_fits,
+    check_fits,
     episode_seed,
     exact_regret,
     parse_methods,
     play,
+    point_oracle,
 )
 from taskvar_torch.experiments.plots import pyplot, save_figure
 from taskvar_torch.experiments.regret_plots import PNG_NAME as REGRET_PNG
@@ -196,10 +196,10 @@ def _evaluate(
     for point in points:  # every point must fit the bundle before any episode is played
         probe = make_env(point.cfg, 1, instances=point.instances)
         point_subtasks.append(make_subtasks(point.cfg, probe))
-        _check_fits(point, heads, point_subtasks[-1], probe)
+        check_fits(point, heads, point_subtasks[-1], probe)
         for m in methods:
             if m in baselines:
-                _check_baseline_fits(point, baselines[m], probe)
+                check_baseline_fits(point, baselines[m], probe)
     if by_frames:  # its one-line refusals before any episode is played
         from taskvar_torch.experiments.regret_frames import check_by_frames
 
@@ -214,7 +214,7 @@ def _evaluate(
     by_step = None  # per-step regret (one test point, an oracle with step_regret)
     skipped: list[str] = []
     for point, subtasks in zip(points, point_subtasks):
-        oracle = _exact_oracle(cfg, point) if exact is not False else None
+        oracle = point_oracle(cfg, point) if exact is not False else None
         optimum, rows_have_optimum = None, False  # exact per-instance optimum per episode
         per_method = {}
         steps = len(points) == 1 and supports_step_regret(oracle)  # regret against the step
@@ -231,7 +231,7 @@ def _evaluate(
             traced = [r.pop(k, None) for k in ("step_cell", "step_action", "step_alive")]
             per_method[m] = summarise(r, heads.option_names, "averaging" if m in baselines else m)
             instance = {k[len("instance_") :]: v for k, v in r.items() if k.startswith("instance_")}
-            if oracle is not None and exact is None and not _affordable(oracle, instance):
+            if oracle is not None and exact is None and not affordable(oracle, instance):
                 skipped.append(point.label or test_name)
                 oracle = None
             if oracle is not None and m in baselines:  # not memoryless: regret of the sample

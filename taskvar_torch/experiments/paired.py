@@ -84,7 +84,7 @@ def episode_seed(cfg: Config, test: str, seed: int | None) -> int:
     return own
 
 
-def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:
+def check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) -> None:
     """The shifted env must keep the bundle's observation, actions and options."""
     obs = int(env.observation_spec[keys.OBSERVATION].shape[-1])
     spec = getattr(heads, "spec", None)
@@ -103,7 +103,7 @@ def _check_fits(point: EvalPoint, heads: Heads, subtasks: Subtasks, env: Any) ->
         )
 
 
-def _check_baseline_fits(point: EvalPoint, ctrl: Any, env: Any) -> None:
+def check_baseline_fits(point: EvalPoint, ctrl: Any, env: Any) -> None:
     """A baseline's network must fit the test point's observations, actions and (``informed``)
     instance features; ``env`` is a probe of the point."""
     where = point.label or "the test distribution"
@@ -123,14 +123,14 @@ def _check_baseline_fits(point: EvalPoint, ctrl: Any, env: Any) -> None:
             )
 
 
-def _exact_oracle(cfg: Config, point: EvalPoint) -> Any:
+def point_oracle(cfg: Config, point: EvalPoint) -> Any:
     """The exact oracle of a test point, where the family brings one (``Family.oracle``) and it
     covers the point's env (windy: small one-hot layouts)."""
     fam = family(cfg)
     return None if fam.oracle is None else fam.oracle(point.cfg)
 
 
-def _affordable(oracle: Any, instance: dict[str, np.ndarray]) -> bool:
+def affordable(oracle: Any, instance: dict[str, np.ndarray]) -> bool:
     """Whether the oracle's exact returns of these episodes are cheap: the distinct instances it
     would solve (``oracle.exact_solves(*fields)``, else the distinct field tuples) within its
     ``max_exact_solves`` (no such attribute: always)."""

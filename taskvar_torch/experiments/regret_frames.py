@@ -24,7 +24,7 @@ from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import METHODS
 from taskvar_torch.experiments.baselines import available_baselines
 from taskvar_torch.experiments.paired import (
-    _affordable,
+    affordable,
     episode_seed,
     exact_regret,
     parse_methods,
@@ -154,7 +154,7 @@ def regret_by_frames(
     r = play(probe, point, int(episodes), seed, bs, noise_seed)
     instance = {k[len("instance_") :]: v for k, v in r.items() if k.startswith("instance_")}
     start = r["start"]
-    if exact is None and not _affordable(oracle, instance):
+    if exact is None and not affordable(oracle, instance):
         raise ValueError(
             "--by-frames: too many distinct instances for the oracle's exact returns; pass "
             "--exact to compute them anyway (slowly), or fewer --episodes"

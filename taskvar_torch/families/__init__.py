@@ -339,7 +339,7 @@ class _Registry(Mapping):
                 raise TypeError(f"it gives {type(fam).__name__}, not a Family")
             if fam.name != ep.name:
                 raise ValueError(f"the entry point is named {ep.name!r}, its family {fam.name!r}")
-            _check_declaration(fam)
+            check_declaration(fam)
         except (Exception, SystemExit, KeyboardInterrupt) as e:  # not the command's failure
             if isinstance(e, KeyboardInterrupt) and hasattr(e, "signum"):
                 raise  # SIGTERM, turned into an interrupt by the command: the command's to report
@@ -403,7 +403,7 @@ FAMILIES = _Registry()
 """Every family, by its config name (a read-only mapping; add with :func:`register_family`)."""
 
 
-def _check_declaration(fam: Family) -> None:
+def check_declaration(fam: Family) -> None:
     """What :func:`register_family` checks without building anything: one-line errors."""
     if not isinstance(fam.name, str) or not fam.name.isidentifier():
         raise ValueError(f"family name must be an identifier such as 'taxi', got {fam.name!r}")
@@ -476,7 +476,7 @@ def register_family(fam: Family, *, replace: bool = False) -> Family:
     """
     if not isinstance(fam, Family):
         raise ValueError(f"register_family takes a Family, got {type(fam).__name__}")
-    _check_declaration(fam)
+    check_declaration(fam)
     existing = FAMILIES._families.get(fam.name)
     if existing is not None and existing is not fam:
         if fam.name in BUILTIN:

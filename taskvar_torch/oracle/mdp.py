@@ -37,7 +37,7 @@ def gauss_legendre(n: int, low: float, high: float) -> tuple[Tensor, Tensor]:
     return torch.as_tensor(p, dtype=torch.float64), torch.as_tensor(w / 2.0, dtype=torch.float64)
 
 
-def _policy_kernel(P: Tensor, policy: Tensor) -> Tensor:
+def policy_kernel(P: Tensor, policy: Tensor) -> Tensor:
     """``P_pi[b, s, s']`` for a deterministic ``(S,)`` / ``(B, S)`` or stochastic ``(S, A)`` policy."""
     B, S, A, _ = P.shape
     if policy.is_floating_point():  # (S, A) probabilities
@@ -46,7 +46,7 @@ def _policy_kernel(P: Tensor, policy: Tensor) -> Tensor:
     return P.gather(2, pol.view(B, S, 1, 1).expand(B, S, 1, S)).squeeze(2)  # (B, S, S)
 
 
-def _policy_reward(R: Tensor, policy: Tensor) -> Tensor:
+def policy_reward(R: Tensor, policy: Tensor) -> Tensor:
     """``r_pi[b, s]`` from ``R (B, S, A)``."""
     B, S, _ = R.shape
     if policy.is_floating_point():
@@ -92,8 +92,8 @@ def solve_mdp(
     pi = greedy(Q)  # (B, S)
     eye = torch.eye(S, dtype=P.dtype, device=P.device)
     for _ in range(1000):  # policy iteration polish: exact values of the greedy policy
-        Ppi = _policy_kernel(Pc, pi)  # (B, S, S)
-        rpi = _policy_reward(Rf, pi)  # (B, S)
+        Ppi = policy_kernel(Pc, pi)  # (B, S, S)
+        rpi = policy_reward(Rf, pi)  # (B, S)
         Vpi = torch.linalg.solve(eye - gamma * Ppi, rpi.unsqueeze(-1)).squeeze(-1)  # (B, S)
         Q = Rf + gamma * torch.einsum("bsat,bt->bsa", Pc, Vpi)
         pi_new = greedy(Q)

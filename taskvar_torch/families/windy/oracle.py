@@ -29,9 +29,9 @@ from taskvar_torch.families.windy.subtasks import WindySubtasks
 from taskvar_torch.oracle.chains import ControllerChains
 from taskvar_torch.oracle.mdp import (
     TIE_ATOL,
-    _policy_kernel,
-    _policy_reward,
     greedy,
+    policy_kernel,
+    policy_reward,
     snap_ties,
     solve_mdp,
 )
@@ -194,8 +194,8 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
         """
         B, S, K = P.shape[0], self.S, self.O  # K options
         pol = self.option_policies() if policies is None else policies  # (K, S)
-        Po = torch.stack([_policy_kernel(P, pol[o]) for o in range(K)], 2)  # (B, S, K, S')
-        ro = torch.stack([_policy_reward(R, pol[o]) for o in range(K)], 2)  # (B, S, K)
+        Po = torch.stack([policy_kernel(P, pol[o]) for o in range(K)], 2)  # (B, S, K, S')
+        ro = torch.stack([policy_reward(R, pol[o]) for o in range(K)], 2)  # (B, S, K)
         beta = self.termination_table  # (S', K)
         stay = Po * (1.0 - beta.T).view(1, 1, K, S)  # (B, S, K, S')
         eye_o = torch.eye(K, dtype=P.dtype, device=P.device)
@@ -284,7 +284,7 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
         return V[0] if scalar else V
 
     def _evaluate(self, P: Tensor, R: Tensor, policy: Tensor) -> Tensor:
-        Ppi, rpi = _policy_kernel(P, policy), _policy_reward(R, policy)
+        Ppi, rpi = policy_kernel(P, policy), policy_reward(R, policy)
         eye = torch.eye(self.S, dtype=P.dtype, device=P.device)
         return torch.linalg.solve(eye - self.gamma * Ppi, rpi.unsqueeze(-1)).squeeze(-1)
 
@@ -304,7 +304,7 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
         pt, d, scalar = self._instances_arg(p, direction)
         P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
         policy = policy.to(self.device)
-        V = self._finite_horizon(_policy_kernel(P, policy), _policy_reward(R, policy))
+        V = self._finite_horizon(policy_kernel(P, policy), policy_reward(R, policy))
         out = self._select_start(V, start)
         return out[0] if scalar else out
 
@@ -367,7 +367,7 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
         """Exact ``horizon``-step return of a policy in the mean MDP (instance redrawn every step)."""
         P, R = self.mean_mdp()
         policy = policy.to(self.device)
-        V = self._finite_horizon(_policy_kernel(P[None], policy), _policy_reward(R[None], policy))
+        V = self._finite_horizon(policy_kernel(P[None], policy), policy_reward(R[None], policy))
         return self._select_start(V, start)[0]
 
     def expected_return(
