@@ -29,10 +29,9 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Any
 
-if TYPE_CHECKING:  # this module is imported by the config package: for types only
-    from taskvar_torch.config.schema import Config
+Config = Any  # taskvar_torch.config.Config (this module is imported by the config package)
 
 FLOAT = 4
 """Bytes of a float32 value."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import TYPE_CHECKING
+from typing import Any
 
 import torch
 
@@ -40,10 +40,9 @@ from taskvar_torch.families import FAMILIES as _REGISTRY
 from taskvar_torch.families import Family, family
 from taskvar_torch.families import one_of as _one_of
 
-if (
-    TYPE_CHECKING
-):  # the schema calls validate_config in Config.__post_init__: imported for types only
-    from taskvar_torch.config.schema import Config
+Config = Any
+"""A :class:`taskvar_torch.config.schema.Config` (not imported: the schema calls
+:func:`validate_config` in ``Config.__post_init__``, so this module is below it)."""
 
 
 MAX_SEED = rng.MAX_SEED

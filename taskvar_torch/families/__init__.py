@@ -36,9 +36,14 @@ from taskvar_torch import rng
 from taskvar_torch.heads.networks import PatchLayout
 from taskvar_torch.subtasks.base import Subtasks
 
-if TYPE_CHECKING:  # the config package reads this registry, never the reverse: types only
-    from taskvar_torch.config.schema import Config
+if TYPE_CHECKING:
     from taskvar_torch.oracle.protocol import ExactOracle
+
+Config = Any
+"""A :class:`taskvar_torch.config.Config` (not imported: the config package reads this registry,
+never the reverse)."""
+EnvConfig = Any
+"""Its ``env`` section, :class:`taskvar_torch.config.EnvConfig`."""
 
 ENTRY_POINT_GROUP = "taskvar_torch.families"
 """The entry-point group an installed package registers its families under (docs/families.md)."""

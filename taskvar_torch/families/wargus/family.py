@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import torch
 
@@ -28,8 +28,7 @@ from taskvar_torch.families.wargus.dynamics import WargusConfig, WargusInstances
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.families.wargus.subtasks import WargusSubtasks
 
-if TYPE_CHECKING:
-    from taskvar_torch.config.schema import Config
+Config = Any
 
 
 def section(cfg: Config) -> WargusConfig:

@@ -10,7 +10,7 @@ user's package declares its own (docs/families.md).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution, one_of
 from taskvar_torch.families.windy import dynamics as windy
@@ -23,8 +23,7 @@ from taskvar_torch.families.windy.subtasks import WindySubtasks
 from taskvar_torch.heads.networks import PatchLayout
 from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, windy_instance_features
 
-if TYPE_CHECKING:
-    from taskvar_torch.config.schema import Config
+Config = Any
 
 GENERATED = "generated"
 """``env.windy.layout`` value that builds the grid from ``env.windy.height``/``env.windy.width``/... (make_layout)."""
