@@ -8,8 +8,7 @@ Per update, single-threaded, on windy replay data of ``configs/windy.yaml`` (bat
       plain tensors: the stacked heads (averaging, options, switching, the max-value gap) in one
       ``baddbmm`` pass at ``s`` and two on the batch's distinct ``s'`` (gathered back; distinct
       rows by one float64 key per row, ``heads/max_value.py`` ``distinct_rows``), the ``instance`` critic's TD pass and its
-      target grid over the batch's distinct observations x 64 instances, the residual informed
-      head, every loss, one backward, the per-head gradient clip, one fused Adam step and one
+      target grid over the batch's distinct observations x 64 instances, every loss, one backward, the per-head gradient clip, one fused Adam step and one
       ``lerp_`` of every target; the relabelled batch is given (as CleanRL's sample is);
       checked against (iii): the same losses on the same weights and batch;
 (ii') as (ii) with the s' passes and the critic grid on every row (B and B x 64 rows), what the
@@ -50,7 +49,6 @@ from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, make_learner, make_subtasks
 from taskvar_torch.heads.behaviour import BehaviourPolicy
-from taskvar_torch.heads.informed import INFORMED
 from taskvar_torch.heads.max_value import distinct_rows
 from taskvar_torch.heads.networks import head_network
 from taskvar_torch.replay import make_replay_buffer
@@ -134,9 +132,9 @@ class BareHeads:
         s = loss.settings
         assert loss.stack is not None and loss.avg_root is None and loss.seeds == 1
         assert s.double_q and s.mu_bar_temperature is None and s.max_value_estimator == "instance"
-        assert set(loss.heads.heads.keys()) == {*loss.head_names, INFORMED}
+        assert set(loss.heads.heads.keys()) == set(loss.head_names)
         assert set(loss.head_names) == {"averaging", "options", "switching", "max_value"}
-        self.gamma, self.M, self.anchor = s.gamma, s.max_value_instances, s.informed_anchor
+        self.gamma, self.M = s.gamma, s.max_value_instances
         self.full_grid = full_grid
         net = lambda h, n: head_network(h.heads[n] if hasattr(h, "heads") else h[n])  # noqa: E731
         self.idx = {
@@ -157,17 +155,14 @@ class BareHeads:
         tcrit = net(loss.target_heads, "max_value").critic
         self.crit = [tuple(clone(p, True)) for p in _linears(crit)]
         self.tcrit = [tuple(clone(p, False)) for p in _linears(tcrit)]
-        self.inf = [tuple(clone(p, True)) for p in _linears(net(loss.heads, INFORMED))]
-        self.tinf = [tuple(clone(p, False)) for p in _linears(net(loss.target_heads, INFORMED))]
         self.stacked = [*self.ws, *self.bs]
-        self.online = [*self.stacked, *(p for wb in self.crit + self.inf for p in wb)]
-        self.target = [*self.tws, *self.tbs, *(p for wb in self.tcrit + self.tinf for p in wb)]
+        self.online = [*self.stacked, *(p for wb in self.crit for p in wb)]
+        self.target = [*self.tws, *self.tbs, *(p for wb in self.tcrit for p in wb)]
         lr = learner.optimizer.param_groups[0]["lr"]
         self.opt = torch.optim.Adam(self.online, lr=lr, fused=True)
         self.tau = 1.0 - learner.target_updater.eps
         self.max_norm = learner.max_grad_norm
         self.critic_params = [p for wb in self.crit for p in wb]
-        self.informed_params = [p for wb in self.inf for p in wb]
 
     def losses(self, b) -> dict[str, torch.Tensor]:
         B, O, A, i = b.observation.shape[0], self.O, self.A, self.idx  # noqa: E741
@@ -227,24 +222,11 @@ class BareHeads:
         q_hat = q_mu.detach() + F.softplus(gap)
         l_c = (((c - y_c).pow(2) * consistent).sum(0) / den_c).sum()
         l_hat = (((q_hat - q_max).pow(2) * init).sum(0) / init.sum(0).clamp_min(1.0)).sum()
-        # informed (residual): Q_avg.detach() + Delta([s; z]), double DQN
-        d = _mlp(self.inf, torch.cat([b.observation, b.informed], -1))
-        with torch.no_grad():
-            xn = torch.cat([b.next_observation, b.informed_next], -1)
-            qi_n = q_avg_n + _mlp(self.inf, xn)
-            qi_t = q_avg_t + _mlp(self.tinf, xn)
-            y_i = b.reward + self.gamma * notdone * qi_t.gather(-1, qi_n.argmax(-1, True)).squeeze(
-                -1
-            )
-        qi = q_avg.detach() + d
-        l_inf = (qi.gather(-1, b.action.unsqueeze(-1)).squeeze(-1) - y_i).pow(2).mean()
-        l_inf = l_inf + self.anchor * d.pow(2).mean(-1).mean()
         return {
             "loss_averaging": l_avg,
             "loss_options": l_opt,
             "loss_switching": l_sw,
             "loss_max_value": l_c + l_hat,
-            "loss_informed": l_inf,
         }
 
     def update(self, b) -> None:
@@ -256,10 +238,9 @@ class BareHeads:
         coef = (self.max_norm / (sq.sqrt() + 1e-6)).clamp(max=1.0)
         for g in grads:
             g.mul_(coef.view(-1, *([1] * (g.dim() - 1))))
-        for group in (self.critic_params, self.informed_params):
-            gs = [p.grad for p in group]
-            norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(gs)))
-            torch._foreach_mul_(gs, (self.max_norm / (norm + 1e-6)).clamp(max=1.0))
+        gs = [p.grad for p in self.critic_params]
+        norm = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(gs)))
+        torch._foreach_mul_(gs, (self.max_norm / (norm + 1e-6)).clamp(max=1.0))
         self.opt.step()
         torch._foreach_lerp_(self.target, self.online, self.tau)
 
