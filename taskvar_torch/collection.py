@@ -25,7 +25,7 @@ from torchrl.weight_update import SharedMemWeightSyncScheme
 
 from taskvar_torch import rng
 from taskvar_torch.config import Config
-from taskvar_torch.factory import make_env
+from taskvar_torch.factory import check_family_installed, make_env
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 
 
@@ -69,7 +69,12 @@ def make_collector(
     """
     t = cfg.train
     workers = cfg.collector.num_workers
-    if cfg.collector.backend == "ray":
+    ray = cfg.collector.backend == "ray"
+    if workers > 1 or ray:  # new processes: they must find the family by its name
+        check_family_installed(
+            cfg, "collector.backend=ray" if ray else f"collector.num_workers={workers}"
+        )
+    if ray:
         return make_ray_collector(cfg, behaviour, total_frames)
     if workers == 1:
         return Collector(

@@ -44,7 +44,7 @@ from taskvar_torch.config.controller import check_controller_overrides, with_con
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.controllers import Controller, make_controller
-from taskvar_torch.families import family
+from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
@@ -153,6 +153,18 @@ def training_states(
 
 # --------------------------------------------------------------------------------------------
 # envs and options
+
+
+def check_family_installed(cfg: Config, what: str) -> None:
+    """A one-line ``ValueError`` where ``what`` (a setting that starts new processes) would meet
+    a family registered in this process only: a new process finds a family by its name only if it
+    is built in or installed (an entry point, docs/install.md)."""
+    if not FAMILIES.installed(cfg.family):
+        raise ValueError(
+            f"{what} starts new processes, which find family {cfg.family!r} only if it is built "
+            "in or installed (an entry point: docs/install.md); it was registered in this "
+            "process only: install it, or set collector.num_workers=1"
+        )
 
 
 def make_env(

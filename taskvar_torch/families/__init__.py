@@ -320,6 +320,11 @@ class _Registry(Mapping):
                 self._pending.setdefault(ep.name, ep)
         return self._pending
 
+    def installed(self, name: str) -> bool:
+        """Whether a new process finds family ``name`` by itself: built in, or an installed
+        package's entry point (not one :func:`register_family` added in this process only)."""
+        return name in BUILTIN or name in self._read_entry_points()
+
     def entry_points(self) -> dict[str, str]:
         """Every entry-point family not imported yet: name -> ``module:attr`` (from metadata)."""
         return {

@@ -514,3 +514,15 @@ def sigterm(out, sent=[]):  # noqa: B006 (once per process)
         sent.append(True)
         os.kill(os.getpid(), signal.SIGTERM)
     return out
+
+
+def test_worker_processes_and_a_family_registered_in_this_process_only_is_one_line(tmp_path):
+    """``collector.num_workers > 1`` starts processes that find a family by its name: one
+    registered by ``register_family`` in the command's process only is refused before any starts,
+    in one line naming the family and the fix (it read as an internal error of the package)."""
+    done = _subprocess("step raises", tmp_path, "", "collector.num_workers=2")
+    lines = [x for x in done.stderr.splitlines() if x.strip()]
+    assert done.returncode == 2, done.stderr[-3000:]
+    assert len(lines) == 1 and "Traceback" not in done.stderr, done.stderr[-3000:]
+    assert "collector.num_workers=2 starts new processes" in lines[0]
+    assert f"family {NAME!r}" in lines[0] and "install it" in lines[0]
