@@ -1,5 +1,5 @@
 """What ``make demo`` says about its numbers (issue 48): ``taskvar eval --explain`` reads the
-table in words derived from its numbers (experiments/bundle_eval.py ``explain_table``), and the
+table in words derived from its numbers (experiments/explain.py ``explain_table``), and the
 training summary labels what the budget has not learnt (``families/windy/family.py`` ``_windy_summary``)."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ import torch
 
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
-from taskvar_torch.experiments.bundle_eval import explain_table
+from taskvar_torch.experiments.explain import explain_table
 from taskvar_torch.factory import load_heads
 from taskvar_torch.families.windy import family as windy_family
 from taskvar_torch.heads.validate import compare_with_oracle

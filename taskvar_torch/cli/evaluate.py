@@ -81,7 +81,8 @@ def _eval_arguments(p: argparse.ArgumentParser) -> None:
 
 def _eval_run(args: argparse.Namespace) -> int:
     from taskvar_torch.config.controller import check_controller_overrides
-    from taskvar_torch.experiments.bundle_eval import eval_bundle, explain_table, format_table
+    from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
+    from taskvar_torch.experiments.explain import explain_table
     from taskvar_torch.experiments.regret_frames import format_by_frames
     from taskvar_torch.experiments.shift import parse_shift
 
