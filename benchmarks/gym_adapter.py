@@ -35,7 +35,7 @@ import taskvar_doorkey  # noqa: E402
 from taskvar_torch import keys  # noqa: E402
 from taskvar_torch.config import apply_overrides  # noqa: E402
 from taskvar_torch.config.loader import config_schema  # noqa: E402
-from taskvar_torch.families import FAMILIES, register_family  # noqa: E402
+from taskvar_torch.contract import FAMILIES, register_family  # noqa: E402
 
 ENV_ID = "MiniGrid-DoorKey-5x5-v0"
 ACTIONS = 7

@@ -31,10 +31,10 @@ from importlib import import_module
 from typing import Any
 
 from taskvar_torch.envs.registration import register_envs
-from taskvar_torch.families import Family, TestDistribution, family, register_family
-from taskvar_torch.family_check import check_family
+from taskvar_torch.contract import Family, TestDistribution, family, register_family
 
 _LAZY = {
+    "check_family": "taskvar_torch.family_check",
     "load_config": "taskvar_torch.config",
     "train": "taskvar_torch.training",
     "load_heads": "taskvar_torch.factory",

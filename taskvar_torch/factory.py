@@ -43,8 +43,8 @@ from taskvar_torch.config import Config, TrainConfig, config_from_dict
 from taskvar_torch.config.controller import check_controller_overrides, with_controller_settings
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
+from taskvar_torch.contract import FAMILIES, family
 from taskvar_torch.controllers import Controller, make_controller
-from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic

@@ -26,7 +26,7 @@ from torchrl.envs.utils import check_env_specs
 
 from taskvar_torch import keys
 from taskvar_torch.config.loader import config_schema
-from taskvar_torch.families import Family, check_declaration
+from taskvar_torch.contract import Family, check_declaration
 from taskvar_torch.guest import UserCodeError
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -71,7 +71,7 @@ def check_family(fam: Family, num_envs: int = 4) -> None:
     Raises:
         ValueError: one line naming the first part of the contract ``fam`` misses.
     """
-    from taskvar_torch.families import FAMILIES, register_family
+    from taskvar_torch.contract import FAMILIES, register_family
 
     check_declaration(fam)
     if "train" not in fam.instance_names:

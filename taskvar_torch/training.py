@@ -57,8 +57,8 @@ from taskvar_torch.collection import collects_in_workers, make_collector
 from taskvar_torch.config import Config, apply_overrides, config_from_dict, save_config_yaml
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
+from taskvar_torch.contract import family
 from taskvar_torch.factory import HEADS_NAME, check_device, write_heads
-from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import (
     RunFolder,

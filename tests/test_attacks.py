@@ -546,7 +546,7 @@ def _broken_plugin(tmp_path: Path, monkeypatch, body: str):
     """A family entry point whose module runs ``body`` on import; the registry reloads."""
     import importlib.metadata as md
 
-    import taskvar_torch.families as fams
+    import taskvar_torch.contract as fams
 
     (tmp_path / "bad_plugin.py").write_text(body)
     monkeypatch.syspath_prepend(str(tmp_path))

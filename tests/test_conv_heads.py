@@ -13,10 +13,11 @@ from torch import nn
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
+from taskvar_torch.contract import PatchLayout
 from taskvar_torch.factory import build_heads, load_heads, make_env, make_subtasks
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.env import observation_table
-from taskvar_torch.heads.networks import PatchLayout, StackedConvMLP, head_network
+from taskvar_torch.heads.networks import StackedConvMLP, head_network
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)

@@ -144,7 +144,7 @@ def test_shift_fields_take_their_types_and_unknown_fields_are_named(hall, tmp_pa
 def test_a_broken_entry_point_is_reported_not_fatal(monkeypatch):
     import importlib.metadata as md
 
-    import taskvar_torch.families as fams
+    import taskvar_torch.contract as fams
 
     broken = md.EntryPoint("broken_family", "no_such_module:family", fams.ENTRY_POINT_GROUP)
     monkeypatch.setattr(fams, "_entry_points", lambda: [broken])

@@ -14,7 +14,7 @@ import torch
 from budgets import CORRIDOR_BUDGET  # tests/budgets.py
 from torchrl.envs import TransformedEnv
 
-from taskvar_torch import families
+from taskvar_torch import contract as families
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.bundle_eval import eval_bundle, format_table
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes

@@ -13,7 +13,8 @@ from public_names import MODULES, ROOT, private_uses, taken_names
 
 PUBLIC_MODULES = (
     "taskvar_torch",  # the front door: import taskvar_torch as tv
-    "taskvar_torch.families",  # the family contract and registry
+    "taskvar_torch.contract",  # the family contract and registry
+    "taskvar_torch.families",  # the same names, handed on: the built-in families' package
     "taskvar_torch.families.*",  # a built-in family's package and its modules
     "taskvar_torch.family_check",
     "taskvar_torch.envs.batched",  # the base of a family's batched env

@@ -19,7 +19,7 @@ import torch
 from budgets import CORRIDOR_BUDGET  # tests/budgets.py
 from torchrl.envs import TransformedEnv
 
-from taskvar_torch import families
+from taskvar_torch import contract as families
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes

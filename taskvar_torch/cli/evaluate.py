@@ -144,7 +144,7 @@ def _tests_epilog() -> str:
     from taskvar_torch.config import Config
     from taskvar_torch.config.controller import CONTROLLER_KEYS
     from taskvar_torch.config.help import key_line, unloaded_plugin
-    from taskvar_torch.families import FAMILIES
+    from taskvar_torch.contract import FAMILIES
 
     lines = ["--test, per registered family (the first is the default):"]
     for name, fam in FAMILIES.loaded().items():

@@ -16,7 +16,11 @@ from taskvar_torch.cli.arguments import (
     split_config_and_overrides,
 )
 from taskvar_torch.experiments.registry import EXPERIMENTS as _EXPERIMENTS
-from taskvar_torch.experiments.registry import experiment, experiment_of_folder
+from taskvar_torch.experiments.registry import (
+    experiment,
+    experiment_of_folder,
+    load_experiment_config,
+)
 
 EXPERIMENTS = tuple(_EXPERIMENTS)  # the experiment registry's names (experiments/registry.py)
 
@@ -95,7 +99,9 @@ def _experiment_run(args: argparse.Namespace) -> int:
                 f"config file {config_path!r} cannot apply with --checkpoint: the bundle's own "
                 "config is used; pass experiment.*, eval.* or device overrides instead"
             )
-    cfg = exp.load_config(config_path or exp.default_config_path(), overrides, quick=args.quick)
+    cfg = load_experiment_config(
+        exp, config_path or exp.default_config_path(), overrides, quick=args.quick
+    )
     out = args.out or f"results/{args.name}{'-quick' if args.quick else ''}"
     exp.call(cfg, out, **options)
     return 0

@@ -137,8 +137,8 @@ def _train_run(args: argparse.Namespace) -> int:
 def _print_oracle_summary(path: str | os.PathLike) -> None:
     """Where the family brings an exact oracle that covers the bundle's env, print the learnt
     heads beside it (``Family.oracle_summary``; windy: docs/oracle.md)."""
+    from taskvar_torch.contract import family
     from taskvar_torch.factory import load_heads
-    from taskvar_torch.families import family
 
     heads, cfg = load_heads(path)
     summary = family(cfg).oracle_summary

@@ -12,7 +12,7 @@ Configs).
 
 Every name is importable from ``taskvar_torch.config`` itself, as are :func:`atomic_write`
 (``taskvar_torch/io.py``) and the family helpers the config is read through
-(``taskvar_torch/families/__init__.py``).
+(``taskvar_torch/contract.py``).
 
 Examples:
     >>> cfg = load_config("configs/windy.yaml", ["train.lr=0.01"])
@@ -59,7 +59,7 @@ from taskvar_torch.config.schema import (
     HeadsConfig,
     TrainConfig,
 )
-from taskvar_torch.families import FAMILIES, family
+from taskvar_torch.contract import FAMILIES, family
 from taskvar_torch.io import atomic_write
 
 __all__ = [

@@ -129,7 +129,7 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
             continue
         lines.append(_key_line(cls, f.name, prefix))
     if cls is Config and not prefix:  # each registered family's own keys, read for it only
-        from taskvar_torch.families import FAMILIES
+        from taskvar_torch.contract import FAMILIES
 
         known = FAMILIES.loaded()  # an installed plugin is named, not imported (issue 58)
         for name in sorted(known):
@@ -151,7 +151,7 @@ def key_line(cls: type, key: str) -> str:
         if part in hints:
             cls = hints[part]
         else:  # a family's own section, env.<name>
-            from taskvar_torch.families import FAMILIES
+            from taskvar_torch.contract import FAMILIES
 
             cls = FAMILIES[part].config_class
     return _key_line(cls, name, "".join(p + "." for p in path))
@@ -173,7 +173,7 @@ def families_help() -> str:
     """One line per registered family (read from the registry, installed families included): its
     description, instance distributions (``env.instances``), tests (``eval.test``) and own keys
     (``env.<name>.*``, documented by ``--help-all``)."""
-    from taskvar_torch.families import FAMILIES
+    from taskvar_torch.contract import FAMILIES
 
     lines = []
     for name, fam in FAMILIES.loaded().items():

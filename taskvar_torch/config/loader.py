@@ -38,7 +38,7 @@ from omegaconf.errors import OmegaConfBaseException
 
 from taskvar_torch.config.migration import migrate_config_data, migrate_overrides
 from taskvar_torch.config.schema import Config, EnvConfig
-from taskvar_torch.families import FAMILIES, family
+from taskvar_torch.contract import FAMILIES, family
 from taskvar_torch.io import atomic_write
 
 T = TypeVar("T")

@@ -55,7 +55,7 @@ def observation_size(cfg: Config) -> int:
     """The length of ``cfg``'s observation: the family's ``observation_size`` where it has one,
     else read from a one-environment env."""
     from taskvar_torch import keys
-    from taskvar_torch.families import family
+    from taskvar_torch.contract import family
 
     fam = family(cfg)
     if fam.observation_size is not None:
@@ -82,7 +82,7 @@ def estimate(
         episodes_key: the key or flag that sets them, named by :func:`check_memory`.
         obs_dim: the observation's length (default :func:`observation_size`).
     """
-    from taskvar_torch.families import family
+    from taskvar_torch.contract import family
 
     D = observation_size(cfg) if obs_dim is None else int(obs_dim)
     fam = family(cfg)

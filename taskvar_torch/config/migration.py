@@ -17,7 +17,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from taskvar_torch.config.schema import Config
-from taskvar_torch.families import FAMILIES
+from taskvar_torch.contract import FAMILIES
 
 ANY = object()
 """A :data:`REMOVED_KEYS` value: the key is dropped whatever it holds."""

@@ -36,9 +36,9 @@ from taskvar_torch.config.choices import (
     ROOT_POLICIES,
     TARGET_UPDATES,
 )
-from taskvar_torch.families import FAMILIES as _REGISTRY
-from taskvar_torch.families import Family, family
-from taskvar_torch.families import one_of as _one_of
+from taskvar_torch.contract import FAMILIES as _REGISTRY
+from taskvar_torch.contract import Family, family
+from taskvar_torch.contract import one_of as _one_of
 
 Config = Any
 """A :class:`taskvar_torch.config.schema.Config` (not imported: the schema calls

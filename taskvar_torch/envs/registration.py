@@ -11,7 +11,7 @@ from __future__ import annotations
 def register_envs() -> None:
     """Register the Gymnasium ids of every registered family (idempotent); each installed
     family's entry point is imported, a broken one is a warning naming it."""
-    from taskvar_torch.families import FAMILIES, register_gym_ids
+    from taskvar_torch.contract import FAMILIES, register_gym_ids
 
     for fam in FAMILIES.values():
         register_gym_ids(fam)
@@ -19,7 +19,7 @@ def register_envs() -> None:
 
 def register_builtin_envs() -> None:
     """Register the Gymnasium ids of the built-in families and of those already imported."""
-    from taskvar_torch.families import FAMILIES, register_gym_ids
+    from taskvar_torch.contract import FAMILIES, register_gym_ids
 
     for fam in FAMILIES.loaded().values():
         register_gym_ids(fam)
@@ -27,6 +27,6 @@ def register_builtin_envs() -> None:
 
 def env_ids() -> dict[str, tuple[str, dict]]:
     """Every registered family's Gymnasium ids: id -> ``(entry point, kwargs)``."""
-    from taskvar_torch.families import FAMILIES
+    from taskvar_torch.contract import FAMILIES
 
     return {i: spec for fam in FAMILIES.values() for i, spec in fam.gym_ids.items()}

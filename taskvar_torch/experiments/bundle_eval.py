@@ -27,6 +27,7 @@ import torch
 from taskvar_torch.config.controller import check_controller_overrides, controller_settings
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
+from taskvar_torch.contract import family
 from taskvar_torch.experiments.baselines import (
     available_baselines,
     load_baselines,
@@ -63,7 +64,6 @@ from taskvar_torch.factory import (
     make_subtasks,
     training_states,
 )
-from taskvar_torch.families import family
 from taskvar_torch.oracle.episodes import optimal_episode_returns
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder, refuse_inside

@@ -15,6 +15,7 @@ from torchrl.envs import TransformedEnv
 
 from taskvar_torch import keys, rng
 from taskvar_torch.config import METHODS, Config
+from taskvar_torch.contract import family, sealed_episode_seed
 from taskvar_torch.controllers import Controller
 from taskvar_torch.experiments.baselines import (
     missing_baseline_error,
@@ -24,7 +25,6 @@ from taskvar_torch.experiments.shift import EvalPoint
 from taskvar_torch.factory import (
     make_env,
 )
-from taskvar_torch.families import family, sealed_episode_seed
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.informed import informed_features
 from taskvar_torch.heads.recurrent import BASELINES

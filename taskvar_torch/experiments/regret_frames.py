@@ -22,6 +22,7 @@ import numpy as np
 
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import METHODS
+from taskvar_torch.contract import FAMILIES, family
 from taskvar_torch.experiments.baselines import available_baselines
 from taskvar_torch.experiments.paired import (
     affordable,
@@ -41,7 +42,6 @@ from taskvar_torch.factory import (
     make_subtasks,
     training_states,
 )
-from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.run_state import HEADS_SNAPSHOTS
 from taskvar_torch.subtasks.base import Subtasks

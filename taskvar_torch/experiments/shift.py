@@ -28,7 +28,7 @@ from typing import Any
 import yaml
 
 from taskvar_torch.config import Config, apply_overrides
-from taskvar_torch.families import Family, family
+from taskvar_torch.contract import Family, family
 
 INSTANCE_PREFIX = "env.instances."
 

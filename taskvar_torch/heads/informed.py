@@ -37,7 +37,7 @@ def informed_features(cfg: Config) -> tuple[int, Callable[[TensorDictBase], torc
     ``Family.informed_features(cfg)`` (Wargus: item and patrol positions, a dimension set by the
     config), else ``(instance_dim, instance_features)`` (windy, Taxi); a one-line ``ValueError``
     where the family gives neither (then the informed head is unavailable)."""
-    from taskvar_torch.families import family
+    from taskvar_torch.contract import family
 
     fam = family(cfg)
     if fam.informed_features is not None:
@@ -54,7 +54,7 @@ def informed_features(cfg: Config) -> tuple[int, Callable[[TensorDictBase], torc
 
 def family_instance_keys(cfg: Config) -> tuple[str, ...]:
     """The ``("instance", key)`` fields of the family's env (read from a one-env probe)."""
-    from taskvar_torch.families import family
+    from taskvar_torch.contract import family
 
     env = family(cfg).make_env(cfg, 1)
     return tuple(

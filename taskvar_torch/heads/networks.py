@@ -18,7 +18,6 @@ Examples:
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -27,6 +26,7 @@ from torch import nn
 from torchrl.modules import MLP
 
 from taskvar_torch import keys
+from taskvar_torch.contract import PatchLayout
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {
     "elu": nn.ELU,
@@ -210,21 +210,6 @@ class StackedMLP(nn.Module):
             if i < n - 1:
                 h = self.activation(h)
         return h.view(G, K, R, -1)
-
-
-@dataclass(frozen=True)
-class PatchLayout:
-    """Where the local patch sits in an observation: ``coords_dim`` values, then a
-    ``(channels, size, size)`` patch, channel-major then row-major (``windy_env.observation_table``
-    with ``coords_patch``: 2 coordinates, 3 channels wall/wind/goal, ``size = 2r + 1``)."""
-
-    coords_dim: int
-    channels: int
-    size: int
-
-    @property
-    def obs_dim(self) -> int:
-        return self.coords_dim + self.channels * self.size * self.size
 
 
 class StackedConvMLP(StackedMLP):

@@ -65,30 +65,9 @@ def has_robustness(subtasks: Subtasks) -> bool:
     return type(subtasks).robustness_reward is not Subtasks.robustness_reward
 
 
-WINDY_DIRECTIONS = 4  # north, south, east, west (families/windy/dynamics.py DIRECTIONS)
-WINDY_INSTANCE_DIM = 1 + WINDY_DIRECTIONS  # (p, one_hot(direction))
-
-
 InstanceFeatures = Callable[[TensorDictBase], torch.Tensor]
 """A family's ``instance_features``: transitions ``(B,)`` -> ``(B, F)`` features of their hidden
 ``("instance", ...)`` entries (``families/``, ``Family.instance_features``)."""
-
-
-def windy_instance_features(td: TensorDictBase) -> torch.Tensor | None:
-    """``(B, F)`` features of each windy transition's hidden instance, or ``None`` if the batch has
-    none: ``(p, one_hot(direction))``, F = 5, from ``("instance", "p")`` and
-    ``("instance", "direction")``, which the trainer keeps in the replay only for the ``instance``
-    max-value estimator.
-
-    Only the instance-conditioned max-value critic reads them (offline, privileged: Definition 1's
-    max is over *instances*; ``taskvar_torch/heads/max_value.py``); no controller ever does.
-    """
-    if (keys.INSTANCE, "p") not in td.keys(True, True):
-        return None
-    p = td.get((keys.INSTANCE, "p")).reshape(-1, 1).to(torch.float32)  # (B, 1)
-    direction = td.get((keys.INSTANCE, "direction")).reshape(-1).to(torch.int64)  # (B,)
-    one_hot = torch.nn.functional.one_hot(direction, WINDY_DIRECTIONS).to(torch.float32)  # (B, 4)
-    return torch.cat([p, one_hot], dim=-1)
 
 
 def relabel(

@@ -14,8 +14,8 @@ import numpy as np
 import torch
 
 from taskvar_torch.config import Config
+from taskvar_torch.contract import family
 from taskvar_torch.controllers import Controller
-from taskvar_torch.families import family
 from taskvar_torch.oracle.protocol import ExactOracle
 
 

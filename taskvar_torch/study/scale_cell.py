@@ -22,8 +22,8 @@ from taskvar_torch.config import (
     METHODS,
     Config,
 )
+from taskvar_torch.contract import family
 from taskvar_torch.factory import load_heads
-from taskvar_torch.families import family
 from taskvar_torch.heads.recurrent import (
     BaselineController,
     load_baseline,

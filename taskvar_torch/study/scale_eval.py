@@ -27,10 +27,10 @@ from taskvar_torch import keys
 from taskvar_torch.config import (
     Config,
 )
+from taskvar_torch.contract import family
 from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
 from taskvar_torch.experiments.shift import shift_points
 from taskvar_torch.factory import make_env, make_method_controller, make_subtasks
-from taskvar_torch.families import family
 from taskvar_torch.heads.recurrent import (
     BASELINES,
     BaselineController,

@@ -54,8 +54,8 @@ from pathlib import Path
 from typing import Any
 
 from taskvar_torch.config import Config
+from taskvar_torch.contract import family
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
-from taskvar_torch.families import family
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import ResultsFolder, check_out_path, check_output_folder, folder_lock
 from taskvar_torch.study.sweep_grid import (
@@ -283,7 +283,7 @@ def _sweep(
     write_csv(out / SUMMARY_CSV, rows, fields)
     summary = {
         "config": str(config),
-        "experiment": sorted({family(c).experiment for c in cfgs}),
+        "experiment": sorted({family(c).experiment.name for c in cfgs}),
         "backend": backend,
         "quick": bool(quick),
         "plots": bool(plots),

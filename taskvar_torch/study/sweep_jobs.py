@@ -23,9 +23,8 @@ from typing import Any
 import torch
 
 from taskvar_torch.config import Config, apply_overrides, config_to_dict
-from taskvar_torch.experiments.registry import experiment
+from taskvar_torch.contract import family
 from taskvar_torch.experiments.results import write_json
-from taskvar_torch.families import family
 from taskvar_torch.learning import TrainingDiverged
 from taskvar_torch.study.sweep_grid import SweepPoint, point_name
 from taskvar_torch.training import train
@@ -63,7 +62,7 @@ def run_point(
     if checkpoint is None and (out / "train").is_symlink():
         (out / "train").unlink()  # a killed batched attempt's link: this point now trains alone
     t0 = time.perf_counter()
-    exp = experiment(family(cfg).experiment)
+    exp = family(cfg).experiment
     options = {} if checkpoint is None else {"checkpoint": checkpoint}
     if exp.takes("quick"):
         options["quick"] = quick  # elsewhere --quick only picked the quick overrides
@@ -105,7 +104,7 @@ def batch_refusal(cfg: Config) -> str | None:
     """Why points of ``cfg`` cannot be trained as one seed batch (``None``: they can): the
     family's experiment must evaluate a given bundle (``checkpoint``) and the batched trainer
     must take the config (``train.seeds = 1`` now, one collector process, an MLP trunk)."""
-    exp = experiment(family(cfg).experiment)
+    exp = family(cfg).experiment
     if "checkpoint" not in inspect.signature(exp.function("run")).parameters:
         return f"{exp.name} trains in its own loop, not with taskvar train"
     if cfg.train.seeds != 1:

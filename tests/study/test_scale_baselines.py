@@ -14,7 +14,7 @@ import pytest
 import torch
 from scale_runs import assert_same, record_episodes, run_scale, stack_episodes, without_timing
 
-from taskvar_torch import families
+from taskvar_torch import contract as families
 from taskvar_torch.config import METHODS
 from taskvar_torch.families import FAMILIES
 from taskvar_torch.heads.recurrent import BASELINES

@@ -20,7 +20,7 @@ import gymnasium as gym
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.families import Family, TestDistribution, one_of
+from taskvar_torch.contract import Family, TestDistribution, one_of
 from taskvar_torch.families.gymnasium.encoder import SpaceEncoder
 from taskvar_torch.families.gymnasium.env import VECTOR, GymFamilyEnv
 from taskvar_torch.families.gymnasium.instances import Instances, reset_seed

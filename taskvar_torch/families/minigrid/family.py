@@ -25,11 +25,10 @@ import torch
 from tensordict import TensorDictBase
 
 from taskvar_torch import keys
-from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution
+from taskvar_torch.contract import HELDOUT_SEED, Family, PatchLayout, TestDistribution
 from taskvar_torch.families.minigrid import dynamics as D
 from taskvar_torch.families.minigrid.env import OBS_ENCODINGS, ONEHOT_CHANNELS, PARAMS, MiniGridEnv
 from taskvar_torch.families.minigrid.layouts import INSTANCE_NAMES, TASKS, check_task
-from taskvar_torch.heads.networks import PatchLayout
 
 NAME = "minigrid"
 

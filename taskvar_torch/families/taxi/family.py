@@ -29,7 +29,7 @@ import torch
 from tensordict import TensorDictBase
 
 from taskvar_torch import keys, rng
-from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution
+from taskvar_torch.contract import HELDOUT_SEED, Family, TestDistribution
 from taskvar_torch.families.taxi.dynamics import TaxiInstances, taxi_instances
 from taskvar_torch.families.taxi.env import OBS_ENCODINGS, TaxiEnv
 

@@ -15,10 +15,11 @@ from typing import Any
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.families import (
+from taskvar_torch.contract import (
     HELDOUT_SEED,
     HELDOUT_SEEDS,
     HELDOUT_SIZE,
+    Experiment,
     Family,
     TestDistribution,
     one_of,
@@ -140,12 +141,32 @@ GYM_IDS = {
 """The Wargus family's Gymnasium ids."""
 
 
+FIG4 = Experiment(
+    "wargus-fig4",
+    "taskvar_torch.families.wargus.fig4",
+    run="wargus_fig4",
+    description="lifelong learning curves of the four methods on Wargus (paper Figure 4)",
+    refusals=(
+        (
+            "checkpoint",
+            "wargus-fig4 learns from scratch (lifelong protocol); --checkpoint is not used",
+        ),
+        (
+            "threads",
+            "--threads: wargus-fig4 runs one thread per process (small batches; 2 threads "
+            "under contention ran 10x slower); use --workers N to use more cores",
+        ),
+    ),
+)
+"""Wargus's figure experiment (paper Figure 4, docs/wargus-fig4.md)."""
+
+
 def family() -> Family:
     """The Wargus :class:`Family` (the package's ``taskvar_torch.families`` entry point)."""
     return Family(
         name="wargus",
         description="Wargus resource gathering: item and patrol hidden (paper §3.5)",
-        experiment="wargus-fig4",
+        experiment=FIG4,
         env_kwargs=_wargus_env_kwargs,
         env_class=WargusEnv,
         subtasks=lambda cfg, env: WargusSubtasks(composed_reward=cfg.train.composed_reward),

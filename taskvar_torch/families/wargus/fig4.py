@@ -79,8 +79,8 @@ import torch
 import torch.multiprocessing as mp
 
 from taskvar_torch.config import Config, save_config_yaml
+from taskvar_torch.contract import FAMILIES
 from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
-from taskvar_torch.families import FAMILIES
 from taskvar_torch.families.wargus.family import section
 from taskvar_torch.families.wargus.fig4_metrics import (
     EXPERIMENT,

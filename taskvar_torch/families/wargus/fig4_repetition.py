@@ -22,6 +22,7 @@ import torch
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import make_bundle, rng_state, save_checkpoint
 from taskvar_torch.config import Config
+from taskvar_torch.contract import HELDOUT_SEEDS
 from taskvar_torch.controllers.side_by_side import SideBySide
 from taskvar_torch.experiments.curves import (
     trials_to_fraction_of_max,
@@ -29,7 +30,6 @@ from taskvar_torch.experiments.curves import (
 from taskvar_torch.factory import (
     make_env,
 )
-from taskvar_torch.families import HELDOUT_SEEDS
 from taskvar_torch.families.wargus.dynamics import WargusInstances
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.families.wargus.fig4_agent import (

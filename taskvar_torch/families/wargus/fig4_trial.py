@@ -37,9 +37,9 @@ from torchrl.envs.utils import step_mdp
 
 from taskvar_torch import keys
 from taskvar_torch.config import METHODS, Config
+from taskvar_torch.contract import HELDOUT_SEEDS
 from taskvar_torch.controllers.side_by_side import SideBySide
 from taskvar_torch.experiments.evaluation import run_episodes
-from taskvar_torch.families import HELDOUT_SEEDS
 from taskvar_torch.families.wargus.dynamics import ITEM_LOST, NOMINAL_SEEDS
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy

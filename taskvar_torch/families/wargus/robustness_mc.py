@@ -39,8 +39,8 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.config.schema import Config
+from taskvar_torch.contract import family
 from taskvar_torch.factory import calibrate, make_subtasks, training_states
-from taskvar_torch.families import family
 from taskvar_torch.families.wargus import dynamics as wargus
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.families.wargus.family import section

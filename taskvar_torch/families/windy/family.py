@@ -12,7 +12,18 @@ from __future__ import annotations
 
 from typing import Any
 
-from taskvar_torch.families import HELDOUT_SEED, Family, TestDistribution, one_of
+import torch
+from tensordict import TensorDictBase
+
+from taskvar_torch import keys
+from taskvar_torch.contract import (
+    HELDOUT_SEED,
+    Experiment,
+    Family,
+    PatchLayout,
+    TestDistribution,
+    one_of,
+)
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.config import KEYS as LEGACY_KEYS
 from taskvar_torch.families.windy.config import WindyConfig, section
@@ -20,10 +31,29 @@ from taskvar_torch.families.windy.env import OBS_ENCODINGS, WindyGridEnv
 from taskvar_torch.families.windy.env import observation_size as windy_observation_size
 from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
 from taskvar_torch.families.windy.subtasks import WindySubtasks
-from taskvar_torch.heads.networks import PatchLayout
-from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, windy_instance_features
 
 Config = Any
+
+WINDY_DIRECTIONS = 4  # north, south, east, west (families/windy/dynamics.py DIRECTIONS)
+WINDY_INSTANCE_DIM = 1 + WINDY_DIRECTIONS  # (p, one_hot(direction))
+
+
+def windy_instance_features(td: TensorDictBase) -> torch.Tensor | None:
+    """``(B, F)`` features of each windy transition's hidden instance, or ``None`` if the batch has
+    none: ``(p, one_hot(direction))``, F = 5, from ``("instance", "p")`` and
+    ``("instance", "direction")``, which the trainer keeps in the replay only for the ``instance``
+    max-value estimator.
+
+    Only the instance-conditioned max-value critic reads them (offline, privileged: Definition 1's
+    max is over *instances*; ``taskvar_torch/heads/max_value.py``); no controller ever does.
+    """
+    if (keys.INSTANCE, "p") not in td.keys(True, True):
+        return None
+    p = td.get((keys.INSTANCE, "p")).reshape(-1, 1).to(torch.float32)  # (B, 1)
+    direction = td.get((keys.INSTANCE, "direction")).reshape(-1).to(torch.int64)  # (B,)
+    one_hot = torch.nn.functional.one_hot(direction, WINDY_DIRECTIONS).to(torch.float32)  # (B, 4)
+    return torch.cat([p, one_hot], dim=-1)
+
 
 GENERATED = "generated"
 """``env.windy.layout`` value that builds the grid from ``env.windy.height``/``env.windy.width``/... (make_layout)."""
@@ -317,12 +347,21 @@ def gym_ids() -> dict[str, tuple[str, dict[str, Any]]]:
     }
 
 
+FIG2 = Experiment(
+    "windy-fig2",
+    "taskvar_torch.families.windy.fig2",
+    run="windy_fig2",
+    description="paired rollouts of interruption vs averaging on windy grids (paper Figure 2)",
+)
+"""Windy's figure experiment (paper Figure 2, docs/windy-fig2.md)."""
+
+
 def family() -> Family:
     """The windy :class:`Family` (the package's ``taskvar_torch.families`` entry point)."""
     return Family(
         name="windy",
         description="windy gridworlds: wind strength and direction hidden (paper §3.3.1)",
-        experiment="windy-fig2",
+        experiment=FIG2,
         env_kwargs=windy_env_kwargs,
         env_class=WindyGridEnv,
         subtasks=lambda cfg, env: WindySubtasks(env.model, obs_encoding=section(cfg).obs_encoding),

@@ -52,6 +52,7 @@ from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import Config, save_config_yaml
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
+from taskvar_torch.contract import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE, sealed_episode_seed
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.experiments.bundle_eval import eval_bundle
 from taskvar_torch.experiments.evaluation import run_episodes
@@ -62,7 +63,6 @@ from taskvar_torch.experiments.results import (
     write_json,
 )
 from taskvar_torch.factory import check_device, load_heads, make_env, make_subtasks
-from taskvar_torch.families import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE, sealed_episode_seed
 from taskvar_torch.families.windy import (
     WindyOracle,
     exact_returns,
