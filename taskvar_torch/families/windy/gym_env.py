@@ -12,7 +12,7 @@ from taskvar_torch import keys, rng
 from taskvar_torch.envs import gym_checks
 from taskvar_torch.envs.gym_env import FamilyGymEnv
 from taskvar_torch.families.windy import dynamics as windy
-from taskvar_torch.families.windy.env import WindyGridEnv
+from taskvar_torch.families.windy.env import WindyGridEnv, start_cell
 
 
 class WindyGridGymEnv(FamilyGymEnv):
@@ -65,13 +65,7 @@ class WindyGridGymEnv(FamilyGymEnv):
             if "direction" in inst:
                 pins["_dir"] = windy.direction_index(inst["direction"])
         if options.get("start") is not None:
-            H, W = self.layout.height, self.layout.width
-            r, c = gym_checks.check_cell(options["start"], H, W)
-            if self.layout.rows[r][c] in "#G":
-                raise ValueError(
-                    f"start must be a free (row, col) cell (not a wall or goal), got {options['start']!r}"
-                )
-            pins["_cell"] = r * W + c
+            pins["_cell"] = start_cell(self.layout, options["start"])
         return pins
 
     def pin(self, pins: dict[str, Any]) -> TensorDictBase:
