@@ -1,3 +1,4 @@
-"""What every family's env shares: the batched env base (:mod:`.batched`), Gymnasium's checks
-(:mod:`.gym_checks`) and the registration of the families' Gymnasium ids (:mod:`.registration`).
+"""What every family's env shares: the batched env base (:mod:`.batched`), the Gymnasium env
+over it (:mod:`.gym_env`), Gymnasium's checks (:mod:`.gym_checks`) and the registration of the
+families' Gymnasium ids (:mod:`.registration`).
 The families' own envs live in their packages (``taskvar_torch.families.<name>``)."""

@@ -1,5 +1,5 @@
-"""Input checks shared by the Gymnasium envs of both families (``WindyGridGymEnv``,
-``WargusGymEnv``): one wording for a malformed action, reset option, instance or start cell.
+"""Input checks shared by the families' envs (the Gymnasium env, :mod:`.gym_env`, and the batched
+envs' start cells): one wording for a malformed action, reset option, instance or start cell.
 
 Every check raises a one-line ``ValueError`` naming the argument, what it must be and what it got,
 and returns the cleaned value, so an env can validate all of ``reset``'s inputs before it changes

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
@@ -299,16 +300,14 @@ class MiniGridEnv(BatchedFamilyEnv):
         self.replace_state(state)
 
     def render(self, index: int = 0, mode: str = "ansi"):
-        """Sub-environment ``index`` as text: MiniGrid's ``pprint_grid`` letters."""
-        if mode != "ansi":
-            raise ValueError(f"render mode must be one of ['ansi'], got {mode!r}")
-        return render_ansi(
-            self._grid[index],
-            self.size,
-            int(self._x[index]),
-            int(self._y[index]),
-            int(self._dir[index]),
-        )
+        """Sub-environment ``index`` as text (``ansi``: MiniGrid's ``pprint_grid`` letters) or an
+        image (``rgb_array``: one flat tile a cell, the agent a red square)."""
+        grid, x, y = self._grid[index], int(self._x[index]), int(self._y[index])
+        if mode == "ansi":
+            return render_ansi(grid, self.size, x, y, int(self._dir[index]))
+        if mode == "rgb_array":
+            return render_rgb(grid, self.size, x, y)
+        raise ValueError(f"render mode must be one of ['ansi', 'rgb_array'], got {mode!r}")
 
 
 def render_ansi(grid: torch.Tensor, size: int, x: int, y: int, direction: int) -> str:
@@ -331,3 +330,22 @@ def render_ansi(grid: torch.Tensor, size: int, x: int, y: int, direction: int) -
                 row += letters[obj] + colours[col]
         lines.append(row)
     return "\n".join(lines)
+
+
+COLOURS = np.array(
+    [[255, 0, 0], [0, 255, 0], [0, 0, 255], [112, 39, 195], [255, 255, 0], [100, 100, 100]],
+    dtype=np.uint8,
+)
+"""MiniGrid's colours by index (``minigrid.core.constants.COLORS``)."""
+TILE = 16
+
+
+def render_rgb(grid: torch.Tensor, size: int, x: int, y: int) -> np.ndarray:
+    """A ``(size * TILE, size * TILE, 3)`` uint8 image of one grid ``(W * H, 3)``: each object a
+    flat tile of its colour, the agent a red one, grid lines grey."""
+    cells = grid.view(size, size, 3).numpy()
+    img = COLOURS[cells[..., 1]] * (cells[..., :1] > D.OBJECT_TO_IDX["empty"])
+    img[x, y] = (255, 0, 0)
+    img = img.transpose(1, 0, 2).repeat(TILE, 0).repeat(TILE, 1)  # rows are y
+    img[::TILE], img[:, ::TILE] = 100, 100  # grid lines
+    return np.ascontiguousarray(img, dtype=np.uint8)

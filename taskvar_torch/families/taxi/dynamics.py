@@ -182,10 +182,7 @@ class TaxiModel:
     def __init__(self, device: torch.device | str = "cpu"):
         self.device = torch.device(device)
         nxt, reward, done = _tables()
-        self.np_next, self.np_reward, self.np_done = nxt, reward, done
-        self.np_start_states = initial_states()
         moves, targets = _fickle_tables()
-        self.np_fickle_moves, self.np_fickle_targets = moves, targets
         t = dict(dtype=torch.int64, device=self.device)
         self.next = torch.as_tensor(nxt, **t)
         self.next_flat = self.next.reshape(-1).contiguous()
@@ -193,7 +190,7 @@ class TaxiModel:
         self.reward_flat = self.reward.reshape(-1).contiguous()
         self.done = torch.as_tensor(done, device=self.device)
         self.done_flat = self.done.reshape(-1).contiguous()
-        self.start_states = torch.as_tensor(self.np_start_states, **t)
+        self.start_states = torch.as_tensor(initial_states(), **t)
         self.fickle_moves = torch.as_tensor(moves, device=self.device)
         self.fickle_targets = torch.as_tensor(targets, **t)
         self.fickle_targets_flat = self.fickle_targets.reshape(-1).contiguous()

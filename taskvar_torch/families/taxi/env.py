@@ -50,6 +50,19 @@ def check_state(state: object, name: str = "start") -> int:
     return s
 
 
+def instance_state(q: torch.Tensor, f: torch.Tensor, armed_bits: torch.Tensor) -> dict:
+    """The env state an episode's instance fixes, each ``(n,)``: ``q`` and ``f``, the rain's
+    integer thresholds (outcome 0 when ``u < q``, 1 when ``u < (1 + q) / 2``, else 2) and the
+    fickle arming, Bernoulli(f) from the episode's ``_C_ARMED`` bits (exact on 2^-24)."""
+    return dict(
+        _q=q,
+        _f=f,
+        _thr_intended=rng.probability_threshold(q),
+        _thr_left=rng.probability_threshold(0.5 * (1.0 + q.to(torch.float64))),
+        _armed=(armed_bits >> 8) < rng.probability_threshold(f),
+    )
+
+
 class TaxiEnv(BatchedFamilyEnv):
     """Batched Taxi family (Gymnasium Taxi-v4 with hidden rain and fickle passenger) as a TorchRL
     environment.
@@ -232,20 +245,10 @@ class TaxiEnv(BatchedFamilyEnv):
             state = starts.index_select(0, rng.index_of(bits[-2], starts.numel()))
         else:
             state = torch.full_like(key, self.start)
-        armed = (bits[-1] >> 8) < rng.probability_threshold(f)  # Bernoulli(f), exact on 2^-24
         noise_key = key if self.noise_seed == 0 else rng.hash32(key ^ self._noise_salt)
         key32 = rng.to_i32(noise_key)
         new = dict(
-            _key32=key32,
-            _thr_intended=rng.probability_threshold(q),  # outcome 0 when u < q
-            _thr_left=rng.probability_threshold(
-                0.5 * (1.0 + q.to(torch.float64))
-            ),  # 1 if < (1+q)/2
-            _t=torch.zeros_like(key32),
-            _q=q,
-            _f=f,
-            _armed=armed,
-            _state=state,
+            _key32=key32, _t=torch.zeros_like(key32), _state=state, **instance_state(q, f, bits[-1])
         )
         if idx is not None:  # out-of-place updates: tensors already handed out are never mutated
             new = {k: getattr(self, k).index_put((idx,), v) for k, v in new.items()}

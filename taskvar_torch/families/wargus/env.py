@@ -8,24 +8,11 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
 from taskvar_torch import keys, rng
 from taskvar_torch.compiling import Compiled
+from taskvar_torch.envs import gym_checks
 from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.families.wargus import dynamics as wargus
 from taskvar_torch.families.wargus import render as wargus_render
 from taskvar_torch.families.wargus.dynamics import WargusConfig, WargusInstances, WargusState
-
-
-def check_start(config: WargusConfig, start: tuple[int, int] | None) -> tuple[int, int] | None:
-    """Validate a ``(row, col)`` start cell; ``ValueError`` naming the range."""
-    if start is None:
-        return None
-    try:
-        r, c = (int(v) for v in start)
-    except (TypeError, ValueError):
-        raise ValueError(f"start must be a (row, col) pair of integers, got {start!r}") from None
-    n = config.size
-    if not (0 <= r < n and 0 <= c < n):
-        raise ValueError(f"start must be a (row, col) with row, col in [0, {n - 1}], got {start!r}")
-    return r, c
 
 
 def _dynamics_step(
@@ -153,8 +140,10 @@ class WargusEnv(BatchedFamilyEnv):
         self.model = wargus.WargusModel(self.config, self.device)
         self.instances = wargus.wargus_instances(instances)
         self.horizon = self.config.horizon
-        st = check_start(self.config, start)
-        self.start = None if st is None else torch.tensor(st, dtype=torch.int64, device=self.device)
+        self.start = None
+        if start is not None:
+            cell = gym_checks.check_cell(start, self.config.size, self.config.size)
+            self.start = torch.tensor(cell, dtype=torch.int64, device=self.device)
         self.index_offset = int(index_offset)
         self.validate_actions = (
             self.device.type == "cpu" if validate_actions is None else bool(validate_actions)

@@ -269,21 +269,17 @@ class WindyModel:
         exit_id = np.full(S, -1)
         for k, group in enumerate(layout.exit_cells):
             exit_id[group] = k
-        # numpy copies, used by the single-environment Gymnasium path
-        self.np_move, self.np_push = move, push
-        self.np_is_goal = np.array([layout.char(c) == "G" for c in range(S)])
-        self.np_exit_id = exit_id
-        self.np_start_cells = np.array(layout.cells_of("S"))
         t = dict(dtype=torch.int64, device=self.device)
         self.move = torch.as_tensor(move, **t)
         self.push = torch.as_tensor(push, **t)
         # next_flat[((cell * 4 + action) * 4 + direction) * 2 + gust]: the whole step in one table
         nxt = np.stack([np.broadcast_to(move[:, :, None], (S, A, A)), push[move]], axis=-1)
         self.next_flat = torch.as_tensor(nxt.reshape(-1).copy(), **t)
-        self.is_goal = torch.as_tensor(self.np_is_goal, device=self.device)
+        goal = [layout.char(c) == "G" for c in range(S)]
+        self.is_goal = torch.tensor(goal, device=self.device)
         self.is_windy = torch.as_tensor(windy, device=self.device)
         self.exit_id = torch.as_tensor(exit_id, **t)
-        self.start_cells = torch.as_tensor(self.np_start_cells, **t)
+        self.start_cells = torch.tensor(layout.cells_of("S"), **t)
         self.num_cells, self.num_actions = S, A
 
 

@@ -8,6 +8,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 
 from taskvar_torch import keys, rng
+from taskvar_torch.envs import gym_checks
 from taskvar_torch.envs.batched import BatchedFamilyEnv
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy import render
@@ -113,6 +114,17 @@ def resolve_layout(layout: str | windy.WindyLayout) -> windy.WindyLayout:
     )
 
 
+def start_cell(layout: windy.WindyLayout, start: object) -> int:
+    """The flat cell of a start ``(row, col)``: a pair of integers inside the grid on a free cell
+    (not a wall or goal), else a one-line ``ValueError``."""
+    r, c = gym_checks.check_cell(start, layout.height, layout.width)
+    if layout.rows[r][c] in "#G":
+        raise ValueError(
+            f"start must be a free (row, col) cell (not a wall or goal), got {start!r}"
+        )
+    return r * layout.width + c
+
+
 class WindyGridEnv(BatchedFamilyEnv):
     """Batched windy gridworld family (paper §3.3.1) as a TorchRL environment.
 
@@ -196,16 +208,7 @@ class WindyGridEnv(BatchedFamilyEnv):
         self._obs_table = torch.as_tensor(
             observation_table(self.layout, obs_encoding, patch_radius), device=self.device
         )
-        self.start = None
-        if start is not None:
-            r, c = start
-            H, W = self.layout.height, self.layout.width
-            if not (0 <= r < H and 0 <= c < W):
-                raise ValueError(f"start must be a (row, col) inside {H}x{W}, got {start}")
-            cell = r * W + c
-            if self.layout.char(cell) in "#G":
-                raise ValueError(f"start {start} is a wall or goal cell; choose a free cell")
-            self.start = cell
+        self.start = None if start is None else start_cell(self.layout, start)
         self.index_offset = int(index_offset)
         self.noise_seed = int(noise_seed)
         self._noise_salt = rng.hash32(rng.hash32(self.noise_seed & rng.MASK32) ^ 0x5BD1E995)

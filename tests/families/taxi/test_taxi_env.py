@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -9,9 +11,10 @@ from gymnasium.envs.toy_text.taxi import TaxiEnv as GymTaxi
 from gymnasium.utils.env_checker import check_env
 from torchrl.envs.utils import check_env_specs
 
+from taskvar_torch import rng
 from taskvar_torch.families.taxi import dynamics as taxi
 from taskvar_torch.families.taxi.dynamics import TaxiInstances, TaxiModel, encode
-from taskvar_torch.families.taxi.env import TaxiEnv
+from taskvar_torch.families.taxi.env import _C_ARMED, _C_START, TaxiEnv
 from taskvar_torch.families.taxi.gym_env import TaxiGymEnv
 
 torch.set_num_threads(1)
@@ -278,19 +281,56 @@ def test_factored_observation_is_the_decoded_state():
     assert torch.equal(obs[:, 10:15].argmax(-1), pas) and torch.equal(obs[:, 15:].argmax(-1), dest)
 
 
+class ReferenceTaxi:
+    """A plain-Python Taxi (the model's tables as lists, the keyed streams of
+    ``taskvar_torch.rng``, one draw at a time): the reference the Gymnasium env and the batched
+    env are checked against, bit for bit. Episode ``k`` of seed ``s`` is sub-environment 0's."""
+
+    def __init__(self, instances: str, seed: int):
+        m = TaxiModel()
+        self.next, self.reward = m.next.tolist(), m.reward.tolist()
+        self.done, self.targets = m.done.tolist(), m.fickle_targets.tolist()
+        self.starts, self.instances = m.start_states.tolist(), TaxiInstances.named(instances)
+        self.base, self.episode = rng.sub_env_key(seed, torch.zeros(1, dtype=torch.int64)), -1
+
+    def reset(self) -> int:
+        self.episode += 1
+        key = rng.episode_key(self.base, self.episode)  # (1,)
+        q, f = (float(v[0]) for v in self.instances.sample(key))
+        self.key, self.t = int(key[0]), 0
+        threshold = lambda p: math.ceil(p * (1 << 24))  # noqa: E731  (u < p iff bits < it)
+        self.thr = (threshold(q), threshold(0.5 * (1.0 + q)))
+        self.armed = (rng.draw_bits(self.key, _C_ARMED) >> 8) < threshold(f)
+        start = rng.draw_bits(self.key, _C_START)
+        self.state = self.starts[rng.index_of(start, len(self.starts))]
+        return self.state
+
+    def step(self, a: int) -> tuple[int, float]:
+        s, u = self.state, rng.draw_bits(self.key, 2 * self.t) >> 8  # the rain
+        nxt = self.next[s][a][(u >= self.thr[0]) + (u >= self.thr[1])]
+        if self.armed and (s // 4) % 5 == taxi.IN_TAXI and s // 20 != nxt // 20:  # fickle
+            nxt = self.targets[nxt][rng.index_of(rng.draw_bits(self.key, 2 * self.t + 1), 3)]
+            self.armed = False
+        self.state, self.t = nxt, self.t + 1
+        return nxt, self.reward[s][a]
+
+
 def test_gym_env_check_env_render_and_matches_batched_env():
     for mode in ("ansi", "rgb_array"):
         check_env(TaxiGymEnv(instances="storm", render_mode=mode), skip_render_check=False)
     g = TaxiGymEnv(instances="storm")
     env = TaxiEnv(1, instances="storm", seed=3)
+    ref = ReferenceTaxi("storm", seed=3)
     actions = torch.randint(0, 6, (300, 1), generator=torch.Generator().manual_seed(2))
     batched = rollout(env, actions)
     obs, _ = g.reset(seed=3)
+    assert obs == ref.reset()
     for t, a in enumerate(actions[:, 0].tolist()):
         obs, r, term, trunc, _ = g.step(a)
-        assert (obs, int(r)) == tuple(batched[t, :, 0].tolist())
+        assert (obs, int(r)) == tuple(batched[t, :, 0].tolist()) == ref.step(a)
         if term or trunc:
             obs, _ = g.reset()
+            assert obs == ref.reset()
 
 
 def test_gym_env_action_mask_is_taxi_v4s_and_options_pin_instance_and_state():

@@ -21,6 +21,7 @@ from taskvar_torch.families.windy import (
 from taskvar_torch.families.windy import (
     dynamics as windy,
 )
+from taskvar_torch.families.windy.env import _C_START
 
 ENV_IDS = env_ids()
 torch.set_num_threads(1)
@@ -95,23 +96,54 @@ def test_batched_equals_looped_1000_steps():
     assert batched["done"].sum() > 50  # many episodes, so partial resets were exercised
 
 
+class ReferenceWindy:
+    """A plain-Python windy gridworld (the layout's own neighbours, the keyed streams of
+    ``taskvar_torch.rng``, one draw at a time): the reference the Gymnasium env and the batched
+    env are checked against, bit for bit. Episode ``k`` of seed ``s`` is sub-environment 0's."""
+
+    def __init__(self, layout: WindyLayout, horizon: int, seed: int):
+        self.layout, self.horizon, self.episode = layout, horizon, -1
+        self.base = rng.sub_env_key(seed, torch.zeros(1, dtype=torch.int64))
+
+    def reset(self) -> int:
+        self.episode += 1
+        key = rng.episode_key(self.base, self.episode)  # (1,)
+        p, d = WindyInstances.named("train").sample(key)
+        self.p, self.dir, self.key, self.t = float(p[0]), int(d[0]), int(key[0]), 0
+        starts = self.layout.cells_of("S")
+        self.cell = starts[int(rng.draw_index(key, _C_START, len(starts))[0])]
+        return self.cell
+
+    def step(self, action: int) -> tuple[int, bool, bool]:
+        cell = self.layout.neighbour(self.cell, action)
+        if self.layout.char(cell) == "W" and rng.draw_uniform(self.key, self.t) < self.p:
+            cell = self.layout.neighbour(cell, self.dir)  # the gust
+        self.cell, self.t = cell, self.t + 1
+        terminated = self.layout.char(cell) == "G"
+        return cell, terminated, self.t >= self.horizon and not terminated
+
+
 def test_gymnasium_env_matches_torchrl_env_bit_for_bit():
     env = WindyGridEnv(num_envs=1, seed=9)
     genv = gym.make("taskvar/WindyGrid-v0").unwrapped
+    ref = ReferenceWindy(env.layout, env.horizon, seed=9)
     _, info = genv.reset(seed=9)
     td = env.reset()
+    assert divmod(ref.reset(), 5) == info["cell"] and ref.p == info["instance"]["p"]
     actions = np.random.default_rng(0).integers(0, 4, 1500)
     for a in actions:
         td["action"] = torch.tensor([int(a)])
         out = env.step(td)
         _, _, term, trunc, info = genv.step(int(a))
+        cell, ref_term, ref_trunc = ref.step(int(a))
         r, c = info["cell"]
-        assert int(out["next", "cell"][0]) == r * 5 + c
-        assert float(out["instance", "p"][0]) == info["instance"]["p"]
-        assert bool(out["next", "terminated"][0]) == term
+        assert int(out["next", "cell"][0]) == r * 5 + c == cell
+        assert float(out["instance", "p"][0]) == info["instance"]["p"] == ref.p
+        assert bool(out["next", "terminated"][0]) == term == ref_term and trunc == ref_trunc
         if term or trunc:
             _, info = genv.reset()
             td = env.reset()
+            assert divmod(ref.reset(), 5) == info["cell"] and ref.p == info["instance"]["p"]
         else:
             td = step_mdp(out)
 
