@@ -20,7 +20,6 @@ import numpy as np
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.envs import EnvBase
 from torchrl.modules import RandomPolicy
 
 from taskvar_torch import keys
@@ -57,21 +56,6 @@ def family_figure(cfg: Config, name: str) -> Any:
 def grid_side(cfg: Config) -> int:
     """The grid's side length (windy: max of height and width; Wargus: ``size``)."""
     return family_figure(cfg, "grid_side")
-
-
-def make_test_env(
-    cfg: Config, num_envs: int, seed: int, index_offset: int = 0, instances: Any = "test"
-) -> EnvBase:
-    """The family env on fresh test instances (or ``instances``: the held-out ones,
-    :class:`HeldoutTest`); the same ``seed`` gives the same episodes."""
-    return make_env(
-        cfg,
-        num_envs,
-        seed=seed,
-        index_offset=index_offset,
-        instances=instances,
-        validate_actions=False,
-    )
 
 
 @dataclass(frozen=True)
@@ -165,7 +149,7 @@ def evaluate(
         seed = cfg.seed + TEST_SEED_OFFSET
     else:
         cfg, instances, seed = test.cfg, test.instances, test.seed
-    probe = make_test_env(cfg, 1, seed, instances=instances)
+    probe = make_env(cfg, 1, seed=seed, instances=instances, validate_actions=False)
     subtasks = make_subtasks(cfg, probe)
     if policy_name == "hierarchy" and subtasks.hierarchy is None:
         return None
@@ -228,6 +212,5 @@ __all__ = [
     "heldout_test",
     "isolated_rng",
     "make_policy",
-    "make_test_env",
     "references",
 ]
