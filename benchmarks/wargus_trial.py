@@ -34,8 +34,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import sys
 import time
 from collections import defaultdict
+from pathlib import Path
 
 import torch
 from torchrl.envs import InitTracker, TransformedEnv
@@ -45,6 +47,9 @@ from taskvar_torch.controllers import SideBySide
 from taskvar_torch.factory import make_env
 from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition, fig4_trial
 from taskvar_torch.heads.behaviour import BehaviourPolicy
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "reference"))
+import wargus_torchrl_trial as reference  # noqa: E402  (the TorchRL reference loops, --torchrl)
 
 CORES = 2  # this project's machine
 QUICK = [  # --quick: a smoke run, first (the command line's overrides come after)
@@ -242,8 +247,8 @@ def main() -> None:
         if args.torchrl:
             sync(cfg.device)
             t = time.process_time()
-            fig4_trial.learning_phase_torchrl(ref_agent, ref_env)
-            fig4_trial.test_phase_torchrl(ref_policy, ref_test_env, k)
+            reference.learning_phase_torchrl(ref_agent, ref_env)
+            reference.test_phase_torchrl(ref_policy, ref_test_env, k)
             sync(cfg.device)
             ref_s += (time.process_time() - t) * on
     old.test(args.trials)

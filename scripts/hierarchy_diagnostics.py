@@ -29,19 +29,11 @@ from torchrl.envs import TransformedEnv
 from taskvar_torch import keys
 from taskvar_torch.factory import load_heads, make_method_controller, make_subtasks
 from taskvar_torch.families.wargus import dynamics as wargus
-from taskvar_torch.families.wargus.env import WargusEnv
-from taskvar_torch.families.wargus.robustness_mc import format_report, robustness_monte_carlo
-
-
-def fixed_instances_env(cfg, seeds) -> WargusEnv:
-    """One sub-env per instance seed in ``seeds`` (the checkpoint's Wargus config)."""
-    return WargusEnv(
-        len(seeds),
-        config=dataclasses.asdict(cfg.env.wargus),
-        instances=wargus.WargusInstances(seeds=tuple(seeds)),
-        seed=0,
-        validate_actions=False,
-    )
+from taskvar_torch.families.wargus.robustness_mc import (
+    fixed_instances_env,
+    format_report,
+    robustness_monte_carlo,
+)
 
 
 @torch.no_grad()

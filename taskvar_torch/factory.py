@@ -45,6 +45,7 @@ from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.contract import FAMILIES, family
 from taskvar_torch.controllers import Controller, make_controller
+from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
@@ -133,19 +134,21 @@ def training_states(
     cfg: Config, heads: Heads, episodes: int = 8, seed: int = TRAINING_STATE_SEED
 ) -> TensorDictBase:
     """States the greedy averaging policy visits on fresh *training* instances (``env.instances``
-    of ``cfg``, env seed ``seed``): ``episodes`` episodes, at most :data:`CALIBRATION_STATES`
-    states, evenly spaced."""
+    of ``cfg``, env seed ``seed``): ``episodes`` episodes played by
+    :func:`~taskvar_torch.experiments.evaluation.run_episodes`, at most
+    :data:`CALIBRATION_STATES` of their states (step by step), evenly spaced."""
     env = make_env(cfg, num_envs=episodes, seed=seed)
-    td = env.reset()
-    state_keys = list(td.exclude(keys.INSTANCE).keys(True, True))
-    alive = torch.ones(episodes, dtype=torch.bool, device=td.device)
-    seen = []
     net = head_network(heads.heads["averaging"])
-    while bool(alive.any()):
-        seen.append(td.select(*state_keys)[alive])
-        td.set(keys.ACTION, net(td.get(keys.OBSERVATION)).argmax(-1))
-        td = env.step(td).get(keys.NEXT)
-        alive = alive & ~td.get(keys.DONE).reshape(episodes)
+    greedy = TensorDictModule(lambda obs: net(obs).argmax(-1), [keys.OBSERVATION], [keys.ACTION])
+    seen: list[TensorDictBase] = []
+    state_keys: list = []  # the reset's keys but the instance
+
+    def visit(td: TensorDictBase, alive: torch.Tensor) -> None:
+        if not state_keys:
+            state_keys.extend(td.exclude(keys.INSTANCE, keys.ACTION, keys.NEXT).keys(True, True))
+        seen.append(td.select(*state_keys)[alive])  # the states acted in
+
+    run_episodes(env, greedy, on_step=visit)
     states = torch.cat(seen)
     idx = torch.linspace(0, states.shape[0] - 1, min(CALIBRATION_STATES, states.shape[0]))
     return states[idx.round().long()]

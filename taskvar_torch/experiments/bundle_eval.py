@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from taskvar_torch import keys
 from taskvar_torch.config.controller import check_controller_overrides, controller_settings
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
@@ -225,7 +226,8 @@ def _evaluate(
                 ctrl = make_method_controller(
                     point.cfg, m, heads, subtasks, calibration=calibration
                 )
-            r = play(ctrl, point, int(episodes), seed, bs, noise_seed, bar, steps=steps)
+            traced_keys = (keys.CELL, keys.ACTION) if steps else ()
+            r = play(ctrl, point, int(episodes), seed, bs, noise_seed, bar, steps=traced_keys)
             traced = [r.pop(k, None) for k in ("step_cell", "step_action", "step_alive")]
             per_method[m] = summarise(r, heads.option_names, "averaging" if m in baselines else m)
             instance = {k[len("instance_") :]: v for k, v in r.items() if k.startswith("instance_")}

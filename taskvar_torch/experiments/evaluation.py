@@ -10,6 +10,7 @@ start but redraws the gusts (the null comparison).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -25,6 +26,7 @@ def run_episodes(
     policy,
     max_steps: int | None = None,
     trace_keys: tuple = (),
+    on_step: Callable[[TensorDictBase, torch.Tensor], None] | None = None,
 ) -> TensorDictBase:
     """Play one episode per sub-environment of ``env`` (batch ``[N]``) with ``policy``.
 
@@ -32,6 +34,9 @@ def run_episodes(
     ``("instance", ...)`` (the episode's instance), ``interruptions`` (count of steps whose
     ``keys.INTERRUPTED`` flag was set, when the policy writes it) and, for each key in
     ``trace_keys``, a ``(N, T)`` per-step trace (``("trace", key)``) plus ``("trace", "alive")``.
+    ``on_step(td, alive)``: called after each ``env.step`` with the step's tensordict (the state
+    acted in and the policy's outputs at the root, the transition under ``"next"``) and the
+    ``(N,)`` mask of the episodes still running at that step.
     """
     td = env.reset()
     n = env.batch_size[0]
@@ -53,6 +58,8 @@ def run_episodes(
             traces[k].append(td.get(k).reshape(n).clone())
         alive_trace.append(alive.clone())
         td = env.step(td)
+        if on_step is not None:
+            on_step(td, alive.clone())
         reward = td.get((keys.NEXT, keys.REWARD)).reshape(n)
         ret += torch.where(alive, reward, torch.zeros_like(reward))
         length += alive.long()

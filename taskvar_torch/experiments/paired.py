@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 import torch
 from torchrl.envs import TransformedEnv
+from torchrl.modules import RandomPolicy
 
 from taskvar_torch import keys, rng
 from taskvar_torch.config import METHODS, Config
@@ -168,25 +169,34 @@ def exact_regret(
 
 
 def play(
-    ctrl: Controller,
+    policy: Any,
     point: EvalPoint,
     episodes: int,
     seed: int,
     batch_size: int,
     noise_seed: int | None = None,
     progress: Any = None,
-    steps: bool = False,
+    steps: Sequence[str] = (),
 ) -> dict[str, np.ndarray]:
-    """Play ``episodes`` episodes (global indices ``0..episodes-1``) of ``point`` with ``ctrl``;
-    per-episode ``return``, ``length``, ``interruptions``, the instance fields and, for option
-    controllers, ``steps_<o>`` (steps option ``o`` held control). ``steps``: also each step's
-    ``step_cell``, ``step_action`` and ``step_alive`` ``(episodes, horizon)`` (per-step regret)."""
+    """Play ``episodes`` episodes (global indices ``0..episodes-1``) of ``point`` with ``policy``:
+    the one episode player of ``taskvar eval``, Figure 2, the scale experiment and the memory
+    baselines (docs/evaluation.md, Seed).
+
+    ``policy``: a controller, a baseline or any TorchRL policy, played with its ``primer`` where
+    it has one (TorchRL's ``RandomPolicy`` draws over each batch's own action spec). Sub-env ``i``
+    of a batch is global episode ``lo + i`` of envs seeded ``seed``, so the episodes do not depend
+    on ``batch_size``, and every policy played at the same ``seed`` meets the same instance, start
+    and noise per episode (paired; another ``noise_seed`` redraws the noise only).
+
+    Returns per-episode ``return``, ``length``, ``interruptions``, the scalar instance fields as
+    ``instance_<field>``, ``start`` (where the family has cells) and, for option controllers,
+    ``steps_<o>`` (steps option ``o`` held control). ``steps``: keys also traced at each step,
+    as ``step_<key>`` ``(episodes, horizon)`` beside ``step_alive`` (padded past each batch's end:
+    per-step regret, where interruption fired)."""
     parts: dict[str, list[np.ndarray]] = {}
-    option_level = ctrl.name not in ("averaging", *BASELINES)  # baselines: no options
-    O = len(ctrl.heads.option_names) if option_level else 0  # noqa: E741
-    trace = (keys.OPTION,) if option_level else ()
-    if steps:
-        trace += (keys.CELL, keys.ACTION)
+    option_level = isinstance(policy, Controller) and policy.name != "averaging"
+    O = len(policy.heads.option_names) if option_level else 0  # noqa: E741
+    trace = ((keys.OPTION,) if option_level else ()) + tuple(k for k in steps if k != keys.OPTION)
     for lo in range(0, int(episodes), batch_size):
         n = min(batch_size, int(episodes) - lo)
         base = make_env(
@@ -198,9 +208,10 @@ def play(
             noise_seed=noise_seed,
             validate_actions=False,
         )
-        out = run_episodes(
-            TransformedEnv(base, ctrl.primer()), ctrl, max_steps=int(base.horizon), trace_keys=trace
-        )
+        if isinstance(policy, RandomPolicy):
+            policy = RandomPolicy(base.action_spec)
+        env = TransformedEnv(base, policy.primer()) if hasattr(policy, "primer") else base
+        out = run_episodes(env, policy, max_steps=int(base.horizon), trace_keys=trace)
         got = {k: out[k] for k in ("return", "length", "interruptions")}
         for k, v in out[keys.INSTANCE].items():
             if v.dim() == 1:  # scalar instance fields (windy p, direction; Wargus seed)
@@ -215,8 +226,8 @@ def play(
         if steps:  # padded to the horizon: batches end at different steps
             pad = int(base.horizon) - tr["alive"].shape[-1]
             got["step_alive"] = torch.nn.functional.pad(tr["alive"], (0, pad), value=False)
-            for name, k in (("step_cell", keys.CELL), ("step_action", keys.ACTION)):
-                got[name] = torch.nn.functional.pad(tr[k], (0, pad))
+            for k in steps:
+                got[f"step_{k}"] = torch.nn.functional.pad(tr[k], (0, pad))
         for k, v in got.items():
             parts.setdefault(k, []).append(v.detach().cpu().numpy())
         if progress is not None:

@@ -20,7 +20,6 @@ import numpy as np
 import torch
 from tensordict.nn import TensorDictModule
 from torch import nn
-from torchrl.envs import EnvBase, TransformedEnv
 from torchrl.modules import RandomPolicy
 
 from taskvar_torch import keys
@@ -28,8 +27,9 @@ from taskvar_torch.config import (
     Config,
 )
 from taskvar_torch.contract import family
-from taskvar_torch.experiments.evaluation import mean_ci95, run_episodes
-from taskvar_torch.experiments.shift import shift_points
+from taskvar_torch.experiments.evaluation import mean_ci95
+from taskvar_torch.experiments.paired import play
+from taskvar_torch.experiments.shift import EvalPoint, shift_points
 from taskvar_torch.factory import make_env, make_method_controller, make_subtasks
 from taskvar_torch.heads.recurrent import (
     BASELINES,
@@ -56,21 +56,6 @@ def family_figure(cfg: Config, name: str) -> Any:
 def grid_side(cfg: Config) -> int:
     """The grid's side length (windy: max of height and width; Wargus: ``size``)."""
     return family_figure(cfg, "grid_side")
-
-
-def make_test_env(
-    cfg: Config, num_envs: int, seed: int, index_offset: int = 0, instances: Any = "test"
-) -> EnvBase:
-    """The family env on fresh test instances (or ``instances``: the held-out ones,
-    :class:`HeldoutTest`); the same ``seed`` gives the same episodes."""
-    return make_env(
-        cfg,
-        num_envs,
-        seed=seed,
-        index_offset=index_offset,
-        instances=instances,
-        validate_actions=False,
-    )
 
 
 @dataclass(frozen=True)
@@ -152,7 +137,8 @@ def evaluate(
     test: HeldoutTest | None = None,
 ) -> dict[str, float] | None:
     """Mean return (95% CI), length and interruptions of ``policy_name`` over ``episodes`` test
-    episodes (global indices ``0..episodes-1`` at the test seed: the same for every policy).
+    episodes (global indices ``0..episodes-1`` at the test seed: the same for every policy),
+    played by :func:`~taskvar_torch.experiments.paired.play`.
 
     ``test``: play the held-out test's episodes instead (:func:`heldout_test`: its config,
     instances and sealed seed; docs/scale.md#held-out-instances).
@@ -163,34 +149,26 @@ def evaluate(
         seed = cfg.seed + TEST_SEED_OFFSET
     else:
         cfg, instances, seed = test.cfg, test.instances, test.seed
-    probe = make_test_env(cfg, 1, seed, instances=instances)
+    probe = make_env(cfg, 1, seed=seed, instances=instances, validate_actions=False)
     subtasks = make_subtasks(cfg, probe)
     if policy_name == "hierarchy" and subtasks.hierarchy is None:
         return None
     torch.manual_seed(seed)  # the random policy's action stream
     policy = make_policy(policy_name, cfg, heads, subtasks, probe)
-    returns, lengths, inter = [], [], []
-    for lo in range(0, int(episodes), int(batch_size)):
-        n = min(int(batch_size), int(episodes) - lo)
-        env = make_test_env(cfg, n, seed, lo, instances)
-        if hasattr(policy, "primer"):
-            env = TransformedEnv(env, policy.primer())
-        if policy_name == "random":
-            policy = RandomPolicy(env.action_spec)
-        out = run_episodes(env, policy)
-        returns.append(out["return"].double().cpu())
-        lengths.append(out["length"].double().cpu())
-        inter.append(out["interruptions"].double().cpu())
-    r = torch.cat(returns)
+    point = EvalPoint("", None, cfg, instances)
+    played = play(policy, point, int(episodes), seed, int(batch_size))
+    r = torch.as_tensor(played["return"]).double()
     mean, ci = mean_ci95(r)
     result = {
         "mean_return": mean,
         "ci95": ci,
-        "mean_length": float(torch.cat(lengths).mean()),
+        "mean_length": float(torch.as_tensor(played["length"]).double().mean()),
         "episodes": int(r.numel()),
     }
     if policy_name in ("options", "interruption", "hierarchy"):
-        result["interruptions_per_episode"] = float(torch.cat(inter).mean())
+        result["interruptions_per_episode"] = float(
+            torch.as_tensor(played["interruptions"]).double().mean()
+        )
     return result
 
 
@@ -234,6 +212,5 @@ __all__ = [
     "heldout_test",
     "isolated_rng",
     "make_policy",
-    "make_test_env",
     "references",
 ]

@@ -11,7 +11,8 @@ import torch
 
 from taskvar_torch import keys
 from taskvar_torch.cli import main
-from taskvar_torch.study import scale_cell, scale_eval
+from taskvar_torch.experiments import paired
+from taskvar_torch.study import scale_cell
 
 TIMING = {  # measured times and memory: not reproducible, so not compared
     "wall_seconds", "train_seconds", "eval_seconds", "frames_per_second", "peak_rss_mb",
@@ -33,15 +34,16 @@ def run_scale(out, *overrides, spy=None) -> dict:
 
 
 def record_episodes(mp: pytest.MonkeyPatch, played: list) -> None:
-    """Patch the scale evaluation so that every batch of episodes it plays is appended to
-    ``played`` as ``(family, env seed, policy name, instance fields, start cells)`` (start cells
-    zero where the family has none: Wargus)."""
-    make_test_env, run_episodes = scale_eval.make_test_env, scale_eval.run_episodes
+    """Patch the episode player (``experiments.paired.play``, which the scale evaluation plays
+    through) so that every batch of episodes it plays is appended to ``played`` as ``(family, env
+    seed, policy name, instance fields, start cells)`` (start cells zero where the family has
+    none: Wargus)."""
+    make_env, run_episodes = paired.make_env, paired.run_episodes
     envs = {}
 
-    def made(cfg, num_envs, seed, index_offset=0, instances="test"):
-        env = make_test_env(cfg, num_envs, seed, index_offset, instances)
-        envs[id(env)] = (cfg.family, seed)
+    def made(cfg, *args, **kwargs):
+        env = make_env(cfg, *args, **kwargs)
+        envs[id(env)] = (cfg.family, kwargs["seed"])
         return env
 
     def ran(env, policy, *args, **kwargs):
@@ -52,8 +54,8 @@ def record_episodes(mp: pytest.MonkeyPatch, played: list) -> None:
         played.append((fam, seed, name, out[keys.INSTANCE].clone(), start.clone()))
         return out
 
-    mp.setattr(scale_eval, "make_test_env", made)
-    mp.setattr(scale_eval, "run_episodes", ran)
+    mp.setattr(paired, "make_env", made)
+    mp.setattr(paired, "run_episodes", ran)
 
 
 def stack_episodes(batches) -> tuple[torch.Tensor, torch.Tensor]:

@@ -44,7 +44,8 @@ from torchrl.envs.utils import step_mdp
 
 from taskvar_torch import keys
 from taskvar_torch.config import Config
-from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.experiments.paired import play
+from taskvar_torch.experiments.shift import EvalPoint
 from taskvar_torch.factory import make_env
 from taskvar_torch.families.wargus.dynamics import WargusInstances
 from taskvar_torch.families.wargus.fig4_trial import repetition_seed, trial_seeds
@@ -149,19 +150,14 @@ def learning_phase(agent: RecurrentAgent) -> dict[str, float]:
 def test_phase(agent: RecurrentAgent, trial: int) -> tuple[float, float]:
     """Mean items per episode, greedy and learning off, on trial ``trial``'s nominal and held-out
     instance seeds (:func:`~taskvar_torch.families.wargus.fig4_trial.trial_seeds`), all ``2 K``
-    episodes side by side in one env."""
+    episodes side by side in one batch of the episode player
+    (:func:`~taskvar_torch.experiments.paired.play`)."""
     cfg, k = agent.cfg, agent.cfg.experiment.test_episodes_per_trial
     nominal, heldout = trial_seeds(k, trial)
-    base = make_env(
-        cfg,
-        2 * k,
-        seed=agent.seed,
-        instances=WargusInstances(seeds=nominal + heldout),
-        validate_actions=False,
-    )
+    point = EvalPoint("", None, cfg, WargusInstances(seeds=nominal + heldout))
     ctrl = BaselineController(agent.learner.eval_net, agent.spec)  # train.eval_ema_tau's weights
-    played = run_episodes(TransformedEnv(base, ctrl.primer()), ctrl)
-    items = played["return"].reshape(2, k).mean(1)
+    played = play(ctrl, point, 2 * k, agent.seed, 2 * k)
+    items = torch.as_tensor(played["return"]).reshape(2, k).mean(1)  # torch's float32 mean
     return float(items[0]), float(items[1])
 
 

@@ -16,10 +16,9 @@ transforms or ``step_mdp``), write replay once per update phase, run every head 
 pass (:class:`~taskvar_torch.heads.snapshots.HeadValues`), and test several trials
 (:data:`~taskvar_torch.families.wargus.fig4_repetition.TEST_GROUP`) side by side on frozen copies of their
 heads (:func:`test_trials` with :class:`~taskvar_torch.controllers.side_by_side.SideBySide`). The
-TorchRL loops :func:`learning_phase_torchrl` / :func:`test_phase_torchrl` are kept as the
-reference the tests check them bit-equal to. ``train.compile`` also runs the behaviour's
-choices, the dynamics step and the learner's losses through ``torch.compile``
-(``taskvar_torch/compiling.py``).
+TorchRL loops they are tested bit-equal to live in ``benchmarks/reference/wargus_torchrl_trial.py``.
+``train.compile`` also runs the behaviour's choices, the dynamics step and the learner's losses
+through ``torch.compile`` (``taskvar_torch/compiling.py``).
 """
 
 from __future__ import annotations
@@ -32,14 +31,11 @@ from typing import Any
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.envs import TransformedEnv
-from torchrl.envs.utils import step_mdp
 
 from taskvar_torch import keys
 from taskvar_torch.config import METHODS, Config
 from taskvar_torch.contract import HELDOUT_SEEDS
 from taskvar_torch.controllers.side_by_side import SideBySide
-from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.families.wargus.dynamics import ITEM_LOST, NOMINAL_SEEDS
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
@@ -124,8 +120,8 @@ def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
     ``is_init`` and the behaviour mode itself, and filters first visits and writes the kept
     transitions to the replay buffer once per update phase (before any sample, so the buffer
     holds the same rows in the same order). Same draws, same transitions, same updates as the
-    TorchRL loop :func:`learning_phase_torchrl` (tested equal). :func:`learning_phases` with one
-    agent.
+    TorchRL loop ``learning_phase_torchrl`` (``benchmarks/reference/wargus_torchrl_trial.py``,
+    tested equal). :func:`learning_phases` with one agent.
     """
     return learning_phases([agent], env, agent.behaviour, agent.first_visit)[0]
 
@@ -257,8 +253,8 @@ def test_phase(policy: SideBySide, env: WargusEnv, k: int) -> dict[str, np.ndarr
     Returns per method ``items`` (mean per test episode), ``interruptions`` (per episode) and,
     over the hierarchy's live steps, the count of steps each subtask held control. ``env``: the
     test env (:func:`~taskvar_torch.families.wargus.fig4_agent.make_test_env`), at its next trial.
-    The fast loop (:func:`test_trials` with the live heads); the same episodes as
-    :func:`test_phase_torchrl` (tested equal).
+    The fast loop (:func:`test_trials` with the live heads); the same episodes as TorchRL's
+    (``test_phase_torchrl``, ``benchmarks/reference/wargus_torchrl_trial.py``, tested equal).
     """
     return test_trials(policy, env, k, None)[0]
 
@@ -342,52 +338,6 @@ def _test_summary(
     }
 
 
-# ---- the TorchRL loops: the reference the fast loops are tested against ---------------------
-
-
-def learning_phase_torchrl(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float]:
-    """:func:`learning_phase` through TorchRL's ``EnvBase.step`` (``env``: the learning env with
-    an ``InitTracker``), ``step_mdp`` and one ``extend`` per step: the reference implementation."""
-    t = agent.cfg.train
-    n = env.batch_size[0]
-    td = env.reset()  # every sub-env starts a new episode with a fresh training instance
-    alive = torch.ones(n, dtype=torch.bool, device=env.device)
-    items = torch.zeros(n, device=env.device)
-    frames = 0
-    drop = (keys.INSTANCE, (keys.NEXT, keys.INSTANCE))
-    for _ in range(env.base_env.horizon):
-        agent.behaviour.set_epsilon(epsilon_at(agent.frames, t))
-        td = agent.behaviour(td)
-        td = env.step(td)
-        keep = alive
-        if t.first_visit:
-            keep = keep & agent.first_visit(td.unsqueeze(1)).squeeze(1)
-        if bool(keep.any()):
-            agent.buffer.extend(td.exclude(*drop)[keep])
-        n_alive = int(alive.sum())
-        agent.frames += n_alive
-        agent.pending += n_alive
-        frames += n_alive
-        items += torch.where(alive, td.get((keys.NEXT, keys.REWARD)).reshape(n), 0.0)
-        learn_due(agent, t)
-        alive = alive & ~td.get((keys.NEXT, keys.DONE)).reshape(n)
-        if not bool(alive.any()):
-            break
-        td = step_mdp(td, keep_other=True)
-    return {"learn_items": float(items.mean()), "frames": frames}
-
-
-def test_phase_torchrl(policy: SideBySide, env: TransformedEnv, k: int) -> dict[str, np.ndarray]:
-    """:func:`test_phase` through :func:`run_episodes` (``env``: the test env with the
-    controllers' primer): the reference implementation."""
-    out = run_episodes(env, policy, trace_keys=(keys.OPTION, ITEM_LOST))
-    h = METHODS.index("hierarchy")
-    option = out["trace", keys.OPTION][h * k : (h + 1) * k]  # (K, T)
-    alive = out["trace", "alive"][h * k : (h + 1) * k]  # (K, T)
-    lost = (out["trace", ITEM_LOST] & out["trace", "alive"]).sum(-1)  # (M K,)
-    return _test_summary(policy, out["return"], out["interruptions"], option, alive, k, lost)
-
-
 __all__ = [
     "LifelongAgent",
     "nominal_seeds",
@@ -396,8 +346,6 @@ __all__ = [
     "learn_due",
     "learning_phase",
     "learning_phases",
-    "learning_phase_torchrl",
     "test_phase",
-    "test_phase_torchrl",
     "test_trials",
 ]

@@ -45,7 +45,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from torchrl.envs import TransformedEnv
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import load_checkpoint
@@ -55,13 +54,14 @@ from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.contract import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE, sealed_episode_seed
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.experiments.bundle_eval import eval_bundle
-from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.experiments.paired import play
 from taskvar_torch.experiments.results import (
     code_version,
     refuse_existing_results,
     write_csv,
     write_json,
 )
+from taskvar_torch.experiments.shift import EvalPoint
 from taskvar_torch.factory import check_device, load_heads, make_env, make_subtasks
 from taskvar_torch.families.windy import (
     WindyOracle,
@@ -180,7 +180,8 @@ def evaluate(
     record_firings: bool = False,
     progress: Any = None,
 ) -> dict[str, np.ndarray]:
-    """Play ``episodes`` one-episode sub-envs (global indices ``0..episodes-1``) with ``method``.
+    """Play ``episodes`` episodes (global indices ``0..episodes-1``) with ``method``, through
+    the one episode player (:func:`~taskvar_torch.experiments.paired.play`).
 
     The same ``(seed, instances)`` gives every method the same instance and start per episode, and
     the same gusts when ``noise_seed`` matches: the pairing of docs/windy-fig2.md. The env is seeded
@@ -192,32 +193,17 @@ def evaluate(
     """
     ctrl = build_controller(method, heads, cfg)
     bs = int(batch_size or cfg.eval.batch_size)
-    trace = (keys.CELL, keys.RUNNING_OPTION, keys.INTERRUPTED) if record_firings else ()
-    parts: dict[str, list[np.ndarray]] = {}
-    for lo in range(0, int(episodes), bs):
-        n = min(bs, int(episodes) - lo)
-        env = TransformedEnv(make_eval_env(cfg, instances, n, seed, lo, noise_seed), ctrl.primer())
-        out = run_episodes(env, ctrl, max_steps=section(cfg).horizon, trace_keys=trace)
-        got = {
-            "return": out["return"],
-            "length": out["length"],
-            "interruptions": out["interruptions"],
-            "p": out[keys.INSTANCE, "p"],
-            "direction": out[keys.INSTANCE, "direction"],
-            "start": out["start"],
-        }
-        if record_firings:
-            tr = out["trace"]
-            fired = tr[keys.INTERRUPTED].bool() & tr["alive"]  # (n, T)
-            ep, _t = fired.nonzero(as_tuple=True)
-            got["fire_episode"] = ep + lo
-            got["fire_cell"] = tr[keys.CELL][fired]
-            got["fire_option"] = tr[keys.RUNNING_OPTION][fired]
-        for k, v in got.items():
-            parts.setdefault(k, []).append(v.detach().cpu().numpy())
-        if progress is not None:
-            progress.update(n)
-    return {k: np.concatenate(v) for k, v in parts.items()}
+    traced = (keys.CELL, keys.RUNNING_OPTION, keys.INTERRUPTED) if record_firings else ()
+    point = EvalPoint("", None, cfg, instances)
+    r = play(ctrl, point, episodes, seed, bs, noise_seed, progress, steps=traced)
+    got = {k: r[k] for k in ("return", "length", "interruptions", "start")}
+    got["p"], got["direction"] = r["instance_p"], r["instance_direction"]
+    if record_firings:
+        fired = r[f"step_{keys.INTERRUPTED}"].astype(bool) & r["step_alive"]  # (E, T)
+        got["fire_episode"] = fired.nonzero()[0]
+        got["fire_cell"] = r[f"step_{keys.CELL}"][fired]
+        got["fire_option"] = r[f"step_{keys.RUNNING_OPTION}"][fired]
+    return got
 
 
 # --------------------------------------------------------------------------------------------

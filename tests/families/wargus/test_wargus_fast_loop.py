@@ -1,6 +1,10 @@
-"""Wargus Figure 4's fast loops equal the TorchRL ones: env, learning phase, batched test phases."""
+"""Wargus Figure 4's fast loops equal the TorchRL ones (benchmarks/reference/wargus_torchrl_trial.py):
+env, learning phase, batched test phases."""
 
 from __future__ import annotations
+
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,6 +17,9 @@ from taskvar_torch.factory import make_env
 from taskvar_torch.families.wargus import fig4, fig4_agent, fig4_repetition, fig4_trial
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads.behaviour import BehaviourPolicy
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[3] / "benchmarks" / "reference"))
+import wargus_torchrl_trial as reference  # noqa: E402  (the TorchRL loops, not the library)
 
 torch.set_num_threads(1)
 
@@ -77,9 +84,9 @@ def test_fast_trials_equal_torchrl_trials():
     torch.manual_seed(11)
     ref = []
     for _ in range(TRIALS):
-        learned = fig4_trial.learning_phase_torchrl(agent, env)
+        learned = reference.learning_phase_torchrl(agent, env)
         ref.append(
-            (learned, agent.updates, _plain(fig4_trial.test_phase_torchrl(policy, test_env, K)))
+            (learned, agent.updates, _plain(reference.test_phase_torchrl(policy, test_env, K)))
         )
     ref_agent, ref_rng = agent, torch.get_rng_state()
 
