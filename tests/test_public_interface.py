@@ -129,3 +129,24 @@ def test_every_name_in_every_modules_all_exists_and_star_imports_work():
     assert not missing, missing
     for name in ("taskvar_torch", "taskvar_torch.families"):
         exec(f"from {name} import *", {})
+
+
+def test_import_taskvar_torch_reads_the_declarations_not_the_oracles():
+    """``import taskvar_torch`` registers every built-in family's Gymnasium ids, which needs the
+    families' declarations (env, instances, options), not their oracles, the controllers or the
+    configs (it loaded 80 modules, windy's oracle and every controller among them, through the
+    windy package's eager ``__init__``; issue 57)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, taskvar_torch\n"
+        "print(' '.join(m for m in sys.modules if m.startswith('taskvar_torch')))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    ).stdout.split()
+    heavy = [m for m in out if m.split(".")[-1] in ("oracle", "learnt") or ".controllers" in m]
+    assert not heavy, heavy
+    assert "taskvar_torch.families.windy.family" in out  # the declaration is read
+    assert len(out) <= 50, len(out)

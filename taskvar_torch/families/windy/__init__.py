@@ -74,17 +74,38 @@ Examples:
     >>> v = oracle.expected_return(oracle.averaging_policy(), "train", starts=None)  # (S,)
 """
 
-from taskvar_torch.families.windy.dynamics import WindyLayout, WindyModel, make_layout
-from taskvar_torch.families.windy.env import WindyGridEnv
-from taskvar_torch.families.windy.instances import WindyInstances
-from taskvar_torch.families.windy.learnt import (
-    exact_returns,
-    firing_values,
-    learnt_vs_oracle_by_start,
-)
-from taskvar_torch.families.windy.oracle import WindyOracle
-from taskvar_torch.families.windy.replay_reference import ReplayReference
-from taskvar_torch.families.windy.subtasks import WindySubtasks
+from importlib import import_module
+from typing import Any
+
+_LAZY = {
+    "ReplayReference": "replay_reference",
+    "WindyGridEnv": "env",
+    "WindyInstances": "instances",
+    "WindyLayout": "dynamics",
+    "WindyModel": "dynamics",
+    "WindyOracle": "oracle",
+    "WindySubtasks": "subtasks",
+    "exact_returns": "learnt",
+    "firing_values": "learnt",
+    "learnt_vs_oracle_by_start": "learnt",
+    "make_layout": "dynamics",
+}
+"""The package's names, imported from their module on first use (``import taskvar_torch`` reads
+the family's declaration only, not its oracles)."""
+
+
+def __getattr__(name: str) -> Any:
+    module = _LAZY.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(import_module(f"{__name__}.{module}"), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_LAZY])
+
 
 __all__ = [
     "ReplayReference",
