@@ -14,6 +14,7 @@ from torch import nn
 from taskvar_torch import keys
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, load_heads, make_env, make_subtasks
+from taskvar_torch.families.windy.family import WINDY_INSTANCE_DIM
 from taskvar_torch.families.windy.family import windy_instance_features as instance_features
 from taskvar_torch.heads.learner import LossSettings, MultiHeadLoss
 from taskvar_torch.heads.max_value import (
@@ -24,7 +25,7 @@ from taskvar_torch.heads.max_value import (
     make_instance_critic,
 )
 from taskvar_torch.heads.networks import head_network
-from taskvar_torch.heads.relabel import WINDY_INSTANCE_DIM, relabel
+from taskvar_torch.heads.relabel import relabel
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
