@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -29,7 +29,8 @@ from taskvar_torch.families.wargus.dynamics import WargusConfig, WargusInstances
 from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.families.wargus.subtasks import WargusSubtasks
 
-Config = Any
+if TYPE_CHECKING:
+    from taskvar_torch.config import Config
 
 
 def section(cfg: Config) -> WargusConfig:

@@ -10,7 +10,7 @@ user's package declares its own (docs/families.md).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 from tensordict import TensorDictBase
@@ -32,7 +32,8 @@ from taskvar_torch.families.windy.env import observation_size as windy_observati
 from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
 from taskvar_torch.families.windy.subtasks import WindySubtasks
 
-Config = Any
+if TYPE_CHECKING:
+    from taskvar_torch.config import Config
 
 WINDY_DIRECTIONS = 4  # north, south, east, west (families/windy/dynamics.py DIRECTIONS)
 WINDY_INSTANCE_DIM = 1 + WINDY_DIRECTIONS  # (p, one_hot(direction))
