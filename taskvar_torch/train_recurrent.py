@@ -47,7 +47,9 @@ steps.
 instance the replay keeps at ``s`` and ``s'``. **blind**: the same network and trainer with the
 features zeroed, so "memory helps" is told apart from "learning on one's own stream helps".
 
-:func:`train_baseline` writes ``DIR/recurrent.pt``, ``DIR/informed.pt`` or ``DIR/blind.pt``
+:func:`train_baseline` runs the heads' training loop
+(:func:`~taskvar_torch.learning.collect_and_learn`) on a :class:`BaselineRun` and writes
+``DIR/recurrent.pt``, ``DIR/informed.pt`` or ``DIR/blind.pt``
 (``heads.recurrent.save_baseline``: atomic, plain data).
 """
 

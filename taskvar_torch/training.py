@@ -22,7 +22,8 @@ counters, the replay buffer, the env's simulator state, the collector's carried 
 RNG state, so ``train(..., resume=ckpt)`` continues bit for bit on CPU (one collector process only:
 the workers' env and RNG states are not saved, so resuming a multi-process run is refused).
 
-The run itself lives beside this loop: what it holds and does per batch (store, learn, report,
+The loop itself, batch by batch, is the one the baselines train with too
+(:func:`~taskvar_torch.learning.collect_and_learn`); the run lives beside it: what it holds and does per batch (store, learn, report,
 checkpoint) in :mod:`taskvar_torch.run_state`, its construction and resume checks in
 :mod:`taskvar_torch.run_setup`, where its log rows go in :mod:`taskvar_torch.run_logs`, the results
 folder (one run per folder, locked, never silently reused; logs cut back on resume; SIGINT /
