@@ -131,7 +131,9 @@ class BareHeads:
         loss = learner.loss
         s = loss.settings
         assert loss.stack is not None and loss.avg_root is None and loss.seeds == 1
-        assert s.double_q and s.mu_bar_temperature is None and s.max_value_estimator == "instance"
+        assert (
+            s.double_q and loss.mu_bar_temperature is None and s.max_value_estimator == "instance"
+        )
         assert set(loss.heads.heads.keys()) == set(loss.head_names)
         assert set(loss.head_names) == {"averaging", "options", "switching", "max_value"}
         self.gamma, self.M = s.gamma, s.max_value_instances

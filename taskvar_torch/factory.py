@@ -39,7 +39,7 @@ from taskvar_torch.checkpoint import (
     save_checkpoint,
 )
 from taskvar_torch.checkpoint_checks import load_state_dicts
-from taskvar_torch.config import Config, TrainConfig, config_from_dict
+from taskvar_torch.config import Config, config_from_dict
 from taskvar_torch.config.controller import check_controller_overrides, with_controller_settings
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
@@ -47,11 +47,12 @@ from taskvar_torch.contract import FAMILIES, family
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.experiments.evaluation import run_episodes
 from taskvar_torch.heads.bundle import Heads, with_root_row
-from taskvar_torch.heads.learner import LossSettings, MultiHeadLearner, MultiHeadLoss
+from taskvar_torch.heads.learner import MultiHeadLearner, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
 from taskvar_torch.heads.networks import head_network, make_stacked_heads
 from taskvar_torch.heads.relabel import has_robustness
 from taskvar_torch.heads.robustness import RobustnessCalibration, calibrate_robustness
+from taskvar_torch.heads.switching import mu_bar_temperature
 from taskvar_torch.run_folder import check_out_path, folder_lock
 from taskvar_torch.subtasks.base import Subtasks
 
@@ -376,11 +377,6 @@ def build_heads(cfg: Config, env: EnvBase | HeadSpec, subtasks: Subtasks | None 
     return bundle.to(cfg.device)
 
 
-def mu_bar_temperature(t: TrainConfig) -> float | None:
-    """``None`` for a greedy mu_bar, else the softmax temperature."""
-    return t.mu_bar_temperature if t.mu_bar == "softmax" else None
-
-
 def load_heads(
     path: str | os.PathLike,
     device: str | torch.device | None = None,
@@ -514,20 +510,7 @@ def make_learner(cfg: Config, heads: Heads, subtasks: Subtasks) -> MultiHeadLear
             f"train.n_step={t.n_step} with given-policy options ({', '.join(given)}): their "
             "n-step bootstrap is not supported yet; set train.n_step=1"
         )
-    settings = LossSettings(
-        gamma=t.gamma,
-        robustness_gamma=t.robustness_gamma,
-        robustness_target=t.robustness_target,
-        robustness_until=t.robustness_until,
-        root_policy=t.hierarchy_root_policy,
-        double_q=t.double_q,
-        max_value_expectile=t.max_value_expectile,
-        mu_bar_temperature=mu_bar_temperature(t),
-        max_value_estimator=t.max_value_estimator,
-        max_value_instances=t.max_value_instances,
-        matmul_dtype=t.matmul_dtype,
-    )
-    loss = MultiHeadLoss(heads, subtasks, settings, family(cfg).instance_features)
+    loss = MultiHeadLoss(heads, subtasks, t, family(cfg).instance_features)
     return MultiHeadLearner(
         loss.to(cfg.device),
         lr=t.lr,

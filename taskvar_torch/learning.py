@@ -1,13 +1,16 @@
-"""The learning step every training loop shares (paper §3.1-3.4; docs/design.md, "Training loops").
+"""The training loop of the heads and of every baseline, and the learning step every loop shares
+(paper §3.1-3.4; docs/design.md, "Training loops").
 
-Four loops learn: the heads' (:func:`~taskvar_torch.training.train`), the baselines'
-(:func:`~taskvar_torch.train_recurrent.train_baseline`) and the Figure 4 protocol's learning phases
-(``families/wargus/fig4_trial.py`` ``learning_phases``, ``fig4_recurrent.py`` ``learning_phase``).
-Each plays epsilon-greedily at :func:`epsilon_at`, writes its replay, then takes its gradient
-steps through :func:`update_phase`, on a :class:`Learner` (the heads' ``MultiHeadLearner`` or the
-baselines' ``BaselineLearner``: the one varying part), learning rate :func:`lr_at`, once
-:func:`learning_started`. :func:`learn_batch` is the step after each collected batch of the two
-collector loops; :func:`non_finite` the divergence check before a model is written.
+:func:`collect_and_learn` is the one loop over a TorchRL collector: each batch stored, learnt from
+and reported on by a :class:`Run` (the heads' :class:`~taskvar_torch.run_state.TrainingRun`, a
+baseline's :class:`~taskvar_torch.train_recurrent.BaselineRun`), whose :class:`Learner` is the one
+varying part (the heads' ``MultiHeadLearner``, a baseline's ``BaselineLearner``). The Figure 4
+protocol's lifelong learning phases (``families/wargus/fig4_trial.py`` ``learning_phases``,
+``fig4_recurrent.py`` ``learning_phase``: one episode per sub-env per trial, between test phases)
+play without a collector and share the step only. Every loop plays epsilon-greedily at
+:func:`epsilon_at` and takes its gradient steps through :func:`update_phase`, learning rate
+:func:`lr_at`, once :func:`learning_started`; :func:`learn_batch` is the step after each collected
+batch; :func:`non_finite` the divergence check before a model is written.
 """
 
 from __future__ import annotations
@@ -28,7 +31,7 @@ class TrainingDiverged(RuntimeError):
 
 
 class Learner(Protocol):
-    """What a loop asks of a learner: one gradient step on a replay sample, and the learning rate.
+    """What a run asks of its learner: one gradient step on a replay sample, and the learning rate.
 
     :class:`~taskvar_torch.heads.learner.MultiHeadLearner` (every head from one shared sample) and
     :class:`~taskvar_torch.train_recurrent.BaselineLearner` (a baseline's ``DQNLoss``) are two."""
@@ -38,6 +41,43 @@ class Learner(Protocol):
 
     def set_lr(self, lr: float) -> None:
         """The Adam learning rate from the next update on."""
+
+
+class Run(Protocol):
+    """What :func:`collect_and_learn` asks of a run: its counters, and the two steps it takes on
+    every collected batch."""
+
+    counters: dict[str, int]  # "frames": per seed, "updates"
+
+    def store(self, batch: TensorDictBase) -> int:
+        """Replay a collected batch and count its frames; returns the frame count before it."""
+
+    def learn(self) -> None:
+        """The learning after it (:func:`learn_batch` on the run's learner), then the exploration
+        rate for the frames played."""
+
+
+def collect_and_learn(
+    run: Run,
+    collector: Iterable[TensorDictBase],
+    pbar: Any,
+    report: Callable[[int], dict[str, float] | None],
+) -> dict[str, float]:
+    """The training loop: every batch of ``collector`` stored (:meth:`Run.store`), learnt from
+    (:meth:`Run.learn`), counted on ``pbar`` (up to its total) and reported on (``report(frames
+    before the batch)``: log rows, checkpoints, a stop signal; a row or ``None``); ``pbar`` is
+    closed at the end. Returns the last row reported (``{}``: none)."""
+    last = {}
+    for batch in collector:
+        frames_before = run.store(batch)
+        run.learn()
+        played = run.counters["frames"] - frames_before
+        pbar.update(min(played, max(pbar.total - pbar.n, 0)))  # the bar ends at its total
+        row = report(frames_before)
+        if row is not None:
+            last = row
+    pbar.close()
+    return last
 
 
 def epsilon_at(frames: int, t: TrainConfig) -> float:
@@ -115,6 +155,8 @@ def non_finite(groups: dict[str, Iterable[torch.Tensor]]) -> list[str]:
 
 __all__ = [
     "Learner",
+    "Run",
+    "collect_and_learn",
     "TrainingDiverged",
     "epsilon_at",
     "learn_batch",

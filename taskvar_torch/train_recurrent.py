@@ -47,7 +47,9 @@ steps.
 instance the replay keeps at ``s`` and ``s'``. **blind**: the same network and trainer with the
 features zeroed, so "memory helps" is told apart from "learning on one's own stream helps".
 
-:func:`train_baseline` writes ``DIR/recurrent.pt``, ``DIR/informed.pt`` or ``DIR/blind.pt``
+:func:`train_baseline` runs the heads' training loop
+(:func:`~taskvar_torch.learning.collect_and_learn`) on a :class:`BaselineRun` and writes
+``DIR/recurrent.pt``, ``DIR/informed.pt`` or ``DIR/blind.pt``
 (``heads.recurrent.save_baseline``: atomic, plain data).
 """
 
@@ -57,6 +59,7 @@ import copy
 import dataclasses
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -86,7 +89,8 @@ from taskvar_torch.heads.recurrent import (
     make_recurrent_qnet,
     save_baseline,
 )
-from taskvar_torch.learning import epsilon_at, learn_batch, non_finite
+from taskvar_torch.learning import collect_and_learn, epsilon_at, learn_batch, non_finite
+from taskvar_torch.progress import progress_bar
 
 EPISODE_START = "episode_start"
 """Stored copy of ``is_init`` (a step that starts an episode): the sampler marks every slice start
@@ -356,94 +360,108 @@ class BaselineLearner:
         return value.detach()
 
 
+@dataclasses.dataclass
+class BaselineRun:
+    """A baseline's training run between batches (the heads' is
+    :class:`~taskvar_torch.run_state.TrainingRun`): its learner, exploration and budget ``t``
+    (:func:`baseline_train_config`), the frames and updates so far, and the returns of the
+    episodes that ended in the last tenth of its budget."""
+
+    method: str
+    t: TrainConfig
+    learner: BaselineLearner
+    explore: EGreedyModule
+    log: Callable[[str], None] | None = None
+    counters: dict[str, int] = dataclasses.field(
+        default_factory=lambda: {"frames": 0, "updates": 0}
+    )
+    returns: list[torch.Tensor] = dataclasses.field(default_factory=list)
+    loss: torch.Tensor | None = None  # the last update's
+
+    def store(self, batch: TensorDictBase) -> int:
+        """Replay what the baseline keeps of ``batch`` (:func:`stored_keys`,
+        :meth:`BaselineLearner.store`); returns the frame count before it."""
+        before = self.counters["frames"]
+        self.counters["frames"] += batch.numel()
+        if self.counters["frames"] > 0.9 * int(self.t.total_frames):
+            done = batch.get((keys.NEXT, keys.DONE)).squeeze(-1)
+            self.returns.append(batch.get((keys.NEXT, "episode_reward")).squeeze(-1)[done])
+        self.learner.store(batch.select(*stored_keys(self.method), strict=False))
+        return before
+
+    def learn(self) -> None:
+        """The heads' learning step (:func:`~taskvar_torch.learning.learn_batch`) and epsilon
+        (:func:`~taskvar_torch.learning.epsilon_at`) at the baseline's budget."""
+        frames = self.counters["frames"]
+        loss = learn_batch(
+            self.learner, self.learner.sample, frames, len(self.learner.buffer), self.t
+        )
+        if loss is not None:
+            self.loss = loss
+            self.counters["updates"] += self.learner.updates_per_batch
+        self.explore.eps.fill_(epsilon_at(frames, self.t))
+
+    def report(self, frames_before: int) -> None:
+        """A line to ``log`` about every 1000 updates."""
+        frames, updates = self.counters["frames"], self.counters["updates"]
+        if self.log is not None and updates and updates % 1000 < self.learner.updates_per_batch:
+            self.log(
+                f"{self.method}: {frames} frames, {updates} updates, loss {float(self.loss):.4f}"
+            )
+
+
 def train_baseline(
     cfg: Config,
     method: str,
     out_dir: str | os.PathLike,
     progress: bool = False,
-    log: Any = None,
+    log: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """Train the ``recurrent``, ``informed`` or ``blind`` baseline of ``cfg`` for its budget
     (:func:`baseline_train_config`) and write it to ``out_dir/<method>.pt``; returns ``{"path",
     "frames", "budget", "updates", "seconds", "mean_train_return"}`` (the mean return of the
     episodes that ended in the last tenth of training, exploration included).
 
-    The loop: a TorchRL ``Collector`` of ``train.frames_per_batch`` frames; each batch stored
-    (:meth:`BaselineLearner.store`), then the heads' learning step
-    (:func:`~taskvar_torch.learning.learn_batch`) and epsilon (:func:`~taskvar_torch.learning.epsilon_at`).
-    Seeded by ``cfg.seed`` (torch's global generator and the env's keyed streams)."""
+    The heads' training loop (:func:`~taskvar_torch.learning.collect_and_learn`) on a
+    :class:`BaselineRun`: a TorchRL ``Collector`` of ``train.frames_per_batch`` frames acting
+    with the baseline's network behind an ``EGreedyModule``. Seeded by ``cfg.seed`` (torch's
+    global generator and the env's keyed streams)."""
     t = baseline_train_config(cfg, method)
     torch.manual_seed(int(cfg.seed))
     net, spec, env = build_for_training(cfg, method)
-    recurrent = method == "recurrent"
     explore = EGreedyModule(env.action_spec, eps_init=1.0, eps_end=float(t.eps_end))
-    policy = TensorDictSequential(net, explore)
-    learner = BaselineLearner(net, env.action_spec, cfg, recurrent)
-    store = stored_keys(method)
+    learner = BaselineLearner(net, env.action_spec, cfg, method == "recurrent")
+    run = BaselineRun(method, t, learner, explore, log)
     collector = Collector(
         env,
-        policy,
+        TensorDictSequential(net, explore),
         frames_per_batch=int(t.frames_per_batch),
         total_frames=int(t.total_frames),
         track_traj_ids=False,
     )
-    frames = updates = 0
-    returns: list[torch.Tensor] = []
     start = time.perf_counter()
-    bar = None
-    if progress:
-        from taskvar_torch.progress import progress_bar
-
-        bar = progress_bar(total=int(t.total_frames), desc=method)
-    for data in collector:
-        n = data.numel()
-        frames += n
-        done = data.get((keys.NEXT, keys.DONE)).squeeze(-1)
-        if frames > 0.9 * int(t.total_frames):
-            returns.append(data.get((keys.NEXT, "episode_reward")).squeeze(-1)[done])
-        learner.store(data.select(*store, strict=False))
-        losses = learn_batch(learner, learner.sample, frames, len(learner.buffer), t)
-        if losses is not None:
-            value = losses
-            updates += learner.updates_per_batch
-        explore.eps.fill_(epsilon_at(frames, t))  # the heads' schedule
-        if bar is not None:
-            bar.update(n)
-        if log is not None and updates and updates % 1000 < learner.updates_per_batch:
-            log(f"{method}: {frames} frames, {updates} updates, loss {float(value):.4f}")
-    collector.shutdown()
-    if bar is not None:
+    bar = progress_bar(total=int(t.total_frames), disable=not progress, desc=method, unit="frame")
+    try:
+        collect_and_learn(run, collector, bar, run.report)
+    finally:
         bar.close()
+        collector.shutdown()
     if non_finite({"weights": learner.eval_net.parameters()}):
         raise ValueError(f"the {method} baseline diverged (non-finite weights); nothing written")
     seconds = time.perf_counter() - start
     path = baseline_path(Path(out_dir) / "final.pt", method)
-    save_baseline(
-        path,
-        learner.eval_net,
-        spec,
-        cfg,
-        counters={
-            "frames": frames,
-            "budget": int(t.total_frames),
-            "updates": updates,
-            "seconds": seconds,
-        },
-    )
-    rets = torch.cat(returns) if returns else torch.zeros(0)
-    return {
-        "path": str(path),
-        "frames": frames,
-        "budget": int(t.total_frames),
-        "updates": updates,
-        "seconds": seconds,
-        "mean_train_return": float(rets.mean()) if rets.numel() else float("nan"),
-    }
+    frames, updates = run.counters["frames"], run.counters["updates"]
+    counters = {"frames": frames, "budget": int(t.total_frames), "updates": updates}
+    save_baseline(path, learner.eval_net, spec, cfg, counters={**counters, "seconds": seconds})
+    rets = torch.cat(run.returns) if run.returns else torch.zeros(0)
+    mean = float(rets.mean()) if rets.numel() else float("nan")
+    return {"path": str(path), **counters, "seconds": seconds, "mean_train_return": mean}
 
 
 __all__ = [
     "EPISODE_START",
     "BaselineLearner",
+    "BaselineRun",
     "baseline_train_config",
     "build_for_training",
     "burn_in_mask",

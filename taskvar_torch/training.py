@@ -22,7 +22,8 @@ counters, the replay buffer, the env's simulator state, the collector's carried 
 RNG state, so ``train(..., resume=ckpt)`` continues bit for bit on CPU (one collector process only:
 the workers' env and RNG states are not saved, so resuming a multi-process run is refused).
 
-The run itself lives beside this loop: what it holds and does per batch (store, learn, report,
+The loop itself, batch by batch, is the one the baselines train with too
+(:func:`~taskvar_torch.learning.collect_and_learn`); the run lives beside it: what it holds and does per batch (store, learn, report,
 checkpoint) in :mod:`taskvar_torch.run_state`, its construction and resume checks in
 :mod:`taskvar_torch.run_setup`, where its log rows go in :mod:`taskvar_torch.run_logs`, the results
 folder (one run per folder, locked, never silently reused; logs cut back on resume; SIGINT /
@@ -59,6 +60,7 @@ from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.contract import family
 from taskvar_torch.factory import HEADS_NAME, check_device, write_heads
+from taskvar_torch.learning import collect_and_learn
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import (
     RunFolder,
@@ -184,9 +186,9 @@ def _train_loop(
     keep_replay: bool = True,
 ) -> dict[str, Any]:
     """:func:`train` once its inputs are checked and ``out`` is held: build the run (or restore it
-    from ``bundle``), then, batch by batch until ``train.total_frames``, store the transitions
-    (:meth:`TrainingRun.store`), learn (:meth:`TrainingRun.learn`), log and checkpoint
-    (:meth:`TrainingRun.report`)."""
+    from ``bundle``), then the training loop (:func:`~taskvar_torch.learning.collect_and_learn`)
+    until ``train.total_frames``: store the transitions (:meth:`TrainingRun.store`), learn
+    (:meth:`TrainingRun.learn`), log and checkpoint (:meth:`TrainingRun.report`)."""
     t = cfg.train
     save_config_yaml(cfg, out / "config.yaml")
     run = build_run(cfg, out, bundle, resume)
@@ -212,19 +214,16 @@ def _train_loop(
             desc="train",
             unit="frame",
         )
-        start_time, last_log = time.perf_counter(), {}
+        start_time = time.perf_counter()
         on_start()
         with StopSignals() as stop:
             try:
-                for batch in run.collector:
-                    frames_before = run.store(batch)
-                    run.learn()
-                    per_seed = batch.numel() // t.seeds
-                    pbar.update(min(per_seed, max(pbar.total - pbar.n, 0)))  # ends at total
-                    row = run.report(frames_before, stop, loggers, pbar, start_time)
-                    if row is not None:
-                        last_log = row
-                pbar.close()
+                last_log = collect_and_learn(
+                    run,
+                    run.collector,
+                    pbar,
+                    lambda before: run.report(before, stop, loggers, pbar, start_time),
+                )
                 final = out / "final.pt"  # a first signal from here on: the run ends normally
                 run.save(final, replay=keep_replay)
                 if t.seeds == 1:

@@ -13,7 +13,7 @@ from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss
 
 from taskvar_torch import keys
-from taskvar_torch.config import apply_overrides, load_config
+from taskvar_torch.config import TrainConfig, apply_overrides, load_config
 from taskvar_torch.factory import build_heads, make_env, make_learner, make_subtasks
 from taskvar_torch.heads.averaging import averaging_loss, make_averaging_head
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
@@ -22,7 +22,6 @@ from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import (
     CompiledLosses,
     ForeachSoftUpdate,
-    LossSettings,
     MultiHeadLearner,
     MultiHeadLoss,
 )
@@ -127,7 +126,7 @@ def test_fused_pass_equals_each_head_run_alone(windy):
     cfg, env, subtasks = windy
     torch.manual_seed(0)
     heads = build_heads(cfg, env, subtasks)
-    loss = MultiHeadLoss(heads, subtasks, LossSettings())
+    loss = MultiHeadLoss(heads, subtasks, TrainConfig())
     assert loss.stack is not None  # every head is a member of one StackedMLP
     batch = random_batch(env)
     cur, nxt, nxt_target, *_ = loss._head_outputs(
@@ -162,7 +161,7 @@ def test_every_loss_trains_only_its_own_head(windy):
     cfg, env, subtasks = windy
     torch.manual_seed(0)
     heads = build_heads(cfg, env, subtasks)
-    loss = MultiHeadLoss(heads, subtasks, LossSettings())
+    loss = MultiHeadLoss(heads, subtasks, TrainConfig())
     losses = loss(random_batch(env))
     order = {n: head_network(heads.heads[n]).index for n in ("averaging", "options", "switching")}
     order["max_value"] = head_network(heads.heads["max_value"]).gap.index
@@ -284,7 +283,9 @@ def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
         ("option", "averaging", "episode"),
     )
     for target, root, until in cases:
-        settings = LossSettings(robustness_target=target, root_policy=root, robustness_until=until)
+        settings = TrainConfig(
+            robustness_target=target, hierarchy_root_policy=root, robustness_until=until
+        )
         loss = MultiHeadLoss(heads, subtasks, settings)
         with torch.no_grad():  # make the target network differ from the online one
             for p in loss.target_heads_params.values(True, True):
@@ -312,7 +313,7 @@ def test_fused_robustness_loss_bootstraps_with_each_options_greedy_action():
     # the targets differ here, so the checks above tell them apart
     assert len({round(v.item(), 6) for v in losses.values()}) == 4
     with pytest.raises(ValueError, match="robustness_target must be one of"):
-        MultiHeadLoss(heads, subtasks, LossSettings(robustness_target="max"))
+        MultiHeadLoss(heads, subtasks, TrainConfig(robustness_target="max"))
 
 
 def _looped_first_visit(obs, action, is_init):
@@ -391,7 +392,7 @@ def test_compiled_learner_matches_eager(windy):
         full = build_heads(cfg, env, subtasks)
         names = ("averaging", "options")
         heads = Heads(full.option_names, **{n: full.heads[n] for n in names})
-        loss = MultiHeadLoss(heads, subtasks, LossSettings())
+        loss = MultiHeadLoss(heads, subtasks, TrainConfig())
         learners.append(MultiHeadLearner(loss, compile=compile_))
     eager, compiled = learners
     assert isinstance(compiled.losses, CompiledLosses)
@@ -414,7 +415,7 @@ def test_bfloat16_matmuls_match_float32_losses(windy):
     for dtype in ("float32", "bfloat16"):
         torch.manual_seed(0)
         heads = build_heads(cfg, env, subtasks)
-        loss = MultiHeadLoss(heads, subtasks, LossSettings(matmul_dtype=dtype))
+        loss = MultiHeadLoss(heads, subtasks, TrainConfig(matmul_dtype=dtype))
         learners[dtype] = MultiHeadLearner(loss)
     before = [p.detach().clone() for p in learners["bfloat16"].heads.parameters()]
     a, b = learners["float32"].update(batch), learners["bfloat16"].update(batch)
@@ -427,7 +428,7 @@ def test_bfloat16_matmuls_match_float32_losses(windy):
     assert all(p.dtype == torch.float32 for p in after)
     assert any(not torch.equal(p, q) for p, q in zip(before, after))
     with pytest.raises(ValueError, match=r"matmul_dtype must be one of \['bfloat16', 'float32'\]"):
-        MultiHeadLoss(learners["float32"].heads, subtasks, LossSettings(matmul_dtype="half"))
+        MultiHeadLoss(learners["float32"].heads, subtasks, TrainConfig(matmul_dtype="half"))
     with pytest.raises(ValueError, match="train.matmul_dtype must be one of"):
         load_config(CONFIG, ["train.matmul_dtype=float16"])
 
@@ -438,7 +439,7 @@ def test_eval_ema_tau_averages_the_weights_after_every_update(windy):
     cfg, env, subtasks = windy
     tau = 0.25
     learner = MultiHeadLearner(
-        MultiHeadLoss(build_heads(cfg, env, subtasks), subtasks, LossSettings()), eval_ema_tau=tau
+        MultiHeadLoss(build_heads(cfg, env, subtasks), subtasks, TrainConfig()), eval_ema_tau=tau
     )
     ema = [p.detach().clone() for p in learner.heads.parameters()]  # the initial weights
     assert all(torch.equal(e, p) for e, p in zip(ema, learner.eval_heads.parameters()))
@@ -455,7 +456,7 @@ def test_eval_ema_tau_averages_the_weights_after_every_update(windy):
 def test_compiled_learner_falls_back_to_eager(windy, monkeypatch):
     cfg, env, subtasks = windy
     heads = build_heads(cfg, env, subtasks)
-    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, LossSettings()), compile=True)
+    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, TrainConfig()), compile=True)
 
     def broken(batch):
         raise RuntimeError("no C++ compiler\nmore lines")
@@ -476,7 +477,7 @@ def test_compiled_learner_falls_back_to_eager(windy, monkeypatch):
 def test_soft_update_moves_every_target_once_by_tau(windy):
     cfg, env, subtasks = windy
     heads = build_heads(cfg, env, subtasks)
-    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, LossSettings()), target_tau=0.25)
+    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, TrainConfig()), target_tau=0.25)
     assert isinstance(learner.target_updater, ForeachSoftUpdate)
     stack = learner.loss.stack
     target = learner.loss.target_stack
@@ -493,7 +494,7 @@ def test_learner_update_changes_weights_and_pops_mean_losses(windy):
     cfg, env, subtasks = windy
     torch.manual_seed(0)
     heads = build_heads(cfg, env, subtasks)
-    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, LossSettings()))
+    learner = MultiHeadLearner(MultiHeadLoss(heads, subtasks, TrainConfig()))
     batch = random_batch(env)
     w0 = [p.detach().clone() for p in heads.parameters()]
     l1 = learner.update(batch)

@@ -12,11 +12,11 @@ from tensordict import TensorDict
 from torch import nn
 
 from taskvar_torch import keys
-from taskvar_torch.config import load_config
+from taskvar_torch.config import TrainConfig, load_config
 from taskvar_torch.factory import build_heads, load_heads, make_env, make_subtasks
 from taskvar_torch.families.windy.family import WINDY_INSTANCE_DIM
 from taskvar_torch.families.windy.family import windy_instance_features as instance_features
-from taskvar_torch.heads.learner import LossSettings, MultiHeadLoss
+from taskvar_torch.heads.learner import MultiHeadLoss
 from taskvar_torch.heads.max_value import (
     OptimismGapHead,
     distinct_rows,
@@ -112,7 +112,7 @@ def test_critic_loss_trains_the_critic_and_head_loss_only_the_gap(windy):
     net = head_network(heads.heads["max_value"])
     assert isinstance(net, OptimismGapHead) and net.critic is not None
     loss = MultiHeadLoss(
-        heads, subtasks, LossSettings(max_value_estimator="instance"), instance_features
+        heads, subtasks, TrainConfig(max_value_estimator="instance"), instance_features
     )
     td = batch_with_instances(env)
     batch = relabel(td, subtasks, instance_features=instance_features)
@@ -148,16 +148,16 @@ def test_instance_estimator_needs_instances_and_a_critic(windy):
     batch = batch_with_instances(env).exclude(keys.INSTANCE)
     heads = build_heads(cfg, env, subtasks)
     loss = MultiHeadLoss(
-        heads, subtasks, LossSettings(max_value_estimator="instance"), instance_features
+        heads, subtasks, TrainConfig(max_value_estimator="instance"), instance_features
     )
     with pytest.raises(ValueError, match="hidden instance"):
         loss(batch)
     expectile = ["env.num_envs=4", "train.max_value_estimator=expectile"]
     plain = build_heads(load_config("configs/windy.yaml", expectile), env, subtasks)
     with pytest.raises(ValueError, match="instance critic"):
-        MultiHeadLoss(plain, subtasks, LossSettings(max_value_estimator="instance"))
+        MultiHeadLoss(plain, subtasks, TrainConfig(max_value_estimator="instance"))
     with pytest.raises(ValueError, match="max_value_estimator"):
-        MultiHeadLoss(heads, subtasks, LossSettings(max_value_estimator="mc"))
+        MultiHeadLoss(heads, subtasks, TrainConfig(max_value_estimator="mc"))
 
 
 def test_config_rejects_the_instance_estimator_without_instance_features():

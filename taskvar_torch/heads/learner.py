@@ -28,7 +28,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
-from dataclasses import dataclass
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -58,31 +57,17 @@ from taskvar_torch.heads.robustness import (
     robustness_loss,
 )
 from taskvar_torch.heads.seeds import num_seeds
-from taskvar_torch.heads.switching import consistent_with_option, mu_bar_probs, switching_loss
+from taskvar_torch.heads.switching import (
+    consistent_with_option,
+    mu_bar_probs,
+    mu_bar_temperature,
+    switching_loss,
+)
 from taskvar_torch.subtasks.base import Subtasks
 
 _NEEDS = {"switching": ("options",), "max_value": ("options", "switching")}
 MATMUL_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
-"""``LossSettings.matmul_dtype`` -> the dtype the network passes run their matmuls in."""
-
-
-@dataclass(frozen=True)
-class LossSettings:
-    """Hyper-parameters of the head losses: the ``TrainConfig`` fields of the same names (the
-    root's policy is ``train.hierarchy_root_policy``), whose defaults are these defaults;
-    ``factory.make_learner`` sets every one from the config."""
-
-    gamma: float = TrainConfig.gamma
-    robustness_gamma: float = TrainConfig.robustness_gamma
-    double_q: bool = TrainConfig.double_q
-    max_value_expectile: float = TrainConfig.max_value_expectile
-    mu_bar_temperature: float | None = None  # None: greedy mu_bar (train.mu_bar's default)
-    robustness_target: str = TrainConfig.robustness_target  # R's next action: pi^o(s') or argmax R
-    robustness_until: str = TrainConfig.robustness_until  # R's horizon: beta_o, or the episode
-    root_policy: str = TrainConfig.hierarchy_root_policy  # the root's pi: averaging, or its option
-    max_value_estimator: str = TrainConfig.max_value_estimator  # expectile | instance
-    max_value_instances: int = TrainConfig.max_value_instances  # |Z| of the instance max
-    matmul_dtype: str = TrainConfig.matmul_dtype  # or bfloat16: network passes under autocast
+"""``train.matmul_dtype`` -> the dtype the network passes run their matmuls in."""
 
 
 def _unique_params(module: nn.Module) -> TensorDictParams:
@@ -114,14 +99,16 @@ class MultiHeadLoss(LossModule):
     Args:
         heads: the online heads (trained in place).
         subtasks: the family's options, used to relabel transitions.
-        settings: discounts, double-Q, expectile level, mu_bar temperature.
+        settings: the run's ``train`` config (``Config.train``), whose discounts, double-Q,
+            targets, expectile level, mu_bar, max-value estimator and matmul dtype the losses
+            read.
         instance_features: the family's features of the hidden instance (``Family
             .instance_features``), read offline by the ``instance`` max-value estimator only.
 
     Returns (``forward``): a ``TensorDict`` of scalar losses ``loss_<head>`` for the heads present.
 
     Examples:
-        >>> loss = MultiHeadLoss(heads, subtasks, LossSettings())  # doctest: +SKIP
+        >>> loss = MultiHeadLoss(heads, subtasks, cfg.train)  # doctest: +SKIP
         >>> loss(buffer.sample())["loss_averaging"]  # doctest: +SKIP
     """
 
@@ -129,7 +116,7 @@ class MultiHeadLoss(LossModule):
         self,
         heads: Heads,
         subtasks: Subtasks,
-        settings: LossSettings,
+        settings: TrainConfig,
         instance_features: InstanceFeatures | None = None,
     ):
         super().__init__()
@@ -157,15 +144,16 @@ class MultiHeadLoss(LossModule):
                 f"robustness_until must be one of {list(ROBUSTNESS_UNTIL)}, "
                 f"got {settings.robustness_until!r}"
             )
-        if settings.root_policy not in ("averaging", "option"):
+        if settings.hierarchy_root_policy not in ("averaging", "option"):
             raise ValueError(
-                f"root_policy must be one of ['averaging', 'option'], got {settings.root_policy!r}"
+                "hierarchy_root_policy must be one of ['averaging', 'option'], "
+                f"got {settings.hierarchy_root_policy!r}"
             )
         # the composed root whose policy is pi^avg (paper §3.4.2), or None: its intra-option
         # transitions (switching, max-value) and its robustness target follow the averaging head
         self.avg_root = None
         if (
-            settings.root_policy == "averaging"
+            settings.hierarchy_root_policy == "averaging"
             and subtasks.hierarchy is not None
             and heads.has("options")
         ):
@@ -195,6 +183,7 @@ class MultiHeadLoss(LossModule):
         self.heads = heads
         self.subtasks = subtasks
         self.settings = settings
+        self.mu_bar_temperature = mu_bar_temperature(settings)  # None: greedy mu_bar
         self.head_names = tuple(heads.heads.keys())
         # one deepcopy, so heads that share a StackedMLP share it in the targets too
         self.target_heads = copy.deepcopy(heads.heads).requires_grad_(False)
@@ -357,7 +346,7 @@ class MultiHeadLoss(LossModule):
                 q_options = with_root_row(q_options, cur["averaging"].detach(), self.avg_root)
             consistent = consistent_with_option(batch.action, q_options, batch.initiation)  # (B, O)
             mu_next = mu_bar_probs(
-                nxt["switching"], batch.initiation_next, s.mu_bar_temperature
+                nxt["switching"], batch.initiation_next, self.mu_bar_temperature
             )  # (B, O)
             losses["loss_switching"] = switching_loss(
                 cur["switching"], nxt_target["switching"], mu_next, consistent, batch, s.gamma

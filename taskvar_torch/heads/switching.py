@@ -19,9 +19,16 @@ from __future__ import annotations
 
 import torch
 
+from taskvar_torch.config.schema import TrainConfig
 from taskvar_torch.heads.options import option_greedy_actions
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.targets import masked_mean
+
+
+def mu_bar_temperature(t: TrainConfig) -> float | None:
+    """mu_bar's temperature of ``train``: ``None`` for a greedy mu_bar (``train.mu_bar``), else
+    the softmax temperature ``train.mu_bar_temperature``."""
+    return t.mu_bar_temperature if t.mu_bar == "softmax" else None
 
 
 def mu_bar_probs(
