@@ -300,7 +300,6 @@ def _evaluate(
             exact,
             out_dir=out_dir,
             plots=plots,
-            overwrite=True,  # out_dir: refused above if it held any
             controller=controller,
         )
     if baselines:  # each baseline's own training budget (it may differ from the heads')
