@@ -40,17 +40,12 @@ LOCK_NAME = ".taskvar.lock"
 """Lock file of a results folder: ``flock``-ed by the command writing there (released by the
 kernel when the process dies, even by SIGKILL), holding its pid; removed when the command ends."""
 RUN_FILES = (
-    "config.yaml",
-    "final.pt",
-    "heads.pt",
-    "informed.pt",  # the baselines' bundles belong to the run they were trained beside (taskvar
-    "blind.pt",  # train-baselines): an overwrite removes them with it, never leaving another run's
-    "recurrent.pt",
-    "logs",
-    "heads",
-    "checkpoint_*.pt",
-)
-"""What a training run writes in its folder: the results of ``taskvar train``."""
+    "config.yaml", "final.pt", "heads.pt", "informed.pt", "blind.pt", "recurrent.pt", "logs",
+    "heads", "checkpoint_*.pt",
+)  # fmt: skip
+"""What a training run writes in its folder (``taskvar train``'s results), the baselines' bundles
+included: they belong to the run they were trained beside (``taskvar train-baselines``), and an
+overwrite removes them with it, never leaving another run's."""
 RESULT_MARKERS = ("metrics.json", "summary.json")
 """Files that make a folder a results folder of ``taskvar eval``, ``experiment`` or ``sweep``
 (written last, once the results are complete)."""
@@ -205,10 +200,11 @@ class ResultsFolder:
     are never silently replaced.
 
     :meth:`acquire` refuses an unusable ``out`` (empty: it would be the current folder; a file; a
-    dangling link; not writable) and results already there (the entries ``markers`` names) unless
-    ``overwrite``; it creates the folder if needed, locks it (:func:`lock_folder`: a second command
-    on it is refused, naming the first one's pid), removes the temporary files of killed writes,
-    and checks again under the lock. Then, by ``staged``:
+    dangling link; not writable) and results already there (the entries ``markers`` names, glob
+    patterns; by default :data:`RESULT_MARKERS` staged, none in place) unless ``overwrite``; it
+    creates the folder if needed, locks it (:func:`lock_folder`: a second command on it is
+    refused, naming the first one's pid), removes the temporary files of killed writes, and
+    checks again under the lock. Then, by ``staged``:
 
     * ``True`` (``taskvar eval``, ``experiment``, ``scale``, a sweep replaced with
       ``--overwrite``): the folder is the command's whole, so one holding files that are not
@@ -219,11 +215,11 @@ class ResultsFolder:
       results whole. A killed command's staging folder is removed by the next one on ``out``.
     * ``False``: written in place (``train``, whose checkpoints resume where they are; a new or
       resumed sweep; ``train-baselines``, ``export``, ``report`` and ``plot``, with no
-      ``markers``, each refusing its own files). :meth:`acquire` returns ``out``; other files there are kept;
-      ``overwrite`` removes the marker entries first (only a taskvar run's: a checkpoint, logs or
-      a taskvar ``config.yaml``), and ``resume``, a checkpoint inside ``out``, continues them.
-      :meth:`abandon` (a run that failed before it started) removes what was written into a
-      folder that held no results.
+      ``markers``: only locked, each refusing its own files). :meth:`acquire` returns ``out``;
+      other files there are kept; ``overwrite`` removes the marker entries first (only a taskvar
+      run's: a checkpoint, logs or a taskvar ``config.yaml``), and ``resume``, a checkpoint
+      inside ``out``, continues them. :meth:`abandon` (a run that failed before it started)
+      removes what was written into a folder that held no results.
 
     ``command`` and ``hint`` (how to continue instead) go into the refusal, ``flag`` names the
     folder in every message. Used as a context manager: commit on success, else abandon.
@@ -244,8 +240,6 @@ class ResultsFolder:
         self.out = check_out_path(out, flag)
         self.overwrite = bool(overwrite)
         self.command = command
-        # the entries that make a folder this command's results (none: the command refuses its
-        # own files, and the folder is only locked)
         self.markers = (RESULT_MARKERS if staged else ()) if markers is None else markers
         self.staged = staged
         self.continuing = resume is not None and Path(resume).resolve().parent == self.out.resolve()
@@ -264,8 +258,8 @@ class ResultsFolder:
         entries = _visible_entries(out) if self.staged else found  # staged: out is the whole
         if entries and not found:
             raise ValueError(
-                f"{flag} {str(out)!r} holds files that are not taskvar results ({_names(entries)}); "
-                f"choose an empty or new folder ({self.command})"
+                f"{flag} {str(out)!r} holds files that are not taskvar results "
+                f"({_names(entries)}); choose an empty or new folder ({self.command})"
             )
         if not entries or self.continuing:
             return
@@ -313,8 +307,9 @@ class ResultsFolder:
                 return self.staging
             earlier = _present(out, self.markers)
             self.fresh = not earlier or self.overwrite
-            for p in earlier if self.overwrite else ():
-                remove_path(p)
+            if self.overwrite:
+                for p in earlier:
+                    remove_path(p)
         except BaseException:
             self.abandon()
             raise

@@ -137,7 +137,6 @@ def eval_bundle(
         )  # fmt: skip
     folder = ResultsFolder(out_dir, overwrite, "taskvar eval")
     refuse_inside(checkpoint, folder.out, "--checkpoint")
-    folder.check()  # a one-line refusal before any loading
     with folder as staging:  # locked; written in a staging folder, swapped in whole at the end
         return _evaluate(
             checkpoint, method, test, shifts, episodes, seed, noise_seed, batch_size, staging,

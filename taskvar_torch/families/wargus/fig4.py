@@ -235,9 +235,7 @@ def wargus_fig4(
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         return _wargus_fig4(cfg, out, workers, progress, plots)
-    folder = ResultsFolder(out_dir, overwrite, "taskvar experiment wargus-fig4")
-    folder.check()
-    with folder as staging:
+    with ResultsFolder(out_dir, overwrite, "taskvar experiment wargus-fig4") as staging:
         return _wargus_fig4(cfg, staging, workers, progress, plots)
 
 
