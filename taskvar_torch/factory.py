@@ -53,7 +53,7 @@ from taskvar_torch.heads.networks import head_network, make_stacked_heads
 from taskvar_torch.heads.relabel import has_robustness
 from taskvar_torch.heads.robustness import RobustnessCalibration, calibrate_robustness
 from taskvar_torch.heads.switching import mu_bar_temperature
-from taskvar_torch.run_folder import check_out_path, folder_lock
+from taskvar_torch.run_folder import ResultsFolder, check_out_path
 from taskvar_torch.subtasks.base import Subtasks
 
 CALIBRATION_STATES = 4096  # training states a calibration reads
@@ -478,8 +478,8 @@ def export_heads(
         )
     bundle = load_checkpoint(checkpoint)  # read once: a training checkpoint holds the replay
     heads, cfg = _heads_of(bundle, checkpoint)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    with folder_lock(dest.parent):  # not into a folder another taskvar command is writing
+    # not into a folder another taskvar command is writing
+    with ResultsFolder(dest.parent, staged=False):
         return write_heads(dest, heads, cfg, counters=bundle.get("counters"))
 
 

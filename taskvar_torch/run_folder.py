@@ -1,24 +1,21 @@
-"""The run folder of :func:`~taskvar_torch.training.train`: one run per folder, locked, never silently
-reused; an interrupted run leaves a resumable checkpoint (docs/design.md, "Training the heads").
+"""Results folders: every taskvar command that writes results holds its ``--out`` as one
+:class:`ResultsFolder`: locked, never silently replaced, and (but for ``train``) swapped in whole;
+an interrupted training run leaves a resumable checkpoint (docs/reliability.md, "Results folders";
+docs/design.md, "Training the heads").
 
-* :class:`RunFolder` creates and locks ``--out`` (:data:`LOCK_NAME`, ``flock``-ed, so a second run
-  on the folder is refused), removes the temporary files a killed write left, and refuses a folder
-  already holding a run (:func:`run_files`) unless the run continues from a checkpoint inside it or
-  ``--overwrite`` removes the old run first.
+* :class:`ResultsFolder` locks the folder (:data:`LOCK_NAME`, ``flock``-ed, so a second command on
+  it is refused), refuses results already there unless ``--overwrite`` (or ``train --resume``
+  continues them), and either fills a staging sibling it swaps in whole at the end, or (``train``,
+  a sweep, and the commands writing single files) writes in place.
 * :func:`restore_logs` cuts a resumed run's CSV logs back to its checkpoint's frame, so they equal
   those of an uninterrupted run.
 * :class:`StopSignals` turns the first SIGINT / SIGTERM into "stop after the current batch"; the
   trainer then writes ``checkpoint_<frame>.pt`` and raises :class:`TrainingInterrupted`
   (:func:`_interrupted`) carrying the exact :func:`resume_command`.
-
-The other results folders (``taskvar eval``, ``experiment``, ``sweep``) are written like it:
-:class:`ResultsFolder` locks the folder, fills a staging sibling and swaps it in whole;
-``taskvar export`` and ``report`` hold :func:`folder_lock` while they write.
 """
 
 from __future__ import annotations
 
-import contextlib
 import ctypes
 import errno
 import fcntl
@@ -29,7 +26,6 @@ import shlex
 import shutil
 import signal
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -37,36 +33,39 @@ from taskvar_torch.config import atomic_write
 from taskvar_torch.guest import SignalInterrupt
 
 # --------------------------------------------------------------------------------------------
-# the run folder: one run per folder, locked, never silently reused
+# the results folder: one command per folder, locked, never silently replaced
 
 
 LOCK_NAME = ".taskvar.lock"
-"""Lock file of a run folder: ``flock``-ed by the run writing there (released by the kernel when
-the process dies, even by SIGKILL), holding its pid; removed when the run ends."""
-# the baselines' bundles belong to the run they were trained beside (taskvar
-# train-baselines): an overwrite removes them with it, never leaving another run's
-_RUN_NAMES = (
-    "config.yaml",
-    "final.pt",
-    "heads.pt",
-    "informed.pt",
-    "blind.pt",
-    "recurrent.pt",
-    "logs",
-    "heads",
-)
+"""Lock file of a results folder: ``flock``-ed by the command writing there (released by the
+kernel when the process dies, even by SIGKILL), holding its pid; removed when the command ends."""
+RUN_FILES = (
+    "config.yaml", "final.pt", "heads.pt", "informed.pt", "blind.pt", "recurrent.pt", "logs",
+    "heads", "checkpoint_*.pt",
+)  # fmt: skip
+"""What a training run writes in its folder (``taskvar train``'s results), the baselines' bundles
+included: they belong to the run they were trained beside (``taskvar train-baselines``), and an
+overwrite removes them with it, never leaving another run's."""
+RESULT_MARKERS = ("metrics.json", "summary.json")
+"""Files that make a folder a results folder of ``taskvar eval``, ``experiment`` or ``sweep``
+(written last, once the results are complete)."""
 _STALE_TMP = re.compile(r"^\..+\.[0-9a-f]{12}\.tmp$")  # config.atomic_write's temporary files
+_STAGING = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{12}\.(staging|replaced)$")
+
+
+def _present(folder: Path, names: tuple[str, ...]) -> list[Path]:
+    """The entries of ``folder`` that ``names`` name (a name with ``*`` is a glob pattern; a
+    symbolic link counts, even a dangling one)."""
+    if not folder.is_dir():
+        return []
+    found = [folder / n for n in names if "*" not in n and os.path.lexists(folder / n)]
+    return found + [p for n in names if "*" in n for p in sorted(folder.glob(n))]
 
 
 def run_files(out: str | os.PathLike) -> list[Path]:
-    """What a training run left in ``out``: ``config.yaml``, ``final.pt``, ``heads.pt``, the
-    baselines' ``informed.pt`` and ``recurrent.pt``, ``checkpoint_*.pt``, ``logs/``, ``heads/``
-    (snapshots; empty when ``out`` is not a folder)."""
-    out = Path(out)
-    if not out.is_dir():
-        return []
-    found = [out / n for n in _RUN_NAMES if os.path.lexists(out / n)]  # a link, even dangling
-    return found + sorted(out.glob("checkpoint_*.pt"))
+    """What a training run left in ``out`` (:data:`RUN_FILES`; empty when ``out`` is not a
+    folder)."""
+    return _present(Path(out), RUN_FILES)
 
 
 def remove_path(p: Path) -> None:
@@ -126,22 +125,14 @@ def lock_folder(folder: Path, flag: str = "--out") -> int:
 
 
 def unlock_folder(folder: Path, fd: int) -> None:
-    """Undo :func:`lock_folder`: remove the lock file (while still holding it), then close."""
+    """Undo :func:`lock_folder`: remove the lock file while still holding it (unless it is no
+    longer this lock's: a swapped-in folder has none), then close."""
+    lock = folder / LOCK_NAME
     try:
-        (folder / LOCK_NAME).unlink(missing_ok=True)
+        if lock.is_file() and os.stat(lock).st_ino == os.fstat(fd).st_ino:
+            lock.unlink()
     finally:
         os.close(fd)
-
-
-@contextlib.contextmanager
-def folder_lock(folder: Path, flag: str = "--out") -> Iterator[None]:
-    """Hold :func:`lock_folder` on ``folder`` for a ``with`` block (``taskvar export`` and
-    ``report`` writing into a folder: refused while another taskvar command writes there)."""
-    fd = lock_folder(Path(folder), flag)
-    try:
-        yield
-    finally:
-        unlock_folder(Path(folder), fd)
 
 
 def check_out_path(path: str | os.PathLike, flag: str = "--out") -> Path:
@@ -203,218 +194,176 @@ def _latest_checkpoint(out: Path) -> Path | None:
     return periodic[-1] if periodic else None
 
 
-class RunFolder:
-    """The results folder of one run (:func:`train`), held from :meth:`acquire` to :meth:`release`.
-
-    ``acquire`` creates the folder if needed, locks it (a second run on it is refused), removes
-    temporary files a killed write left behind, and refuses a folder that already holds a run
-    unless ``resume`` names a checkpoint inside it (continue the run) or ``overwrite`` is set (the
-    old run's files are removed first). :meth:`abandon` undoes what a run that failed before
-    training started wrote: the folder if it created it, else the files of a fresh run.
-    """
-
-    def __init__(
-        self, out: str | os.PathLike, resume: str | os.PathLike | None, overwrite: bool
-    ) -> None:
-        self.out = Path(out)
-        self.resume = None if resume is None else Path(resume)
-        self.overwrite = bool(overwrite)
-        self.created = False
-        self.fresh = True  # holds no earlier run's files (none, or removed by --overwrite)
-        self._fd: int | None = None
-
-    def acquire(self) -> RunFolder:
-        out = self.out
-        check_out_path(out)
-        check_output_folder(out)
-        self.created = not out.exists()
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-            self._lock()
-        except OSError as e:
-            self._remove_if_created()
-            raise ValueError(
-                f"cannot write in --out {str(out)!r} ({e.strerror or e}); choose another --out"
-            ) from None
-        try:
-            for p in out.iterdir():  # a write killed between its temp file and the rename
-                if _STALE_TMP.match(p.name) and p.is_file():
-                    p.unlink()
-            existing = run_files(out)
-            continuing = self.resume is not None and self.resume.resolve().parent == out.resolve()
-            if existing and self.overwrite:
-                if not _holds_a_run(out):  # e.g. --out . with a project's own config.yaml
-                    names = ", ".join(p.name for p in existing[:4])
-                    raise ValueError(
-                        f"--out {str(out)!r} holds {names} but no taskvar run (no checkpoint, "
-                        "logs or taskvar config); --overwrite removes only a run's files: "
-                        "choose another --out"
-                    )
-                for p in existing:
-                    remove_path(p)
-            elif existing and not continuing:
-                names = ", ".join(p.name for p in existing[:4]) + (
-                    ", ..." if len(existing) > 4 else ""
-                )
-                latest = _latest_checkpoint(out)
-                hint = f"continue it with --resume {shlex.quote(str(latest))}, " if latest else ""
-                raise ValueError(
-                    f"--out {str(out)!r} already holds a run ({names}); {hint}replace it with "
-                    "--overwrite, or choose another --out"
-                )
-            self.fresh = not existing or self.overwrite
-        except BaseException:
-            self.release()
-            raise
-        return self
-
-    def _lock(self) -> None:
-        self._fd = lock_folder(self.out)
-
-    def release(self) -> None:
-        """Remove the lock file and unlock (the lock is held until its file is gone)."""
-        if self._fd is None:
-            return
-        fd, self._fd = self._fd, None
-        unlock_folder(self.out, fd)
-
-    def abandon(self) -> None:
-        """After a failure before training started: leave nothing of this run behind."""
-        self.release()
-        if self.created:
-            self._remove_if_created()
-        elif self.fresh:
-            for p in run_files(self.out):
-                remove_path(p)
-
-    def _remove_if_created(self) -> None:
-        if self.created and self.out.is_dir():
-            shutil.rmtree(self.out, ignore_errors=True)
-
-
-RESULT_MARKERS = ("metrics.json", "summary.json")
-"""Files that make a folder a results folder of ``taskvar eval``, ``experiment`` or ``sweep``
-(written last, once the results are complete)."""
-_STAGING = re.compile(r"^\.(?P<name>.+)\.[0-9a-f]{12}\.(staging|replaced)$")
-
-
 class ResultsFolder:
-    """The results folder of ``taskvar eval``, ``experiment`` and ``sweep``: written like
-    ``train``'s run folder (one command at a time, never silently replaced), and swapped in whole.
+    """The results folder ``out`` of one taskvar command, held from :meth:`acquire` to
+    :meth:`commit` (or :meth:`abandon`): one command writes in it at a time, and a user's results
+    are never silently replaced.
 
-    :meth:`acquire` refuses an empty ``--out``, a folder holding files that are not results of a
-    taskvar command (``--out .`` in a project), and results already there unless ``overwrite``;
-    then it locks the folder (:func:`lock_folder`: a second command on it is refused) and returns
-    a new temporary sibling folder ``.<name>.<hex>.staging`` to write into. :meth:`commit` swaps
-    it for the folder (an atomic exchange where the system has one), so a reader sees the old
-    results or the new ones, never a mix; :meth:`abandon` (any failure, a signal) removes it and
-    leaves the old results whole. A killed command's staging folder is removed by the next
-    command on the same folder. Used as a context manager: commit on success, else abandon.
+    :meth:`acquire` refuses an unusable ``out`` (empty: it would be the current folder; a file; a
+    dangling link; not writable) and results already there (the entries ``markers`` names, glob
+    patterns; by default :data:`RESULT_MARKERS` staged, none in place) unless ``overwrite``; it
+    creates the folder if needed, locks it (:func:`lock_folder`: a second command on it is
+    refused, naming the first one's pid), removes the temporary files of killed writes, and
+    checks again under the lock. Then, by ``staged``:
+
+    * ``True`` (``taskvar eval``, ``experiment``, ``scale``, a sweep replaced with
+      ``--overwrite``): the folder is the command's whole, so one holding files that are not
+      taskvar results is refused (``--out .`` in a project). :meth:`acquire` returns a new empty
+      sibling ``.<name>.<hex>.staging`` to write into; :meth:`commit` swaps it in for ``out`` (an
+      atomic exchange where the system has one), so a reader sees the old results or the new
+      ones, never a mix; :meth:`abandon` (any failure, a signal) removes it and leaves the old
+      results whole. A killed command's staging folder is removed by the next one on ``out``.
+    * ``False``: written in place (``train``, whose checkpoints resume where they are; a new or
+      resumed sweep; ``train-baselines``, ``export``, ``report`` and ``plot``, with no
+      ``markers``: only locked, each refusing its own files). :meth:`acquire` returns ``out``;
+      other files there are kept; ``overwrite`` removes the marker entries first (only a taskvar
+      run's: a checkpoint, logs or a taskvar ``config.yaml``), and ``resume``, a checkpoint
+      inside ``out``, continues them. :meth:`abandon` (a run that failed before it started)
+      removes what was written into a folder that held no results.
+
+    ``command`` and ``hint`` (how to continue instead) go into the refusal, ``flag`` names the
+    folder in every message. Used as a context manager: commit on success, else abandon.
     """
 
     def __init__(
         self,
         out: str | os.PathLike,
-        overwrite: bool,
-        command: str,
-        markers: tuple[str, ...] = RESULT_MARKERS,
+        overwrite: bool = False,
+        command: str = "",
+        markers: tuple[str, ...] | None = None,
+        *,
+        staged: bool = True,
+        resume: str | os.PathLike | None = None,
+        hint: str = "",
+        flag: str = "--out",
     ) -> None:
-        self.out = check_out_path(out)
+        self.out = check_out_path(out, flag)
         self.overwrite = bool(overwrite)
         self.command = command
-        self.markers = markers  # entries that make a folder a results folder of this command
+        self.markers = (RESULT_MARKERS if staged else ()) if markers is None else markers
+        self.staged = staged
+        self.continuing = resume is not None and Path(resume).resolve().parent == self.out.resolve()
+        self.hint = hint
+        self.flag = flag
         self.staging: Path | None = None
         self.created = False
+        self.fresh = False  # in place: held no earlier results (none, or removed by overwrite)
         self._fd: int | None = None
 
     def check(self) -> None:
         """The refusals of :meth:`acquire`, without touching anything."""
-        out = self.out
-        check_output_folder(out)
-        entries = _visible_entries(out)
-        if not entries:
-            return
-        names = ", ".join(sorted(p.name for p in entries)[:4]) + (
-            ", ..." if len(entries) > 4 else ""
-        )
-        if not any(os.path.lexists(out / m) for m in self.markers):
+        out, flag = self.out, self.flag
+        check_output_folder(out, flag)
+        found = _present(out, self.markers)
+        entries = _visible_entries(out) if self.staged else found  # staged: out is the whole
+        if entries and not found:
             raise ValueError(
-                f"--out {str(out)!r} holds files that are not taskvar results ({names}); choose an "
-                f"empty or new folder ({self.command})"
+                f"{flag} {str(out)!r} holds files that are not taskvar results "
+                f"({_names(entries)}); choose an empty or new folder ({self.command})"
             )
+        if not entries or self.continuing:
+            return
         if not self.overwrite:
+            latest = None if self.staged else _latest_checkpoint(out)
+            hint = f"continue it with --resume {shlex.quote(str(latest))}, " if latest else ""
+            what, it = ("results", "them") if self.staged else ("a run", "it")
             raise ValueError(
-                f"--out {str(out)!r} already holds results ({names}); replace them with "
-                f"--overwrite, or choose another --out ({self.command})"
+                f"{flag} {str(out)!r} already holds {what} ({_names(entries)}); "
+                f"{self.hint or hint}replace {it} with --overwrite, or choose another {flag}"
+                + (f" ({self.command})" if self.command else "")
+            )
+        if not self.staged and not _holds_a_run(out):  # e.g. --out . with a project's config.yaml
+            raise ValueError(
+                f"{flag} {str(out)!r} holds {_names(entries)} but no taskvar run (no checkpoint, "
+                f"logs or taskvar config); --overwrite removes only a run's files: choose another "
+                f"{flag}"
             )
 
     def acquire(self) -> Path:
-        """Check, lock, and return the empty staging folder to write the results into."""
+        """Check, create, lock and check again; return the folder to write into: the empty
+        staging folder, or ``out`` itself (its earlier results removed with ``overwrite``)."""
         self.check()
         out = self.out
         self.created = not out.exists()
         try:
             out.mkdir(parents=True, exist_ok=True)
-            self._fd = lock_folder(out)
+            self._fd = lock_folder(out, self.flag)
         except OSError as e:
             self._remove_if_created()
             raise ValueError(
-                f"cannot write in --out {str(out)!r} ({e.strerror or e}); choose another --out"
+                f"cannot write in {self.flag} {str(out)!r} ({e.strerror or e}); choose another "
+                f"{self.flag}"
             ) from None
         except BaseException:
             self._remove_if_created()
             raise
         try:
+            for p in out.iterdir():  # a write killed between its temp file and the rename
+                if _STALE_TMP.match(p.name) and p.is_file():
+                    p.unlink()
             self.check()  # again, under the lock: another command may have written meanwhile
-            parent = out.resolve().parent
-            if out.resolve().stat().st_dev != parent.stat().st_dev:
-                raise ValueError(
-                    f"--out {str(out)!r} is a mount point: its results are swapped in from a "
-                    "sibling folder; choose a folder inside it"
-                )
-            for p in parent.iterdir():  # what a killed command on this folder left
-                m = _STAGING.match(p.name)
-                if m and m["name"] == out.resolve().name and m[2] == "staging" and p.is_dir():
-                    shutil.rmtree(p, ignore_errors=True)  # (a ".replaced" one is kept: below)
-            self.staging = parent / f".{out.resolve().name}.{secrets.token_hex(6)}.staging"
-            self.staging.mkdir()
+            if self.staged:
+                self.staging = self._stage()
+                return self.staging
+            earlier = _present(out, self.markers)
+            self.fresh = not earlier or self.overwrite
+            if self.overwrite:
+                for p in earlier:
+                    remove_path(p)
         except BaseException:
             self.abandon()
             raise
-        return self.staging
+        return out
+
+    def _stage(self) -> Path:
+        """A new empty staging folder beside ``out``, once a killed command's are removed."""
+        out = self.out.resolve()
+        if out.stat().st_dev != out.parent.stat().st_dev:
+            raise ValueError(
+                f"{self.flag} {str(self.out)!r} is a mount point: its results are swapped in from "
+                "a sibling folder; choose a folder inside it"
+            )
+        for p in out.parent.iterdir():  # what a killed command on this folder left
+            m = _STAGING.match(p.name)
+            if m and m["name"] == out.name and m[2] == "staging" and p.is_dir():
+                shutil.rmtree(p, ignore_errors=True)  # (a ".replaced" one is kept: commit)
+        staging = out.parent / f".{out.name}.{secrets.token_hex(6)}.staging"
+        staging.mkdir()
+        return staging
 
     def commit(self) -> None:
-        """Swap the staging folder in for ``out`` (old results removed after), then unlock."""
-        out, staging = self.out.resolve(), self.staging
+        """Keep what was written: swap the staging folder in for ``out`` (the old results removed
+        after), then unlock."""
+        staging, out = self.staging, self.out.resolve()
         try:
-            if not _exchange(staging, out):  # no atomic exchange here: two renames (killed
-                # between them, the old results stay in .<name>.<hex>.replaced, never removed)
-                old = staging.with_name(staging.name[: -len(".staging")] + ".replaced")
-                os.rename(out, old)
-                os.rename(staging, out)
-                staging = old
-            shutil.rmtree(staging, ignore_errors=True)  # the old results and the lock file
+            if staging is not None:
+                if not _exchange(staging, out):  # no atomic exchange here: two renames (killed
+                    # between them, the old results stay in .<name>.<hex>.replaced, never removed)
+                    old = staging.with_name(staging.name[: -len(".staging")] + ".replaced")
+                    os.rename(out, old)
+                    os.rename(staging, out)
+                    staging = old
+                shutil.rmtree(staging, ignore_errors=True)  # the old results and the lock file
         finally:
             self.staging = None
             self._unlock()
 
     def abandon(self) -> None:
-        """Remove the staging folder, unlock, and remove ``out`` if this command created it."""
+        """Leave ``out`` as it was: remove the staging folder, or in place what this command
+        wrote where no results were; unlock; remove ``out`` if this command created it."""
         if self.staging is not None:
             shutil.rmtree(self.staging, ignore_errors=True)
             self.staging = None
         self._unlock()
+        if self.fresh:
+            for p in _present(self.out, self.markers):
+                remove_path(p)
         self._remove_if_created()
 
     def _unlock(self) -> None:
         if self._fd is not None:
             fd, self._fd = self._fd, None
-            lock = self.out / LOCK_NAME
-            try:  # after a commit the lock file went with the old folder; else remove it
-                if lock.is_file() and os.stat(lock).st_ino == os.fstat(fd).st_ino:
-                    lock.unlink()
-            finally:
-                os.close(fd)
+            unlock_folder(self.out, fd)
 
     def _remove_if_created(self) -> None:
         if self.created and self.out.is_dir() and not _visible_entries(self.out):
@@ -429,7 +378,9 @@ class ResultsFolder:
             return
         staging = self.staging
         self.abandon()
-        if isinstance(error, OSError) and staging is not None and error.filename:
+        if staging is None:
+            return
+        if isinstance(error, OSError) and error.filename:
             try:  # the file as the user knows it: in --out, not in the staging folder removed
                 rel = Path(error.filename).relative_to(staging)
                 error.filename = str(self.out / rel)
@@ -438,12 +389,17 @@ class ResultsFolder:
         if isinstance(error, TrainingInterrupted):  # its checkpoint was in the staging folder
             name = signal.Signals(error.signum).name
             raise TrainingInterrupted(
-                f"interrupted by {name}; nothing written: --out {str(self.out)!r} holds what it "
-                "held before",
+                f"interrupted by {name}; nothing written: {self.flag} {str(self.out)!r} holds "
+                "what it held before",
                 None,
                 None,
                 error.signum,
             ) from None
+
+
+def _names(paths: list[Path]) -> str:
+    """The first four names of ``paths``, sorted, for a one-line message."""
+    return ", ".join(sorted(p.name for p in paths)[:4]) + (", ..." if len(paths) > 4 else "")
 
 
 def _visible_entries(folder: Path) -> list[Path]:
@@ -570,12 +526,11 @@ def _interrupted(
 
 __all__ = [
     "LOCK_NAME",
+    "RUN_FILES",
     "ResultsFolder",
-    "RunFolder",
     "TrainingInterrupted",
     "check_out_path",
     "check_output_folder",
-    "folder_lock",
     "resume_command",
     "run_files",
 ]

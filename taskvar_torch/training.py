@@ -63,9 +63,9 @@ from taskvar_torch.factory import HEADS_NAME, check_device, write_heads
 from taskvar_torch.learning import collect_and_learn
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import (
-    RunFolder,
+    RUN_FILES,
+    ResultsFolder,
     StopSignals,
-    check_out_path,
     check_output_folder,
     last_checkpoint_note,
 )
@@ -110,7 +110,9 @@ def train(
         TrainingInterrupted: SIGINT or SIGTERM; the run stopped after its current batch and wrote
             a checkpoint (a second signal aborts at once: ``KeyboardInterrupt``).
     """
-    out = check_out_path(out_dir)  # not '': it would be the current folder
+    # written in place (its checkpoints resume there), never over another run unless overwrite
+    folder = ResultsFolder(out_dir, overwrite, markers=RUN_FILES, staged=False, resume=resume)
+    out = folder.out  # not '': it would be the current folder
     check_output_folder(out)  # inputs first: a refused run writes nothing
     bundle = None
     if resume is not None:
@@ -159,7 +161,7 @@ def train(
             f"--overwrite would delete {str(resume)!r}, the checkpoint being resumed; drop "
             "--overwrite to continue the run in its folder"
         )
-    folder = RunFolder(out, resume, overwrite).acquire()
+    folder.acquire()
     started = False
 
     def on_start() -> None:
@@ -173,7 +175,7 @@ def train(
             folder.abandon()  # a run that never started leaves nothing behind
         raise
     finally:
-        folder.release()
+        folder.commit()  # unlock: the run's files stay (an interrupted run resumes from them)
 
 
 def _train_loop(

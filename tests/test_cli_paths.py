@@ -21,7 +21,7 @@ from budgets import FIG4, TINY  # tests/budgets.py
 
 from taskvar_torch import cli
 from taskvar_torch.config import load_config
-from taskvar_torch.run_folder import LOCK_NAME, RunFolder
+from taskvar_torch.run_folder import LOCK_NAME, ResultsFolder
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
@@ -166,7 +166,8 @@ def test_train_out_locked_by_another_run_is_a_one_line_error(tmp_path, capsys):
     """A folder held by another run (its ``.taskvar.lock`` flock-ed) is refused in one line
     naming the holder's pid; once released, the same folder trains."""
     out = tmp_path / "run"
-    holder = RunFolder(out, resume=None, overwrite=False).acquire()
+    holder = ResultsFolder(out, staged=False)
+    holder.acquire()
     try:
         argv = ["train", WINDY, *TINY, "--out", str(out), "--no-progress"]
         status, _, err = run_cli(argv, capsys)
@@ -175,7 +176,7 @@ def test_train_out_locked_by_another_run_is_a_one_line_error(tmp_path, capsys):
         assert (out / LOCK_NAME).exists()  # the holder's lock is untouched
         assert not (out / "config.yaml").exists()
     finally:
-        holder.release()
+        holder.commit()
     status, _, err = run_cli(argv, capsys)
     assert status == 0, err
     assert (out / "final.pt").is_file() and not (out / LOCK_NAME).exists()

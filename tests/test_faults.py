@@ -30,7 +30,7 @@ from taskvar_torch.checkpoint import load_checkpoint, make_bundle, save_checkpoi
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.learning import TrainingDiverged
-from taskvar_torch.run_folder import LOCK_NAME, RunFolder
+from taskvar_torch.run_folder import LOCK_NAME, ResultsFolder
 from taskvar_torch.training import train
 
 torch.set_num_threads(1)
@@ -292,14 +292,15 @@ def test_overwrite_removes_the_old_run_first(reference, tmp_path, capsys):
 
 
 def test_a_second_run_on_a_locked_folder_is_refused(tmp_path, capsys):
-    held = RunFolder(tmp_path / "run", None, False).acquire()
+    held = ResultsFolder(tmp_path / "run", staged=False)
+    held.acquire()
     try:
         argv = ["train", CONFIG, "--out", str(tmp_path / "run"), *CHECKPOINTED, "--no-progress"]
         assert main(argv) == 2
         _one_line_error(capsys, "in use by another taskvar run", f"pid {os.getpid()}")
         assert sorted(p.name for p in (tmp_path / "run").iterdir()) == [LOCK_NAME]
     finally:
-        held.release()
+        held.commit()
     assert not (tmp_path / "run" / LOCK_NAME).exists()
 
 

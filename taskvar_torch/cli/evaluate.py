@@ -92,10 +92,6 @@ def _eval_run(args: argparse.Namespace) -> int:
     check_controller_overrides(args.settings)
     if args.batch_size is not None and args.batch_size < 1:  # 0 would fall back to the config's
         raise ValueError(f"--batch-size must be >= 1, got {args.batch_size}")
-    if args.out is not None:
-        from taskvar_torch.run_folder import check_output_folder
-
-        check_output_folder(args.out)
     method = args.method or ("all" if args.by_frames else "interruption")
     metrics = eval_bundle(
         args.checkpoint,

@@ -217,7 +217,12 @@ def _plot_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def _plot_run(args: argparse.Namespace) -> int:
-    for path in experiment_of_folder(args.results).plot_results(args.results):
+    from taskvar_torch.run_folder import ResultsFolder
+
+    exp = experiment_of_folder(args.results)
+    with ResultsFolder(args.results, staged=False, flag="DIR"):  # not while a command writes it
+        paths = exp.plot_results(args.results)
+    for path in paths:
         print(path)
     return 0
 

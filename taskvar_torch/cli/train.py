@@ -4,7 +4,6 @@ baselines beside them, and writing a bundle's shareable heads."""
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import sys
 from collections.abc import Iterator, Sequence
@@ -180,7 +179,7 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
     from taskvar_torch.config import load_config
     from taskvar_torch.heads.informed import informed_features
     from taskvar_torch.heads.recurrent import BASELINES, baseline_path
-    from taskvar_torch.run_folder import check_output_folder
+    from taskvar_torch.run_folder import ResultsFolder, check_output_folder
     from taskvar_torch.run_state import seed_config
     from taskvar_torch.train_recurrent import heads_only_keys, train_baseline
 
@@ -225,7 +224,7 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
     for i, (folder, cfg_k) in enumerate(runs):
         if len(runs) > 1:
             print(f"seed {cfg_k.seed} ({i + 1}/{len(runs)} of train.seeds): {folder}", flush=True)
-        with _baselines_lock(folder):  # one writer at a time (issue 58)
+        with ResultsFolder(folder, staged=False):  # one writer at a time (issue 58)
             for m in methods:
                 r = train_baseline(cfg_k, m, folder, progress=not args.no_progress)
                 last = r["mean_train_return"]
@@ -236,22 +235,6 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
                     f"wrote {r['path']}"
                 )
     return 0
-
-
-@contextlib.contextmanager
-def _baselines_lock(out: Path) -> Iterator[None]:
-    """The run-folder lock on ``out`` (created if new, and removed again if the command left it
-    empty) for the ``with`` block: a second writer is refused in one line naming the holder."""
-    from taskvar_torch.run_folder import folder_lock
-
-    created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    try:
-        with folder_lock(out):
-            yield
-    finally:
-        if created and out.is_dir() and not any(out.iterdir()):
-            out.rmdir()
 
 
 def _check_bundle_config(cfg: Any, out: Path, overrides: Sequence[str]) -> None:

@@ -138,7 +138,6 @@ def eval_bundle(
         )  # fmt: skip
     folder = ResultsFolder(out_dir, overwrite, "taskvar eval")
     refuse_inside(checkpoint, folder.out, "--checkpoint")
-    folder.check()  # a one-line refusal before any loading
     with folder as staging:  # locked; written in a staging folder, swapped in whole at the end
         return _evaluate(
             checkpoint, method, test, shifts, episodes, seed, noise_seed, batch_size, staging,
@@ -302,7 +301,6 @@ def _evaluate(
             exact,
             out_dir=out_dir,
             plots=plots,
-            overwrite=True,  # out_dir: refused above if it held any
             controller=controller,
         )
     if baselines:  # each baseline's own training budget (it may differ from the heads')

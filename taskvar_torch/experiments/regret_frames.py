@@ -32,7 +32,7 @@ from taskvar_torch.experiments.paired import (
     play,
 )
 from taskvar_torch.experiments.plots import pyplot, save_figure
-from taskvar_torch.experiments.results import refuse_existing_results, write_csv
+from taskvar_torch.experiments.results import write_csv
 from taskvar_torch.experiments.shift import EvalPoint, Shift, parse_shift, shift_points
 from taskvar_torch.factory import (
     calibrate,
@@ -116,7 +116,6 @@ def regret_by_frames(
     exact: bool | None = None,
     out_dir: str | os.PathLike | None = None,
     plots: bool = True,
-    overwrite: bool = False,
     controller: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Each memoryless method's mean exact regret with its 95% CI on each heads snapshot of a run
@@ -130,7 +129,8 @@ def regret_by_frames(
     Returns ``{"test", "seed", "episodes", "methods", "optimum_mean_return", "points": [{"frames",
     "updates", "bundle", "methods": {m: {"regret_mean", "regret_ci95", "exact_mean_return"}}}]}``,
     the points in frame order (the final heads last); writes ``regret_by_frames.csv`` and
-    ``regret_by_frames.png`` into ``out_dir`` when given."""
+    ``regret_by_frames.png`` into ``out_dir`` when given (a folder its caller holds:
+    ``taskvar eval --by-frames``'s :class:`~taskvar_torch.run_folder.ResultsFolder`)."""
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     if exact is False:
@@ -146,8 +146,6 @@ def regret_by_frames(
     train_subtasks = make_subtasks(cfg, make_env(cfg, 1))
     methods = _memoryless(method, train_subtasks, heads, final)
     subtasks = make_subtasks(point.cfg, make_env(point.cfg, 1, instances=point.instances))
-    if out_dir is not None:
-        refuse_existing_results(Path(out_dir), overwrite, "taskvar eval --by-frames")
     bs = int(batch_size or cfg.eval.batch_size)
     # the paired episodes' instances and starts: drawn by the seed, whichever controller plays
     probe = make_method_controller(point.cfg, "averaging", heads, subtasks)

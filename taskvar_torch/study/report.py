@@ -62,7 +62,7 @@ from typing import Any
 import numpy as np
 
 from taskvar_torch.io import atomic_write
-from taskvar_torch.run_folder import check_out_path, folder_lock
+from taskvar_torch.run_folder import ResultsFolder, check_out_path
 from taskvar_torch.study import aggregate
 from taskvar_torch.study import report_results as at_a_glance
 from taskvar_torch.study.report_claims import CLAIMS, RULES, Report, build_report
@@ -433,8 +433,7 @@ def add_rows(
     new_text = replace_block(text, block, str(readme)).encode()
     written = []
     data_bytes = _summaries_json(summaries)
-    readme.parent.mkdir(parents=True, exist_ok=True)
-    with folder_lock(readme.resolve().parent, "--page"):
+    with ResultsFolder(readme.resolve().parent, staged=False, flag="--page"):
         if image is not None:
             written.append(atomic_write(png, lambda f: f.write(image)))
         written.append(atomic_write(data, lambda f: f.write(data_bytes)))
@@ -547,8 +546,7 @@ def write_report(
         new_readme = replace_block(readme_text, block, str(readme)).encode()
     data_bytes = _summaries_json(report.summaries)
     written = []
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with folder_lock(out.parent):  # one taskvar command writing in the folder at a time
+    with ResultsFolder(out.parent, staged=False):  # one taskvar command at a time
         if image is not None:
             written.append(atomic_write(png, lambda f: f.write(image)))
         if results_image is not None:

@@ -191,7 +191,6 @@ def scale(
         The metrics dict written to ``metrics.json``.
     """
     folder = ResultsFolder(out_dir, overwrite, "taskvar experiment scale")
-    folder.check()
     with folder as staging:
         metrics = _scale(cfg, staging, progress, quick, plots)
     where = folder.out  # printed once the staging folder is swapped in

@@ -55,9 +55,9 @@ from typing import Any
 
 from taskvar_torch.config import Config
 from taskvar_torch.contract import family
-from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.results import write_csv, write_json
 from taskvar_torch.progress import progress_bar
-from taskvar_torch.run_folder import ResultsFolder, check_out_path, check_output_folder, folder_lock
+from taskvar_torch.run_folder import ResultsFolder, check_out_path, check_output_folder
 from taskvar_torch.study.sweep_grid import (
     SweepPoint,
     completed_points,
@@ -217,21 +217,17 @@ def sweep(
     check_output_folder(out)  # a file, or under one, or read-only: one line before any run
     done = completed_points(out, points, cfgs) if resume else {}
     markers = (SUMMARY_JSON, SUMMARY_CSV, BATCHES, *(p.name for p in points))
-    folder = ResultsFolder(out, overwrite, "taskvar sweep", markers)
+    hint = "continue the sweep with --resume (complete points are kept), "
+    folder = ResultsFolder(out, overwrite, "taskvar sweep", markers, hint=hint)
     if not resume:
-        _refuse_existing_sweep(out, points, overwrite)
-        folder.check()  # and a folder of other files (--out . in a project)
-    if overwrite and any(os.path.lexists(out / m) for m in markers):
-        # replaced whole: written in a staging folder, swapped in at the end (ResultsFolder)
-        with folder as staging:
-            return _sweep(
-                config, items, out, staging, points, cfgs, done, backend, quick, address,
-                workers, progress, plots, overwrite, resume, batch_seeds,
-            )  # fmt: skip
-    out.mkdir(parents=True, exist_ok=True)  # a new sweep, or --resume: in place, like train
-    with folder_lock(out):
+        folder.check()  # a sweep already there, or a folder of other files (--out . in a project)
+    if not (overwrite and any(os.path.lexists(out / m) for m in markers)):
+        # a new sweep, or --resume: its points written in place, like train, so a killed sweep
+        # resumes (else the old sweep is replaced whole: staged, swapped in at the end)
+        folder = ResultsFolder(out, staged=False)
+    with folder as dest:
         return _sweep(
-            config, items, out, out, points, cfgs, done, backend, quick, address, workers,
+            config, items, out, dest, points, cfgs, done, backend, quick, address, workers,
             progress, plots, overwrite, resume, batch_seeds,
         )  # fmt: skip
 
@@ -312,24 +308,6 @@ def _sweep(
         f"{out / SUMMARY_JSON}"
     )
     return rows
-
-
-def _refuse_existing_sweep(out: Path, points: Sequence[SweepPoint], overwrite: bool) -> None:
-    """One line when ``out`` already holds a sweep (its summary, or a point folder with files) or
-    an experiment's results."""
-    if overwrite or not out.is_dir():
-        return
-    found = [n for n in (SUMMARY_JSON, SUMMARY_CSV) if (out / n).exists()]
-    found += [p.name for p in points if (out / p.name).is_dir() and any((out / p.name).iterdir())]
-    if (out / BATCHES).is_dir() and any((out / BATCHES).iterdir()):
-        found.append(BATCHES)
-    if found:
-        raise ValueError(
-            f"--out {str(out)!r} already holds results ({', '.join(found[:4])}"
-            f"{', ...' if len(found) > 4 else ''}); continue the sweep with --resume (complete "
-            "points are kept), replace it with --overwrite, or choose another --out"
-        )
-    refuse_existing_results(out, overwrite, "taskvar sweep")
 
 
 def _check_backend(backend: str, address: str | None, workers: int | None) -> None:

@@ -80,7 +80,7 @@ import torch.multiprocessing as mp
 
 from taskvar_torch.config import Config, save_config_yaml
 from taskvar_torch.contract import FAMILIES
-from taskvar_torch.experiments.results import refuse_existing_results, write_csv, write_json
+from taskvar_torch.experiments.results import write_csv, write_json
 from taskvar_torch.families.wargus.family import section
 from taskvar_torch.families.wargus.fig4_metrics import (
     EXPERIMENT,
@@ -221,7 +221,7 @@ def wargus_fig4(
     (without it such a folder is refused). ``out_dir`` is written like every results folder
     (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, filled in a staging folder and
     swapped in whole); ``staged=False`` writes into it directly (a sweep's point: the sweep holds
-    its folder).
+    its folder and has refused results already there).
     """
     FAMILIES["wargus"].require(cfg, "wargus-fig4")
     if cfg.train.eval_ema_tau is not None:
@@ -233,12 +233,9 @@ def wargus_fig4(
         raise ValueError(f"workers must be >= 1, got {workers}")
     if not staged:
         out = Path(out_dir)
-        refuse_existing_results(out, overwrite, "taskvar experiment wargus-fig4")
         out.mkdir(parents=True, exist_ok=True)
         return _wargus_fig4(cfg, out, workers, progress, plots)
-    folder = ResultsFolder(out_dir, overwrite, "taskvar experiment wargus-fig4")
-    folder.check()
-    with folder as staging:
+    with ResultsFolder(out_dir, overwrite, "taskvar experiment wargus-fig4") as staging:
         return _wargus_fig4(cfg, staging, workers, progress, plots)
 
 

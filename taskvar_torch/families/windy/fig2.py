@@ -55,12 +55,7 @@ from taskvar_torch.contract import FAMILIES, HELDOUT_SEED, HELDOUT_SIZE, sealed_
 from taskvar_torch.controllers import Controller, make_controller
 from taskvar_torch.experiments.bundle_eval import eval_bundle
 from taskvar_torch.experiments.paired import play
-from taskvar_torch.experiments.results import (
-    code_version,
-    refuse_existing_results,
-    write_csv,
-    write_json,
-)
+from taskvar_torch.experiments.results import code_version, write_csv, write_json
 from taskvar_torch.experiments.shift import EvalPoint
 from taskvar_torch.factory import check_device, load_heads, make_env, make_subtasks
 from taskvar_torch.families.windy import (
@@ -387,7 +382,8 @@ def windy_fig2(
         controller: controller settings applied to ``checkpoint``'s config
             (``config/controller.py``; without a checkpoint they are config overrides).
         staged: ``False``: write into ``out_dir`` directly (a sweep's point: the sweep holds its
-            folder; ``overwrite`` then replaces a training run in ``out_dir/train``).
+            folder and has refused results already there; ``overwrite`` then replaces a training
+            run in ``out_dir/train``).
 
     Returns:
         The metrics dict written to ``metrics.json``.
@@ -489,10 +485,9 @@ def _check_inputs(
     controller: Sequence[str] = (),
 ) -> tuple[Heads | None, Config | None]:
     """Every check before any work or any file written: the output folder (a training run
-    already in ``out/train``; results or other files already in ``out``: ``folder.check``, or
-    without a ``folder`` results unless ``overwrite``), the device, the memory, a given
-    ``checkpoint``'s family and place (not inside the ``folder``; then its heads and config are
-    loaded).
+    already in ``out/train`` unless ``overwrite``; with a ``folder``, results or other files
+    already in ``out``: ``folder.check``), the device, the memory, a given ``checkpoint``'s family
+    and place (not inside the ``folder``; then its heads and config are loaded).
 
     Returns the checkpoint's ``(heads, config)``, or ``(None, None)`` without one.
     """
@@ -507,8 +502,6 @@ def _check_inputs(
         folder.check()
         if checkpoint is not None:
             refuse_inside(checkpoint, out, "--checkpoint")
-    else:
-        refuse_existing_results(out, overwrite, "taskvar experiment windy-fig2")
     check_device(cfg.device)
     x = cfg.experiment  # one result row per test episode, distribution and method
     rows = (len(DISTRIBUTIONS) + len(HELDOUT)) * x.runs * x.episodes_per_run * len(METHODS)
