@@ -24,9 +24,9 @@ import time
 import torch
 
 from taskvar_torch import keys
-from taskvar_torch.collection import make_collector, make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.heads.first_visit import FirstVisitFilter
+from taskvar_torch.training.collection import make_collector, make_training_env
 
 
 def sync(device: torch.device | str) -> None:

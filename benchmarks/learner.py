@@ -45,14 +45,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, make_learner, make_subtasks
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.heads.max_value import distinct_rows
 from taskvar_torch.heads.networks import head_network
-from taskvar_torch.replay import make_replay_buffer
-from taskvar_torch.run_state import replay_rows
+from taskvar_torch.training.collection import make_training_env
+from taskvar_torch.training.replay import make_replay_buffer
+from taskvar_torch.training.run_state import replay_rows
 
 CONFIG = "configs/windy.yaml"
 
@@ -263,7 +263,7 @@ def recurrent_updates(cfg) -> dict:
     weights and slices through ``nn.GRU`` on a packed sequence, and per-tensor Adam (not foreach)."""
     from torchrl.collectors import Collector
 
-    from taskvar_torch.train_recurrent import BaselineLearner, build_for_training
+    from taskvar_torch.training.baselines import BaselineLearner, build_for_training
 
     net, _, env = build_for_training(cfg, "recurrent")
     packed_net = copy.deepcopy(net)
@@ -393,8 +393,8 @@ def time_to_quality(args) -> None:
     from taskvar_torch.factory import load_heads
     from taskvar_torch.families.windy import WindyOracle
     from taskvar_torch.heads.validate import compare_with_oracle
-    from taskvar_torch.run_state import HEADS_SNAPSHOTS
     from taskvar_torch.training import train
+    from taskvar_torch.training.run_state import HEADS_SNAPSHOTS
 
     overrides = [*args.overrides, f"train.heads_every={args.every}", "train.checkpoint_every=0"]
     if args.quick:

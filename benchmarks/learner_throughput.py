@@ -31,12 +31,12 @@ from torchrl.modules import QValueActor
 from torchrl.objectives import DQNLoss, SoftUpdate
 
 from taskvar_torch import keys
-from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, make_learner, make_subtasks
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.heads.networks import make_mlp
-from taskvar_torch.replay import make_replay_buffer, raw_transitions
+from taskvar_torch.training.collection import make_training_env
+from taskvar_torch.training.replay import make_replay_buffer, raw_transitions
 
 
 def fill_buffer(cfg, frames: int):

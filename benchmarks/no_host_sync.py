@@ -35,7 +35,6 @@ from collections.abc import Callable
 import torch
 
 from taskvar_torch import keys, rng
-from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.controllers import make_controller, option_first
 from taskvar_torch.factory import build_heads, make_learner, make_subtasks
@@ -46,8 +45,9 @@ from taskvar_torch.families.windy import WindyGridEnv
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.heads.bundle import Heads
 from taskvar_torch.heads.networks import make_head
-from taskvar_torch.replay import make_replay_buffer, raw_transitions
 from taskvar_torch.subtasks import Hierarchy
+from taskvar_torch.training.collection import make_training_env
+from taskvar_torch.training.replay import make_replay_buffer, raw_transitions
 
 S, A = 25, 4  # the default windy grid's one-hot observation and actions
 

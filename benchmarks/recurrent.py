@@ -44,8 +44,8 @@ from taskvar_torch.heads.recurrent import (
     BaselineSpec,
     make_recurrent_qnet,
 )
-from taskvar_torch.train_recurrent import train_baseline
 from taskvar_torch.training import train
+from taskvar_torch.training.baselines import train_baseline
 
 
 def best_of(fn, iters: int, repeats: int) -> tuple[float, float]:

@@ -27,11 +27,11 @@ from pathlib import Path
 
 import torch
 
-from taskvar_torch.collection import collects_in_workers, make_collector, make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, make_subtasks
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.training import train
+from taskvar_torch.training.collection import collects_in_workers, make_collector, make_training_env
 
 CONFIG = "configs/windy.yaml"
 

@@ -37,8 +37,8 @@ from taskvar_torch.config import load_config
 from taskvar_torch.factory import load_heads
 from taskvar_torch.families.windy.family import windy_sparse_oracle as sparse_oracle
 from taskvar_torch.families.windy.head_report import head_report
-from taskvar_torch.run_state import HEADS_SNAPSHOTS
 from taskvar_torch.training import train
+from taskvar_torch.training.run_state import HEADS_SNAPSHOTS
 
 QUICK = ["train.total_frames=3000", "train.init_random_frames=500", "train.eps_decay_frames=1500"]
 

@@ -38,7 +38,7 @@ from taskvar_torch.checkpoint import (
     require_finite_heads,
     save_checkpoint,
 )
-from taskvar_torch.checkpoint_checks import load_state_dicts
+from taskvar_torch.checkpoint.checks import load_state_dicts
 from taskvar_torch.config import Config, config_from_dict
 from taskvar_torch.config.controller import check_controller_overrides, with_controller_settings
 from taskvar_torch.config.memory import check_memory

@@ -29,8 +29,8 @@ def windy_tiny_bundle(tmp_path_factory) -> Path:
     informed baseline beside it (``informed.pt``, the same budget), once per session (per worker)
     for the tests that only evaluate a bundle; they must not write into its folder."""
     from taskvar_torch.config import load_config
-    from taskvar_torch.train_recurrent import train_baseline
     from taskvar_torch.training import train
+    from taskvar_torch.training.baselines import train_baseline
 
     out = tmp_path_factory.mktemp("windy-tiny")
     cfg = load_config(ROOT / "configs" / "windy.yaml", TINY)

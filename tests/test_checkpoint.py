@@ -27,7 +27,7 @@ from taskvar_torch.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from taskvar_torch.checkpoint_checks import load_state_dicts
+from taskvar_torch.checkpoint.checks import load_state_dicts
 from taskvar_torch.config import Config, apply_overrides, config_from_dict
 
 torch.set_num_threads(1)

@@ -24,14 +24,14 @@ import torch
 from budgets import CHECKPOINTED  # tests/budgets.py
 from test_train import assert_same  # tests/ is on sys.path (rootdir import mode)
 
-import taskvar_torch.run_setup as B
-import taskvar_torch.run_state as T
+import taskvar_torch.training.run_setup as B
+import taskvar_torch.training.run_state as T
 from taskvar_torch.checkpoint import load_checkpoint, make_bundle, save_checkpoint
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
-from taskvar_torch.learning import TrainingDiverged
 from taskvar_torch.run_folder import LOCK_NAME, ResultsFolder
 from taskvar_torch.training import train
+from taskvar_torch.training.learning import TrainingDiverged
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,7 +41,7 @@ HOOK = textwrap.dedent(
     """
     import os, signal, sys
     import torch
-    import taskvar_torch.run_state as T
+    import taskvar_torch.training.run_state as T
     from taskvar_torch.cli import main
 
     kind, frame = os.environ["FAULT"], int(os.environ["FAULT_FRAME"])

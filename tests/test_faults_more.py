@@ -3,7 +3,7 @@ missing an entry, a sweep killed part-way then resumed, a Ray worker killed insi
 
 Faults fire in new processes through ``sitecustomize.py`` (:data:`HOOK`), put on ``PYTHONPATH``:
 every Python process of the command (the CLI and, on Ray, each worker) runs it at start-up, and it
-patches ``taskvar_torch.run_state`` and the windy Figure 2 experiment when they are first imported.
+patches ``taskvar_torch.training.run_state`` and the windy Figure 2 experiment when they are first imported.
 ``FAULT=fsize``: once the first checkpoint is written (the next batch), the largest file the
 process may write (``RLIMIT_FSIZE``) becomes that checkpoint's size, so the next, larger one
 cannot be written (``SIGXFSZ`` ignored: ``write`` fails with ``EFBIG``, as on a full disk).
@@ -63,7 +63,7 @@ HOOK = textwrap.dedent(
         T.epsilon_at = hooked
 
     def patch_fig2(W):
-        import taskvar_torch.run_state as T
+        import taskvar_torch.training.run_state as T
         train = W.train
         def hooked(cfg, out, **kwargs):
             seeds = [int(s) for s in os.environ["KILL_SEEDS"].split(",")]
@@ -81,7 +81,7 @@ HOOK = textwrap.dedent(
             return train(cfg, out, **kwargs)
         W.train = hooked
 
-    PATCHES = {"taskvar_torch.run_state": patch_train} if FAULT == "fsize" else {}
+    PATCHES = {"taskvar_torch.training.run_state": patch_train} if FAULT == "fsize" else {}
     if FAULT == "kill":
         PATCHES["taskvar_torch.families.windy.fig2"] = patch_fig2
 

@@ -29,7 +29,7 @@ from taskvar_torch.heads.recurrent import (
     save_baseline,
 )
 from taskvar_torch.oracle.episodes import optimal_episode_returns
-from taskvar_torch.train_recurrent import train_baseline
+from taskvar_torch.training.baselines import train_baseline
 
 CORRIDOR = "configs/windy_corridor.yaml"
 BOUND = 0.05

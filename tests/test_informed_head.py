@@ -22,8 +22,8 @@ from taskvar_torch.heads.recurrent import (
     make_informed_qnet,
     save_baseline,
 )
-from taskvar_torch.train_recurrent import BaselineLearner, baseline_train_config, train_baseline
 from taskvar_torch.training import train
+from taskvar_torch.training.baselines import BaselineLearner, baseline_train_config, train_baseline
 
 SHORT = [
     "train.total_frames=2048",

@@ -1,4 +1,4 @@
-"""The learning step every training loop shares (``taskvar_torch/learning.py``): when it starts,
+"""The learning step every training loop shares (``taskvar_torch/training/learning.py``): when it starts,
 how many gradient steps it takes, on which samples and at which learning rate; the divergence
 check; and both learners meeting the ``Learner`` protocol the loops call."""
 
@@ -11,8 +11,14 @@ import torch
 from tensordict import TensorDict
 
 from taskvar_torch.config import load_config
-from taskvar_torch.learning import learn_batch, learning_started, lr_at, non_finite, update_phase
-from taskvar_torch.train_recurrent import BaselineLearner, build_for_training
+from taskvar_torch.training.baselines import BaselineLearner, build_for_training
+from taskvar_torch.training.learning import (
+    learn_batch,
+    learning_started,
+    lr_at,
+    non_finite,
+    update_phase,
+)
 
 CONFIG = "configs/windy.yaml"
 
@@ -102,7 +108,7 @@ def test_baseline_learner_steps_on_the_sample_it_is_given():
 def test_allocator_settings_are_set_once_and_can_be_left_alone(monkeypatch):
     import platform
 
-    from taskvar_torch import allocator
+    from taskvar_torch.training import allocator
 
     monkeypatch.setattr(allocator, "_result", None)
     monkeypatch.setenv("TASKVAR_MALLOC", "default")

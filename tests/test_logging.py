@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-import taskvar_torch.run_logs as T
+import taskvar_torch.training.run_logs as T
 from taskvar_torch.cli import main
 
 CONFIG = "configs/windy.yaml"

@@ -24,8 +24,8 @@ from taskvar_torch.config.memory import (
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.env import OBS_ENCODINGS, observation_table
 from taskvar_torch.families.windy.env import observation_size as windy_observation_size
-from taskvar_torch.replay import raw_transitions
-from taskvar_torch.run_setup import build_run
+from taskvar_torch.training.replay import raw_transitions
+from taskvar_torch.training.run_setup import build_run
 
 torch.set_num_threads(1)
 ROOT = Path(__file__).resolve().parents[1]

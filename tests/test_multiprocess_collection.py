@@ -14,11 +14,11 @@ from tensordict import TensorDict
 
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
-from taskvar_torch.collection import make_training_env, make_worker_env
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, load_heads, make_subtasks
 from taskvar_torch.heads.networks import head_network
 from taskvar_torch.training import train
+from taskvar_torch.training.collection import make_training_env, make_worker_env
 
 torch.set_num_threads(1)
 CONFIG = "configs/windy.yaml"

@@ -32,7 +32,7 @@ from taskvar_torch.heads.recurrent import (
     make_recurrent_qnet,
     save_baseline,
 )
-from taskvar_torch.train_recurrent import train_baseline
+from taskvar_torch.training.baselines import train_baseline
 
 CORRIDOR = "configs/windy_corridor.yaml"
 MARGIN = 0.05

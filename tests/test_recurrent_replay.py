@@ -17,7 +17,7 @@ from torchrl.envs import StepCounter
 from torchrl.modules import EGreedyModule
 
 from taskvar_torch.config import load_config
-from taskvar_torch.train_recurrent import (
+from taskvar_torch.training.baselines import (
     EPISODE_START,
     BaselineLearner,
     build_for_training,

@@ -11,8 +11,8 @@ from torchrl.data import LazyTensorStorage, ReplayBuffer
 
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
-from taskvar_torch.replay import PerOptionSampler, load_replay_state, replay_state
 from taskvar_torch.training import train
+from taskvar_torch.training.replay import PerOptionSampler, load_replay_state, replay_state
 
 torch.set_num_threads(1)
 TINY = [*TINY_TRAIN, "train.replay_sampling=per_option"]  # test_train's tiny windy run
@@ -100,7 +100,7 @@ def test_training_with_it_resumes_bit_for_bit(tmp_path):
 
 @pytest.mark.parametrize("sampling", ["uniform", "per_option"])
 def test_sample_many_draws_what_as_many_samples_would(sampling):
-    from taskvar_torch.replay import make_replay_buffer, sample_many
+    from taskvar_torch.training.replay import make_replay_buffer, sample_many
 
     cfg = load_config(
         "configs/windy.yaml",

@@ -8,13 +8,13 @@ import pytest
 import torch
 
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
-from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import build_heads, load_heads, make_learner, make_subtasks
 from taskvar_torch.heads.seeds import split_seed, stack_seeds
-from taskvar_torch.replay import raw_transitions
-from taskvar_torch.run_state import seed_config
 from taskvar_torch.training import train
+from taskvar_torch.training.collection import make_training_env
+from taskvar_torch.training.replay import raw_transitions
+from taskvar_torch.training.run_state import seed_config
 
 TINY = [
     "env.num_envs=4",
@@ -193,8 +193,8 @@ def test_seeds_into_a_folder_holding_a_run_is_refused(tmp_path):
 @pytest.mark.slow  # trains (2-10 s on the shared 2-core CPU)
 def test_a_diverging_batch_names_the_seed_and_writes_nothing(tmp_path):
     cfg = _cfg("train.seeds=2", "train.checkpoint_every=320")
-    from taskvar_torch.learning import TrainingDiverged
-    from taskvar_torch.run_state import TrainingRun
+    from taskvar_torch.training.learning import TrainingDiverged
+    from taskvar_torch.training.run_state import TrainingRun
 
     original = TrainingRun.learn
 

@@ -12,14 +12,14 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-import taskvar_torch.learning as T
+import taskvar_torch.training.learning as T
 from taskvar_torch import keys
 from taskvar_torch.checkpoint import CheckpointError, load_checkpoint
 from taskvar_torch.cli import main
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import load_heads
-from taskvar_torch.learning import TrainingDiverged
 from taskvar_torch.training import train
+from taskvar_torch.training.learning import TrainingDiverged
 
 torch.set_num_threads(1)
 CONFIG = "configs/windy.yaml"

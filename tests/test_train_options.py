@@ -13,7 +13,7 @@ heads and for the option taking effect:
 * ``train.option_coverage``: option picks leave mu_bar's greedy choice;
 * ``train.max_grad_norm``: every head's gradient norm is clipped to it (``null``: unclipped).
 
-The learner and the run are observed by wrapping what :mod:`taskvar_torch.run_setup` builds
+The learner and the run are observed by wrapping what :mod:`taskvar_torch.training.run_setup` builds
 (``make_learner``, ``TrainingRun.store``), never by re-implementing the loop.
 """
 
@@ -29,7 +29,7 @@ import torch
 from tensordict import TensorDict
 from torchrl.objectives import HardUpdate
 
-from taskvar_torch import factory, run_setup
+from taskvar_torch import factory
 from taskvar_torch.checkpoint import load_checkpoint
 from taskvar_torch.config import load_config
 from taskvar_torch.factory import load_heads, make_env, make_method_controller, make_subtasks
@@ -37,8 +37,8 @@ from taskvar_torch.heads.learner import MultiHeadLearner
 from taskvar_torch.heads.networks import head_network
 from taskvar_torch.heads.robustness import RobustnessCalibration
 from taskvar_torch.heads.switching import mu_bar_probs
-from taskvar_torch.run_state import TrainingRun
-from taskvar_torch.training import train
+from taskvar_torch.training import run_setup, train
+from taskvar_torch.training.run_state import TrainingRun
 
 torch.set_num_threads(1)
 

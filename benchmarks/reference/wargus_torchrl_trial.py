@@ -22,7 +22,7 @@ from taskvar_torch.families.wargus.fig4_trial import (  # the fast loop's own su
     _test_summary,
     learn_due,
 )
-from taskvar_torch.learning import epsilon_at
+from taskvar_torch.training.learning import epsilon_at
 
 
 def learning_phase_torchrl(agent: LifelongAgent, env: TransformedEnv) -> dict[str, float]:

@@ -180,8 +180,8 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
     from taskvar_torch.heads.informed import informed_features
     from taskvar_torch.heads.recurrent import BASELINES, baseline_path
     from taskvar_torch.run_folder import ResultsFolder, check_output_folder
-    from taskvar_torch.run_state import seed_config
-    from taskvar_torch.train_recurrent import heads_only_keys, train_baseline
+    from taskvar_torch.training.baselines import heads_only_keys, train_baseline
+    from taskvar_torch.training.run_state import seed_config
 
     set_threads(args)
     config_path, overrides = split_config_and_overrides(list(args.items))

@@ -91,7 +91,7 @@ class TrainConfig:
     replay_sampling: str = "uniform"
     """How a replay sample is drawn: ``uniform`` over the buffer, or ``per_option``: in equal shares
     from the transitions of each behaviour mode (the averaging policy's episodes, each option's;
-    taskvar_torch/replay.py ``PerOptionSampler``)."""
+    taskvar_torch/training/replay.py ``PerOptionSampler``)."""
     n_step: int = 1
     """Multi-step targets of the averaging and option heads: up to n rewards of the behaviour
     that ran that head (cut at the episode's end, the option's termination, a change of behaviour

@@ -3,7 +3,7 @@ an agent that knows the instance as training goes on (issue 31, item 3; docs/mem
 against training frames", docs/evaluation.md; the per-instance optimum of paper §3.3.1).
 
 Training saves the heads every ``train.heads_every`` frames (``heads/heads_<frames>.pt`` beside
-``final.pt``, run_state.py). :func:`regret_by_frames` plays the test point's paired episodes once (the
+``final.pt``, training/run_state.py). :func:`regret_by_frames` plays the test point's paired episodes once (the
 same instances and starts for every snapshot and method: one seed, the same global indices) and
 gives, for each snapshot and the final heads, each memoryless method's exact expected return per
 episode under the family's exact oracle and its regret against the exact per-instance optimum with
@@ -43,8 +43,8 @@ from taskvar_torch.factory import (
     training_states,
 )
 from taskvar_torch.heads.bundle import Heads
-from taskvar_torch.run_state import HEADS_SNAPSHOTS
 from taskvar_torch.subtasks.base import Subtasks
+from taskvar_torch.training.run_state import HEADS_SNAPSHOTS
 
 CSV_NAME = "regret_by_frames.csv"
 PNG_NAME = "regret_by_frames.png"

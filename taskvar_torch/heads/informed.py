@@ -1,6 +1,6 @@
 """What the ``informed`` and ``blind`` baselines read of the hidden instance (docs/memory.md).
 
-The ``informed`` baseline (:mod:`taskvar_torch.train_recurrent`, a DQN agent of its own) reads the
+The ``informed`` baseline (:mod:`taskvar_torch.training.baselines`, a DQN agent of its own) reads the
 family's features ``z`` of the hidden instance beside the observation
 (``Family.informed_features``, else ``Family.instance_features``: windy ``(p, direction)``, Taxi
 the rain and the fickle passenger, Wargus every item's and patrol's position); ``blind`` reads

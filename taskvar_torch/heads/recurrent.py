@@ -19,7 +19,7 @@ on the batched env (the recurrent one resets its hidden state at every episode s
 TorchRL's ``InitTracker`` and the GRU's tensordict primer) and are saved as their own bundles
 (``DIR/recurrent.pt``, ``DIR/informed.pt``, ``DIR/blind.pt``: :func:`save_baseline`,
 :func:`load_baseline`), loadable
-with ``torch.load(weights_only=True)``. Training: :mod:`taskvar_torch.train_recurrent`.
+with ``torch.load(weights_only=True)``. Training: :mod:`taskvar_torch.training.baselines`.
 """
 
 from __future__ import annotations

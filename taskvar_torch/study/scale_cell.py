@@ -28,7 +28,6 @@ from taskvar_torch.heads.recurrent import (
     BaselineController,
     load_baseline,
 )
-from taskvar_torch.run_state import HEADS_SNAPSHOTS, seed_config
 from taskvar_torch.study.scale_config import ScaleCase, ScaleConfig, case_config
 from taskvar_torch.study.scale_eval import (
     HELDOUT_TEST,
@@ -40,8 +39,9 @@ from taskvar_torch.study.scale_eval import (
     isolated_rng,
     references,
 )
-from taskvar_torch.train_recurrent import train_baseline
 from taskvar_torch.training import train
+from taskvar_torch.training.baselines import train_baseline
+from taskvar_torch.training.run_state import HEADS_SNAPSHOTS, seed_config
 
 SEED_CI_REPS = 2000
 """Bootstrap replications of :func:`over_seeds`' 95% CIs (rliable's default; ~0.5-2 s a method)."""

@@ -25,9 +25,9 @@ import torch
 from taskvar_torch.config import Config, apply_overrides, config_to_dict
 from taskvar_torch.contract import family
 from taskvar_torch.experiments.results import write_json
-from taskvar_torch.learning import TrainingDiverged
 from taskvar_torch.study.sweep_grid import SweepPoint, point_name
 from taskvar_torch.training import train
+from taskvar_torch.training.learning import TrainingDiverged
 
 POINT_LOG = "output.txt"
 BATCHES = "batches"

@@ -18,8 +18,8 @@ from taskvar_torch import contract as families
 from taskvar_torch.config import METHODS
 from taskvar_torch.families import FAMILIES
 from taskvar_torch.heads.recurrent import BASELINES
-from taskvar_torch.run_state import seed_config
 from taskvar_torch.study import scale, scale_cell, scale_config, scale_report
+from taskvar_torch.training.run_state import seed_config
 
 torch.set_num_threads(1)
 

@@ -37,7 +37,7 @@ from taskvar_torch.families.wargus.fig4_trial import (
 from taskvar_torch.heads.behaviour import BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.robustness import RobustnessCalibration
-from taskvar_torch.replay import make_replay_buffer
+from taskvar_torch.training.replay import make_replay_buffer
 
 EXPLORATION_OFFSET = 1 << 32
 """A repetition's exploration generator is seeded ``seed + EXPLORATION_OFFSET``."""

@@ -14,8 +14,8 @@ through the same lifelong protocol as the paper's agent (paper §3.5.1), on its 
    ``updates_per_batch`` for every ``train.frames_per_batch`` frames played once
    ``train.init_random_frames`` were (the paper's agent takes the same number, as the frames come
    in: :func:`~taskvar_torch.families.wargus.fig4_trial.learn_due`; both through
-   :func:`~taskvar_torch.learning.update_phase`). The update rule is the recurrent
-   baseline's own (:class:`~taskvar_torch.train_recurrent.BaselineLearner`: TorchRL's ``DQNLoss``
+   :func:`~taskvar_torch.training.learning.update_phase`). The update rule is the recurrent
+   baseline's own (:class:`~taskvar_torch.training.baselines.BaselineLearner`: TorchRL's ``DQNLoss``
    with the heads' settings, ``SliceSampler`` slices of one episode each, from the stored hidden
    state after a burn-in), its own settings ``baseline.*`` (docs/memory.md). The trial's episodes
    are stored whole, one after another, so a slice never joins two of them;
@@ -57,8 +57,8 @@ from taskvar_torch.heads.recurrent import (
     recurrent_transforms,
     save_baseline,
 )
-from taskvar_torch.learning import epsilon_at, lr_at, non_finite, update_phase
-from taskvar_torch.train_recurrent import BaselineLearner, stored_keys
+from taskvar_torch.training.baselines import BaselineLearner, stored_keys
+from taskvar_torch.training.learning import epsilon_at, lr_at, non_finite, update_phase
 
 RECURRENT_OFFSET = 1 << 33
 """The recurrent agent of the repetition seeded ``seed`` draws from torch's generator seeded

@@ -41,7 +41,7 @@ from taskvar_torch.families.wargus.env import WargusEnv
 from taskvar_torch.heads.behaviour import BEHAVIOUR, IS_INIT, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.robustness import RobustnessCalibration
-from taskvar_torch.learning import epsilon_at, learning_started, update_phase
+from taskvar_torch.training.learning import epsilon_at, learning_started, update_phase
 
 # --------------------------------------------------------------------------------------------
 # the agent: every head, one learner, one replay buffer (paper §3.5.1: no prior knowledge)
@@ -68,8 +68,8 @@ class LifelongAgent:
 
 def learn_due(agent: LifelongAgent, t: Any) -> None:
     """``train.updates_per_batch`` updates for every ``train.frames_per_batch`` frames played (after
-    ``train.init_random_frames``: :func:`~taskvar_torch.learning.learning_started`), each on one
-    shared sample for every head (:func:`~taskvar_torch.learning.update_phase`, at the learner's
+    ``train.init_random_frames``: :func:`~taskvar_torch.training.learning.learning_started`), each on one
+    shared sample for every head (:func:`~taskvar_torch.training.learning.update_phase`, at the learner's
     ``train.lr``: this agent does not apply ``train.lr_end``, which no shipped config sets); their
     CPU time (sampling included) is added to ``agent.update_seconds``."""
     while agent.pending >= t.frames_per_batch:

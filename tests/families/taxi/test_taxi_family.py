@@ -18,8 +18,8 @@ from taskvar_torch.families import FAMILIES, family
 from taskvar_torch.families.taxi.env import TaxiEnv
 from taskvar_torch.families.taxi.oracle import TaxiOracle
 from taskvar_torch.families.taxi.subtasks import TaxiSubtasks
-from taskvar_torch.train_recurrent import train_baseline
 from taskvar_torch.training import train
+from taskvar_torch.training.baselines import train_baseline
 
 torch.set_num_threads(1)
 CONFIG = "configs/taxi.yaml"

@@ -30,7 +30,7 @@ from taskvar_torch.heads.recurrent import (
     informed_features,
     load_baseline,
 )
-from taskvar_torch.train_recurrent import train_baseline
+from taskvar_torch.training.baselines import train_baseline
 
 torch.set_num_threads(1)
 

@@ -25,8 +25,8 @@ from taskvar_torch.families.windy import WindyOracle
 from taskvar_torch.heads.recurrent import load_baseline
 from taskvar_torch.heads.validate import compare_with_oracle
 from taskvar_torch.oracle.episodes import optimal_episode_returns
-from taskvar_torch.train_recurrent import train_baseline
 from taskvar_torch.training import train
+from taskvar_torch.training.baselines import train_baseline
 
 torch.set_num_threads(1)
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(1200)]  # a 4-min fixture under load

@@ -7,7 +7,7 @@ The loop, top to bottom (:func:`train`)::
       one shared sample --MultiHeadLearner--> every head (averaging, options, switching, max-value,
       robustness) --> CSV logs, periodic checkpoints, DIR/final.pt
 
-The env and collector come from :mod:`taskvar_torch.collection`. With
+The env and collector come from :mod:`taskvar_torch.training.collection`. With
 ``collector.num_workers = W > 1`` the collector is TorchRL's ``MultiSyncCollector``: W spawned
 processes, each stepping its own slice of the N environments (:func:`make_worker_env`), their
 batches concatenated in worker order into the same ``(N, T)`` batch; after every update phase the
@@ -23,13 +23,13 @@ RNG state, so ``train(..., resume=ckpt)`` continues bit for bit on CPU (one coll
 the workers' env and RNG states are not saved, so resuming a multi-process run is refused).
 
 The loop itself, batch by batch, is the one the baselines train with too
-(:func:`~taskvar_torch.learning.collect_and_learn`); the run lives beside it: what it holds and does per batch (store, learn, report,
-checkpoint) in :mod:`taskvar_torch.run_state`, its construction and resume checks in
-:mod:`taskvar_torch.run_setup`, where its log rows go in :mod:`taskvar_torch.run_logs`, the results
+(:func:`~taskvar_torch.training.learning.collect_and_learn`); the run lives beside it: what it holds and does per batch (store, learn, report,
+checkpoint) in :mod:`taskvar_torch.training.run_state`, its construction and resume checks in
+:mod:`taskvar_torch.training.run_setup`, where its log rows go in :mod:`taskvar_torch.training.run_logs`, the results
 folder (one run per folder, locked, never silently reused; logs cut back on resume; SIGINT /
 SIGTERM stop at a resumable checkpoint) in :mod:`taskvar_torch.run_folder`, and the learning step
 it shares with the baselines and the Figure 4 protocol (schedules, update phase, divergence
-check) in :mod:`taskvar_torch.learning`.
+check) in :mod:`taskvar_torch.training.learning`.
 
 Examples:
     >>> cfg = load_config("configs/windy.yaml", ["train.total_frames=20000"])  # doctest: +SKIP
@@ -54,13 +54,11 @@ from taskvar_torch.checkpoint import (
     require_entries,
     require_finite_heads,
 )
-from taskvar_torch.collection import collects_in_workers, make_collector
 from taskvar_torch.config import Config, apply_overrides, config_from_dict, save_config_yaml
 from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.contract import family
 from taskvar_torch.factory import HEADS_NAME, check_device, write_heads
-from taskvar_torch.learning import collect_and_learn
 from taskvar_torch.progress import progress_bar
 from taskvar_torch.run_folder import (
     RUN_FILES,
@@ -69,8 +67,10 @@ from taskvar_torch.run_folder import (
     check_output_folder,
     last_checkpoint_note,
 )
-from taskvar_torch.run_logs import RunLoggers, check_logger
-from taskvar_torch.run_setup import build_run, check_runtime_only, restore_collection
+from taskvar_torch.training.collection import collects_in_workers, make_collector
+from taskvar_torch.training.learning import collect_and_learn
+from taskvar_torch.training.run_logs import RunLoggers, check_logger
+from taskvar_torch.training.run_setup import build_run, check_runtime_only, restore_collection
 
 
 def train(
@@ -188,7 +188,7 @@ def _train_loop(
     keep_replay: bool = True,
 ) -> dict[str, Any]:
     """:func:`train` once its inputs are checked and ``out`` is held: build the run (or restore it
-    from ``bundle``), then the training loop (:func:`~taskvar_torch.learning.collect_and_learn`)
+    from ``bundle``), then the training loop (:func:`~taskvar_torch.training.learning.collect_and_learn`)
     until ``train.total_frames``: store the transitions (:meth:`TrainingRun.store`), learn
     (:meth:`TrainingRun.learn`), log and checkpoint (:meth:`TrainingRun.report`)."""
     t = cfg.train

@@ -1,7 +1,7 @@
 """Where a training run's log rows go (:func:`~taskvar_torch.training.train`): the CSV files
 always, and TensorBoard, W&B or MLflow with ``train.logger``. The rows themselves (losses, training
 returns, epsilon, updates, seconds) are written by
-:meth:`~taskvar_torch.run_state.TrainingRun.log_row`.
+:meth:`~taskvar_torch.training.run_state.TrainingRun.log_row`.
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ Writes go to a temporary file in the destination folder, are flushed and fsynced
 the destination (``os.replace``), so a crash never leaves a half-written checkpoint at ``path``.
 Every loading failure is a one-line :class:`CheckpointError` naming the problem and the path.
 Loading the entries into live networks, optimisers and generators, each checked first against
-what the config builds, is :mod:`taskvar_torch.checkpoint_checks`.
+what the config builds, is :mod:`taskvar_torch.checkpoint.checks`.
 
 Examples:
     >>> bundle = make_bundle(cfg, models={"averaging": net}, optimizers={"adam": opt})

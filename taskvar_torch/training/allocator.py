@@ -9,7 +9,7 @@ Learner). :func:`keep_freed_memory` raises both thresholds once (``mallopt`` thr
 so freed memory is reused from the heap: the process keeps up to ``trim_mib`` of free heap
 instead of returning it. No effect on any number computed.
 
-Every training loop calls it before its first gradient step (:func:`~taskvar_torch.learning
+Every training loop calls it before its first gradient step (:func:`~taskvar_torch.training.learning
 .update_phase`); ``TASKVAR_MALLOC=default`` in the environment leaves glibc's settings as they
 are. Off glibc (macOS, Windows, musl) it does nothing.
 """

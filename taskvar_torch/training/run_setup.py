@@ -25,7 +25,7 @@ from taskvar_torch.checkpoint import (
     config_differences,
     set_rng_state,
 )
-from taskvar_torch.checkpoint_checks import (
+from taskvar_torch.checkpoint.checks import (
     check_counter,
     check_counters,
     check_like,
@@ -33,17 +33,17 @@ from taskvar_torch.checkpoint_checks import (
     check_rng_state,
     load_state_dicts,
 )
-from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import Config
 from taskvar_torch.factory import build_heads, make_learner, make_subtasks
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
 from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.nstep import nstep_returns
 from taskvar_torch.heads.seeds import stack_seeds
-from taskvar_torch.learning import epsilon_at
-from taskvar_torch.replay import check_replay_state, load_replay_state, make_replay_buffer
 from taskvar_torch.run_folder import restore_logs
-from taskvar_torch.run_state import (
+from taskvar_torch.training.collection import make_training_env
+from taskvar_torch.training.learning import epsilon_at
+from taskvar_torch.training.replay import check_replay_state, load_replay_state, make_replay_buffer
+from taskvar_torch.training.run_state import (
     TrainingRun,
     collector_carrier,
     replay_rngs,

@@ -9,13 +9,13 @@ compared with differ only where they must:
 * the budget ``train.total_frames`` (the recurrent baseline's ``baseline.recurrent_frames`` where
   a family's config gives it more: :func:`baseline_train_config`) and ``train.frames_per_batch``;
   epsilon-greedy exploration (:class:`~torchrl.modules.EGreedyModule`) at the heads' schedule
-  (:func:`~taskvar_torch.learning.epsilon_at`: uniform for ``train.init_random_frames``, then
+  (:func:`~taskvar_torch.training.learning.epsilon_at`: uniform for ``train.init_random_frames``, then
   ``eps_start -> eps_end`` by ``eps_decay_frames``); ``train.updates_per_batch`` gradient steps
   per batch of ``train.batch_size`` rows from a replay of ``train.buffer_size``;
 * ``DQNLoss(double_dqn=train.double_q, delay_value=True)`` at ``train.gamma``, the target network
   updated as ``train.target_update`` says (``SoftUpdate`` at ``train.target_tau``, or
   ``HardUpdate`` every ``train.target_period``), Adam at ``train.lr`` (decayed to
-  ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.learning.lr_at`), gradients clipped at
+  ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.training.learning.lr_at`), gradients clipped at
   ``train.max_grad_norm``, and the evaluation weights a Polyak average where
   ``train.eval_ema_tau`` is set;
 * ``train.n_step`` targets for ``informed`` and ``blind`` (TorchRL's
@@ -48,7 +48,7 @@ instance the replay keeps at ``s`` and ``s'``. **blind**: the same network and t
 features zeroed, so "memory helps" is told apart from "learning on one's own stream helps".
 
 :func:`train_baseline` runs the heads' training loop
-(:func:`~taskvar_torch.learning.collect_and_learn`) on a :class:`BaselineRun` and writes
+(:func:`~taskvar_torch.training.learning.collect_and_learn`) on a :class:`BaselineRun` and writes
 ``DIR/recurrent.pt``, ``DIR/informed.pt`` or ``DIR/blind.pt``
 (``heads.recurrent.save_baseline``: atomic, plain data).
 """
@@ -74,7 +74,6 @@ from torchrl.modules import EGreedyModule, GRUModule, set_recurrent_mode
 from torchrl.objectives import DQNLoss, HardUpdate, SoftUpdate
 
 from taskvar_torch import keys
-from taskvar_torch.collection import make_training_env
 from taskvar_torch.config import Config, TrainConfig
 from taskvar_torch.heads.informed import family_instance_keys, informed_features
 from taskvar_torch.heads.recurrent import (
@@ -89,8 +88,9 @@ from taskvar_torch.heads.recurrent import (
     make_recurrent_qnet,
     save_baseline,
 )
-from taskvar_torch.learning import collect_and_learn, epsilon_at, learn_batch, non_finite
 from taskvar_torch.progress import progress_bar
+from taskvar_torch.training.collection import make_training_env
+from taskvar_torch.training.learning import collect_and_learn, epsilon_at, learn_batch, non_finite
 
 EPISODE_START = "episode_start"
 """Stored copy of ``is_init`` (a step that starts an episode): the sampler marks every slice start
@@ -363,7 +363,7 @@ class BaselineLearner:
 @dataclasses.dataclass
 class BaselineRun:
     """A baseline's training run between batches (the heads' is
-    :class:`~taskvar_torch.run_state.TrainingRun`): its learner, exploration and budget ``t``
+    :class:`~taskvar_torch.training.run_state.TrainingRun`): its learner, exploration and budget ``t``
     (:func:`baseline_train_config`), the frames and updates so far, and the returns of the
     episodes that ended in the last tenth of its budget."""
 
@@ -390,8 +390,8 @@ class BaselineRun:
         return before
 
     def learn(self) -> None:
-        """The heads' learning step (:func:`~taskvar_torch.learning.learn_batch`) and epsilon
-        (:func:`~taskvar_torch.learning.epsilon_at`) at the baseline's budget."""
+        """The heads' learning step (:func:`~taskvar_torch.training.learning.learn_batch`) and epsilon
+        (:func:`~taskvar_torch.training.learning.epsilon_at`) at the baseline's budget."""
         frames = self.counters["frames"]
         loss = learn_batch(
             self.learner, self.learner.sample, frames, len(self.learner.buffer), self.t
@@ -422,7 +422,7 @@ def train_baseline(
     "frames", "budget", "updates", "seconds", "mean_train_return"}`` (the mean return of the
     episodes that ended in the last tenth of training, exploration included).
 
-    The heads' training loop (:func:`~taskvar_torch.learning.collect_and_learn`) on a
+    The heads' training loop (:func:`~taskvar_torch.training.learning.collect_and_learn`) on a
     :class:`BaselineRun`: a TorchRL ``Collector`` of ``train.frames_per_batch`` frames acting
     with the baseline's network behind an ``EGreedyModule``. Seeded by ``cfg.seed`` (torch's
     global generator and the env's keyed streams)."""

@@ -2,8 +2,8 @@
 (paper §3.1-3.4; docs/design.md, "Training loops").
 
 :func:`collect_and_learn` is the one loop over a TorchRL collector: each batch stored, learnt from
-and reported on by a :class:`Run` (the heads' :class:`~taskvar_torch.run_state.TrainingRun`, a
-baseline's :class:`~taskvar_torch.train_recurrent.BaselineRun`), whose :class:`Learner` is the one
+and reported on by a :class:`Run` (the heads' :class:`~taskvar_torch.training.run_state.TrainingRun`, a
+baseline's :class:`~taskvar_torch.training.baselines.BaselineRun`), whose :class:`Learner` is the one
 varying part (the heads' ``MultiHeadLearner``, a baseline's ``BaselineLearner``). The Figure 4
 protocol's lifelong learning phases (``families/wargus/fig4_trial.py`` ``learning_phases``,
 ``fig4_recurrent.py`` ``learning_phase``: one episode per sub-env per trial, between test phases)
@@ -21,8 +21,8 @@ from typing import Any, Protocol
 import torch
 from tensordict import TensorDictBase
 
-from taskvar_torch.allocator import keep_freed_memory
 from taskvar_torch.config import TrainConfig
+from taskvar_torch.training.allocator import keep_freed_memory
 
 
 class TrainingDiverged(RuntimeError):
@@ -34,7 +34,7 @@ class Learner(Protocol):
     """What a run asks of its learner: one gradient step on a replay sample, and the learning rate.
 
     :class:`~taskvar_torch.heads.learner.MultiHeadLearner` (every head from one shared sample) and
-    :class:`~taskvar_torch.train_recurrent.BaselineLearner` (a baseline's ``DQNLoss``) are two."""
+    :class:`~taskvar_torch.training.baselines.BaselineLearner` (a baseline's ``DQNLoss``) are two."""
 
     def update(self, sample: TensorDictBase) -> Any:
         """One gradient step on ``sample``; returns its (detached) losses."""
@@ -115,7 +115,7 @@ def update_phase(
     """``updates`` gradient steps of ``learner``, each on a fresh ``sample()``, at learning rate
     ``lr`` (``None``: as it is); returns the last step's losses (``None`` for no step). The first
     call of a process keeps glibc from returning freed memory to the OS between the steps
-    (:func:`~taskvar_torch.allocator.keep_freed_memory`)."""
+    (:func:`~taskvar_torch.training.allocator.keep_freed_memory`)."""
     keep_freed_memory()
     if lr is not None:
         learner.set_lr(lr)

@@ -169,7 +169,7 @@ def check_replay_state(
     the run its config builds): every key, its per-row shape and dtype, ``size`` rows of each,
     the writer's cursor and count consistent with them."""
     from taskvar_torch.checkpoint import CheckpointError
-    from taskvar_torch.checkpoint_checks import check_counter, check_like
+    from taskvar_torch.checkpoint.checks import check_counter, check_like
 
     check_like(state, {"data": None, "size": 0, "writer": None}, where)
     size = check_counter(state["size"], f"{where}['size']", high=capacity)

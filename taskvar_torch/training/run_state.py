@@ -1,11 +1,11 @@
 """One training run of the heads between collected batches (paper §3.1-3.4; docs/design.md).
 
-:class:`TrainingRun` holds what :func:`~taskvar_torch.run_setup.build_run` builds from the config
+:class:`TrainingRun` holds what :func:`~taskvar_torch.training.run_setup.build_run` builds from the config
 (or a checkpoint) and takes the steps :func:`~taskvar_torch.training.train` takes on every batch:
 :meth:`~TrainingRun.store` (raw transitions to replay, first visits only with
 ``train.first_visit``, n-step windows with ``train.n_step``, one buffer per seed of a
 ``train.seeds`` batch), :meth:`~TrainingRun.learn` (the shared learning step,
-:func:`~taskvar_torch.learning.learn_batch`, on every head from one shared sample) and
+:func:`~taskvar_torch.training.learning.learn_batch`, on every head from one shared sample) and
 :meth:`~TrainingRun.report` (log rows, heads snapshots, periodic checkpoints). Its
 :meth:`~TrainingRun.bundle` is the whole checkpoint of the run, for exact resume.
 """
@@ -30,7 +30,6 @@ from taskvar_torch.checkpoint import (
     rng_state,
     save_checkpoint,
 )
-from taskvar_torch.collection import collects_in_workers
 from taskvar_torch.config import Config, save_config_yaml
 from taskvar_torch.factory import HEADS_NAME, build_heads, write_heads
 from taskvar_torch.heads.behaviour import BEHAVIOUR, BehaviourPolicy
@@ -39,10 +38,11 @@ from taskvar_torch.heads.first_visit import FirstVisitFilter
 from taskvar_torch.heads.learner import MultiHeadLearner
 from taskvar_torch.heads.nstep import nstep_returns
 from taskvar_torch.heads.seeds import split_seed
-from taskvar_torch.learning import TrainingDiverged, epsilon_at, learn_batch, non_finite
-from taskvar_torch.replay import EPISODE_REWARD, raw_transitions, replay_state, sample_many
 from taskvar_torch.run_folder import StopSignals, _interrupted, last_checkpoint_note
-from taskvar_torch.run_logs import RunLoggers
+from taskvar_torch.training.collection import collects_in_workers
+from taskvar_torch.training.learning import TrainingDiverged, epsilon_at, learn_batch, non_finite
+from taskvar_torch.training.replay import EPISODE_REWARD, raw_transitions, replay_state, sample_many
+from taskvar_torch.training.run_logs import RunLoggers
 
 HEADS_SNAPSHOTS = "heads"
 """Folder of a run's ``train.heads_every`` snapshots (``heads_<frames>.pt``)."""
@@ -57,7 +57,7 @@ def collector_carrier(collector: Collector) -> TensorDictBase:
 
 def _non_finite(learner: MultiHeadLearner) -> list[str]:
     """Which of heads, target heads and optimiser state hold a NaN or infinite value (one sync:
-    :func:`~taskvar_torch.learning.non_finite`)."""
+    :func:`~taskvar_torch.training.learning.non_finite`)."""
     groups = {
         "heads": list(learner.heads.state_dict().values()),
         "targets": list(learner.loss.target_heads.state_dict().values()),
@@ -109,7 +109,7 @@ def _require_finite(
 
 @dataclasses.dataclass
 class TrainingRun:
-    """One training run between batches: what :func:`~taskvar_torch.run_setup.build_run` builds
+    """One training run between batches: what :func:`~taskvar_torch.training.run_setup.build_run` builds
     from the config (or a checkpoint), and the steps :func:`~taskvar_torch.training.train` takes on
     every collected batch."""
 
@@ -178,7 +178,7 @@ class TrainingRun:
         return self.samples(1)[0]
 
     def samples(self, n: int) -> list[TensorDictBase]:
-        """``n`` calls of :meth:`sample` at once (:func:`~taskvar_torch.replay.sample_many`: the
+        """``n`` calls of :meth:`sample` at once (:func:`~taskvar_torch.training.replay.sample_many`: the
         same rows, one gather per buffer)."""
         if self.seeds == 1:
             return sample_many(self.buffers[0], n)
@@ -247,7 +247,7 @@ class TrainingRun:
     def log_row(self, logger: RunLoggers, start_time: float) -> dict[str, float]:
         """Log one row (a value per scalar, to every logger): the mean losses since the last row,
         the training returns of the episodes that ended (each seed's too), epsilon, updates and
-        seconds; raise :class:`~taskvar_torch.learning.TrainingDiverged` on a non-finite loss."""
+        seconds; raise :class:`~taskvar_torch.training.learning.TrainingDiverged` on a non-finite loss."""
         learner, stats, counters = self.learner, self.stats, self.counters
         seeds = learner.loss.seeds
         try:
