@@ -45,7 +45,7 @@ from taskvar_torch.config.memory import check_memory
 from taskvar_torch.config.memory import estimate as estimate_memory
 from taskvar_torch.contract import FAMILIES, family
 from taskvar_torch.controllers import Controller, make_controller
-from taskvar_torch.experiments.evaluation import run_episodes
+from taskvar_torch.envs.episodes import run_episodes
 from taskvar_torch.heads.bundle import Heads, with_root_row
 from taskvar_torch.heads.learner import MultiHeadLearner, MultiHeadLoss
 from taskvar_torch.heads.max_value import OptimismGapHead, make_instance_critic
