@@ -20,6 +20,7 @@ writes them.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -47,6 +48,15 @@ NO_WORSE = 0.75
 SPEED_RATIO = 2.0
 """Figure 4: the least averaging / hierarchy ratio of trials to 90% of maximum that reads as the
 paper's ~100 vs > 350 (3.5x)."""
+FIG4_MIN_REPETITIONS = 10
+"""Repetitions one Figure 4 realisation needs for a verdict on its own (5 flipped between two
+realisations: docs/report.md)."""
+NOT_ROBUST = "not robust"
+"""The verdict of a Figure 4 claim whose independent realisations disagree."""
+FIG4_ROBUST = (
+    f"each realisation (results folder) needs >= {FIG4_MIN_REPETITIONS} repetitions to stand "
+    "alone; where two realisations' verdicts differ, each is not robust"
+)
 RULES = {
     "fig2": f"reproduced: the CI of the held-out fraction no worse lies at or above "
     f"{NO_WORSE:.0%} and interruption is better in some episodes (CI above 0); partly: at or above "
@@ -54,10 +64,10 @@ RULES = {
     f"{NO_WORSE:.0%}; not: the CI below {NO_WORSE:.0%}",
     "fig4_order": "reproduced: each of hierarchy - interruption, interruption - options, options - "
     "averaging has a paired CI above 0; partly: hierarchy - averaging above 0 but not the whole "
-    "chain; not: otherwise",
+    "chain; not: otherwise; " + FIG4_ROBUST,
     "fig4_speed": "reproduced: averaging - hierarchy in trials to 90% of maximum has a paired CI "
     f"above 0 and the means' ratio is at least {SPEED_RATIO:g}; partly: the CI above 0 with a "
-    "smaller ratio; not: otherwise",
+    "smaller ratio; not: otherwise; " + FIG4_ROBUST,
     "premise": "reproduced: averaging's range minus the options controller's range over the shift "
     "curve has a paired CI above 0 and the options controller is not worse than averaging over the "
     "curve (paired mean difference CI reaching 0 or above; a policy that fails everywhere is "
@@ -413,6 +423,41 @@ def _exploratory(claims: list[Claim], g: Group) -> list[Claim]:
     return [Claim(c.key, c.group, c.ours, NOT_MEASURED, why, c.details) for c in claims]
 
 
+def fig4_robustness(claims: list[Claim], groups: Sequence[Group]) -> list[Claim]:
+    """Figure 4's verdicts held to :data:`FIG4_ROBUST`: where two or more realisations of one
+    protocol (groups of one ``protocol``: the same grid and trials) give a claim different
+    verdicts, each is :data:`NOT_ROBUST`; a lone realisation of fewer than
+    :data:`FIG4_MIN_REPETITIONS` repetitions keeps its verdict, with the shortfall said."""
+    fig4 = {g.label: g for g in groups if g.kind == "wargus-fig4"}
+    out = []
+    for c in claims:
+        g = fig4.get(c.group)
+        if g is None or c.verdict == NOT_MEASURED:
+            out.append(c)
+            continue
+        twins = [
+            o
+            for o in claims
+            if o.key == c.key
+            and o.verdict != NOT_MEASURED
+            and o.group in fig4
+            and fig4[o.group].protocol == g.protocol
+        ]
+        if len({o.verdict for o in twins}) > 1:
+            said = "; ".join(f"{o.verdict} ({o.group})" for o in twins)
+            c = dataclasses.replace(
+                c, verdict=NOT_ROBUST, reason=f"{c.reason}; realisations disagree: {said}"
+            )
+        elif len(twins) == 1 and len(g.seeds) < FIG4_MIN_REPETITIONS:
+            c = dataclasses.replace(
+                c,
+                reason=f"{c.reason}; one realisation of {len(g.seeds)} repetitions "
+                f"(< {FIG4_MIN_REPETITIONS}): not yet shown robust",
+            )
+        out.append(c)
+    return out
+
+
 def build_report(
     dirs: Sequence[str], reps: int = aggregate.REPS, mixed_commits: bool = False
 ) -> Report:
@@ -449,7 +494,7 @@ def build_report(
             claims = [c for c in claims if c.group != g.label] + _exploratory(mine, g)
             headline = f"{exploratory_note(len(g.seeds))}; {headline}"
         rows.append((g.label, headline, len(g.seeds), g.digest))
-    return Report(groups, claims, rows, profiles, reps, summaries)
+    return Report(groups, fig4_robustness(claims, groups), rows, profiles, reps, summaries)
 
 
 # --------------------------------------------------------------------------------------------
@@ -573,12 +618,15 @@ def _eval_summary(g: Group, scores: dict[str, np.ndarray], reps: int) -> dict[st
 
 __all__ = [
     "CLAIMS",
+    "FIG4_MIN_REPETITIONS",
     "NO_WORSE",
     "NOT_MEASURED",
+    "NOT_ROBUST",
     "PAPER_METHODS",
     "RULES",
     "SPEED_RATIO",
     "Claim",
     "Report",
     "build_report",
+    "fig4_robustness",
 ]

@@ -74,6 +74,9 @@ class Group:
     config: dict[str, Any]
     results: list[Result] = field(default_factory=list)
     label: str = ""
+    protocol: str = ""
+    """Its label before a twin's distinguishing key was added: groups of one protocol share it
+    (two realisations of Figure 4, one eager and one compiled)."""
 
     @property
     def seeds(self) -> list[int]:
@@ -311,7 +314,7 @@ def collect(dirs: Sequence[str]) -> list[Group]:
                         f"{r.path})"
                     )
                 where[s] = r.path
-        g.label = _label(g)
+        g.label = g.protocol = _label(g)
     labels = []
     for g in groups:  # a label two groups share: the key that tells two apart, else the digest
         twins = [h for h in groups if h is not g and h.label == g.label]
