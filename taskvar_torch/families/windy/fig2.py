@@ -510,7 +510,8 @@ def _check_inputs(
     heads = tcfg = None
     if checkpoint is not None:
         saved = load_checkpoint(checkpoint)["config"].get("family")
-        if saved not in FAMILIES or FAMILIES[saved].experiment != "windy-fig2":
+        own = FAMILIES[saved].experiment if saved in FAMILIES else None
+        if own is None or own.name != "windy-fig2":
             raise ValueError(
                 f"--checkpoint {str(checkpoint)!r} is a {saved!r} bundle; windy-fig2 "
                 "evaluates windy bundles (wargus-fig4 trains its own)"
