@@ -61,11 +61,9 @@ from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
-from tensordict.nn import TensorDictModule
 from torch import nn
 
-from taskvar_torch import keys
-from taskvar_torch.heads.networks import head_network, make_mlp
+from taskvar_torch.heads.networks import make_mlp
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.switching import continuation_value
 from taskvar_torch.heads.targets import expectile_loss, masked_mean
@@ -114,27 +112,6 @@ def make_instance_critic(
 ) -> nn.Module:
     """The ``instance`` estimator's critic ``C(s, o | z)``: an MLP ``(B, D + F) -> (B, O)``."""
     return make_mlp(obs_dim + instance_dim, num_options, hidden, activation)
-
-
-def make_max_value_head(
-    switching: nn.Module,
-    obs_dim: int,
-    num_options: int,
-    hidden: Sequence[int] = (64, 64),
-    activation: str = "relu",
-    instance_dim: int | None = None,
-) -> TensorDictModule:
-    """``observation (B, D) -> max_value (B, O)``: the switching head plus a fresh gap MLP (and,
-    with ``instance_dim``, an instance-conditioned critic for the ``instance`` estimator)."""
-    gap = make_mlp(obs_dim, num_options, hidden, activation)
-    critic = None
-    if instance_dim is not None:
-        critic = make_instance_critic(obs_dim, instance_dim, num_options, hidden, activation)
-    return TensorDictModule(
-        OptimismGapHead(head_network(switching), gap, critic),
-        in_keys=[keys.OBSERVATION],
-        out_keys=[keys.MAX_VALUE],
-    )
 
 
 def max_value_loss(

@@ -123,15 +123,11 @@ class RobustnessCalibration:
     can take control.
     ``scale[o]``: the standard deviation of R(o, s, pi^o(s)) over the states where o can take
     control; the hierarchy's descent compares components by ``(R - tau) / scale``, a margin in
-    units of each critic's own spread (:meth:`normalise`).
+    units of each critic's own spread.
     """
 
     tau: torch.Tensor  # (O,)
     scale: torch.Tensor  # (O,)
-
-    def normalise(self, r: torch.Tensor) -> torch.Tensor:
-        """``(R - tau) / scale`` for ``r`` ``(..., O)`` (batch first)."""
-        return (r - self.tau) / self.scale
 
     def to(self, device: torch.device | str) -> RobustnessCalibration:
         return RobustnessCalibration(self.tau.to(device), self.scale.to(device))
