@@ -19,8 +19,8 @@ train.batch_size    the activations of a training batch (``eval.batch_size`` in 
                     ``experiment.episodes_per_run`` x runs in the experiments)
 ==================  ===========================================================================
 
-Each term is an upper bound of what was measured (docs/design.md, "Reliability"): a replay row
-takes ``8 x observation + 512`` bytes (measured 8 x observation + 45 to 114), a result row 2 kB.
+Each term is an upper bound (docs/design.md, "Reliability"): a replay row takes
+``8 x observation + 512`` bytes, a result row 2 kB.
 :func:`check_memory` refuses a config whose estimate exceeds the memory available now (Linux
 ``MemAvailable``, or the cgroup's limit where lower) in one line naming the largest term's key.
 """
