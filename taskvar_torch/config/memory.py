@@ -97,8 +97,7 @@ def estimate(
     copies = PARAM_COPIES if training else 1
     batch = t.batch_size * seeds if training else cfg.eval.batch_size
     terms["heads.hidden"] = params * FLOAT * copies
-    # a batch's activations: named by the batch size, which they grow with as much as with the
-    # widths (train.batch_size=10**8 said "lower heads.hidden"; issue 58)
+    # a batch's activations: named by the batch size, which they grow with as much as the widths
     batch_key = "train.batch_size" if training else "eval.batch_size"
     terms[batch_key] = terms.get(batch_key, 0) + batch * sum(widths) * FLOAT * HEADS * 4
     if training:

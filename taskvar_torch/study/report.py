@@ -121,7 +121,7 @@ def claims_markdown(
 def _scope(report: Report) -> str:
     """What every figure is over and on: training seeds (an exploratory group's fewer), and each
     result's own test distribution: the sealed held-out instances only where the results have
-    them (issue 59: an outside family without a sealed split is not called held-out)."""
+    them."""
     n = len(report.groups)
     sealed = sum(g.sealed for g in report.groups)
     few = sum(g.exploratory for g in report.groups)
@@ -186,7 +186,7 @@ def replace_block(text: str, block: str, where: str) -> str:
 
 RESULTS_PAGE = "results.md"
 """The page of its own, beside the claims page, that takes the Results where the page given
-(``--page``/``--readme``) exists without the marker comments (issue 59)."""
+(``--page``/``--readme``) exists without the marker comments."""
 
 
 def own_page() -> str:
