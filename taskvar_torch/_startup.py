@@ -1,5 +1,5 @@
 """The first thing ``import taskvar_torch`` runs: whether the process is the ``taskvar`` command,
-and, if so, a signal handler that covers Python's start-up imports (issue 58).
+and, if so, a signal handler that covers Python's start-up imports.
 
 Importing the package takes seconds (torch, TorchRL); until the command's own handling is in
 place (:func:`taskvar_torch.cli.main`), Ctrl-C would end in a traceback and SIGTERM in a silent

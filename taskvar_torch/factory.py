@@ -449,7 +449,7 @@ def _heads_of(
 
 
 OLD_INFORMED_PREFIX = "heads.informed."
-"""State-dict prefix of the informed head the learner trained before it was removed (issue 56)."""
+"""State-dict prefix of the informed head older bundles hold (dropped on load)."""
 
 
 HEADS_NAME = "heads.pt"

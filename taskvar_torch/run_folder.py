@@ -145,8 +145,7 @@ def check_out_path(path: str | os.PathLike, flag: str = "--out") -> Path:
 
 
 def _refuse_dangling(path: Path, flag: str) -> None:
-    """A one-line ``ValueError`` when ``path`` or a folder above it is a symbolic link to nothing
-    (creating it said only "File exists"; issue 58)."""
+    """A one-line ``ValueError`` when ``path`` or a folder above it is a symbolic link to nothing."""
     for p in (path, *path.parents):
         if p.is_symlink() and not p.exists():
             where = "" if p == path else f" (in {flag} {str(path)!r})"

@@ -170,9 +170,8 @@ codecs.register_error("taskvar_locale_safe", _locale_safe)
 
 
 def locale_safe_output() -> None:
-    """stdout and stderr print any text whatever the locale: under an ASCII one (``LC_ALL=C``
-    with UTF-8 mode off, ``PYTHONIOENCODING=ascii``) a non-ASCII ``--out`` in the command's last
-    line ("wrote ...") was an encoding error after every result had been written (issue 58)."""
+    """stdout and stderr print any text whatever the locale (``LC_ALL=C``,
+    ``PYTHONIOENCODING=ascii``): a character the encoding lacks goes through :func:`_locale_safe`."""
     for stream in (sys.stdout, sys.stderr):
         encoding = getattr(stream, "encoding", None)
         try:

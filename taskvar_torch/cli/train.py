@@ -146,7 +146,7 @@ def _print_oracle_summary(path: str | os.PathLike) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-# taskvar train-baselines (issue 31: docs/memory.md)
+# taskvar train-baselines (docs/memory.md)
 
 
 def _train_baselines_arguments(p: argparse.ArgumentParser) -> None:
@@ -205,7 +205,7 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
             methods = [m for m in methods if m not in ("informed", "blind")]
     out = Path(args.out)
     runs = [(out, cfg)]
-    if cfg.train.seeds > 1:  # a --seeds batch: a baseline beside every seed's bundle (issue 59)
+    if cfg.train.seeds > 1:  # a --seeds batch: a baseline beside every seed's bundle
         runs = [(out / f"seed{k}", seed_config(cfg, k)) for k in range(cfg.train.seeds)]
         for folder, cfg_k in runs:
             _check_bundle_config(cfg_k, folder, overrides)
@@ -224,7 +224,7 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
     for i, (folder, cfg_k) in enumerate(runs):
         if len(runs) > 1:
             print(f"seed {cfg_k.seed} ({i + 1}/{len(runs)} of train.seeds): {folder}", flush=True)
-        with ResultsFolder(folder, staged=False):  # one writer at a time (issue 58)
+        with ResultsFolder(folder, staged=False):  # one writer at a time
             for m in methods:
                 r = train_baseline(cfg_k, m, folder, progress=not args.no_progress)
                 last = r["mean_train_return"]

@@ -131,7 +131,7 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
     if cls is Config and not prefix:  # each registered family's own keys, read for it only
         from taskvar_torch.contract import FAMILIES
 
-        known = FAMILIES.loaded()  # an installed plugin is named, not imported (issue 58)
+        known = FAMILIES.loaded()  # an installed plugin is named, not imported
         for name in sorted(known):
             section = known[name].config_class
             if section is not None:

@@ -19,8 +19,8 @@ train.batch_size    the activations of a training batch (``eval.batch_size`` in 
                     ``experiment.episodes_per_run`` x runs in the experiments)
 ==================  ===========================================================================
 
-Each term is an upper bound of what was measured (docs/design.md, "Reliability"): a replay row
-takes ``8 x observation + 512`` bytes (measured 8 x observation + 45 to 114), a result row 2 kB.
+Each term is an upper bound (docs/design.md, "Reliability"): a replay row takes
+``8 x observation + 512`` bytes, a result row 2 kB.
 :func:`check_memory` refuses a config whose estimate exceeds the memory available now (Linux
 ``MemAvailable``, or the cgroup's limit where lower) in one line naming the largest term's key.
 """
@@ -97,8 +97,7 @@ def estimate(
     copies = PARAM_COPIES if training else 1
     batch = t.batch_size * seeds if training else cfg.eval.batch_size
     terms["heads.hidden"] = params * FLOAT * copies
-    # a batch's activations: named by the batch size, which they grow with as much as with the
-    # widths (train.batch_size=10**8 said "lower heads.hidden"; issue 58)
+    # a batch's activations: named by the batch size, which they grow with as much as the widths
     batch_key = "train.batch_size" if training else "eval.batch_size"
     terms[batch_key] = terms.get(batch_key, 0) + batch * sum(widths) * FLOAT * HEADS * 4
     if training:

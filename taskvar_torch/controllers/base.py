@@ -388,16 +388,10 @@ class Controller(TensorDictModuleBase):
             Composite({keys.RUNNING_OPTION: spec}), default_value=-1, expand_specs=True
         )
 
-    env_transform = primer
-
     def make_tensordict_primer(self) -> TensorDictPrimer:
         """TorchRL's hook (as ``LSTMModule``): lets ``get_primers_from_module`` and
         ``Collector(..., auto_register_policy_transforms=True)`` find :meth:`primer`."""
         return self.primer()
-
-    def initial_state(self, batch_size: int, device: torch.device | str = "cpu") -> Tensor:
-        """``running_option`` of a fresh episode: ``(B,)`` of -1."""
-        return torch.full((batch_size,), -1, dtype=torch.int64, device=device)
 
     def generator(self, device: torch.device) -> torch.Generator:
         """The controller's own random stream on ``device`` (seeded with ``seed``)."""

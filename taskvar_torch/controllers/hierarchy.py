@@ -25,9 +25,8 @@ action (leaves always act, and only composed nodes are parents). So for small tr
 e.g. 32 for Wargus's 3-node tree) :class:`TreeTables` precomputes the decision for every (running
 subtask, bits, choices) code and :func:`hierarchy_decide_table_of` is one table lookup; the
 controller uses it where the tree has a table. :meth:`HierarchyController.decide_scalar` is the
-same search on Python floats for one environment in real time. Both are tested equal to
-:func:`hierarchy_decide_of` on random inputs (tests/test_controllers.py) and measured faster
-(``benchmarks/decision_forms.py``, docs/benchmarks.md).
+same search on Python floats for one environment in real time; both equal
+:func:`hierarchy_decide_of` (tests/test_controllers.py).
 """
 
 from __future__ import annotations

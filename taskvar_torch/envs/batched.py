@@ -51,7 +51,7 @@ class BatchedFamilyEnv(EnvBase):
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
-        if "_RUNTIME_STATE" in cls.__dict__:  # the name before issue 46
+        if "_RUNTIME_STATE" in cls.__dict__:  # the deprecated spelling
             warnings.warn(
                 f"{cls.__name__}._RUNTIME_STATE is deprecated; name it runtime_state "
                 "(docs/families.md)",
@@ -211,7 +211,7 @@ class BatchedFamilyEnv(EnvBase):
         td[keys.DONE] = terminated | truncated
         return TensorDict._new_unsafe(td, batch_size=self.batch_size, device=self.device)
 
-    # The names before issue 46, for families written against them.
+    # The deprecated spellings, for families written against them.
     def _make_done_spec(self) -> None:
         _deprecated("_make_done_spec", "make_done_spec")
         self.make_done_spec()

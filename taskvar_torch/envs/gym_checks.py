@@ -94,7 +94,7 @@ def check_cell(value: Any, height: int, width: int, name: str = "start") -> tupl
 
 def check_as_config(family: str, section: Mapping[str, Any], instances: Any = None) -> None:
     """A Gymnasium env's constructor arguments checked exactly as a config's ``env.<family>``
-    keys are (issue 58): the same bounds (the family's ``config_class`` and ``Family.validate``,
+    keys are: the same bounds (the family's ``config_class`` and ``Family.validate``,
     through :func:`taskvar_torch.config.config_from_dict`) and the same memory estimate of what
     the env allocates (the family's per-cell observation table, ``config/memory.py``), so
     ``gym.make`` accepts nothing ``taskvar train`` refuses. A one-line ``ValueError`` names the

@@ -3,7 +3,7 @@ taskvar_torch``: the built-in families' ``taskvar/`` ids and those of installed 
 
 Started as the ``taskvar`` command, only the built-in families' ids are registered at import: an
 installed family's entry point is imported (and its ids registered) when the command asks for the
-family by name, so a broken plugin cannot take down a command that does not use it (issue 58)."""
+family by name, so a broken plugin cannot take down a command that does not use it."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The baselines of issue 31 in ``taskvar eval`` (docs/memory.md): which ones a bundle has, loading
+"""The memory baselines in ``taskvar eval`` (docs/memory.md): which ones a bundle has, loading
 them beside ``final.pt`` and the one-line refusals.
 
 A bundle folder ``DIR`` holding ``final.pt`` (or ``heads.pt``) supports ``recurrent`` where

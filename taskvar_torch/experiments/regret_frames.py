@@ -1,5 +1,5 @@
 """Regret against training frames: how far each memoryless method's learnt controller stays from
-an agent that knows the instance as training goes on (issue 31, item 3; docs/memory.md "Regret
+an agent that knows the instance as training goes on (docs/memory.md "Regret
 against training frames", docs/evaluation.md; the per-instance optimum of paper §3.3.1).
 
 Training saves the heads every ``train.heads_every`` frames (``heads/heads_<frames>.pt`` beside

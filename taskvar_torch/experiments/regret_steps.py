@@ -1,5 +1,5 @@
 """Regret against the step within the episode: when in an episode each method loses to an agent
-that knows the instance (the paper's "jump start" against memory's warm-up; issue 31,
+that knows the instance (the paper's "jump start" against memory's warm-up;
 docs/evaluation.md).
 
 ``taskvar eval`` traces the cell and the action of every step of every paired episode; a family's

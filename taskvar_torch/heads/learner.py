@@ -169,7 +169,7 @@ class MultiHeadLoss(LossModule):
             if getattr(head_network(heads.heads["max_value"]), "critic", None) is None:
                 raise ValueError(
                     "max_value_estimator='instance' needs a max-value head with an instance "
-                    "critic (heads/max_value.py make_max_value_head(..., instance_dim=F))"
+                    "critic (factory.build_heads with train.max_value_estimator=instance)"
                 )
         if settings.matmul_dtype not in MATMUL_DTYPES:
             raise ValueError(

@@ -1,58 +1,28 @@
 """Max-value head Q_hat(s, o) ~ max over training instances of Q^{m, mu_bar}(s, o) (Definition 1).
 
-Q_hat is the best value option o has shown from s in any training instance, running o and then
-continuing with mu_bar; offline interruption (Algorithm 1) fires where Q_hat(s, o_run) < V^{mu_bar}(s).
+Offline interruption (Algorithm 1) fires where Q_hat(s, o_run) < V^{mu_bar}(s). The head is
+``Q_hat = Q_mu + softplus(gap)`` (:class:`OptimismGapHead`), so ``Q_hat >= Q^{mu_bar}``. Two
+estimators train the gap (``train.max_value_estimator``; compared in
+docs/notes/design-decisions.md, Max-values):
 
-Parametrisation: ``Q_hat = Q_mu + softplus(gap)`` (:class:`OptimismGapHead`), which builds in
-``Q_hat >= Q^{mu_bar}`` (a max over instances is at least their mean). Two estimators train the
-gap (``train.max_value_estimator``):
-
-**instance** (Definition 1 literally; windy). An *instance-conditioned* critic ``C(s, o | z)``,
-``z`` the episode's hidden instance (windy: ``(p, one_hot(direction))``, read from the replay;
-privileged information used offline only: the controllers read Q_hat, never z nor C), learnt by
-ordinary (expectation) intra-option TD under mu_bar on the same transitions as the switching head
-(a = pi^o(s), s in I_o), with the instance held fixed as it is along the episode:
+**instance**: a critic ``C(s, o | z)`` conditioned on the episode's hidden instance ``z`` (read
+from the replay, offline only; it lives in ``OptimismGapHead.critic``) learns each instance's
+option values by intra-option TD under mu_bar on the switching head's transitions:
 
     y = r + gamma * (1 - terminated) * [ (1 - beta_o(s')) C_target(s', o | z)
                                          + beta_o(s') sum_q mu_bar(s', q) C_target(s', q | z) ]
     loss_C = (y - C(s, o | z))^2
 
-so ``C(., . | z) -> Q^{z, mu_bar}`` (the values of paper §2.4 in instance z). Then the max of
-Definition 1 over the training instances seen, ``Z`` = the instances of ``max_value_instances``
-transitions of the sample (a uniform draw from the replay, so the instances the agent has met,
-weighted by their data), distilled into the head at every sampled state and initiable option:
+and the head regresses the max over the ``max_value_instances`` instances ``Z`` of the sample:
+``loss_hat = (Q_hat(s, o) - max_{z in Z} C_target(s, o | z))^2``.
 
-    loss_hat = (Q_hat(s, o) - max_{z in Z} C_target(s, o | z))^2
-
-Optimism is then over instances only: within an instance, gusts are averaged by the TD
-expectation, as Definition 1 asks (``Q^{m, mu_bar}`` is an expected return in m). This replaces
-the paper's per-instance Monte-Carlo tables, which a continuum of instances (p ~ U[0, 1]) and
-function approximation do not allow; the max over a random 64 of the seen instances stands in for
-the max over all of them (in the windy family the max sits at the calm / harmless-wind end of the
-range, which 64 uniform draws approach within ~1/65 in p). The critic lives inside the max-value
-head (``OptimismGapHead.critic``), so it is checkpointed with the heads; it costs one extra MLP pass
-on ``B * |Z|`` rows per update.
-
-**expectile** (any family; Wargus). Expectile TD with a high level tau
-(``train.max_value_expectile``, default 0.95), on the same intra-option transitions:
+**expectile** (any family; a Wargus instance is a seed with no features to condition on):
+expectile TD at level ``train.max_value_expectile`` on the same transitions, optimistic over all
+randomness at (s, a):
 
     y = r + gamma * (1 - terminated) * [ (1 - beta_o(s')) Q_hat,target(s', o)
                                          + beta_o(s') sum_q mu_bar(s', q) Q_hat,target(s', q) ]
     loss = |tau - 1[y < Q_hat(s, o)]| (y - Q_hat(s, o))^2
-
-An expectile at tau -> 1 tends to the supremum of the next-state outcome distribution, taken at
-every step: it is optimistic over *all* randomness at (s, a) (gusts, patrol moves, item spawns),
-not over instances only, so it over-estimates Q_hat where within-instance noise matters, which makes
-interruption fire less often (the conservative side of Theorem 1). Wargus keeps it: a Wargus
-instance is a seed that fixes every random draw of the episode (item spawns, patrol walk), so it
-has no features a critic could condition on, and "the max over instances" of a seed family *is*
-the best outcome of all that randomness, which is what the expectile targets.
-
-Which is the default: the dataclass default stays ``expectile`` (old checkpoints, whose configs
-predate the field, load with the estimator they were trained with); the windy configs set
-``instance``, chosen on the *training* distribution's oracle figures (``max_value_error``,
-``interruption_agreement`` of :func:`~taskvar_torch.heads.validate.compare_with_oracle`, which
-evaluate on the training instances), never on test seeds.
 """
 
 from __future__ import annotations
@@ -61,11 +31,9 @@ from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
-from tensordict.nn import TensorDictModule
 from torch import nn
 
-from taskvar_torch import keys
-from taskvar_torch.heads.networks import head_network, make_mlp
+from taskvar_torch.heads.networks import make_mlp
 from taskvar_torch.heads.relabel import Transitions
 from taskvar_torch.heads.switching import continuation_value
 from taskvar_torch.heads.targets import expectile_loss, masked_mean
@@ -114,27 +82,6 @@ def make_instance_critic(
 ) -> nn.Module:
     """The ``instance`` estimator's critic ``C(s, o | z)``: an MLP ``(B, D + F) -> (B, O)``."""
     return make_mlp(obs_dim + instance_dim, num_options, hidden, activation)
-
-
-def make_max_value_head(
-    switching: nn.Module,
-    obs_dim: int,
-    num_options: int,
-    hidden: Sequence[int] = (64, 64),
-    activation: str = "relu",
-    instance_dim: int | None = None,
-) -> TensorDictModule:
-    """``observation (B, D) -> max_value (B, O)``: the switching head plus a fresh gap MLP (and,
-    with ``instance_dim``, an instance-conditioned critic for the ``instance`` estimator)."""
-    gap = make_mlp(obs_dim, num_options, hidden, activation)
-    critic = None
-    if instance_dim is not None:
-        critic = make_instance_critic(obs_dim, instance_dim, num_options, hidden, activation)
-    return TensorDictModule(
-        OptimismGapHead(head_network(switching), gap, critic),
-        in_keys=[keys.OBSERVATION],
-        out_keys=[keys.MAX_VALUE],
-    )
 
 
 def max_value_loss(

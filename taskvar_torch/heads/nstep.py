@@ -16,7 +16,7 @@ The window of transition t is ``k <= n`` steps: it stops at the episode's end, a
 option's termination, at a change of behaviour mode, and at the end of the collected batch (no
 transition waits for the next batch). Exploratory actions inside a window are kept: with epsilon
 decaying to ``eps_end`` these are Peng-style uncorrected n-step returns (a small bias towards the
-behaviour; measured in docs/scale.md).
+behaviour; docs/scale.md).
 
 :func:`nstep_returns` computes the window quantities once per collected ``(N, T)`` batch, before
 the transitions enter the replay; the learner reads them back from each sample.

@@ -1,43 +1,25 @@
 """Robustness critics R(o, s, a) (paper §3.4.3, §3.5.2): subtask attainability by Q-learning.
 
 One network outputs every capability's critic ``(B, O, A)``. Each learns by TD on its robustness
-reward (Wargus: TG +1 per step ending where the item is seen, -1 on losing it; FE -1 per step in the
-patrol's sight, +1 on escaping it; TG+FE their sum), discounted by ``train.robustness_gamma``, with
-the episode end as terminal. ``R(o, s, a)`` "estimates the expectation that the option o will be
-able to achieve its goals from state s and action a" (§3.4.3): the option's attainability *when
-following o*, so the default target (``train.robustness_target = "option"``) bootstraps with the
-option's own next action, ``pi^o(s') = argmax_a' Q_o(s', a')`` (off-policy evaluation of pi^o from
-replay, like expected SARSA with a greedy target policy):
+reward (the family's ``Subtasks.robustness_reward``), discounted by ``train.robustness_gamma``,
+with the episode end as terminal. ``R(o, s, a)`` "estimates the expectation that the option o will
+be able to achieve its goals from state s and action a" (§3.4.3), so the default target
+(``train.robustness_target = "option"``) bootstraps with the option's own next action
+``pi^o(s') = argmax_a' Q_o(s', a')``, up to the option's own termination
+(``train.robustness_until = "termination"``; ``"episode"`` bootstraps through beta_o):
 
     y_o = rr_o + gamma_R * (1 - terminated) * (1 - beta_o(s')) * R_o,target(s', pi^o(s'))
 
-and only up to the option's own termination (``train.robustness_until = "termination"``): where
-beta_o(s') = 1 the option has ended, its subtask is achieved (TG picked the item, FE escaped) or
-failed (TG lost sight of the item), and nothing past it is o's to attain. (``"episode"`` bootstraps
-through beta_o, as if o kept running after its own end.)
-
 ``"greedy"`` is plain (double) Q-learning, ``R_o,target(s', argmax_a' R_o(s', a'))``: the
-attainability under the *robustness-greedy* policy, which no controller runs. It overrates an
-option whose own policy loses its goal: in Wargus the root's policy walks out of the item's sight,
-yet the greedy target values that step as "one step back and the +1s resume" (~5.8 > tau = 2), so
-Algorithm 2 kept handing the root control at the sight boundary (docs/changelog.md).
+attainability under the robustness-greedy policy, which no controller runs.
 
-**Scale** (Wargus, ``families/wargus/subtasks.py``). With the root never terminating, R(TG+FE, s, a) is the
-discounted count of future steps with the item in sight, minus the steps in a patrol's sight, along
-the averaging policy until destruction. At gamma_R = 0.9 it looks ~10 steps ahead, so it is high
-only where the item is in sight now, and any threshold suspends the root wherever the item is out of
-sight: exactly the no-conflict states the paper keeps under the composed capability (§3.5.3). At
-gamma_R = 0.99 (~100 steps) it reads what the subtask is about, the agent staying alive and finding
-items: it drops where a patrol threatens (the -1s, and destruction ending every future +1). The
-threshold is then set per capability on training states (:class:`RobustnessCalibration`,
-``train.robustness_threshold = "calibrated"``); ``"fixed"`` keeps one tau for all (the paper's 2).
-gamma_R = 0.99 and the keep share 0.9 were chosen on fresh training-distribution instances
-(``scripts/hierarchy_diagnostics.py``, seeds 10000+), never on the nominal test seeds.
+The threshold tau is one for all (``train.robustness_threshold = "fixed"``, the paper's 2) or set
+per capability on training states (:class:`RobustnessCalibration`, ``"calibrated"``);
+docs/hierarchy-critics.md gives the scale of the critics and how the settings were chosen.
 
 "Every component update also updates its composed parent" (§3.4.1): a composed subtask's domain is
 the union of its components' domains, so the parent's update mask is its own initiation set or'ed
-with its components' (:func:`parent_closure`). All critics read the same sample, off-policy, so an
-update of a component is, in the same gradient step, an update of its parent.
+with its components' (:func:`parent_closure`).
 """
 
 from __future__ import annotations
@@ -123,15 +105,11 @@ class RobustnessCalibration:
     can take control.
     ``scale[o]``: the standard deviation of R(o, s, pi^o(s)) over the states where o can take
     control; the hierarchy's descent compares components by ``(R - tau) / scale``, a margin in
-    units of each critic's own spread (:meth:`normalise`).
+    units of each critic's own spread.
     """
 
     tau: torch.Tensor  # (O,)
     scale: torch.Tensor  # (O,)
-
-    def normalise(self, r: torch.Tensor) -> torch.Tensor:
-        """``(R - tau) / scale`` for ``r`` ``(..., O)`` (batch first)."""
-        return (r - self.tau) / self.scale
 
     def to(self, device: torch.device | str) -> RobustnessCalibration:
         return RobustnessCalibration(self.tau.to(device), self.scale.to(device))

@@ -11,13 +11,8 @@ batched pass of the heads' shared :class:`~taskvar_torch.heads.networks.StackedM
 The pass is an explicit ``baddbmm`` per layer over the ``G K`` (snapshot, member) pairs
 (:meth:`StackedMLP.forward_snapshots`): member ``(g, k)`` is one batch entry of the op the
 learner's fused pass (:meth:`StackedMLP.forward`) runs for member ``k``. With the Wargus shapes a
-snapshot's values are bit-equal to each head run on its own, and testing trials side by side
-gives the episodes testing each trial at once gives (``tests/families/wargus/test_wargus_fast_loop.py``); in
-general the last bits of a batch entry may depend on the batch it sits in (the BLAS's choice:
-``tests/test_heads.py`` shows a small shape where they do). ``torch.vmap`` of
-``torch.func.functional_call`` over stacked parameters (or ``TensorDict.from_module``) gave the
-same bits here but was slower (Wargus heads, 25 snapshots of 20 rows, one thread: 3.8-5.0 ms per
-pass against 5.4-6.1 ms), so the explicit pass is kept.
+snapshot's values are bit-equal to each head run on its own
+(``tests/families/wargus/test_wargus_fast_loop.py``).
 
 Examples:
     >>> values = HeadValues(heads, ["averaging", "options"])  # doctest: +SKIP

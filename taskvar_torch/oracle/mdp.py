@@ -1,8 +1,8 @@
 """Generic exact MDP machinery of the oracle (paper §3.1; docs/oracle.md).
 
 Value iteration with a policy-iteration polish (:func:`solve_mdp`), the kernel and reward of a
-policy, tie-snapping (:func:`snap_ties`, :func:`greedy`; see "Ties" in the
-:mod:`taskvar_torch.oracle` docstring) and Gauss-Legendre quadrature for expectations over ``p``.
+policy, tie-snapping (:func:`snap_ties`, :func:`greedy`; docs/oracle.md, Design decisions) and
+Gauss-Legendre quadrature for expectations over ``p``.
 Everything is float64 torch, batched over leading dimensions; nothing here is windy-specific.
 """
 

@@ -1,48 +1,18 @@
-"""``taskvar report``: the paper's claims and the Results tables, regenerated from results
-folders by one command (issue 33; docs/claims.md is its output, docs/report.md its guide).
+"""``taskvar report``: the paper's claims and the Results tables, regenerated from results folders
+by one command (docs/report.md is its guide, docs/claims.md its output).
 
-It reads results folders -- ``taskvar experiment windy-fig2`` / ``wargus-fig4`` / ``scale`` and
-``taskvar eval --out`` folders, each holding ``metrics.json``, or a folder of ``seed<k>/`` results
-folders (one training seed each) -- groups them by experiment and config (the config without its
-seed), and for every group aggregates over training seeds with ``rliable``
-(:mod:`taskvar_torch.study.aggregate`: IQM and mean with stratified-bootstrap 95% CIs,
-paired differences, probability of improvement over the averaging policy, performance profiles).
-The claims are scored on the **sealed held-out** instances (``families.HELDOUT_SEED``), never on
-the nominal ones the designs were iterated on:
+It reads results folders (each holding ``metrics.json``, or ``seed<k>/`` folders of one training
+seed each), groups them by experiment and config, aggregates over seeds with ``rliable``
+(:mod:`taskvar_torch.study.aggregate`) and scores each claim of :data:`RULES` on the sealed
+held-out instances (``families.HELDOUT_SEED``): Figure 2 (§3.3.1), Figure 4's ordering and speed
+(§3.5.3) and §3.2's premise. A claim's verdict is ``reproduced``, ``partly``, ``not`` or ``not
+measured``; a group of fewer than :data:`MIN_SEEDS` seeds is exploratory and scores none.
+Results that score no claim can join the Results table alone (:func:`add_rows`, ``--add``).
 
-- **Figure 2** (§3.3.1): "offline interruption no worse than the averaging policy in almost 80% of
-  episodes" -- the paired fraction no worse on held-out episodes (``metrics.json`` ``heldout``);
-- **Figure 4, ordering** (§3.5.3): hierarchy > interruption > options > averaging over the first
-  half of the trials -- paired per-repetition differences of held-out items per episode;
-- **Figure 4, speed**: the hierarchy reaches 90% of its maximum in ~100 trials, averaging in
-  > 350 -- each repetition's own held-out curve;
-- **§3.2's premise**: a capability is less affected by variability than the full task -- over the
-  points of a ``taskvar eval --test heldout --shift KEY=V1,V2,...`` curve, the range of the
-  options controller's mean return (composed capabilities) against the averaging policy's (the
-  full task), paired per seed.
-
-Each claim gets the paper's figure, ours with its CI, and a verdict (``reproduced``, ``partly``,
-``not``, or ``not measured`` where no results were given) by the rules in :data:`RULES`.
-Results that score no claim (other families' evaluations, the baselines) can also join the Results
-table alone (:func:`add_rows`, ``taskvar report --add``), the other rows kept.
-
-The Results block is read in a minute (issue 48; it lives on docs/results.md, which the README
-links, issue 57;
-:mod:`~taskvar_torch.study.report_results`): the regret figure, per family one compact table
-(methods as columns, a row per group, mean [95% CI] over seeds, the best bold, ``≈`` on those not
-separated from it), and the table of every result folded away; the per-group summaries behind
-them are kept beside the claims page (``<stem>-results.json``) so that ``--add`` draws them again
-with the groups it adds.
-
-Bad input is one line (:class:`ReportError`, a ``ValueError``) and nothing is written: a folder
-that is not a results folder, results of different configs under one ``DIR`` (one claim), a
-training seed twice, results without held-out scores, a page with one marker only, an output
-file (page, PNG, results JSON) that ``taskvar report`` did not write (unless ``overwrite``).
-Every file is written atomically (``taskvar_torch/io.py``).
-
-A group of fewer than :data:`MIN_SEEDS` seeds is tabled as exploratory and scores no claim; a
-page without the marker comments gets the block on a page of its own (:func:`target_page`); each
-row names the test distribution it was measured on (issue 59).
+The Results block (:mod:`~taskvar_torch.study.report_results`) goes on docs/results.md, or on a
+page of its own where the marker comments are missing (:func:`target_page`); the per-group
+summaries are kept beside the claims page (``<stem>-results.json``) for ``--add``. Bad input is
+one line (:class:`ReportError`) and nothing is written; every file is written atomically.
 
 This module writes the pages, the Results block and the figures; the folders are read and
 grouped by :mod:`~taskvar_torch.study.report_folders`, the claims scored by
@@ -151,7 +121,7 @@ def claims_markdown(
 def _scope(report: Report) -> str:
     """What every figure is over and on: training seeds (an exploratory group's fewer), and each
     result's own test distribution: the sealed held-out instances only where the results have
-    them (issue 59: an outside family without a sealed split is not called held-out)."""
+    them."""
     n = len(report.groups)
     sealed = sum(g.sealed for g in report.groups)
     few = sum(g.exploratory for g in report.groups)
@@ -216,7 +186,7 @@ def replace_block(text: str, block: str, where: str) -> str:
 
 RESULTS_PAGE = "results.md"
 """The page of its own, beside the claims page, that takes the Results where the page given
-(``--page``/``--readme``) exists without the marker comments (issue 59)."""
+(``--page``/``--readme``) exists without the marker comments."""
 
 
 def own_page() -> str:

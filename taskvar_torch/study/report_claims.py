@@ -1,5 +1,5 @@
-"""The paper's claims scored on the groups of results folders ``taskvar report`` reads (issue 33;
-docs/claims.md is the page, docs/report.md its guide), on the **sealed held-out** instances only
+"""The paper's claims scored on the groups of results folders ``taskvar report`` reads
+(docs/claims.md is the page, docs/report.md its guide), on the **sealed held-out** instances only
 (:attr:`~taskvar_torch.study.report_folders.Group.sealed`; a family's other test distributions
 are tabled under their own names) and on groups of >= ``MIN_SEEDS`` training seeds only (a
 smaller group is exploratory: its figures shown, its verdict ``not measured``):
@@ -121,7 +121,7 @@ def _num(x: Any) -> float:
 def _score(r: Result, *path: str | int) -> float:
     """The number at ``path`` in ``r``'s ``metrics.json``; a ``null`` there (the library writes a
     non-finite number as ``null``) or a non-number is a one-line :class:`ReportError` naming the
-    file and the key (issue 58: ``taskvar report`` refuses non-finite inputs)."""
+    file and the key."""
     x: Any = r.metrics
     for k in path:
         x = x[k]
@@ -133,7 +133,7 @@ def _score(r: Result, *path: str | int) -> float:
 
 def _curves(r: Result, m: str) -> np.ndarray:
     """Repetition ``r``'s held-out ``curve_per_rep`` of method ``m`` ``(R, T)``, every value
-    finite (a ``null`` or ``NaN`` is one line naming the file and the entry, issue 58)."""
+    finite (a ``null`` or ``NaN`` is one line naming the file and the entry)."""
     c = r.metrics["heldout"]["methods"][m]["curve_per_rep"]
     a = np.asarray(c, dtype=float)  # a null reads as NaN
     if not np.isfinite(a).all():
@@ -489,7 +489,7 @@ def build_report(
             summaries.append(_eval_summary(g, scores, reps))
         else:  # the scale experiment's gap closed: its row of the table of every result only
             headline = _scale(g, reps)
-        if g.exploratory:  # tabled and labelled, no verdict (issue 59)
+        if g.exploratory:  # tabled and labelled, no verdict
             mine = [c for c in claims if c.group == g.label]
             claims = [c for c in claims if c.group != g.label] + _exploratory(mine, g)
             headline = f"{exploratory_note(len(g.seeds))}; {headline}"

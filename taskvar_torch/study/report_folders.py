@@ -1,9 +1,9 @@
-"""The results folders ``taskvar report`` reads (issue 33; docs/report.md): :func:`load_result` reads
+"""The results folders ``taskvar report`` reads (docs/report.md): :func:`load_result` reads
 one folder's ``metrics.json`` and config, :func:`collect` expands every ``DIR`` (a results folder
 or a folder of ``seed<k>/`` results folders) and groups the results by experiment and config (the
 config without its seed), checked: one config per ``DIR``, no training seed twice. A group of
 fewer than :data:`MIN_SEEDS` seeds is read too, as exploratory (:attr:`Group.exploratory`: its
-rows say so and it scores no claim, issue 59). Bad input is one line (:class:`ReportError`, a
+rows say so and it scores no claim). Bad input is one line (:class:`ReportError`, a
 ``ValueError``).
 
 The claims are scored from these groups by :mod:`~taskvar_torch.study.report_claims` and
@@ -27,8 +27,8 @@ from typing import Any
 import yaml
 
 MIN_SEEDS = 5
-"""Training seeds a group needs before it scores a claim (issue 33: every claim over >= 5); a
-group of fewer is exploratory (issue 59): tabled and labelled, no verdict."""
+"""Training seeds a group needs before it scores a claim; a group of fewer is exploratory:
+tabled and labelled, no verdict."""
 KINDS = ("windy-fig2", "wargus-fig4", "scale", "eval")
 """``metrics.json`` ``experiment`` values of the results folders it reads."""
 
@@ -60,7 +60,7 @@ class Result:
         """Whether its scores come from a sealed held-out split (``families.HELDOUT_SEED``): the
         Figure 2 and Figure 4 experiments' ``heldout`` scores, and a ``taskvar eval`` of a test
         distribution with a sealed seed (``metrics.json``'s ``sealed_seed``); not a family's other
-        tests, nor an outside family's that has no sealed split (issue 59)."""
+        tests, nor an outside family's that has no sealed split."""
         if self.kind == "eval":
             return self.metrics.get("sealed_seed") is not None
         return self.kind in ("windy-fig2", "wargus-fig4")
@@ -121,7 +121,7 @@ def read_json(path: Path) -> dict[str, Any]:
 
 
 NOT_FINITE = "not a finite number: taskvar report aggregates finite results only; rerun it"
-"""The end of the one-line refusal of a non-finite input (issue 58)."""
+"""The end of the one-line refusal of a non-finite input."""
 _NON_FINITE_TEXT = re.compile(r"(?i)(?<![\w.])[-+]?(?:nan|inf(?:inity)?)(?![\w.])")
 
 

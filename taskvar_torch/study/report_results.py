@@ -1,4 +1,4 @@
-"""The Results at a glance (issue 48; docs/results.md, linked from the README), written by
+"""The Results at a glance (docs/results.md, linked from the README), written by
 ``taskvar report`` (:mod:`taskvar_torch.study.report`) from the same results folders as the
 claims:
 
@@ -226,7 +226,7 @@ def _by_family(summaries: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping
 
 
 def _seeds(s: Mapping[str, Any]) -> str:
-    """A row's training seeds, labelled exploratory below ``MIN_SEEDS`` (no claims, issue 59)."""
+    """A row's training seeds, labelled exploratory below ``MIN_SEEDS`` (no claims)."""
     n = int(s["seeds"])
     return str(n) if n >= MIN_SEEDS else f"{n} ({exploratory_note(n)})"
 

@@ -1,62 +1,25 @@
 """Scaled-up grids (docs/scale.md): training time and final performance of the four
 methods against grid size and against the number of parallel environments.
 
-The protocol, top to bottom (:func:`scale`), for each *case* (a family config: windy 5x5, 25x25,
-51x51 with 4 exits; Wargus 32x32, 64x64 with 3 patrols) and each ``num_envs`` value (a *cell*):
+For each *case* (a family config) and each ``num_envs`` value (a *cell*), :func:`scale`:
 
-1. train every head with the real trainer (``train.train``) on the case's config with
-   ``env.num_envs = N`` and the same frame budget for every cell (``total_frames``); the
-   exploration schedule is scaled to the budget (``init_random_fraction``,
-   ``eps_decay_fraction``), ``frames_per_batch`` is rounded to a multiple of N and
-   ``updates_per_batch`` scaled with it, so every cell makes the same number of updates per frame
-   as its family config; wall-clock training time and frames/s are recorded (one torch thread);
-2. evaluate each method -- averaging (paper §3.1), options (§3.2), interruption (Algorithm 1) and
-   hierarchy (Algorithm 2; Wargus only: the windy family has no composition hierarchy, "n/a") --
-   on ``eval_episodes`` fresh test instances (``instances=test``, test seed ``seed + 1000``): mean
-   return with a 95% CI (Wargus: the return is the number of items collected);
-3. references on the *same* test episodes (same env seed: same instances, starts; paired): the
-   uniformly random policy, and for windy the exact mean-MDP averaging optimum (the oracle's
-   ``averaging_policy``, paper §3.1; value iteration on the mean MDP, a few seconds at 51x51),
-   rolled out like the methods. ``gap_closed = (R - R_random) / (R_oracle - R_random)``: 0 is
-   random, 1 is the best averaging policy (interruption may exceed 1).
+1. trains every head with ``train.train`` on the case's config with ``env.num_envs = N`` and the
+   same frame budget (``total_frames``) and updates per frame for every cell, timing it;
+2. evaluates averaging (paper §3.1), options (§3.2), interruption (Algorithm 1) and hierarchy
+   (Algorithm 2; "n/a" where the family has no composition) on ``eval_episodes`` test instances;
+3. plays the references on the *same* episodes (the random policy and, where the family has one,
+   the exact averaging optimum): ``gap_closed = (R - R_random) / (R_oracle - R_random)``.
 
-Held-out (``heldout_episodes``, default ``eval_episodes``; 0: off): every cell also plays the same
-methods on the family's sealed held-out test distribution (``Family.tests["heldout"]``: windy
-and Taxi the training distribution under env seed ``HELDOUT_SEED`` itself, Wargus the held-out
-instance seeds ``HELDOUT_SEEDS``, cycled; the same episodes for every seed, like the nominal test
-seed, where ``taskvar eval --test heldout`` draws each bundle's own), paired across methods, with the random policy and the exact averaging optimum (where the family has one)
-on the same held-out episodes; new keys only (:func:`heldout_block`): ``metrics["heldout"]`` (the
-distribution, its seed, the references per case) and each cell's ``heldout`` (``methods``, like
-the cell's own, and with ``seeds > 1`` ``per_seed`` and ``over_seeds``). It draws no random number
-the nominal evaluation uses (:func:`isolated_rng`), so every other value is what it was without it.
+``heldout_episodes`` adds the held-out test distribution (:func:`heldout_block`), ``baselines``
+the baselines of docs/memory.md (:func:`baseline_phase`), both under :func:`isolated_rng` so the
+other values do not change; ``seeds = k > 1`` trains each cell once with ``train.seeds = k`` and
+evaluates every seed's bundle (:func:`over_seeds`). docs/scale.md (Seeds, Held-out instances,
+Baselines) describes each and the keys they add.
 
-Baselines (``baselines``, default none; docs/scale.md#baselines): each cell (each seed's bundle
-folder) also trains the listed baselines of docs/memory.md (``recurrent``, ``informed``) with
-``train_recurrent.train_baseline`` on the cell's own config and frame budget, as ``taskvar
-train-baselines`` does, and plays them on the same test episodes (and held-out ones) as new
-``methods`` entries (:func:`baseline_phase`), under :func:`isolated_rng`: the methods' values are
-unchanged. A family a listed baseline is unavailable on (``informed`` where the family gives no
-features) is refused before any training (:func:`check_case_baselines`).
-
-Writes ``config.yaml`` (this experiment's config), ``cells/<case>-n<N>/`` (the trainer's logs and
-config; ``final.pt`` only with ``keep_checkpoints``), ``scale.csv`` (one row per cell and method),
-``metrics.json``, ``scale.png``; prints a table. ``taskvar plot OUT`` redraws ``scale.png``.
-
-Seeds (``seeds = k > 1``): each cell is trained *once* with ``train.seeds = k`` (the batched
-trainer, docs/seeds.md: training seeds ``seed .. seed + k - 1``, bundles in
-``cells/<case>-n<N>/seed<i>/``) and every seed's bundle is evaluated on the same test episodes.
-A cell's existing keys (``methods``, ``curve``, ``heads``) are then seed ``seed``'s run (the
-learning curve and the exact head report of seed 0 only: per seed they would cost k times the
-evaluation); new keys hold the rest: ``seeds``, ``per_seed`` (every seed's methods) and
-``over_seeds`` (each method's mean return over the seeds with rliable's stratified-bootstrap 95%
-CI, :func:`over_seeds`); ``scale.csv`` gets a ``seed`` column and one row per seed; the printed
-table adds each cell's aggregate, and ``scale.png``'s final-return panels draw it.
-
-This module is the protocol (:func:`scale`) and the registry's entry points (the loader, the
-default config); the config is :mod:`taskvar_torch.study.scale_config`, the evaluation and
-the references :mod:`taskvar_torch.study.scale_eval`, one cell (training, seeds, baselines,
-held-out block) :mod:`taskvar_torch.study.scale_cell`, and the report (``scale.csv``'s rows,
-the table, ``scale.png``) :mod:`taskvar_torch.study.scale_report`.
+Writes ``config.yaml``, ``cells/<case>-n<N>/``, ``scale.csv``, ``metrics.json`` and ``scale.png``
+(``taskvar plot OUT`` redraws it). The config is :mod:`~taskvar_torch.study.scale_config`, the
+evaluation :mod:`~taskvar_torch.study.scale_eval`, one cell :mod:`~taskvar_torch.study.scale_cell`,
+the report :mod:`~taskvar_torch.study.scale_report`.
 
 Examples:
     >>> cfg = load_scale_config(default_config_path(), quick=True)  # doctest: +SKIP

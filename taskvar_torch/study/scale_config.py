@@ -10,13 +10,12 @@ family supports (:func:`supported_baselines`, :func:`check_case_baselines`).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import ClassVar
 
 from taskvar_torch import rng
 from taskvar_torch.config import (
     Config,
     apply_overrides,
-    config_to_dict,
     load_config,
 )
 from taskvar_torch.config.loader import overrides_for
@@ -195,11 +194,6 @@ def check_case_baselines(cfg: ScaleConfig, case: ScaleCase, ccfg: Config) -> Non
         )
 
 
-def scale_config_to_dict(cfg: ScaleConfig) -> dict[str, Any]:
-    """Plain nested data of ``cfg`` (tuples as lists)."""
-    return config_to_dict(cfg)
-
-
 def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
     """The family config of one cell: the case's YAML, the budget, ``num_envs`` and the overrides.
 
@@ -257,6 +251,5 @@ __all__ = [
     "case_config",
     "case_frames",
     "check_case_baselines",
-    "scale_config_to_dict",
     "supported_baselines",
 ]

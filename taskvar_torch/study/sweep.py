@@ -1,37 +1,16 @@
-"""Sweeps: one experiment per point of a grid of config overrides, run locally or on Ray.
+"""Sweeps: one experiment per point of a grid of config overrides, run locally or on Ray
+(docs/sweeps.md).
 
-``taskvar sweep CONFIG --backend local|ray [--quick] [--out DIR] key=v1,v2 ...``: the config names
-a family (``windy`` runs the windy Figure 2 experiment, ``wargus`` the Wargus Figure 4 one, paper
-§3.3.1 and §3.5); every ``key=v1,v2,...`` with a comma is a swept key, the points are the Cartesian
-product of their values (``seed=0,1`` gives two repetitions), and a plain ``key=value`` is a fixed
-override of every point. Each point runs the same function as ``taskvar experiment`` into its own
-folder ``OUT/<point name>/``; at the end a summary table (swept values and headline metrics) is
-printed and written to ``OUT/summary.csv`` and ``OUT/summary.json``.
+``taskvar sweep CONFIG --backend local|ray [--quick] [--out DIR] key=v1,v2 ...``: every
+``key=v1,v2,...`` is a swept key, the points are the Cartesian product of their values, and a
+plain ``key=value`` is a fixed override of every point. Each point runs the same function as
+``taskvar experiment`` into ``OUT/<point name>/``; the summary goes to ``OUT/summary.csv`` and
+``OUT/summary.json``. Backends (:data:`BACKENDS`): ``local`` runs the points in this process, ``ray``
+as Ray tasks of one CPU each; a point's numbers depend only on its config, so both give the same.
 
-Backends (:data:`BACKENDS`):
-
-- ``local``: the points one after the other in this process;
-- ``ray``: each point is a Ray task with ``num_cpus=1`` (one torch thread), on a local Ray started
-  with ``workers`` CPUs (default: all cores) or on the cluster at ``address``.
-
-A point's numbers depend only on its config (every random stream is seeded from ``cfg.seed``), so
-both backends give the same metrics.
-
-Seed batches (``batch_seeds=True``, the default; ``--no-batch-seeds`` turns it off): points whose
-configs differ only in ``seed``, with consecutive seeds, are trained as *one* run with
-``train.seeds = k`` (the batched trainer, docs/seeds.md) in ``OUT/batches/<name>/``; each point
-then evaluates its seed's bundle: ``OUT/<point>/train`` is a relative symlink to the batch's
-``seed<i>/`` folder, so the point holds the same files and keys as an unbatched one
-(:func:`seed_batches`). This needs an experiment that evaluates a given bundle (windy-fig2's
-``checkpoint``; wargus-fig4 trains in its own loop) and a config the batched trainer takes; other
-points, and seeds that are not consecutive, run one by one (a printed note says why).
-
-Resuming (``resume=True``, ``taskvar sweep ... --resume``): a sweep killed part-way is rerun with
-the same ``--out``; a point is complete when its folder holds ``metrics.json`` and its
-``config.yaml`` equals the config the sweep would run (:func:`completed_points`). Complete points
-are kept (their metrics read back for the summary), the others run again from scratch (a killed
-point's partial folder is replaced). A point folder holding results of another config is refused.
-Without ``resume`` or ``overwrite`` a folder already holding a sweep is refused.
+Points that differ only in consecutive seeds train as one batched run (``batch_seeds``,
+:func:`seed_batches`; docs/sweeps.md, Seed batches), and ``resume`` keeps the points already
+complete (:func:`completed_points`).
 
 The grid (points, configs, resume, summary) is :mod:`taskvar_torch.study.sweep_grid`, what a
 worker runs (a point, a seed batch) :mod:`taskvar_torch.study.sweep_jobs`; this module runs the

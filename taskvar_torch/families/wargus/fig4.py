@@ -1,65 +1,30 @@
-"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md).
+"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md, Protocol).
 
-The protocol, top to bottom (:func:`wargus_fig4`), for each of R repetitions (own seed
-``cfg.seed + rep``, own env streams, own replay and exploration generators, networks initialised
-from its own seed; never one RNG shared between repetitions):
+:func:`wargus_fig4` runs R repetitions, each from its own seed ``cfg.seed + rep`` (own env
+streams, replay, generators and fresh networks: no prior knowledge). Each of its T trials is
 
-1. the agent starts with *no prior knowledge*: fresh networks for every head (averaging, options,
-   mu_bar, max-value, robustness), an empty replay buffer, epsilon = 1;
-2. for each of T trials:
+a. **learning**: ``experiment.learning_episodes_per_trial`` episodes of the training instances,
+   played side by side by the behaviour policy (``heads/behaviour.py``); the one multi-head
+   learner trains every head from their transitions;
+b. **test** (learning off): ``experiment.test_episodes_per_trial`` nominal episodes
+   (:data:`~taskvar_torch.families.wargus.dynamics.NOMINAL_SEEDS`) with each method (averaging,
+   options, interruption, hierarchy) side by side; score = items collected per test episode;
+c. **held-out test**: the same on the sealed held-out instance seeds
+   (:data:`~taskvar_torch.families.HELDOUT_SEEDS`), drawing nothing from the global stream.
 
-   a. **learning** (learning on): ``L = experiment.learning_episodes_per_trial`` (30) episodes of
-      the training instance distribution, played as L parallel sub-environments of one batched
-      ``WargusEnv`` by the behaviour policy (``heads/behaviour.py``, epsilon from the trainer's
-      schedule over the frames played so far); every transition of a live episode goes to the
-      replay buffer (first visits only with ``train.first_visit``), and every
-      ``train.frames_per_batch`` frames played trigger ``train.updates_per_batch`` gradient steps
-      of the one multi-head learner (after ``train.init_random_frames``), which trains *every* head
-      from the same stream;
-   b. **test** (learning off): ``K = experiment.test_episodes_per_trial`` (5) nominal episodes
-      (fixed instance seeds :data:`~taskvar_torch.families.wargus.dynamics.NOMINAL_SEEDS`) with each method --
-      averaging (greedy Q_avg), options (mu_bar + option policies run to termination),
-      interruption (Algorithm 1, max-value heads) and hierarchy (Algorithm 2, robustness critics,
-      ``tau = train.robustness_tau``) -- all 4 x K episodes side by side in one batched env;
-      score = items collected per test episode;
-   c. **held-out test**, beside the nominal one: the same K x 4 episodes on the sealed held-out
-      instance seeds (:data:`~taskvar_torch.families.HELDOUT_SEEDS`, K fresh ones per trial,
-      cycled; :func:`~taskvar_torch.families.wargus.fig4_agent.make_heldout_test_env`), the same heads and calibration. Test episodes draw
-      nothing from the global stream, so the nominal scores are those of a run without it.
+Repetitions run batched (:func:`~taskvar_torch.families.wargus.fig4_repetition.run_repetitions_batched`),
+each giving the numbers it gives alone; ``workers = W`` splits them over spawned processes
+(:func:`repetition_batches`). A fresh agent is :mod:`~taskvar_torch.families.wargus.fig4_agent`,
+one trial's loops :mod:`~taskvar_torch.families.wargus.fig4_trial`, one repetition's trials
+:mod:`~taskvar_torch.families.wargus.fig4_repetition`, the metrics
+:mod:`~taskvar_torch.families.wargus.fig4_metrics` and the report
+:mod:`~taskvar_torch.families.wargus.fig4_report`; this module re-exports their public names and
+those of :mod:`taskvar_torch.controllers.side_by_side` and :mod:`taskvar_torch.heads.snapshots`.
 
-The repetitions' per-trial test scores then go to the metrics
-(:mod:`taskvar_torch.families.wargus.fig4_metrics`: ``metrics.json``'s final scores, trials to 90% and
-the hierarchy's control split, with their definitions) and to the report
-(:mod:`taskvar_torch.families.wargus.fig4_report`: ``per_trial.csv``, the table, ``fig4.png``): this
-module is the protocol, and re-exports the public names of those two, of
-:mod:`taskvar_torch.families.wargus.fig4_trial`, :mod:`taskvar_torch.controllers.side_by_side` and
-:mod:`taskvar_torch.heads.snapshots`.
-
-Repetitions run **batched**
-(:func:`~taskvar_torch.families.wargus.fig4_repetition.run_repetitions_batched`): one loop steps every repetition's
-learning episodes at once (one env, one behaviour pass over their heads stacked), while each keeps
-its own learner, replay, generators and test phases, so each repetition gives the numbers it gives
-alone (tested bit for bit). ``workers = W`` splits them into ``W`` batches in spawned processes
-(:func:`repetition_batches`); any split gives the same numbers (each repetition depends on its own
-seed only).
-
-One trial's loops (the agent's state and update rule, :func:`learning_phase`, :func:`test_phase`,
-:func:`test_trials` and their TorchRL references) are :mod:`taskvar_torch.families.wargus.fig4_trial`,
-also re-exported here; it describes how they are made fast (docs/benchmarks.md). Here
-:func:`~taskvar_torch.families.wargus.fig4_repetition.run_repetition` tests
-:data:`~taskvar_torch.families.wargus.fig4_repetition.TEST_GROUP` trials side by side on frozen
-copies of their heads. A fresh agent, its test envs and controllers are
-:mod:`taskvar_torch.families.wargus.fig4_agent`, one repetition's trials
-:mod:`taskvar_torch.families.wargus.fig4_repetition`; this module runs the repetitions over
-workers and writes the results.
-
-Writes ``config.yaml``, ``rep{r}/final.pt`` (every head, loadable by ``taskvar eval``),
-``per_trial.csv`` (rep, trial, method, items, interruptions), ``per_trial_heldout.csv`` (the same
-on the held-out instances), ``metrics.json`` (the held-out figures under ``heldout``),
-``fig4.png``; prints a table. With ``experiment.baselines`` (``[recurrent]``), after the paper's
-agents, each baseline's agents run the same protocol (:mod:`~taskvar_torch.families.wargus.fig4_recurrent`):
-their curves join ``metrics.json`` and ``fig4.png`` beside the paper's methods, their test scores
-go to ``per_trial_baselines.csv`` and each repetition's network to ``rep{r}/recurrent.pt``.
+Writes ``config.yaml``, ``rep{r}/final.pt``, ``per_trial.csv``, ``per_trial_heldout.csv``,
+``metrics.json`` and ``fig4.png``; with ``experiment.baselines`` each baseline's agents run the
+same protocol (:mod:`~taskvar_torch.families.wargus.fig4_recurrent`) into
+``per_trial_baselines.csv`` and ``rep{r}/recurrent.pt``.
 
 Examples:
     >>> cfg = load_config(default_config_path(), quick=True)  # doctest: +SKIP

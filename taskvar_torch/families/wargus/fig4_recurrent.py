@@ -1,31 +1,17 @@
 """The recurrent baseline's curve in the Wargus Figure 4 protocol (docs/wargus-fig4.md#memory).
 
 With ``experiment.baselines: [recurrent]`` each repetition also runs a recurrent Q-network
-(:mod:`taskvar_torch.heads.recurrent`: DRQN, a GRU over the observation, the previous action and
-reward)
-through the same lifelong protocol as the paper's agent (paper §3.5.1), on its own:
-
-1. no prior knowledge: a fresh network, an empty replay, epsilon = 1;
-2. each trial, **learning**: ``experiment.learning_episodes_per_trial`` episodes of the training
-   instance distribution (one per sub-environment, the same instances the paper's agent of the
-   repetition learns on, as its learning env has the same seed), played epsilon-greedily at the
-   trainer's schedule over its own frames played (``train.epsilon_at``); the trial's episodes go
-   to the replay whole, and then the agent takes the gradient steps its frames called for:
-   ``updates_per_batch`` for every ``train.frames_per_batch`` frames played once
-   ``train.init_random_frames`` were (the paper's agent takes the same number, as the frames come
-   in: :func:`~taskvar_torch.families.wargus.fig4_trial.learn_due`; both through
-   :func:`~taskvar_torch.training.learning.update_phase`). The update rule is the recurrent
-   baseline's own (:class:`~taskvar_torch.training.baselines.BaselineLearner`: TorchRL's ``DQNLoss``
-   with the heads' settings, ``SliceSampler`` slices of one episode each, from the stored hidden
-   state after a burn-in), its own settings ``baseline.*`` (docs/memory.md). The trial's episodes
-   are stored whole, one after another, so a slice never joins two of them;
-3. **test**, learning off: greedy on the trial's nominal and held-out instance seeds
-   (:func:`~taskvar_torch.families.wargus.fig4_trial.trial_seeds`, the same the paper's methods play).
+(:mod:`taskvar_torch.heads.recurrent`) through the same lifelong protocol as the paper's agent
+(paper §3.5.1), on its own: a fresh network and empty replay; each trial, **learning** on the same
+training instances the paper's agent learns on (epsilon-greedy at ``train.epsilon_at``; the trial's
+episodes go to the replay whole, then the gradient steps its frames called for, by
+:class:`~taskvar_torch.training.baselines.BaselineLearner` through
+:func:`~taskvar_torch.training.learning.update_phase`), then a greedy **test** on the trial's
+nominal and held-out seeds (:func:`~taskvar_torch.families.wargus.fig4_trial.trial_seeds`).
 
 It draws from its own streams (torch's generator seeded ``seed + RECURRENT_OFFSET`` inside
-``fork_rng``), so the paper's agent's numbers are the same with the curve on or off (tested).
-Each repetition's network is saved as ``rep{r}/recurrent.pt`` beside ``rep{r}/final.pt``, so
-``taskvar eval --checkpoint rep{r}/final.pt --method all`` plays it beside the paper's methods.
+``fork_rng``), so the paper's agent's numbers are the same with the curve on or off. Each
+repetition's network is saved as ``rep{r}/recurrent.pt`` beside ``rep{r}/final.pt``.
 """
 
 from __future__ import annotations

@@ -148,8 +148,8 @@ class WindyLayout:
     @property
     def exit_cells(self) -> list[list[int]]:
         """Exits: connected groups of non-goal, non-wall cells next to a goal cell, ordered by row."""
-        # the cells next to a goal, found on the whole grid at once: a map of millions of cells
-        # is checked in a second, not minutes (issue 58); the groups below walk the exits only
+        # the cells next to a goal, found on the whole grid at once (a map of millions of cells
+        # in a second); the groups below walk the exits only
         grid = np.frombuffer("".join(self.rows).encode("ascii"), np.uint8)
         grid = grid.reshape(self.height, self.width)
         goal = grid == ord("G")

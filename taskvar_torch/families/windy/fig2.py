@@ -1,34 +1,19 @@
 """Windy Figure 2 with the learnt networks (paper §3.3.1; docs/windy-fig2.md).
 
-The protocol, top to bottom (:func:`windy_fig2`):
+:func:`windy_fig2` trains every head (``train.train`` into ``OUT/train``) or loads a given
+checkpoint, builds the averaging, options and interruption (Algorithm 1) controllers, and plays
+them on *paired* rollouts (the same instance, start cell and gust stream per episode, ``rng.py``)
+on each test distribution (``train``, ``south_only``) and on the sealed held-out episodes
+(:func:`heldout_seed`). Beside them: the *null* curve (averaging against itself with an
+independent gust stream), the *exact* figure where the oracle fits (each learnt controller's exact
+expected return per episode, ``WindyOracle.controller_return``), and where interruption fired with
+Theorem 1's premise checked at each firing.
 
-1. train every head (``train.train`` into ``OUT/train``) or load a given checkpoint;
-2. build the averaging, options and interruption controllers (Algorithm 1) on the learnt heads;
-3. for each test distribution (``train``: the training distribution; ``south_only``: every wind
-   pushes south) and each of R runs (seed ``cfg.seed + 1 + run``), play E test episodes with
-   every method on *paired* rollouts: envs with the same seed give each method the same instance,
-   start cell and gust stream per episode (common random numbers, ``rng.py``);
-   The same again on the sealed held-out episodes (``heldout``: training winds under the seeds
-   ``HELDOUT_SEED + run``, each drawn apart for the training seed, :func:`heldout_seed`),
-   reported beside the nominal ones;
-4. the *null* curve: averaging against itself with an independent gust stream (``noise_seed=1``,
-   same instances and starts) -- what "no worse" looks like for two equally good policies;
-5. the *exact* figure (layouts small enough for the oracle): per episode, the exact expected
-   return of each learnt controller in that episode's (instance, start), from the Markov chain on
-   (cell, running option) built from the trained heads' tables (``WindyOracle.controller_return``);
-6. where interruption fired (cells, running option), and Theorem 1's premise at each firing:
-   ``V^{mu_bar}(s') <= V^{m, mu_bar}(s')`` with the learnt ``V^{mu_bar}`` and the exact discounted
-   value of the learnt options controller in the test instance ``m``, with the outcome per case.
-
-The per-episode columns then go to the metrics (:mod:`taskvar_torch.families.windy.fig2_metrics`:
-``metrics.json``'s paired summaries, the null and exact comparisons, the interruption counts and
-Theorem 1's check, with their definitions) and to the report
-(:mod:`taskvar_torch.families.windy.fig2_report`: ``episodes.csv``, the tables, the figures): this
-module is the protocol, and re-exports the public names of those two and the oracle functions it
-uses (:mod:`taskvar_torch.oracle`).
-
-Writes ``config.yaml``, ``train/`` (checkpoints, logs), ``episodes.csv``, ``metrics.json``,
-``fig2_train.png``, ``fig2_south_only.png``, ``interruptions_heatmap.png``; prints a table.
+The metrics are :mod:`taskvar_torch.families.windy.fig2_metrics`, the report
+:mod:`taskvar_torch.families.windy.fig2_report`; this module is the protocol and re-exports their
+public names and the oracle functions it uses. Writes ``config.yaml``, ``train/``,
+``episodes.csv``, ``metrics.json``, ``fig2_train.png``, ``fig2_south_only.png`` and
+``interruptions_heatmap.png``; prints a table.
 
 Examples:
     >>> cfg = load_config("configs/windy.yaml", quick=True)  # doctest: +SKIP

@@ -3,8 +3,7 @@
 Mean MDP, averaging policy, exit options, switching values ``Q_mu`` and ``mu_bar``, per-instance
 option values ``Q^{m,mu_bar}``, max-values ``Q_hat``, policy evaluation, exact returns and the
 tables as a :class:`~taskvar_torch.heads.bundle.Heads` bundle. The design decisions (discounted
-values, finite-horizon returns, quadrature, ties) are in the :mod:`taskvar_torch.oracle` docstring;
-docs/oracle.md describes the oracle's use. Controllers as Markov chains (Algorithms 1-2) come from
+values, finite-horizon returns, quadrature, ties) are in docs/oracle.md, Design decisions. Controllers as Markov chains (Algorithms 1-2) come from
 :class:`~taskvar_torch.oracle.chains.ControllerChains`, what the learnt heads converge to from
 :class:`~taskvar_torch.families.windy.replay_reference.ReplayReference`.
 """

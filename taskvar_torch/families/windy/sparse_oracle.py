@@ -1,29 +1,16 @@
-"""Exact values of *large* windy layouts (51x51, 101x101): :class:`SparseWindyOracle`.
+"""Exact values of *large* windy layouts (51x51, 101x101): :class:`SparseWindyOracle`
+(docs/oracle.md, Large grids).
 
-The dense oracle (:class:`~taskvar_torch.families.windy.oracle.WindyOracle`) builds ``P (B, S, A, S)`` and
-solves linear systems; at 51x51 one instance's kernel is 216 MB and at 101x101 3.3 GB, so it stops
-at small grids. A windy step has at most two outcomes (the agent's move, then a gust with
-probability ``p``: families/windy/dynamics.py), so here a kernel is a *successor table*: ``succ (B, S, A, K)``
-cells with probabilities ``prob (B, S, A, K)`` (``K = 2`` for one instance, ``1 + 4`` for the mean
-MDP: the move, or a gust in one of the four directions). Every solve is then a gather per sweep,
-batched over instances, on any device:
+A windy step has at most two outcomes (the move, then a gust with probability ``p``), so a kernel
+is a *successor table* ``succ, prob (B, S, A, K)`` (``K = 2`` for one instance, ``1 + 4`` for the
+mean MDP) and every solve is a gather per sweep, batched over instances, on any device: value
+iteration for the optima (§3.1, §3.2), iterative policy evaluation stopped at a certified error
+``tol`` for ``Q_mu``, ``mu_bar``, ``Q^{m, mu_bar}`` and ``Q_hat`` (§3.2-3.3, Definition 1), and
+backward induction for exact returns, averaged by Gauss-Legendre quadrature in ``p``.
 
-- optimal values: value iteration (paper §3.1 for the averaging policy on the mean MDP, §3.2 for
-  each exit option's averaging policy with its subtask reward);
-- policy values: iterative policy evaluation, stopped once the sup-norm change certifies an error
-  below ``tol`` (a ``gamma``-contraction: the certificate is ``gamma/(1-gamma) * change``);
-- switching values ``Q_mu`` and ``mu_bar`` (§3.2), per-instance option values ``Q^{m, mu_bar}``
-  and max-values ``Q_hat`` (§3.3, Definition 1); windy options terminate only at the goal, where
-  the episode ends too, so ``Q^{m, mu}(s, o)`` is the value of ``pi^o`` from ``s`` in instance m;
-- exact ``horizon``-step undiscounted returns by backward induction, and their expectation over
-  the training distribution by Gauss-Legendre quadrature in ``p`` (``quad_nodes`` nodes; the
-  default 32 is not the exactness bound ``ceil(horizon / 2)`` of the dense oracle, see
-  :meth:`SparseWindyOracle.expected_return`).
-
-The conventions are the dense oracle's (discounted values, goal rows 0, lowest index on ties),
-with one difference: values come from iterations stopped at ``tol`` rather than linear solves, so
-ties are snapped at ``tie_atol`` (default ``1e-6``, far above ``tol``) instead of ``1e-9``. On the
-shipped small layouts both oracles agree to ``1e-8`` (tests/families/windy/test_oracle_sparse.py).
+The conventions are the dense oracle's (:class:`~taskvar_torch.families.windy.oracle.WindyOracle`),
+except that ties are snapped at ``tie_atol`` (values come from stopped iterations, not linear
+solves); on the small layouts both agree to ``1e-8`` (tests/families/windy/test_oracle_sparse.py).
 
 Examples:
     >>> from taskvar_torch.families.windy.dynamics import make_layout
