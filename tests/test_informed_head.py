@@ -182,17 +182,26 @@ def test_n_step_targets_follow_each_sub_env_and_stop_at_the_episode_end():
             assert bool(r["next", "terminated"]) == bool(whole["next", "terminated"][i, t + k - 1])
 
 
-def test_the_recurrent_budget_key_scales_its_schedule_and_nothing_else():
+def test_the_budget_keys_scale_their_schedule_and_nothing_else():
     cfg = load_config("configs/taxi.yaml")
     assert cfg.baseline.recurrent_frames == 1_200_000
     t = baseline_train_config(cfg, "recurrent")
     assert (t.total_frames, t.eps_decay_frames) == (1_200_000, 600_000)
-    for m in ("informed", "blind"):
-        assert baseline_train_config(cfg, m) is cfg.train  # the heads' budget
+    assert t.eval_ema_tau == cfg.train.eval_ema_tau  # informed_ema_tau is not the recurrent one's
+    assert (cfg.baseline.informed_frames, cfg.baseline.informed_ema_tau) == (900_000, 0.01)
+    for m in ("informed", "blind"):  # the same budget and evaluation average for both (issue 56)
+        t = baseline_train_config(cfg, m)
+        assert (t.total_frames, t.eps_decay_frames, t.eval_ema_tau) == (900_000, 450_000, 0.01)
+        keep = ("lr", "batch_size", "updates_per_batch", "target_tau", "n_step", "double_q")
+        assert all(getattr(t, k) == getattr(cfg.train, k) for k in keep)
     windy = load_config("configs/windy.yaml")
-    assert baseline_train_config(windy, "recurrent") is windy.train
-    with pytest.raises(ValueError, match="baseline.recurrent_frames"):
-        load_config("configs/windy.yaml", ["baseline.recurrent_frames=0"])
+    for m in ("recurrent", "informed", "blind"):
+        assert baseline_train_config(windy, m) is windy.train
+    for key in ("recurrent_frames", "informed_frames"):
+        with pytest.raises(ValueError, match=f"baseline.{key}"):
+            load_config("configs/windy.yaml", [f"baseline.{key}=0"])
+    with pytest.raises(ValueError, match="baseline.informed_ema_tau"):
+        load_config("configs/windy.yaml", ["baseline.informed_ema_tau=1.5"])
 
 
 def test_train_baselines_all_writes_the_three_agents_and_eval_plays_them(tmp_path):

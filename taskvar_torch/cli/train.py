@@ -157,7 +157,8 @@ def _train_baselines_arguments(p: argparse.ArgumentParser) -> None:
         help="YAML config (default: DIR/config.yaml of the bundle in --out), then config "
         "overrides: the baselines read the heads' settings (heads.hidden, train.lr, "
         "train.total_frames, train.n_step ...) and their own baseline.* keys (the recurrent "
-        "one's baseline.hidden, baseline.slice_len, baseline.burn_in, baseline.recurrent_frames)",
+        "one's baseline.hidden, baseline.slice_len, baseline.burn_in, baseline.recurrent_frames; "
+        "informed's and blind's baseline.informed_frames, baseline.informed_ema_tau)",
     )
     p.add_argument(
         "--out", required=True, metavar="DIR", help="bundle folder (beside final.pt) or a new one"

@@ -233,6 +233,16 @@ class BaselineConfig:
     null: train.total_frames, the heads' (an equal budget). Its epsilon decays over the same share
     of it as the heads' (train.eps_decay_frames scaled). A report labels a row whose budget differs
     from the heads' with its frames (docs/memory.md#budgets)."""
+    informed_frames: int | None = None
+    """The informed and blind baselines' frame budget (the same for both: blind is informed's
+    control) where they need more than the heads' to converge; null: train.total_frames. Their
+    epsilon decay and learning-rate decay start are scaled as recurrent_frames scales the
+    recurrent one's; a row whose budget differs from the heads' is labelled with its frames."""
+    informed_ema_tau: float | None = None
+    """The informed and blind baselines' evaluation weights: a Polyak average of their online
+    weights at this rate per update (null: train.eval_ema_tau, the heads'). A greedy policy read
+    off one noisy iterate can bump a wall for ever where the action gap is about one step's cost
+    (docs/memory.md#budgets)."""
 
 
 @dataclass(frozen=True)

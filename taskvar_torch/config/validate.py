@@ -187,12 +187,18 @@ def _check_heads(cfg: Config, fam: Family) -> None:
 
 
 def _check_baseline(cfg: Config) -> None:
-    """``baseline.*``: the recurrent baseline's own sizes."""
+    """``baseline.*``: the recurrent baseline's own sizes, the baselines' budgets and the informed
+    and blind baselines' evaluation average."""
     _at_least("baseline.hidden", cfg.baseline.hidden, 1, 2**20)  # as heads.hidden's widths
     _at_least("baseline.slice_len", cfg.baseline.slice_len, 1, MAX_HORIZON)
     _at_least("baseline.burn_in", cfg.baseline.burn_in, 0, MAX_HORIZON)
     if cfg.baseline.recurrent_frames is not None:
         _at_least("baseline.recurrent_frames", cfg.baseline.recurrent_frames, 1, MAX_FRAMES)
+    if cfg.baseline.informed_frames is not None:
+        _at_least("baseline.informed_frames", cfg.baseline.informed_frames, 1, MAX_FRAMES)
+    tau = cfg.baseline.informed_ema_tau
+    if tau is not None and not 0.0 < tau <= 1.0:
+        raise ValueError(f"baseline.informed_ema_tau must be in (0, 1] or null, got {tau}")
 
 
 def _check_train(cfg: Config, fam: Family) -> None:

@@ -6,8 +6,9 @@ new hidden instance at every reset, the distribution the paper's heads train on,
 every setting they share with the heads from the config, so a baseline and the heads it is
 compared with differ only where they must:
 
-* the budget ``train.total_frames`` (the recurrent baseline's ``baseline.recurrent_frames`` where
-  a family's config gives it more: :func:`baseline_train_config`) and ``train.frames_per_batch``;
+* the budget ``train.total_frames`` (``baseline.recurrent_frames`` for the recurrent baseline,
+  ``baseline.informed_frames`` for informed and blind, where a family's config gives them more:
+  :func:`baseline_train_config`) and ``train.frames_per_batch``;
   epsilon-greedy exploration (:class:`~torchrl.modules.EGreedyModule`) at the heads' schedule
   (:func:`~taskvar_torch.training.learning.epsilon_at`: uniform for ``train.init_random_frames``, then
   ``eps_start -> eps_end`` by ``eps_decay_frames``); ``train.updates_per_batch`` gradient steps
@@ -17,7 +18,7 @@ compared with differ only where they must:
   ``HardUpdate`` every ``train.target_period``), Adam at ``train.lr`` (decayed to
   ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.training.learning.lr_at`), gradients clipped at
   ``train.max_grad_norm``, and the evaluation weights a Polyak average where
-  ``train.eval_ema_tau`` is set;
+  ``train.eval_ema_tau`` is set (for informed and blind, ``baseline.informed_ema_tau`` where set);
 * ``train.n_step`` targets for ``informed`` and ``blind`` (TorchRL's
   :class:`~torchrl.envs.transforms.MultiStepTransform` on each sub-env's stream: up to n rewards,
   cut at the episode's end, then the bootstrap at ``gamma^k``; the loss reads
@@ -166,13 +167,20 @@ def heads_only_keys(cfg: Config, methods: tuple[str, ...] | list[str] = BASELINE
 
 
 def baseline_train_config(cfg: Config, method: str) -> TrainConfig:
-    """The ``train`` settings ``method`` trains with: the heads' (an equal budget), except the
-    recurrent baseline's frame budget ``baseline.recurrent_frames`` where set, its epsilon decay
-    and the learning-rate decay's start scaled by the same factor (the same share of its budget
-    as the heads')."""
-    frames = cfg.baseline.recurrent_frames
+    """The ``train`` settings ``method`` trains with: the heads' (an equal budget), except
+
+    * a baseline's own frame budget where set (``baseline.recurrent_frames`` for ``recurrent``,
+      ``baseline.informed_frames`` for ``informed`` and ``blind``), its epsilon decay and the
+      learning-rate decay's start scaled by the same factor (the same share of its budget as the
+      heads');
+    * the informed and blind baselines' evaluation average ``baseline.informed_ema_tau`` where
+      set (as ``train.eval_ema_tau``)."""
     t = cfg.train
-    if method != "recurrent" or frames is None or int(frames) == int(t.total_frames):
+    b = cfg.baseline
+    frames = b.recurrent_frames if method == "recurrent" else b.informed_frames
+    if method != "recurrent" and b.informed_ema_tau is not None:
+        t = dataclasses.replace(t, eval_ema_tau=float(b.informed_ema_tau))
+    if frames is None or int(frames) == int(t.total_frames):
         return t
     scale = int(frames) / max(int(t.total_frames), 1)
     return dataclasses.replace(
@@ -430,7 +438,9 @@ def train_baseline(
     torch.manual_seed(int(cfg.seed))
     net, spec, env = build_for_training(cfg, method)
     explore = EGreedyModule(env.action_spec, eps_init=1.0, eps_end=float(t.eps_end))
-    learner = BaselineLearner(net, env.action_spec, cfg, method == "recurrent")
+    learner = BaselineLearner(
+        net, env.action_spec, dataclasses.replace(cfg, train=t), method == "recurrent"
+    )
     run = BaselineRun(method, t, learner, explore, log)
     collector = Collector(
         env,
