@@ -32,6 +32,7 @@ TINY = [
     "train.updates_per_batch=2",
     "train.checkpoint_every=0",
     "train.log_every=3000",
+    "baseline.informed_frames=null",  # the baselines at the test's budget, not the config's 900k
 ]
 
 
