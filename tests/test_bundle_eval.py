@@ -190,3 +190,27 @@ def test_the_table_names_fixed_shifts(bundles):
         progress=False,
     )
     assert "shifted: env.instances.p_high=0.5" in format_table(m)
+
+
+def test_the_table_labels_a_baseline_trained_on_another_budget():
+    """A baseline of another training budget than the heads' is named with it under the table
+    (docs/memory.md, Budgets), one of the same budget is not."""
+    from taskvar_torch.experiments.bundle_eval import format_table
+
+    row = {"mean_return": 1.0, "mean_return_ci95": 0.1}
+    metrics = {
+        "family": "taxi",
+        "checkpoint": "b/final.pt",
+        "test": "train",
+        "test_description": "d",
+        "episodes": 10,
+        "seed": 1,
+        "shifts": [],
+        "points": [{"shift": "", "methods": {m: row for m in ("averaging", "informed", "blind")}}],
+        "baseline_frames": {"informed": 900_000, "blind": 300_000},
+        "heads_frames": 300_000,
+    }
+    text = format_table(metrics)
+    assert "(trained on another budget than the heads' 300,000 frames: informed 900,000)" in text
+    del metrics["baseline_frames"]
+    assert "another budget" not in format_table(metrics)

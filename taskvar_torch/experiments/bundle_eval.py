@@ -305,6 +305,7 @@ def _evaluate(
         )
     if baselines:  # each baseline's own training budget (it may differ from the heads')
         metrics["baseline_frames"] = {m: b.total_frames for m, b in baselines.items()}
+        metrics["heads_frames"] = int(cfg.train.total_frames)
     if out_dir is not None:
         _write(Path(out_dir), metrics, rows, plots)
     return metrics
@@ -460,6 +461,14 @@ def format_table(metrics: dict[str, Any]) -> str:
         lines.append(
             f"  ({', '.join(sampled)}: not memoryless, so no exact value; regret = exact optimum "
             "minus the sampled return of the same episode)"
+        )
+    heads = metrics.get("heads_frames")
+    more = {m: f for m, f in (metrics.get("baseline_frames") or {}).items() if f and f != heads}
+    if heads and more:  # a row of another budget is labelled, never read as equal (docs/memory.md)
+        lines.append(
+            f"  (trained on another budget than the heads' {heads:,} frames: "
+            + ", ".join(f"{m} {f:,}" for m, f in sorted(more.items()))
+            + ")"
         )
     if "exact_skipped" in metrics:
         lines.append(f"  ({metrics['exact_skipped']})")
