@@ -27,9 +27,7 @@ Examples:
 
 from taskvar_torch import _startup  # noqa: I001  (first: the command's start-up signals)
 
-from importlib import import_module
-from typing import Any
-
+from taskvar_torch._lazy import lazy_names
 from taskvar_torch.envs.registration import register_envs
 from taskvar_torch.contract import Family, TestDistribution, family, register_family
 
@@ -48,19 +46,7 @@ _LAZY = {
 """Front-door names imported on first use: name -> module (or (module, name there))."""
 
 
-def __getattr__(name: str) -> Any:
-    spec = _LAZY.get(name)
-    if spec is None:
-        raise AttributeError(f"module 'taskvar_torch' has no attribute {name!r}")
-    module, attr = spec if isinstance(spec, tuple) else (spec, name)
-    value = getattr(import_module(module), attr)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_LAZY])
-
+__getattr__, __dir__ = lazy_names(globals(), _LAZY)
 
 __all__ = [
     "Family",

@@ -8,7 +8,7 @@ from __future__ import annotations
 from public_names import MODULES, imported_modules
 
 LAYERS = (
-    ("rng", "keys", "io", "progress", "guest", "_startup", "compiling", "subtasks"),
+    ("rng", "keys", "io", "progress", "guest", "_startup", "_lazy", "compiling", "subtasks"),
     ("contract",),  # the family contract and registry: every layer reads it
     ("config",),
     ("envs",),

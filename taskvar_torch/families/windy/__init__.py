@@ -9,38 +9,25 @@ Modules: :mod:`.dynamics` (pure batched transitions, layouts), :mod:`.env` (the 
 :mod:`.fig2_report` (the paper's Figure 2), and :mod:`.family` (the declaration).
 """
 
-from importlib import import_module
-from typing import Any
+from taskvar_torch._lazy import lazy_names
 
 _LAZY = {
-    "ReplayReference": "replay_reference",
-    "WindyGridEnv": "env",
-    "WindyInstances": "instances",
-    "WindyLayout": "dynamics",
-    "WindyModel": "dynamics",
-    "WindyOracle": "oracle",
-    "WindySubtasks": "subtasks",
-    "exact_returns": "learnt",
-    "firing_values": "learnt",
-    "learnt_vs_oracle_by_start": "learnt",
-    "make_layout": "dynamics",
+    "ReplayReference": f"{__name__}.replay_reference",
+    "WindyGridEnv": f"{__name__}.env",
+    "WindyInstances": f"{__name__}.instances",
+    "WindyLayout": f"{__name__}.dynamics",
+    "WindyModel": f"{__name__}.dynamics",
+    "WindyOracle": f"{__name__}.oracle",
+    "WindySubtasks": f"{__name__}.subtasks",
+    "exact_returns": f"{__name__}.learnt",
+    "firing_values": f"{__name__}.learnt",
+    "learnt_vs_oracle_by_start": f"{__name__}.learnt",
+    "make_layout": f"{__name__}.dynamics",
 }
 """The package's names, imported from their module on first use (``import taskvar_torch`` reads
 the family's declaration only, not its oracles)."""
 
-
-def __getattr__(name: str) -> Any:
-    module = _LAZY.get(name)
-    if module is None:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(import_module(f"{__name__}.{module}"), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__() -> list[str]:
-    return sorted([*globals(), *_LAZY])
-
+__getattr__, __dir__ = lazy_names(globals(), _LAZY)
 
 __all__ = [
     "ReplayReference",
