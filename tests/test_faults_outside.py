@@ -106,6 +106,7 @@ def test_sigterm_during_the_start_up_imports_prints_the_documented_line(delay):
     assert err.decode().strip() == "taskvar train: interrupted by SIGTERM"
 
 
+@pytest.mark.slow  # a real process or several agents trained: make test only
 def test_a_program_importing_the_package_keeps_its_signal_handlers():
     code = "import signal, taskvar_torch; print(signal.getsignal(signal.SIGTERM) is signal.SIG_DFL)"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)

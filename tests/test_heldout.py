@@ -182,6 +182,7 @@ def test_each_bundle_plays_its_own_heldout_episodes_paired_across_its_methods(
     assert m0["seed"] != m1["seed"] and eps0 != eps1  # independent draws per training seed
 
 
+@pytest.mark.slow  # a real process or several agents trained: make test only
 def test_figure2_heldout_run0_is_eval_heldout(windy_seed1, tmp_path):
     """The Figure 2 protocol's held-out row and ``taskvar eval --test heldout`` are one measurement
     on the same bundle: its run 0 is the evaluation's episodes (the row pools ``runs`` of them)."""

@@ -204,6 +204,7 @@ def test_the_budget_keys_scale_their_schedule_and_nothing_else():
         load_config("configs/windy.yaml", ["baseline.informed_ema_tau=1.5"])
 
 
+@pytest.mark.slow  # a real process or several agents trained: make test only
 def test_train_baselines_all_writes_the_three_agents_and_eval_plays_them(tmp_path):
     torch.set_num_threads(1)
     out = tmp_path / "run"

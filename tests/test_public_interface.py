@@ -9,6 +9,7 @@ import ast
 import json
 import re
 
+import pytest
 from public_names import MODULES, ROOT, private_uses, taken_names
 
 PUBLIC_MODULES = (
@@ -131,6 +132,7 @@ def test_every_name_in_every_modules_all_exists_and_star_imports_work():
         exec(f"from {name} import *", {})
 
 
+@pytest.mark.slow  # a real process or several agents trained: make test only
 def test_import_taskvar_torch_reads_the_declarations_not_the_oracles():
     """``import taskvar_torch`` registers every built-in family's Gymnasium ids, which needs the
     families' declarations (env, instances, options), not their oracles, the controllers or the

@@ -212,6 +212,7 @@ def test_train_baselines_cli_errors(tmp_path, capsys, monkeypatch):
     assert r.returncode == 2 and "exists; pass --overwrite" in r.stderr
 
 
+@pytest.mark.slow  # a real process or several agents trained: make test only
 def test_train_baselines_on_a_seeds_folder_trains_every_seed(tmp_path, capsys):
     """``train --seeds 2`` writes ``seed0/`` and ``seed1/``: ``train-baselines`` on that folder
     trains the baseline beside each, with each seed's own config, one line per seed."""

@@ -482,6 +482,7 @@ def _subprocess(
     return subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=ROOT)
 
 
+@pytest.mark.slow  # a real process or several agents trained: make test only
 @pytest.mark.parametrize(
     "attack, overrides",
     [
@@ -503,6 +504,7 @@ def test_an_exit_or_interrupt_from_the_users_code_is_its_line_in_a_real_process(
         assert needle in lines[0]
 
 
+@pytest.mark.slow  # a real process or several agents trained: make test only
 def test_a_real_signal_during_the_users_code_is_still_an_interrupt(tmp_path):
     """SIGTERM delivered while the env steps (it sends it to its own process) is the documented
     interrupt, status 128 + 15, never blamed on the user's code."""
@@ -521,6 +523,7 @@ def sigterm(out, sent=[]):  # noqa: B006 (once per process)
     return out
 
 
+@pytest.mark.slow  # a real process or several agents trained: make test only
 def test_worker_processes_and_a_family_registered_in_this_process_only_is_one_line(tmp_path):
     """``collector.num_workers > 1`` starts processes that find a family by its name: one
     registered by ``register_family`` in the command's process only is refused before any starts,
