@@ -29,6 +29,7 @@ import dataclasses
 import importlib
 import importlib.metadata
 import inspect
+import math
 import os
 import warnings
 from collections.abc import Callable, Iterator, Mapping
@@ -258,6 +259,11 @@ class Family:
             (``runtime_state``); ``False`` (an env whose state lives outside tensors, e.g. the
             Gymnasium adapter's): ``taskvar train --resume`` refuses in one line and
             ``check_family`` skips the resume check.
+        failed_below: what failure means for the family's score (docs/report.md#failed-seeds):
+            a training seed whose score in a ``taskvar report`` row (its mean return per episode,
+            the number the compact tables show) is below this failed: it does not reach the goal
+            the reward pays for; the row's cell says ``k/n seeds failed``. Chosen from the
+            family's reward definition alone, never from results. ``None``: no failure rule.
     """
 
     name: str
@@ -290,6 +296,7 @@ class Family:
     legacy_env_keys: tuple[str, ...] = ()
     legacy_section: bool = False
     resumable: bool = True
+    failed_below: float | None = None
 
     @property
     def exact_oracle(self) -> bool:
@@ -547,6 +554,13 @@ def check_declaration(fam: Family) -> None:
             raise ValueError(
                 f"family {fam.name!r}: gym_ids[{env_id!r}] must be ('module:Class', kwargs)"
             )
+    fb = fam.failed_below
+    if fb is not None and (
+        isinstance(fb, bool) or not isinstance(fb, int | float) or not math.isfinite(fb)
+    ):
+        raise ValueError(
+            f"family {fam.name!r}: failed_below must be a finite number or None, got {fb!r}"
+        )
     for name, dist in fam.tests.items():
         if not isinstance(dist, TestDistribution):
             raise ValueError(f"family {fam.name!r}: tests[{name!r}] must be a TestDistribution")

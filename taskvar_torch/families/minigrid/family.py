@@ -143,6 +143,14 @@ TESTS = {
 """MiniGrid test distributions (docs/minigrid.md)."""
 
 
+FAILED_BELOW = 0.1
+"""A MiniGrid training seed whose mean return per episode is below 0.1 failed
+(``Family.failed_below``, docs/report.md#failed-seeds), chosen from the reward alone: an episode
+pays ``1 - 0.9 * steps / max_steps`` when it reaches the goal and 0 otherwise (lava, or truncated
+at ``max_steps``: 250 on DoorKey-5x5, 196 on LavaGapS7), so 0.1 is the least return of an episode
+that reaches the goal. A success within a tenth of ``max_steps`` pays at least 0.91, so a seed
+below 0.1 whose successes are that quick reaches the goal in fewer than 1 episode in 9."""
+
 GYM_IDS = {
     f"taskvar/MiniGrid-{name}-v0": (
         "taskvar_torch.families.minigrid.gym_env:MiniGridGymEnv",
@@ -176,6 +184,7 @@ def family() -> Family:
         observation=lambda cfg: _section(cfg).obs_encoding,
         conv_patch=_patch,
         gym_ids=GYM_IDS,
+        failed_below=FAILED_BELOW,
     )
 
 

@@ -214,6 +214,19 @@ TESTS = {
 """Taxi test distributions (docs/taxi.md)."""
 
 
+FAILED_BELOW = -100.0
+"""A Taxi training seed whose mean return per episode is below -100 failed
+(``Family.failed_below``, docs/report.md#failed-seeds), chosen from the reward and the dynamics
+alone: -1 a step, +20 for the delivery (instead of the step's -1), -10 an illegal pickup or
+dropoff (``dynamics.py``); an episode ends only by the delivery or at ``env.taxi.horizon`` (200 in
+configs/taxi.yaml). One that never delivers thus returns -200 or less, and -100 is half of it: a
+seed below it pays more than 100 an episode in steps (an illegal action counts 10) beyond what its
+deliveries earn (21 each), as one that never delivers in half its episodes and breaks even on the
+others. Rain alone never brings a seed there: the exact per-instance optimum of the hardest
+instance a Taxi test draws (q = 0.5, ``heavy_rain`` and ``storm``) is -11.5 over Taxi-v4's starts
+(``TaxiOracle.optimal_return``). A line at 0 (a delivery just paying for its 21 steps) would call
+the exact optimum failed on ``heavy_rain`` (-4.42) and ``storm`` (-1.39), so it is not one."""
+
 GYM_IDS = {"taskvar/Taxi-v0": ("taskvar_torch.families.taxi.gym_env:TaxiGymEnv", {})}
 """The Taxi family's Gymnasium id."""
 
@@ -242,6 +255,7 @@ def family() -> Family:
         cells=lambda cfg: 25,
         observation=lambda cfg: _section(cfg).obs_encoding,
         gym_ids=GYM_IDS,
+        failed_below=FAILED_BELOW,
     )
 
 

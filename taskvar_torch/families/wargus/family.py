@@ -162,6 +162,13 @@ FIG4 = Experiment(
 """Wargus's figure experiment (paper Figure 4, docs/wargus-fig4.md)."""
 
 
+FAILED_BELOW = None
+"""No failure rule for Wargus (``Family.failed_below``, docs/report.md#failed-seeds): its reward is
++1 per item picked, with no goal; an episode ends when a shot destroys the agent or at the
+horizon. Every item counts the same, so no number of items separates failing from gathering
+fewer: a low return stays a low score and the cell is unchanged."""
+
+
 def family() -> Family:
     """The Wargus :class:`Family` (the package's ``taskvar_torch.families`` entry point)."""
     return Family(
@@ -184,4 +191,5 @@ def family() -> Family:
         instance_fields=_wargus_fields,
         make_instances=_wargus_make_instances,
         gym_ids=GYM_IDS,
+        failed_below=FAILED_BELOW,
     )

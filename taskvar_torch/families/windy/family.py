@@ -357,6 +357,14 @@ FIG2 = Experiment(
 """Windy's figure experiment (paper Figure 2, docs/windy-fig2.md)."""
 
 
+FAILED_BELOW = None
+"""No failure rule for windy (``Family.failed_below``, docs/report.md#failed-seeds): its reward is
+-1 a step until the goal, so a return counts the steps taken; an episode that never reaches the
+goal is truncated at the horizon, which each config sets (``max(100, 4 * (height + width))`` by
+default, larger on the large layouts). One number cannot separate "never reaches the goal" from a
+long route on every windy layout, so a low return stays a low score: the cell is unchanged."""
+
+
 def family() -> Family:
     """The windy :class:`Family` (the package's ``taskvar_torch.families`` entry point)."""
     return Family(
@@ -389,4 +397,5 @@ def family() -> Family:
         make_instances=_windy_make_instances,
         shift_aliases=("p",),
         gym_ids=gym_ids(),
+        failed_below=FAILED_BELOW,
     )

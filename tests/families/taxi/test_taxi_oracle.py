@@ -68,6 +68,22 @@ def test_dry_optimum_equals_value_iteration_on_gymnasiums_table(oracle):
     assert float(ret) == pytest.approx(7.93, abs=1e-9)  # 21 - (mean shortest tour 13.07)
 
 
+def test_the_failure_rule_never_calls_the_exact_optimum_failed(oracle):
+    """``FAILED_BELOW``'s justification (families/taxi/family.py): the dry shortest deliveries
+    return +3 at the least, and on the hardest instance any test draws (q = 0.5, f in [0, 1]) the
+    per-instance optimum stays far above -100, while a rule at 0 would flag it."""
+    from taskvar_torch.families.taxi.family import FAILED_BELOW
+
+    dry = oracle.optimal_return(1.0, 0.0)[torch.as_tensor(taxi.initial_states())]
+    assert float(dry.min()) == pytest.approx(3.0)  # 21 - 18: the longest shortest delivery
+    q = torch.tensor([0.5, 0.5, 0.6, 0.7, 1.0], dtype=torch.float64)
+    f = torch.tensor([0.0, 1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    ret = oracle.optimal_return(q, f, start="uniform")
+    assert float(ret.min()) == pytest.approx(-11.507, abs=1e-3)  # q = 0.5, f = 0
+    assert float(ret.min()) > FAILED_BELOW + 80
+    assert float(oracle.expected_optimal_return("heavy_rain")) < 0  # so 0 is no failure line
+
+
 def test_fickle_dynamics_agree_with_gymnasiums_step_in_distribution(oracle):
     """From "at R, passenger waiting at R, going to G": pickup, south, south, east under rain
     q = 0.8 and a fickle passenger f = 0.6; the observed state's law after the four steps."""
