@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from taskvar_torch.config.choices import FIG4_BASELINES
+from taskvar_torch.contract import FAMILIES
 from taskvar_torch.experiments.curves import trials_to_fraction_of_max
 from taskvar_torch.study import aggregate
 from taskvar_torch.study import report_results as at_a_glance
@@ -515,6 +516,13 @@ def _group_info(g: Group, family: Any, row: str, budget: str, score: str) -> dic
     }
 
 
+def failed_below(family: str) -> float | None:
+    """The failure rule of ``family`` (``Family.failed_below``, docs/report.md#failed-seeds);
+    ``None`` for a family without one or not installed here (its rows keep their cells)."""
+    fam = FAMILIES.get(family)
+    return None if fam is None else fam.failed_below
+
+
 def _frames(train: Any) -> str:
     frames = train.get("total_frames") if isinstance(train, dict) else None
     return "-" if frames is None else at_a_glance.frames_text(frames)
@@ -543,7 +551,9 @@ def _fig2_summary(g: Group, returns: dict[str, Any], reps: int) -> dict[str, Any
         _frames(g.config.get("train")),
         "mean return per held-out episode",
     )
-    return at_a_glance.summarise(info, per_seed, _with_ceiling(per_seed), reps)
+    return at_a_glance.summarise(
+        info, per_seed, _with_ceiling(per_seed), reps, failed_below(info["family"])
+    )
 
 
 def _fig4_summary(g: Group, curves: dict[str, Any], reps: int) -> dict[str, Any]:
@@ -558,7 +568,9 @@ def _fig4_summary(g: Group, curves: dict[str, Any], reps: int) -> dict[str, Any]
         f"{trials} trials",
         "Figure 4: items per held-out episode over the first half of the trials",
     )
-    return at_a_glance.summarise(info, per_seed, _with_ceiling(per_seed), reps)
+    return at_a_glance.summarise(
+        info, per_seed, _with_ceiling(per_seed), reps, failed_below(info["family"])
+    )
 
 
 def _eval_budget(g: Group) -> str:
@@ -613,7 +625,7 @@ def _eval_summary(g: Group, scores: dict[str, np.ndarray], reps: int) -> dict[st
         regret = (at_a_glance.EXACT, arrays, sampled)
     else:
         regret = _with_ceiling(per_seed)
-    return at_a_glance.summarise(info, per_seed, regret, reps)
+    return at_a_glance.summarise(info, per_seed, regret, reps, failed_below(family))
 
 
 __all__ = [

@@ -5,7 +5,8 @@ claims:
 - per family, one compact table: the methods as columns, one row per results group (a test
   distribution, a protocol), each cell the method's score as the mean over training seeds with its
   95% stratified-bootstrap CI (rliable), the best mean of the methods that do not see the hidden
-  instance in bold and a ``≈`` on every method not separated from it (:func:`marks`);
+  instance in bold and a ``≈`` on every method not separated from it (:func:`marks`), and
+  ``(k/n seeds failed)`` where ``k`` seeds scored below the family's ``failed_below``;
 - one figure: the regret of each method per family and row, with its CI, to the exact per-instance
   optimum where the results have it (exact for memoryless methods, from sampled returns for the
   baselines: hollow markers), else to the ``informed`` head (a learnt ceiling);
@@ -93,16 +94,26 @@ def summarise(
     per_seed: Mapping[str, np.ndarray],
     regret: tuple[str, Mapping[str, np.ndarray], set[str]] | None,
     reps: int,
+    failed_below: float | None = None,
 ) -> dict[str, Any]:
     """One group's summary: ``group`` (its ``label``, ``digest``, ``kind``, ``family``, ``row``,
     ``budget``, ``seeds``, ``score``) with each method's mean score and 95% CI over training seeds
     (``per_seed[m]``: one score per seed, the same seeds and episodes for every method), the
     marks (:func:`marks`), and ``regret`` (its reference, ``{method: per-seed regret}``, the methods whose
-    regret comes from sampled returns) summarised the same way."""
+    regret comes from sampled returns) summarised the same way.
+
+    ``failed_below``: the family's failure rule (``Family.failed_below``, docs/report.md#failed-seeds);
+    where set, the summary keeps it and each method's ``seeds_failed`` (its seeds whose score is
+    below it) of its ``seeds`` scored; ``None``: neither."""
     scores = {m: np.asarray(per_seed[m], dtype=np.float64) for m in _ordered(list(per_seed))}
     est = aggregate.interval_estimates(scores, reps)
     out = dict(group)
     out["methods"] = {m: {"mean": est[m]["mean"], "ci95": est[m]["mean_ci95"]} for m in scores}
+    if failed_below is not None:
+        out["failed_below"] = float(failed_below)
+        for m, v in scores.items():
+            out["methods"][m]["seeds"] = int(v.size)
+            out["methods"][m]["seeds_failed"] = int(np.sum(v < failed_below))
     out.update(marks(scores, est, reps))
     out["regret"] = None
     if regret is not None:
@@ -185,6 +196,9 @@ def frames_text(frames: Any) -> str:
 
 TIE_MARK = "≈"
 """The mark of a method not separated from the best (:func:`marks`)."""
+FAILED = "seeds failed"
+"""A cell's note ``(k/n seeds failed)``: ``k`` of its ``n`` training seeds scored below the
+family's ``failed_below`` (docs/report.md#failed-seeds)."""
 LEGEND = (
     f"**Bold**: the best mean of the methods that do not see the hidden instance; {TIE_MARK}: not "
     "separated from it (the 95% CI of the paired difference over training seeds reaches 0; "
@@ -194,6 +208,11 @@ LEGEND = (
     "as good as every memoryless method within its CI, and in the row its mean is at least theirs)."
 )
 """The line under each compact table."""
+FAILED_LEGEND = (
+    f"(k/n {FAILED}): k of the method's n training seeds scored below the line its family draws "
+    "from its reward (named beside the family; docs/report.md#failed-seeds)."
+)
+"""The legend's line on failed seeds, where a table has a family with a failure rule."""
 
 
 def _marked(s: Mapping[str, Any]) -> tuple[str | None, list[str]]:
@@ -205,17 +224,24 @@ def _marked(s: Mapping[str, Any]) -> tuple[str | None, list[str]]:
     return (winners[0] if winners else None), winners[1:]
 
 
+def failed_text(e: Mapping[str, Any]) -> str:
+    """`` (k/n seeds failed)`` where ``k`` of a method's ``n`` seeds failed in a row
+    (:func:`summarise`), else nothing (none failed, or a summary without a failure rule)."""
+    k = int(e.get("seeds_failed") or 0)
+    return f" ({k}/{int(e['seeds'])} {FAILED})" if k else ""
+
+
 def _cell(s: Mapping[str, Any], m: str, summaries: Sequence[Mapping[str, Any]] = ()) -> str:
     e = s["methods"].get(m)
     if e is None:
         return "-"
     text = f"{e['mean']:.2f} [{e['ci95'][0]:.2f}, {e['ci95'][1]:.2f}]"
     if m == CEILING and not ceiling_gate(s, summaries)[0]:
-        return f"{text} ({NO_CEILING})"
+        return f"{text} ({NO_CEILING}){failed_text(e)}"
     best, tied = _marked(s)
     if m == best:
-        return f"**{text}**"
-    return f"{text} {TIE_MARK}" if m in tied else text
+        return f"**{text}**{failed_text(e)}"
+    return (f"{text} {TIE_MARK}" if m in tied else text) + failed_text(e)
 
 
 def _by_family(summaries: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping[str, Any]]]:
@@ -237,9 +263,13 @@ def tables_markdown(summaries: Sequence[Mapping[str, Any]]) -> str:
         "Each cell: the method's score, mean over training seeds [95% stratified-bootstrap CI] "
         "(rliable); each seed plays its own test episodes, all its methods the same ones. " + LEGEND
     ]
+    if any(s.get("failed_below") is not None for s in summaries):
+        parts[0] += f" {FAILED_LEGEND}"
     for family, rows in _by_family(summaries).items():
         methods = _ordered(sorted({m for s in rows for m in s["methods"]}))
         scores = list(dict.fromkeys(s["score"] for s in rows))
+        rules = sorted({s["failed_below"] for s in rows if s.get("failed_below") is not None})
+        scores += [f"a seed below {v:g} failed" for v in rules]
         head = list(methods)
         parts.append(
             "\n".join(
@@ -408,12 +438,15 @@ __all__ = [
     "ceiling_gate",
     "is_ceiling_row",
     "EXACT",
+    "FAILED",
+    "FAILED_LEGEND",
     "FIGURE_CAPTION",
     "FIGURE_TITLE",
     "LEGEND",
     "ORDER",
     "TIE_MARK",
     "details_of",
+    "failed_text",
     "frames_text",
     "marks",
     "regret_to_ceiling",
