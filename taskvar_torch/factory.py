@@ -1,17 +1,11 @@
 """Config -> everything a run is made of: the one place envs, options, heads, learners and
-controllers are built (in the manner of TorchRL's ``sota-implementations/*/utils.py``).
+controllers are built (as TorchRL's ``sota-implementations/*/utils.py``).
 
-- :func:`make_env`, :func:`make_subtasks`: the family's batched env and options, through the family
-  registry (``families/``), so nothing here tests a family's name;
-- :func:`build_heads`: fresh networks for every head, from a :class:`HeadSpec` (the constructor
-  arguments a checkpoint records, so :func:`load_heads` needs no env);
-- :func:`make_learner`: the fused multi-head learner of ``cfg.train``;
-- :func:`make_method_controller` (alias :func:`make_method`): any of the four methods'
-  controllers with every setting the config gives (the composed root's policy, the hierarchy's
-  termination handling, descent metric and thresholds); :func:`calibrate` sets the hierarchy's
-  per-capability thresholds on *training* states (the replay, or rollouts of the averaging policy
-  on fresh training instances: :func:`training_states`), never on the nominal test seeds;
-- :func:`load_heads`: a trained bundle's heads and config.
+:func:`make_env` and :func:`make_subtasks` go through the family registry; :func:`build_heads`
+builds fresh heads from a :class:`HeadSpec`; :func:`make_learner` the fused learner;
+:func:`make_method_controller` a method's controller with every setting the config gives
+(docs/design.md#controllers), calibrated on training states (:func:`training_states`), never on test
+seeds; :func:`load_heads` a trained bundle's heads and config.
 """
 
 from __future__ import annotations
@@ -68,8 +62,9 @@ def make_method_controller(
     calibration: RobustnessCalibration | None = None,
 ) -> Controller:
     """The controller of method ``name`` (averaging, options, interruption, hierarchy) as ``cfg``
-    configures it. A hierarchy with ``train.robustness_threshold = "calibrated"`` and no
-    ``calibration`` is calibrated on rollouts of the averaging policy (:func:`training_states`)."""
+    configures it; a hierarchy with ``train.robustness_threshold = "calibrated"`` and no
+    ``calibration`` is calibrated on :func:`training_states`.
+    """
     t = cfg.train
     hierarchy = subtasks.hierarchy
     if name == "hierarchy" and hierarchy is not None:
@@ -95,10 +90,9 @@ def make_method_controller(
 def calibrate(
     cfg: Config, heads: Heads, subtasks: Subtasks, states: TensorDictBase
 ) -> RobustnessCalibration:
-    """Per-capability robustness thresholds and scales on training ``states`` (a tensordict
-    ``(B,)`` with the observation and the keys the subtasks read): R(o, s, pi^o(s)) under each
-    option's own greedy action (the root's: the averaging head's, with
-    ``train.hierarchy_root_policy = "averaging"``). See :class:`RobustnessCalibration`."""
+    """:class:`RobustnessCalibration` on training ``states (B,)``: R(o, s, pi^o(s)) under each
+    option's own greedy action (the root's per ``train.hierarchy_root_policy``).
+    """
     t = cfg.train
     names = list(heads.option_names)
     obs = states.get(keys.OBSERVATION)
@@ -134,10 +128,9 @@ def replay_states(buffer, n: int = CALIBRATION_STATES) -> TensorDictBase:
 def training_states(
     cfg: Config, heads: Heads, episodes: int = 8, seed: int = TRAINING_STATE_SEED
 ) -> TensorDictBase:
-    """States the greedy averaging policy visits on fresh *training* instances (``env.instances``
-    of ``cfg``, env seed ``seed``): ``episodes`` episodes played by
-    :func:`~taskvar_torch.experiments.evaluation.run_episodes`, at most
-    :data:`CALIBRATION_STATES` of their states (step by step), evenly spaced."""
+    """At most :data:`CALIBRATION_STATES` states, evenly spaced, that the greedy averaging policy
+    visits in ``episodes`` episodes on fresh training instances (env seed ``seed``).
+    """
     env = make_env(cfg, num_envs=episodes, seed=seed)
     net = head_network(heads.heads["averaging"])
     greedy = TensorDictModule(lambda obs: net(obs).argmax(-1), [keys.OBSERVATION], [keys.ACTION])
@@ -160,9 +153,9 @@ def training_states(
 
 
 def check_family_installed(cfg: Config, what: str) -> None:
-    """A one-line ``ValueError`` where ``what`` (a setting that starts new processes) would meet
-    a family registered in this process only: a new process finds a family by its name only if it
-    is built in or installed (an entry point, docs/install.md)."""
+    """A one-line ``ValueError`` where ``what`` (a setting that starts new processes) meets a family
+    that is neither built in nor installed (docs/install.md).
+    """
     if not FAMILIES.installed(cfg.family):
         raise ValueError(
             f"{what} starts new processes, which find family {cfg.family!r} only if it is built "
@@ -181,11 +174,8 @@ def make_env(
     noise_seed: int | None = None,
     validate_actions: bool | None = None,
 ) -> EnvBase:
-    """The family's batched env (no transforms) of ``cfg``: its training instances unless
-    ``instances`` names another distribution (:meth:`taskvar_torch.families.Family.make_env`).
-
-    ``index_offset``: global index of sub-environment 0 in the keyed streams, so envs with
-    offsets 0, n, 2n... are disjoint slices of one env of the summed size.
+    """The family's batched env of ``cfg``: its training instances unless ``instances`` names
+    another. ``index_offset``: global index of sub-environment 0 in the keyed streams.
     """
     return family(cfg).make_env(
         cfg,
@@ -236,12 +226,9 @@ def check_device(device: str | torch.device) -> None:
 
 @dataclass(frozen=True)
 class HeadSpec:
-    """The constructor arguments of a head bundle beside the config (what a checkpoint records
-    as ``heads_spec``, so loading needs no env): observation size, number of actions, the options'
-    names, whether there are robustness critics, the options' input masks
-    (``heads.option_inputs=subtask``). The ``informed_dim`` and ``informed_residual`` entries of
-    checkpoints written while the learner trained an informed head are ignored (that head was
-    removed: its tensors are dropped on loading, :func:`_heads_of`)."""
+    """The constructor arguments of a head bundle (a checkpoint's ``heads_spec``, so loading needs
+    no env). Old checkpoints' ``informed_dim`` and ``informed_residual`` are ignored.
+    """
 
     obs_dim: int
     num_actions: int
@@ -330,12 +317,9 @@ def check_heads_spec(d: Any) -> None:
 
 
 def build_heads(cfg: Config, env: EnvBase | HeadSpec, subtasks: Subtasks | None = None) -> Heads:
-    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (docs/design.md).
-
-    ``env`` and ``subtasks`` give the :class:`HeadSpec` (or pass the spec itself). The heads are
-    independent MLPs stored as members of one ``StackedMLP``, so the learner runs them in one
-    batched pass (``heads/networks.py``); ``heads.network=conv`` gives each a conv trunk over the
-    family's local patch (``StackedConvMLP``).
+    """Fresh networks for every head the family needs, in a :class:`Heads` bundle (docs/design.md),
+    as members of one ``StackedMLP`` (``StackedConvMLP`` with ``heads.network=conv``); ``env`` and
+    ``subtasks`` give the :class:`HeadSpec`, or pass it.
     """
     spec = env if isinstance(env, HeadSpec) else HeadSpec.of(cfg, env, subtasks)
     A, O = spec.num_actions, len(spec.option_names)  # noqa: E741
@@ -382,18 +366,14 @@ def load_heads(
     device: str | torch.device | None = None,
     controller: Sequence[str] = (),
 ) -> tuple[Heads, Config]:
-    """The trained :class:`Heads` bundle and config of a checkpoint written by ``train`` or an
-    experiment. Built from the checkpoint's ``heads_spec`` (no env is made); a checkpoint without
-    one (written before it existed) builds a one-environment env to read the spec.
+    """The trained :class:`Heads` bundle and config of a checkpoint, built from its ``heads_spec``.
 
-    ``controller``: controller settings (``train.robustness_threshold=fixed``, ...;
-    ``config/controller.py``) applied to the bundle's config, so the heads' mu_bar and every
-    controller built from the returned config use them; a key that is not one is a one-line
-    ``ValueError``.
+    ``controller``: controller settings (docs/controllers.md) applied to the bundle's config; an
+    unknown key is a one-line ``ValueError``.
 
     Raises:
-        CheckpointError: unreadable file, foreign content, non-finite heads, or weights that do
-            not fit the config.
+        CheckpointError: unreadable file, foreign content, non-finite heads, or weights that do not
+            fit the config.
         ValueError: the bundle's device is not available here.
     """
     check_controller_overrides(controller)  # a one-line error before any loading
@@ -459,11 +439,9 @@ HEADS_NAME = "heads.pt"
 def export_heads(
     checkpoint: str | os.PathLike, out: str | os.PathLike | None = None, overwrite: bool = False
 ) -> Path:
-    """Write the evaluation bundle of a checkpoint: the heads, their constructor arguments
-    (``heads_spec``) and the config, without the replay buffer, targets and optimiser (what
-    :func:`load_heads`, ``taskvar eval`` and the notebooks need; the full checkpoint stays for
-    resuming). ``out`` defaults to ``heads.pt`` beside ``checkpoint``; an existing file is refused
-    unless ``overwrite``. Loads with ``weights_only=True`` like every bundle."""
+    """Write a checkpoint's evaluation bundle (heads, ``heads_spec``, config; docs/evaluation.md) to
+    ``out`` (default ``heads.pt`` beside it); an existing file is refused unless ``overwrite``.
+    """
     dest = check_out_path(out) if out is not None else Path(checkpoint).with_name(HEADS_NAME)
     if dest.resolve() == Path(checkpoint).resolve():
         raise ValueError(f"--out {str(dest)!r} is the checkpoint itself; choose another --out")

@@ -1,17 +1,10 @@
 """Results folders: every taskvar command that writes results holds its ``--out`` as one
-:class:`ResultsFolder`: locked, never silently replaced, and (but for ``train``) swapped in whole;
-an interrupted training run leaves a resumable checkpoint (docs/reliability.md, "Results folders";
-docs/design.md, "Training the heads").
+:class:`ResultsFolder` (docs/reliability.md#results-folders-locked-staged-swapped-whole).
 
-* :class:`ResultsFolder` locks the folder (:data:`LOCK_NAME`, ``flock``-ed, so a second command on
-  it is refused), refuses results already there unless ``--overwrite`` (or ``train --resume``
-  continues them), and either fills a staging sibling it swaps in whole at the end, or (``train``,
-  a sweep, and the commands writing single files) writes in place.
-* :func:`restore_logs` cuts a resumed run's CSV logs back to its checkpoint's frame, so they equal
-  those of an uninterrupted run.
-* :class:`StopSignals` turns the first SIGINT / SIGTERM into "stop after the current batch"; the
-  trainer then writes ``checkpoint_<frame>.pt`` and raises :class:`TrainingInterrupted`
-  (:func:`_interrupted`) carrying the exact :func:`resume_command`.
+:func:`restore_logs` cuts a resumed run's CSV logs back to its checkpoint's frame;
+:class:`StopSignals` turns the first SIGINT / SIGTERM into "stop after the current batch", after
+which the trainer writes a checkpoint and raises :class:`TrainingInterrupted` with the exact
+:func:`resume_command`.
 """
 
 from __future__ import annotations
@@ -195,33 +188,14 @@ def _latest_checkpoint(out: Path) -> Path | None:
 
 class ResultsFolder:
     """The results folder ``out`` of one taskvar command, held from :meth:`acquire` to
-    :meth:`commit` (or :meth:`abandon`): one command writes in it at a time, and a user's results
-    are never silently replaced.
+    :meth:`commit` (or :meth:`abandon`); a context manager that commits on success, else abandons.
 
-    :meth:`acquire` refuses an unusable ``out`` (empty: it would be the current folder; a file; a
-    dangling link; not writable) and results already there (the entries ``markers`` names, glob
-    patterns; by default :data:`RESULT_MARKERS` staged, none in place) unless ``overwrite``; it
-    creates the folder if needed, locks it (:func:`lock_folder`: a second command on it is
-    refused, naming the first one's pid), removes the temporary files of killed writes, and
-    checks again under the lock. Then, by ``staged``:
-
-    * ``True`` (``taskvar eval``, ``experiment``, ``scale``, a sweep replaced with
-      ``--overwrite``): the folder is the command's whole, so one holding files that are not
-      taskvar results is refused (``--out .`` in a project). :meth:`acquire` returns a new empty
-      sibling ``.<name>.<hex>.staging`` to write into; :meth:`commit` swaps it in for ``out`` (an
-      atomic exchange where the system has one), so a reader sees the old results or the new
-      ones, never a mix; :meth:`abandon` (any failure, a signal) removes it and leaves the old
-      results whole. A killed command's staging folder is removed by the next one on ``out``.
-    * ``False``: written in place (``train``, whose checkpoints resume where they are; a new or
-      resumed sweep; ``train-baselines``, ``export``, ``report`` and ``plot``, with no
-      ``markers``: only locked, each refusing its own files). :meth:`acquire` returns ``out``;
-      other files there are kept; ``overwrite`` removes the marker entries first (only a taskvar
-      run's: a checkpoint, logs or a taskvar ``config.yaml``), and ``resume``, a checkpoint
-      inside ``out``, continues them. :meth:`abandon` (a run that failed before it started)
-      removes what was written into a folder that held no results.
-
-    ``command`` and ``hint`` (how to continue instead) go into the refusal, ``flag`` names the
-    folder in every message. Used as a context manager: commit on success, else abandon.
+    :meth:`acquire` refuses an unusable ``out`` and results already there (``markers``, glob
+    patterns) unless ``overwrite``, creates and locks it (:func:`lock_folder`) and removes killed
+    writes' temporary files. ``staged=True``: returns an empty sibling ``.<name>.<hex>.staging``
+    that :meth:`commit` swaps in for ``out`` whole (a folder holding non-taskvar files is refused).
+    ``staged=False``: returns ``out``, written in place; ``overwrite`` removes the marker entries,
+    ``resume`` continues them. ``command``, ``hint`` and ``flag`` go into the refusals.
     """
 
     def __init__(
@@ -437,9 +411,9 @@ def _exchange(a: Path, b: Path) -> bool:
 
 
 def restore_logs(src: Path, out: Path, frame: int) -> None:
-    """Write ``out/logs`` as the rows of run folder ``src``'s logs up to ``frame`` (the checkpoint
-    a run resumes from): rows a killed or interrupted run logged after it are dropped, so the
-    logs of a resumed run equal those of an uninterrupted one. ``src`` may be ``out``."""
+    """Write ``out/logs`` as run folder ``src``'s logs up to ``frame``, so a resumed run's logs
+    equal an uninterrupted one's (``src`` may be ``out``).
+    """
     scalars = src / "logs" / "scalars"
     if not scalars.is_dir():
         return

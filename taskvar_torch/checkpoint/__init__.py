@@ -1,32 +1,12 @@
-"""Checkpoint bundles: plain data only, atomic writes, clear refusals.
+"""Checkpoint bundles: plain data only, atomic writes, clear refusals (docs/reliability.md).
 
-A bundle is a dict of plain data: tensors, dicts, lists, tuples, str, int, float, bool and None
-(``torch.load(..., weights_only=True)`` accepts nothing else, so loading never executes code from
-the file). :func:`save_checkpoint` adds a format tag, a format version and the library versions;
-the conventional keys are:
-
-==============  =============================================================================
-key             content
-==============  =============================================================================
-config          the run's :class:`~taskvar_torch.config.Config` as a plain dict (required)
-models          ``{name: state_dict}`` of every head, target networks included
-optimizers      ``{name: optimizer.state_dict()}``
-counters        step counters, e.g. ``{"frames": 1000, "updates": 250}``
-rng             :func:`rng_state` (torch CPU, CUDA, numpy, python and named generators)
-replay          optional replay-buffer contents as plain tensors
-heads_spec      the heads' constructor arguments (``factory.HeadSpec``): loading needs no env
-==============  =============================================================================
-
-Writes go to a temporary file in the destination folder, are flushed and fsynced, then renamed over
-the destination (``os.replace``), so a crash never leaves a half-written checkpoint at ``path``.
-Every loading failure is a one-line :class:`CheckpointError` naming the problem and the path.
-Loading the entries into live networks, optimisers and generators, each checked first against
-what the config builds, is :mod:`taskvar_torch.checkpoint.checks`.
-
-Examples:
-    >>> bundle = make_bundle(cfg, models={"averaging": net}, optimizers={"adam": opt})
-    >>> save_checkpoint("run/final.pt", bundle)
-    >>> bundle = load_checkpoint("run/final.pt", expected_config=cfg)
+A bundle is a dict of plain data (what ``torch.load(..., weights_only=True)`` accepts, so loading
+never executes code from the file): ``config`` (required), ``models``, ``optimizers``, ``counters``,
+``rng`` (:func:`rng_state`), optional ``replay``, ``heads_spec`` and further entries;
+:func:`save_checkpoint` adds a format tag, version and the library versions. Writes go to a
+temporary file, fsynced, then ``os.replace``; every loading failure is a one-line
+:class:`CheckpointError`. Checking entries against what the config builds is
+:mod:`taskvar_torch.checkpoint.checks`.
 """
 
 from __future__ import annotations
@@ -96,14 +76,8 @@ def library_versions() -> dict[str, str]:
 
 
 def rng_state(generators: Mapping[str, torch.Generator] | None = None) -> dict[str, Any]:
-    """Every random state a run may draw from, as plain data.
-
-    Args:
-        generators: named explicit ``torch.Generator`` objects to include.
-
-    Returns:
-        ``{"torch": uint8 tensor, "cuda": [uint8 tensor] (empty without CUDA), "numpy": {...},
-        "python": {...}, "generators": {name: uint8 tensor}}``.
+    """Every random state a run may draw from, as plain data: ``{"torch", "cuda" (list), "numpy",
+    "python", "generators": {name: state}}`` for the named ``generators``.
     """
     name, keys, pos, has_gauss, cached = np.random.get_state()
     version, mt, gauss_next = random.getstate()
@@ -125,11 +99,8 @@ def rng_state(generators: Mapping[str, torch.Generator] | None = None) -> dict[s
 def set_rng_state(
     state: Mapping[str, Any], generators: Mapping[str, torch.Generator] | None = None
 ) -> None:
-    """Restore what :func:`rng_state` returned (CUDA states only where CUDA is available).
-
-    Args:
-        state: a :func:`rng_state` dict.
-        generators: the named generators to restore; each must be present in ``state``.
+    """Restore what :func:`rng_state` returned (CUDA states only where CUDA is available); every
+    named generator must be in ``state``.
     """
     torch.set_rng_state(state["torch"].cpu())
     cuda = state.get("cuda") or []
@@ -171,16 +142,8 @@ def make_bundle(
     replay: Mapping[str, Any] | None = None,
     **extra: Any,
 ) -> dict[str, Any]:
-    """A bundle with the conventional keys (modules and optimizers become state dicts).
-
-    Args:
-        config: the run's config (a :class:`Config` or its plain dict).
-        models: heads and target networks by name.
-        optimizers: optimizers by name.
-        counters: step counters.
-        rng: RNG states; default :func:`rng_state` now.
-        replay: optional replay-buffer contents as plain tensors.
-        **extra: further plain-data entries.
+    """A bundle with the conventional keys (modules and optimizers become state dicts; ``rng``
+    defaults to :func:`rng_state` now; ``**extra``: further plain-data entries).
     """
     bundle = {
         "config": config_to_dict(config) if isinstance(config, Config) else dict(config),
@@ -223,21 +186,14 @@ def _check_plain(obj: Any, where: str) -> None:
 
 
 def save_checkpoint(path: str | os.PathLike, bundle: Mapping[str, Any]) -> Path:
-    """Write ``bundle`` atomically to ``path`` (parent folders are created).
-
-    Args:
-        path: destination file.
-        bundle: plain data with at least ``config``; ``format``, ``format_version`` and
-            ``versions`` are added.
-
-    Returns:
-        ``path`` as a :class:`Path`.
+    """Write ``bundle`` (plain data with at least ``config``) atomically to ``path``; returns
+    ``path``.
 
     Raises:
-        CheckpointError: the bundle holds something other than plain data, or has no config; the
-            file at ``path`` (if any) is left untouched and no temporary file remains.
-        OSError: the write failed (disk full, ``EFBIG``), its ``filename`` set to ``path``; the
-            file at ``path`` (if any) is left untouched and no temporary file remains.
+        CheckpointError: the bundle holds something other than plain data, or has no config.
+        OSError: the write failed, its ``filename`` set to ``path``.
+
+    On either error the file at ``path`` is left untouched and no temporary file remains.
     """
     path = Path(path)
     if not isinstance(bundle, Mapping):
@@ -267,9 +223,9 @@ def save_checkpoint(path: str | os.PathLike, bundle: Mapping[str, Any]) -> Path:
 
 
 class _WriteErrors:
-    """A file's ``write`` and ``flush`` that keep the first ``OSError`` raised: torch's zip writer
-    turns it into an opaque ``RuntimeError`` ("unexpected pos ..."), :func:`_torch_save` raises it
-    again."""
+    """A file's ``write``/``flush`` that keep the first ``OSError`` (torch's zip writer hides it),
+    for :func:`_torch_save` to raise.
+    """
 
     def __init__(self, f: Any) -> None:
         self.f, self.error = f, None
@@ -348,11 +304,8 @@ def config_differences(
     expected: Config | Mapping[str, Any],
     ignore: Sequence[str] = RUNTIME_KEYS,
 ) -> list[tuple[str, Any, Any]]:
-    """``(dotted key, saved value, expected value)`` for every differing key not under ``ignore``.
-
-    A key present on one side only shows ``"<absent>"`` on the other. ``saved`` is read as the
-    current schema reads it (:func:`~taskvar_torch.config.migration.migrate_config_data`: a key
-    removed or renamed since it was written is no difference).
+    """``(dotted key, saved, expected)`` for every differing key not under ``ignore``
+    (``"<absent>"`` for a missing side); ``saved`` is migrated to the current schema first.
     """
     exp = config_to_dict(expected) if isinstance(expected, Config) else expected
     a, b = _flatten(migrate_config_data(saved, warn=False)), _flatten(exp)
@@ -379,15 +332,8 @@ def load_checkpoint(
 ) -> dict[str, Any]:
     """Load a bundle with ``torch.load(weights_only=True)``; never executes code from the file.
 
-    Args:
-        path: checkpoint file.
-        expected_config: when given, the saved config must match it on every key not under
-            ``ignore``.
-        map_location: where tensors go.
-        ignore: dotted config prefixes allowed to differ (default :data:`RUNTIME_KEYS`).
-
-    Returns:
-        The bundle dict.
+    ``expected_config``: when given, the saved config must match it on every key not under
+    ``ignore`` (default :data:`RUNTIME_KEYS`).
 
     Raises:
         CheckpointError: one line naming the problem and the path: missing, truncated or corrupt,

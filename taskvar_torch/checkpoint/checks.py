@@ -1,16 +1,7 @@
-"""Checking a loaded bundle's entries against what the config and the networks build, and
-loading the state dicts that fit (the bundle format itself: :mod:`taskvar_torch.checkpoint`).
+"""Checking a loaded bundle's entries against what the config and the networks build, and loading
+the state dicts that fit (docs/reliability.md#checkpoints-every-entry-checked-before-it-is-loaded).
 
-A resumed run reads every entry of its checkpoint into live objects: network and optimiser state
-dicts, step counters, RNG states. Each is checked first against the object built from the config
-(:func:`check_like`: the same keys, shapes, dtypes and types; :func:`check_optimizer_state`,
-:func:`check_counters`, :func:`check_rng_state`), so a tampered or foreign entry is a one-line
-:class:`~taskvar_torch.checkpoint.CheckpointError` naming it rather than a failure deep inside
-``load_state_dict`` or a corrupted optimiser.
-
-Examples:
-    >>> bundle = load_checkpoint("run/final.pt", expected_config=cfg)
-    >>> load_state_dicts(bundle, models={"averaging": net}, optimizers={"adam": opt})
+Each check raises a one-line :class:`~taskvar_torch.checkpoint.CheckpointError` naming the entry.
 """
 
 from __future__ import annotations
@@ -65,13 +56,8 @@ def load_state_dicts(
 
 
 def check_like(saved: Any, expected: Any, where: str) -> None:
-    """:class:`CheckpointError` naming the first part of ``saved`` whose type, keys or shape
-    differ from ``expected`` (the same entry of the state built from the config and networks).
-
-    Tensors must have ``expected``'s shape and dtype; dicts its keys (none missing, none more);
-    lists and tuples its length; ints, floats, bools and strings its type. An ``expected`` of
-    ``None`` accepts any value (optional state the caller checks itself). The message (without
-    the checkpoint's path: the caller adds it) names ``where`` and both shapes or types.
+    """:class:`CheckpointError` naming the first part of ``saved`` whose type, keys, length, shape
+    or dtype differ from ``expected`` (``None`` accepts anything); the caller adds the path.
     """
     if isinstance(expected, torch.Tensor):
         if not isinstance(saved, torch.Tensor):
@@ -128,9 +114,9 @@ def check_counters(saved: Any, expected: Mapping[str, int], where: str = "counte
 def check_rng_state(
     saved: Any, generators: Mapping[str, torch.Generator] | None = None, where: str = "rng"
 ) -> None:
-    """``saved`` is a :func:`rng_state` of this machine's generators: every entry present, the
-    torch states of their size, numpy's and Python's Mersenne Twister states well formed (CUDA
-    states are only checked where CUDA is available)."""
+    """``saved`` is a :func:`rng_state` of this machine's generators (CUDA states checked only where
+    CUDA is available).
+    """
     live = rng_state(generators)
     if isinstance(saved, Mapping) and not torch.cuda.is_available():
         live["cuda"] = saved.get("cuda", [])  # restored only where CUDA is available
@@ -175,10 +161,9 @@ def check_rng_state(
 
 
 def check_optimizer_state(saved: Any, optimizer: torch.optim.Optimizer, where: str) -> None:
-    """``saved`` is a state dict of ``optimizer``: the same parameter groups, and for every
-    parameter with a state exactly the entries one step of this optimizer creates, each tensor of
-    the parameter's shape and dtype (a fused Adam does not check them: a wrong shape would corrupt
-    memory), ``step`` a finite non-negative scalar."""
+    """``saved`` is a state dict of ``optimizer``: the same parameter groups, each parameter's state
+    exactly as one step creates it, of the parameter's shape and dtype, ``step`` finite and >= 0.
+    """
     live = optimizer.state_dict()
     check_like(saved, {"state": None, "param_groups": None}, where)
     groups, states = saved["param_groups"], saved["state"]

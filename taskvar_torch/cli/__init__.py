@@ -1,27 +1,11 @@
 """Command line: ``taskvar COMMAND ...`` (train, eval, train-baselines, experiment, sweep, export,
 plot, report).
 
-Each command is one entry of :data:`COMMANDS`: a help line, a function adding its arguments to an
-``argparse`` parser, and a function running it. Commands parse *intermixed* arguments, so
-Hydra-style ``key.sub=value`` overrides may come before or after the options::
-
-    taskvar train configs/windy.yaml --out runs/windy train.total_frames=100000
-    taskvar train --resume runs/windy/checkpoint_000050176.pt --out runs/windy
-    taskvar train --help
-
-Errors in the inputs (a misspelt config key, a foreign or tampered checkpoint, a diverged run, an
-``--out`` that cannot be used, more memory than the machine has) print one line ``taskvar COMMAND:
-error: ...`` and exit with status 2. Ctrl-C (SIGINT) or SIGTERM during ``taskvar train`` stops
-after the current batch, writes a checkpoint and prints one line with the ``--resume`` command
-(status 130, or 143 for SIGTERM); a second Ctrl-C aborts at once; elsewhere either signal prints
-one line ``taskvar COMMAND: interrupted ...`` (128 + N). Any other exception is a bug in the
-package: its traceback, then one line saying so (status 1). docs/reliability.md has them all.
-
-One module per command group, each command beside its arguments: ``train`` (train,
-train-baselines, export), ``evaluate`` (eval), ``study`` (experiment, sweep, plot, report);
-``arguments`` holds what they share, ``failures`` the one-line errors and exit statuses. Each
-command imports the machinery it runs inside its own function: the experiment modules share
-function names, and ``taskvar --help`` or a one-line error does not load every experiment.
+Each command is one entry of :data:`COMMANDS` (a help line, its arguments, its function); commands
+parse intermixed arguments, so ``key.sub=value`` overrides may come before or after the options.
+Input errors print one line and exit 2; signals and bugs as docs/reliability.md says. One module per
+command group (``train``, ``evaluate``, ``study``), each importing its machinery inside its
+function, so ``taskvar --help`` loads no experiment.
 """
 
 from __future__ import annotations
@@ -55,9 +39,9 @@ function); add an entry to add a command."""
 
 
 class _OneLineParser(argparse.ArgumentParser):
-    """``argparse`` whose input errors are one line ``PROG: error: ...`` (no usage block), status 2,
-    and whose epilog may be computed only when the help is printed (``lazy_epilog``: the
-    registered families' keys and tests, which a command that runs need not load)."""
+    """``argparse`` whose input errors are one line ``PROG: error: ...`` (status 2) and whose epilog
+    may be computed only when the help is printed (``lazy_epilog``).
+    """
 
     lazy_epilog: Callable[[], str] | None = None
 

@@ -239,10 +239,9 @@ def _train_baselines_run(args: argparse.Namespace) -> int:
 
 
 def _check_bundle_config(cfg: Any, out: Path, overrides: Sequence[str]) -> None:
-    """A one-line ``ValueError`` when ``out`` holds a bundle (its ``config.yaml``) whose family,
-    environment or heads differ from ``cfg``'s: the baselines would be trained on another task
-    than the heads they are compared with. A ``heads.*`` key set by an override on the command
-    line is the user's choice of the baselines' width (the help's documented use)."""
+    """A one-line ``ValueError`` when ``out`` holds a bundle whose family, environment or heads
+    differ from ``cfg``'s (a ``heads.*`` override on the command line sets the baselines' width).
+    """
     from taskvar_torch.config import config_to_dict, load_config
 
     saved = out / "config.yaml"

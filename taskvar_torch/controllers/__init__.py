@@ -1,15 +1,8 @@
 """Controllers (paper §3.1-3.4): batched TorchRL policies that read head outputs only.
 
-``averaging`` (paper §3.1), ``options`` (§3.2), ``interruption`` (§3.3, Algorithm 1) and
-``hierarchy`` (§3.4, Algorithm 2). Each is a ``TensorDictModuleBase`` carrying ``running_option``
-like a recurrent state; install its primer with ``TransformedEnv(env, controller.primer())``.
-:class:`SideBySide` plays several of them on consecutive slices of one batch (``side_by_side.py``).
-
-Examples:
-    >>> oracle = WindyOracle()
-    >>> ctrl = make_controller("interruption", oracle.heads())
-    >>> env = TransformedEnv(WindyGridEnv(num_envs=8), ctrl.primer())
-    >>> td = env.rollout(100, ctrl, break_when_any_done=False)
+``averaging`` (§3.1), ``options`` (§3.2), ``interruption`` (§3.3, Algorithm 1) and ``hierarchy``
+(§3.4, Algorithm 2); install a controller's primer with ``TransformedEnv(env,
+controller.primer())``.
 """
 
 from __future__ import annotations
@@ -61,11 +54,8 @@ def make_controller(
 ) -> Controller:
     """A controller by name: ``averaging``, ``options``, ``interruption`` or ``hierarchy``.
 
-    ``root_policy`` is the composed root's policy for every option-level controller (its option
-    head, or the averaging head: paper §3.4.2; no effect without a hierarchy). ``hierarchy`` needs
-    ``hierarchy`` and ``tau``; with ``terminate`` it honours the ``subtasks``' termination, and
-    ``descent`` / ``calibration`` set its descent metric and per-capability thresholds
-    (:class:`HierarchyController`).
+    ``root_policy`` is the composed root's policy (paper §3.4.2). ``hierarchy`` needs ``hierarchy``
+    and ``tau``; ``terminate``, ``descent`` and ``calibration`` are :class:`HierarchyController`'s.
     """
     if name not in CONTROLLERS:
         raise ValueError(f"controller must be one of {list(CONTROLLERS)}, got {name!r}")

@@ -14,14 +14,7 @@ Tensor = torch.Tensor
 
 
 class AveragingController(Controller):
-    """Greedy in the averaging head (paper §3.1): the flat baseline. It carries no state.
-
-    Examples:
-        >>> ctrl = AveragingController(WindyOracle().heads())
-        >>> td = ctrl(TensorDict({"cell": torch.tensor([0, 10])}, [2]))
-        >>> td["action"].shape
-        torch.Size([2])
-    """
+    """Greedy in the averaging head (paper §3.1): the flat baseline; carries no state."""
 
     name = "averaging"
     required_heads = ("averaging",)

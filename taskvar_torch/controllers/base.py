@@ -1,30 +1,15 @@
-"""Shared machinery of the controllers (paper §3.3-3.4): carried state, primer, kernels, fast
-paths.
+"""Shared machinery of the controllers (paper §3.3-3.4): carried state, primer, kernels.
 
-A controller is a ``TensorDictModuleBase`` that runs the heads it needs on the tensordict, reads
-its carried state ``running_option`` ``(B,)`` int64 (-1 = none), decides, and writes ``action``,
-the decision traces (``option``, ``interrupted``, ``hierarchy_level``) and the next state under
-``("next", "running_option")`` -- exactly like a recurrent TorchRL module (``LSTMModule`` writes
-``("next", "recurrent_state")``). :meth:`Controller.primer` returns the ``TensorDictPrimer`` that
-puts the state in the env's specs and resets it to -1 per sub-environment on (partial) resets, so
-``env.rollout`` and TorchRL ``Collector``s carry it with no further code.
+A controller is a ``TensorDictModuleBase`` that runs its heads, reads its carried state
+``running_option (B,)`` int64 (-1 = none), decides, and writes ``action``, the traces
+(``option``, ``interrupted``, ``hierarchy_level``) and ``("next", "running_option")``, like a
+recurrent TorchRL module; :meth:`Controller.primer` resets that state on (partial) resets.
 
-One implementation of each decision rule, batched, and one fast form of it for one environment:
-
-- **batched kernels** (``decide_of``; Algorithm 1: ``interruption_decide_of``, Algorithm 2:
-  ``hierarchy_decide_of``) work *option-first*: ``Q_mu (O, B)``, ``Q_o (O, A, B)``. A reduction
-  over a dimension of size 2-4 (``argmax(-1)`` on ``(B, O)``) is 10-100x slower on CPU than
-  elementwise ops over ``B``, so the kernels loop over the small option/action dimension with
-  elementwise ops (:func:`argmax0`, :func:`select0`). Head outputs in the bundle's ``(B, O, A)``
-  layout enter as permuted views (no copy, :meth:`Controller.decide`); heads that emit
-  option-first need no permute.
-- **scalar path** (:meth:`Controller.act_one`, ``decide_scalar``) for one environment in real
-  time: one fused head forward (:class:`FusedHeads`), one host transfer, then the rule on Python
-  floats. Tested equal to the batched kernel on random inputs (tests/test_decision_forms.py) and
-  10-25x faster than it at B = 1 (benchmarks/decision_forms.py, docs/benchmarks.md).
-
-The oracle's chains (``oracle/chains.py``) evaluate the same rules exactly: they call
-:meth:`Controller.decide` at every (state, carried state).
+Each rule has one batched kernel (``decide_of``) over *option-first* tensors ``Q_mu (O, B)``,
+``Q_o (O, A, B)`` that loops over the small option/action dimension with elementwise ops (a
+reduction over a dimension of size 2-4 is 10-100x slower on CPU), and one scalar path for one
+environment (:meth:`Controller.act_one`), tested equal to it (tests/test_decision_forms.py;
+docs/benchmarks.md). docs/design.md#controllers.
 """
 
 from __future__ import annotations
@@ -55,10 +40,7 @@ _LOOP_MAX = 16  # loop elementwise over at most this many options/actions; beyon
 def argmax0(x: Tensor) -> Tensor:
     """``argmax`` over dim 0 of ``x (K, ...)``, the lowest index on ties (as ``torch.argmax``).
 
-    Elementwise over the trailing (batch) dims, as a tournament: pairs of blocks are compared and
-    the right block wins only if strictly greater, so the first maximum wins. About 3K cheap
-    elementwise passes (indices tracked in uint8) instead of a reduction over a tiny dimension,
-    which is 10-100x slower on CPU.
+    A tournament of elementwise comparisons over the trailing (batch) dims, not a reduction.
     """
     K = x.shape[0]
     if K > _LOOP_MAX:
@@ -146,8 +128,7 @@ def last_true0(mask: Tensor) -> Tensor:
 def sample_categorical(probs: Tensor, u: Tensor, allowed: Tensor | None = None) -> Tensor:
     """Index ``k`` with ``cdf[k-1] <= u < cdf[k]`` for ``probs (K, B)`` and uniforms ``u (B,)``.
 
-    A ``u`` at or past the rounded total (``cdf[-1] < 1``) returns the last index; with ``allowed``
-    ``(K, B)`` bool (``probs`` zero elsewhere), the last allowed one, so a draw is always allowed.
+    A ``u`` past the rounded total returns the last (allowed, given ``allowed (K, B)``) index.
     """
     cdf = probs.cumsum(0)  # (K, B)
     k = (cdf <= u.to(cdf.dtype)).sum(0)
@@ -157,10 +138,8 @@ def sample_categorical(probs: Tensor, u: Tensor, allowed: Tensor | None = None) 
 
 
 def defines_initiation(subtasks: Subtasks | None) -> bool:
-    """Whether ``subtasks`` define initiation sets (override :meth:`Subtasks.initiation`).
-
-    Subtasks that only give termination (the base class raises), or that declare
-    ``initiable_everywhere`` (Wargus), are initiable everywhere: no mask to read.
+    """Whether ``subtasks`` define initiation sets (override :meth:`Subtasks.initiation` and do not
+    declare ``initiable_everywhere``).
     """
     return (
         subtasks is not None
@@ -210,13 +189,9 @@ _INPLACE_ACT: dict[type, Any] = {
 class FusedHeads(nn.Module):
     """Several MLP heads over one input as a single block-structured MLP (inference fast path).
 
-    Layer 1 stacks the heads' first layers; deeper layers are block-diagonal; the output is the
-    concatenation of the heads' flattened outputs. Same function as the separate heads (up to
-    float summation order), one third of the kernel launches for three heads.
-
-    Args:
-        heads: ``TensorDictModule`` heads wrapping ``nn.Sequential`` MLPs (``Linear`` and
-            parameter-free activations, the same structure in every head) with one common in-key.
+    Layer 1 stacks the heads' first layers, deeper layers are block-diagonal, the output
+    concatenates the heads' flattened outputs. ``heads``: ``TensorDictModule`` heads over
+    ``nn.Sequential`` MLPs of the same structure with one common in-key.
     """
 
     def __init__(self, heads: Sequence[TensorDictModule]):
@@ -295,22 +270,17 @@ class FusedHeads(nn.Module):
 class Controller(TensorDictModuleBase):
     """Base class: a batched controller over a :class:`Heads` bundle (paper §3.3-3.4).
 
-    Subclasses set ``name``, ``required_heads`` and implement :meth:`decide_of` (option-first
-    tensors) and :meth:`decide_scalar` (Python floats, one environment).
+    Subclasses set ``name``, ``required_heads`` and implement :meth:`decide_of` and
+    :meth:`decide_scalar`.
 
     Args:
         heads: the head bundle (networks or the oracle's tables).
-        subtasks: options' termination ``beta(s)`` (``Subtasks.termination``) and, for the option
-            controllers (``reads_initiation``), initiation sets ``I_o`` (``Subtasks.initiation``,
-            read through :meth:`extra_inputs` as ``initiable``): mu_bar only picks an option whose
-            I_o holds s_t, and where none does the averaging head acts (then the bundle needs it).
-            ``None``: options run until the episode ends (the windy exits terminate only there)
-            and may start anywhere.
+        subtasks: options' termination ``beta(s)`` and, for controllers that ``reads_initiation``,
+            initiation sets ``I_o`` (where no option is initiable the averaging head acts).
+            ``None``: options run until the episode ends and may start anywhere.
         seed: seed of the controller's own ``torch.Generator`` (softmax mu_bar draws only).
-        root_policy: the policy of the composition hierarchy's root option (``hierarchy`` or
-            ``subtasks.hierarchy``): ``"option"`` (its own option head) or ``"averaging"`` (the
-            averaging head: "the policy of this subtask is the full task averaging policy", paper
-            §3.4.2). Without a hierarchy there is no composed root and it has no effect.
+        root_policy: the composition hierarchy root's policy: ``"option"`` (its own option head) or
+            ``"averaging"`` (the averaging head, paper §3.4.2); no effect without a hierarchy.
         hierarchy: the composition tree whose root ``root_policy`` names (default: the subtasks').
     """
 
@@ -378,10 +348,8 @@ class Controller(TensorDictModuleBase):
     # ---- state -------------------------------------------------------------------------------
 
     def primer(self) -> TensorDictPrimer:
-        """The ``TensorDictPrimer`` for ``running_option`` (-1 at every (partial) reset).
-
-        Use it as ``TransformedEnv(env, controller.primer())``; every controller installs the same
-        key, so one transformed env serves all four.
+        """The ``TensorDictPrimer`` for ``running_option`` (-1 at every (partial) reset); use it as
+        ``TransformedEnv(env, controller.primer())``.
         """
         spec = Bounded(-1, max(self.num_options - 1, 0), shape=(), dtype=torch.int64)
         return TensorDictPrimer(
@@ -433,9 +401,9 @@ class Controller(TensorDictModuleBase):
         return self.decide_of(of, running, terminated)
 
     def extra_inputs(self, td: TensorDictBase) -> dict[str, Tensor]:
-        """Decision inputs besides the heads, batch first, read from the state ``td``: the given
-        policies' actions where options have them (``Subtasks.given_actions``); subclasses add
-        theirs (the hierarchy: where each option can take control)."""
+        """Decision inputs besides the heads, batch first, read from ``td`` (the given policies'
+        actions; subclasses add theirs).
+        """
         given = None if self.subtasks is None else self.subtasks.given_actions(td)
         return {} if given is None else {keys.GIVEN_ACTION: given}
 
@@ -484,9 +452,8 @@ class Controller(TensorDictModuleBase):
         return values
 
     def act(self, inputs: Mapping[Any, Tensor], running: Tensor | None = None) -> dict[str, Tensor]:
-        """One batched decision without TensorDicts: ``inputs`` maps head in-keys to tensors.
-
-        Termination comes from ``subtasks`` only if given (then ``inputs`` needs ``cell``).
+        """One batched decision without TensorDicts: ``inputs`` maps head in-keys to tensors (and
+        ``cell`` when ``subtasks`` are given).
         """
         values = self.head_values(inputs)
         terminated = None
@@ -497,9 +464,8 @@ class Controller(TensorDictModuleBase):
         return self.decide(values, running, terminated)
 
     def fuse(self) -> FusedHeads | None:
-        """Fuse this controller's heads into one MLP for :meth:`act_one` (None if not fusable).
-
-        Call again after the heads' weights change (the fused copy does not follow them).
+        """Fuse this controller's heads for :meth:`act_one` (None if not fusable); call again after
+        the weights change.
         """
         mods = [self.heads.heads[h] for h in self.required_heads]
         self._fused = FusedHeads(mods) if FusedHeads.supports(mods) else None
@@ -516,8 +482,7 @@ class Controller(TensorDictModuleBase):
     ) -> dict[str, Any]:
         """Real-time decision for one environment: ``inputs`` map in-keys to ``(1, ...)`` tensors.
 
-        Uses the fused heads when :meth:`fuse` succeeded, then one host transfer, then the rule on
-        Python floats. Returns Python ints/bools: ``action``, ``option``, traces.
+        Returns Python ints/bools: ``action``, ``option``, traces.
         """
         with torch.inference_mode():
             if self._fused is not None:
@@ -558,18 +523,11 @@ def _nest(flat: list, shape: tuple[int, ...]) -> list:
 
 
 class GymnasiumPolicy:
-    """Drive a controller on one Gymnasium env (``gymnasium.make("taskvar/WindyGrid-v0")``).
+    """Drive a controller on one Gymnasium env: ``reset()`` per episode, then ``policy(obs, info)``.
 
-    ``reset()`` at each episode start, then ``action = policy(obs, info)``. The carried state and
-    the last decision traces are kept in ``self.state`` / ``self.trace``. Uses the controller's
-    real-time scalar path (:meth:`Controller.act_one`); the controller's ``subtasks`` read their
-    termination and initiation sets from the same inputs (so give ``width`` when they read
-    ``cell``).
-
-    Args:
-        controller: any :class:`Controller`.
-        width: grid width, to turn ``info["cell"] = (row, col)`` into the flat ``cell`` index heads
-            and subtasks may read (``None``: no ``cell`` input).
+    Uses :meth:`Controller.act_one`; keeps the carried state and last traces in ``self.state`` and
+    ``self.trace``. ``width`` turns ``info["cell"] = (row, col)`` into the flat ``cell`` index heads
+    and subtasks may read (``None``: no ``cell`` input).
     """
 
     def __init__(self, controller: Controller, width: int | None = None):

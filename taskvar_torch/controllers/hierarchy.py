@@ -1,32 +1,20 @@
 """Hierarchical search in a composition hierarchy (paper §3.4, Algorithm 2) as a batched controller.
 
-The root acts by its option head or, with ``root_policy="averaging"``, by the averaging head
-(§3.4.2: "the policy of this subtask is the full task averaging policy"); ``pi^root`` below is
-that policy.
-
-Carried state: ``running_option`` = the subtask that acted last step (-1 at the episode start:
-control starts at the root). Its parent is a function of it (the hierarchy is a tree), so nothing
-else is carried. Every step (Algorithm 2, with greedy option policies ``pi^o = argmax Q_o``):
+Carried state: ``running_option``, the subtask that acted last step (-1: control starts at the
+root). Every step, with greedy option policies ``pi^o = argmax Q_o`` (``pi^root`` the root's option
+head or, with ``root_policy="averaging"``, the averaging head, §3.4.2):
 
 1. lines 1-3: if the running subtask has a parent ``p`` and ``R(p, s_t, pi^p(s_t)) > tau``, the
    parent regains control and acts;
-2. lines 5-7: else the running subtask acts if it is a leaf (primitive option) or
-   ``R(o_run, s_t, pi^{o_run}(s_t)) > tau``;
-3. lines 9-11: else control descends to ``q* = argmax_{q in components(o_run)} R(q, s_t, a)``, where
-   ``a`` is the action *of o_run* (line 10), and the search repeats from ``q*`` with parent
-   ``o_run``. In that recursive call line 2 re-checks ``R(o_run, s_t, pi^{o_run}(s_t)) > tau``, which
-   has just failed (deterministic policies), so it is not re-evaluated.
+2. lines 5-7: else the running subtask acts if it is a leaf or ``R(o_run, s_t, pi^{o_run}(s_t)) >
+   tau``;
+3. lines 9-11: else control descends to ``argmax_{q in components(o_run)} R(q, s_t, a)`` with ``a``
+   the action of ``o_run``, and the search repeats from there.
 
-One implementation, :func:`hierarchy_decide_of` (the recursion, batched by walking the levels),
-and one faster form of it kept beside it. With greedy option policies the search reads only, per
-state and per *composed* node ``o``, the bit ``ok_o = R(o, s_t, pi^o(s_t)) > tau``, the bit "none of
-its components can take control", and the index of its most robust component under its own
-action (leaves always act, and only composed nodes are parents). So for small trees (``(O + 1) x prod over composed nodes of 4 x #components <= 65536``,
-e.g. 32 for Wargus's 3-node tree) :class:`TreeTables` precomputes the decision for every (running
-subtask, bits, choices) code and :func:`hierarchy_decide_table_of` is one table lookup; the
-controller uses it where the tree has a table. :meth:`HierarchyController.decide_scalar` is the
-same search on Python floats for one environment in real time; both equal
-:func:`hierarchy_decide_of` (tests/test_controllers.py).
+:func:`hierarchy_decide_of` is the recursion, batched by walking the levels; for small trees
+:class:`TreeTables` tabulates the decision per (running subtask, robustness bits, component choices)
+and :func:`hierarchy_decide_table_of` is one lookup; :meth:`HierarchyController.decide_scalar` is
+the search on Python floats. All three are tested equal (tests/test_controllers.py).
 """
 
 from __future__ import annotations
@@ -126,12 +114,9 @@ class TreeTables:
 def _compile_table(
     hierarchy: Hierarchy, names: list[str], root: int, parent: list[int], depth: list[int]
 ) -> dict[str, Any]:
-    """Algorithm 2's decision for every (running subtask, robustness bits, component choices).
-
-    Code of a state: per composed node ``j``, bit ``2j`` = it is robust under its own action,
-    bit ``2j + 1`` = none of its components can take control (it keeps control in a descent, but
-    regains none by it: lines 1-3 read robustness only); digit ``j`` (mixed radix) = the index of
-    its most robust component under that action.
+    """Algorithm 2's decision for every code: per composed node ``j``, bit ``2j`` robust under its
+    own action, bit ``2j + 1`` no component can take control, mixed-radix digit ``j`` its best
+    component.
     """
     O = len(names)  # noqa: E741
     nodes = [names.index(o) for o in hierarchy.options]
@@ -219,23 +204,14 @@ def hierarchy_decide_of(
     loc: Tensor | None = None,  # (O, 1|B) descent by (R - loc) / scale; None: raw R
     scale: Tensor | None = None,  # (O, 1|B)
 ) -> dict[str, Tensor]:
-    """One step of Algorithm 2 for a batch (option-first inputs): the recursion, batched by
-    walking the levels (any tree size; at most ``tree.max_depth + 1`` passes).
+    """One step of Algorithm 2 for a batch (option-first inputs), at most ``tree.max_depth + 1``
+    passes.
 
-    A running subtask whose termination holds at s_t (``terminated``) hands control to its parent
-    first, so the search starts one level up (line 3 there, or a new descent). The descent (line
-    10) only considers components that can take control at s_t (``startable``; a composed node
-    none of whose components can keeps control itself) and compares them by raw R (the paper) or by
-    the normalised margin ``(R - loc) / scale`` (``loc`` / ``scale``: common scale across
-    components). ``startable`` is not checked where control moves up or starts: the root takes
-    control at the episode start (the full task) and a parent regains it (lines 1-3) by resuming
-    a subtask it started, so a component enters only through the descent, within its initiation
-    set. The hierarchy needs no averaging fallback: some node always holds control.
-
-    Returns ``action``, ``option`` (the subtask that acts: the next running subtask),
-    ``hierarchy_level`` (its depth, 0 = root) and ``interrupted`` (control left a running subtask
-    that had not terminated: the parent regained it or it descended; False at the episode start),
-    each ``(B,)``. :func:`hierarchy_decide_table_of` is the same function by table lookup.
+    A running subtask whose termination holds (``terminated``) hands control to its parent first.
+    The descent (line 10) only considers components that can take control (``startable``) and
+    compares raw R (the paper) or the margin ``(R - loc) / scale``. Returns ``action``, ``option``
+    (the next running subtask), ``hierarchy_level`` (0 = root) and ``interrupted`` (control left a
+    running, unterminated subtask), each ``(B,)``.
     """
     start = _control_start(running, terminated, tree)
     O = q_opt.shape[0]  # noqa: E741
@@ -286,10 +262,7 @@ def hierarchy_decide_table_of(
     loc: Tensor | None = None,  # (O, 1|B)
     scale: Tensor | None = None,  # (O, 1|B)
 ) -> dict[str, Tensor]:
-    """:func:`hierarchy_decide_of` by table lookup, for trees small enough to tabulate
-    (``tree.table_option`` set): encode each state's robustness bits and component choices, read
-    the decision. Tested equal to :func:`hierarchy_decide_of` on random inputs
-    (tests/test_controllers.py); faster (``benchmarks/decision_forms.py``, docs/benchmarks.md)."""
+    """:func:`hierarchy_decide_of` by table lookup, for trees with ``tree.table_option`` set."""
     start = _control_start(running, terminated, tree)
     code = torch.zeros(start.shape, dtype=torch.int64, device=start.device)
     for node, kids, bit, radix in tree.internal:
@@ -318,10 +291,8 @@ DESCENTS = ("raw", "normalised")  # line 10's metric: raw R, or (R - tau) / scal
 class HierarchyController(Controller):
     """HierarchicalSearch (Algorithm 2) over a composition hierarchy; reads Q_o and R heads only.
 
-    Every node of ``hierarchy`` must be an option of the bundle. The root's policy pi^root is its
-    option head (``root_policy="option"``) or the averaging head (``"averaging"``: paper §3.4.2,
-    "the policy of this subtask is the full task averaging policy"); the robustness critic of the
-    root must have been learnt for that same policy (``train.hierarchy_root_policy``).
+    Every node of ``hierarchy`` must be an option of the bundle; the root's robustness critic must
+    be learnt for the same ``root_policy`` (``train.hierarchy_root_policy``).
 
     Args:
         heads: a bundle with ``options`` and ``robustness`` heads (and ``averaging`` for
@@ -329,18 +300,16 @@ class HierarchyController(Controller):
         hierarchy: the tree (config data).
         tau: robustness threshold of every capability (paper §3.4.3), unless ``calibration``.
         root_policy: ``"option"`` or ``"averaging"``.
-        subtasks: with them, Algorithm 2 honours the options' termination: a running component
-            whose beta holds hands control back up, and the descent only picks a component that
-            can take control there (``Subtasks.startable``). ``None``: the paper's literal search.
-        descent: line 10's metric, ``"raw"`` (argmax R, the paper) or ``"normalised"`` (argmax
-            ``(R - tau_q) / scale_q``, each component's margin over its own threshold in units of
-            its spread: a common scale; unit scales without ``calibration``).
-        calibration: per-capability thresholds and scales set on training states
-            (:class:`~taskvar_torch.heads.robustness.RobustnessCalibration`); replaces ``tau``.
-            May be set later (``controller.calibration = ...``), e.g. once per trial.
+        subtasks: with them a terminated component hands control back up and the descent picks only
+            a component that can start (``Subtasks.startable``); ``None``: the paper's literal
+            search.
+        descent: line 10's metric, ``"raw"`` (argmax R) or ``"normalised"`` (argmax ``(R - tau_q) /
+            scale_q``).
+        calibration: per-capability thresholds and scales
+            (:class:`~taskvar_torch.heads.robustness.RobustnessCalibration`); replaces ``tau``; may
+            be set later.
 
-    Writes ``action``, ``option``, ``hierarchy_level``, ``interrupted`` and
-    ``("next", "running_option")``.
+    See docs/controllers.md for the settings.
     """
 
     name = "hierarchy"

@@ -37,24 +37,15 @@ def interruption_decide_of(
 ) -> dict[str, Tensor]:
     """One step of Algorithm 1 for a batch (option-first inputs).
 
-    - lines 3-4: if o_run is empty (episode start) or has terminated, ``o_run = argmax_o Q_mu(s_t, o)``
-      (an argmax even when mu_bar is a softmax, as line 4 says);
-    - lines 6-8: else if ``Q_hat(s_t, o_run) < sum_q mu_bar(s_t, q) Q_mu(s_t, q)``, draw
-      ``o_run ~ mu_bar(s_t, .)`` (greedy mu_bar: the argmax). ``interrupted`` is this condition, even
-      when the draw returns the same option;
+    - lines 3-4: if o_run is empty or has terminated, ``o_run = argmax_o Q_mu(s_t, o)``;
+    - lines 6-8: else if ``Q_hat(s_t, o_run) < sum_q mu_bar(s_t, q) Q_mu(s_t, q)``, draw ``o_run ~
+      mu_bar(s_t, .)``; ``interrupted`` is this condition;
     - line 11: ``a_t = argmax_a Q_{o_run}(s_t, a)``.
 
-    With ``initiable`` (the initiation sets ``I_o`` at s_t, paper §3.2) mu_bar ranges over the
-    initiable options only: line 4's argmax, line 7's draw (``mu`` must then be the softmax over
-    them, zero elsewhere: :func:`masked_mu_bar`) and line 6's ``V^{mu_bar}(s_t)`` (the max, or the
-    renormalised mu_bar's average, over initiable options). A running option is not checked
-    against its I_o (it continues outside it until beta or line 6). Where no option is
-    initiable: a running option continues (nothing to interrupt to: line 6 does not fire), and line
-    4 has no option to pick, so the averaging policy acts (``argmax_a Q_avg(s_t, a)``, ``q_avg``
-    needed) with ``option = -1``: o_run stays empty and line 4 is tried again at the next step.
-
-    Returns ``action``, ``option`` (the new o_run, -1 for the averaging fallback) and
-    ``interrupted``, each ``(B,)``.
+    With ``initiable`` (paper §3.2) mu_bar ranges over the initiable options only (``mu`` as
+    :func:`masked_mu_bar`); where none is and an option must be picked, the averaging head acts
+    (``q_avg`` needed) with ``option = -1``. Returns ``action``, ``option`` and ``interrupted``,
+    each ``(B,)``.
     """
     some = None
     q_pick = q_mu
@@ -106,22 +97,10 @@ def masked_mu_bar(q_mu: Tensor, temperature: float, initiable: Tensor | None) ->
 class InterruptionController(Controller):
     """Options with offline interruption (Algorithm 1): reads Q_o, Q_mu and Q_hat heads only.
 
-    Writes ``action``, ``option`` (the option that ran, -1 when the averaging head acted),
-    ``interrupted`` (line 6 fired) and ``("next", "running_option")``. A softmax mu_bar
-    (``heads.softmax_temperature``) draws from the controller's own seeded generator.
-
-    With ``subtasks`` that define initiation sets, mu_bar picks and draws only among the options
-    initiable at s_t (``initiable``, read by :meth:`extra_inputs`), and line 6's V^{mu_bar} ranges
-    over them; where none is initiable and an option must be picked, the averaging head acts and
-    the option is -1 (:func:`interruption_decide_of`). The bundle then needs the averaging head.
-
-    Examples:
-        >>> oracle = WindyOracle("whole_column_windy", train_instances="south")
-        >>> ctrl = InterruptionController(oracle.heads())
-        >>> env = TransformedEnv(WindyGridEnv(4, "whole_column_windy", "north"), ctrl.primer())
-        >>> td = env.rollout(20, ctrl, break_when_any_done=False)
-        >>> td["interrupted"].shape
-        torch.Size([4, 20])
+    Writes ``action``, ``option`` (-1 when the averaging head acted), ``interrupted`` (line 6 fired)
+    and ``("next", "running_option")``. A softmax mu_bar (``heads.softmax_temperature``) draws from
+    the controller's own seeded generator. With ``subtasks`` that define initiation sets the bundle
+    needs the averaging head (:func:`interruption_decide_of`).
     """
 
     name = "interruption"

@@ -1,15 +1,5 @@
-"""Several controllers side by side on consecutive slices of one batched env.
-
-The Wargus Figure 4 protocol (paper §3.5.3; docs/wargus-fig4.md) tests the four methods on the
-same nominal episodes after every trial. :class:`SideBySide` plays them in one batch: slice ``i``
-of the rows is driven by controller ``i``, every head they need runs once over the whole batch
-(:class:`~taskvar_torch.heads.snapshots.HeadValues`), and with frozen head snapshots ``G`` trials'
-test phases run side by side too (:meth:`SideBySide.decide_batch` with ``params``).
-
-Examples:
-    >>> policy = SideBySide([averaging, options, interruption, hierarchy], k)  # doctest: +SKIP
-    >>> env = TransformedEnv(WargusEnv(4 * k), hierarchy.primer())  # doctest: +SKIP
-    >>> td = env.rollout(100, policy, break_when_any_done=False)  # doctest: +SKIP
+"""Several controllers side by side on consecutive slices of one batched env, as the Wargus Figure 4
+protocol tests them (paper §3.5.3; docs/wargus-fig4.md).
 """
 
 from __future__ import annotations
@@ -32,14 +22,9 @@ from taskvar_torch.heads.snapshots import HeadValues
 class SideBySide(TensorDictModuleBase):
     """Several controllers on consecutive equal slices of one batch: one env step serves them all.
 
-    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``. Every head the
-    controllers need runs once over the whole batch (one pass of the shared stacked network, see
-    :class:`HeadValues`), then each controller's decision rule (:meth:`Controller.decide`, the same
-    rule its ``forward`` applies) reads its slice. Traces a controller does not write are filled
-    with -1 (``option``, ``hierarchy_level``) or False (``interrupted``); stateless controllers
-    carry ``running_option = -1``. ``forward`` is the TorchRL module; :meth:`decide_batch` the
-    same decision on plain tensors, optionally for ``G`` groups of rows (``G`` trials' frozen heads
-    side by side, rows ``(g, i, j)``: group, controller, episode).
+    Slice ``i`` (rows ``[i k, (i + 1) k)``) is driven by ``controllers[i]``; every head they need
+    runs once over the whole batch (:class:`HeadValues`). Traces a controller does not write are -1
+    (``option``, ``hierarchy_level``) or False (``interrupted``).
     """
 
     TRACES = ((keys.OPTION, -1), (keys.HIERARCHY_LEVEL, -1), (keys.INTERRUPTED, False))
@@ -82,11 +67,12 @@ class SideBySide(TensorDictModuleBase):
         params: Sequence[torch.Tensor] | None = None,
         thresholds: Mapping[str, torch.Tensor] | None = None,
     ) -> dict[str, torch.Tensor]:
-        """Decisions ``(B,)`` at the state ``td`` (a tensordict with the env's keys) with carried
-        ``running`` ``(B,)``: ``action``, ``next_running`` and the traces. ``params``:
-        :meth:`HeadValues.snapshot` s stacked over ``G`` groups of rows (``None``: live heads);
-        ``thresholds``: the hierarchy's per-row thresholds (:meth:`threshold_rows`; ``None``: the
-        controller's own)."""
+        """Decisions ``(B,)`` at ``td`` with carried ``running (B,)``: ``action``, ``next_running``,
+        traces.
+
+        ``params``: :meth:`HeadValues.snapshot` s stacked over ``G`` groups of rows (``None``: live
+        heads); ``thresholds``: the hierarchy's per-row thresholds (:meth:`threshold_rows`).
+        """
         k, M = self.k, len(self.controllers)
         G = 1 if params is None else params[0].shape[0]
         if self.head_values is not None:
@@ -139,9 +125,9 @@ class SideBySide(TensorDictModuleBase):
     def threshold_rows(
         self, calibrations: Sequence[RobustnessCalibration | None]
     ) -> dict[str, torch.Tensor]:
-        """The hierarchy's per-row thresholds and scales ``(G k, O)`` for ``calibrations`` (one per
-        group of rows; ``None``: the controller's own); empty when some group has none. Built once
-        per test phase and passed to every :meth:`decide_batch` call."""
+        """The hierarchy's per-row thresholds and scales ``(G k, O)`` for one calibration per group
+        (empty when some group has none).
+        """
         c = next((c for c in self.controllers if isinstance(c, HierarchyController)), None)
         if c is None:
             return {}

@@ -1,18 +1,11 @@
-"""What every batched family env shares: the ``EnvBase`` only adds
-specs, seeding and reset around pure dynamics.
+"""What every batched family env shares: specs, seeding and reset around pure dynamics
+(docs/families.md#the-env).
 
-A family env implements TorchRL's own hooks ``_reset``, ``_step`` and (rarely) ``_set_seed``, and
-calls this base's public ones: :meth:`~BatchedFamilyEnv.make_done_spec` in its constructor,
-:meth:`~BatchedFamilyEnv.next_episodes` at the start of ``_reset``,
-:meth:`~BatchedFamilyEnv.replace_state` to install new state and
-:meth:`~BatchedFamilyEnv.finish` to build each returned tensordict. It declares in
-:attr:`~BatchedFamilyEnv.runtime_state` the attributes a checkpoint saves for exact resume
-(docs/families.md, "The env").
-
-Subclasses keep their simulator state in tensors that are replaced, never mutated (tensors handed
-out in a tensordict stay valid), and return *every* sub-environment's data from ``_reset``
-(unchanged where not reset), so a partial reset is merged with a plain update instead of TorchRL's
-whole-batch ``where``.
+A family env implements TorchRL's ``_reset`` and ``_step`` and calls
+:meth:`~BatchedFamilyEnv.make_done_spec`, :meth:`~BatchedFamilyEnv.next_episodes`,
+:meth:`~BatchedFamilyEnv.replace_state` and :meth:`~BatchedFamilyEnv.finish`, and lists in
+:attr:`~BatchedFamilyEnv.runtime_state` what a checkpoint saves. State tensors are replaced, never
+mutated, and ``_reset`` returns every sub-environment's data, so a partial reset is a plain update.
 """
 
 from __future__ import annotations
@@ -102,14 +95,13 @@ class BatchedFamilyEnv(EnvBase):
     def next_episodes(
         self, tensordict: TensorDictBase | None, started: bool
     ) -> tuple[torch.Tensor | None, torch.Tensor]:
-        """Start the next episode of the sub-envs ``_reset`` resets; ``(indices or None, keys)``.
+        """Start the next episode of the sub-envs ``_reset`` resets; returns ``(indices or None,
+        keys)``.
 
-        Call it first in ``_reset(tensordict)``; ``started`` is whether the env has state yet
-        (e.g. ``hasattr(self, "_cell")``). It advances the episode counter of the sub-envs that
-        the ``"_reset"`` mask of ``tensordict`` names (all of them where there is no mask or
-        ``started`` is false) and returns their indices ``(n,)`` (``None`` for all) and each one's
-        episode key ``(n,)``: draw every random quantity of the new episodes from these keys
-        (``taskvar_torch.rng``), and write the new state of those sub-envs only.
+        Call it first in ``_reset(tensordict)`` (``started``: the env has state yet). It advances
+        the episode counter of the sub-envs the ``"_reset"`` mask names (all where there is none)
+        and returns their indices ``(n,)`` and episode keys ``(n,)``: draw the new episodes from
+        these keys only.
         """
         reset = None if tensordict is None else tensordict.get("_reset", None)
         return self.next_episodes_where(reset if started else None)
@@ -128,12 +120,8 @@ class BatchedFamilyEnv(EnvBase):
         return idx, rng.episode_key(self._base_key.index_select(0, idx), episode)
 
     def replace_state(self, state: dict[str, torch.Tensor]) -> None:
-        """Replace simulator state tensors by name (plain attributes, never parameters or buffers).
-
-        Writes the instance dict directly: ``nn.Module.__setattr__`` and ``EnvBase``'s checks cost
-        ~5 us an attribute, a visible share of a step at large N (docs/benchmarks.md). Replace a
-        tensor rather than mutate it (``index_put``, not ``index_put_``): a tensordict already
-        handed out holds it.
+        """Replace simulator state tensors by name (plain attributes, bypassing ``nn.Module``'s
+        checks); replace a tensor rather than mutate it, as handed-out tensordicts hold it.
         """
         self.__dict__.update(state)
 
@@ -151,11 +139,8 @@ class BatchedFamilyEnv(EnvBase):
                 setattr(self, name, state[name[1:]])
 
     def get_extra_state(self) -> dict:
-        """Runtime state for exact resume (``nn.Module`` extra state, so ``env.state_dict()`` has it).
-
-        Holds the seed and :meth:`get_runtime_state` (the per-sub-environment keys, episode
-        counters, instances and simulator state): ``env.load_state_dict(other.state_dict())``
-        continues ``other``'s episodes exactly.
+        """Runtime state for exact resume (the seed and :meth:`get_runtime_state`), so
+        ``env.load_state_dict(other.state_dict())`` continues ``other``'s episodes exactly.
         """
         state = {k: v.clone() for k, v in self.get_runtime_state().items()}
         state["seed"] = self._seed

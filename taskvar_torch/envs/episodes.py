@@ -1,12 +1,6 @@
-"""Batched evaluation episodes: :func:`run_episodes` plays exactly one episode in each of N
-sub-environments with any TorchRL policy (a controller with carried state included) and returns
-per-episode figures. Two calls on envs built with the same ``seed`` are *paired*: the same
-instance, start cell and gust stream per episode (common random numbers, see ``rng.py``); a
-different ``noise_seed`` keeps the instance and start but redraws the gusts (the null comparison).
-
-It sits with the envs, below the controllers' calibration (``factory.training_states``) and the
-experiments, which all play through it; :mod:`taskvar_torch.experiments.evaluation` hands it on
-with the statistics experiments report.
+"""Batched evaluation episodes: :func:`run_episodes` plays one episode in each of N sub-environments
+with any TorchRL policy. Two calls on envs of the same ``seed`` are paired (same instance, start and
+noise per episode, :mod:`taskvar_torch.rng`); another ``noise_seed`` redraws the noise only.
 """
 
 from __future__ import annotations
@@ -31,13 +25,9 @@ def run_episodes(
 ) -> TensorDictBase:
     """Play one episode per sub-environment of ``env`` (batch ``[N]``) with ``policy``.
 
-    Returns a ``[N]`` tensordict: ``return`` (undiscounted), ``length``, ``start`` (first cell),
-    ``("instance", ...)`` (the episode's instance), ``interruptions`` (count of steps whose
-    ``keys.INTERRUPTED`` flag was set, when the policy writes it) and, for each key in
-    ``trace_keys``, a ``(N, T)`` per-step trace (``("trace", key)``) plus ``("trace", "alive")``.
-    ``on_step(td, alive)``: called after each ``env.step`` with the step's tensordict (the state
-    acted in and the policy's outputs at the root, the transition under ``"next"``) and the
-    ``(N,)`` mask of the episodes still running at that step.
+    Returns a ``[N]`` tensordict: ``return``, ``length``, ``start``, ``("instance", ...)``,
+    ``interruptions`` and, per key in ``trace_keys``, a ``(N, T)`` trace ``("trace", key)`` with
+    ``("trace", "alive")``. ``on_step(td, alive)`` is called after each ``env.step``.
     """
     td = env.reset()
     n = env.batch_size[0]

@@ -1,9 +1,6 @@
-"""Input checks shared by the families' envs (the Gymnasium env, :mod:`.gym_env`, and the batched
-envs' start cells): one wording for a malformed action, reset option, instance or start cell.
-
-Every check raises a one-line ``ValueError`` naming the argument, what it must be and what it got,
-and returns the cleaned value, so an env can validate all of ``reset``'s inputs before it changes
-any of its state.
+"""Input checks shared by the families' envs: one wording for a malformed action, reset option,
+instance or start cell. Each raises a one-line ``ValueError`` naming the argument and returns the
+cleaned value, so ``reset`` can validate everything before it changes any state.
 """
 
 from __future__ import annotations
@@ -93,12 +90,10 @@ def check_cell(value: Any, height: int, width: int, name: str = "start") -> tupl
 
 
 def check_as_config(family: str, section: Mapping[str, Any], instances: Any = None) -> None:
-    """A Gymnasium env's constructor arguments checked exactly as a config's ``env.<family>``
-    keys are: the same bounds (the family's ``config_class`` and ``Family.validate``,
-    through :func:`taskvar_torch.config.config_from_dict`) and the same memory estimate of what
-    the env allocates (the family's per-cell observation table, ``config/memory.py``), so
-    ``gym.make`` accepts nothing ``taskvar train`` refuses. A one-line ``ValueError`` names the
-    argument by its config key (``env.windy.horizon`` is the ``horizon`` argument)."""
+    """A Gymnasium env's constructor arguments checked as the config's ``env.<family>`` keys are
+    (the same bounds and memory estimate); a one-line ``ValueError`` names the argument by its
+    config key.
+    """
     from taskvar_torch.config import config_from_dict
     from taskvar_torch.config.memory import check_memory, estimate
 

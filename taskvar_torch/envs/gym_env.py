@@ -1,17 +1,9 @@
 """A family's batched env with one sub-environment, behind Gymnasium's API (the ``taskvar/`` ids).
 
-:class:`FamilyGymEnv` steps the family's :class:`~taskvar_torch.envs.batched.BatchedFamilyEnv`
-with ``num_envs=1`` through TorchRL's own hooks (``_reset``, ``_step``: one sub-environment needs
-none of ``EnvBase.step``'s checks), so with the same seed its episodes are the batched env's
-sub-environment 0's, bit for bit. A family's Gymnasium env is a subclass that supplies data: the
-batched env class, its constructor arguments with their defaults, the reset options it takes,
-and small hooks for ``info``, a pinned reset and (rarely) the observation space or rendering
-(docs/families.md, ``gym_ids``).
-
-Seeding (docs/reliability.md, "Gymnasium seeding"): episode ``k`` after ``reset(seed=s)`` is
-episode ``k`` of sub-environment 0 of the batched env seeded ``s`` (:mod:`taskvar_torch.rng`).
-Without a seed the first reset draws one from Gymnasium's ``np_random`` (entropy) and later resets
-continue that stream, as Gymnasium's own envs do.
+:class:`FamilyGymEnv` steps the family's :class:`~taskvar_torch.envs.batched.BatchedFamilyEnv` with
+``num_envs=1``, so its episodes are the batched env's sub-environment 0's, bit for bit; a family's
+Gymnasium env is a subclass that supplies data and small hooks (docs/families.md). Seeding:
+docs/reliability.md#gymnasium-seeding.
 """
 
 from __future__ import annotations
@@ -33,16 +25,9 @@ from taskvar_torch.envs.batched import BatchedFamilyEnv
 class FamilyGymEnv(gym.Env):
     """One sub-environment of a family's batched env as a Gymnasium env.
 
-    Args:
-        render_mode: ``None`` or one of ``metadata["render_modes"]``.
-        **kwargs: any of :attr:`arguments` (the rest keep their defaults), checked as the config's
-            ``env.<family>`` keys (:func:`~taskvar_torch.envs.gym_checks.check_as_config`), then
-            passed to :attr:`env_class`.
-
-    Attributes:
-        batched: the batched env (``num_envs=1``) it steps.
-        horizon: the steps before truncation.
-        last_action: the last action stepped (``None`` after a reset), for renderers.
+    ``render_mode``: ``None`` or one of ``metadata["render_modes"]``; ``**kwargs``: any of
+    :attr:`arguments`, checked as the config's ``env.<family>`` keys, passed to :attr:`env_class`.
+    Attributes: ``batched`` (the env it steps), ``horizon``, ``last_action`` (for renderers).
     """
 
     env_class: ClassVar[type[BatchedFamilyEnv]]
@@ -118,11 +103,8 @@ class FamilyGymEnv(gym.Env):
         return int(obs) if isinstance(self.observation_space, spaces.Discrete) else obs.numpy()
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
-        """Start the next episode of this env's seed stream; ``options`` pin parts of it.
-
-        Every option and the seed are checked before anything changes: a refused reset leaves the
-        env exactly as it was. ``seed`` is an integer in ``[0, 2**32 - 1]`` (the keyed streams'
-        32-bit keys; a larger one is a ``ValueError``, never wrapped).
+        """Start the next episode of this env's seed stream; ``options`` pin parts of it. Everything
+        is checked before anything changes; ``seed`` is an integer in ``[0, 2**32 - 1]``.
         """
         pins = self.check_options(gym_checks.check_reset_options(options, self.reset_options))
         seed = None if seed is None else rng.check_seed(seed)

@@ -1,9 +1,7 @@
-"""Gymnasium registration of every family's ids (``Family.gym_ids``), done on ``import
-taskvar_torch``: the built-in families' ``taskvar/`` ids and those of installed families alike.
-
-Started as the ``taskvar`` command, only the built-in families' ids are registered at import: an
-installed family's entry point is imported (and its ids registered) when the command asks for the
-family by name, so a broken plugin cannot take down a command that does not use it."""
+"""Gymnasium registration of every family's ids (``Family.gym_ids``) on ``import taskvar_torch``;
+under the ``taskvar`` command an installed family's ids are registered when the command asks for it,
+so a broken plugin cannot break other commands.
+"""
 
 from __future__ import annotations
 

@@ -1,12 +1,6 @@
-"""The memory baselines in ``taskvar eval`` (docs/memory.md): which ones a bundle has, loading
-them beside ``final.pt`` and the one-line refusals.
-
-A bundle folder ``DIR`` holding ``final.pt`` (or ``heads.pt``) supports ``recurrent`` where
-``DIR/recurrent.pt`` exists and ``informed`` where ``DIR/informed.pt`` exists
-(``taskvar train-baselines``); ``taskvar eval --method all`` then plays them after the paper's
-methods on the same paired episodes. Neither is memoryless given the observation alone, so the
-oracle's exact controller chains do not apply: their regret is the exact per-instance optimum
-minus the *sampled* return of the same episode (unbiased; ``regret_sampled`` in metrics.json).
+"""The memory baselines in ``taskvar eval`` (docs/memory.md): which ones a bundle folder has
+(``DIR/recurrent.pt``, ``DIR/informed.pt``, ...), loading them beside ``final.pt`` and the one-line
+refusals. Their regret is the exact optimum minus the *sampled* return (``regret_sampled``).
 """
 
 from __future__ import annotations

@@ -1,16 +1,10 @@
 """``taskvar eval``: every method of a trained bundle, side by side, on test distributions and
 shifts of any family, with the bundle's controller settings or others (docs/evaluation.md).
 
-:func:`eval_bundle` loads a bundle (``taskvar train``'s ``final.pt``, an experiment repetition's, or
-an exported ``heads.pt``), builds each method's controller with the bundle's settings
-(``factory.make_method_controller``; the hierarchy's thresholds calibrated on the bundle's
-*training* distribution, never on the test one) and plays the same episodes with every method:
-sub-environment ``i`` of every method's env has the same seed and global index, so it draws the
-same instance, start and random streams (paired episodes, ``rng.py``). Each test point
-(``experiments/shift.py``) gives mean return with a 95% CI, interruptions per episode and the
-control split per option; on small windy layouts also the exact expected return of each learnt
-controller given each episode's instance and start (``oracle/``), beside the sampled one, and
-its regret against the exact per-instance optimum (an agent that knows the instance).
+:func:`eval_bundle` builds each method's controller with the bundle's settings (thresholds
+calibrated on the *training* distribution) and plays the same paired episodes with every method;
+each test point gives mean return with a 95% CI, interruptions and the control split and, where the
+family has an oracle, exact returns and regret against the per-instance optimum.
 """
 
 from __future__ import annotations
@@ -107,29 +101,17 @@ def eval_bundle(
     by_frames: bool = False,
     controller: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Evaluate the bundle at ``checkpoint`` with ``method`` (``all``, one, or a comma list) on
-    the named test distribution ``test`` (``None``: the family's first) with ``shifts``
-    (``KEY=V`` or ``KEY=V1,V2,..``: a shift curve); no retraining. ``seed`` defaults to the bundle's
-    ``seed + 1`` (the first test run of the experiments). Writes ``metrics.json``,
-    ``episodes.csv`` and ``eval.png`` into ``out_dir`` when given, like every results folder
-    (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, written in a staging folder and
-    swapped in whole; a folder already holding results is refused unless ``overwrite``, one
-    holding other files always, and so is an ``out_dir`` holding ``checkpoint``); returns the
-    metrics.
+    """Evaluate the bundle at ``checkpoint`` with ``method`` (``all``, one, or a comma list) on test
+    distribution ``test`` (``None``: the family's first) with ``shifts``; no retraining.
 
-    ``exact``: the exact per-episode returns and regret where the family has an oracle; ``None``
-    (default): where they are cheap (an oracle may bound the distinct instances it solves per
-    point, ``max_exact_solves``: Taxi's with continuous rain cost seconds each), else skipped with
-    a note (``metrics.json`` ``exact_skipped``); ``True``: always; ``False``: never.
-
-    ``by_frames``: also each memoryless method's exact regret on every heads snapshot of the run
-    (``train.heads_every``) on the same episodes (``experiments/regret_frames.py``): the
-    ``metrics.json`` key ``regret_by_frames``, ``regret_by_frames.csv`` and ``.png``.
-
-    ``controller``: controller settings changed from the bundle's without retraining
-    (``train.robustness_threshold=fixed``, ...: ``config/controller.py`` lists them; any other key
-    is a one-line error); ``metrics.json`` records the settings played (``controller``) and
-    these changes (``controller_overrides``)."""
+    ``seed`` defaults to the bundle's ``seed + 1``. Writes ``metrics.json``, ``episodes.csv`` and
+    ``eval.png`` into ``out_dir`` when given (a staged
+    :class:`~taskvar_torch.run_folder.ResultsFolder`; ``overwrite``); returns the metrics.
+    ``exact``: exact returns and regret always (``True``), never (``False``) or where cheap
+    (``None``, else noted in ``exact_skipped``). ``by_frames``: also ``regret_by_frames`` over the
+    run's heads snapshots. ``controller``: controller settings changed from the bundle's
+    (docs/controllers.md), recorded in ``controller_overrides``.
+    """
     controller = check_controller_overrides(controller)  # one-line errors before any loading
     if out_dir is None:
         return _evaluate(

@@ -1,9 +1,5 @@
 """Learning-curve statistics (paper §3.5.3's Figure 4 and any curve over trials): smoothing, the
 "final" performance and the trials a curve takes to reach a fraction of it.
-
-Examples:
-    >>> trials_to_fraction(np.array([0.0, 1.0, 2.0, 2.0]))  # window 1, final 2.0
-    (3, True)
 """
 
 from __future__ import annotations

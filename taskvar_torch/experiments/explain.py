@@ -59,11 +59,8 @@ def _wrap(text: str, indent: str = "  ") -> str:
 
 def explain_table(metrics: dict[str, Any]) -> str:
     """What :func:`format_table`'s table shows, in words derived from its numbers (``taskvar eval
-    --explain``, the end of ``make demo``): what each column is; on one test point, which methods
-    played alike and why where the table says it, how the other memoryless methods stand against
-    the best one, whether memory (``recurrent``) is better or worse than the best memoryless
-    method with the 95% CIs apart, where the ceiling (``informed``) stands; the plots; where to
-    read further. A statement is made only where the numbers support it."""
+    --explain``); a statement is made only where the numbers support it.
+    """
     points, episodes = metrics["points"], metrics["episodes"]
     rows = [r for p in points for r in p["methods"].values()]
     sampled = sorted(

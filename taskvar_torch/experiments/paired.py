@@ -66,11 +66,10 @@ def parse_methods(
 
 
 def episode_seed(cfg: Config, test: str, seed: int | None) -> int:
-    """The seed of the test episodes (docs/evaluation.md, Seed): ``seed``, by default the
-    bundle's ``seed + 1`` (the experiments' first test run); a held-out distribution plays its
-    sealed seed only, drawn apart for each training seed
-    (:func:`~taskvar_torch.families.sealed_episode_seed` of the sealed seed and ``cfg.seed``: each
-    bundle its own episodes, the same for all its methods). Another ``seed`` is a one-line error."""
+    """The seed of the test episodes (docs/evaluation.md): ``seed``, by default the bundle's ``seed
+    + 1``; a held-out distribution plays only its sealed seed, drawn apart per training seed
+    (another ``seed`` is a one-line error).
+    """
     if seed is not None:
         seed = rng.check_seed(seed, "--seed")  # 32-bit keys: a larger seed is refused, not wrapped
     sealed = family(cfg).tests[test].seed
@@ -152,13 +151,12 @@ def exact_regret(
     start: np.ndarray,
     optimum: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None, dict[str, float] | None]:
-    """A memoryless controller's exact expected return per episode (``exact_episode_returns``)
-    and its regret against the exact per-instance optimum (docs/evaluation.md; paper §3.3.1).
+    """A memoryless controller's exact expected return per episode and its regret against the exact
+    per-instance optimum (paper §3.3.1), ``optimum`` reused where already known.
 
-    ``optimum``: the episodes' exact optimal returns where already known (paired episodes: the
-    same for every method), else solved here where the oracle has ``optimal_return``. Returns
-    the exact returns, the optimum (``None`` without ``optimal_return``) and ``regret_mean`` with
-    its ``regret_ci95`` (``None`` without an optimum)."""
+    Returns the exact returns, the optimum and ``regret_mean`` with ``regret_ci95`` (``None``
+    without an optimum).
+    """
     exact_r = exact_episode_returns(oracle, ctrl, cfg, instance, start)
     if optimum is None and hasattr(oracle, "optimal_return"):
         optimum = optimal_episode_returns(oracle, instance, start)
@@ -179,20 +177,14 @@ def play(
     steps: Sequence[str] = (),
 ) -> dict[str, np.ndarray]:
     """Play ``episodes`` episodes (global indices ``0..episodes-1``) of ``point`` with ``policy``:
-    the one episode player of ``taskvar eval``, Figure 2, the scale experiment and the memory
-    baselines (docs/evaluation.md, Seed).
+    the one episode player of ``taskvar eval``, Figure 2, the scale experiment and the baselines.
 
-    ``policy``: a controller, a baseline or any TorchRL policy, played with its ``primer`` where
-    it has one (TorchRL's ``RandomPolicy`` draws over each batch's own action spec). Sub-env ``i``
-    of a batch is global episode ``lo + i`` of envs seeded ``seed``, so the episodes do not depend
-    on ``batch_size``, and every policy played at the same ``seed`` meets the same instance, start
-    and noise per episode (paired; another ``noise_seed`` redraws the noise only).
-
-    Returns per-episode ``return``, ``length``, ``interruptions``, the scalar instance fields as
-    ``instance_<field>``, ``start`` (where the family has cells) and, for option controllers,
-    ``steps_<o>`` (steps option ``o`` held control). ``steps``: keys also traced at each step,
-    as ``step_<key>`` ``(episodes, horizon)`` beside ``step_alive`` (padded past each batch's end:
-    per-step regret, where interruption fired)."""
+    Sub-env ``i`` of a batch is global episode ``lo + i`` of envs seeded ``seed``, so every policy
+    meets the same instance, start and noise per episode whatever ``batch_size``
+    (docs/evaluation.md). Returns per-episode ``return``, ``length``, ``interruptions``,
+    ``instance_<field>``, ``start`` and ``steps_<o>``; ``steps``: keys also traced per step as
+    ``step_<key> (episodes, horizon)`` beside ``step_alive``.
+    """
     parts: dict[str, list[np.ndarray]] = {}
     option_level = isinstance(policy, Controller) and policy.name != "averaging"
     O = len(policy.heads.option_names) if option_level else 0  # noqa: E741

@@ -46,11 +46,8 @@ def plot_sorted_differences(
     label: str = "interruption - averaging",
     exact_runs: Sequence[np.ndarray] = (),
 ) -> Path:
-    """Paper Figure 2: per-episode return differences sorted ascending, one curve per run.
-
-    ``null_runs`` (averaging against an independent rollout of itself, same instances and starts)
-    are drawn dashed in grey: the spread that chance alone produces. ``exact_runs`` (the oracle's
-    exact expected-return differences of the same episodes) are drawn dotted in black.
+    """Paper Figure 2: per-episode return differences sorted ascending, one curve per run;
+    ``null_runs`` dashed grey (chance alone), ``exact_runs`` dotted black.
     """
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(7.5, 4.5))

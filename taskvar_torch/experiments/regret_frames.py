@@ -1,14 +1,7 @@
-"""Regret against training frames: how far each memoryless method's learnt controller stays from
-an agent that knows the instance as training goes on (docs/memory.md "Regret
-against training frames", docs/evaluation.md; the per-instance optimum of paper §3.3.1).
-
-Training saves the heads every ``train.heads_every`` frames (``heads/heads_<frames>.pt`` beside
-``final.pt``, training/run_state.py). :func:`regret_by_frames` plays the test point's paired episodes once (the
-same instances and starts for every snapshot and method: one seed, the same global indices) and
-gives, for each snapshot and the final heads, each memoryless method's exact expected return per
-episode under the family's exact oracle and its regret against the exact per-instance optimum with
-a 95% CI: :func:`taskvar_torch.experiments.paired.exact_regret`, the numbers ``taskvar eval``
-reports for one bundle. Writes ``regret_by_frames.csv`` and ``regret_by_frames.png``.
+"""Regret against training frames: each memoryless method's exact regret on every heads snapshot of
+a run (``train.heads_every``), on the same paired episodes
+(docs/memory.md#regret-against-training-frames; paper §3.3.1). Writes ``regret_by_frames.csv`` and
+``regret_by_frames.png``.
 """
 
 from __future__ import annotations
@@ -118,19 +111,14 @@ def regret_by_frames(
     plots: bool = True,
     controller: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Each memoryless method's mean exact regret with its 95% CI on each heads snapshot of a run
-    and on its final heads, all on the same paired test episodes (``test`` with fixed ``shifts``,
-    ``seed`` as ``taskvar eval``'s).
-
-    ``checkpoint``: a run folder or its ``final.pt``. ``controller``: controller settings applied
-    to every snapshot (as ``taskvar eval``'s). ``exact``: as ``taskvar eval``'s (``False``
-    is refused; ``None``: a one-line error where the oracle's exact returns are too dear).
+    """Each memoryless method's mean exact regret (95% CI) on each heads snapshot and the final
+    heads, all on the same paired test episodes (``test``, ``shifts``, ``seed``, ``controller`` and
+    ``exact`` as ``taskvar eval``'s; ``exact=False`` is refused).
 
     Returns ``{"test", "seed", "episodes", "methods", "optimum_mean_return", "points": [{"frames",
-    "updates", "bundle", "methods": {m: {"regret_mean", "regret_ci95", "exact_mean_return"}}}]}``,
-    the points in frame order (the final heads last); writes ``regret_by_frames.csv`` and
-    ``regret_by_frames.png`` into ``out_dir`` when given (a folder its caller holds:
-    ``taskvar eval --by-frames``'s :class:`~taskvar_torch.run_folder.ResultsFolder`)."""
+    "updates", "bundle", "methods": {m: {"regret_mean", "regret_ci95", "exact_mean_return"}}}]}`` in
+    frame order; writes the CSV and PNG into ``out_dir`` (held by the caller) when given.
+    """
     if int(episodes) < 1:
         raise ValueError(f"--episodes must be >= 1, got {episodes}")
     if exact is False:

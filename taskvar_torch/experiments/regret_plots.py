@@ -1,13 +1,6 @@
-"""Regret against the hidden parameter: where in the task family each method loses to an agent that
-knows the instance (docs/memory.md, docs/evaluation.md).
-
-From the per-episode rows of ``taskvar eval`` (``episodes.csv``: the hidden instance's fields
-``instance_<name>``, the exact per-instance optimum ``optimum_return`` of each paired episode, and
-each method's ``exact_return``, or its sampled ``return`` for the baselines, which have no exact
-value), :func:`regret_by_instance` groups the episodes by one hidden field: a continuous one (windy
-``p``, Taxi's rain) in equal-count bins, a categorical one (windy ``direction``) by value; and
-gives each method's mean regret per group with a 95% CI. :func:`plot_regret` draws it
-(``regret.png``).
+"""Regret against the hidden parameter: each method's mean regret (95% CI) per group of episodes by
+one hidden field of ``taskvar eval``'s ``episodes.csv`` (equal-count bins or values;
+docs/evaluation.md); :func:`plot_regret` draws ``regret.png``.
 """
 
 from __future__ import annotations

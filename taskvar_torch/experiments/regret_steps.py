@@ -1,14 +1,6 @@
-"""Regret against the step within the episode: when in an episode each method loses to an agent
-that knows the instance (the paper's "jump start" against memory's warm-up;
-docs/evaluation.md).
-
-``taskvar eval`` traces the cell and the action of every step of every paired episode; a family's
-exact oracle with ``step_regret`` (windy, Taxi) gives each step's instantaneous regret
-``V*_{H-t}(s_t) - Q*_{H-t}(s_t, a_t)`` under the episode's own instance (the per-instance optimum's
-values with ``H - t`` steps to go). :func:`regret_by_step` averages it per step over all episodes (an
-ended episode adds 0, so the steps' means sum to the method's mean regret, by the
-performance-difference identity) and over the live ones; :func:`plot_regret_by_step` draws it
-(``regret_by_step.png``).
+"""Regret against the step within the episode (docs/evaluation.md): each step's instantaneous regret
+``V*_{H-t}(s_t) - Q*_{H-t}(s_t, a_t)`` from the family's oracle (``step_regret``), averaged per step
+(:func:`regret_by_step`) and drawn (:func:`plot_regret_by_step`, ``regret_by_step.png``).
 """
 
 from __future__ import annotations
@@ -72,14 +64,11 @@ def episode_step_regret(
 
 def regret_by_step(per_method: Mapping[str, np.ndarray], alive: Mapping[str, np.ndarray]) -> dict:
     """Per method, from its ``(N, T)`` step regrets and live masks: ``{"steps": T, "methods": {m:
-    {"mean": [...], "ci95": [...], "live": [...], "live_mean": [...], "total": float}}}``.
+    {"mean", "ci95", "live", "live_mean", "total"}}}``.
 
-    ``mean[t]``: the mean over all ``N`` episodes of step ``t``'s regret (an ended episode adds 0)
-    with its 95% CI; its sum over steps, ``total``, is the mean over episodes of each episode's
-    summed step regret: the method's regret in expectation over the gusts (exactly, where they are
-    deterministic). ``live[t]``: the fraction of episodes still playing at step ``t``;
-    ``live_mean[t]``: the mean regret over those (``None`` where none is). Steps after every
-    method's last live step are dropped."""
+    ``mean[t]`` averages step ``t`` over all episodes (an ended one adds 0), so ``total`` is the
+    method's regret; ``live[t]`` is the fraction still playing, ``live_mean[t]`` their mean regret.
+    """
     T = 0
     for a in alive.values():
         steps = np.flatnonzero(np.asarray(a).any(0))

@@ -18,10 +18,9 @@ from taskvar_torch.io import atomic_write
 @functools.lru_cache(maxsize=1)
 def code_version() -> dict[str, Any]:
     """The code a results folder was computed with, for ``metrics.json``'s ``code``
-    (docs/report.md, one commit per table): the package ``version`` and, where the package runs
-    from a git checkout, its ``commit`` (the full hash, with ``-dirty`` appended where tracked
-    files differ from it); ``commit`` is ``None`` for an installed package or without git.
-    ``taskvar report`` refuses rows of different commits unless told (``--mixed-commits``)."""
+    (docs/report.md): the package ``version`` and its git ``commit`` (``-dirty`` where tracked files
+    differ; ``None`` outside a checkout).
+    """
     import taskvar_torch
 
     root = Path(taskvar_torch.__file__).resolve().parents[1]

@@ -1,22 +1,9 @@
 """Test distributions and shifts of a trained bundle's family (``taskvar eval --test --shift``).
 
-A *test point* is what one evaluation plays: the bundle's config with some ``env`` keys changed,
-and an instance distribution. :func:`shift_points` builds them from a named test distribution of
-the family (``families/``: ``Family.tests``, listed in docs/evaluation.md) and ad-hoc shifts:
-
-- ``env.KEY=VALUE``: any ``env`` config key (``env.wargus.patrol_speed=1.0``,
-  ``env.horizon=50``), validated like a config file (an unknown key or a bad value is a one-line
-  error naming it);
-- ``env.instances.FIELD=VALUE``: a field of the instance distribution (windy: ``p`` for one wind
-  strength, ``p_low``, ``p_high``, ``directions`` as ``north+south``; Wargus: ``seeds`` as
-  ``0+1+2``; Taxi: ``rainy_probability``...), its value read as YAML reads a scalar (a number,
-  ``true``/``false``, else the string), validated by the family's ``make_instances``;
-- ``KEY=V1,V2,V3`` sweeps one key: one test point per value (the shift curve).
-
-Examples:
-    >>> shifts = [parse_shift("env.instances.p=0.2,0.5,0.8")]  # doctest: +SKIP
-    >>> [p.label for p in shift_points(cfg, "train", shifts)]  # doctest: +SKIP
-    ['env.instances.p=0.2', 'env.instances.p=0.5', 'env.instances.p=0.8']
+A test point is the bundle's config with some ``env`` keys changed and an instance distribution;
+:func:`shift_points` builds them from a named test distribution and shifts ``env.KEY=VALUE``,
+``env.instances.FIELD=VALUE`` or ``KEY=V1,V2,V3`` (a shift curve), each validated
+(docs/evaluation.md#the---shift-grammar).
 """
 
 from __future__ import annotations

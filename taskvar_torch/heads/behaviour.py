@@ -1,25 +1,10 @@
-"""The exploration behaviour that generates the one stream of experience.
+"""The exploration behaviour that generates the one stream of experience every head learns from.
 
-Every head learns off-policy from the same transitions, so the behaviour must visit what each head
-needs: the averaging policy's own trajectories, and each option's trajectories from everywhere
-(for Q_o, and for the intra-option updates of Q_mu and Q_hat, which use the transitions where the
-action is pi^o's). At every reset a sub-environment draws its *behaviour mode* for the episode:
-
-* with probability ``1 - option_prob``: the epsilon-greedy averaging policy (``behaviour = -1``);
-* otherwise: options, as the options controller runs them (paper §3.2): an option picked
-  epsilon-greedily from mu_bar among those initiable, run until its termination beta_o, then
-  picked again (``behaviour = o``). With ``option_coverage = c`` a pick is uniform over the
-  initiable options with probability ``max(epsilon, c)`` rather than epsilon, so an option mu_bar
-  does not prefer still runs its own trajectories once epsilon has decayed (docs/scale.md).
-
-Actions are the greedy actions of the chosen head, then TorchRL's ``EGreedyModule`` replaces them
-by uniform ones with probability epsilon (scheduled by the trainer). The mode is carried in the
-tensordict under ``"behaviour"`` like a recurrent state: the collector keeps the policy's outputs in
-its carrier from step to step, and ``is_init`` (TorchRL ``InitTracker``) marks new episodes. Random
-draws use the global torch generator, seeded and checkpointed by the trainer; or, with
-``generators``, one ``torch.Generator`` per run of a batch (the Figure 4 protocol's repetitions,
-docs/seeds.md): block ``s`` of the rows draws from ``generators[s]`` only, in the same order, so a
-run's behaviour is the same whichever runs share its batch.
+At every reset a sub-environment draws its *behaviour mode*: with probability ``1 - option_prob``
+the epsilon-greedy averaging policy (``behaviour = -1``), else options as the options controller
+runs them (paper §3.2), an option picked epsilon-greedily from mu_bar among the initiable ones
+(uniformly with probability ``max(epsilon, option_coverage)``; docs/scale.md) and run until beta_o
+(``behaviour = o``). The mode is carried in the tensordict like a recurrent state.
 """
 
 from __future__ import annotations
@@ -51,25 +36,19 @@ class BehaviourPolicy(TensorDictModuleBase):
             option mode.
         subtasks: initiation and termination of the options.
         action_spec: the env's action spec (``Categorical``), for uniform exploratory actions.
-        option_prob: probability that an episode is run by options rather than the averaging policy.
+        option_prob: probability that an episode is run by options.
         eps: initial epsilon.
-        root_policy: ``"averaging"``: the composition hierarchy's root option acts by the averaging
-            head (its policy is the full-task averaging policy, paper §3.4.2); ``"option"``: by its
-            own option head.
+        root_policy: the composition hierarchy root's head, ``"averaging"`` or ``"option"``
+            (§3.4.2).
         option_coverage: least probability that an option pick is uniform over the initiable
-            options (regardless of mu_bar and epsilon).
-        stacked: read every head from one pass of their shared ``StackedMLP`` (where they have
-            one: :class:`~taskvar_torch.heads.snapshots.HeadValues`, the same values); ``False``:
-            run each head on its own (the slower reference, ``benchmarks/wargus_trial.py``).
-        generators: ``S`` generators, one per run: the rows are ``S`` equal blocks, block ``s``
-            drawing every random number (option picks, exploration, option episodes, the
-            epsilon-greedy replacement) from ``generators[s]``; the epsilon-greedy step is then this
-            module's own (the same rule as ``EGreedyModule``: a uniform action where a uniform draw
-            is below epsilon). ``None``: the global stream and ``EGreedyModule``.
-        compile: run the heads and the choice of action and mode (everything but the random
-            draws, which stay eager and in their order) through ``torch.compile``
-            (``train.compile``; :class:`~taskvar_torch.compiling.Compiled`): the same bits
-            (tested), fewer ops per step.
+            options.
+        stacked: read every head from one pass of their ``StackedMLP`` (:class:`HeadValues`);
+            ``False``: each head on its own.
+        generators: ``S`` generators, one per run of equal row blocks, each block drawing every
+            random number from its own (docs/seeds.md); ``None``: the global stream and
+            ``EGreedyModule``.
+        compile: run the heads and the choice of action and mode through ``torch.compile`` (the same
+            bits; the random draws stay eager).
     """
 
     def __init__(

@@ -1,19 +1,6 @@
-"""The one interface controllers see: a bundle of heads (docs/design.md, The ``Heads`` interface).
-
-Each head is a ``TensorDictModule`` with explicit keys and shapes:
-
-=============  =============================  ==============  =============================
-head           function (paper)               out key         shape
-=============  =============================  ==============  =============================
-averaging      Q_avg(s, a)  (§3.1)            action_value    (B, A)
-options        Q_o(s, a)    (§3.2)            option_action_value (B, O, A)
-switching      Q_mu(s, o)   (§3.2, mu_bar)    option_value    (B, O)
-max_value      Q_hat(s, o)  (§3.3, Def. 1)    max_value       (B, O)
-robustness     R(o, s, a)   (§3.4.3)          robustness      (B, O, A)
-=============  =============================  ==============  =============================
-
-Trained networks (``heads/``) and the exact oracle's tables (``oracle/``) both build a
-:class:`Heads`, so the same controller code runs on either.
+"""The one interface controllers see: a bundle of heads, each a ``TensorDictModule`` with explicit
+keys and shapes (docs/design.md#the-heads-interface). Trained networks and the oracle's tables both
+build a :class:`Heads`.
 """
 
 from __future__ import annotations
@@ -44,10 +31,10 @@ def with_root_row(q_options: torch.Tensor, q_avg: torch.Tensor, root: int) -> to
 
 
 def with_given_policies(q_options: torch.Tensor, given: torch.Tensor | None) -> torch.Tensor:
-    """``Q_o`` ``(B, O, A)`` as the options' policies see it: where option o acts by a given
-    policy (``given`` ``(B, O)`` its action, -1 for a learnt option), every other action's value is
-    the dtype's lowest, so ``argmax`` is the given action and ``max`` its value ``Q_o(s, pi_o(s))``
-    (the value of following the given controller); ``given=None``: ``q_options`` itself."""
+    """``Q_o (B, O, A)`` where option o acts by a given policy (``given (B, O)`` its action, -1 for
+    a learnt option): every other action's value is the dtype's lowest; ``given=None``:
+    ``q_options``.
+    """
     if given is None:
         return q_options
     hot = torch.nn.functional.one_hot(given.clamp_min(0), q_options.shape[-1]).bool()  # (B, O, A)

@@ -1,18 +1,10 @@
 """Instance-balanced replay: keep each (observation, action) once per episode (paper §3.1).
 
-The averaging values are those of the *mean MDP*: at (s, a) the next state is distributed as the
-instance average ``E_m T_m(s, a, .)``. Replaying every transition instead weights each instance by
-how often it *revisits* (s, a), and in the windy family the worst instances revisit the most: with
-a strong gust against the agent at a windy exit, an agent that tries the exit is pushed back and
-tries again until the horizon, so a single p ~ 1 episode contributes ~100 samples of "pushed back"
-to one (s, a), against one sample of "went through" per calm episode. Q-learning on that data
-learns values several steps too pessimistic near the exits (and wrong interruption decisions).
-
-:class:`FirstVisitFilter` keeps only the first visit of each (observation, action) within an
-episode, so every episode (instance) contributes at most one sample per pair: at (s, a) the replay
-then mixes instances by the prior (times the chance of reaching (s, a)), as the mean MDP does.
-Pairs are hashed into ``buckets`` flags per environment; a hash collision within one episode drops
-a transition (probability about ``episode_length / buckets``), which only thins the data.
+The averaging values are those of the mean MDP, which mixes instances by the prior at every (s, a);
+replaying every transition weights instances by how often they revisit (s, a) (a windy gust pushing
+the agent back yields ~100 samples in one episode). :class:`FirstVisitFilter` keeps each pair's
+first visit per episode, hashed into ``buckets`` flags per environment (a collision drops a
+transition, which only thins the data).
 """
 
 from __future__ import annotations
@@ -25,13 +17,8 @@ from taskvar_torch import keys, rng
 
 
 class FirstVisitFilter(nn.Module):
-    """Per-environment first-visit flags over hashed (observation, action) pairs.
-
-    Args:
-        num_envs: batch size N of the collector.
-        obs_dim: observation width D.
-        buckets: hash buckets per environment (memory ``N * buckets`` bools).
-        device: torch device.
+    """Per-environment first-visit flags over hashed (observation, action) pairs, ``num_envs x
+    buckets`` bools.
     """
 
     def __init__(
@@ -72,9 +59,9 @@ class FirstVisitFilter(nn.Module):
 
     @torch.no_grad()
     def visit(self, obs: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-        """``(N,)`` first-visit mask of one step (observation (N, D), action (N,)) of every
-        environment, within their current episodes (updates the flags; :meth:`clear` starts new
-        episodes everywhere)."""
+        """``(N,)`` first-visit mask of one step (observation ``(N, D)``, action ``(N,)``); updates
+        the flags.
+        """
         rows = torch.arange(obs.shape[0], device=obs.device)
         h = self._hash(obs, action)  # (N,)
         keep = ~self.seen[rows, h]
@@ -85,16 +72,9 @@ class FirstVisitFilter(nn.Module):
     def visit_steps(
         self, obs: torch.Tensor, action: torch.Tensor, is_init: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """:meth:`visit` of ``T`` consecutive steps at once: ``(T, N)`` first-visit mask of
-        observations ``(T, N, D)`` and actions ``(T, N)``; ``is_init`` ``(T, N)``: a new episode
-        starts at that step (its flags cleared first; ``None``: no episode starts among them).
-
-        Equal to ``T`` calls of :meth:`visit` in step order, each after clearing the flags of the
-        environments whose episode starts there (masks and flags; tested): a pair is kept where
-        it is the earliest of its (environment, episode, bucket) among these steps and, in an
-        episode that began before them, its bucket was not flagged already. One hash of all
-        ``T N`` pairs and a sort, instead of ``T`` calls and ``T`` clears of the ``N x buckets``
-        flags.
+        """:meth:`visit` of ``T`` consecutive steps at once: ``(T, N)`` mask of observations ``(T,
+        N, D)`` and actions ``(T, N)``; ``is_init (T, N)`` clears an environment's flags where its
+        episode starts. Equal to ``T`` calls of :meth:`visit` (tested), by one hash and a sort.
         """
         T, N = action.shape
         h = self._hash(obs.reshape(T * N, -1), action.reshape(-1)).view(T, N)  # (T, N)

@@ -1,15 +1,7 @@
 """What the ``informed`` and ``blind`` baselines read of the hidden instance (docs/memory.md).
 
-The ``informed`` baseline (:mod:`taskvar_torch.training.baselines`, a DQN agent of its own) reads the
-family's features ``z`` of the hidden instance beside the observation
-(``Family.informed_features``, else ``Family.instance_features``: windy ``(p, direction)``, Taxi
-the rain and the fickle passenger, Wargus every item's and patrol's position); ``blind`` reads
-zeros of the same width. :func:`informed_features` says what a family gives.
-
-:class:`ResidualInformedQ` is the form of ``informed.pt`` bundles written while the paper's
-learner trained the informed head as a residual on the averaging head (``Q_avg.detach() +
-Delta``, one more head on the same samples, never acting): measured below the averaging policy on
-Wargus and MiniGrid, it was removed (docs/changelog.md); such bundles still evaluate.
+:func:`informed_features` says what a family gives. :class:`ResidualInformedQ` evaluates old
+residual ``informed.pt`` bundles (``Q_avg.detach() + Delta``, a learner head since removed).
 """
 
 from __future__ import annotations
@@ -33,10 +25,10 @@ INSTANCE_FEATURES = "instance_features"
 
 
 def informed_features(cfg: Config) -> tuple[int, Callable[[TensorDictBase], torch.Tensor]]:
-    """``(dim, features)`` the informed head reads for the config's family: its
-    ``Family.informed_features(cfg)`` (Wargus: item and patrol positions, a dimension set by the
-    config), else ``(instance_dim, instance_features)`` (windy, Taxi); a one-line ``ValueError``
-    where the family gives neither (then the informed head is unavailable)."""
+    """``(dim, features)`` the informed baseline reads for the config's family
+    (``Family.informed_features``, else ``instance_features``); a one-line ``ValueError`` where the
+    family gives neither.
+    """
     from taskvar_torch.contract import family
 
     fam = family(cfg)
@@ -65,9 +57,7 @@ def family_instance_keys(cfg: Config) -> tuple[str, ...]:
 
 
 class ResidualInformedQ(nn.Module):
-    """The evaluation form of an old residual informed bundle: ``Q_inf(s, z, .) = base(s) +
-    delta([s; z])``, ``base`` a plain copy of the averaging head's network and ``delta`` the
-    informed head's correction (``(..., D), (..., F) -> (..., A)``)."""
+    """An old residual informed bundle: ``Q_inf(s, z, .) = base(s) + delta([s; z])``."""
 
     def __init__(self, base: nn.Module, delta: nn.Module):
         super().__init__()

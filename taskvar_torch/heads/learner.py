@@ -1,26 +1,13 @@
-"""The shared replay/update loop of every head: one sample, every head, one step.
+"""The shared replay/update loop of every head: one sample, every head, one step (paper §3.1-3.4).
 
 :class:`MultiHeadLoss` is a TorchRL ``LossModule``: from one sampled batch of raw transitions it
-relabels the targets of every head (:mod:`taskvar_torch.heads.relabel`), runs each online network
-once on ``[s; s']`` and each target network once on ``s'``, and returns every head's loss. It keeps
-one target network per head, registered the TorchRL way (``<head>_params`` /
-``target_<head>_params``), so TorchRL's ``SoftUpdate``/``HardUpdate`` update all of them.
-
-Why not one ``DQNLoss`` per head: ``DQNLoss`` assumes one ``(B, A)`` value network, one reward and
-one done flag; the option heads need per-option rewards, terminations and initiation masks, the
-switching and max-value heads intra-option masks and a mu_bar continuation, the max-value head an
-expectile loss. Each head's TD target is the double-DQN target with a target network, written out in
-its module; the averaging head's loss is checked equal to ``DQNLoss(double_dqn=True)`` in the tests.
-Fusing buys speed (``benchmarks/learner_throughput.py``): one buffer sample, one relabelling, two
-network calls per head instead of three, one backward and one optimiser step for all heads, and
-losses accumulated on the device (no host sync per step).
-
-:class:`MultiHeadLearner` adds the optimiser (fused Adam over every head, gradient norm clipped per head),
-the target updater (TorchRL ``SoftUpdate`` with a foreach step, or ``HardUpdate``), optionally a
-Polyak average of the weights for evaluation (``eval_ema_tau``), and
-device-side loss sums for logging (:meth:`MultiHeadLearner.pop_losses`); with ``compile=True``
-(``train.compile``) the losses and their backward run through ``torch.compile``
-(:class:`CompiledLosses`).
+relabels every head's targets (:mod:`taskvar_torch.heads.relabel`), runs each online network once on
+``[s; s']`` and each target network once on ``s'``, and returns every head's loss; its target
+networks are registered the TorchRL way (``target_<head>_params``) for ``SoftUpdate`` /
+``HardUpdate``. Each head's TD target is the double-DQN target, written out in its module (one
+``DQNLoss`` cannot hold per-option rewards, masks and the expectile loss); the averaging head's loss
+is tested equal to ``DQNLoss(double_dqn=True)``. :class:`MultiHeadLearner` adds the optimiser,
+target updates, an optional Polyak average for evaluation and device-side loss sums.
 """
 
 from __future__ import annotations
@@ -99,17 +86,12 @@ class MultiHeadLoss(LossModule):
     Args:
         heads: the online heads (trained in place).
         subtasks: the family's options, used to relabel transitions.
-        settings: the run's ``train`` config (``Config.train``), whose discounts, double-Q,
-            targets, expectile level, mu_bar, max-value estimator and matmul dtype the losses
-            read.
-        instance_features: the family's features of the hidden instance (``Family
-            .instance_features``), read offline by the ``instance`` max-value estimator only.
+        settings: the run's ``train`` config, whose discounts, double-Q, targets, expectile level,
+            mu_bar, max-value estimator and matmul dtype the losses read.
+        instance_features: the family's instance features, read by the ``instance`` max-value
+            estimator only.
 
-    Returns (``forward``): a ``TensorDict`` of scalar losses ``loss_<head>`` for the heads present.
-
-    Examples:
-        >>> loss = MultiHeadLoss(heads, subtasks, cfg.train)  # doctest: +SKIP
-        >>> loss(buffer.sample())["loss_averaging"]  # doctest: +SKIP
+    ``forward`` returns a ``TensorDict`` of scalar losses ``loss_<head>`` for the heads present.
     """
 
     def __init__(
@@ -204,12 +186,9 @@ class MultiHeadLoss(LossModule):
     def _head_outputs(
         self, obs: torch.Tensor, next_obs: torch.Tensor, far_obs: torch.Tensor | None = None
     ) -> tuple[dict[str, torch.Tensor], ...]:
-        """Every head at s (with gradient), at s' (online, detached) and at s' (target); with
-        ``far_obs`` (n-step windows, heads/nstep.py) also the averaging and option heads at
-        ``s_{t+k}`` (online, detached; target).
-
-        The max-value head (an :class:`OptimismGapHead`) is ``Q_mu + softplus(gap)`` with ``Q_mu``
-        detached, so its loss trains the gap only.
+        """Every head at s (with gradient), at s' (online, detached; target), and with ``far_obs``
+        the averaging and option heads at ``s_{t+k}``; the max-value head's loss trains its gap
+        only.
         """
         B = obs.shape[0]
         ahead = next_obs if far_obs is None else torch.cat([next_obs, far_obs])  # (B or 2B, D)
@@ -270,12 +249,9 @@ class MultiHeadLoss(LossModule):
         return cur, nxt, nxt_target, far, far_target
 
     def _distinct_next(self, ahead: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
-        """``ahead``'s distinct rows and the index back (:func:`~taskvar_torch.heads.max_value
-        .distinct_rows`; ``S`` equal seed-major groups for ``S`` seeds), for the detached s'
-        passes on the CPU outside ``torch.compile``; else ``None`` (every row runs: an
-        accelerator's ``unique`` waits on the host, and compiled shapes are static). A batch of a
-        small grid holds few distinct s' (windy 5x5: ~12 of 256), and each row's values are the
-        same bits in any batch."""
+        """``ahead``'s distinct rows and the index back, for the detached s' passes on the CPU
+        outside ``torch.compile``; else ``None`` (every row runs).
+        """
         if ahead.device.type != "cpu" or torch.compiler.is_compiling():
             return None
         return distinct_rows(ahead, self.seeds)
@@ -396,10 +372,8 @@ class MultiHeadLoss(LossModule):
 
 
 class ForeachSoftUpdate(SoftUpdate):
-    """TorchRL ``SoftUpdate`` (``target <- eps * target + (1 - eps) * source``) in one foreach call.
-
-    Same construction, checks and state as ``SoftUpdate``; ``step`` lerps every target tensor of
-    every head with one ``torch._foreach_lerp_`` instead of a tensordict walk per head.
+    """TorchRL ``SoftUpdate`` (``target <- eps * target + (1 - eps) * source``) whose ``step`` lerps
+    every target tensor in one ``torch._foreach_lerp_``.
     """
 
     def init_(self) -> None:
@@ -442,16 +416,8 @@ def clip_grad_norm_stacked(params: list[torch.Tensor], max_norm: float) -> None:
 
 
 class CompiledLosses(Compiled):
-    """:meth:`MultiHeadLoss.losses` through ``torch.compile`` (Inductor), with an eager fallback
-    (:class:`~taskvar_torch.compiling.Compiled`).
-
-    Dynamo traces the losses once (shapes are static: one batch size) and AOTAutograd compiles
-    their backward too, so one update runs a few fused C++ kernels around the matmuls instead of
-    ~300 small eager ops (Wargus Figure 4: the update ~35% cheaper; docs/benchmarks.md).
-
-    Examples:
-        >>> losses = CompiledLosses(loss)  # doctest: +SKIP
-        >>> losses(loss.relabel(buffer.sample()))["loss_averaging"]  # doctest: +SKIP
+    """:meth:`MultiHeadLoss.losses` and their backward through ``torch.compile``, with an eager
+    fallback (:class:`~taskvar_torch.compiling.Compiled`; docs/benchmarks.md).
     """
 
     def __init__(self, loss: MultiHeadLoss):
@@ -467,21 +433,11 @@ class MultiHeadLearner:
         max_grad_norm: per-head gradient-norm clip (``None``: no clipping).
         target_update: ``"soft"`` (Polyak, ``target_tau``) or ``"hard"`` (copy every
             ``target_period`` updates).
-        compile: run the losses (every head's forward passes, targets and losses, and so their
-            backward) through ``torch.compile`` (:class:`CompiledLosses`); the relabelling,
-            gradient clipping, optimiser and target steps stay eager. Same losses up to float
-            rounding (Inductor fuses the elementwise ops); falls back to eager, with a warning,
-            where compiling fails.
-        eval_ema_tau: keep :attr:`eval_heads`, a Polyak average of the heads' weights (``ema <-
-            ema + tau (online - ema)`` after every update, starting from the initial weights):
-            what evaluation reads (``train.eval_ema_tau``); ``None``: :attr:`eval_heads` is
-            :attr:`heads` itself.
-
-    Examples:
-        >>> learner = MultiHeadLearner(loss, lr=1e-3)  # doctest: +SKIP
-        >>> for _ in range(4):  # doctest: +SKIP
-        ...     learner.update(buffer.sample())
-        >>> learner.pop_losses()  # doctest: +SKIP
+        compile: run the losses through ``torch.compile`` (:class:`CompiledLosses`); same losses up
+            to float rounding; falls back to eager with a warning.
+        eval_ema_tau: keep :attr:`eval_heads`, a Polyak average of the heads' weights (``ema <- ema
+            + tau (online - ema)`` per update) that evaluation reads; ``None``: :attr:`eval_heads`
+            is :attr:`heads`.
     """
 
     def __init__(

@@ -1,27 +1,19 @@
 """Max-value head Q_hat(s, o) ~ max over training instances of Q^{m, mu_bar}(s, o) (Definition 1).
 
-Offline interruption (Algorithm 1) fires where Q_hat(s, o_run) < V^{mu_bar}(s). The head is
-``Q_hat = Q_mu + softplus(gap)`` (:class:`OptimismGapHead`), so ``Q_hat >= Q^{mu_bar}``. Two
-estimators train the gap (``train.max_value_estimator``; compared in
-docs/notes/design-decisions.md, Max-values):
+The head is ``Q_hat = Q_mu + softplus(gap)`` (:class:`OptimismGapHead`), so ``Q_hat >= Q^{mu_bar}``.
+Two estimators train the gap (``train.max_value_estimator``; docs/notes/design-decisions.md):
 
-**instance**: a critic ``C(s, o | z)`` conditioned on the episode's hidden instance ``z`` (read
-from the replay, offline only; it lives in ``OptimismGapHead.critic``) learns each instance's
-option values by intra-option TD under mu_bar on the switching head's transitions:
+**instance**: a critic ``C(s, o | z)`` conditioned on the episode's hidden instance ``z`` (offline
+only) learns by intra-option TD under mu_bar, and the head regresses its max over the sample's
+``max_value_instances`` instances ``Z``:
 
-    y = r + gamma * (1 - terminated) * [ (1 - beta_o(s')) C_target(s', o | z)
-                                         + beta_o(s') sum_q mu_bar(s', q) C_target(s', q | z) ]
-    loss_C = (y - C(s, o | z))^2
+    y = r + gamma * (1 - terminated) * [ (1 - beta_o(s')) C_target(s', o | z) + beta_o(s') sum_q
+    mu_bar(s', q) C_target(s', q | z) ] loss_C = (y - C(s, o | z))^2,  loss_hat = (Q_hat(s, o) -
+    max_{z in Z} C_target(s, o | z))^2
 
-and the head regresses the max over the ``max_value_instances`` instances ``Z`` of the sample:
-``loss_hat = (Q_hat(s, o) - max_{z in Z} C_target(s, o | z))^2``.
+**expectile** (any family): expectile TD at level ``train.max_value_expectile`` on the same
+transitions, with ``Q_hat,target`` in place of ``C_target``:
 
-**expectile** (any family; a Wargus instance is a seed with no features to condition on):
-expectile TD at level ``train.max_value_expectile`` on the same transitions, optimistic over all
-randomness at (s, a):
-
-    y = r + gamma * (1 - terminated) * [ (1 - beta_o(s')) Q_hat,target(s', o)
-                                         + beta_o(s') sum_q mu_bar(s', q) Q_hat,target(s', q) ]
     loss = |tau - 1[y < Q_hat(s, o)]| (y - Q_hat(s, o))^2
 """
 
@@ -42,20 +34,15 @@ MAX_VALUE_ESTIMATORS = ("expectile", "instance")
 
 
 class OptimismGapHead(nn.Module):
-    """``Q_hat(s, .) = Q_mu(s, .) + softplus(gap(s, .))``: the max-value head as an optimism gap.
-
-    A max over training instances is at least their average, ``Q_hat(s, o) >= Q^{mu_bar}(s, o)``;
-    this parametrisation builds the inequality in. So offline interruption never fires against the
-    option mu_bar itself picks (there ``Q_hat >= Q_mu = V^{mu_bar}``), and where no uncertainty is
-    left (``Q_hat = Q_mu`` exactly, e.g. one step from the goal) the learnt condition is not a coin
-    flip between two noisy estimates of the same number. The learner trains only ``gap`` on the
-    max-value loss (``Q_mu`` is detached there) and ``base`` on the switching loss.
+    """``Q_hat(s, .) = Q_mu(s, .) + softplus(gap(s, .))``: the max-value head as an optimism gap, so
+    ``Q_hat >= Q^{mu_bar}`` by construction; the learner trains ``gap`` on the max-value loss and
+    ``base`` on the switching loss.
 
     Args:
         base: the switching head's network ``(..., D) -> (..., O)``.
         gap: the gap network ``(..., D) -> (..., O)``.
-        critic: the instance-conditioned critic ``(..., D + F) -> (..., O)`` of the ``instance``
-            estimator (trained offline only; ``forward`` never reads it), or ``None``.
+        critic: the ``instance`` estimator's critic ``(..., D + F) -> (..., O)`` (never read by
+            ``forward``), or ``None``.
     """
 
     def __init__(self, base: nn.Module, gap: nn.Module, critic: nn.Module | None = None):
@@ -110,10 +97,8 @@ def instance_max_value_loss(
     gamma: float,
     num_instances: int = 64,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The ``instance`` estimator's two losses (scalars): the critic's intra-option TD loss in each
-    transition's own instance, and the head's regression on ``max_{z in Z} C_target(s, o | z)``
-    over ``Z`` = the instances of the sample's first ``num_instances`` transitions (Definition 1;
-    with ``batch.seeds = S``, of each run's own rows).
+    """The ``instance`` estimator's two scalar losses: the critic's TD loss in each transition's own
+    instance, and the head's regression on :func:`instance_max` (Definition 1).
     """
     if batch.instance is None:
         raise ValueError(
@@ -133,14 +118,8 @@ def instance_max_value_loss(
 
 
 def distinct_rows(x: torch.Tensor, seeds: int = 1) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """Each of ``S`` seed-major row groups of ``x`` (B, D) cut to its distinct rows:
-    ``(rows (S U, D), index (B,))`` with ``x == rows[index]`` exactly; every group padded to the
-    largest group's ``U`` distinct rows (with its own first row), so the result is ``S`` equal
-    groups. ``None`` where two distinct rows share a key (then every row is its own).
-
-    Rows are told apart by one float64 key each, ``x @ w`` for fixed random weights (a generator
-    of their own: the global one is untouched), and a 1-D ``torch.unique`` of the keys (``torch.unique(dim=0)`` compares rows one by one on the CPU: ~9
-    ms for 256 rows); the final equality check makes a key collision fall back, never merge.
+    """Each of ``S`` seed-major row groups of ``x (B, D)`` cut to its distinct rows, padded to equal
+    size: ``(rows (S U, D), index (B,))`` with ``x == rows[index]``; ``None`` on a key collision.
     """
     D = x.shape[-1]
     w = torch.rand(D, dtype=torch.float64, generator=torch.Generator().manual_seed(D)) + 0.5
@@ -167,14 +146,8 @@ def instance_max(
     seeds: int = 1,
     num_instances: int = 64,
 ) -> torch.Tensor:
-    """``max_{z in Z} C_target(s, o | z)`` at every sampled state, ``(B, O)``; ``Z`` = the
-    instances of the first ``num_instances`` rows (of each run's own rows, ``seeds = S``).
-
-    The grid depends on the state and ``Z`` only, and a batch holds few distinct states (a 5x5
-    windy batch of 256 holds about a dozen): on the CPU the critic runs on the batch's distinct
-    observations (:func:`distinct_rows`) times ``Z`` and the max is gathered back to the rows, the
-    same values as the ``(B, M)`` grid in a fraction of the rows; on an accelerator (where
-    ``unique`` waits on the host) and under ``torch.compile`` (static shapes) every row runs.
+    """``max_{z in Z} C_target(s, o | z)`` at every sampled state ``(B, O)``, ``Z`` the instances of
+    the first ``num_instances`` rows (of each run's rows); on the CPU over the distinct rows only.
     """
     B, S = observation.shape[0], seeds  # each run's Z from its own rows (heads/seeds.py)
     zs = instance.view(S, B // S, -1)[:, : min(int(num_instances), B // S)]  # (S, M, F) seen ones

@@ -1,18 +1,10 @@
-"""Network builders for the heads (network shapes are config: ``heads:``).
+"""Network builders for the heads (sizes from :class:`taskvar_torch.config.HeadsConfig`).
 
-Every head is an MLP over the observation vector, wrapped in a ``TensorDictModule`` with the key
-and output shape of docs/design.md, The ``Heads`` interface. Sizes come from
-:class:`taskvar_torch.config.HeadsConfig` (``hidden``
-widths and ``activation``). The trainer builds the heads as members of one :class:`StackedMLP`
-(independent weights, batched matmuls), so the learner runs every head in one pass;
-:func:`make_head` builds a stand-alone TorchRL :class:`~torchrl.modules.MLP` head.
-``heads.network=conv`` (windy ``coords_patch`` observations of large grids) puts a per-head conv
-trunk over the local patch in front of each member (:class:`StackedConvMLP`, grouped convs).
-
-Examples:
-    >>> net = make_mlp(25, (2, 4), hidden=(64, 64))
-    >>> net(torch.zeros(3, 25)).shape
-    torch.Size([3, 2, 4])
+Every head is an MLP over the observation in a ``TensorDictModule`` with the keys and shapes of
+docs/design.md#the-heads-interface. The trainer builds the heads as members of one
+:class:`StackedMLP` (independent weights, batched matmuls); ``heads.network=conv`` puts a per-head
+conv trunk in front (:class:`StackedConvMLP`); :func:`make_head` builds a stand-alone TorchRL
+:class:`~torchrl.modules.MLP` head.
 """
 
 from __future__ import annotations
@@ -59,27 +51,15 @@ def make_mlp(
 class StackedMLP(nn.Module):
     """K independent MLPs of the same hidden widths, run together with batched matmuls.
 
-    Member ``k`` maps ``(..., in_dim) -> (..., out_sizes[k])``; its weights are slice ``k`` of
-    stacked parameters ``weight_i (K, d_in, d_out)``, ``bias_i (K, 1, d_out)``, initialised as
-    ``nn.Linear`` (uniform in ``+-1/sqrt(d_in)``). Outputs are padded to ``max(out_sizes)`` columns;
-    the padding columns of a member never reach a loss, so they stay untouched.
+    Member ``k`` maps ``(..., in_dim) -> (..., out_sizes[k])`` with weights ``weight_i[k]`` of ``(K,
+    d_in, d_out)`` (``nn.Linear`` init); outputs are padded to ``max(out_sizes)`` columns.
+    :meth:`forward` runs all members ``(M, in_dim) -> (K, M, max_out)``, :meth:`forward_one` one
+    member, :meth:`forward_snapshots` ``G`` frozen weight copies on ``G`` row groups.
 
-    :meth:`forward` runs all members on one input ``(M, in_dim) -> (K, M, max_out)`` with one
-    matmul per layer (how the learner fuses the heads); :meth:`forward_one` runs one member (how
-    a head runs on its own, e.g. in a controller); :meth:`forward_snapshots` runs ``G`` frozen
-    copies of the weights (:meth:`snapshot`) on ``G`` groups of rows in one pass
-    (``heads/snapshots.py``).
-
-    ``input_mask`` ``(K, in_dim)`` (optional, 0/1) multiplies member ``k``'s input by row ``k``:
-    the member sees only the observation features its row keeps (``heads.option_inputs=subtask``:
-    each option's policy sees its subtask's features). It is a non-persistent buffer, rebuilt from
-    the config, so checkpoints are the same with or without it.
-
-    ``seeds`` (``S``, set by :func:`taskvar_torch.heads.seeds.stack_seeds`; 1 otherwise): the
-    stack holds ``S`` independent copies of its ``K`` members, seed-major (parameters ``(S K,
-    d_in, d_out)``), and every call reads its rows as ``S`` equal seed-major groups, group ``s``
-    through copy ``s`` (``taskvar train --seeds``: each training run's rows meet its own weights
-    only). With ``S = 1`` every method runs exactly the code it ran before seeds existed.
+    ``input_mask (K, in_dim)`` (0/1, a non-persistent buffer) multiplies member ``k``'s input by row
+    ``k`` (``heads.option_inputs=subtask``). ``seeds`` ``S``
+    (:func:`taskvar_torch.heads.seeds.stack_seeds`) holds ``S`` seed-major copies of the ``K``
+    members; rows are read as ``S`` equal groups, group ``s`` through copy ``s``.
     """
 
     seeds: int = 1
@@ -166,9 +146,9 @@ class StackedMLP(nn.Module):
         return h
 
     def snapshot(self) -> list[torch.Tensor]:
-        """A frozen copy of the stacked layers' parameters, for :meth:`forward_snapshots`:
-        ``[weight_0, ..., weight_{n-1}, bias_0, ..., bias_{n-1}]`` (``n`` layers; detached clones
-        of shapes ``(K, d_in, d_out)`` and ``(K, 1, d_out)``)."""
+        """A frozen copy of the parameters for :meth:`forward_snapshots`: ``[weight_0, ..., bias_0,
+        ...]``.
+        """
         return [p.detach().clone() for p in (*self.weights, *self.biases)]
 
     def forward_snapshots(
@@ -178,16 +158,11 @@ class StackedMLP(nn.Module):
         members: tuple[int, int] | None = None,
     ) -> torch.Tensor:
         """:meth:`forward` of ``G`` weight copies on ``G`` row groups: ``(B, in_dim) -> (G, K, B /
-        G, max_out)``; ``members=(lo, hi)``: members ``lo .. hi - 1`` only (``K = hi - lo``; the
-        same values for them: each member is its own batch entry).
+        G, max_out)``; ``members=(lo, hi)`` runs those members only.
 
-        ``params``: ``G`` :meth:`snapshot` s stacked along a new first dim (weights ``(G, K, d_in,
-        d_out)``, biases ``(G, K, 1, d_out)``); rows ``[g R, (g + 1) R)`` (``R = B / G``) run
-        through copy ``g``. ``None``: the live weights (``G = 1``; equal to :meth:`forward`).
-        Member ``(g, k)`` is one ``baddbmm`` batch entry, the matmul ``forward_one`` does for it
-        (same values; the same bits where the BLAS gives an entry the same bits in any batch, as
-        for the Wargus heads: ``heads/snapshots.py``). A stack of ``seeds = S`` runs its live
-        weights as ``G = S`` copies (its seeds); it takes no ``params``.
+        ``params``: ``G`` :meth:`snapshot` s stacked along a new first dim; rows ``[g R, (g + 1)
+        R)`` run through copy ``g``. ``None``: the live weights (a stack of ``S`` seeds runs them as
+        ``G = S``).
         """
         n = len(self.weights)
         lo, hi = members or (0, self.num_members)
@@ -215,13 +190,9 @@ class StackedMLP(nn.Module):
 class StackedConvMLP(StackedMLP):
     """K independent conv + MLP networks over a coordinates-plus-patch observation, run together.
 
-    Member ``k`` runs 3x3 convolutions (``conv_channels``, same padding, ``activation``) on the
-    observation's patch (:class:`PatchLayout`), flattens them, appends the coordinates and runs its
-    :class:`StackedMLP` member on that. Conv weights are stacked like the MLP's,
-    ``conv_weight_i (K, c_out, c_in, 3, 3)``, ``conv_bias_i (K, c_out)`` (``nn.Conv2d`` init), and
-    :meth:`forward` runs a layer of every member as one grouped convolution (``groups=K``) over the
-    patch replicated K times (group ``k`` is member ``k``: one kernel launch per layer);
-    :meth:`forward_one` runs member ``k``'s slice alone.
+    Member ``k`` runs 3x3 convolutions over the patch (:class:`PatchLayout`), appends the
+    coordinates and runs its :class:`StackedMLP` member; every member's layer is one grouped
+    convolution.
     """
 
     def __init__(
@@ -297,9 +268,9 @@ class StackedConvMLP(StackedMLP):
         params: Sequence[torch.Tensor] | None = None,
         members: tuple[int, int] | None = None,
     ) -> torch.Tensor:
-        """The live weights only (``params=None``: :meth:`forward` as ``(1, K, B, max_out)``,
-        members ``lo .. hi - 1`` with ``members``); weight snapshots cover the MLP layers only, not
-        the conv trunk, so ``params`` is refused."""
+        """The live weights only (snapshots cover the MLP layers, not the conv trunk: ``params`` is
+        refused).
+        """
         if params is not None:
             raise NotImplementedError(
                 "StackedConvMLP has no snapshots (the conv trunk is not covered)"
@@ -312,8 +283,8 @@ class StackedConvMLP(StackedMLP):
 
 class StackedHead(nn.Module):
     """Members ``index .. index + members - 1`` of a :class:`StackedMLP` as one head of shape
-    ``out_shape`` (a head on its own). A head of several members (``members > 1``) stacks them
-    along its first output dimension (one option per member: ``heads.option_inputs=subtask``)."""
+    ``out_shape``, several members stacked along its first output dimension.
+    """
 
     def __init__(self, stack: StackedMLP, index: int, out_shape: Sequence[int], members: int = 1):
         super().__init__()
@@ -340,10 +311,9 @@ class StackedHead(nn.Module):
         return torch.stack(parts, -2).reshape(*x.shape[:-1], *self.out_shape)
 
     def select(self, out: torch.Tensor, dim: int = 0, first: int = 0) -> torch.Tensor:
-        """This head's values from a stacked output whose member axis is ``dim`` (the stack's
-        :meth:`StackedMLP.forward`: ``(K, B, max_out)``; ``first``: the member that axis starts
-        at), flat per row: ``(..., B, prod(out_shape))`` with the member axis removed (reshape it
-        to ``out_shape`` on the caller's side)."""
+        """This head's values ``(..., B, prod(out_shape))`` from a stacked output whose member axis
+        is ``dim`` (starting at member ``first``).
+        """
         size = self.member_size
         if self.members == 1:
             return out.select(dim, self.index - first)[..., :size]
@@ -364,11 +334,9 @@ def make_stacked_heads(
 ) -> dict[str, TensorDictModule]:
     """One head per ``name: (out_key, out_shape)``, all members of one :class:`StackedMLP`.
 
-    Each head is a ``TensorDictModule`` with its own key and shape (docs/design.md), the networks are
-    independent (no shared weights), and a learner can run all of them in one pass.
-    ``network="conv"`` makes them :class:`StackedConvMLP` members (needs the observation's
-    ``patch`` layout). ``input_masks[name]`` ``(m, in_dim)`` splits head ``name`` (out_shape
-    ``(m, ...)``) into ``m`` members, member ``j`` seeing the observation times row ``j``.
+    ``network="conv"`` makes them :class:`StackedConvMLP` members; ``input_masks[name]`` ``(m,
+    in_dim)`` splits head ``name`` into ``m`` members, member ``j`` seeing the observation times row
+    ``j``.
     """
     if network not in NETWORKS:
         raise ValueError(f"network must be one of {list(NETWORKS)}, got {network!r}")

@@ -1,25 +1,15 @@
 """Multi-step targets of the averaging and option heads, from the behaviour that ran them.
 
-One-step Q-learning moves values back one step per Bellman backup, and on large grids every backup
-leans on the network's values at look-alike states (two exits of the same look, one right for an
-option, one wrong). With ``train.n_step = n`` a transition's target sums up to ``n`` real rewards
-before it bootstraps, where the behaviour was running that head's own policy (docs/scale.md):
+With ``train.n_step = n`` a transition's target sums up to ``n`` real rewards before it bootstraps,
+where the behaviour ran that head's own policy (docs/scale.md): the averaging head (§3.1) on
+averaging-mode transitions, option o's head (§3.2) on transitions where o ran, with its subtask
+reward and beta_o:
 
-* the averaging head (paper §3.1): on transitions of averaging-mode episodes (``behaviour = -1``),
-  ``y = sum_j gamma^j r_{t+j} + gamma^k (1 - terminated) max_a Q_avg(s_{t+k}, a)``;
-* option o's head (§3.2): on transitions where the behaviour ran option o (``behaviour = o``), the
-  same with o's subtask reward and o's termination beta_o;
-* every other (head, transition) pair keeps its one-step target, as do the switching and max-value
-  heads (intra-option learning reads single transitions).
+    y = sum_j gamma^j r_{t+j} + gamma^k (1 - terminated) max_a Q(s_{t+k}, a)
 
-The window of transition t is ``k <= n`` steps: it stops at the episode's end, at the running
-option's termination, at a change of behaviour mode, and at the end of the collected batch (no
-transition waits for the next batch). Exploratory actions inside a window are kept: with epsilon
-decaying to ``eps_end`` these are Peng-style uncorrected n-step returns (a small bias towards the
-behaviour; docs/scale.md).
-
-:func:`nstep_returns` computes the window quantities once per collected ``(N, T)`` batch, before
-the transitions enter the replay; the learner reads them back from each sample.
+Other pairs keep one-step targets. A window stops at the episode's end, the option's termination, a
+change of behaviour mode and the batch's end; exploratory actions are kept (uncorrected,
+Peng-style). :func:`nstep_returns` computes it once per collected batch.
 """
 
 from __future__ import annotations
@@ -39,11 +29,9 @@ def nstep_returns(
 ) -> TensorDictBase:
     """Add ``("nstep", ...)`` to a collector batch ``(N, T)`` in place and return it.
 
-    Keys: ``observation (N, T, D)`` (the state the target bootstraps from, ``s_{t+k}``),
-    ``reward (N, T)`` (discounted env-reward sum), ``subtask_reward (N, T, O)`` (discounted sums of
-    every option's subtask reward over the same window), ``discount (N, T)`` (``gamma^k``),
-    ``terminated (N, T)`` (the episode ended for good at the window's last step), ``beta (N, T, O)``
-    (each option's termination at ``s_{t+k}``), ``steps (N, T)`` int64 (``k``, 1 to n).
+    Keys: ``observation (N, T, D)`` (``s_{t+k}``), ``reward (N, T)`` and ``subtask_reward (N, T,
+    O)`` (discounted sums), ``discount (N, T)`` (``gamma^k``), ``terminated (N, T)``, ``beta (N, T,
+    O)`` (at ``s_{t+k}``), ``steps (N, T)`` int64 (``k``).
     """
     N, T = batch.shape
     nxt = batch.get(keys.NEXT)

@@ -1,25 +1,13 @@
-"""Baselines beside the paper's methods (docs/memory.md): a recurrent Q-network and the
-instance-informed ceiling, built from TorchRL's own modules.
+"""Baselines beside the paper's methods, built from TorchRL's own modules
+(docs/memory.md#what-they-are).
 
-* ``recurrent`` (DRQN; the in-context adaptation of RL^2-style meta-RL): a TorchRL
-  :class:`~torchrl.modules.GRUModule` over the observation, the previous action and the previous
-  reward (Ni et al. 2022's inputs for meta-RL), an MLP Q head of the heads' widths and a
-  :class:`~torchrl.modules.QValueModule`. Its weights are frozen at test time, like the paper's
-  controllers (§3: no learning online), but its hidden state can infer the hidden instance from
-  the trajectory (a gust, a sighting), which no memoryless controller of the paper can.
-* ``informed``: a feed-forward Q-network reading the observation *and* the family's features of
-  the hidden instance (:func:`~taskvar_torch.heads.informed.informed_features`). It is the learnt
-  ceiling candidate: a DQN agent of its own given what the paper's agent never sees (a column
-  calls it a ceiling only where a validation run shows it is one: docs/memory.md).
-* ``blind``: the same network with the instance features zeroed: a memoryless DQN on its own
-  stream, the control that separates "memory helps" from "learning on one's own stream helps".
-
-All are greedy in their Q-values at evaluation (:class:`BaselineController`), act step by step
-on the batched env (the recurrent one resets its hidden state at every episode start through
-TorchRL's ``InitTracker`` and the GRU's tensordict primer) and are saved as their own bundles
-(``DIR/recurrent.pt``, ``DIR/informed.pt``, ``DIR/blind.pt``: :func:`save_baseline`,
-:func:`load_baseline`), loadable
-with ``torch.load(weights_only=True)``. Training: :mod:`taskvar_torch.training.baselines`.
+``recurrent`` (DRQN): a :class:`~torchrl.modules.GRUModule` over the observation, previous action
+and previous reward, an MLP Q head and a :class:`~torchrl.modules.QValueModule`; frozen at test time
+like the paper's controllers (§3), but its hidden state can infer the instance. ``informed``: a
+feed-forward Q-network over the observation and the instance features, the ceiling candidate.
+``blind``: the same with the features zeroed. All act greedily (:class:`BaselineController`) and are
+saved as plain-data bundles (:func:`save_baseline`, :func:`load_baseline`). Training:
+:mod:`taskvar_torch.training.baselines`.
 """
 
 from __future__ import annotations
@@ -64,15 +52,8 @@ GRU_INPUT = "recurrent_input"
 
 
 class PreviousStep(Transform):
-    """Env transform writing the action just taken, one-hot, as ``prev_action`` of the next step
-    and (``reward=True``) the reward it got as ``prev_reward`` (zeros after a reset, partial resets
-    included).
-
-    The recurrent head reads them beside the observation (as DRQN and RL^2 agents do; Ni et al.
-    2022 feed both): under epsilon-greedy exploration the same observations can follow different
-    actions, and an observation alone does not say what the agent tried (on the corridor, being
-    back at S says the wind opposes the move *just made*); a reward can tell an instance apart
-    where the observation cannot. It is env-side, so the replay holds what actually happened.
+    """Env transform writing the action just taken, one-hot, as the next step's ``prev_action`` and
+    (``reward=True``) its reward as ``prev_reward`` (zeros after a reset, partial resets included).
     """
 
     def __init__(self, num_actions: int, reward: bool = True):
@@ -116,11 +97,9 @@ class PreviousStep(Transform):
 
 
 class InstanceFeatures(TensorDictModuleBase):
-    """Writes the family's informed features (:func:`informed_features`) of the tensordict's
-    ``("instance", ...)`` entries as ``instance_features`` ``(*batch, F)`` (any batch shape; the
-    family function sees a flat batch). Only the ``informed`` baseline reads them: the hidden
-    instance, given away on purpose. ``blind=True`` writes zeros of the same shape (the ``blind``
-    baseline: the same network, told nothing)."""
+    """Writes :func:`informed_features` of the tensordict's ``("instance", ...)`` entries as
+    ``instance_features (*batch, F)``; ``blind=True`` writes zeros of the same shape.
+    """
 
     def __init__(
         self,
@@ -145,14 +124,10 @@ class InstanceFeatures(TensorDictModuleBase):
 
 class PaddedGRU(nn.RNNBase):
     """``nn.GRU``'s weights (same names) and arithmetic, one layer, batch first, for
-    :class:`~torchrl.modules.GRUModule` (``gru=``): in recurrent mode, a GRU that is not an
-    ``nn.GRU`` gets the padded slices whole with a mask instead of a packed sequence. On CPU a
-    packed GRU's backward builds a zero copy of the whole input projection at every time step
-    (``narrow``'s gradient; 24 fills of ``(384, 384)`` per update on windy), the padded one
-    unbinds it once; the input is made time-major first, so the input projection is one matmul in
-    every pass (a batched one in the no-grad passes otherwise). Outputs are causal, so padded
-    steps change no valid one (``GRUModule`` drops them), and each slice's last hidden state is
-    its output at its last valid step, as packing gives."""
+    ``GRUModule(gru=)``: in recurrent mode it takes padded slices with a mask instead of a packed
+    sequence (a packed GRU's backward on CPU refills a zero copy of the input projection every time
+    step). Same outputs.
+    """
 
     def __init__(self, input_size: int, hidden_size: int):
         super().__init__("GRU", input_size, hidden_size, batch_first=True)
@@ -185,12 +160,10 @@ def make_recurrent_qnet(
     activation: str = "relu",
     prev_reward: bool = True,
 ) -> tuple[TensorDictSequential, GRUModule]:
-    """The recurrent Q-network: ``GRUModule([observation, prev_action, prev_reward]) -> MLP
-    (mlp widths) -> QValueModule`` (greedy ``action`` and ``action_value``), as in TorchRL's
-    recurrent DQN tutorial; returns the policy and its GRU (the env needs ``InitTracker``,
-    :class:`PreviousStep` and the GRU's ``make_tensordict_primer()``: :func:`recurrent_transforms`).
-    ``prev_reward=False``: the observation and previous action only (bundles written before the
-    reward was an input)."""
+    """The recurrent Q-network ``GRUModule([observation, prev_action, prev_reward]) -> MLP ->
+    QValueModule``; returns the policy and its GRU (the env needs :func:`recurrent_transforms`).
+    ``prev_reward=False``: bundles written before the reward was an input.
+    """
     inputs = [keys.OBSERVATION, PREV_ACTION] + ([PREV_REWARD] if prev_reward else [])
     gru = GRUModule(
         gru=PaddedGRU(obs_dim + num_actions + int(prev_reward), int(hidden)),
@@ -226,11 +199,10 @@ def make_informed_qnet(
     residual: bool = False,
     blind: bool = False,
 ) -> TensorDictSequential:
-    """The informed Q-network: ``[observation, instance_features] -> MLP -> QValueModule``, a
-    plain MLP of ``mlp`` widths; ``blind``: the features zeroed (the ``blind`` baseline).
-    ``residual``: ``Q_avg(observation) + Delta([observation, instance_features])``
-    (:class:`~taskvar_torch.heads.informed.ResidualInformedQ`), the form of informed bundles
-    written by the learner's informed head before it was removed; they still evaluate."""
+    """The informed Q-network ``[observation, instance_features] -> MLP -> QValueModule``; ``blind``
+    zeroes the features; ``residual`` builds old bundles' ``Q_avg + Delta``
+    (:class:`~taskvar_torch.heads.informed.ResidualInformedQ`), which still evaluate.
+    """
     if residual:
         return TensorDictSequential(
             InstanceFeatures(features, instance_keys),
@@ -263,17 +235,12 @@ class BaselineSpec:
     Attributes:
         method: ``recurrent``, ``informed`` or ``blind``.
         obs_dim, num_actions: the family's observation width and number of actions.
-        mlp: hidden widths of the Q head (``heads.hidden``; recurrent: after the GRU).
-        hidden: GRU hidden size (``baseline.hidden``; recurrent only).
-        instance_dim, instance_keys: the informed network's feature width and the
-            ``("instance", key)`` entries they are read from (informed and blind, whose features
-            are zeros of that width).
-        prev_reward: the recurrent network reads the previous reward (bundles written before it
-            did load with ``False``).
-        residual: the informed network is ``Q_avg + Delta``
-            (:class:`~taskvar_torch.heads.informed.ResidualInformedQ`): bundles written by the
-            learner's informed head before it was removed (they still evaluate); every informed
-            network trained now is a plain MLP (``False``).
+        mlp: hidden widths of the Q head (recurrent: after the GRU).
+        hidden: GRU hidden size (recurrent only).
+        instance_dim, instance_keys: the informed network's feature width and the ``("instance",
+            key)`` entries they are read from.
+        prev_reward: the recurrent network reads the previous reward (``False`` for old bundles).
+        residual: an old informed bundle's ``Q_avg + Delta`` form (``False`` for new ones).
     """
 
     method: str
@@ -338,12 +305,9 @@ def build_baseline(spec: BaselineSpec, cfg: Config) -> TensorDictSequential:
 
 
 class BaselineController(TensorDictModuleBase):
-    """A trained baseline acting greedily, one batched decision per step (no learning online).
-
-    Usable wherever the evaluation code plays a TorchRL policy: ``TransformedEnv(env,
-    ctrl.primer())`` adds what it carries (the recurrent head: ``InitTracker`` and the GRU's
-    primer, so the hidden state is zero at every episode start, partial resets included), then
-    ``ctrl(td)`` writes ``action`` and ``action_value``.
+    """A trained baseline acting greedily, one batched decision per step (no learning online):
+    ``TransformedEnv(env, ctrl.primer())``, then ``ctrl(td)`` writes ``action`` and
+    ``action_value``.
     """
 
     def __init__(self, net: TensorDictSequential, spec: BaselineSpec):

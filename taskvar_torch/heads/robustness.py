@@ -1,25 +1,15 @@
 """Robustness critics R(o, s, a) (paper §3.4.3, §3.5.2): subtask attainability by Q-learning.
 
-One network outputs every capability's critic ``(B, O, A)``. Each learns by TD on its robustness
-reward (the family's ``Subtasks.robustness_reward``), discounted by ``train.robustness_gamma``,
-with the episode end as terminal. ``R(o, s, a)`` "estimates the expectation that the option o will
-be able to achieve its goals from state s and action a" (§3.4.3), so the default target
-(``train.robustness_target = "option"``) bootstraps with the option's own next action
-``pi^o(s') = argmax_a' Q_o(s', a')``, up to the option's own termination
-(``train.robustness_until = "termination"``; ``"episode"`` bootstraps through beta_o):
+One network outputs every capability's critic ``(B, O, A)``, learnt by TD on the family's robustness
+reward at ``train.robustness_gamma``. The default target bootstraps with the option's own next
+action up to its termination (``train.robustness_target = "option"``, ``train.robustness_until =
+"termination"``):
 
     y_o = rr_o + gamma_R * (1 - terminated) * (1 - beta_o(s')) * R_o,target(s', pi^o(s'))
 
-``"greedy"`` is plain (double) Q-learning, ``R_o,target(s', argmax_a' R_o(s', a'))``: the
-attainability under the robustness-greedy policy, which no controller runs.
-
-The threshold tau is one for all (``train.robustness_threshold = "fixed"``, the paper's 2) or set
-per capability on training states (:class:`RobustnessCalibration`, ``"calibrated"``);
-docs/hierarchy-critics.md gives the scale of the critics and how the settings were chosen.
-
-"Every component update also updates its composed parent" (§3.4.1): a composed subtask's domain is
-the union of its components' domains, so the parent's update mask is its own initiation set or'ed
-with its components' (:func:`parent_closure`).
+``"greedy"`` is plain (double) Q-learning on R. A composed subtask's update mask is its own
+initiation set or'ed with its components' (§3.4.1, :func:`parent_closure`). The threshold tau is
+fixed or calibrated (:class:`RobustnessCalibration`); docs/hierarchy-critics.md.
 """
 
 from __future__ import annotations
@@ -69,11 +59,9 @@ def robustness_loss(
     next_action: torch.Tensor | None = None,  # (B, O) int64 pi^o(s'), or None: greedy in R_o
     until_termination: bool = False,
 ) -> torch.Tensor:
-    """Sum over capabilities of each critic's mean squared TD error (scalar).
-
-    With ``next_action`` the target evaluates the option's own policy at s' (module docstring);
-    without it, (double) Q-learning on R. With ``until_termination`` the target does not bootstrap
-    where the option terminates at s' (beta_o(s') = 1).
+    """Sum over capabilities of each critic's mean squared TD error (scalar): the option's own
+    policy at s' with ``next_action``, else (double) Q-learning; no bootstrap where the option
+    terminates with ``until_termination``.
     """
     if batch.robustness_reward is None:
         raise ValueError("robustness_loss needs robustness rewards (relabel(..., robustness=True))")
@@ -96,16 +84,10 @@ def robustness_loss(
 class RobustnessCalibration:
     """Per-capability thresholds and scales of the robustness critics, set on training states.
 
-    ``tau[o]``: R(o, s, pi^o(s)) > tau[o] reads "o can still achieve its goals from s" (paper
-    §3.4.3). For a composed subtask it is the ``1 - keep_share`` quantile of its robustness over
-    training states where its subgoals do not conflict, so it keeps control on ``keep_share`` of
-    them (§3.5.3: the composed capability runs "in every state where the subgoals are not in
-    conflict"), or the fixed threshold where the family names no such states
-    (``Subtasks.no_conflict`` is ``None``); for a leaf, the same quantile over the states where it
-    can take control.
-    ``scale[o]``: the standard deviation of R(o, s, pi^o(s)) over the states where o can take
-    control; the hierarchy's descent compares components by ``(R - tau) / scale``, a margin in
-    units of each critic's own spread.
+    ``tau[o]``: the ``1 - keep_share`` quantile of R(o, s, pi^o(s)) over the states where o's
+    subgoals do not conflict (composed, §3.5.3; the fixed threshold where the family names none) or
+    where o can take control (leaves). ``scale[o]``: its standard deviation where o can take
+    control, for the descent's ``(R - tau) / scale``.
     """
 
     tau: torch.Tensor  # (O,)
@@ -123,11 +105,8 @@ def calibrate_robustness(
     keep_share: float,
     default_tau: float,
 ) -> RobustnessCalibration:
-    """:class:`RobustnessCalibration` from a sample of training states (see its docstring).
-
-    A capability with no qualifying state keeps ``default_tau`` and a unit scale; so does every
-    composed one's threshold where ``no_conflict`` is ``None`` (the family names no conflict-free
-    states).
+    """:class:`RobustnessCalibration` from a sample of training states; a capability with no
+    qualifying state keeps ``default_tau`` and a unit scale.
     """
     if not 0.0 < keep_share < 1.0:
         raise ValueError(f"keep_share must be in (0, 1), got {keep_share}")

@@ -1,22 +1,9 @@
-"""Seeds as a batch dimension: ``S`` independent training runs' heads as one bundle.
+"""Seeds as a batch dimension: ``S`` independent training runs' heads as one bundle (docs/seeds.md).
 
-Every head of a run is a member of one :class:`~taskvar_torch.heads.networks.StackedMLP` (the
-learner's fused pass). :func:`stack_seeds` concatenates ``S`` runs' stacks along the member axis,
-seed-major, and marks the result ``seeds = S``: every pass then reads its rows as ``S`` equal
-seed-major groups, group ``s`` through run ``s``'s weights only (``StackedMLP.forward_snapshots``
-with the seeds as its weight copies). The plain MLPs outside the stack (the instance estimator's
-critic, ``heads/max_value.py``) each become a one-member stack of ``S`` seeds the same way. So one optimiser
-step on the sum of the ``S`` runs' losses is ``S`` independent steps: Adam, the per-member gradient
-clip and the target and Polyak updates are elementwise or per member, and each run's loss reads its
-own rows only (``Transitions.seeds``, ``heads/targets.py`` ``group_mean``).
-
-:func:`split_seed` cuts run ``s`` back out into a bundle of today's single-seed layout, what
-``taskvar train --seeds N`` writes as ``seed<k>/`` (docs/seeds.md); :func:`load_seed` copies a
-single-seed bundle's weights back in.
-
-Examples:
-    >>> batch = stack_seeds([build_heads(cfg, env, sub) for _ in range(5)])  # doctest: +SKIP
-    >>> one = split_seed(batch, 2, build_heads(cfg, env, sub))  # doctest: +SKIP
+:func:`stack_seeds` concatenates ``S`` runs' :class:`~taskvar_torch.heads.networks.StackedMLP` s
+seed-major (``seeds = S``), so every pass reads its rows as ``S`` groups, each through its own run's
+weights, and one optimiser step on the summed losses is ``S`` independent steps. :func:`split_seed`
+cuts run ``s`` back out; :func:`load_seed` copies one back in.
 """
 
 from __future__ import annotations
@@ -86,12 +73,9 @@ def _seeded_critic(critics: Sequence[nn.Module]) -> StackedHead:
 def stack_seeds(bundles: Sequence[Heads]) -> Heads:
     """One bundle running ``S = len(bundles)`` independent runs' heads (same config) at once.
 
-    Rows fed to the result are ``S`` equal seed-major groups (run ``s``'s environments or its
-    replay sample), group ``s`` meeting run ``s``'s weights only.
-
     Raises:
-        ValueError: heads not stored in one :class:`StackedMLP` (``heads.network=conv``), or
-            bundles of different shapes.
+        ValueError: heads not stored in one :class:`StackedMLP` (``heads.network=conv``), or bundles
+            of different shapes.
     """
     if not bundles:
         raise ValueError("stack_seeds needs at least one bundle")
@@ -142,9 +126,9 @@ def split_seed(batch: Heads, s: int, template: Heads) -> Heads:
 
 
 def load_seed(batch: Heads, s: int, run: Heads) -> Heads:
-    """Copy ``run``'s weights (a single-seed bundle of the same config) into run ``s`` of a
-    :func:`stack_seeds` bundle, in place: :func:`split_seed`'s inverse (the Figure 4 protocol's
-    acting stack follows each repetition's own learner this way). Returns ``batch``."""
+    """Copy ``run``'s weights (a single-seed bundle) into run ``s`` of ``batch`` in place; returns
+    ``batch``.
+    """
     S = int(getattr(batch, "seeds", 1))
     if not 0 <= s < S:
         raise ValueError(f"seed index must be in [0, {S}), got {s}")

@@ -1,24 +1,5 @@
-"""Batched inference of every head over ``G`` frozen head snapshots in one pass.
-
-The Wargus Figure 4 protocol (paper §3.5.3; docs/wargus-fig4.md) tests each trial's heads as
-they were at the end of that trial's learning phase. Rather than testing every trial on its own,
-the experiment keeps a frozen copy of the heads per trial (:meth:`HeadValues.snapshot`) and tests
-``G`` trials side by side: rows ``[g R, (g + 1) R)`` of one batch of observations run through
-snapshot ``g`` (:meth:`HeadValues.__call__` with the snapshots stacked). Every head comes from one
-batched pass of the heads' shared :class:`~taskvar_torch.heads.networks.StackedMLP`
-(:meth:`StackedMLP.forward_snapshots`).
-
-The pass is an explicit ``baddbmm`` per layer over the ``G K`` (snapshot, member) pairs
-(:meth:`StackedMLP.forward_snapshots`): member ``(g, k)`` is one batch entry of the op the
-learner's fused pass (:meth:`StackedMLP.forward`) runs for member ``k``. With the Wargus shapes a
-snapshot's values are bit-equal to each head run on its own
-(``tests/families/wargus/test_wargus_fast_loop.py``).
-
-Examples:
-    >>> values = HeadValues(heads, ["averaging", "options"])  # doctest: +SKIP
-    >>> snaps = [values.snapshot() for _ in range(G)]  # one per trial, taken as it ends
-    >>> params = [torch.stack(p) for p in zip(*snaps)]  # stacked along a new first dim G
-    >>> values(obs, params)  # obs (G R, D) -> {out_key: (G R, *out_shape)}
+"""Batched inference of every head over ``G`` frozen head snapshots in one pass, so the Wargus
+Figure 4 protocol tests ``G`` trials' heads side by side (paper §3.5.3; docs/wargus-fig4.md).
 """
 
 from __future__ import annotations
@@ -36,22 +17,13 @@ from taskvar_torch.heads.networks import StackedHead, StackedMLP, head_network
 class HeadValues:
     """Head outputs ``{out_key: (B, ...)}`` from plain observations ``(B, D)`` (inference).
 
-    When the heads are members of one :class:`StackedMLP` (how the trainer builds them), every head
-    comes from *one* batched pass of the stack (the learner's fused pass), and the pass can run
-    ``G`` frozen copies of the weights (:meth:`snapshot`) at once, rows ``[g R, (g + 1) R)`` through
-    copy ``g``: the experiment tests many trials' heads in one batch. An optimism-gap head combines
-    its members' outputs. Equal to running each head on its own (each member's slice is computed
-    by the same matmul; checked in the tests).
+    When the heads are members of one :class:`StackedMLP`, every head comes from one batched pass,
+    optionally of ``G`` frozen weight copies (:meth:`snapshot`), rows ``[g R, (g + 1) R)`` through
+    copy ``g``; equal to running each head on its own (tested).
 
     Args:
         heads: the bundle.
-        names: the heads to compute (names in ``heads.heads``); keys of the result are their
-            out-keys (:data:`~taskvar_torch.heads.bundle.HEAD_OUT_KEYS`).
-
-    Attributes:
-        nets: ``{out_key: network}``, the plain network inside each head.
-        stack: the one :class:`StackedMLP` every head is made of, or ``None`` (independent
-            networks: each head runs on its own, and there are no snapshots).
+        names: the heads to compute; the result's keys are their out-keys.
     """
 
     def __init__(self, heads: Heads, names: Sequence[str]):
@@ -79,9 +51,7 @@ class HeadValues:
         )
 
     def snapshot(self) -> list[torch.Tensor]:
-        """A frozen copy of the stack's weights and biases (for :meth:`__call__`'s ``params``):
-        :meth:`StackedMLP.snapshot`, ``[weight_0, ..., bias_0, ...]`` of shapes ``(K, d_in,
-        d_out)`` and ``(K, 1, d_out)``."""
+        """A frozen copy of the stack's weights and biases for :meth:`__call__`'s ``params``."""
         if self.stack is None:
             raise ValueError("snapshots need heads stored in one StackedMLP")
         return self.stack.snapshot()

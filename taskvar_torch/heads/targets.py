@@ -22,12 +22,9 @@ def bootstrap_value(
 
 
 def masked_mean(loss: torch.Tensor, mask: torch.Tensor, seeds: int = 1) -> torch.Tensor:
-    """Per-column mean of ``loss`` (B, K) over rows where ``mask`` (B, K), summed over columns.
-
-    Each column is one head's own loss (an option, a critic), averaged over its own transitions, so
-    the sum has the gradient of K separate learners. Columns without transitions contribute 0.
-    ``seeds = S``: the rows are ``S`` seed-major groups (independent runs, heads/seeds.py), each
-    averaged on its own, and the ``S`` sums added (each run's gradient is its own loss's).
+    """Per-column mean of ``loss (B, K)`` over rows where ``mask (B, K)``, summed over columns (K
+    separate learners; an empty column contributes 0); with ``seeds = S`` per seed-major group,
+    summed.
     """
     mask = mask.to(loss.dtype)
     if seeds > 1:
@@ -46,10 +43,8 @@ def group_mean(loss: torch.Tensor, seeds: int = 1) -> torch.Tensor:
 
 
 def expectile_loss(pred: torch.Tensor, target: torch.Tensor, level: float) -> torch.Tensor:
-    """Elementwise expectile (asymmetric squared) loss ``|level - 1[target < pred]| (target - pred)^2``.
-
-    Its minimiser is the ``level``-expectile of ``target``; ``level = 0.5`` is half the squared error
-    (the mean), ``level -> 1`` tends to the maximum (Newey & Powell, 1987).
+    """Elementwise expectile loss ``|level - 1[target < pred]| (target - pred)^2`` (Newey & Powell,
+    1987).
     """
     diff = target - pred
     weight = torch.where(diff < 0, 1.0 - level, level)

@@ -1,32 +1,18 @@
-"""Trained heads against the exact windy oracle (docs/oracle.md; figures in docs/design.md).
+"""Trained heads against the exact windy oracle
+(docs/oracle.md#which-reference-the-learnt-heads-should-reach).
 
-:func:`compare_with_oracle` tabulates every head over the cells and measures, against
-:class:`~taskvar_torch.oracle.WindyOracle` built for the same layout and training distribution:
+:func:`compare_with_oracle` measures, against :class:`~taskvar_torch.oracle.WindyOracle` for the
+same layout and training distribution, on the visited cells (neither wall nor goal):
 
-* ``averaging_return`` / ``oracle_averaging_return``: exact expected return (training instances,
-  uniform start cell) of the averaging head's greedy policy and of the mean-MDP optimum (§3.1);
-* ``option_returns`` / ``oracle_option_returns``: the same for each option head's greedy policy (§3.2);
-* ``replay_averaging_return`` / ``replay_option_returns``: the same for the reference the heads are
-  trained towards, the fixed point of Q-learning on its own first-visit replay of fixed-instance
-  episodes (:meth:`~taskvar_torch.oracle.WindyOracle.replay_policy`; the mean MDP redraws the
-  instance every step, the training episodes do not: on ``whole_column_windy`` the exit options'
-  replay fixed point is 1.5 steps better than the mean-MDP options);
-* ``mu_bar_agreement``: share of cells where the oracle's option values differ by more than
-  ``mu_margin`` on which the learnt mu_bar picks the oracle's option;
-* ``max_value_error``: the largest ``|Q_hat - Q_hat_oracle|`` over visited cells and options
-  (Definition 1); ``max_value_error_learnt_options``: the same against the exact max over the
-  oracle's instances of ``Q^{m, mu_bar}`` for the *learnt* option policies and mu_bar, which
-  checks the estimator itself where a learnt option breaks a near-tie differently from the oracle;
-* ``interruption_agreement``: share of (visited cell, option) pairs where the learnt condition
-  ``Q_hat(s, o) < V^{mu_bar}(s)`` equals the oracle's (Algorithm 1, line 6);
-* ``firing_pairs`` / ``oracle_firing_pairs``: visited (cell, option) pairs where that condition
-  holds, learnt / exact;
-* ``interruptions_per_episode`` / ``oracle_interruptions_per_episode``: the exact expected number
-  of interruptions per episode (training instances, uniform start) of Algorithm 1 run on the learnt
-  heads / on the oracle's tables: a pair only matters if an episode reaches it with that option
-  running (:meth:`~taskvar_torch.oracle.WindyOracle.controller_fire_count`).
-
-Visited cells are the cells an episode can be in before it ends: neither wall nor goal.
+* ``averaging_return``, ``option_returns`` and their ``oracle_*`` and ``replay_*`` references: exact
+  expected returns of the greedy policies, the mean-MDP optimum (§3.1-3.2) and the replay fixed
+  point (:meth:`~taskvar_torch.oracle.WindyOracle.replay_policy`);
+* ``mu_bar_agreement``: share of cells (option values apart by ``mu_margin``) where mu_bar agrees;
+* ``max_value_error`` (Definition 1), and ``max_value_error_learnt_options`` against the max for the
+  learnt option policies and mu_bar;
+* ``interruption_agreement``, ``firing_pairs``: Algorithm 1 line 6's condition, learnt vs exact;
+* ``interruptions_per_episode``: Algorithm 1's exact expected interruptions on the learnt heads and
+  on the oracle's tables.
 """
 
 from __future__ import annotations

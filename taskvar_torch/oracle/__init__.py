@@ -1,15 +1,7 @@
-"""Exact values of small MDPs, for any family (docs/oracle.md).
-
-- :mod:`~taskvar_torch.oracle.mdp`: the generic MDP solver (value iteration with a
-  policy-iteration polish), policy kernels, tie-snapping, Gauss-Legendre quadrature;
-- :mod:`~taskvar_torch.oracle.protocol`: the oracle protocol (:class:`OracleTables`,
-  :class:`ExactOracle`) the windy and Taxi oracles implement;
-- :mod:`~taskvar_torch.oracle.tables`: table -> head adapters (:func:`table_heads`) and the
-  tables an oracle derives from its own (:class:`DerivedTables`);
-- :mod:`~taskvar_torch.oracle.chains`: controllers as Markov chains (Algorithms 1-2), exact
-  returns, firing counts and discounted chain values, mixed into each family's oracle
-  (:class:`~taskvar_torch.families.windy.oracle.WindyOracle`,
-  :class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`).
+"""Exact values of small MDPs, for any family (docs/oracle.md): :mod:`.mdp` (the solver, policy
+kernels, tie-snapping, quadrature), :mod:`.protocol` (what an oracle offers), :mod:`.tables` (tables
+as heads), :mod:`.chains` (controllers as Markov chains, Algorithms 1-2) and :mod:`.episodes` (exact
+returns per played episode).
 """
 
 from __future__ import annotations

@@ -1,15 +1,10 @@
 """Controllers as Markov chains on (cell, carried state), evaluated exactly (paper §3.3-3.4,
 Algorithms 1-2; docs/oracle.md).
 
-:class:`ControllerChains` is mixed into a family's exact oracle
-(:class:`~taskvar_torch.families.windy.oracle.WindyOracle`,
-:class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`), which provides the instance models
-(``transition(p, direction) -> P, R`` and ``_instances_arg``): it tabulates any
-:class:`~taskvar_torch.heads.bundle.Heads` bundle over the cells, builds the controller's decision
-kernel from the controller's own rule (Algorithms 1 and 2 of ``controllers/``: one implementation,
-so the exact values are those of the controller that plays), and gives exact returns and firing counts by backward induction over steps-to-go (see "Controllers" in the
-:mod:`taskvar_torch.families.windy` docstring). :func:`discounted_chain_values`
-gives a chain's infinite-horizon discounted values (one linear solve).
+:class:`ControllerChains`, mixed into a family's exact oracle, tabulates any :class:`Heads` bundle
+over the cells, builds the decision kernel from the controller's own rule (so the exact values are
+those of the controller that plays), and gives exact returns and firing counts by backward
+induction; :func:`discounted_chain_values` a chain's discounted values.
 """
 
 from __future__ import annotations
@@ -32,11 +27,9 @@ Tensor = torch.Tensor
 
 
 class ControllerChains:
-    """Exact evaluation of controllers as chains; a mixin of :class:`WindyOracle`.
-
-    Uses the host's ``S``, ``device``, ``horizon``, ``is_goal``, ``model``, ``subtasks``,
-    :meth:`heads`, :meth:`observation_td`, :meth:`quadrature` and its private instance and start
-    helpers.
+    """Exact evaluation of controllers as chains; a mixin of the family oracles, which give ``S``,
+    ``device``, ``horizon``, ``is_goal``, ``model``, ``subtasks``, :meth:`heads`,
+    :meth:`observation_td`, :meth:`quadrature` and their instance and start helpers.
     """
 
     def _step_trace(
@@ -84,18 +77,13 @@ class ControllerChains:
         subtasks: Subtasks | None = None,
         obs_encoding: str = "onehot",
     ) -> dict[str, Tensor]:
-        """The controller as a Markov chain on (cell, carried state), from tabulated head outputs.
+        """The controller (a name in ``CONTROLLER_NAMES`` or a
+        :class:`~taskvar_torch.controllers.base.Controller`) as a Markov chain on (cell, carried
+        state ``z``: 0 none, ``k + 1`` option k ran last).
 
-        ``controller``: a name in ``CONTROLLER_NAMES`` (with the oracle's heads and subtasks unless
-        ``heads`` is given; ``hierarchy`` and ``tau`` for ``"hierarchy"``, which honours
-        ``subtasks``' termination when given) or a
-        :class:`~taskvar_torch.controllers.base.Controller`. Carried state ``z``: 0 = none,
-        ``k + 1`` = option/subtask ``k`` ran last.
-
-        Returns ``decision (S, Z, N)``: distribution of the acting option ``n`` given ``(s, z)``;
-        ``action (S, N)``: its greedy action; ``next_state (N,)``: ``z'`` after ``n`` acted;
-        ``fires (S, Z)`` bool: an interruption fires (Algorithm 1 line 6) / control moves
-        (Algorithm 2). The decisions are the controller's own rule (:meth:`_decision_chain`).
+        Returns ``decision (S, Z, N)`` (distribution of the acting entry), ``action (S, N)``,
+        ``next_state (N,)`` and ``fires (S, Z)`` (Algorithm 1 line 6 fires / Algorithm 2 moves
+        control).
         """
         name = controller if isinstance(controller, str) else controller.name
         if name not in CONTROLLER_NAMES:
@@ -126,17 +114,9 @@ class ControllerChains:
         }
 
     def _decision_chain(self, controller: Controller, t: dict[str, Tensor]) -> dict[str, Tensor]:
-        """An option-level controller's decision at every (cell ``s``, carried state ``z``): its
-        own rule (:meth:`Controller.decide`: Algorithm 1 or 2, ``controllers/``) on the heads
-        tabulated at ``s``, ``running_option = z - 1``, its subtasks' termination and initiation
-        at ``s``.
-
-        The acting entry ``n`` is option ``n`` (``z' = n + 1``), or, for the options controllers
-        with initiation sets, ``n = O``: the averaging action where no option is initiable
-        (``z' = 0``). Where a softmax mu_bar draws (line 7), the decision is mu_bar over the
-        initiable options (the draw's distribution; the controller's random stream is left as it
-        was). Each entry's action is its greedy one (the root's by the averaging head with
-        ``root_policy="averaging"``), checked against the rule's.
+        """An option-level controller's decision at every ``(s, z)`` by its own rule
+        (:meth:`Controller.decide`) on the tabulated heads; entry ``n = O`` is the averaging
+        fallback, and a softmax mu_bar's draw is its distribution.
         """
         S, O, dev = self.S, controller.num_options, self.device  # noqa: E741
         Z = O + 1
@@ -187,11 +167,8 @@ class ControllerChains:
     def controller_return(
         self, controller: Any, p: Any, direction: Any, start: Any = None, **kwargs: Any
     ) -> Tensor:
-        """Exact expected ``horizon``-step undiscounted return of a controller in instance(s).
-
-        Backward induction over steps-to-go on the chain of :meth:`controller_chain` (the carried
-        state starts empty). ``start`` as in :meth:`episode_return`; ``kwargs`` go to
-        :meth:`controller_chain`.
+        """Exact expected ``horizon``-step return of a controller in instance(s), by backward
+        induction on :meth:`controller_chain` (``start`` as in :meth:`episode_return`).
         """
         pt, d, scalar = self._instances_arg(p, direction)
         P, R = self.transition(pt, d)  # the family oracle's exact models (float64)
@@ -248,10 +225,8 @@ class ControllerChains:
 def discounted_chain_values(
     P: torch.Tensor, R: torch.Tensor, chain: dict[str, torch.Tensor], gamma: float
 ) -> torch.Tensor:
-    """Discounted values ``V (B, S, Z)`` of a controller chain (``WindyOracle.controller_chain``).
-
-    ``V(s, z) = sum_n D[s,z,n] (R(s, a_n) + gamma sum_s' P(s, a_n, s') V(s', z'_n))``, solved as a
-    linear system; ``z = 0`` is an empty carried state, ``z = o + 1`` option ``o`` running.
+    """Discounted values ``V (B, S, Z)`` of a controller chain, ``V(s, z) = sum_n D[s,z,n] (R(s,
+    a_n) + gamma sum_s' P(s, a_n, s') V(s', z'_n))``, one linear solve.
     """
     D, act, nz = chain["decision"], chain["action"], chain["next_state"]  # (S,Z,N) (S,N) (N,)
     B, S = P.shape[0], P.shape[1]

@@ -1,11 +1,6 @@
-"""Exact returns per played episode, for any family's oracle (docs/evaluation.md, docs/oracle.md).
-
-A family's exact oracle (``Family.oracle``: an :class:`~taskvar_torch.oracle.protocol.ExactOracle`)
-offers ``instance_keys`` (the ``("instance", key)`` fields of an episode), ``controller_return(ctrl,
-*fields, start=None, obs_encoding=...) -> (B, S)`` (Algorithms 1-2 as Markov chains,
-:mod:`~taskvar_torch.oracle.chains`) and ``optimal_return(*fields, start=None) -> (B, S)`` (the
-per-instance optimum). :func:`exact_episode_returns` and :func:`optimal_episode_returns` read them
-per episode: ``taskvar eval``'s exact values and regret.
+"""Exact returns per played episode, for any family's oracle (docs/evaluation.md, docs/oracle.md):
+``taskvar eval``'s exact values (:func:`exact_episode_returns`) and regret
+(:func:`optimal_episode_returns`).
 """
 
 from __future__ import annotations
@@ -29,11 +24,9 @@ def exact_episode_returns(
 ) -> np.ndarray:
     """Exact expected horizon-step return of ``ctrl`` (learnt heads) per (instance, start) episode.
 
-    ``oracle`` is a family's exact oracle (``Family.oracle``, docs/families.md): its
-    ``instance_keys`` name the ``("instance", key)`` fields its ``controller_return(ctrl, *fields,
-    start=None, obs_encoding=...)`` takes, each an array of the episodes' values in ``instance``;
-    ``start`` holds each episode's first ``cell``. Learnt heads are read in the oracle's
-    ``obs_encoding`` where it has one, else the family's observation (``Family.observation``).
+    ``oracle``: a family's :class:`~taskvar_torch.oracle.protocol.ExactOracle`; ``instance`` holds
+    the episodes' ``instance_keys`` fields, ``start`` their first ``cell``. Heads read the oracle's
+    ``obs_encoding`` where it has one.
     """
     names = tuple(oracle.instance_keys)
     missing = [k for k in names if k not in instance]
@@ -56,13 +49,8 @@ def exact_episode_returns(
 def optimal_episode_returns(
     oracle: ExactOracle, instance: dict[str, np.ndarray], start: np.ndarray, chunk: int = 500
 ) -> np.ndarray:
-    """Exact expected horizon-step return of the per-instance optimal policy per (instance, start)
-    episode: an agent that knows the instance (the ceiling regret is measured against,
-    docs/evaluation.md; paper §3.3.1's returns).
-
-    Mirrors :func:`exact_episode_returns`: ``oracle.optimal_return(*fields, start=None)`` gives
-    ``(B, S)`` for the ``instance_keys`` fields. Distinct instances are solved once (a finite test
-    set, a dry Taxi), in chunks of ``chunk`` instances.
+    """Exact expected horizon-step return of the per-instance optimum per (instance, start) episode
+    (paper §3.3.1), distinct instances solved once, ``chunk`` at a time.
     """
     names = tuple(oracle.instance_keys)
     missing = [k for k in names if k not in instance]

@@ -1,9 +1,6 @@
-"""Generic exact MDP machinery of the oracle (paper §3.1; docs/oracle.md).
-
-Value iteration with a policy-iteration polish (:func:`solve_mdp`), the kernel and reward of a
-policy, tie-snapping (:func:`snap_ties`, :func:`greedy`; docs/oracle.md, Design decisions) and
-Gauss-Legendre quadrature for expectations over ``p``.
-Everything is float64 torch, batched over leading dimensions; nothing here is windy-specific.
+"""Generic exact MDP machinery of the oracle (paper §3.1; docs/oracle.md): :func:`solve_mdp`, policy
+kernels, tie-snapping (:func:`snap_ties`, :func:`greedy`) and Gauss-Legendre quadrature; float64,
+batched over leading dimensions.
 """
 
 from __future__ import annotations
@@ -62,11 +59,8 @@ def solve_mdp(
     tol: float = 1e-10,
     max_iter: int = 1_000_000,
 ) -> Tensor:
-    """Optimal ``Q (..., S, A)`` of a discounted MDP: value iteration, then a policy-iteration polish.
-
-    ``Q(s,a) = R(s,a) + gamma sum_s' P(s,a,s') cont(s') max_a' Q(s',a')``. Value iteration stops once
-    ``gamma/(1-gamma) ||V_k - V_{k-1}|| < tol`` (a contraction: always terminates for gamma < 1);
-    the greedy policy is then improved with exact linear-solve evaluations until it is stable.
+    """Optimal ``Q (..., S, A)`` of a discounted MDP, ``Q(s,a) = R(s,a) + gamma sum_s' P(s,a,s')
+    cont(s') max_a' Q(s',a')``: value iteration to ``tol``, then a policy-iteration polish.
     """
     if not 0.0 <= gamma < 1.0:
         raise ValueError(f"gamma must be in [0, 1), got {gamma}")

@@ -1,24 +1,12 @@
-"""The oracle protocol: what a family's exact oracle offers (docs/oracle.md, docs/families.md).
+"""The oracle protocol: what a family's exact oracle offers (docs/oracle.md, docs/families.md), as
+structural ``typing.Protocol`` s.
 
-Two levels, each a ``typing.Protocol`` (structural: an oracle implements it by having the
-members, no base class needed; ``isinstance`` checks the names):
-
-- :class:`OracleTables`: the exact tables of the paper's heads on the training distribution
-  (§3.1 the averaging policy on the mean MDP, §3.2 the options and switching values, §3.3
-  Definition 1's max-values) and the instance set and quadrature they are computed over. The
-  windy oracles (:class:`~taskvar_torch.families.windy.oracle.WindyOracle`,
-  :class:`~taskvar_torch.families.windy.sparse_oracle.SparseWindyOracle`) and Taxi's
-  (:class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`) implement it.
-- :class:`ExactOracle`: the tables plus the exact evaluation ``taskvar eval`` reads per episode
-  (:mod:`~taskvar_torch.oracle.episodes`, regret by step): the controllers as Markov chains
-  (Algorithms 1-2, :mod:`~taskvar_torch.oracle.chains`), the per-instance optimum and the heads
-  bundle of the tables. ``Family.oracle`` returns one (``WindyOracle``, ``TaxiOracle``).
-
-An instance is given by the family's fields, positionally, in the order of ``instance_keys``
-(windy: ``p, direction``; Taxi: ``rainy_probability, fickle_probability``); scalars or ``(B,)``.
-Optional members the evaluation reads where present: ``obs_encoding`` (the observation learnt
-heads read, else the family's), ``exact_solves`` / ``max_exact_solves`` and ``step_solves`` /
-``max_step_solves`` (a bound on the distinct instances solved per call).
+:class:`OracleTables`: the exact tables of the paper's heads on the training distribution (§3.1-3.3)
+and their instance set and quadrature. :class:`ExactOracle`: the tables plus what ``taskvar eval``
+reads per episode: controllers as Markov chains (Algorithms 1-2), the per-instance optimum and the
+tables' heads bundle. An instance is the family's fields, positionally in ``instance_keys`` order
+(scalars or ``(B,)``). Optional members: ``obs_encoding``, ``exact_solves`` / ``max_exact_solves``,
+``step_solves`` / ``max_step_solves``.
 """
 
 from __future__ import annotations

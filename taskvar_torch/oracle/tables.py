@@ -21,11 +21,8 @@ Tensor = torch.Tensor
 
 
 class TableLookup(nn.Module):
-    """A head backed by a table: ``forward(cell) -> table[cell]`` (or argmax of a one-hot observation).
-
-    Args:
-        table: ``(S, ...)`` values per cell.
-        one_hot: read a one-hot observation ``(..., S)`` instead of an integer cell.
+    """A head backed by a table ``(S, ...)``: ``forward(cell) -> table[cell]`` (``one_hot``: the
+    argmax of a one-hot observation).
     """
 
     def __init__(self, table: Tensor, one_hot: bool = False):
@@ -72,14 +69,9 @@ def table_heads(
 
 
 class DerivedTables:
-    """What an exact oracle derives the same way from its own tables (paper §3.3, Definition 1):
-    ``V^{mu_bar}``, ``Q_hat``'s default instance set (cached), and the tables as heads.
-
-    A mixin of the oracles that give ``mu_bar() (S, O)``, ``switching_q()``, ``instance_set()``,
-    ``_max_value(*fields)`` (the max over those instances), ``averaging_q()``, ``option_q()``,
-    ``option_names``, ``mu_temperature`` and ``device``
-    (:class:`~taskvar_torch.families.windy.oracle.WindyOracle`,
-    :class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`).
+    """What an exact oracle derives from its own tables (paper §3.3, Definition 1): ``V^{mu_bar}``,
+    ``Q_hat``'s default instance set (cached) and the tables as heads; a mixin of the windy and Taxi
+    oracles.
     """
 
     def v_mu_bar(self) -> Tensor:
@@ -87,10 +79,8 @@ class DerivedTables:
         return (self.mu_bar() * self.switching_q()).sum(-1)
 
     def max_value(self, instances: Any = None) -> Tensor:
-        """``Q_hat (S, O) = max_m Q^{m, mu_bar}(s, o)`` over an instance set (Definition 1).
-
-        ``instances``: see ``instance_set`` (default: the training one, computed once). Values
-        within a tie tolerance of ``V^{mu_bar}(s)`` are snapped to it.
+        """``Q_hat (S, O) = max_m Q^{m, mu_bar}(s, o)`` over ``instances`` (default: the training
+        set), snapped to ``V^{mu_bar}(s)`` within a tie tolerance (Definition 1).
         """
         if instances is None:
             return self._max_value_default
@@ -106,11 +96,8 @@ class DerivedTables:
         dtype: torch.dtype = torch.float64,
         robustness: Tensor | None = None,
     ) -> Heads:
-        """A :class:`Heads` bundle of the oracle's tables (averaging, options, switching, max-value).
-
-        Heads read ``in_key`` (``keys.CELL`` or a one-hot ``keys.OBSERVATION``) and gather rows:
-        ``action_value (B, A)``, ``option_action_value (B, O, A)``, ``option_value (B, O)``,
-        ``max_value (B, O)``; optionally ``robustness (B, O, A)`` from a given ``(S, O, A)`` table.
+        """A :class:`Heads` bundle of the oracle's tables, read at ``in_key`` (a cell or a one-hot
+        observation); ``robustness``: an optional ``(S, O, A)`` table.
         """
         t = dict(dtype=dtype, device=self.device)
         return table_heads(

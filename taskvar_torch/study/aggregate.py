@@ -1,31 +1,10 @@
-"""Many-seed statistics with ``rliable`` (Agarwal et al., *Deep RL at the edge of the statistical
-precipice*, 2021): what ``taskvar report`` quotes (docs/claims.md).
+"""Many-seed statistics with ``rliable`` (Agarwal et al., 2021): what ``taskvar report`` quotes
+(docs/claims.md).
 
-Every function takes scores as ``{method: array (runs, tasks)}``: one row per *training seed*
-(the independent unit: a repetition of Figure 4, a Figure 2 or ``taskvar eval`` folder), one
-column per task (a scale cell; one column where a claim has a single score per seed). The
-statistics are rliable's, nothing of our own:
-
-- :func:`interval_estimates`: interquartile mean and mean with stratified-bootstrap 95% CIs
-  (``rliable.library.get_interval_estimates``, ``rliable.metrics.aggregate_iqm`` /
-  ``aggregate_mean``);
-- :func:`paired_differences`: the same on per-seed differences between two methods that played
-  the same episodes with the same heads (paired: the bootstrap resamples seeds, each seed keeps
-  its pair);
-- :func:`probability_of_improvement`: ``rliable.metrics.probability_of_improvement`` of each
-  method over a base (the averaging policy), with its CI (rliable's independent bootstrap: the
-  statistic is unpaired by definition);
-- :func:`performance_profile` / :func:`plot_performance_profiles`: score distributions
-  (``rliable.library.create_performance_profile``, ``rliable.plot_utils``).
-
-``rliable`` (and its ``arch``/``scipy`` stack, ~3 s) is imported on first use, so the CLI's other
-commands stay fast. Bootstraps are seeded (``seed``): the same inputs give the same CIs (rliable
-draws from NumPy's global stream, which :func:`_seeded` sets and restores).
-
-Examples:
-    >>> s = {"a": np.array([[1.0], [2.0], [3.0], [4.0], [5.0]])}
-    >>> interval_estimates(s, reps=200)["a"]["mean"]
-    3.0
+Scores are ``{method: array (runs, tasks)}``, one row per training seed. :func:`interval_estimates`
+(IQM and mean with stratified-bootstrap 95% CIs), :func:`paired_differences` (the same on paired
+per-seed differences), :func:`probability_of_improvement` and :func:`performance_profile` are
+rliable's. ``rliable`` is imported on first use; bootstraps are seeded (:func:`_seeded`).
 """
 
 from __future__ import annotations
@@ -121,11 +100,9 @@ def paired_differences(
 def probability_of_improvement(
     scores: Mapping[str, Any], base: str, reps: int = REPS, seed: int = 0
 ) -> dict[str, dict[str, Any]]:
-    """rliable's probability that each method improves on ``base`` (``P(X > Y)``: Mann-Whitney
-    over seeds, averaged over tasks; 0.5 where the scores are equal), with a 95% CI from rliable's
-    independent stratified bootstrap: ``{method: {"probability", "ci95": [lo, hi]}}`` for every
-    method but ``base``. Unpaired, as rliable defines it (its bootstrap resamples each method's
-    seeds apart); the paired comparison is :func:`paired_differences`."""
+    """rliable's probability that each method improves on ``base`` with its 95% CI (unpaired, as
+    rliable defines it): ``{method: {"probability", "ci95": [lo, hi]}}``.
+    """
     library, metrics = _rliable()
     y = _matrix(scores[base])
     data = {m: (_matrix(v), y) for m, v in scores.items() if m != base}

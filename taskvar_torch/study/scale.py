@@ -1,29 +1,12 @@
-"""Scaled-up grids (docs/scale.md): training time and final performance of the four
-methods against grid size and against the number of parallel environments.
+"""Scaled-up grids (docs/scale.md): training time and final performance of the four methods against
+grid size and the number of parallel environments.
 
-For each *case* (a family config) and each ``num_envs`` value (a *cell*), :func:`scale`:
-
-1. trains every head with ``train.train`` on the case's config with ``env.num_envs = N`` and the
-   same frame budget (``total_frames``) and updates per frame for every cell, timing it;
-2. evaluates averaging (paper §3.1), options (§3.2), interruption (Algorithm 1) and hierarchy
-   (Algorithm 2; "n/a" where the family has no composition) on ``eval_episodes`` test instances;
-3. plays the references on the *same* episodes (the random policy and, where the family has one,
-   the exact averaging optimum): ``gap_closed = (R - R_random) / (R_oracle - R_random)``.
-
-``heldout_episodes`` adds the held-out test distribution (:func:`heldout_block`), ``baselines``
-the baselines of docs/memory.md (:func:`baseline_phase`), both under :func:`isolated_rng` so the
-other values do not change; ``seeds = k > 1`` trains each cell once with ``train.seeds = k`` and
-evaluates every seed's bundle (:func:`over_seeds`). docs/scale.md (Seeds, Held-out instances,
-Baselines) describes each and the keys they add.
-
-Writes ``config.yaml``, ``cells/<case>-n<N>/``, ``scale.csv``, ``metrics.json`` and ``scale.png``
-(``taskvar plot OUT`` redraws it). The config is :mod:`~taskvar_torch.study.scale_config`, the
-evaluation :mod:`~taskvar_torch.study.scale_eval`, one cell :mod:`~taskvar_torch.study.scale_cell`,
-the report :mod:`~taskvar_torch.study.scale_report`.
-
-Examples:
-    >>> cfg = load_scale_config(default_config_path(), quick=True)  # doctest: +SKIP
-    >>> metrics = scale(cfg, "results/scale-quick")  # doctest: +SKIP
+For each case (a family config) and ``num_envs`` value (a cell), :func:`scale` trains every head on
+the same frame budget, evaluates averaging (§3.1), options (§3.2), interruption (Algorithm 1) and
+hierarchy (Algorithm 2) on paired test episodes, and plays the references on the same episodes:
+``gap_closed = (R - R_random) / (R_oracle - R_random)``. Held-out instances, baselines and seeds:
+docs/scale.md. Writes ``config.yaml``, ``cells/<case>-n<N>/``, ``scale.csv``, ``metrics.json`` and
+``scale.png``.
 """
 
 from __future__ import annotations
@@ -81,18 +64,11 @@ def default_config_path() -> Path:
 def load_scale_config(
     path: str | os.PathLike, overrides: Sequence[str] = (), quick: bool = False
 ) -> ScaleConfig:
-    """Load ``configs/scale.yaml`` strictly (unknown keys and bad types are one-line errors), apply
-    ``quick_overrides`` with ``quick``, then ``key=value`` overrides; case config paths are resolved
-    beside the YAML file, and every case's family config is loaded (strictly) to fail early.
+    """Load ``configs/scale.yaml`` strictly, apply ``quick_overrides`` with ``quick``, then
+    ``key=value`` overrides; every case's family config is loaded to fail early.
 
-    ``path`` may also be one family's config (a YAML with a top-level ``family``, any registered
-    family's): it is then the one case (named by the file's stem) of the default scale config
-    (:func:`default_config_path`: its budget, ``num_envs``, sizes and ``--quick`` overrides, but
-    for their ``only``), e.g. ``taskvar experiment scale
-    examples/corridor/configs/corridor.yaml --quick`` (docs/scale.md).
-
-    Loading is :func:`taskvar_torch.config.load_strict`, the training configs' loader; the quick
-    overrides are read (and checked) only with ``quick``.
+    ``path`` may also be one family's config: the one case of the default scale config
+    (docs/scale.md).
     """
     path = Path(path)
     family_config = _is_family_config(path)
@@ -143,15 +119,9 @@ def scale(
     plots: bool = True,
     overwrite: bool = False,
 ) -> dict[str, Any]:
-    """Run every (case, num_envs) cell, write the results folder, print the table.
-
-    ``overwrite``: replace the results (and cell runs) already in ``out_dir``; without it such a
-    folder is refused. ``out_dir`` is written like every results folder
-    (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, filled in a staging folder and
-    swapped in whole).
-
-    Returns:
-        The metrics dict written to ``metrics.json``.
+    """Run every (case, num_envs) cell into ``out_dir`` (a staged
+    :class:`~taskvar_torch.run_folder.ResultsFolder`; ``overwrite`` replaces results already there),
+    print the table; returns ``metrics.json``'s dict.
     """
     folder = ResultsFolder(out_dir, overwrite, "taskvar experiment scale")
     with folder as staging:

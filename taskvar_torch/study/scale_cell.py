@@ -1,9 +1,5 @@
-"""One cell of the scale experiment (docs/scale.md; a case and a ``num_envs`` value,
-:func:`run_cell`): every head trained with the real trainer (``train.seeds = k`` with ``seeds > 1``),
-each seed's bundle evaluated (:mod:`~taskvar_torch.study.scale_eval`), the aggregate over
-seeds (:func:`over_seeds`, rliable's stratified-bootstrap 95% CIs), the baselines of docs/memory.md
-trained and played on the same episodes (:func:`baseline_phase`), the held-out block
-(:func:`heldout_references`, :func:`heldout_block`), the learning curve and the peak memory.
+"""One cell of the scale experiment (docs/scale.md): every head trained, each seed's bundle
+evaluated, aggregated over seeds, the baselines and the held-out block.
 """
 
 from __future__ import annotations
@@ -62,13 +58,10 @@ def run_cell(
 ) -> dict[str, Any]:
     """Train one (case, num_envs) cell with the real trainer, time it, evaluate every method.
 
-    With ``cfg.seeds > 1`` the cell's ``train.seeds`` runs train at once and each seed's bundle is
-    evaluated on the same test episodes (``per_seed``, ``over_seeds``); ``methods``, the learning
-    curve and the head report are seed ``cfg.seed``'s (the first of the batch). ``heldout_refs``
-    (the case's held-out references, :func:`heldout_references`): every seed's methods on the
-    held-out episodes too, after everything else, under the new key ``heldout``
-    (:func:`heldout_block`). ``cfg.baselines``: each seed's bundle folder also trains and scores
-    them (:func:`baseline_phase`), after the methods' evaluation and before the held-out block."""
+    With ``cfg.seeds > 1`` every seed's bundle plays the same test episodes (``per_seed``,
+    ``over_seeds``); ``heldout_refs`` adds :func:`heldout_block`, ``cfg.baselines``
+    :func:`baseline_phase`.
+    """
 
     ccfg = case_config(cfg, case, num_envs)
     ecfg = seed_config(ccfg, 0)  # seed `seed` as one run: the test episodes of every seed
@@ -159,24 +152,14 @@ def baseline_phase(
     random_ret: float,
     oracle_ret: float | None,
 ) -> list[dict[str, BaselineController]]:
-    """Train and score a cell's baselines (``cfg.baselines``; docs/scale.md#baselines,
-    docs/memory.md); returns each seed's greedy controllers by name.
+    """Train and score a cell's baselines (docs/scale.md#baselines); returns each seed's greedy
+    controllers by name.
 
-    Training: for seed ``k`` of the cell, ``train_recurrent.train_baseline`` on
-    ``seed_config(ccfg, k)`` into that seed's bundle folder (``folders[k]``, beside the heads'
-    ``final.pt``), exactly as ``taskvar train-baselines CONFIG --out FOLDER --method NAME`` does:
-    the cell's own config, so the **same frame budget** and settings as the heads
-    (``train_recurrent``'s module docstring). The bundles (``recurrent.pt``, ``informed.pt``,
-    ``blind.pt``) are removed once loaded unless ``keep_checkpoints``.
-
-    Scoring: each baseline on the cell's test episodes (``evaluate`` at the test seed: the
-    methods' paired episodes), with ``gap_closed``, added to every seed's ``methods`` as a new
-    entry (so to ``cell["methods"]`` and ``per_seed``) and, with several seeds, to
-    ``over_seeds``. New keys: ``baseline_training`` (per seed and baseline: frames, updates,
-    seconds, the mean training return of the last tenth, ``with_heads``: always false now, true
-    in results written while the heads trained the informed head), ``baseline_train_seconds`` (their
-    total) and ``baseline_eval_seconds``. Every call runs under :func:`isolated_rng`, so the
-    methods' numbers are bit for bit those of a run without baselines."""
+    Each seed's baselines train on the cell's config (the heads' budget) into its bundle folder, as
+    ``taskvar train-baselines`` does, and play the methods' test episodes; they become new entries
+    of ``methods``, ``per_seed`` and ``over_seeds``, with ``baseline_training``,
+    ``baseline_train_seconds`` and ``baseline_eval_seconds``. Runs under :func:`isolated_rng`.
+    """
     controllers: list[dict[str, BaselineController]] = []
     training = []
     for k, folder in enumerate(folders):
@@ -217,10 +200,9 @@ def baseline_phase(
 
 
 def heldout_references(cfg: ScaleConfig, ccfg: Config) -> dict[str, Any] | None:
-    """A case's held-out references (:func:`references` on the held-out episodes of
-    :func:`heldout_test`, ``cfg.heldout_count()`` of them) with the distribution's ``test``,
-    ``seed`` and ``description``; ``None`` where the family has no held-out test. Drawn under
-    :func:`isolated_rng`: the nominal protocol's random streams are left as they were."""
+    """A case's references on :func:`heldout_test`'s episodes, with the test's name, seed and
+    description; ``None`` without a held-out test. Drawn under :func:`isolated_rng`.
+    """
     test = heldout_test(ccfg)
     if test is None:
         return None
@@ -243,13 +225,9 @@ def heldout_block(
     refs: dict[str, Any],
     seed_baselines: Sequence[dict[str, BaselineController]] = (),
 ) -> dict[str, Any]:
-    """A cell's ``heldout``: every method on the held-out episodes (the same episodes for every
-    method and seed: paired), shaped like the cell's own keys -- ``methods`` (seed ``seed``'s,
-    with ``gap_closed`` against the held-out references ``refs``) and, with several seeds,
-    ``per_seed`` and ``over_seeds``; ``seconds`` its evaluation time. Run under
-    :func:`isolated_rng` (docs/scale.md#held-out-instances). ``seed_baselines`` (each seed's
-    baseline controllers, :func:`baseline_phase`): played on the same episodes after the methods,
-    new entries of the same blocks."""
+    """A cell's ``heldout``: every method (and ``seed_baselines``) on the held-out episodes, shaped
+    like the cell's own keys (docs/scale.md#held-out-instances). Runs under :func:`isolated_rng`.
+    """
     t0 = time.perf_counter()
     test = heldout_test(ecfg)
     n = cfg.heldout_count()
@@ -287,13 +265,10 @@ def over_seeds(
     oracle_ret: float | None,
     methods: Sequence[str] = METHODS,
 ) -> dict[str, dict[str, Any] | None]:
-    """Each method's mean test return per seed (``per_seed[i][method]["mean_return"]``, same
-    episodes for every seed), aggregated over the seeds with rliable
-    (:func:`taskvar_torch.study.aggregate.interval_estimates`: one task, the seeds as runs):
-    ``mean_return`` with ``mean_ci95`` = [lo, hi] (stratified bootstrap, percentile), the IQM with
-    its CI, the per-seed means (``returns``) and the gap closed by the mean and by the CI's ends;
-    ``None`` where the method does not apply. ``methods``: which entries (default the paper's; a
-    cell's baselines are aggregated in a call of their own, :func:`baseline_phase`)."""
+    """Each method's per-seed mean test return aggregated with
+    :func:`taskvar_torch.study.aggregate.interval_estimates`: ``mean_return``, ``mean_ci95``, the
+    IQM, ``returns`` and the gap closed; ``None`` where the method does not apply.
+    """
     from taskvar_torch.study.aggregate import interval_estimates
 
     scores = {

@@ -1,10 +1,6 @@
-"""The scale experiment's config (docs/scale.md; mirrored by configs/scale.yaml, loaded strictly by
-:func:`taskvar_torch.study.scale.load_scale_config`): the cases (a family config each: windy
-5x5, 25x25, 51x51 with 4 exits; Wargus 32x32, 64x64 with 3 patrols), the ``num_envs`` values, the
-frame budget and the evaluation sizes (:class:`ScaleConfig`), and each cell's training config
-(:func:`case_config`: ``env.num_envs = N``, the exploration schedule scaled to the budget,
-``frames_per_batch`` a multiple of N and ``updates_per_batch`` scaled with it); the baselines a
-family supports (:func:`supported_baselines`, :func:`check_case_baselines`).
+"""The scale experiment's config (docs/scale.md; configs/scale.yaml): the cases, ``num_envs``
+values, budget and evaluation sizes (:class:`ScaleConfig`), each cell's training config
+(:func:`case_config`) and the baselines a family supports.
 """
 
 from __future__ import annotations
@@ -195,11 +191,8 @@ def check_case_baselines(cfg: ScaleConfig, case: ScaleCase, ccfg: Config) -> Non
 
 
 def case_config(cfg: ScaleConfig, case: ScaleCase, num_envs: int) -> Config:
-    """The family config of one cell: the case's YAML, the budget, ``num_envs`` and the overrides.
-
-    ``frames_per_batch`` becomes a multiple of ``num_envs`` (at least one step of every env) and
-    ``updates_per_batch`` is scaled with it, keeping the config's updates per frame (or
-    ``cfg.updates_per_frame`` when set).
+    """The family config of one cell: the case's YAML, the budget, ``num_envs`` and the overrides;
+    ``frames_per_batch`` a multiple of ``num_envs``, updates per frame kept.
     """
     family = load_config(case.config).family  # the experiment's overrides hit its keys only
     base = load_config(case.config, [*overrides_for(cfg.overrides, family), *case.overrides])

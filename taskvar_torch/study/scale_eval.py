@@ -1,10 +1,6 @@
-"""The scale experiment's evaluation on fresh test instances (docs/scale.md): each method --
-averaging (paper §3.1), options (§3.2), interruption (Algorithm 1) and hierarchy (Algorithm 2) --
-played on ``eval_episodes`` test instances (test seed ``seed + TEST_SEED_OFFSET``, paired across
-methods: :func:`evaluate`), the references on the same episodes (the uniformly random policy and,
-where the family has one, the exact mean-MDP averaging optimum: :func:`references`),
-:func:`gap_closed`, the family's sealed held-out test distribution (:func:`heldout_test`) and
-:func:`isolated_rng`, under which an extra evaluation draws no random number the nominal one uses.
+"""The scale experiment's evaluation on fresh test instances (docs/scale.md): each method on paired
+test episodes (:func:`evaluate`), the references (:func:`references`), :func:`gap_closed`, the
+held-out test (:func:`heldout_test`) and :func:`isolated_rng`.
 """
 
 from __future__ import annotations
@@ -71,11 +67,9 @@ class HeldoutTest:
 
 
 def heldout_test(cfg: Config) -> HeldoutTest | None:
-    """The held-out test of ``cfg``'s family: ``taskvar eval --test heldout``'s overrides and
-    instances (:func:`taskvar_torch.experiments.shift.shift_points`) under the sealed seed itself,
-    the same episodes for every training seed of a cell (its gap closed divides by references on
-    those episodes; ``taskvar eval`` draws each bundle's own, docs/report.md); ``None`` where the
-    family declares no sealed ``heldout`` distribution."""
+    """The held-out test of ``cfg``'s family (``taskvar eval --test heldout``'s) under the sealed
+    seed, the same episodes for every training seed; ``None`` where the family has none.
+    """
     dist = family(cfg).tests.get(HELDOUT_TEST)
     if dist is None or dist.seed is None:
         return None
@@ -136,13 +130,9 @@ def evaluate(
     heads: Any = None,
     test: HeldoutTest | None = None,
 ) -> dict[str, float] | None:
-    """Mean return (95% CI), length and interruptions of ``policy_name`` over ``episodes`` test
-    episodes (global indices ``0..episodes-1`` at the test seed: the same for every policy),
-    played by :func:`~taskvar_torch.experiments.paired.play`.
-
-    ``test``: play the held-out test's episodes instead (:func:`heldout_test`: its config,
-    instances and sealed seed; docs/scale.md#held-out-instances).
-    ``None`` where the method does not apply (hierarchy without a composition hierarchy)."""
+    """Mean return (95% CI), length and interruptions of ``policy_name`` over ``episodes`` paired
+    test episodes (``test``: the held-out test's); ``None`` where the method does not apply.
+    """
 
     instances: Any = "test"
     if test is None:

@@ -1,15 +1,5 @@
-"""Scaled-up grids report: ``scale.csv`` rows, the printed table and ``scale.png`` (docs/scale.md).
-
-Reads the ``metrics.json`` that :func:`taskvar_torch.study.scale.scale` writes (per cell:
-frames, updates, training seconds, frames/s, each method's mean return with its 95% CI and the gap
-closed between the random policy and the exact averaging optimum, paper §3.1; the held-out
-block beside the nominal numbers, :func:`format_heldout`; the baselines of docs/memory.md as
-further methods where the run trained them, :func:`report_methods`);
-:func:`plot_results` redraws the figure from a results folder alone (``taskvar plot DIR``).
-
-Examples:
-    >>> print(format_table(json.loads(Path("DIR/metrics.json").read_text())))  # doctest: +SKIP
-    >>> plot_results("DIR")  # doctest: +SKIP
+"""Scaled-up grids report: ``scale.csv`` rows, the printed table and ``scale.png`` from a results
+folder's ``metrics.json`` (docs/scale.md; ``taskvar plot DIR``).
 """
 
 from __future__ import annotations
@@ -206,10 +196,7 @@ def format_heldout(metrics: dict[str, Any]) -> list[str]:
 
 
 def format_heads(metrics: dict[str, Any]) -> list[str]:
-    """Lines of the every-head report (windy cells): each head's relative gap to its exact
-    optimum (``*``: within 2%), mu_bar's agreement at the start cells, the interruption
-    condition's agreement over (cell, option) pairs, and the exact returns of the learnt and the
-    oracle's interruption controllers (families/windy/head_report.py)."""
+    """Lines of the every-head report (windy cells; families/windy/head_report.py)."""
     cells = [c for c in metrics["cells"] if c.get("heads")]
     if not cells:
         return []
@@ -282,11 +269,9 @@ def unit(fam: str) -> str:
 
 
 def plot_results(out_dir: str | os.PathLike) -> list[Path]:
-    """(Re)draw ``scale.png`` from ``metrics.json``: (a) training time vs grid side per num_envs,
-    (b, c) final return per method vs grid side (windy, Wargus; at the largest num_envs, references
-    dashed), (d) frames/s vs num_envs per case, (e, f) final return per method vs num_envs; with
-    several seeds per cell (b, c, e, f) are means over the seeds (:func:`final_return`), the
-    learning curves seed ``seed``'s."""
+    """(Re)draw ``scale.png`` from ``metrics.json``: training time, final return per method and
+    frames/s against grid side and ``num_envs`` (means over seeds).
+    """
 
     out = Path(out_dir)
     if not is_results_folder(out):
@@ -331,10 +316,9 @@ def plot_results(out_dir: str | os.PathLike) -> list[Path]:
 
 
 def plot_curves(metrics: dict[str, Any], path: Path) -> Path:
-    """``scale_curves.png``: per cell (columns), every method's test return against training
-    frames (top) and training wall time (bottom), shaded 95% CI, with the random policy and the
-    exact averaging optimum (windy) as horizontal references; a method whose curve equals one
-    drawn before it (options when interruption never fires) is dashed and labelled so."""
+    """``scale_curves.png``: per cell every method's test return against training frames and wall
+    time (95% CI), with the references; a curve equal to an earlier one is dashed.
+    """
     cells = [c for c in metrics["cells"] if len(c.get("curve") or []) > 1]
     plt = pyplot()
     fig, axes = plt.subplots(

@@ -1,27 +1,8 @@
 """Sweeps: one experiment per point of a grid of config overrides, run locally or on Ray
 (docs/sweeps.md).
 
-``taskvar sweep CONFIG --backend local|ray [--quick] [--out DIR] key=v1,v2 ...``: every
-``key=v1,v2,...`` is a swept key, the points are the Cartesian product of their values, and a
-plain ``key=value`` is a fixed override of every point. Each point runs the same function as
-``taskvar experiment`` into ``OUT/<point name>/``; the summary goes to ``OUT/summary.csv`` and
-``OUT/summary.json``. Backends (:data:`BACKENDS`): ``local`` runs the points in this process, ``ray``
-as Ray tasks of one CPU each; a point's numbers depend only on its config, so both give the same.
-
-Points that differ only in consecutive seeds train as one batched run (``batch_seeds``,
-:func:`seed_batches`; docs/sweeps.md, Seed batches), and ``resume`` keeps the points already
-complete (:func:`completed_points`).
-
-The grid (points, configs, resume, summary) is :mod:`taskvar_torch.study.sweep_grid`, what a
-worker runs (a point, a seed batch) :mod:`taskvar_torch.study.sweep_jobs`; this module runs the
-jobs on a backend.
-
-Examples:
-    >>> points = expand_points(["seed=0,1", "train.lr=0.002"])
-    >>> [p.name for p in points]
-    ['seed=0', 'seed=1']
-    >>> points[1].overrides
-    ('train.lr=0.002', 'seed=1')
+The grid is :mod:`taskvar_torch.study.sweep_grid`, what a worker runs
+:mod:`taskvar_torch.study.sweep_jobs`; this module runs the jobs on a backend (:data:`BACKENDS`).
 """
 
 from __future__ import annotations
@@ -154,29 +135,23 @@ def sweep(
     """Run every point of the sweep, write ``summary.csv`` / ``summary.json``, print the table.
 
     Args:
-        config: YAML config of a family (windy or wargus).
+        config: YAML config of a family.
         items: ``key=v1,v2`` swept keys and ``key=v`` fixed overrides.
         out_dir: sweep folder; point ``p`` writes ``out_dir/p.name/``.
-        backend: ``local`` (in-process, sequential) or ``ray`` (one Ray task per point).
-        quick: apply the config's ``experiment.quick_overrides`` (before the sweep's).
-        address: Ray cluster address (``ray`` only; default: start a local Ray).
-        workers: CPUs of the local Ray (``ray`` only; default: all cores).
+        backend: ``local`` (in-process) or ``ray`` (one Ray task per point).
+        quick: apply the config's ``experiment.quick_overrides`` first.
+        address: Ray cluster address (default: a local Ray).
+        workers: CPUs of the local Ray (default: all cores).
         progress: a progress bar over completed points.
-        plots: each point draws its PNGs (``False``: skipped, about half of a small windy point's
-            time; ``taskvar plot out_dir/<point>`` draws them later).
-        overwrite: replace a sweep (and its points) already in ``out_dir``; without it (or
-            ``resume``) such a folder is refused.
-        resume: keep the points already complete in ``out_dir`` (:func:`completed_points`), run
-            the others (a partial point folder is replaced).
-        batch_seeds: train the points that differ only in (consecutive) seeds as one batched run
-            (:func:`seed_batches`, ``OUT/batches/``); ``False``: every point trains alone.
+        plots: each point draws its PNGs (``taskvar plot`` draws them later).
+        overwrite: replace a sweep already in ``out_dir``.
+        resume: keep the points already complete (:func:`completed_points`), run the others.
+        batch_seeds: train points differing only in consecutive seeds as one run
+            (:func:`seed_batches`).
 
-    Returns:
-        The summary rows (one per point).
-
-    Raises:
-        ValueError: one line, for an unknown backend or key, an empty value, a missing Ray, a
-            folder already holding a sweep (without ``overwrite`` or ``resume``).
+    Returns the summary rows. Raises a one-line ``ValueError`` for an unknown backend or key, an
+    empty value, a missing Ray, or a folder already holding a sweep (without ``overwrite`` or
+    ``resume``).
     """
     _check_backend(backend, address, workers)
     if resume and overwrite:

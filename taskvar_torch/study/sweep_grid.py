@@ -1,13 +1,6 @@
-"""The grid of a sweep (:mod:`taskvar_torch.study.sweep`, ``taskvar sweep``; docs/sweeps.md): the
-``key=v1,v2,...`` overrides parsed into points (the Cartesian product of the swept values,
-:func:`expand_points`), each point's config strictly loaded (:func:`load_point_configs`), the
-points already complete in a folder (``--resume``, :func:`completed_points`), and the summary table
-of swept values and headline metrics (:func:`headline`, :func:`format_summary`).
-
-Examples:
-    >>> points = expand_points(["seed=0,1", "train.lr=0.002"])
-    >>> [p.name for p in points]
-    ['seed=0', 'seed=1']
+"""The grid of a sweep (docs/sweeps.md): points from ``key=v1,v2,...`` (:func:`expand_points`),
+their configs (:func:`load_point_configs`), the points already complete (:func:`completed_points`)
+and the summary (:func:`headline`, :func:`format_summary`).
 """
 
 from __future__ import annotations
@@ -118,10 +111,8 @@ def load_point_configs(
 
 
 def headline(metrics: dict[str, Any]) -> dict[str, Any]:
-    """The summary-table numbers of one point's ``metrics.json``.
-
-    Windy Figure 2: fraction no worse and mean difference (interruption - averaging), the null's
-    and the exact (oracle) fraction no worse, for the training distribution and south-only winds. Wargus Figure 4: each method's final score and trials to 90%.
+    """The summary-table numbers of one point's ``metrics.json`` (Figure 2: fractions no worse and
+    mean difference; Figure 4: final scores and trials to 90%).
     """
     if metrics.get("experiment") == "windy-fig2":
         keys = (
@@ -144,15 +135,11 @@ def headline(metrics: dict[str, Any]) -> dict[str, Any]:
 def completed_points(
     out: Path, points: Sequence[SweepPoint], cfgs: Sequence[Config]
 ) -> dict[int, dict[str, Any]]:
-    """The points already complete in ``out``: ``{index: {"metrics": ..., "seconds": ...}}``.
-
-    A point is complete when ``out/<point>/metrics.json`` exists and ``out/<point>/config.yaml``
-    equals the point's config. A point folder without ``metrics.json`` (a killed run) is not
-    complete.
+    """The points already complete in ``out`` (``metrics.json`` present and ``config.yaml`` equal to
+    the point's): ``{index: {"metrics", "seconds"}}``.
 
     Raises:
-        ValueError: a point folder holds results (``metrics.json``) of another config, or an
-            unreadable ``metrics.json`` / ``config.yaml``.
+        ValueError: a point folder holds results of another config, or unreadable files.
     """
     done: dict[int, dict[str, Any]] = {}
     for i, (p, cfg) in enumerate(zip(points, cfgs)):

@@ -1,9 +1,6 @@
-"""What a sweep's workers run (:mod:`~taskvar_torch.study.sweep`, ``taskvar sweep``): one point, the
-same function as ``taskvar experiment`` (:func:`run_point`, paper §3.3.1 and §3.5), or a seed batch:
-points whose configs differ only in consecutive seeds, trained as one run with ``train.seeds = k``
-(the batched trainer, docs/seeds.md) in ``OUT/batches/<name>/`` and each point then evaluating its
-seed's bundle (:func:`seed_batches`, :func:`run_batch`); :func:`plan_jobs` turns the points into
-these jobs.
+"""What a sweep's workers run: one point (:func:`run_point`, as ``taskvar experiment``) or a seed
+batch trained as one ``train.seeds = k`` run (:func:`run_batch`; docs/seeds.md); :func:`plan_jobs`
+turns the points into these jobs.
 """
 
 from __future__ import annotations
@@ -46,14 +43,9 @@ def run_point(
     overwrite: bool = False,
     checkpoint: str | os.PathLike | None = None,
 ) -> dict[str, Any]:
-    """Run ``cfg``'s family experiment into ``out_dir``; its printed table goes to ``output.txt``.
-
-    ``plots=False`` skips the experiment's PNGs (``taskvar plot out_dir`` draws them later);
-    ``checkpoint``: evaluate this bundle instead of training (a seed batch's, :func:`run_batch`).
-
-    Returns:
-        ``{"metrics": metrics.json's dict, "seconds": wall time}``; a diverged run returns
-        ``{"error": message, "seconds": ...}`` instead (the sweep goes on).
+    """Run ``cfg``'s family experiment into ``out_dir`` (its table in ``output.txt``);
+    ``checkpoint`` evaluates that bundle instead of training. Returns ``{"metrics", "seconds"}``, or
+    ``{"error", "seconds"}`` for a diverged run.
     """
 
     torch.set_num_threads(1)  # one core per point (the heads are small MLPs)
@@ -119,10 +111,9 @@ def batch_refusal(cfg: Config) -> str | None:
 def seed_batches(
     points: Sequence[SweepPoint], cfgs: Sequence[Config], todo: Sequence[int]
 ) -> tuple[list[list[int]], list[str]]:
-    """The seed batches among the points ``todo``: lists of >= 2 point indices whose configs are
-    equal but for ``seed`` and whose seeds are consecutive (sorted: ``seed, seed + 1, ...``, the
-    batched trainer's rule), and one note for each group of such points that is not (or not
-    wholly) batched, saying why."""
+    """The seed batches among ``todo``: lists of >= 2 point indices equal but for consecutive seeds,
+    and a note per group of such points not wholly batched.
+    """
     groups: dict[str, list[int]] = {}
     for i in todo:
         key = json.dumps(config_to_dict(dataclasses.replace(cfgs[i], seed=0)), sort_keys=True)
@@ -199,14 +190,9 @@ def run_batch(
     plots: bool = True,
     overwrite: bool = False,
 ) -> list[dict[str, Any]]:
-    """Train the points ``cfgs`` (consecutive seeds of one config) as one ``train.seeds = k`` run
-    in ``batch_dir`` (its printed lines in ``output.txt`` there), then run each point's
-    experiment on its seed's bundle: ``outs[i]/train`` becomes a relative symlink to
-    ``batch_dir/seed<i>``, so the point folder reads as an unbatched one.
-
-    Each point's ``metrics.json`` gains ``train_batch`` (the batch folder relative to the point,
-    its seeds and the point's index); its ``train_seconds`` is its share of the batch's training
-    time (the batch's / k) and ``wall_seconds`` (and the summary's seconds) add that share.
+    """Train the points ``cfgs`` as one ``train.seeds = k`` run in ``batch_dir``, then run each
+    point's experiment on its seed's bundle (``outs[i]/train`` a relative symlink); each
+    ``metrics.json`` gains ``train_batch`` and its share of the training time.
     """
     torch.set_num_threads(1)
     n, batch = len(cfgs), Path(batch_dir)

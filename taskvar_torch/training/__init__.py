@@ -1,40 +1,18 @@
-"""Offline training of every head from one stream of experience (paper §3.1-3.4; docs/design.md).
+"""Offline training of every head from one stream of experience (paper §3.1-3.4;
+docs/design.md#training-the-heads).
 
-The loop, top to bottom (:func:`train`)::
+The loop (:func:`train`)::
 
     env (batched family, instances redrawn at every reset) + InitTracker + RewardSum
-      --Collector(BehaviourPolicy)--> raw transitions --ReplayBuffer(LazyTensorStorage)-->
-      one shared sample --MultiHeadLearner--> every head (averaging, options, switching, max-value,
-      robustness) --> CSV logs, periodic checkpoints, DIR/final.pt
+    --Collector(BehaviourPolicy)--> raw transitions --ReplayBuffer(LazyTensorStorage)--> one shared
+    sample --MultiHeadLearner--> every head (averaging, options, switching, max-value, robustness)
+    --> CSV logs, periodic checkpoints, DIR/final.pt
 
-The env and collector come from :mod:`taskvar_torch.training.collection`. With
-``collector.num_workers = W > 1`` the collector is TorchRL's ``MultiSyncCollector``: W spawned
-processes, each stepping its own slice of the N environments (:func:`make_worker_env`), their
-batches concatenated in worker order into the same ``(N, T)`` batch; after every update phase the
-learner's behaviour weights (epsilon included) reach the workers through TorchRL's
-``SharedMemWeightSyncScheme`` (``collector.update_policy_weights_``). With ``collector.backend =
-ray`` the W workers are Ray actors instead (TorchRL ``Collector(backend="ray")``, weights through
-its ``RayWeightSyncScheme``), on a local Ray or a cluster (``collector.ray_address``): the same
-slices, the same ``(N, T)`` batch.
-
-Exact resume: a checkpoint holds the heads, targets, optimiser, target-updater counter, step
-counters, the replay buffer, the env's simulator state, the collector's carried tensordict and every
-RNG state, so ``train(..., resume=ckpt)`` continues bit for bit on CPU (one collector process only:
-the workers' env and RNG states are not saved, so resuming a multi-process run is refused).
-
-The loop itself, batch by batch, is the one the baselines train with too
-(:func:`~taskvar_torch.training.learning.collect_and_learn`); the run lives beside it: what it holds and does per batch (store, learn, report,
-checkpoint) in :mod:`taskvar_torch.training.run_state`, its construction and resume checks in
-:mod:`taskvar_torch.training.run_setup`, where its log rows go in :mod:`taskvar_torch.training.run_logs`, the results
-folder (one run per folder, locked, never silently reused; logs cut back on resume; SIGINT /
-SIGTERM stop at a resumable checkpoint) in :mod:`taskvar_torch.run_folder`, and the learning step
-it shares with the baselines and the Figure 4 protocol (schedules, update phase, divergence
-check) in :mod:`taskvar_torch.training.learning`.
-
-Examples:
-    >>> cfg = load_config("configs/windy.yaml", ["train.total_frames=20000"])  # doctest: +SKIP
-    >>> result = train(cfg, "/tmp/run")  # doctest: +SKIP
-    >>> heads, cfg = load_heads("/tmp/run/final.pt")  # doctest: +SKIP
+The loop is :func:`~taskvar_torch.training.learning.collect_and_learn`; the run it drives is
+:mod:`~taskvar_torch.training.run_state`, built or restored by
+:mod:`~taskvar_torch.training.run_setup`, collected by :mod:`~taskvar_torch.training.collection`. A
+checkpoint holds everything the run draws from, so ``train(..., resume=ckpt)`` continues bit for bit
+on CPU (one collector process).
 """
 
 from __future__ import annotations
@@ -87,28 +65,22 @@ def train(
     Args:
         cfg: the run's config; with ``resume`` it may be ``None`` (the checkpoint's config is used)
             or must equal the checkpoint's up to runtime keys such as ``train.total_frames``.
-        out_dir: results folder (created). A folder already holding a run is refused unless
-            ``resume`` is a checkpoint inside it (the run continues; its logs are cut back to the
-            checkpoint's frame) or ``overwrite`` is set; a second run on the same folder is refused.
-        resume: a checkpoint written by this function to continue from, exactly.
+        out_dir: results folder (docs/reliability.md#results-folders-locked-staged-swapped-whole).
+        resume: a checkpoint written by this function inside ``out_dir`` to continue from, exactly.
         overrides: ``key.sub=value`` applied to the checkpoint's config when ``cfg`` is ``None``.
         progress: show a progress bar (plain lines when stderr is not a terminal).
-        overwrite: remove the run already in ``out_dir`` (config, checkpoints, logs) first.
-        keep_replay: ``False``: ``final.pt`` holds no replay buffer (up to ~1.3 GB at the scaled
-            configs' 1M rows; the bundle still evaluates, :func:`load_heads`, but cannot be
+        overwrite: remove the run already in ``out_dir`` first.
+        keep_replay: ``False``: ``final.pt`` holds no replay buffer (it evaluates but cannot be
             resumed); periodic checkpoints always hold it.
 
-    Returns:
-        ``{"final": path, "frames": int, "updates": int, "seconds": float, "last_log": dict}``.
+    Returns: ``{"final": path, "frames": int, "updates": int, "seconds": float, "last_log": dict}``.
 
     Raises:
         ValueError: an unusable ``out_dir`` or device, or a run already there; nothing is written.
         CheckpointError: an unreadable, foreign or non-finite ``resume`` checkpoint, or one of a
             family declared ``resumable=False``.
-        TrainingDiverged: a loss (checked once per logging interval) or a weight (checked before
-            every checkpoint write) became NaN or infinite; the last checkpoint written is intact.
-        TrainingInterrupted: SIGINT or SIGTERM; the run stopped after its current batch and wrote
-            a checkpoint (a second signal aborts at once: ``KeyboardInterrupt``).
+        TrainingDiverged: a loss or a weight became NaN or infinite; the last checkpoint is intact.
+        TrainingInterrupted: SIGINT or SIGTERM; the run wrote a checkpoint after its current batch.
     """
     # written in place (its checkpoints resume there), never over another run unless overwrite
     folder = ResultsFolder(out_dir, overwrite, markers=RUN_FILES, staged=False, resume=resume)
@@ -187,10 +159,9 @@ def _train_loop(
     on_start: Any,
     keep_replay: bool = True,
 ) -> dict[str, Any]:
-    """:func:`train` once its inputs are checked and ``out`` is held: build the run (or restore it
-    from ``bundle``), then the training loop (:func:`~taskvar_torch.training.learning.collect_and_learn`)
-    until ``train.total_frames``: store the transitions (:meth:`TrainingRun.store`), learn
-    (:meth:`TrainingRun.learn`), log and checkpoint (:meth:`TrainingRun.report`)."""
+    """:func:`train` once its inputs are checked and ``out`` is held: build (or restore) the run,
+    then :func:`~taskvar_torch.training.learning.collect_and_learn` until ``train.total_frames``.
+    """
     t = cfg.train
     save_config_yaml(cfg, out / "config.yaml")
     run = build_run(cfg, out, bundle, resume)

@@ -1,17 +1,9 @@
 """glibc's allocator kept from returning freed memory to the OS between learner updates.
 
-Each update allocates and frees the same few MB of tensors (activations, gradients, targets). With
-glibc's defaults, a freed block at the top of the heap over ``M_TRIM_THRESHOLD`` (128 KiB, raised
-dynamically) is handed back to the kernel and the next update faults it in again, page by page, and
-blocks over ``M_MMAP_THRESHOLD`` are mapped and unmapped on every call: the windy heads' training
-spent ~12 M minor page faults and a quarter of its wall in system time so (docs/benchmarks.md,
-Learner). :func:`keep_freed_memory` raises both thresholds once (``mallopt`` through ``ctypes``),
-so freed memory is reused from the heap: the process keeps up to ``trim_mib`` of free heap
-instead of returning it. No effect on any number computed.
-
-Every training loop calls it before its first gradient step (:func:`~taskvar_torch.training.learning
-.update_phase`); ``TASKVAR_MALLOC=default`` in the environment leaves glibc's settings as they
-are. Off glibc (macOS, Windows, musl) it does nothing.
+Each update frees and reallocates the same few MB; glibc's default trim and mmap thresholds hand
+them back to the kernel and fault them in again (docs/benchmarks.md). :func:`keep_freed_memory`
+raises both once; no number computed changes. ``TASKVAR_MALLOC=default`` leaves glibc as it is; off
+glibc it does nothing.
 """
 
 from __future__ import annotations

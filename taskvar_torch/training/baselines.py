@@ -1,57 +1,14 @@
-"""Training the baselines beside a bundle (docs/memory.md): ``recurrent``, ``informed`` and
-``blind``, each a DQN agent of its own on its own epsilon-greedy stream.
+"""Training the baselines beside a bundle: ``recurrent``, ``informed`` and ``blind``, each a DQN
+agent of its own on its own epsilon-greedy stream (docs/memory.md#what-they-are).
 
-They learn with TorchRL's own pieces, on the family's batched training env (each sub-env draws a
-new hidden instance at every reset, the distribution the paper's heads train on, §2), and read
-every setting they share with the heads from the config, so a baseline and the heads it is
-compared with differ only where they must:
-
-* the budget ``train.total_frames`` (``baseline.recurrent_frames`` for the recurrent baseline,
-  ``baseline.informed_frames`` for informed and blind, where a family's config gives them more:
-  :func:`baseline_train_config`) and ``train.frames_per_batch``;
-  epsilon-greedy exploration (:class:`~torchrl.modules.EGreedyModule`) at the heads' schedule
-  (:func:`~taskvar_torch.training.learning.epsilon_at`: uniform for ``train.init_random_frames``, then
-  ``eps_start -> eps_end`` by ``eps_decay_frames``); ``train.updates_per_batch`` gradient steps
-  per batch of ``train.batch_size`` rows from a replay of ``train.buffer_size``;
-* ``DQNLoss(double_dqn=train.double_q, delay_value=True)`` at ``train.gamma``, the target network
-  updated as ``train.target_update`` says (``SoftUpdate`` at ``train.target_tau``, or
-  ``HardUpdate`` every ``train.target_period``), Adam at ``train.lr`` (decayed to
-  ``train.lr_end`` as the heads' is: :func:`~taskvar_torch.training.learning.lr_at`), gradients clipped at
-  ``train.max_grad_norm``, and the evaluation weights a Polyak average where
-  ``train.eval_ema_tau`` is set (for informed and blind, ``baseline.informed_ema_tau`` where set);
-* ``train.n_step`` targets for ``informed`` and ``blind`` (TorchRL's
-  :class:`~torchrl.envs.transforms.MultiStepTransform` on each sub-env's stream: up to n rewards,
-  cut at the episode's end, then the bootstrap at ``gamma^k``; the loss reads
-  ``steps_to_next_obs``), uniform samples;
-* the Q head's widths and activation ``heads.hidden``, ``heads.activation``.
-
-The heads' ``train.first_visit`` and ``train.replay_sampling`` shape the heads' own replay only;
-the recurrent baseline takes one-step targets on its slices (:func:`heads_only_keys` names what
-it does not use, in one line).
-
-**recurrent** (DRQN; Ni et al. 2022's recipe for a strong recurrent model-free baseline, with
-the choices made here): one GRU encoder shared by the Q-values (a value-based agent has no actor
-to separate it from); inputs the observation, the previous action and the previous reward; the
-replay holds each sub-env's stream in time order (``LazyTensorStorage(ndim=2)``, the
-collector's ``(N, T)`` batches extended along their time dimension), sampled by
-:class:`~torchrl.data.replay_buffers.SliceSampler` in slices of ``baseline.burn_in +
-baseline.slice_len`` consecutive steps of one sub-env within one episode (a stored episode
-uniformly, then a start in it: a step of a short episode is drawn more often than one of a long
-one); both passes of the loss start each slice from the GRU states stored at collection (R2D2;
-:func:`loss_network`), and its first ``baseline.burn_in`` steps carry no loss (gradients of the
-later steps flow back through them), unless the slice starts an episode, whose state is exactly
-zero. Stored states and burn-in rather than zero-start full episodes: Wargus episodes run 500
-steps.
-
-**informed**: a plain MLP of the heads' widths over ``[observation; instance features]``
-(:func:`~taskvar_torch.heads.recurrent.make_informed_qnet`), the features read from the hidden
-instance the replay keeps at ``s`` and ``s'``. **blind**: the same network and trainer with the
-features zeroed, so "memory helps" is told apart from "learning on one's own stream helps".
-
+They learn with TorchRL's pieces (``Collector``, ``EGreedyModule``, ``DQNLoss``, ``SoftUpdate`` /
+``HardUpdate``, ``SliceSampler``, ``MultiStepTransform``) on the family's batched training env (a
+new hidden instance at every reset, paper §2), and read every setting they share with the heads from
+the config (:func:`baseline_train_config`). **recurrent**: DRQN over the observation, previous
+action and reward, trained on slices from stored GRU states with a burn-in (R2D2). **informed**: a
+plain MLP over ``[observation; instance features]``; **blind** the same with the features zeroed.
 :func:`train_baseline` runs the heads' training loop
-(:func:`~taskvar_torch.training.learning.collect_and_learn`) on a :class:`BaselineRun` and writes
-``DIR/recurrent.pt``, ``DIR/informed.pt`` or ``DIR/blind.pt``
-(``heads.recurrent.save_baseline``: atomic, plain data).
+(:func:`~taskvar_torch.training.learning.collect_and_learn`) and writes ``DIR/<method>.pt``.
 """
 
 from __future__ import annotations
@@ -140,12 +97,10 @@ def build_for_training(cfg: Config, method: str) -> tuple[TensorDictSequential, 
 
 
 def stored_keys(method: str) -> tuple:
-    """What the replay keeps of each transition: the step (observation, action, next reward and
-    done flags, episode starts) and, for ``recurrent``, the GRU's stored hidden state and the
-    previous action and reward (the state a step starts from and the one it hands on, so both
-    passes of the loss start a slice from the state stored at collection); for ``informed`` and
-    ``blind``, the hidden instance the features are read from (at ``s`` and ``s'``) and the
-    agent's ``cell`` where the env has one (a family's egocentric features read it)."""
+    """What the replay keeps of each transition for ``method``: the step, plus the GRU's stored
+    state and previous action and reward (``recurrent``) or the hidden instance at ``s`` and ``s'``
+    and the agent's ``cell`` where the env has one (``informed``, ``blind``).
+    """
     if method == "recurrent":
         prev = (PREV_ACTION, PREV_REWARD, (keys.NEXT, PREV_ACTION), (keys.NEXT, PREV_REWARD))
         return (*_STORE, RECURRENT_STATE, (keys.NEXT, RECURRENT_STATE), *prev)
@@ -155,8 +110,8 @@ def stored_keys(method: str) -> tuple:
 
 def heads_only_keys(cfg: Config, methods: tuple[str, ...] | list[str] = BASELINES) -> list[str]:
     """The ``train`` keys set away from their defaults that the baselines ``methods`` do not use
-    (module docstring): ``replay_sampling`` (the heads' replay only), and ``n_step`` where the
-    recurrent baseline is among them (one-step targets on its slices)."""
+    (``replay_sampling``; ``n_step`` where ``recurrent`` is among them).
+    """
     t = cfg.train
     out = []
     if t.n_step != 1 and "recurrent" in methods:
@@ -167,14 +122,11 @@ def heads_only_keys(cfg: Config, methods: tuple[str, ...] | list[str] = BASELINE
 
 
 def baseline_train_config(cfg: Config, method: str) -> TrainConfig:
-    """The ``train`` settings ``method`` trains with: the heads' (an equal budget), except
-
-    * a baseline's own frame budget where set (``baseline.recurrent_frames`` for ``recurrent``,
-      ``baseline.informed_frames`` for ``informed`` and ``blind``), its epsilon decay and the
-      learning-rate decay's start scaled by the same factor (the same share of its budget as the
-      heads');
-    * the informed and blind baselines' evaluation average ``baseline.informed_ema_tau`` where
-      set (as ``train.eval_ema_tau``)."""
+    """The ``train`` settings ``method`` trains with: the heads', except a baseline's own frame
+    budget where set (``baseline.recurrent_frames``, ``baseline.informed_frames``; epsilon and
+    learning-rate decay scaled by the same factor) and ``baseline.informed_ema_tau`` as
+    ``train.eval_ema_tau``.
+    """
     t = cfg.train
     b = cfg.baseline
     frames = b.recurrent_frames if method == "recurrent" else b.informed_frames
@@ -192,10 +144,9 @@ def baseline_train_config(cfg: Config, method: str) -> TrainConfig:
 
 
 def burn_in_mask(sample: TensorDictBase, burn_in: int) -> torch.Tensor:
-    """``(R,)`` bool: the rows of a flat slice sample the recurrent loss is taken on: every row
-    from the ``burn_in``-th of its slice on, and every row of a slice that starts an episode.
-
-    Slices start where the sampler marks ``is_init`` (they never hold an episode start inside)."""
+    """``(R,)`` bool: the rows of a flat slice sample the recurrent loss is taken on (from the
+    ``burn_in``-th row of each slice on, and every row of a slice that starts an episode).
+    """
     starts = sample.get("is_init").reshape(-1)  # (R,) slice starts
     R = starts.shape[0]
     first = starts.nonzero().squeeze(-1)  # (num_slices,) each slice's first row
@@ -210,14 +161,10 @@ LOSS_STATE = "recurrent_state_out"
 
 
 def loss_network(net: TensorDictSequential) -> TensorDictSequential:
-    """The recurrent Q-network as the loss runs it: the same modules and weights, its
-    ``GRUModule`` writing the state it hands on to :data:`LOSS_STATE` instead of
-    ``("next", "recurrent_state")``.
-
-    In recurrent mode ``GRUModule`` writes zeros to its state key at every row but a slice's last,
-    and ``DQNLoss`` runs the next-state passes on the tensordict its online pass wrote to, so
-    through ``net`` those passes would start each slice from zeros, not from the stored
-    ``("next", "recurrent_state")`` (``tests/test_recurrent_replay.py``)."""
+    """The recurrent Q-network as the loss runs it: the same modules and weights, its ``GRUModule``
+    writing to :data:`LOSS_STATE`, so the next-state passes start each slice from the stored
+    ``("next", "recurrent_state")`` (tests/test_recurrent_replay.py).
+    """
     modules = []
     for m in net:
         if isinstance(m, GRUModule):
@@ -229,19 +176,14 @@ def loss_network(net: TensorDictSequential) -> TensorDictSequential:
 
 
 class BaselineLearner:
-    """A baseline's replay and update rule (module docstring): ``DQNLoss`` with a target network
-    on ``net``, Adam, gradient clipping and the config's target update, all from ``cfg``.
+    """A baseline's replay and update rule: ``DQNLoss`` with a target network on ``net``, Adam,
+    gradient clipping and the config's target update, all from ``cfg``.
 
-    ``recurrent``: the replay holds trajectories, sampled by ``SliceSampler`` in slices of
-    ``baseline.burn_in + baseline.slice_len`` within episodes (``end_key = ("next", "done")``),
-    ``max(1, train.batch_size // baseline.slice_len)`` slices a sample, and the loss runs the GRU
-    in ``set_recurrent_mode(True)`` from each slice's stored state, taken past the burn-in
-    (:func:`burn_in_mask`). ``time_major`` (the default) stores the collector's ``(N, T)``
-    batches as they come (``LazyTensorStorage(ndim=2)``), else flat batches whose episodes are
-    already whole and contiguous (the Figure 4 protocol's, ``families/wargus/fig4_recurrent.py``).
-    Otherwise uniform transitions of ``train.batch_size``, with ``train.n_step`` targets where it
-    is above 1 (:class:`~torchrl.envs.transforms.MultiStepTransform` over each sub-env's stream in
-    :meth:`store`, which holds the last ``n_step`` steps back until the next batch).
+    ``recurrent``: slices of ``baseline.burn_in + baseline.slice_len`` steps within episodes, the
+    loss in ``set_recurrent_mode(True)`` from each slice's stored state past the burn-in;
+    ``time_major`` (default) stores the collector's ``(N, T)`` batches as they come, else flat
+    batches of whole contiguous episodes. Otherwise uniform transitions, with ``train.n_step``
+    targets where above 1 (:meth:`store` holds the last ``n_step`` steps back until the next batch).
     """
 
     def __init__(
@@ -303,9 +245,9 @@ class BaselineLearner:
             self.multistep = MultiStepTransform(int(t.n_step), float(t.gamma), done_keys=[])
 
     def store(self, batch: TensorDictBase) -> None:
-        """Add a batch: a collector's ``(N, T)`` batch as ``T`` rows of the ``(time, sub-env)``
-        storage (recurrent, ``time_major``: each sub-env's stream stays in time order), else flat
-        rows; the recurrent replay also keeps which steps start an episode."""
+        """Add a collector's batch (``(N, T)`` as ``T`` time rows for a ``time_major`` recurrent
+        replay, else flat rows).
+        """
         if self.recurrent:
             batch = batch.set(EPISODE_START, batch.get("is_init").clone())
             if self.time_major:
@@ -331,14 +273,9 @@ class BaselineLearner:
         return self.buffer.sample()
 
     def slices(self, sample: TensorDictBase) -> torch.Tensor:
-        """Ready a recurrent ``sample`` for the loss and return its loss rows (:func:`burn_in_mask`).
-
-        Each slice's first row is marked ``("next", "is_init")`` too, so the next-state pass runs
-        the GRU slice by slice like the online pass; in recurrent mode ``GRUModule`` starts each
-        slice from the hidden state stored at its first row (it zeroes no state there), which is
-        ``("next", "recurrent_state")`` for the next-state pass: the state the collected step handed
-        on, the online pass's next state as of collection (R2D2's stored state; the loss's network
-        leaves it in place: :func:`loss_network`)."""
+        """Ready a recurrent ``sample`` for the loss (each slice's first row marked ``("next",
+        "is_init")``) and return its loss rows (:func:`burn_in_mask`).
+        """
         nxt = (keys.NEXT, "is_init")
         sample.set(nxt, sample.get(nxt) | sample.get("is_init"))
         return burn_in_mask(sample, self.burn_in)
@@ -370,10 +307,9 @@ class BaselineLearner:
 
 @dataclasses.dataclass
 class BaselineRun:
-    """A baseline's training run between batches (the heads' is
-    :class:`~taskvar_torch.training.run_state.TrainingRun`): its learner, exploration and budget ``t``
-    (:func:`baseline_train_config`), the frames and updates so far, and the returns of the
-    episodes that ended in the last tenth of its budget."""
+    """A baseline's training run between batches: learner, exploration, budget ``t``, frames and
+    updates so far, and the returns of the episodes that ended in the last tenth of the budget.
+    """
 
     method: str
     t: TrainConfig
@@ -425,15 +361,13 @@ def train_baseline(
     progress: bool = False,
     log: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """Train the ``recurrent``, ``informed`` or ``blind`` baseline of ``cfg`` for its budget
-    (:func:`baseline_train_config`) and write it to ``out_dir/<method>.pt``; returns ``{"path",
-    "frames", "budget", "updates", "seconds", "mean_train_return"}`` (the mean return of the
-    episodes that ended in the last tenth of training, exploration included).
+    """Train the ``recurrent``, ``informed`` or ``blind`` baseline of ``cfg`` for its budget and
+    write ``out_dir/<method>.pt``.
 
-    The heads' training loop (:func:`~taskvar_torch.training.learning.collect_and_learn`) on a
-    :class:`BaselineRun`: a TorchRL ``Collector`` of ``train.frames_per_batch`` frames acting
-    with the baseline's network behind an ``EGreedyModule``. Seeded by ``cfg.seed`` (torch's
-    global generator and the env's keyed streams)."""
+    Returns ``{"path", "frames", "budget", "updates", "seconds", "mean_train_return"}`` (the mean
+    return of episodes ending in the last tenth of training, exploration included). Seeded by
+    ``cfg.seed``.
+    """
     t = baseline_train_config(cfg, method)
     torch.manual_seed(int(cfg.seed))
     net, spec, env = build_for_training(cfg, method)

@@ -1,15 +1,6 @@
-"""Experience collection for :func:`~taskvar_torch.training.train` (docs/design.md, "Many processes
-and Ray actors"): the training env and the collector of ``cfg.collector``.
-
-* one process (``collector.num_workers = 1``): TorchRL's ``Collector`` on the whole batched env,
-  acting with the learner's own behaviour policy;
-* ``W > 1`` processes: TorchRL's ``MultiSyncCollector``, worker ``w`` stepping sub-envs
-  ``[w N/W, (w+1) N/W)`` of the keyed streams (:func:`make_worker_env`), so the W workers draw
-  exactly the one-process env's instances, starts and gusts; their batches are concatenated in
-  worker order into the same ``(N, T)`` batch, and the learner's weights reach the workers through
-  ``SharedMemWeightSyncScheme``;
-* ``collector.backend = ray``: the same W slices as Ray actors (TorchRL ``Collector(backend="ray")``,
-  ``RayWeightSyncScheme``).
+"""Experience collection for :func:`~taskvar_torch.training.train`: the training env and the
+collector of ``cfg.collector`` (one process, W processes or W Ray actors, the same ``(N, T)`` batch;
+docs/design.md#many-processes-and-ray-actors).
 """
 
 from __future__ import annotations
@@ -38,10 +29,8 @@ def make_training_env(
 
 
 def make_worker_env(cfg: Config, worker: int) -> TransformedEnv:
-    """Collector process ``worker``'s training env: sub-envs ``[worker * n, (worker + 1) * n)``.
-
-    Runs inside the worker (a picklable ``functools.partial`` of this function): it also seeds
-    the worker's global torch RNG, which the behaviour policy's exploration draws from.
+    """Collector process ``worker``'s training env, sub-envs ``[worker * n, (worker + 1) * n)``;
+    also seeds the worker's global torch RNG.
     """
     n = cfg.env.num_envs // cfg.collector.num_workers
     torch.manual_seed(rng.hash32(rng.hash32(cfg.seed & rng.MASK32) + worker + 1))
@@ -49,23 +38,18 @@ def make_worker_env(cfg: Config, worker: int) -> TransformedEnv:
 
 
 def collects_in_workers(cfg: Config) -> bool:
-    """Whether the envs run outside the trainer's process (worker processes or Ray actors): then
-    the trainer syncs weights to them after every update phase, and their env and RNG states are
-    not in the checkpoint (no exact resume)."""
+    """Whether the envs run outside the trainer's process (then weights are synced after every
+    update phase and no exact resume).
+    """
     return cfg.collector.num_workers > 1 or cfg.collector.backend == "ray"
 
 
 def make_collector(
     cfg: Config, env: EnvBase, behaviour: BehaviourPolicy, total_frames: int, seeds: int = 1
 ) -> BaseCollector:
-    """The experience collector of ``cfg.collector``.
-
-    One process: TorchRL's ``Collector`` on ``env`` with ``behaviour`` itself. Several: a
-    ``MultiSyncCollector`` over :func:`make_worker_env` slices, acting with a copy of
-    ``behaviour`` whose weights live in shared memory; the trainer refreshes them with
-    ``collector.update_policy_weights_(behaviour)``. Worker processes use as many threads as
-    this one. ``seeds`` (``train.seeds``): ``env`` holds every seed's sub-envs, and a batch is
-    ``train.frames_per_batch`` frames per seed (one process only).
+    """The experience collector of ``cfg.collector``: TorchRL's ``Collector`` on ``env``, or a
+    ``MultiSyncCollector`` over :func:`make_worker_env` slices with shared-memory weights.
+    ``seeds``: ``train.frames_per_batch`` frames per seed (one process only).
     """
     t = cfg.train
     workers = cfg.collector.num_workers
@@ -99,15 +83,9 @@ def make_collector(
 
 
 def make_ray_collector(cfg: Config, behaviour: BehaviourPolicy, total_frames: int) -> BaseCollector:
-    """``collector.backend = ray``: TorchRL's ``Collector(backend="ray")`` (a ``RayCollector``).
-
-    Worker w is a Ray actor (1 CPU; a share of a GPU when ``device`` is CUDA) running a TorchRL
-    ``Collector`` over :func:`make_worker_env` slice w with a copy of ``behaviour``; ``sync=True``
-    gathers one ``(n, T)`` batch per actor each iteration (the trainer flattens them to ``(N, T)``,
-    worker order) and ``collector.update_policy_weights_(behaviour)`` sends the learner's weights
-    and epsilon (``RayWeightSyncScheme``). Ray starts locally (``address="local"``, never a
-    cluster found in ``RAY_ADDRESS``) unless ``collector.ray_address`` names one; a Ray already
-    running in the process is reused. On a cluster every node needs this package installed.
+    """``collector.backend = ray``: TorchRL's ``Collector(backend="ray")``, one actor per
+    :func:`make_worker_env` slice; Ray starts locally unless ``collector.ray_address`` names a
+    cluster (every node needs this package).
     """
     try:
         import ray  # noqa: F401

@@ -1,16 +1,10 @@
 """The training loop of the heads and of every baseline, and the learning step every loop shares
-(paper §3.1-3.4; docs/design.md, "Training loops").
+(paper §3.1-3.4; docs/design.md#training-loops).
 
-:func:`collect_and_learn` is the one loop over a TorchRL collector: each batch stored, learnt from
-and reported on by a :class:`Run` (the heads' :class:`~taskvar_torch.training.run_state.TrainingRun`, a
-baseline's :class:`~taskvar_torch.training.baselines.BaselineRun`), whose :class:`Learner` is the one
-varying part (the heads' ``MultiHeadLearner``, a baseline's ``BaselineLearner``). The Figure 4
-protocol's lifelong learning phases (``families/wargus/fig4_trial.py`` ``learning_phases``,
-``fig4_recurrent.py`` ``learning_phase``: one episode per sub-env per trial, between test phases)
-play without a collector and share the step only. Every loop plays epsilon-greedily at
-:func:`epsilon_at` and takes its gradient steps through :func:`update_phase`, learning rate
-:func:`lr_at`, once :func:`learning_started`; :func:`learn_batch` is the step after each collected
-batch; :func:`non_finite` the divergence check before a model is written.
+:func:`collect_and_learn` is the one loop over a TorchRL collector, driving a :class:`Run` whose
+:class:`Learner` is the varying part. Every loop explores at :func:`epsilon_at` and steps through
+:func:`update_phase` at :func:`lr_at` once :func:`learning_started`; :func:`non_finite` is the
+divergence check before a model is written.
 """
 
 from __future__ import annotations
@@ -31,10 +25,9 @@ class TrainingDiverged(RuntimeError):
 
 
 class Learner(Protocol):
-    """What a run asks of its learner: one gradient step on a replay sample, and the learning rate.
-
-    :class:`~taskvar_torch.heads.learner.MultiHeadLearner` (every head from one shared sample) and
-    :class:`~taskvar_torch.training.baselines.BaselineLearner` (a baseline's ``DQNLoss``) are two."""
+    """What a run asks of its learner: one gradient step on a replay sample, and the learning rate
+    (``MultiHeadLearner``, ``BaselineLearner``).
+    """
 
     def update(self, sample: TensorDictBase) -> Any:
         """One gradient step on ``sample``; returns its (detached) losses."""
@@ -63,10 +56,9 @@ def collect_and_learn(
     pbar: Any,
     report: Callable[[int], dict[str, float] | None],
 ) -> dict[str, float]:
-    """The training loop: every batch of ``collector`` stored (:meth:`Run.store`), learnt from
-    (:meth:`Run.learn`), counted on ``pbar`` (up to its total) and reported on (``report(frames
-    before the batch)``: log rows, checkpoints, a stop signal; a row or ``None``); ``pbar`` is
-    closed at the end. Returns the last row reported (``{}``: none)."""
+    """The training loop: every batch of ``collector`` stored, learnt from, counted on ``pbar`` and
+    reported on (``report(frames before the batch)``); returns the last row reported (``{}``: none).
+    """
     last = {}
     for batch in collector:
         frames_before = run.store(batch)
@@ -112,10 +104,9 @@ def update_phase(
     updates: int,
     lr: float | None = None,
 ) -> Any:
-    """``updates`` gradient steps of ``learner``, each on a fresh ``sample()``, at learning rate
-    ``lr`` (``None``: as it is); returns the last step's losses (``None`` for no step). The first
-    call of a process keeps glibc from returning freed memory to the OS between the steps
-    (:func:`~taskvar_torch.training.allocator.keep_freed_memory`)."""
+    """``updates`` gradient steps of ``learner`` on fresh ``sample()`` s at ``lr`` (``None``: as it
+    is); returns the last step's losses (``None``: no step).
+    """
     keep_freed_memory()
     if lr is not None:
         learner.set_lr(lr)
@@ -132,9 +123,9 @@ def learn_batch(
     filled: int,
     t: TrainConfig,
 ) -> Any:
-    """The learning after one collected batch, ``frames`` played and ``filled`` rows in replay:
-    ``train.updates_per_batch`` steps at :func:`lr_at` once :func:`learning_started`; returns the
-    last step's losses, ``None`` where no step was taken."""
+    """The learning after one collected batch: ``train.updates_per_batch`` steps at :func:`lr_at`
+    once :func:`learning_started`; returns the last losses or ``None``.
+    """
     if not learning_started(frames, filled, t):
         return None
     return update_phase(learner, sample, t.updates_per_batch, lr_at(frames, t))

@@ -1,12 +1,8 @@
-"""The replay of raw transitions the heads learn from (docs/design.md, Training the heads).
+"""The replay of raw transitions the heads learn from (docs/design.md#training-the-heads).
 
-One ``ReplayBuffer`` over ``LazyTensorStorage`` holds raw transitions (observation, action,
-reward, the subtasks' integer state keys, ``next``), so every head's target is computed from the
-same sample (paper §3.2: intra-option learning from one stream of experience). It samples
-uniformly (``train.replay_sampling = "uniform"``) or in equal shares per behaviour mode
-(``"per_option"``, :class:`PerOptionSampler`). Sampling draws from the trainer's own generator
-only and is a function of the stored rows and that generator, so :func:`replay_state` /
-:func:`load_replay_state` save and restore it exactly for resume.
+One ``ReplayBuffer`` over ``LazyTensorStorage`` holds raw transitions, so every head's target comes
+from the same sample (paper §3.2), sampled uniformly or per behaviour mode
+(:class:`PerOptionSampler`); :func:`replay_state` / :func:`load_replay_state` restore it exactly.
 """
 
 from __future__ import annotations
@@ -30,22 +26,9 @@ EPISODE_REWARD = "episode_reward"  # RewardSum's running return
 class PerOptionSampler(Sampler):
     """Every sample in equal shares from each behaviour mode present in the buffer.
 
-    A transition's mode is the behaviour that played it (``"behaviour"``: -1 the averaging
-    policy, ``o >= 0`` option ``o``; heads/behaviour.py). The behaviour picks options by mu_bar, so
-    an option mu_bar does not prefer runs few episodes and its own trajectories (what its n-step
-    targets and its initiation states come from) are rare in a uniform sample. This sampler
-    splits each sample of ``B`` rows over the ``P`` modes present, row ``i`` from mode
-    ``i mod P`` (so the shares differ by at most one row), uniformly within the mode.
-
-    The rows grouped by mode are recomputed after each write (one stable sort of the mode column,
-    ~6 ms per million rows here), so sampling depends on the stored rows and the buffer's
-    generator only: a buffer refilled by :func:`load_replay_state` samples as the saved one.
-
-    Examples:
-        >>> rb = ReplayBuffer(storage=LazyTensorStorage(100), sampler=PerOptionSampler())
-        >>> _ = rb.extend(TensorDict({"behaviour": torch.tensor([-1] * 9 + [2])}, [10]))
-        >>> (rb.sample(4)["behaviour"] == 2).sum().item()  # half the rows from option 2's
-        2
+    A row's mode is its ``"behaviour"`` (-1 averaging, ``o`` option o); row ``i`` of a sample comes
+    from mode ``i mod P``, uniformly within it, so an option mu_bar rarely picks still gets its
+    share. Sampling depends on the stored rows and the generator only.
     """
 
     def __init__(self, mode_key: str = BEHAVIOUR):
@@ -114,13 +97,8 @@ def make_replay_buffer(cfg: Config, generator: torch.Generator) -> ReplayBuffer:
 
 
 def sample_many(buffer: ReplayBuffer, n: int) -> list[TensorDictBase]:
-    """``n`` replay samples of ``buffer.batch_size`` rows each: what ``n`` calls of
-    ``buffer.sample()`` return, the same rows and the same generator state after.
-
-    Uniform sampling draws ``n B`` indices in one ``randint`` (the same numbers as ``n`` draws of
-    ``B``) and gathers them in one pass, split into ``n`` views: TorchRL's per-call cost is an
-    index per stored leaf (~20 on windy), not bytes, so one gather for an update phase instead of
-    one per update (windy, 32 updates: ~17 -> ~4.4 ms). Other samplers: ``n`` calls.
+    """``n`` replay samples of ``buffer.batch_size`` rows: the same rows and generator state as
+    ``n`` calls of ``buffer.sample()`` (uniform: one draw and one gather).
     """
     B = int(buffer.batch_size)
     if n <= 1 or type(buffer.sampler) is not RandomSampler:
@@ -132,11 +110,8 @@ def sample_many(buffer: ReplayBuffer, n: int) -> list[TensorDictBase]:
 
 
 def raw_transitions(batch: TensorDictBase, keep_instance: bool = False) -> TensorDictBase:
-    """Flatten a collector batch ``(N, T)`` to ``(N*T,)`` raw transitions, minus what no head may read.
-
-    Dropped: RewardSum's running returns, and the hidden instance (``("instance", ...)``) unless
-    ``keep_instance`` (the ``instance`` max-value estimator's critic reads it, offline only), and
-    always ``next``'s copy.
+    """Flatten a collector batch ``(N, T)`` to ``(N*T,)`` raw transitions, dropping RewardSum's
+    returns, ``next``'s copy and the hidden instance (unless ``keep_instance``).
     """
     drop = [EPISODE_REWARD, (keys.NEXT, EPISODE_REWARD), (keys.NEXT, keys.INSTANCE)]
     if not keep_instance:
@@ -145,12 +120,7 @@ def raw_transitions(batch: TensorDictBase, keep_instance: bool = False) -> Tenso
 
 
 def replay_state(buffer: ReplayBuffer) -> dict[str, Any]:
-    """The buffer's filled rows (in storage order) and its writer's cursor, as plain data.
-
-    Sampling draws from the trainer's own generator, whose state is saved with the other RNGs.
-    The rows are a copy when the buffer is partly filled: ``buffer[:n]`` views a storage
-    allocated at full capacity, and ``torch.save`` writes a view's whole storage.
-    """
+    """The buffer's filled rows (a copy, in storage order) and writer cursor, as plain data."""
     n = len(buffer)
     data = {}
     if n:
@@ -164,10 +134,9 @@ def replay_state(buffer: ReplayBuffer) -> dict[str, Any]:
 def check_replay_state(
     state: Any, rows: TensorDictBase, capacity: int, where: str = "replay"
 ) -> None:
-    """:class:`~taskvar_torch.checkpoint.CheckpointError` unless ``state`` is a
-    :func:`replay_state` of a buffer of ``capacity`` rows laid out like ``rows`` (transitions of
-    the run its config builds): every key, its per-row shape and dtype, ``size`` rows of each,
-    the writer's cursor and count consistent with them."""
+    """:class:`~taskvar_torch.checkpoint.CheckpointError` unless ``state`` is a :func:`replay_state`
+    of a buffer of ``capacity`` rows laid out like ``rows``.
+    """
     from taskvar_torch.checkpoint import CheckpointError
     from taskvar_torch.checkpoint.checks import check_counter, check_like
 

@@ -30,12 +30,10 @@ def _installed(package: str) -> bool:
 
 
 class RunLoggers:
-    """Where a run's log rows go, every logger built by TorchRL's ``get_logger``: always the CSV
-    files ``out/logs/scalars/<name>.csv`` (one ``frame,value`` row per log row; a resume cuts them
-    back to its checkpoint), and with ``train.logger`` = tensorboard, wandb or mlflow the same
-    scalars at the same frames to that logger too: TensorBoard event files in
-    ``out/logs/tensorboard``, a W&B run saved under ``out/logs`` (``WANDB_PROJECT``,
-    ``WANDB_MODE=offline`` as usual), an MLflow run in the file store ``out/logs/mlruns``."""
+    """Where a run's log rows go, via TorchRL's ``get_logger``: always CSV files
+    ``out/logs/scalars/<name>.csv``, and with ``train.logger`` TensorBoard, W&B or MLflow under
+    ``out/logs``.
+    """
 
     def __init__(self, kind: str, out: Path) -> None:
         check_logger(kind)

@@ -1,12 +1,5 @@
-"""Building a training run of the heads from its config, or restoring it from a checkpoint for
-exact resume (docs/design.md; :func:`~taskvar_torch.training.train`).
-
-:func:`build_run` builds everything from the config, seeded (the env, the subtasks, every head,
-one ``train.seeds`` batch stacked, the learner, the behaviour policy, one replay buffer per seed),
-and, when resuming, checks every entry of the checkpoint against what it built
-(:func:`_check_resume_state`: one line naming the entry, never a shape error deep inside a load)
-before loading any. :func:`restore_collection` restores what lives in the collector (the env's
-simulator state, its carried tensordict) and cuts the logs back to the checkpoint.
+"""Building a training run of the heads from its config, or restoring it from a checkpoint for exact
+resume, each entry checked first (:func:`_check_resume_state`; docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -70,9 +63,9 @@ def build_run(
     bundle: dict[str, Any] | None,
     resume: str | os.PathLike | None = None,
 ) -> TrainingRun:
-    """Everything from the config, seeded (the networks' initialisation draws from the global
-    torch stream, in this order), then overwritten with ``bundle``'s state (read from
-    ``resume``) when resuming, once every entry is checked against what was built."""
+    """Everything from the config, seeded, then (resuming) overwritten with ``bundle``'s checked
+    state.
+    """
     t = cfg.train
     S = t.seeds
     torch.manual_seed(cfg.seed)
@@ -156,11 +149,9 @@ def build_run(
 def _check_resume_state(
     run: TrainingRun, bundle: dict[str, Any], resume: str | os.PathLike
 ) -> None:
-    """:class:`CheckpointError` (one line naming the entry and both shapes or types) unless every
-    entry a resume loads fits what the config built: the networks' tensors, the optimiser state
-    (shapes included: the fused Adam does not check them), the learner's and run's counters
-    (non-negative integers), the RNG states, the replay rows, the first-visit flags, the
-    statistics, the collector's carrier (the env state: :func:`restore_collection`)."""
+    """:class:`CheckpointError` naming the entry unless every entry a resume loads fits what the
+    config built.
+    """
     learner, t = run.learner, run.cfg.train
     live_learner = {
         k: v for k, v in learner.state_dict().items() if k not in ("targets", "optimizer")
@@ -213,17 +204,15 @@ def _check_resume_state(
 
 
 def _probe_batch(run: TrainingRun) -> TensorDictBase:
-    """A collector batch ``(N, 2)`` as this run collects them: two steps of a fresh env of the
-    run's size under its behaviour policy (draws from the global torch stream, which a resume
-    restores afterwards)."""
+    """A collector batch ``(N, 2)`` as this run collects them (two steps of a fresh env)."""
     probe = make_training_env(run.cfg, num_envs=run.env.batch_size[0])
     return probe.rollout(2, policy=run.behaviour, break_when_any_done=False)
 
 
 def restore_collection(run: TrainingRun, bundle: dict[str, Any], resume: str | os.PathLike) -> None:
-    """The checkpoint's env simulator state, collector carrier and replay RNG (after the
-    collector's own reset and policy probe), and the logs up to the checkpoint, without the rows a
-    stopped run wrote after it; a periodic checkpoint of ``out`` is replaced by the next one."""
+    """The checkpoint's env state, collector carrier and replay RNG, and the logs cut back to the
+    checkpoint.
+    """
     carrier = collector_carrier(run.collector)
     try:
         check_like(bundle["env"], run.env.base_env.state_dict(), "env")

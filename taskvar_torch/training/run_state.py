@@ -1,13 +1,8 @@
 """One training run of the heads between collected batches (paper §3.1-3.4; docs/design.md).
 
-:class:`TrainingRun` holds what :func:`~taskvar_torch.training.run_setup.build_run` builds from the config
-(or a checkpoint) and takes the steps :func:`~taskvar_torch.training.train` takes on every batch:
-:meth:`~TrainingRun.store` (raw transitions to replay, first visits only with
-``train.first_visit``, n-step windows with ``train.n_step``, one buffer per seed of a
-``train.seeds`` batch), :meth:`~TrainingRun.learn` (the shared learning step,
-:func:`~taskvar_torch.training.learning.learn_batch`, on every head from one shared sample) and
-:meth:`~TrainingRun.report` (log rows, heads snapshots, periodic checkpoints). Its
-:meth:`~TrainingRun.bundle` is the whole checkpoint of the run, for exact resume.
+:class:`TrainingRun` holds what :func:`~taskvar_torch.training.run_setup.build_run` builds and takes
+the per-batch steps: :meth:`~TrainingRun.store`, :meth:`~TrainingRun.learn`,
+:meth:`~TrainingRun.report`; :meth:`~TrainingRun.bundle` is its whole checkpoint.
 """
 
 from __future__ import annotations
@@ -109,9 +104,9 @@ def _require_finite(
 
 @dataclasses.dataclass
 class TrainingRun:
-    """One training run between batches: what :func:`~taskvar_torch.training.run_setup.build_run` builds
-    from the config (or a checkpoint), and the steps :func:`~taskvar_torch.training.train` takes on
-    every collected batch."""
+    """One training run between batches: what :func:`~taskvar_torch.training.run_setup.build_run`
+    builds, and the steps :func:`~taskvar_torch.training.train` takes on every collected batch.
+    """
 
     cfg: Config
     out: Path
@@ -185,9 +180,9 @@ class TrainingRun:
         return [torch.cat(parts) for parts in zip(*(sample_many(b, n) for b in self.buffers))]
 
     def learn(self) -> None:
-        """Every head from one shared sample per update, ``train.updates_per_batch`` updates once
-        past ``train.init_random_frames``; then the exploration rate for the frames played, and
-        the new weights and epsilon to the collector workers before their next batch."""
+        """``train.updates_per_batch`` updates from one shared sample each once learning started,
+        then the exploration rate, and the new weights to the collector workers.
+        """
         t = self.cfg.train
         filled = min(len(b) for b in self.buffers)
         phase: list[TensorDictBase] = []  # this phase's samples, drawn at its first update
@@ -211,9 +206,10 @@ class TrainingRun:
         pbar: Any,
         start_time: float,
     ) -> dict[str, float] | None:
-        """After a batch: the log row (one host sync) when ``train.log_every`` frames were crossed
-        or at the end, then a periodic checkpoint when ``train.checkpoint_every`` frames were
-        crossed or a signal asks to stop (:class:`TrainingInterrupted`). Returns the row, if any."""
+        """After a batch: the log row every ``train.log_every`` frames (or at the end), then a
+        checkpoint every ``train.checkpoint_every`` frames or on a stop signal; returns the row, if
+        any.
+        """
         t = self.cfg.train
         frames = self.counters["frames"]
         log_now = crossed(frames_before, frames, t.log_every)
@@ -245,9 +241,9 @@ class TrainingRun:
         return row
 
     def log_row(self, logger: RunLoggers, start_time: float) -> dict[str, float]:
-        """Log one row (a value per scalar, to every logger): the mean losses since the last row,
-        the training returns of the episodes that ended (each seed's too), epsilon, updates and
-        seconds; raise :class:`~taskvar_torch.training.learning.TrainingDiverged` on a non-finite loss."""
+        """Log one row to every logger; raise
+        :class:`~taskvar_torch.training.learning.TrainingDiverged` on a non-finite loss.
+        """
         learner, stats, counters = self.learner, self.stats, self.counters
         seeds = learner.loss.seeds
         try:
@@ -294,9 +290,9 @@ class TrainingRun:
         save_checkpoint(path, self.bundle(replay))
 
     def runs(self, heads: Heads) -> list[tuple[Path, Heads, Config]]:
-        """``(folder, heads, config)`` of each run: ``out`` itself for one seed, else
-        ``out/seed<k>`` with seed ``k``'s heads cut out of ``heads`` (heads/seeds.py) and its
-        single-seed config (``seed + k``, ``train.seeds = 1``)."""
+        """``(folder, heads, config)`` of each run: ``out`` for one seed, else ``out/seed<k>`` with
+        seed ``k``'s heads and single-seed config.
+        """
         if self.seeds == 1:
             return [(self.out, heads, self.cfg)]
         spec = self.learner.heads.spec
@@ -309,9 +305,9 @@ class TrainingRun:
         return out
 
     def write_seed_bundles(self) -> list[Path]:
-        """Each seed's ``seed<k>/`` in today's single-seed layout: ``config.yaml``, ``final.pt``
-        (its online and, with ``train.eval_ema_tau``, evaluation heads; marked as a member of
-        this batch: it evaluates, it does not resume alone) and ``heads.pt``."""
+        """Each seed's ``seed<k>/`` in the single-seed layout: ``config.yaml``, ``final.pt``
+        (evaluates, does not resume alone) and ``heads.pt``.
+        """
         learner = self.learner
         online = self.runs(learner.heads)
         evals = self.runs(learner.eval_heads) if learner.eval_heads is not learner.heads else None
@@ -335,9 +331,9 @@ class TrainingRun:
         return finals
 
     def bundle(self, replay: bool = True) -> dict[str, Any]:
-        """The checkpoint of the run: every head, target and optimiser, the learner's counters,
-        replay, first-visit filter, statistics and RNG, and (one collector process) the env's
-        simulator state and the collector's carried tensordict."""
+        """The checkpoint of the run: everything it holds, with the env's state and the collector's
+        carrier where there is one collector process.
+        """
         learner = self.learner
         single = not collects_in_workers(self.cfg)  # else the env states live in the workers
         return make_bundle(
@@ -387,8 +383,8 @@ def _replay_states(buffers: list[ReplayBuffer]) -> dict[str, Any]:
 
 def run_models(learner: MultiHeadLearner) -> dict[str, torch.nn.Module]:
     """The networks of a training checkpoint: the online heads, their targets and, with
-    ``train.eval_ema_tau``, the Polyak-averaged ``eval_heads`` evaluation reads
-    (:func:`~taskvar_torch.factory.load_heads`)."""
+    ``train.eval_ema_tau``, the ``eval_heads``.
+    """
     models = {"heads": learner.heads, "targets": learner.loss.target_heads}
     if learner.eval_heads is not learner.heads:
         models[EVAL_HEADS] = learner.eval_heads

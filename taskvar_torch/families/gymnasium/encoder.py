@@ -1,12 +1,6 @@
-"""The observation encoder: a batch of Gymnasium observations -> the family's ``observation``.
-
-The default, :class:`SpaceEncoder`, encodes a batch exactly as ``gymnasium.spaces.flatten``
-encodes each of its rows (``Discrete`` -> one-hot, ``Box`` and images -> their values, flat;
-``MultiDiscrete`` -> one one-hot per dimension; ``MultiBinary``; ``Dict`` and ``Tuple`` -> the
-concatenation of their parts, in the space's order), as float32, with the bounds of
-``gymnasium.spaces.flatten_space``. An encoder of your own is any callable ``space -> encoder``
-whose result has ``size`` (the observation's length) and maps the vector env's batched
-observation to a ``(N, size)`` float tensor (docs/gymnasium.md).
+"""The observation encoder: a batch of Gymnasium observations -> the family's ``observation``
+(docs/gymnasium.md). Yours is any ``space -> encoder`` whose result has ``size`` and maps a batch to
+a ``(N, size)`` float tensor.
 """
 
 from __future__ import annotations
@@ -56,18 +50,9 @@ def _encode(space: spaces.Space, obs, n: int) -> list[torch.Tensor]:
 
 
 class SpaceEncoder:
-    """``gymnasium.spaces.flatten`` of every row of a batch, as a float32 ``(N, size)`` tensor.
-
-    Args:
-        space: the single sub-environment's observation space.
-        keys: for a ``Dict`` space, the entries to keep (encoded in Gymnasium's order, sorted
-            by name); ``None``: all of them.
-            MiniGrid's ``mission`` (a ``MissionSpace``) has no flat encoding: keep
-            ``("image", "direction")``.
-
-    Attributes:
-        size: the encoding's length.
-        low, high: its bounds, from ``gymnasium.spaces.flatten_space``, ``(size,)`` float32.
+    """``gymnasium.spaces.flatten`` of every row of a batch, as a float32 ``(N, size)`` tensor, with
+    ``low``, ``high`` from ``flatten_space``; ``keys``: a ``Dict`` space's entries to keep
+    (MiniGrid: ``("image", "direction")``).
     """
 
     def __init__(self, space: spaces.Space, keys: Sequence[str] | None = None):

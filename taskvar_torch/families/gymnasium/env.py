@@ -1,15 +1,7 @@
-"""The batched env of a Gymnasium family: ``N`` Gymnasium envs in a Gymnasium vector env, behind
-the family contract (docs/families.md, "The env"; docs/gymnasium.md).
-
-Sub-environment ``i`` draws each episode's instance and its ``reset(seed=...)`` from that episode's
-key (:mod:`taskvar_torch.rng`, ``BatchedFamilyEnv.next_episodes``), so a trajectory depends on
-``(seed, index_offset + i, episode)`` and the user env's own randomness only, never on ``N``.
-The vector env (``SyncVectorEnv``, or ``AsyncVectorEnv``: one process per sub-environment) is
-built with ``autoreset_mode=DISABLED``: it never resets on its own; TorchRL's
-``step_and_maybe_reset`` resets the sub-environments that ended through ``_reset``'s
-``"_reset"`` mask (``reset(options={"reset_mask": ...})``), so an episode ends at its terminal
-observation, as in the batched families. A Gymnasium env's state cannot be saved: the family is
-``resumable=False``.
+"""The batched env of a Gymnasium family: ``N`` Gymnasium envs in a vector env (``autoreset_mode=
+DISABLED``), behind the family contract (docs/families.md#the-env; docs/gymnasium.md). A trajectory
+depends on ``(seed, index_offset + i, episode)`` and the user env's own randomness only; the family
+is ``resumable=False``.
 """
 
 from __future__ import annotations
@@ -224,12 +216,10 @@ class GymFamilyEnv(BatchedFamilyEnv):
         return parts, x[:, 5 * O :]
 
     def _encode(self, obs, what: str, t: torch.Tensor | None = None) -> torch.Tensor:
-        """The encoded batch, in a tensor of its own (the vector env, built with ``copy=False``,
-        reuses its observation buffers; :class:`SpaceEncoder` always writes a new tensor). Each
-        sub-environment checked its observation's type, dtype and shape against the space
-        (:mod:`.sub_env`); here, once per batch, its values are checked finite (``what`` returned
-        them, at steps ``t``; ``None``: a reset). An encoder of the user's is a guest, and its
-        output must be a finite ``(N, size)``."""
+        """The encoded batch in a tensor of its own, checked finite once per batch (``what``
+        returned it, at steps ``t``; ``None``: a reset); a user encoder's output must be a finite
+        ``(N, size)``.
+        """
         name = self.adapter.name
         if self.own_encoder:
             x = guest(name, "encoder(obs)", self.encoder, obs)

@@ -1,13 +1,5 @@
-"""``gym_family``: a task family from a Gymnasium env id or a ``make(instance)`` callable.
-
-What the user brings (docs/gymnasium.md): the env, its named instance distributions and how an
-instance reaches the env (:mod:`.instances`, :data:`.sub_env.INSTANCE_VIA`), the options as
-functions of observation and info (:mod:`.options`), optionally an observation encoder
-(:mod:`.encoder`) and ``state_info(env.unwrapped) -> dict`` for what the options read beyond the
-observation. What it gets: a :class:`~taskvar_torch.families.Family` that ``taskvar train``,
-``taskvar eval`` (every method, test distributions, ``--shift``) and ``check_family`` take like any
-other, registered through the user package's entry point. Its own config keys live under
-``env.NAME`` (:class:`GymConfig`).
+"""``gym_family``: a task family from a Gymnasium env id or a ``make(instance)`` callable
+(docs/gymnasium.md). Its own config keys live under ``env.NAME`` (:class:`GymConfig`).
 """
 
 from __future__ import annotations
@@ -114,41 +106,29 @@ def gym_family(
     apply: Callable[[gym.Env, dict], None] | None = None,
     hierarchy: Mapping[str, Any] | Hierarchy | None = None,
 ) -> Family:
-    """A :class:`~taskvar_torch.families.Family` of Gymnasium envs.
+    """A :class:`~taskvar_torch.families.Family` of Gymnasium envs
+    (docs/gymnasium.md#what-you-give-gym_family).
 
     Args:
         name: the family's name (the config's ``family``; its keys under ``env.NAME``).
         make: a Gymnasium env id, or ``make(instance) -> gym.Env``.
-        instances: the named instance distributions (``train`` required): objects with
-            ``sample(rng) -> dict`` (:mod:`.instances`); where they are one dataclass, its fields
-            can be shifted (``--shift env.instances.FIELD=V1,V2``).
-        options: the options (:class:`Option`), functions of an observation and its info.
-        instance_via: how an instance reaches the env: ``kwargs`` (constructor keyword arguments),
-            ``attributes`` (set on ``env.unwrapped`` before each reset) or ``options``
+        instances: the named instance distributions (``train`` required), ``sample(rng) -> dict``.
+        options: the options (:class:`Option`).
+        instance_via: ``kwargs``, ``attributes`` (set on ``env.unwrapped``) or ``options``
             (``reset(options=instance)``).
-        encoder: ``space -> encoder`` of the observation (default :class:`SpaceEncoder`:
-            Gymnasium's flatten).
-        state_info: ``env.unwrapped -> dict``, merged into the info the options read (state the
-            observation does not show, e.g. what the agent carries).
-        instance_info: ``NAME -> f(env.unwrapped) -> number``, read after each reset: parts of the
-            hidden instance the env draws itself (MiniGrid's layout), written under
-            ``("instance", NAME)`` beside the drawn parameters (the instance features).
+        encoder: ``space -> encoder`` of the observation (default :class:`SpaceEncoder`).
+        state_info: ``env.unwrapped -> dict``, merged into the info the options read.
+        instance_info: ``NAME -> f(env.unwrapped) -> number``, read after each reset and written
+            under ``("instance", NAME)``.
         horizon: steps before truncation (default: the env id's ``max_episode_steps``).
-        tests: the test distributions of ``taskvar eval --test`` (default: one per named
-            distribution, ``train`` first).
+        tests: the ``taskvar eval --test`` distributions (default: one per named one).
         description: one line for listings.
-        apply: ``apply(env.unwrapped, instance)``, with ``instance_via="attributes"``: installs an
-            instance whose parameters the env derives other quantities from (CartPole's
-            ``polemass_length = masspole * length``, cached by its constructor), in place of
-            setting each key as an attribute (default: ``setattr`` of each key, which must be an
-            attribute the env has).
-        hierarchy: a composition hierarchy over the options (paper §3.4.2, Algorithm 2):
-            ``{"root": NAME, "children": {NAME: [NAMES]}}`` (or a
-            :class:`~taskvar_torch.subtasks.base.Hierarchy`); every option in it needs a
-            ``robustness`` function. ``taskvar eval --method all`` then plays ``hierarchy`` too.
+        apply: ``apply(env.unwrapped, instance)`` for ``instance_via="attributes"`` (default:
+            ``setattr`` of each key).
+        hierarchy: ``{"root": NAME, "children": {NAME: [NAMES]}}`` (paper §3.4.2); each of its
+            options needs a ``robustness`` function.
 
-    Returns:
-        The family, ``resumable=False`` (a Gymnasium env's state is not saved by a checkpoint).
+    Returns the family, ``resumable=False``.
     """
     one_of("instance_via", instance_via, INSTANCE_VIA)
     if apply is not None and (instance_via != "attributes" or not callable(apply)):

@@ -1,12 +1,6 @@
-"""Named instance distributions of a Gymnasium family (paper §2: a family is a distribution over
-MDPs; CARL's contexts).
-
-A distribution is any object with ``sample(rng) -> dict``: given a ``numpy.random.Generator``, the
-parameters of one instance, numbers (bool, int or float) by name, the same names every time. The
-adapter draws one per episode and sub-environment from a generator seeded by that episode's key
-(:mod:`taskvar_torch.rng`), hands the dict to the env (``instance_via``) and writes each
-parameter under ``("instance", name)``. Where the named distributions are instances of one
-dataclass, its fields are the ``--shift env.instances.FIELD=...`` fields.
+"""Named instance distributions of a Gymnasium family (paper §2; CARL's contexts): any object with
+``sample(rng) -> dict`` of numbers by name, drawn per episode from the episode key's generator
+(docs/gymnasium.md).
 """
 
 from __future__ import annotations
@@ -24,11 +18,8 @@ _SALT = 0x1A57A11CE  # the instance generator's stream, apart from the env's res
 
 
 class Instances:
-    """A family's named distributions and the parameter names they draw.
-
-    Args:
-        named: name -> distribution (``train`` required, the default).
-        family: the family's name (named in a one-line failure of ``sample``).
+    """A family's named distributions (``train`` required) and the parameter names they draw;
+    ``family`` is named in a failure of ``sample``.
     """
 
     def __init__(self, named: Mapping[str, Any], family: str = "gymnasium"):

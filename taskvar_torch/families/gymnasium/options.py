@@ -1,16 +1,6 @@
-"""Options of a Gymnasium family as plain functions of an observation and its info (paper §3.2).
-
-An :class:`Option` is three functions of one sub-environment's raw Gymnasium observation and
-``info`` (the env's own info, with what the family's ``state_info(env.unwrapped)`` adds):
-``initiation`` (the state is in I_o), ``termination`` (beta_o = 1 there) and ``reward`` (the
-subtask reward on arriving there, given the env's reward); and optionally a fourth, ``policy``
-(``(obs, info) -> action``: a controller the user already has, such as a PD or LQR balancer),
-which the option then acts by instead of a policy learnt from ``Q_o``. Its values (``Q_o`` of the
-given policy, ``Q^mu_bar``, the max-values, robustness) are learnt over the family like any
-option's; learnt and given options mix in one family. The adapter evaluates them beside the env,
-in its process (:mod:`.sub_env`), after every reset and step, and writes the results under
-``("subtask", ...)``; :class:`GymSubtasks` reads them back as the batched ``(B, O)`` tensors of
-:class:`~taskvar_torch.subtasks.base.Subtasks`.
+"""Options of a Gymnasium family as plain functions of an observation and its info (paper §3.2;
+docs/gymnasium.md#your-own-controllers-as-options), evaluated beside the env (:mod:`.sub_env`) and
+read back as batched ``(B, O)`` tensors by :class:`GymSubtasks`.
 """
 
 from __future__ import annotations
@@ -46,24 +36,16 @@ def _env_reward(obs: Any, info: dict, reward: float) -> float:
 
 @dataclass(frozen=True)
 class Option:
-    """One option, by its three functions (each of one sub-environment's observation and info).
+    """One option, by its functions of one sub-environment's observation and info.
 
     Attributes:
-        name: the option's name (``taskvar eval`` tables, the heads).
-        initiation: ``(obs, info) -> bool``, the state is in the initiation set (default: always).
-        termination: ``(obs, info) -> bool``, the option ends there (default: never; an episode's
-            end ends every option).
-        reward: ``(obs, info, reward) -> float``, the subtask reward of a transition arriving at
-            ``(obs, info)`` with the env's ``reward`` (default: the env's reward).
-        policy: ``(obs, info) -> action``, a given controller the option acts by (an action of
-            the env's ``Discrete`` action space, ``start`` included); default ``None``: the
-            option's policy is learnt (greedy in ``Q_o``).
-        robustness: ``(obs, info, reward) -> float``, the robustness reward (paper §3.4.3) of a
-            transition arriving at ``(obs, info)``: what the hierarchy's robustness critic of this
-            option learns (needed by every option of a declared ``hierarchy``; default ``None``).
-
-    Examples:
-        >>> balance = Option("balance", policy=lambda obs, info: int(obs[2] + 0.5 * obs[3] > 0))
+        name: the option's name.
+        initiation: ``(obs, info) -> bool``, in the initiation set (default: always).
+        termination: ``(obs, info) -> bool``, the option ends there (default: never).
+        reward: ``(obs, info, reward) -> float``, the subtask reward (default: the env's).
+        policy: ``(obs, info) -> action``, a given controller the option acts by; ``None``: learnt.
+        robustness: ``(obs, info, reward) -> float``, the robustness reward (paper §3.4.3); needed
+            by every option of a declared ``hierarchy``.
     """
 
     name: str

@@ -1,14 +1,7 @@
-"""What a user's Gymnasium code returns, checked against what it declares (docs/gymnasium.md,
-"When your code fails"): each function returns ``None`` when the value is fine, else the
-problem, as the words after ``returned`` in a one-line
-:class:`~taskvar_torch.guest.UserCodeError` (:mod:`.sub_env` raises it, naming the family, the
-function and where).
-
-Checked at every reset and step, so they are cheap: an observation's type, dtype and shape against
-the observation space (its values are checked finite once per batch, on the encoded batch:
-:meth:`~taskvar_torch.families.gymnasium.env.GymFamilyEnv._encode`); ``terminated`` and
-``truncated`` bools; a finite number for a reward; a bool for an option's initiation or
-termination.
+"""What a user's Gymnasium code returns, checked against what it declares
+(docs/gymnasium.md#when-your-code-fails): each function returns ``None`` when the value is fine,
+else the words after ``returned`` in a one-line :class:`~taskvar_torch.guest.UserCodeError`. Cheap:
+run at every reset and step.
 """
 
 from __future__ import annotations
@@ -58,11 +51,10 @@ def _multi(space: spaces.MultiDiscrete | spaces.MultiBinary, obs: Any, where: st
 
 
 def observation_problem(space: spaces.Space, obs: Any, where: str = "") -> str | None:
-    """What is wrong with ``obs`` as an element of ``space`` (``None``: nothing): its type, shape
-    or dtype, a ``Discrete``/``MultiDiscrete`` value outside the space (what
-    the encoder one-hots); the parts of a ``Dict``/``Tuple`` in turn (``where`` names the part).
-    Bounds of a ``Box`` are not checked (envs often step past them); a space of another package's
-    (MiniGrid's ``MissionSpace``) is not checked."""
+    """What is wrong with ``obs`` as an element of ``space`` (``None``: nothing): type, shape,
+    dtype, a discrete value outside the space, part by part (``where``); ``Box`` bounds and foreign
+    spaces are not checked.
+    """
     if isinstance(space, spaces.Box):
         return _box(space, obs, where)
     if isinstance(space, spaces.Discrete):

@@ -1,12 +1,5 @@
-"""One sub-environment of a Gymnasium family: the user's env, its instance, and its options.
-
-The vector env steps ``N`` of these (in this process, or one process each with ``vector=async``),
-so everything that reads the user's env runs where the env lives: a reset installs the episode's
-instance (CARL-style, through constructor keyword arguments, attributes set on ``env.unwrapped``
-or ``reset(options=...)``), and every reset and step evaluates the options on the observation and
-info and returns them, with the ``instance_info`` read after the reset, as one numpy array in
-``info["taskvar"]`` (the only info entry passed on: the env's own entries may change from step
-to step, which the vector env's info merging does not need to carry).
+"""One sub-environment of a Gymnasium family: the user's env, its instance and its options, all
+evaluated where the env lives and returned as one array in ``info["taskvar"]``.
 """
 
 from __future__ import annotations
@@ -50,21 +43,10 @@ def build(make: str | Callable[[dict], gym.Env], instance: dict, via: str, famil
 
 
 class SubEnv(gym.Env):
-    """Sub-environment ``index`` of a Gymnasium family's vector env (a ``gym.Env`` wrapping the
-    user's, which it rebuilds when an instance under ``instance_via="kwargs"`` changes).
-
-    Args:
-        index: its place in the vector env.
-        adapter: the family's :class:`~taskvar_torch.families.gymnasium.family.GymAdapter`
-            (``name``, ``make``, ``instance_via``, ``options``, ``state_info``,
-            ``instance_info``).
-        instance: the instance the env is built with (each reset installs the episode's own).
-
-    Its ``reset`` reads the episode's instance from ``options["taskvar"][index]`` (the vector env
-    passes one ``options`` to every sub-environment). Every call into the user's code goes through
-    :func:`~taskvar_torch.guest.guest`, and what it returns is checked (:mod:`.returns`): a
-    failure or a mismatch is one line naming the family, the function, the sub-environment, the
-    step and the observation (docs/gymnasium.md, "When your code fails").
+    """Sub-environment ``index`` of a Gymnasium family's vector env, wrapping the user's env
+    (rebuilt when a ``kwargs`` instance changes) for ``adapter``; its ``reset`` reads the episode's
+    instance from ``options["taskvar"][index]``. Every call into user code goes through
+    :func:`~taskvar_torch.guest.guest` and is checked (:mod:`.returns`).
     """
 
     def __init__(self, index: int, adapter: Any, instance: dict):
@@ -203,12 +185,10 @@ class SubEnv(gym.Env):
         return int(a) - int(space.start)
 
     def report(self, obs: Any, info: dict, reward: float | None) -> dict:
-        """``{"taskvar": x}``, ``x`` a ``(5 O + H,)`` float64 array: the options' initiation and
-        termination at ``(obs, info)`` (0/1), the subtask rewards of the transition that arrived
-        there (zeros after a reset), the given policies' actions there (-1 for a learnt option),
-        the robustness rewards of that transition (zeros where an option has none), then the
-        episode's ``H`` values of ``instance_info``. One flat array: the vector env merges it
-        cheaply. Each function's value is checked: a bool, a finite number, an action."""
+        """``{"taskvar": x}``, ``x`` a ``(5 O + H,)`` float64 array: initiation, termination,
+        subtask rewards, given actions and robustness rewards of the options, then the ``H``
+        ``instance_info`` values; each value checked.
+        """
         state_info = self.adapter.state_info
         if state_info is not None:
             extra = self._call("state_info(env)", state_info, self.env.unwrapped, obs=obs)

@@ -1,27 +1,11 @@
-"""MiniGrid's grid world as pure batched tensor functions (Farama ``minigrid`` 3.2:
-``minigrid_env.py`` ``step`` and ``gen_obs``, ``core/grid.py`` ``process_vis``).
+"""MiniGrid's grid world as pure batched tensor functions (Farama ``minigrid`` 3.2: ``step``,
+``gen_obs``, ``process_vis``), checked step for step against the package
+(tests/families/minigrid/test_minigrid_parity.py).
 
-A state is a batch of ``N`` grids and agents:
-
-* ``grid (N, W * H, 3)`` uint8: every cell's MiniGrid encoding ``(object, colour, state)`` exactly
-  as ``Grid.encode()`` writes it (an empty cell is ``(1, 0, 0)``), cell ``(x, y)`` at row
-  ``x * H + y`` (``Grid.encode()`` reshaped); the agent is not in the grid;
-* ``x, y, direction (N,)`` int64: the agent's position and direction (0 right, 1 down, 2 left,
-  3 up, :data:`DIR_TO_VEC`);
-* ``carrying (N, 3)`` uint8: the carried object's encoding, ``(0, 0, 0)`` for nothing;
-* ``step_count (N,)`` int64.
-
-The objects are MiniGrid's, with its rules: a wall and a closed or locked door block the view;
-the agent walks onto empty cells, floor, goal, lava and open doors; it picks up keys, balls and
-boxes (one at a time) and drops onto an empty cell; ``toggle`` opens a locked door with a key of
-the door's colour and opens or closes an unlocked one. A box's ``toggle`` (which reveals its
-contents) is not ported: no layout of this family places a box.
-
-The observation is MiniGrid's ``image``: the 7 x 7 cells in front of the agent, rotated so the
-agent looks up from the bottom-middle cell ``(3, 6)``, cells off the grid read as walls, the
-cells MiniGrid's ``process_vis`` hides read ``(0, 0, 0)``, and the agent's own cell shows what it
-carries (else empty). ``tests/families/minigrid/test_minigrid_parity.py`` checks every step
-against the ``minigrid`` package.
+State: ``grid (N, W * H, 3)`` uint8 (``Grid.encode()``, cell ``(x, y)`` at row ``x * H + y``,
+without the agent); ``x, y, direction (N,)`` int64 (0 right, 1 down, 2 left, 3 up); ``carrying (N,
+3)`` uint8 (``(0, 0, 0)``: nothing); ``step_count (N,)`` int64. Rules and observation are MiniGrid's
+(docs/minigrid.md#the-family); a box's ``toggle`` is not ported.
 """
 
 from __future__ import annotations
@@ -106,13 +90,11 @@ def step(
     action: torch.Tensor,  # (N,) int64
     max_steps: int,
 ) -> tuple[torch.Tensor, ...]:
-    """One MiniGrid step of every grid (``MiniGridEnv.step``): turn, move, pick up, drop, toggle.
+    """One MiniGrid step of every grid (``MiniGridEnv.step``).
 
-    Returns ``(grid, x, y, direction, carrying, step_count, reward, terminated, truncated)``:
-    new tensors (the inputs are never mutated), reward ``(N,)`` float32 ``1 - 0.9 * step_count /
-    max_steps`` on stepping onto the goal, else 0; ``terminated`` on stepping onto the goal or lava;
-    ``truncated`` when ``step_count`` reaches ``max_steps`` (MiniGrid sets it even on a terminating
-    step; the env reports ``truncated & ~terminated``).
+    Returns new tensors ``(grid, x, y, direction, carrying, step_count, reward, terminated,
+    truncated)``: reward ``1 - 0.9 * step_count / max_steps`` on the goal, else 0; ``terminated`` on
+    the goal or lava; ``truncated`` at ``max_steps`` (as MiniGrid, even on a terminating step).
     """
     dev = grid.device
     dvec = torch.tensor(DIR_TO_VEC, device=dev)  # (4, 2)
@@ -166,14 +148,8 @@ def transparent(cells: torch.Tensor) -> torch.Tensor:
 
 
 def visibility(see: torch.Tensor) -> torch.Tensor:
-    """``(N, 7, 7)`` bool: MiniGrid's ``Grid.process_vis`` of a view (``see[:, vx, vy]``: the cell
-    is see-through) from the agent at ``(3, 6)``.
-
-    ``process_vis`` walks the rows from the agent's up; in a row its two sweeps spread the mask
-    left and right through see-through cells (a cell ``i`` is reached from a visible ``l`` when
-    ``l`` and every cell between them is see-through; ``i`` itself may be opaque), and every
-    visible see-through cell lights the three cells above it. The same in matrix form: ``reach[l,
-    i]`` per row, from the running count of opaque cells, and one boolean product per row.
+    """``(N, 7, 7)`` bool: MiniGrid's ``Grid.process_vis`` of a view from the agent at ``(3, 6)``
+    (``see[:, vx, vy]``: see-through cells), in matrix form, one boolean product per row.
     """
     dev = see.device
     t = see.transpose(1, 2)  # (N, 7 rows vy, 7 columns vx)

@@ -40,12 +40,9 @@ def observation_size(encoding: str) -> int:
 
 def encode(image: torch.Tensor, direction: torch.Tensor, encoding: str = "onehot") -> torch.Tensor:
     """The ``(N, D)`` float32 observation of MiniGrid's ``image (N, 7, 7, 3)`` and ``direction
-    (N,)``: the direction one-hot (4), then the view channel-major ``(C, vy, vx)``.
-
-    ``onehot``: per cell the object type (11) and the door state (3) one-hot, ``C = 14``
-    (the colour is left out: in these layouts each object has one colour). ``image``: MiniGrid's
-    three codes as floats, ``C = 3``. The same function encodes the ``minigrid`` package's own
-    observations (``tests/families/minigrid/``), so heads trained here run there.
+    (N,)``: the direction one-hot (4), then the view channel-major ``(C, vy, vx)``, ``onehot``
+    (object type and door state, C = 14) or ``image`` (the three codes, C = 3). Also encodes the
+    package's own observations.
     """
     image = torch.as_tensor(image).long().permute(0, 3, 2, 1)  # (N, 3, vy, vx)
     direction = torch.as_tensor(direction).long().view(-1)
@@ -64,46 +61,32 @@ def encode(image: torch.Tensor, direction: torch.Tensor, encoding: str = "onehot
 class MiniGridEnv(BatchedFamilyEnv):
     """Batched MiniGrid (DoorKey or LavaGap) with a hidden layout, as a TorchRL environment.
 
-    ## Description
-    MiniGrid's ``MiniGrid-DoorKey-{5,6,8}x...`` and ``MiniGrid-LavaGapS{5,6,7}`` ported to batched
-    torch, step for step (``tests/families/minigrid/test_minigrid_parity.py``). DoorKey: pick up
-    the key, unlock the door in the wall, reach the goal in the bottom-right corner. LavaGap: cross
-    the lava column through its gap to the goal; lava ends the episode. Each sub-environment draws
-    its own hidden layout at every (partial) reset (``layouts.py``).
+    ## Description MiniGrid's ``MiniGrid-DoorKey-{5,6,8}x...`` and ``MiniGrid-LavaGapS{5,6,7}``
+    ported step for step (docs/minigrid.md#the-family); each sub-environment draws its hidden layout
+    at every reset.
 
-    ## Action Space
-    ``Categorical(7)``: 0 left, 1 right, 2 forward, 3 pickup, 4 drop, 5 toggle, 6 done.
+    ## Action Space ``Categorical(7)``: 0 left, 1 right, 2 forward, 3 pickup, 4 drop, 5 toggle, 6
+    done.
 
-    ## Observation Space
-    ``observation``: the egocentric 7 x 7 view and the direction (:func:`encode`; ``onehot``
-    690 or ``image`` 151 floats). ``cell``: the agent's pose ``(x * H + y) * 4 + direction``;
-    ``carrying``, ``door``, ``side`` (:data:`CARRYING`). Hidden, for analysis only:
-    ``("instance", "layout")`` (index into ``layouts(task, size)``) and ``("instance",
-    "params")`` (:data:`PARAMS`).
+    ## Observation Space ``observation`` (:func:`encode`; ``onehot`` 690 or ``image`` 151 floats);
+    ``cell`` the pose ``(x * H + y) * 4 + direction``; ``carrying``, ``door``, ``side``; for
+    analysis only ``("instance", "layout" | "params")``.
 
-    ## Reward
-    ``1 - 0.9 * step_count / max_steps`` on reaching the goal, else 0 (MiniGrid's).
+    ## Reward ``1 - 0.9 * step_count / max_steps`` on reaching the goal, else 0.
 
-    ## Episode End
-    Terminated on the goal (or lava); truncated after ``max_steps`` steps (MiniGrid's default
-    ``10 size^2`` for DoorKey, ``4 size^2`` for LavaGap).
+    ## Episode End Terminated on the goal or lava; truncated after ``max_steps``.
 
     Args:
         num_envs: batch size N.
         task: ``doorkey`` or ``lavagap``.
-        size: grid side (DoorKey's 5, 6, 8 and LavaGap's 5, 6, 7 are MiniGrid's registered ones).
+        size: grid side.
         max_steps: steps before truncation; ``None``: MiniGrid's default.
-        obs_encoding: ``onehot`` or ``image`` (:func:`encode`).
-        instances: ``train``, ``heldout`` or ``minigrid`` (``layouts.py``).
+        obs_encoding: ``onehot`` or ``image``.
+        instances: ``train``, ``heldout`` or ``minigrid``.
         seed, index_offset: sub-environment ``i`` draws from key ``(seed, index_offset + i)``.
-        noise_seed: accepted and unused: the dynamics are deterministic given the layout.
+        noise_seed: unused (the dynamics are deterministic given the layout).
         validate_actions: check actions are in range (one host sync a step); ``None``: on CPU.
         device: torch device.
-
-    Examples:
-        >>> env = MiniGridEnv(num_envs=4, task="doorkey", size=5, seed=0)
-        >>> env.rollout(3)["next", "observation"].shape
-        torch.Size([4, 3, 690])
     """
 
     runtime_state = (

@@ -1,19 +1,6 @@
-"""The MiniGrid family: Farama's MiniGrid DoorKey and LavaGap, ported to batched torch, the hidden
-parameter the layout (docs/minigrid.md), registered through the public door only.
-
-The package's ``pyproject.toml`` lists :func:`family` in the entry-point group
-``taskvar_torch.families``, as a user's package would (docs/families.md). The family's own keys
-live under ``env.minigrid`` (:class:`MiniGridConfig`)::
-
-    family: minigrid
-    env:
-      num_envs: 64
-      instances: train        # train | heldout | minigrid (layouts.py)
-      minigrid:
-        task: doorkey         # doorkey | lavagap
-        size: 5
-        obs_encoding: onehot  # onehot | image
-        max_steps: 0          # 0: MiniGrid's own (10 size^2 DoorKey, 4 size^2 LavaGap)
+"""The MiniGrid family declaration (docs/minigrid.md), registered through the public door only: the
+entry point ``taskvar_torch.families`` names :func:`family` (docs/families.md). Own config keys:
+``env.minigrid`` (:class:`MiniGridConfig`).
 """
 
 from __future__ import annotations
@@ -94,11 +81,9 @@ def instance_features(td: TensorDictBase) -> torch.Tensor:
 
 def informed_features(cfg: Any) -> tuple[int, Any]:
     """``(6, features)``: what the informed baseline reads (docs/memory.md), in the agent's own
-    frame as its egocentric view is: the offsets ``(forward, right) / (size - 1)`` from the agent
-    to the door (DoorKey) or gap (LavaGap), to the key (DoorKey; zeros in LavaGap) and to the goal
-    (``(size - 2, size - 2)``), read from ``("instance", "params")`` and the agent's ``cell``
-    (``(x * size + y) * 4 + direction``). The layout's absolute parameters
-    (:func:`instance_features`) say nothing to a policy that does not know where it stands."""
+    frame: the offsets ``(forward, right) / (size - 1)`` to the door or gap, the key (zeros in
+    LavaGap) and the goal, from ``("instance", "params")`` and ``cell``.
+    """
     m = _section(cfg)
     size, doorkey = int(m.size), m.task == "doorkey"
 

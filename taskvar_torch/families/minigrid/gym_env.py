@@ -1,8 +1,5 @@
-"""One MiniGrid env of the port behind Gymnasium's API (``taskvar/MiniGrid-DoorKey-5x5-v0``, ...):
-one :class:`MiniGridEnv` sub-environment behind :class:`~taskvar_torch.envs.gym_env.FamilyGymEnv`.
-
-Its observation is the family's (``encode``: the direction and the view, ``obs_encoding``); the
-``info`` dict holds MiniGrid's own ``image`` and ``direction``.
+"""One MiniGrid env of the port behind Gymnasium's API (``taskvar/MiniGrid-DoorKey-5x5-v0``, ...);
+``info`` holds MiniGrid's own ``image`` and ``direction``.
 """
 
 from __future__ import annotations
@@ -16,13 +13,9 @@ from taskvar_torch.families.minigrid.env import MiniGridEnv
 
 
 class MiniGridGymEnv(FamilyGymEnv):
-    """MiniGrid DoorKey or LavaGap (the port) as a Gymnasium env.
-
-    Args:
-        task, size, max_steps, obs_encoding: as :class:`MiniGridEnv`.
-        instances: the layouts it draws (default ``minigrid``: MiniGrid's own distribution).
-        render_mode: ``ansi`` (MiniGrid's ``pprint_grid`` letters) or ``rgb_array`` (one flat
-            tile a cell, the agent a red square).
+    """MiniGrid DoorKey or LavaGap (the port) as a Gymnasium env: ``task``, ``size``, ``max_steps``,
+    ``obs_encoding`` as :class:`MiniGridEnv`; ``instances`` default ``minigrid``; ``render_mode``
+    ``ansi`` or ``rgb_array``.
     """
 
     env_class = MiniGridEnv

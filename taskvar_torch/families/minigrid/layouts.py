@@ -1,27 +1,10 @@
-"""The hidden layouts of the MiniGrid family: every layout MiniGrid's ``_gen_grid`` can draw, its
-probability there, and the sealed train / held-out split (paper §2: the family's hidden
-parameter is the layout).
+"""The hidden layouts of the MiniGrid family (paper §2: the hidden parameter is the layout): every
+layout MiniGrid's ``_gen_grid`` can draw, its probability there, and the sealed train / held-out
+split by a hash of each layout (docs/minigrid.md#the-family).
 
-A *layout* is what the env hides and the episode keeps: DoorKey's wall column, door row and key
-cell (``minigrid/envs/doorkey.py``); LavaGap's gap cell (``minigrid/envs/lavagap.py``). The agent's
-start is drawn given the layout, as MiniGrid draws it: DoorKey's uniformly over the left room's
-free cells (the key's excluded) facing a uniform direction; LavaGap's at ``(1, 1)`` facing right.
-
-MiniGrid's probability of each DoorKey layout: wall column ``s`` uniform in ``[2, W - 3]``, door
-row uniform in ``[1, H - 3]`` (``_rand_int(1, height - 2)`` never draws ``H - 2``), key uniform
-over the ``(s - 1)(H - 2) - 1`` room cells the agent left free; LavaGap's gap is uniform over
-columns ``[2, W - 3]`` and rows ``[1, H - 2]``.
-
-Instance distributions (``env.instances``):
-
-* ``minigrid``: MiniGrid's own distribution over every layout;
-* ``train``: the same restricted to the training layouts (renormalised);
-* ``heldout``: the held-out layouts only. The split is fixed by a hash of each layout (the
-  ``ceil(M / 5)`` layouts of lowest hash are held out), never by a choice: no config or tuning
-  run plays them (docs/minigrid.md).
-
-A draw is an inverse-CDF lookup of a 24-bit uniform from the episode key
-(``taskvar_torch.rng``), so each layout's probability is MiniGrid's to within ``2^-24``.
+A layout is DoorKey's wall column, door row and key cell, or LavaGap's gap cell; the start is drawn
+given it, as MiniGrid draws it. A draw is an inverse-CDF lookup of a 24-bit uniform from the episode
+key (:mod:`taskvar_torch.rng`).
 """
 
 from __future__ import annotations
@@ -143,11 +126,8 @@ def build_grids(task: str, size: int, params: torch.Tensor) -> torch.Tensor:
 
 
 class LayoutSampler:
-    """Draws episodes' layouts and starts from keys (``taskvar_torch.rng``), on ``device``.
-
-    Args:
-        task, size: the family's task and grid side.
-        instances: ``train``, ``heldout`` or ``minigrid`` (module docstring).
+    """Draws episodes' layouts and starts from keys on ``device``; ``instances``: ``train``,
+    ``heldout`` or ``minigrid``.
     """
 
     def __init__(self, task: str, size: int, instances: str, device: torch.device | str = "cpu"):

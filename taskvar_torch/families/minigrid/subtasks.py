@@ -1,41 +1,12 @@
-"""MiniGrid options (paper §3.2, §3.4.2): DoorKey's get key -> open door -> to goal, LavaGap's
-to gap -> to goal (a hallway option: Sutton, Precup & Singh 1999), each under the full task.
+"""MiniGrid options (paper §3.2, §3.4.2): DoorKey's get key -> open door -> to goal, LavaGap's to
+gap -> to goal, each under the full task (docs/minigrid.md#options-and-the-hierarchy).
 
-Computed from the integer state the env writes beside the observation (``env.py``): ``cell`` (the
-agent's pose), ``carrying``, ``door``, ``side``, at the root of ``td`` (state s) and under
-``("next", ...)`` (state s'), plus ``("next", "reward")``. Any batch shape ``(*B)``; outputs
-``(*B, O)`` in the order of ``names``.
-
-DoorKey (``names = (get_key, open_door, to_goal, doorkey)``):
-
-=============  ===========================================  ==========================  ==========
-option         initiation I_o                               termination beta_o(s')      reward
-=============  ===========================================  ==========================  ==========
-``get_key``    door locked, no key carried                  outside I, or at the goal   +1 on
-                                                                                        picking
-                                                                                        the key up
-``open_door``  door not open, and a key carried or the      outside I, or at the goal   +1 on
-               door unlocked                                                            opening it
-``to_goal``    door open                                    outside I, or at the goal   +1 at the
-                                                                                        goal
-``doorkey``    anywhere                                     never (the full task)       the env
-                                                                                        reward
-=============  ===========================================  ==========================  ==========
-
-LavaGap (``names = (to_gap, to_goal, lavagap)``): ``to_gap`` is initiable left of the lava
-column, ends outside it (in the gap, or on lava) and earns +1 on entering the gap; ``to_goal``
-is initiable in the gap and right of the column, ends outside it or at the goal, +1 at the goal;
-``lavagap`` is the full task (the env reward).
-
-In every state exactly one component is initiable, so the options controllers never fall back to
-the averaging head; the root composes them (``hierarchy``: the root's children). A component's
-subtask reward is its subgoal's +1 only: the episode ending elsewhere (lava, or the goal reached
-by another route) earns it nothing, so no option gains by ending the episode (Taxi and Wargus need
-an end penalty for their -1-per-step rewards, these do not).
-
-Robustness rewards (§3.4.3): each component +1 on reaching its subgoal and -1 on undoing it
-(dropping the key, closing the door, stepping back through the gap) or dying on lava; the root
-the sum.
+Computed from the integer state the env writes (``cell``, ``carrying``, ``door``, ``side``) at
+``td`` (s) and ``("next", ...)`` (s'), plus ``("next", "reward")``; outputs ``(*B, O)`` in ``names``
+order. Each component is initiable where its subgoal is next (exactly one in every state), ends
+outside its initiation set or at the goal, and earns +1 on its subgoal; the full task (``doorkey``,
+``lavagap``) earns the env reward and never ends. Robustness rewards (§3.4.3): +1 on reaching the
+subgoal, -1 on undoing it or dying on lava; the root the sum.
 """
 
 from __future__ import annotations

@@ -1,9 +1,5 @@
-"""The Taxi family: Gymnasium's Taxi-v4 as a family of MDPs (docs/taxi.md): its dynamics, env,
-Gymnasium wrapper, MAXQ options and exact oracle, in one package (docs/families.md).
-
-Modules: :mod:`.dynamics` (pure batched transitions, instances), :mod:`.env`, :mod:`.gym_env`,
-:mod:`.subtasks`, :mod:`.oracle` (:class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`) and
-:mod:`.family` (the declaration, the ``taxi`` entry point).
+"""The Taxi family: Gymnasium's Taxi-v4 as a family of MDPs (docs/taxi.md); :mod:`.family` is the
+declaration (the ``taxi`` entry point).
 """
 
 from taskvar_torch.families.taxi.dynamics import TaxiInstances, TaxiModel

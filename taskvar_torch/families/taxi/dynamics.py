@@ -1,29 +1,10 @@
 """Taxi family (Gymnasium ``Taxi-v4``): pure batched dynamics, exact model, instance distributions.
 
 States use Taxi-v4's encoding ``((row * 5 + col) * 5 + passenger) * 4 + destination`` (500
-states; ``passenger == 4`` means in the taxi; locations R, G, Y, B are :data:`LOCS`). Everything a
-step needs is precomputed into lookup tables (:class:`TaxiModel`):
-
-    nxt = next_flat[(state * 6 + action) * 3 + outcome]   # outcome 0 intended, 1 left, 2 right
-    reward, terminated = reward[state, action], done[state, action]
-
-The randomness is an input, as in ``windy.py``: ``outcome`` is the step's rain draw (0 with
-probability ``q``, 1 or 2 with ``(1 - q) / 2`` each; :func:`rain_outcome`), ``redraw`` the fickle
-passenger's new-destination draw. What varies across the family is ``rainy_probability`` ``q``
-(1.0 = dry) and ``fickle_probability`` ``f`` (0.0 = never fickle), batched tensors; whether the
-fickle passenger is armed this episode (drawn at reset with probability ``f``) is per-episode
-state carried by the caller.
-
-The rules, as Gymnasium 1.4's ``taxi.py`` implements them (checked entry for entry in
-``tests/families/taxi/test_taxi_env.py``):
-
-* rain: a move whose intended direction is open goes there with probability ``q`` and to either
-  lateral neighbour with ``(1 - q) / 2`` each (a lateral move into a wall or edge stays put); a move
-  into a wall or edge stays put with probability 1 (no drift). Pickup and dropoff are
-  deterministic. Moves always cost -1.
-* fickle: armed at reset with probability ``f``; fires on the first step that starts with the
-  passenger aboard and changes the taxi's position; the new destination is uniform over the three
-  other locations (ascending order, as ``np_random.choice``); at most once an episode.
+states; ``passenger == 4`` means in the taxi). A step is table lookups (:class:`TaxiModel`); its
+randomness is an input: ``outcome`` the rain draw (:func:`rain_outcome`), ``redraw`` the fickle
+passenger's new destination. The rules (rain ``q``, fickle passenger ``f``) are Taxi-v4's:
+docs/taxi.md#the-family.
 """
 
 from __future__ import annotations
@@ -72,22 +53,12 @@ _MOVES = (
 
 
 def encode(row, col, passenger, destination):
-    """Taxi-v4 state of ``(row, col, passenger, destination)``; ints or int64 tensors.
-
-    Examples:
-        >>> encode(3, 1, 2, 0)
-        328
-    """
+    """Taxi-v4 state of ``(row, col, passenger, destination)``; ints or int64 tensors."""
     return ((row * NUM_COLS + col) * (NUM_LOCS + 1) + passenger) * NUM_LOCS + destination
 
 
 def decode(state):
-    """``(row, col, passenger, destination)`` of a Taxi-v4 state; ints or int64 tensors.
-
-    Examples:
-        >>> decode(328)
-        (3, 1, 2, 0)
-    """
+    """``(row, col, passenger, destination)`` of a Taxi-v4 state; ints or int64 tensors."""
     destination = state % NUM_LOCS
     state = state // NUM_LOCS
     passenger = state % (NUM_LOCS + 1)
@@ -160,23 +131,10 @@ def initial_states() -> np.ndarray:
 class TaxiModel:
     """Lookup tables of Taxi-v4 on one device; the pure step functions read only these.
 
-    Attributes (all tensors on ``device``):
-        next: (S, A, 3) int64, next state per rain outcome (0 intended, 1 left, 2 right); without
-            rain only outcome 0 happens. ``next_flat`` is the same table flattened.
-        reward: (S, A) float32 (-1, +20 or -10). done: (S, A) bool (delivery).
-        start_states: (300,) int64, Taxi-v4's initial states.
-        fickle_moves: (S, S) bool, whether the fickle rule fires on a transition ``s -> s'`` (the
-            passenger is aboard in ``s`` and the taxi's position changes).
-        fickle_targets: (S, 3) int64, ``s'`` with its destination replaced by each of the three
-            other destinations (ascending), the states a fired fickle rule leads to.
-        next_flat, reward_flat, done_flat, fickle_targets_flat, fickle_fires_flat: flat copies
-            for one-gather lookups (``fickle_fires_flat`` is ``fickle_moves[s, next[s, a, k]]``).
-        np_*: numpy copies for the single-environment Gymnasium path.
-
-    Examples:
-        >>> model = TaxiModel("cpu")
-        >>> int(model.next[encode(0, 0, 0, 1), 4, 0]) == encode(0, 0, 4, 1)  # pickup at R
-        True
+    Attributes: ``next (S, A, 3)`` int64 next state per rain outcome (0 intended, 1 left, 2 right),
+    ``reward (S, A)`` float32, ``done (S, A)`` bool, ``start_states (300,)``, ``fickle_moves (S,
+    S)`` and ``fickle_targets (S, 3)`` (as :func:`fickle_rule`); ``*_flat`` copies for one-gather
+    lookups; ``np_*`` numpy copies for the single-environment Gymnasium path.
     """
 
     def __init__(self, device: torch.device | str = "cpu"):
@@ -216,29 +174,15 @@ def fickle_rule(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The fickle passenger rule as tensors, for an exact model over ``(state, armed)``.
 
-    Returns ``(fires, targets)``: ``fires (S, S')`` bool says whether an armed fickle passenger
-    changes destination on a transition ``s -> s'`` (passenger aboard in ``s``, taxi position
-    changed); ``targets (S', 3)`` int64 are the states ``s'`` becomes, each with probability 1/3
-    (``s'`` with its destination replaced by each other destination). A fired rule disarms.
-
-    Examples:
-        >>> fires, targets = fickle_rule()
-        >>> s, s2 = encode(0, 0, 4, 1), encode(1, 0, 4, 1)  # passenger aboard, one step south
-        >>> bool(fires[s, s2]), [decode(int(t))[3] for t in targets[s2]]
-        (True, [0, 2, 3])
+    Returns ``(fires (S, S') bool, targets (S', 3) int64)``: whether an armed passenger changes
+    destination on ``s -> s'``, and the three states ``s'`` becomes (probability 1/3 each).
     """
     moves, targets = _fickle_tables()
     return torch.as_tensor(moves, device=device), torch.as_tensor(targets, device=device)
 
 
 def rain_outcome(u: torch.Tensor, rainy_probability: torch.Tensor) -> torch.Tensor:
-    """Rain outcome (0 intended, 1 left, 2 right) from uniforms ``u`` (N,) in [0, 1): intended
-    when ``u < q``, left when ``u < (1 + q) / 2``, else right. ``q = 1`` is dry.
-
-    Examples:
-        >>> rain_outcome(torch.tensor([0.1, 0.85, 0.95]), torch.tensor([0.8, 0.8, 0.8])).tolist()
-        [0, 1, 2]
-    """
+    """Rain outcome (0 intended, 1 left, 2 right) of uniforms ``u (N,)`` under ``q (N,)``."""
     q = rainy_probability
     return (u >= q).to(torch.int64) + (u >= 0.5 * (1.0 + q)).to(torch.int64)
 
@@ -254,15 +198,7 @@ def step(
     """One batched Taxi-v4 step with the randomness given.
 
     Returns ``(next_state, reward, terminated, armed)``, each ``(N,)`` (int64, float32, bool,
-    bool): ``armed`` is cleared where the fickle rule fired.
-
-    Examples:
-        >>> model = TaxiModel()
-        >>> s = torch.tensor([encode(0, 0, 4, 1)])  # at R, passenger aboard, going to G
-        >>> zero, yes = torch.zeros(1, dtype=torch.int64), torch.ones(1, dtype=torch.bool)
-        >>> nxt, r, term, armed = step(model, s, zero, zero, yes, zero)  # south: the rule fires
-        >>> decode(int(nxt[0])), float(r[0]), bool(term[0]), bool(armed[0])
-        ((1, 0, 4, 0), -1.0, False, False)
+    bool); ``armed`` is cleared where the fickle rule fired.
     """
     sa = torch.add(action, state, alpha=NUM_ACTIONS)  # (N,)
     sao = torch.add(outcome, sa, alpha=NUM_OUTCOMES)  # (N,)
@@ -280,19 +216,10 @@ def transition_tensors(
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float64,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Exact model of Taxi-v4 without the fickle passenger, for a batch of ``q`` values.
+    """Exact model of Taxi-v4 without the fickle passenger for a batch of ``q`` (1.0 is dry).
 
-    ``q = 1.0`` is the dry Taxi (``is_rainy=False``): identical to ``is_rainy=True,
-    rainy_probability=1.0``. Returns ``P (B, S, A, S')`` (duplicate outcomes summed, as
-    Gymnasium's ``P`` lists aggregate), ``R (B, S, A)`` and ``done (B, S, A)`` bool: the reward and
-    termination are the same for every outcome of ``(s, a)``. Like Gymnasium's ``P``, no state is
-    made absorbing: a transition with ``done`` ends the episode. Add the fickle passenger with
-    :func:`fickle_rule`.
-
-    Examples:
-        >>> P, R, done = transition_tensors([0.8, 1.0])
-        >>> P.shape, bool(torch.allclose(P.sum(-1), torch.ones(2, 500, 6, dtype=P.dtype)))
-        (torch.Size([2, 500, 6, 500]), True)
+    Returns ``P (B, S, A, S')``, ``R (B, S, A)`` and ``done (B, S, A)`` bool, as Gymnasium's ``P``
+    (no absorbing state). Add the fickle passenger with :func:`fickle_rule`.
     """
     q = torch.as_tensor(rainy_probability, dtype=dtype, device=device).reshape(-1)
     if bool(((q < 0) | (q > 1) | q.isnan()).any()):
@@ -328,24 +255,11 @@ _C_POINT = rng.RESET_COUNTER + 5
 
 @dataclass(frozen=True)
 class TaxiInstances:
-    """Distribution of Taxi instances ``(rainy_probability, fickle_probability)``.
+    """Distribution of Taxi instances ``(rainy_probability q, fickle_probability f)``.
 
-    Per episode: rainy with probability ``rain_share``, then ``q ~ U[q_low, q_high]`` (else
-    ``q = 1.0``, dry); fickle with probability ``fickle_share``, then ``f ~ U[f_low, f_high]``
-    (else ``f = 0.0``). Or, when ``points`` is given, uniform over that finite set of ``(q, f)``
-    pairs (``q = 1`` is dry, ``f = 0`` never fickle). Whether the fickle passenger is armed this
-    episode is drawn by the env at reset with probability ``f``.
-
-    Named distributions (``TaxiInstances.named``), around Taxi-v4's defaults (``q = 0.8``,
-    ``f = 0.3``): ``train`` and ``test`` (rain on half the episodes with q in [0.7, 0.9], fickle
-    on half with f in [0.2, 0.4]), ``dry`` (classic Taxi), ``heavy_rain`` (always rain, q in
-    [0.5, 0.7], below the trained range; never fickle), ``fickle`` (dry, always fickle with f in
-    [0.8, 1.0]), ``storm`` (both: q in [0.5, 0.7], f in [0.8, 1.0]), ``gymnasium`` (Taxi-v4 with
-    ``is_rainy=True, fickle_passenger=True`` and its default probabilities: q = 0.8, f = 0.3).
-
-    Examples:
-        >>> TaxiInstances.named("dry").sample(torch.arange(3))
-        (tensor([1., 1., 1.]), tensor([0., 0., 0.]))
+    Per episode rainy with probability ``rain_share`` (``q ~ U[q_low, q_high]``, else 1.0) and
+    fickle with probability ``fickle_share`` (``f ~ U[f_low, f_high]``, else 0.0); or uniform over
+    ``points``. Named distributions (:meth:`named`): docs/taxi.md#the-family.
     """
 
     rain_share: float = 0.5
@@ -458,14 +372,7 @@ def render_ansi(
     fickle_probability: float | None = None,
     last_action: int | None = None,
 ) -> str:
-    """Taxi-v4's map as plain text: ``T`` the empty taxi, ``P`` the taxi with the passenger
-    aboard, a waiting passenger's location in lower case; a header names the passenger, the
-    destination and (when given) the instance, a footer the last action, as Taxi-v4 does.
-
-    Examples:
-        >>> print(render_ansi(encode(2, 2, 0, 1)).splitlines()[4])
-        | : :T: : |
-    """
+    """Taxi-v4's map as plain text, with Taxi-v4's header and footer."""
     row, col, pas, dest = decode(int(state))
     out = [list(line) for line in MAP]
     if pas < IN_TAXI:
@@ -487,13 +394,7 @@ CELL_PX = 32
 
 
 def render_rgb(state: int, cell_px: int = CELL_PX) -> np.ndarray:
-    """``(5*px, 5*px, 3)`` uint8 image: locations tinted in their colour, the destination framed,
-    walls as dark bars, the passenger a disc, the taxi a yellow square (dark centre when full).
-
-    Examples:
-        >>> render_rgb(encode(2, 2, 0, 1)).shape
-        (160, 160, 3)
-    """
+    """``(5*px, 5*px, 3)`` uint8 image of a state."""
     row, col, pas, dest = decode(int(state))
     px = cell_px
     img = np.full((NUM_ROWS * px, NUM_COLS * px, 3), 245, dtype=np.uint8)

@@ -20,15 +20,8 @@ _C_START, _C_ARMED = rng.RESET_COUNTER + 6, rng.RESET_COUNTER + 7
 
 
 def observation_table(encoding: str = "onehot") -> np.ndarray:
-    """Observation of every Taxi-v4 state, ``(500, D)`` float32; the env gathers rows of it.
-
-    ``onehot``: one-hot over the 500 states (D = 500). ``factored``: one-hot row (5), column (5),
-    passenger (5: R, G, Y, B, in taxi) and destination (4), D = 19. The instance (rain, fickle
-    passenger, armed) is never in the observation.
-
-    Examples:
-        >>> observation_table("factored").shape
-        (500, 19)
+    """Observation of every Taxi-v4 state, ``(500, D)`` float32: ``onehot`` (D = 500) or
+    ``factored`` (one-hot row, column, passenger, destination; D = 19). The instance is never in it.
     """
     if encoding == "onehot":
         return np.eye(taxi.NUM_STATES, dtype=np.float32)
@@ -51,9 +44,9 @@ def check_state(state: object, name: str = "start") -> int:
 
 
 def instance_state(q: torch.Tensor, f: torch.Tensor, armed_bits: torch.Tensor) -> dict:
-    """The env state an episode's instance fixes, each ``(n,)``: ``q`` and ``f``, the rain's
-    integer thresholds (outcome 0 when ``u < q``, 1 when ``u < (1 + q) / 2``, else 2) and the
-    fickle arming, Bernoulli(f) from the episode's ``_C_ARMED`` bits (exact on 2^-24)."""
+    """The env state an episode's instance fixes, each ``(n,)``: ``q``, ``f``, the rain's integer
+    thresholds and the fickle arming (Bernoulli(f) from the ``_C_ARMED`` bits).
+    """
     return dict(
         _q=q,
         _f=f,
@@ -65,69 +58,38 @@ def instance_state(q: torch.Tensor, f: torch.Tensor, armed_bits: torch.Tensor) -
 
 class TaxiEnv(BatchedFamilyEnv):
     """Batched Taxi family (Gymnasium Taxi-v4 with hidden rain and fickle passenger) as a TorchRL
-    environment.
+    env.
 
-    ## Description
-    Dietterich's Taxi on Taxi-v4's 5x5 map: drive to the passenger at one of the four locations
-    R, G, Y, B, pick them up, drive to their destination and drop them off. Each sub-environment
-    draws its own hidden instance at every (partial) reset: how rainy the roads are and how fickle
-    the passenger is. The dynamics are Taxi-v4's exactly (``tests/families/taxi/test_taxi_env.py`` checks them
-    against Gymnasium's ``P`` and ``step``).
+    ## Description Taxi-v4's dynamics exactly (tests/families/taxi/test_taxi_env.py); each
+    sub-environment draws its hidden instance at every (partial) reset. docs/taxi.md#the-family.
 
-    ## Action Space
-    ``Categorical(6)``: 0 south, 1 north, 2 east, 3 west, 4 pickup, 5 dropoff.
+    ## Action Space ``Categorical(6)``: 0 south, 1 north, 2 east, 3 west, 4 pickup, 5 dropoff.
 
-    ## Observation Space
-    ``observation``: one-hot Taxi-v4 state (``onehot``, 500) or one-hot row, column, passenger
-    and destination (``factored``, 19), float32. ``cell``: the Taxi-v4 state
-    ``((row * 5 + col) * 5 + passenger) * 4 + destination`` (int64, 0..499). The hidden instance,
-    for analysis only: ``("instance", "rainy_probability")`` (1.0 when dry),
-    ``("instance", "fickle_probability")`` (0.0 when never fickle), ``("instance", "armed")``
-    (the fickle passenger will still change destination this episode).
+    ## Observation Space ``observation`` (``onehot`` 500 or ``factored`` 19, float32); ``cell`` the
+    Taxi-v4 state (int64); for analysis only ``("instance", "rainy_probability" |
+    "fickle_probability" | "armed")``.
 
-    ## Starting State
-    Taxi-v4's: uniform over its 300 initial states (any taxi position, passenger at one of the
-    four locations, destination another one); or ``start`` (a state).
+    ## Starting State Uniform over Taxi-v4's 300 initial states, or ``start``.
 
-    ## Reward
-    -1 per step, +20 for a delivery, -10 for an illegal pickup or dropoff.
+    ## Reward -1 per step, +20 for a delivery, -10 for an illegal pickup or dropoff.
 
-    ## Episode End
-    Terminated on delivery; truncated after ``horizon`` steps (200, as Taxi-v4's time limit).
+    ## Episode End Terminated on delivery; truncated after ``horizon`` steps (200).
 
-    ## Arguments
-    ``num_envs``, ``instances``, ``horizon``, ``obs_encoding``, ``start``, ``seed``,
-    ``index_offset``, ``noise_seed``, ``validate_actions``, ``device`` (see Args).
-
-    ## Task parameters
-    ``rainy_probability`` q in [0, 1]: a move goes in its intended direction with probability q
-    and to each lateral neighbour with (1 - q) / 2 (Taxi-v4's ``is_rainy``; q = 1 is dry).
-    ``fickle_probability`` f in [0, 1]: with probability f (drawn at reset) the passenger changes
-    destination, uniformly to another location, on the first move with them aboard (Taxi-v4's
-    ``fickle_passenger``). Drawn from ``instances`` (:attr:`TaxiInstances.NAMES` or a
-    :class:`TaxiInstances`).
+    ## Task parameters ``rainy_probability`` q (1 is dry) and ``fickle_probability`` f, drawn from
+    ``instances``.
 
     Args:
         num_envs: batch size N.
-        instances: instance distribution: a name, a dict of :class:`TaxiInstances` fields or one.
+        instances: a name, a dict of :class:`TaxiInstances` fields or one.
         horizon: steps before truncation.
         obs_encoding: ``onehot`` or ``factored``.
-        start: optional fixed start state (Taxi-v4 encoding, 0..499).
-        seed: seed; sub-environment ``i`` draws from key ``(seed, index_offset + i)``, so any split
-            of N environments reproduces the same trajectories.
+        start: optional fixed start state (0..499).
+        seed: sub-environment ``i`` draws from key ``(seed, index_offset + i)``.
         index_offset: global index of sub-environment 0.
-        noise_seed: salt of the per-step stream (rain outcomes, fickle redraws). Same ``seed``:
-            same instances, start states and arming; same ``noise_seed`` too: the same rain and
-            redraws (common random numbers).
-        validate_actions: check actions are in range, raising a one-line error (one host sync
-            per step). ``None`` (default): on CPU only.
+        noise_seed: salt of the per-step stream (rain, redraws): same ``seed`` and ``noise_seed``
+            give common random numbers.
+        validate_actions: check actions are in range (one host sync per step); ``None``: CPU only.
         device: torch device.
-
-    Examples:
-        >>> env = TaxiEnv(num_envs=8, instances="storm", seed=0)
-        >>> td = env.rollout(10)
-        >>> td["next", "reward"].shape, td["cell"].dtype
-        (torch.Size([8, 10, 1]), torch.int64)
     """
 
     runtime_state = (
@@ -260,9 +222,8 @@ class TaxiEnv(BatchedFamilyEnv):
         return self._out(reward.unsqueeze(-1), terminated.unsqueeze(-1), truncated.unsqueeze(-1))
 
     def _advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One step of every sub-env with ``action`` ``(N,)``: draw rain and redraw, step, count.
-
-        Returns ``(reward, terminated, truncated)``, each ``(N,)``; the new state replaces the old.
+        """One step of every sub-env with ``action (N,)``; returns ``(reward, terminated,
+        truncated)``.
         """
         if self.validate_actions and bool(((action < 0) | (action >= taxi.NUM_ACTIONS)).any()):
             bad = action[(action < 0) | (action >= taxi.NUM_ACTIONS)][0].item()

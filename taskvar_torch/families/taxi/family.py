@@ -1,23 +1,6 @@
 """The Taxi family: Gymnasium's Taxi-v4 as a family of MDPs (docs/taxi.md), registered through the
-public door only.
-
-Nothing in the core names this module: the package's ``pyproject.toml`` lists :func:`family` in the
-entry-point group ``taskvar_torch.families``, exactly as a user's package would
-(docs/families.md). The hidden instance is the weather and the passenger (Taxi-v4's ``is_rainy``
-with ``rainy_probability`` q, ``fickle_passenger`` with ``fickle_probability`` f), drawn per
-episode from named distributions (``families/taxi/dynamics.py`` :class:`TaxiInstances`); the options are the
-MAXQ decomposition flattened (navigate to R, G, Y, B; pick up; drop off: ``families/taxi/subtasks.py``);
-the exact oracle (``families/taxi/oracle.py``) solves every instance, the fickle redraw made Markov.
-
-The family's own config keys live under ``env.taxi`` (:class:`TaxiConfig`)::
-
-    family: taxi
-    env:
-      num_envs: 64
-      instances: train
-      taxi:
-        obs_encoding: onehot
-        horizon: 200
+public door only: the entry point ``taskvar_torch.families`` names :func:`family`
+(docs/families.md). Own config keys: ``env.taxi`` (:class:`TaxiConfig`).
 """
 
 from __future__ import annotations
@@ -96,13 +79,9 @@ INFORMED_DIM = 2
 
 
 def informed_features(td: TensorDictBase) -> torch.Tensor:
-    """``(B, 2)``: how rainy (``1 - q``) and how fickle (``f``) the transitions' instance is, what
-    the ``informed`` baseline reads (docs/memory.md): the instance's parameters, as windy's informed
-    head reads ``p`` and the direction and not the gusts. Not the episode's draw of whether the
-    passenger *will* change their mind (``armed``, in :func:`instance_features`): trained on it, the
-    informed head looped against a wall in over half the armed episodes of the training
-    distribution (a rare context the behaviour's data barely covers; return -2.69 +- 2.58 against
-    averaging's 6.07 on seed 0's fresh training instances, 5.97 without it; docs/taxi.md)."""
+    """``(B, 2)``: how rainy (``1 - q``) and how fickle (``f``) the instance is, what the
+    ``informed`` baseline reads (docs/memory.md); not the episode's ``armed`` draw (docs/taxi.md).
+    """
     inst = td.get(keys.INSTANCE)
     q = inst.get("rainy_probability").reshape(-1, 1).to(torch.float32)
     f = inst.get("fickle_probability").reshape(-1, 1).to(torch.float32)

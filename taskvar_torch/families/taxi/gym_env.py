@@ -1,6 +1,6 @@
-"""Taxi as a Gymnasium env (``taskvar/Taxi-v0``): Taxi-v4 with a hidden, per-episode instance of
-rain and fickle passenger; one :class:`TaxiEnv` sub-environment behind
-:class:`~taskvar_torch.envs.gym_env.FamilyGymEnv`."""
+"""Taxi as a Gymnasium env (``taskvar/Taxi-v0``): one :class:`TaxiEnv` sub-environment behind
+:class:`~taskvar_torch.envs.gym_env.FamilyGymEnv`.
+"""
 
 from __future__ import annotations
 
@@ -21,24 +21,14 @@ _TAXI_V4_DEFAULTS = {"rainy_probability": 0.8, "fickle_probability": 0.3}
 
 
 class TaxiGymEnv(FamilyGymEnv):
-    """Taxi-v4 with a hidden rain / fickle-passenger instance per episode as one Gymnasium env:
-    :class:`TaxiEnv`'s description, actions (``Discrete(6)``), start, reward and episode end.
+    """Taxi-v4 with a hidden rain / fickle-passenger instance per episode as one Gymnasium env.
 
-    Observation: ``Discrete(500)``, Taxi-v4's state ``((row * 5 + col) * 5 + passenger) * 4 +
-    destination`` (the batched env's ``cell``). Arguments: ``instances``, ``horizon`` (200,
-    Taxi-v4's limit), ``render_mode`` (``ansi`` or ``rgb_array``). ``reset(options={"instance":
-    {"is_rainy": True, "rainy_probability": 0.7, "fickle_passenger": True, "fickle_probability":
-    0.3}, "state": s})`` pins the instance with Taxi-v4's keyword names and defaults (a missing key
-    takes ``gym.make("Taxi-v4")``'s value, so ``options={"instance": kw}`` behaves like
-    ``gym.make("Taxi-v4", **kw)``) and the start state. ``info["instance"]`` reports the instance
-    (``rainy_probability`` 1.0 when dry, ``fickle_probability`` 0.0 when not fickle);
+    Observation ``Discrete(500)`` (Taxi-v4's state); actions, start, reward and episode end as
+    :class:`TaxiEnv`; ``render_mode`` ``ansi`` or ``rgb_array``. ``reset(options={"instance": kw,
+    "state": s})`` pins the instance with Taxi-v4's keyword names (``is_rainy``,
+    ``rainy_probability``, ``fickle_passenger``, ``fickle_probability``; a missing key takes
+    ``gym.make("Taxi-v4")``'s value) and the start state. ``info["instance"]`` reports the instance;
     ``info["action_mask"]`` is Taxi-v4's.
-
-    Examples:
-        >>> env = TaxiGymEnv(render_mode="ansi")
-        >>> obs, info = env.reset(seed=0, options={"instance": {"is_rainy": True}})
-        >>> info["instance"]["rainy_probability"], env.observation_space.contains(obs)
-        (0.800000011920929, True)
     """
 
     env_class = TaxiEnv

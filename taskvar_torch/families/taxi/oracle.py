@@ -1,71 +1,28 @@
 """The Taxi family's exact oracle, :class:`TaxiOracle` (paper §3.1-3.3, Definition 1, Algorithm 1).
 
-Taxi-v4 (``families/taxi/dynamics.py``) with a hidden instance ``(q, f)``: rain ``rainy_probability`` q and a
-fickle passenger ``fickle_probability`` f. The oracle has the windy oracle's interface where it
-applies (:mod:`taskvar_torch.oracle`); the design decisions special to Taxi:
+Taxi-v4 with a hidden instance ``(q, f)`` (rain, fickle passenger), with the windy oracle's
+interface where it applies (docs/taxi.md#the-exact-oracle). Taxi's own decisions:
 
-- **Augmented states.** The fickle rule is not Markov in the 500 Taxi states, so every exact
-  model runs on 1000 augmented states ``x = s + 500 k``: ``k = 1`` while the fickle draw is
-  *pending* (no step has yet started with the passenger aboard and moved the taxi), ``k = 0``
-  after. At the first such step the destination is redrawn (uniform over the three others) with
-  probability f and ``k`` drops to 0 either way; an episode starts pending. This is the belief
-  MDP of an agent that knows the instance but not the passenger's coin: Taxi-v4 flips the coin
-  ("armed") at reset, but nothing reveals it before that first move, so both give every policy
-  over the 500 Taxi states the same law of observed trajectories (tested against Gymnasium's
-  ``step``). Transitions are affine in f (the coin is flipped once) and in q (each step's kernel),
-  so the same holds for their mean. ``informed=True`` gives the *armed* augmentation instead
-  (``k = 1`` iff armed and not fired, armed at reset with probability f): the model of an agent
-  that also knows the coin, for :meth:`TaxiOracle.optimal_q` / :meth:`TaxiOracle.optimal_return`.
-  Heads, observations and controllers see only the 500 Taxi states.
-- **Delivered states are absorbing.** A delivery leads to ``passenger == destination``, which
-  nothing else reaches: those 100 states (``is_goal``) absorb with reward 0, as windy's goal
-  cells (Gymnasium's ``P`` keeps them live; the episode has ended there).
-- **Mean MDP over the 500 observed states** (paper §3.1). The instance prior averages the
-  augmented kernel exactly (``E[T_aug] = T_aug(E q, E f)`` for independent q and f; the mean of
-  the points' kernels for a finite set). Projecting onto the observed states needs
-  ``w(s) = P(pending | s)``, and only where pending changes the next step: the 16 states with the
-  passenger aboard on a landmark (pending with the passenger aboard implies the taxi has not moved
-  since the pickup). ``fickle_weights="visits"`` (default) takes ``w`` from the averaging policy's
-  own undiscounted ``horizon``-step occupancy over the training distribution (uniform Taxi-v4
-  starts, quadrature in q, ``E f``), iterated to a fixed point (policy -> occupancy -> ``w`` ->
-  mean MDP -> greedy policy): the fixed point of Q-learning on the greedy policy's own
-  every-visit data (Singh, Jaakkola & Jordan 1994 for aliased states), the closest exact
-  statement of what the averaging head estimates; the head's epsilon-greedy, mixed-age replay and
-  its visit weighting of q (prior weights in q here, as windy's oracle; :mod:`oracle.replay`
-  covers the latter there) keep it from being exactly that. ``fickle_weights="pickup"`` sets
-  ``w = 1`` on those 16 states (an aboard taxi on a landmark has just picked up): policy-free,
-  wrong only where a taxi re-enters a landmark aboard. Options and switching values use the same
-  projected mean MDP.
-- **Initiation sets** (:class:`~taskvar_torch.families.taxi.subtasks.TaxiSubtasks`). mu_bar's argmax and
-  draws (Algorithm 1 lines 4 and 7) and ``V^{mu_bar}`` (line 6, Definition 1) range over the
-  options initiable at s only: ``mu_bar(s, .)`` is the greedy one-hot (or softmax) of ``Q_mu(s, .)``
-  masked to I(s). Where no option is initiable the controller falls back to the averaging
-  action and holds no option; on Taxi that happens only at delivered states (every live state
-  has an initiable ``to_*``), so the fallback never acts in an episode.
-- **Q_hat** (Definition 1): ``max`` over the instance set *and* the hidden fickle status of
-  ``Q^{m, mu_bar}((s, k), o)`` (optimism over everything hidden). Default set: ``q_grid`` values
-  over ``[q_low, q_high]`` (plus the dry ``q = 1`` when some episodes are dry) x the extreme f of
-  the training support (``0`` when some episodes are not fickle, ``f_low``, ``f_high``): values are
-  affine in f, so the max over f's support is at these.
-- **Values and returns** as windy's oracle: values compared with the heads are discounted with
-  ``gamma``; returns are exact ``horizon``-step (200) undiscounted sums by backward induction on
-  (augmented state, running option). ``expected_return`` over a distribution is exact: returns are
-  affine in f (use ``E f``) and polynomials of degree ``< horizon`` in q (Gauss-Legendre with
-  ``ceil(horizon / 2)`` nodes over ``[q_low, q_high]``, plus the dry point).
-- **Per-instance optimum**: discounted optimal values over augmented states
-  (:meth:`TaxiOracle.optimal_q`) and the exact finite-horizon optimal return
-  (:meth:`TaxiOracle.optimal_return`, backward induction: the best history-dependent policy of an
-  agent that knows (q, f), and with ``informed`` the coin).
+- **Augmented states** ``x = s + 500 k``: ``k = 1`` while the fickle redraw is pending (no step has
+  yet started with the passenger aboard and moved the taxi), the belief MDP of an agent that knows
+  the instance but not the passenger's coin (tested against Gymnasium's ``step``); ``informed=True``
+  augments by the coin itself. Heads and controllers see the 500 states.
+- **Delivered states absorb** with reward 0, as windy's goal cells.
+- **Mean MDP over the 500 observed states** (§3.1): the prior averages the augmented kernel exactly;
+  the projection weighs the pending status ``w(s)`` on the 16 states with the passenger aboard on a
+  landmark, by the averaging policy's own occupancy iterated to a fixed point
+  (``fickle_weights="visits"``) or ``w = 1`` (``"pickup"``).
+- **Initiation sets**: mu_bar and ``V^{mu_bar}`` range over the options initiable at s; the
+  averaging fallback acts only at delivered states.
+- **Q_hat** (Definition 1): max over ``q_grid`` x the extreme f of the training support (values are
+  affine in f) and the hidden fickle status.
+- **Returns**: exact ``horizon``-step sums by backward induction; expectations are exact (affine in
+  f, Gauss-Legendre in q).
 
-Layers: the instance models and the per-instance optimum are
-:class:`~taskvar_torch.families.taxi.oracle_models.TaxiModels`, the mean MDP, options, switching
-values and heads :class:`~taskvar_torch.families.taxi.oracle_mean.TaxiMeanMDP`; this module adds
-the controllers as chains (Algorithm 1 with initiation sets) and their exact returns.
-
-Examples:
-    >>> oracle = TaxiOracle()
-    >>> oracle.averaging_policy().shape, oracle.option_q().shape
-    (torch.Size([500]), torch.Size([6, 500, 6]))
+Instance models and the per-instance optimum are
+:class:`~taskvar_torch.families.taxi.oracle_models.TaxiModels`, the mean MDP and heads
+:class:`~taskvar_torch.families.taxi.oracle_mean.TaxiMeanMDP`; this module adds the controllers as
+chains and their exact returns.
 """
 
 from __future__ import annotations
@@ -91,30 +48,22 @@ class TaxiOracle(TaxiMeanMDP):
         gamma: discount of the values compared against the networks.
         horizon: episode length of the returns (Taxi-v4: 200).
         train_instances: the training distribution (name, dict or :class:`TaxiInstances`).
-        end_penalty: navigation options' cost of delivering away from their landmark
-            (:class:`TaxiSubtasks`).
-        q_grid: q values of Q_hat's default instance set: an int (evenly spaced over
-            ``[q_low, q_high]``) or a sequence of values.
-        fickle_weights: ``"visits"`` or ``"pickup"``: how the mean MDP weighs the hidden fickle
-            status (module docstring).
-        mu_temperature: ``None`` for a greedy mu_bar, else the temperature of a softmax mu_bar.
+        end_penalty: navigation options' cost of delivering away from their landmark.
+        q_grid: Q_hat's q values: an int (evenly spaced over ``[q_low, q_high]``) or the values.
+        fickle_weights: ``"visits"`` or ``"pickup"`` (module docstring).
+        mu_temperature: ``None`` for a greedy mu_bar, else a softmax mu_bar's temperature.
         quad_nodes: Gauss-Legendre nodes in q (default ``ceil(horizon / 2)``: exact for returns).
         tol: certified error of the iterative solves.
         device: torch device of the tables.
-        obs_encoding: the observation learnt heads read (``families/taxi/env.py``), used where a
-            controller's heads are tabulated at every state.
+        obs_encoding: the observation learnt heads read, where a controller's heads are tabulated.
     """
 
     # ---- controllers as chains (Algorithm 1 with initiation sets) -------------------------------
 
     def controller_chain(self, controller: Any, **kwargs: Any) -> dict[str, Tensor]:
-        """The controller as a chain on (Taxi state, carried state) with initiation sets honoured.
-
-        :meth:`ControllerChains.controller_chain` (``decision (S, Z, N)``, ``action (S, N)``,
-        ``next_state (N,)``, ``fires (S, Z)``; ``Z = O + 1``) with the oracle's subtasks where the
-        controller has none, and the oracle's ``obs_encoding`` unless given: one more acting
-        entry ``n = O``, the averaging action holding no option (``z' = 0``), where no option is
-        initiable. No hierarchy (Taxi's options are flat).
+        """The controller as a chain on (Taxi state, carried state), initiation sets honoured
+        (:meth:`ControllerChains.controller_chain`, with one more acting entry ``n = O`` for the
+        averaging fallback).
         """
         name = controller if isinstance(controller, str) else controller.name
         if name not in CONTROLLER_NAMES or name == "hierarchy":
@@ -190,9 +139,9 @@ class TaxiOracle(TaxiMeanMDP):
     def _chain_values_by_rain(
         self, q: Tensor, f: Tensor, chain: dict[str, Tensor], count_fires: bool = False
     ) -> Tensor:
-        """:meth:`_chain_values` for many instances at the cost of their distinct rain values:
-        a chain's value is affine in f (the redraw happens at most once an episode, with
-        probability f), so it is solved at f = 0 and f = 1 per distinct q and interpolated."""
+        """:meth:`_chain_values` for many instances: solved at f = 0 and f = 1 per distinct q and
+        interpolated (values are affine in f).
+        """
         uq, inv = torch.unique(q, return_inverse=True)  # (U,), (B,)
         if 2 * uq.numel() >= q.numel():
             return self._chain_values(q, f, chain, count_fires)
@@ -204,11 +153,10 @@ class TaxiOracle(TaxiMeanMDP):
     def controller_return(
         self, controller: Any, q: Any, f: Any, start: Any = None, **kwargs: Any
     ) -> Tensor:
-        """Exact expected ``horizon``-step undiscounted return ``(B, S)`` of a controller (a name
-        in ``averaging``, ``options``, ``interruption`` with the oracle's heads, or a
+        """Exact expected ``horizon``-step return ``(B, S)`` of a controller (a name or a
         :class:`~taskvar_torch.controllers.base.Controller`) in instances ``(q, f)``, from each
-        Taxi start state (``start``: ``None`` all, ``"uniform"`` Taxi-v4's starts, or a state);
-        ``kwargs``: ``heads``, ``subtasks``, ``obs_encoding`` for a named controller."""
+        start (``start``: ``None`` all, ``"uniform"`` Taxi-v4's starts, or a state).
+        """
         qt, ft, scalar = self._instances_arg(q, f)
         chain = self.controller_chain(controller, **kwargs)
         V = self._chain_values_by_rain(qt, ft, chain)[..., 0]  # (B, X)
@@ -268,12 +216,9 @@ class TaxiOracle(TaxiMeanMDP):
         q_nodes: int = 16,
         f_nodes: int = 8,
     ) -> Tensor:
-        """The per-instance optimum's expected return over a distribution, by quadrature of
-        :meth:`optimal_return` over q (:meth:`quadrature`'s nodes) *and* f: unlike a fixed
-        controller's, the optimum is not affine in f (it adapts to it: convex), so f is
-        integrated too (``f_nodes`` Gauss-Legendre nodes over the fickle range, plus f = 0; in q,
-        ``q_nodes``). In q and f the optimum is only piecewise polynomial: an approximation (the
-        training distribution's 6.1364 at 16 x 8 nodes is 6.1364 at 100 x 8)."""
+        """The per-instance optimum's expected return over a distribution, by quadrature over q and
+        f (the optimum is not affine in f); an approximation, as it is only piecewise polynomial.
+        """
         dist = self.train_instances if instances is None else taxi_instances(instances)
         q, f, w = self.quadrature(dist, nodes=q_nodes)
         if dist.points is None:  # replace f = E f by nodes over f's own distribution

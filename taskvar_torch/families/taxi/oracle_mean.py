@@ -1,8 +1,6 @@
 """The mean-MDP values of the Taxi family's exact oracle (paper §3.1-3.3, Definition 1): the mean
-MDP over the 500 observed states (the hidden fickle status projected, ``fickle_weights``) and the
-averaging policy (§3.1), the subtask tables and the options (§3.2), the switching values, mu_bar
-and Q_hat's max-values over the instance set (§3.3), and the tabulated heads: the middle layer of
-:class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`, whose module docstring gives the design.
+MDP, averaging policy, options, switching values, mu_bar, Q_hat and the tabulated heads; the middle
+layer of :class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`.
 """
 
 from __future__ import annotations
@@ -209,9 +207,9 @@ class TaxiMeanMDP(DerivedTables, TaxiModels):
     def _smdp_values(
         self, prob: Tensor, succ_x: bool, mu: Tensor, tol: float | None = None
     ) -> Tensor:
-        """``Q^{m, mu}(x, o) (B, *, O)``: run pi^o from x, then continue with ``mu (S, O)`` where
-        o terminates (iterative evaluation to the certified ``tol``). ``prob`` is over
-        :attr:`succ` (augmented, ``succ_x``) or a projected observed kernel's successors."""
+        """``Q^{m, mu}(x, o) (B, *, O)``: run pi^o from x, then ``mu (S, O)`` where o terminates
+        (iterative, to ``tol``).
+        """
         pol = self.option_policies()  # (O, S)
         if succ_x:
             succ, n = self.succ, self.X
@@ -299,9 +297,9 @@ class TaxiMeanMDP(DerivedTables, TaxiModels):
         return torch.where((q_hat - v).abs() <= 1e-7, v.expand_as(q_hat), q_hat)
 
     def observation_td(self, obs_encoding: str = "onehot") -> TensorDict:
-        """A ``(S,)`` tensordict of every Taxi state: ``cell`` and its ``observation`` in
-        ``obs_encoding`` (``families/taxi/env.py``: onehot or factored), so learnt heads are read at
-        every state."""
+        """A ``(S,)`` tensordict of every Taxi state's ``cell`` and ``observation`` in
+        ``obs_encoding``.
+        """
         cells = torch.arange(self.S, device=self.device)
         obs = torch.as_tensor(observation_table(obs_encoding), device=self.device)
         return TensorDict(

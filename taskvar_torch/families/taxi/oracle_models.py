@@ -1,10 +1,6 @@
-"""The models of the Taxi family's exact oracle (paper §3.1; docs/oracle.md): the augmented
-states ``x = s + 500 k`` (``k = 1`` while the fickle draw is pending), their sparse kernels per
-instance ``(q, f)`` (rain ``rainy_probability`` q, fickle passenger ``fickle_probability`` f), the
-instance distributions (Gauss-Legendre quadrature in q, the instance sets), the sparse solvers and
-the per-instance optimum (discounted optimal values, the exact finite-horizon optimal return and
-per-step regret): the base of :class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`, whose
-module docstring gives the design.
+"""The models of the Taxi family's exact oracle (paper §3.1): augmented states, their sparse kernels
+per instance ``(q, f)``, quadrature, the sparse solvers and the per-instance optimum; the base of
+:class:`~taskvar_torch.families.taxi.oracle.TaxiOracle`, whose module docstring gives the design.
 """
 
 from __future__ import annotations
@@ -141,11 +137,8 @@ class TaxiModels(ControllerChains):
         return qt.contiguous(), ft.contiguous(), scalar
 
     def kernel_probs(self, q: Any, f: Any, informed: bool = False) -> Tensor:
-        """``prob (B, X, A, 12)`` over :attr:`succ` for instances ``(q, f)``.
-
-        Pending rows (``x >= 500``) on a firing transition redraw with probability f (each other
-        destination f/3), else go on unpended; ``informed``: the armed augmentation, whose armed
-        rows redraw with probability 1 (f then enters only the start, :meth:`start_weights`).
+        """``prob (B, X, A, 12)`` over :attr:`succ` for instances ``(q, f)``; pending rows redraw
+        with probability f (``informed``: armed rows with probability 1).
         """
         qt, ft, _ = self._instances_arg(q, f)
         B, S, A = qt.numel(), self.S, self.A
@@ -168,10 +161,8 @@ class TaxiModels(ControllerChains):
         return torch.stack([torch.zeros_like(ft), torch.ones_like(ft)], -1)
 
     def transition(self, q: Any, f: Any, informed: bool = False) -> tuple[Tensor, Tensor, Tensor]:
-        """Exact augmented models ``P (B, X, A, X)``, ``R (B, X, A)``, ``done (B, X, A)`` (float64).
-
-        ``X = 1000`` (module docstring); delivered states absorb with reward 0; ``done`` marks the
-        delivering transitions (the episode ends).
+        """Exact augmented models ``P (B, X, A, X)``, ``R (B, X, A)``, ``done (B, X, A)`` (float64,
+        X = 1000).
         """
         prob = self.kernel_probs(q, f, informed)  # (B, X, A, K)
         B = prob.shape[0]
@@ -185,10 +176,9 @@ class TaxiModels(ControllerChains):
     def quadrature(
         self, instances: Any = None, nodes: int | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """``(q (K,), f (K,), weight (K,))``, exact for returns (module docstring): the points
-        (equal weights), or Gauss-Legendre in q (``nodes``, default ``quad_nodes``) over the rainy
-        range (weight ``rain_share``) plus the dry ``q = 1`` (``1 - rain_share``), each with
-        ``f = E f``."""
+        """``(q (K,), f (K,), weight (K,))``, exact for returns: the points, or Gauss-Legendre in q
+        over the rainy range plus the dry ``q = 1``, each with ``f = E f``.
+        """
         dist = self.train_instances if instances is None else taxi_instances(instances)
         if dist.points is not None:
             pts = self._f(dist.points)  # (K, 2)
@@ -289,10 +279,9 @@ class TaxiModels(ControllerChains):
         return Q[0] if scalar else Q
 
     def optimal_return(self, q: Any, f: Any, start: Any = None, informed: bool = False) -> Tensor:
-        """Exact per-instance optimal ``horizon``-step undiscounted return ``(B, S)`` (backward
-        induction over steps-to-go: the best policy that knows (q, f), and with ``informed`` the
-        coin), from each Taxi state at the episode start (``start`` as in
-        :meth:`controller_return`)."""
+        """Exact per-instance optimal ``horizon``-step return ``(B, S)`` by backward induction, from
+        each start (``start`` as in :meth:`controller_return`).
+        """
         qt, ft, scalar = self._instances_arg(q, f)
         steps = self._optimal_steps(qt, torch.ones_like(ft) if informed else ft)
         _, _, V = deque(steps, maxlen=1)[0]  # the last: horizon steps to go (earlier W dropped)
@@ -300,10 +289,9 @@ class TaxiModels(ControllerChains):
         return out[0] if scalar else out
 
     def _optimal_steps(self, q: Tensor, fr: Tensor) -> Iterator[tuple[int, Tensor, Tensor]]:
-        """Backward induction of the per-instance optimum over steps-to-go: yields ``(togo, W, V)``
-        for ``togo = 1 .. horizon``, ``W (B, X, A)`` the optimal values of each action with
-        ``togo`` steps to go and ``V = W.max(-1)``; ``fr (B,)``: the redraw probability of a
-        pending state (f, or 1 for the informed model)."""
+        """Yields ``(togo, W (B, X, A), V)`` of the per-instance optimum for ``togo = 1 ..
+        horizon``.
+        """
         B = q.numel()
         po = self._outcome_probs(q).permute(0, 2, 1).unsqueeze(2)  # (B, 3, 1, A)
         flat = self._succ3.permute(2, 0, 1).reshape(1, -1).expand(B, -1)  # (B, 3*X*A)
@@ -315,18 +303,12 @@ class TaxiModels(ControllerChains):
             yield togo, W, V
 
     def step_regret(self, q: Any, f: Any, cells: Any, actions: Any, alive: Any = None) -> Tensor:
-        """Instantaneous regret ``(B, T)`` of the actions played in ``B`` episodes, one instance
-        each: ``V*_{H-t}(x_t) - Q*_{H-t}(x_t, a_t)`` at step ``t`` (``H = horizon``; the values of
-        :meth:`optimal_return` with ``H - t`` steps to go), 0 where ``alive`` (default all) is
-        false. ``cells``, ``actions``: ``(B, T)`` Taxi states and actions, ``T <= H``.
+        """Instantaneous regret ``(B, T)`` of the actions played: ``V*_{H-t}(x_t) - Q*_{H-t}(x_t,
+        a_t)``, 0 where not ``alive``; ``cells``, ``actions`` are ``(B, T)``, ``T <= horizon``.
 
-        ``x_t`` is the augmented state (module docstring): pending from the start until the first
-        step that starts with the passenger aboard and moves the taxi, read off the trace itself
-        (``fickle_moves[s_t, s_{t+1}]``), so the values are those of the agent that knows (q, f)
-        but not the passenger's coin: the per-instance optimum every regret is measured against.
-        By the performance-difference identity an episode's sum over steps is, in expectation
-        over rain and the coin, its regret ``optimal_return - return`` (exactly so where the
-        instance is deterministic: ``q = 1``, ``f = 0``; docs/memory.md)."""
+        ``x_t`` is pending until the trace's first fickle move, so the reference knows (q, f) but
+        not the coin; an episode's sum is its regret in expectation (docs/memory.md).
+        """
         qt, ft, _ = self._instances_arg(q, f)
         s, a, live = self._step_trace(qt.numel(), cells, actions, alive)
         B, T = s.shape

@@ -1,50 +1,17 @@
-"""Taxi capabilities (paper §3.2; Dietterich's MAXQ decomposition of Taxi-v4 as flat options).
+"""Taxi capabilities (paper §3.2): Dietterich's MAXQ decomposition of Taxi-v4 as flat options.
 
-Everything is computed from the Taxi-v4 state integer ``cell`` (0..499, ``families/taxi/dynamics.py``'s
-encoding: passenger index 4 = in the taxi) at the root of ``td`` (state s) and under
-``("next", ...)`` (state s'), plus the env reward ``("next", "reward")`` for the options whose
-subtask reward is the environment's. Inputs have any batch shape ``(*B)``; outputs are
-``(*B, 6)`` in the order of :attr:`TaxiSubtasks.names`.
+Computed from the Taxi-v4 state ``cell`` at ``td`` (s) and ``("next", ...)`` (s') and the env
+reward; inputs ``(*B)``, outputs ``(*B, 6)`` in :attr:`TaxiSubtasks.names` order. A state is
+*delivered* when ``passenger == destination``; every option terminates there.
 
-A state is *delivered* when the passenger sits at its destination (``passenger == destination``,
-only ever reached by a delivery, which ends the episode): every option terminates there.
+- ``to_R`` .. ``to_B``: initiable when not delivered and not at the landmark; end at it; -1 a step
+  and ``-end_penalty`` more for a step that delivers away from it.
+- ``pickup``: initiable with the passenger waiting on the taxi's landmark; ends with it aboard; the
+  env reward.
+- ``dropoff``: initiable with the passenger aboard at the destination; ends delivered; the env
+  reward.
 
-===========  =====================================  ==========================  ===================
-option       initiation I_o                         termination beta_o(s')      subtask reward
-===========  =====================================  ==========================  ===================
-``to_R`` ..  not delivered, taxi not at landmark X  taxi at X (or delivered)    -1 per step;
-``to_B``                                                                        ``-end_penalty``
-                                                                                more if the step
-                                                                                delivers away from X
-``pickup``   passenger waiting (not aboard, not     passenger aboard (or        the env reward
-             delivered), taxi on its landmark       delivered)
-``dropoff``  passenger aboard, taxi at the          delivered                   the env reward
-             destination
-===========  =====================================  ==========================  ===================
-
-Initiation sets matter here (unlike windy and Wargus, where every option starts anywhere): the
-controllers pick and draw only among the options initiable at s (Algorithm 1 lines 4 and 7 over
-I_o). In every non-delivered state at least one option is initiable (the taxi stands on at most
-one landmark, so at least three ``to_*`` are), so mu_bar always has a choice.
-
-Episode end: a delivery ends the episode and every option with it (beta = 1 at delivered
-states), as windy's exit options end on the goal side. A navigation option that delivers the
-passenger on its way (its policy may use any of the six actions) ends the episode before reaching
-its landmark; like windy's wrong-exit penalty, ``end_penalty`` (default 100, the discounted cost
-``1 / (1 - gamma)`` of never arriving at gamma = 0.99) charges that, so the option is credited
-with reaching *its* landmark only. Truncation at the horizon is the learner's business.
-
-``hierarchy`` is ``None``: the options are flat. A MAXQ-style Get/Put tree (``Get`` over
-``to_*`` + ``pickup``, ``Put`` over ``to_*`` + ``dropoff``) would need composed options with
-their own heads and robustness rewards; that is the lead's call (not defined here).
-
-Examples:
-    >>> from tensordict import TensorDict
-    >>> from taskvar_torch.families.taxi.dynamics import encode
-    >>> sub = TaxiSubtasks()
-    >>> td = TensorDict({"cell": torch.tensor([encode(0, 0, 0, 1)])}, batch_size=[1])
-    >>> sub.initiation(td).tolist()  # at R with the passenger waiting at R
-    [[False, True, True, True, True, False]]
+The options are flat (``hierarchy`` is ``None``); docs/taxi.md#the-family.
 """
 
 from __future__ import annotations
@@ -77,11 +44,8 @@ def state_parts(cell: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 class TaxiSubtasks(Subtasks):
-    """Navigate to each landmark, pickup, dropoff: MAXQ's subtasks as flat options (module docstring).
-
-    Args:
-        end_penalty: extra subtask cost to a navigation option of a step that delivers the
-            passenger (ending the episode) away from its landmark.
+    """Navigate to each landmark, pickup, dropoff (module docstring); ``end_penalty``: a navigation
+    option's extra cost of delivering away from its landmark.
     """
 
     names = TAXI_OPTION_NAMES
@@ -128,9 +92,8 @@ class TaxiSubtasks(Subtasks):
         return torch.cat([nav, pickup.unsqueeze(-1), delivered.unsqueeze(-1)], -1)
 
     def reward(self, td: TensorDictBase) -> Tensor:
-        """``(*B, 6)`` float32 subtask rewards of ``td -> td["next"]`` (module docstring).
-
-        Reads ``cell``, ``("next", "cell")`` and ``("next", "reward")``.
+        """``(*B, 6)`` float32 subtask rewards of ``td -> td["next"]`` (reads ``cell``, ``("next",
+        "cell")``, ``("next", "reward")``).
         """
         nxt = td.get(keys.NEXT)
         at2, _, _, _, delivered2 = self._parts(nxt)
