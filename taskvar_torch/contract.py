@@ -139,6 +139,10 @@ class Experiment:
         loader: ``loader(path, overrides, quick=...) -> config`` in its module, for a schema
             other than ``Config`` (``Config``: :func:`taskvar_torch.config.load_config`).
         description: one line for ``--help``.
+        config_class: the experiment's own keys, a frozen dataclass read flat under
+            ``experiment.*`` beside the keys every config has (``runs``, ``quick_overrides``), in a
+            config of the family that declares it only (another family's config refuses them as
+            unknown keys); ``None``: no own keys. Checked by the family's ``validate``.
         refusals: why the experiment does not take an option of ``taskvar experiment`` (option
             -> the one-line reason); an option it neither takes nor names here is refused with
             a generic line.
@@ -152,6 +156,7 @@ class Experiment:
     schema: str = "Config"
     loader: str | None = None
     description: str = ""
+    config_class: type | None = None
     refusals: tuple[tuple[str, str], ...] = ()
 
     def load(self) -> ModuleType:
@@ -250,9 +255,10 @@ class Family:
             point "module:Class", keyword arguments)``, registered when the family is (lazily:
             nothing is imported until ``gym.make``); :func:`taskvar_torch.envs.registration
             .register_envs` registers every family's on ``import taskvar_torch``.
-        legacy_env_keys: keys of ``config_class`` that configs of an older version held at
-            ``env.*``; the loader moves them to ``env.<name>.*`` with a deprecation line (and an
-            override ``env.KEY=V`` likewise: :func:`taskvar_torch.config.migration.migrate_overrides`).
+        legacy_env_keys: keys of ``config_class`` that configs of an older version held
+            elsewhere: ``KEY`` at ``env.KEY``, or the dotted path it had (``train.composed_reward``);
+            the loader moves them to ``env.<name>.*`` with a deprecation line (and an override
+            ``env.KEY=V`` likewise: :func:`taskvar_torch.config.migration.migrate_overrides`).
         legacy_section: configs of an older version held ``env.<name>`` whatever their family;
             the loader drops it from another family's config with a deprecation line.
         resumable: a checkpoint's ``env.state_dict()`` continues every episode exactly
@@ -518,23 +524,15 @@ def check_declaration(fam: Family) -> None:
             raise ValueError(f"family {fam.name!r}: {attr} must be callable")
     if not fam.instance_names or not all(isinstance(n, str) for n in fam.instance_names):
         raise ValueError(f"family {fam.name!r}: instance_names must name at least one distribution")
-    if fam.config_class is not None:
-        cls = fam.config_class
-        params = getattr(cls, "__dataclass_params__", None)
-        if params is None or not params.frozen:
-            raise ValueError(
-                f"family {fam.name!r}: config_class must be a frozen dataclass (env.{fam.name}.*)"
-            )
-        try:
-            cls()
-        except Exception as e:
-            raise ValueError(
-                f"family {fam.name!r}: config_class() must build with its defaults: {e}"
-            ) from None
+    _check_keys_class(fam, fam.config_class, "config_class", f"env.{fam.name}.*")
     if fam.experiment is not None and not isinstance(fam.experiment, Experiment):
         raise ValueError(
             f"family {fam.name!r}: experiment must be an Experiment (taskvar_torch.contract), "
             f"got {fam.experiment!r}"
+        )
+    if fam.experiment is not None:
+        _check_keys_class(
+            fam, fam.experiment.config_class, "experiment.config_class", "experiment.*"
         )
     if fam.informed_features is not None and not callable(fam.informed_features):
         raise ValueError(f"family {fam.name!r}: informed_features must be callable")
@@ -564,6 +562,22 @@ def check_declaration(fam: Family) -> None:
     for name, dist in fam.tests.items():
         if not isinstance(dist, TestDistribution):
             raise ValueError(f"family {fam.name!r}: tests[{name!r}] must be a TestDistribution")
+
+
+def _check_keys_class(fam: Family, cls: type | None, attr: str, where: str) -> None:
+    """A family's own keys (``attr``, read at ``where``): ``None`` or a frozen dataclass that
+    builds with its defaults; a one-line ``ValueError`` otherwise."""
+    if cls is None:
+        return
+    params = getattr(cls, "__dataclass_params__", None)
+    if params is None or not params.frozen:
+        raise ValueError(f"family {fam.name!r}: {attr} must be a frozen dataclass ({where})")
+    try:
+        cls()
+    except Exception as e:
+        raise ValueError(
+            f"family {fam.name!r}: {attr}() must build with its defaults: {e}"
+        ) from None
 
 
 def one_of(key: str, value: Any, allowed: tuple[str, ...]) -> None:

@@ -26,9 +26,11 @@ from taskvar_torch.config import (
     save_config_yaml,
 )
 from taskvar_torch.config.loader import config_schema
-from taskvar_torch.families.wargus import WargusConfig
+from taskvar_torch.families.wargus import WargusConfig, WargusSubtasks
+from taskvar_torch.families.wargus.family import Fig4Config, WargusSection
 from taskvar_torch.families.windy import WindyGridEnv, fig2_metrics
 from taskvar_torch.families.windy import fig2 as windy_fig2
+from taskvar_torch.families.windy.config import Fig2Config
 from taskvar_torch.families.windy.family import EXACT_ORACLE_CELLS, windy_env_kwargs, windy_layout
 from taskvar_torch.study.scale import load_scale_config
 from taskvar_torch.study.scale_config import ScaleConfig
@@ -363,6 +365,76 @@ def test_old_windy_spellings_migrate_with_one_deprecation_line(tmp_path):
         assert config_from_dict(taxi, "an old checkpoint") == load_config(CONFIG_DIR / "taxi.yaml")
 
 
+def test_the_experiments_keys_are_their_familys():
+    """Figure 2's and Figure 4's keys are declared by the family that owns the experiment and read
+    at the same paths (``experiment.trials``); another family's config refuses them with the
+    unknown-key line; a config built in code gets its family's defaults (and pickles)."""
+    import pickle
+
+    core = {f.name for f in dataclasses.fields(ExperimentConfig)}
+    assert core == {"runs", "quick_overrides"}
+    assert "composed_reward" not in {f.name for f in dataclasses.fields(TrainConfig)}
+    wargus = load_config(CONFIG_DIR / "wargus.yaml", ["experiment.trials=7"])
+    assert isinstance(wargus.experiment, Fig4Config) and wargus.experiment.trials == 7
+    windy = load_config(WINDY, ["experiment.episodes_per_run=9"])
+    assert isinstance(windy.experiment, Fig2Config) and windy.experiment.episodes_per_run == 9
+    _raises_one_line(
+        ["unknown config key 'experiment.trials'", "runs, quick_overrides, episodes_per_run"],
+        load_config,
+        WINDY,
+        ["experiment.trials=3"],
+    )
+    _raises_one_line(
+        ["unknown config key 'experiment.episodes_per_run'"],
+        load_config,
+        CONFIG_DIR / "taxi.yaml",
+        ["experiment.episodes_per_run=3"],
+    )
+    _raises_one_line(["experiment.trials must be in [1,"], load_config, CONFIG_DIR / "wargus.yaml",
+                     ["experiment.trials=0"])  # fmt: skip
+    plain = Config(family="wargus", experiment=ExperimentConfig(runs=2))
+    assert (plain.experiment.runs, plain.experiment.trials) == (2, 500)
+    assert pickle.loads(pickle.dumps(plain)) == plain
+    assert config_to_dict(plain)["experiment"]["trials"] == 500
+    assert Config().experiment.episodes_per_run == 10_000
+    taxi = apply_overrides(windy, ["family=taxi", "env.instances=train", "eval.test=train"])
+    assert (
+        type(taxi.experiment) is ExperimentConfig and taxi.experiment.runs == windy.experiment.runs
+    )
+
+
+def test_train_composed_reward_migrates_to_env_wargus_with_one_deprecation_line():
+    """``train.composed_reward`` is Wargus's own key now, ``env.wargus.composed_reward``: the old
+    override, and an old config holding it, load with one deprecation line and reach the
+    subtasks; another family's old config drops it (never read), with Figure 4's keys."""
+    from taskvar_torch.contract import family
+
+    new = load_config(CONFIG_DIR / "wargus.yaml", ["env.wargus.composed_reward=sum"])
+    with pytest.warns(FutureWarning, match="use env.wargus.composed_reward=sum") as rec:
+        old = load_config(CONFIG_DIR / "wargus.yaml", ["train.composed_reward=sum"])
+    assert len([w for w in rec if issubclass(w.category, FutureWarning)]) == 1
+    assert old == new and old.env.wargus.composed_reward == "sum"
+    subtasks = family("wargus").subtasks(old, None)
+    assert isinstance(subtasks, WargusSubtasks) and subtasks.composed_reward == "sum"
+    data = config_to_dict(new)
+    del data["env"]["wargus"]["composed_reward"]
+    data["train"]["composed_reward"] = "sum"
+    with pytest.warns(FutureWarning, match="train.composed_reward is now env.wargus"):
+        assert config_from_dict(data, "an old checkpoint") == new
+    _raises_one_line(["env.wargus.composed_reward must be one of ['env', 'sum']"], load_config,
+                     CONFIG_DIR / "wargus.yaml", ["env.wargus.composed_reward=mean"])  # fmt: skip
+    _raises_one_line(["train.composed_reward is a wargus key", "'windy'"], load_config, WINDY,
+                     ["train.composed_reward=sum"])  # fmt: skip
+    windy = config_to_dict(load_config(WINDY))
+    windy["train"]["composed_reward"] = "env"
+    windy["experiment"].update(trials=500, test_episodes_per_trial=5, baselines=[])
+    with pytest.warns(FutureWarning) as rec:
+        assert config_from_dict(windy, "an old checkpoint") == load_config(WINDY)
+    (line,) = [str(w.message) for w in rec if issubclass(w.category, FutureWarning)]
+    assert "wargus keys at train.* (composed_reward) are dropped" in line
+    assert "wargus-fig4 keys at experiment.* (trials, test_episodes_per_trial, baselines)" in line
+
+
 def test_removed_keys_load_with_one_deprecation_line(tmp_path):
     """``train.switching`` (one allowed value, intra) is gone: an old config file, a checkpoint's
     config and an override holding it load without it, each with one FutureWarning; another value
@@ -468,7 +540,10 @@ def test_config_is_frozen_and_validated_on_construction():
 
 @pytest.mark.parametrize(
     "cls",
-    [Config, EnvConfig, WargusConfig, HeadsConfig, TrainConfig, EvalConfig, ExperimentConfig],
+    [
+        *(Config, EnvConfig, WargusConfig, WargusSection, HeadsConfig, TrainConfig, EvalConfig),
+        *(ExperimentConfig, Fig2Config, Fig4Config),
+    ],
 )
 def test_every_field_has_a_help_docstring(cls):
     docs = field_docs(cls)

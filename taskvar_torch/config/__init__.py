@@ -25,7 +25,6 @@ Examples:
 from taskvar_torch.config.choices import (
     ACTIVATIONS,
     COLLECTOR_BACKENDS,
-    COMPOSED_REWARDS,
     HEAD_NETWORKS,
     HIERARCHY_DESCENTS,
     MAX_VALUE_ESTIMATORS,
@@ -65,7 +64,6 @@ from taskvar_torch.io import atomic_write
 __all__ = [
     "ACTIVATIONS",
     "COLLECTOR_BACKENDS",
-    "COMPOSED_REWARDS",
     "FAMILIES",
     "HEAD_NETWORKS",
     "HIERARCHY_DESCENTS",

@@ -117,7 +117,8 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
 
     A nested dataclass field is a header line followed by its own keys; ``cls`` may be any
     config dataclass whose fields all have defaults. For :class:`Config`, every registered
-    family's own keys (``Family.config_class``, under ``env.<name>``) follow.
+    family's own keys follow (``Family.config_class``, under ``env.<name>``; its experiment's,
+    ``Experiment.config_class``, under ``experiment``).
     """
     lines = []
     docs = field_docs(cls)
@@ -137,6 +138,10 @@ def config_help(cls: type = Config, prefix: str = "") -> str:
             if section is not None:
                 lines.append(f"env.{name}: the {name} family's own keys (read when family={name})")
                 lines.append(config_help(section, f"env.{name}."))
+            exp = known[name].experiment
+            if exp is not None and exp.config_class is not None:
+                lines.append(f"experiment: {exp.name}'s own keys (read when family={name})")
+                lines.append(config_help(exp.config_class, "experiment."))
         for name, value in sorted(FAMILIES.entry_points().items()):
             lines.append(f"env.{name}: {unloaded_plugin(name, value)}")
     return "\n".join(lines)
@@ -178,11 +183,15 @@ def families_help() -> str:
     lines = []
     for name, fam in FAMILIES.loaded().items():
         own = [f.name for f in dataclasses.fields(fam.config_class)] if fam.config_class else []
+        exp = fam.experiment.config_class if fam.experiment is not None else None
         parts = [
             f"env.instances {', '.join(fam.instance_names)}",
             f"eval.test {', '.join(fam.tests)}",
             f"own keys env.{name}.{{{', '.join(own)}}}" if own else "no own keys",
         ]
+        if exp is not None:
+            x = ", ".join(f.name for f in dataclasses.fields(exp))
+            parts.append(f"{fam.experiment.name} keys experiment.{{{x}}}")
         about = f"{fam.description}; " if fam.description else ""
         lines.append(f"  {name}: {about}" + "; ".join(parts))
     lines += [f"  {n}: {unloaded_plugin(n, v)}" for n, v in sorted(FAMILIES.entry_points().items())]

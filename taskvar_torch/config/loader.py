@@ -36,8 +36,13 @@ from typing import Any, TypeVar
 from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
-from taskvar_torch.config.migration import migrate_config_data, migrate_overrides
-from taskvar_torch.config.schema import Config, EnvConfig
+from taskvar_torch.config.migration import (
+    experiment_keys,
+    legacy_paths,
+    migrate_config_data,
+    migrate_overrides,
+)
+from taskvar_torch.config.schema import Config, EnvConfig, ExperimentConfig, experiment_class
 from taskvar_torch.contract import FAMILIES, family
 from taskvar_torch.io import atomic_write
 
@@ -52,42 +57,54 @@ _LIST_ITEM = "a list is set whole (e.g. {key}=[...]); its items cannot be set on
 
 def config_schema(family_name: str | None = None) -> type[Config]:
     """The :class:`Config` schema of a config of family ``family_name``: :class:`Config` itself,
-    or, for a family with its own keys (``Family.config_class``, docs/families.md), a subclass
-    whose ``env`` holds them under ``env.<family name>``, loaded as strictly as the rest (a
-    misspelt key is a one-line error naming it).
+    or, for a family with its own keys (docs/families.md), a subclass whose ``env`` holds them
+    under ``env.<family name>`` (``Family.config_class``) and whose ``experiment`` holds its
+    experiment's beside the shared ones (``Experiment.config_class``, flat: ``experiment.trials``;
+    :func:`~taskvar_torch.config.schema.experiment_class`), loaded as strictly as the rest (a
+    misspelt key, or another family's, is a one-line error naming it).
 
-    Only the config's own family adds its section, so a windy config's dict is the same whichever
-    families are installed. The subclass is made once per (family, class) and pickles as its dict.
+    Only the config's own family adds its keys, so a windy config's dict is the same whichever
+    families are installed. The subclass is made once per family and pickles as its dict.
     """
     if family_name is None:  # the schema's default family
         family_name = Config.family
     fam = family(family_name)  # an unknown family is a one-line error naming the known ones
-    if fam.config_class is None or family_name in {f.name for f in fields(EnvConfig)}:
+    section = fam.config_class
+    if section is not None and family_name in {f.name for f in fields(EnvConfig)}:
+        section = None
+    experiment = experiment_class(family_name)
+    if section is None and experiment is ExperimentConfig:
         return Config
-    return _schema_with_section(family_name, fam.config_class)
+    return _schema_with_sections(family_name, section, experiment)
 
 
 @functools.cache
-def _schema_with_section(name: str, section_class: type) -> type[Config]:
+def _schema_with_sections(
+    name: str, section_class: type | None, experiment: type[ExperimentConfig]
+) -> type[Config]:
     """``Config`` whose ``env`` has the field ``name: section_class`` (range checks deferred to
-    the validation, which names ``env.<name>.<field>``, as for ``env.wargus``)."""
-    unchecked = dataclasses.make_dataclass(
-        section_class.__name__,
-        [],
-        bases=(section_class,),
-        frozen=True,
-        namespace={"__post_init__": lambda self: None, "__module__": section_class.__module__},
-    )
-    env_class = dataclasses.make_dataclass(
-        "EnvConfig",
-        [(name, unchecked, field(default_factory=unchecked))],
-        bases=(EnvConfig,),
-        frozen=True,
-        namespace={"__module__": __name__},
-    )
+    the validation, which names ``env.<name>.<field>``, as for ``env.wargus``) and whose
+    ``experiment`` is ``experiment``."""
+    sections = [("experiment", experiment, field(default_factory=experiment))]
+    if section_class is not None:
+        unchecked = dataclasses.make_dataclass(
+            section_class.__name__,
+            [],
+            bases=(section_class,),
+            frozen=True,
+            namespace={"__post_init__": lambda self: None, "__module__": section_class.__module__},
+        )
+        env_class = dataclasses.make_dataclass(
+            "EnvConfig",
+            [(name, unchecked, field(default_factory=unchecked))],
+            bases=(EnvConfig,),
+            frozen=True,
+            namespace={"__module__": __name__},
+        )
+        sections.append(("env", env_class, field(default_factory=env_class)))
     return dataclasses.make_dataclass(
         "Config",
-        [("env", env_class, field(default_factory=env_class))],
+        sections,
         bases=(Config,),
         frozen=True,
         namespace={"__module__": __name__, "__reduce__": _reduce_config},
@@ -313,18 +330,21 @@ def _parse_override(schema: type, item: str) -> DictConfig:
 
 def overrides_for(overrides: Sequence[str], family_name: str) -> list[str]:
     """The ``overrides`` that apply to a config of ``family_name``: another family's own keys
-    (``env.<name>.*``, or their old ``env.*`` spellings, ``Family.legacy_env_keys``) are left out.
-    For overrides meant for configs of several families at once (the scale experiment's)."""
+    (``env.<name>.*``, their old spellings, ``Family.legacy_env_keys``, and its experiment's
+    ``experiment.*``) are left out. For overrides meant for configs of several families at once
+    (the scale experiment's)."""
+    known = FAMILIES.loaded()  # an unused plugin is not imported for this
+    own = experiment_class(family_name)
     out = []
     for item in overrides:
-        part = str(item).partition("=")[0].strip().split(".")
-        if len(part) >= 2 and part[0] == "env":
-            owner = part[1] if part[1] in FAMILIES and len(part) > 2 else None
-            if len(part) == 2:
-                known = FAMILIES.loaded()  # an unused plugin is not imported for this
-                owner = next((n for n, f in known.items() if part[1] in f.legacy_env_keys), None)
-            if owner is not None and owner != family_name:
-                continue
+        key = str(item).partition("=")[0].strip()
+        part = key.split(".")
+        owner = part[1] if len(part) > 2 and part[0] == "env" and part[1] in FAMILIES else None
+        owner = owner or next((n for n, f in known.items() if key in legacy_paths(f)), None)
+        if part[0] == "experiment" and len(part) == 2 and part[1] not in own.__dataclass_fields__:
+            owner = next((n for n, f in known.items() if part[1] in experiment_keys(f)), owner)
+        if owner is not None and owner != family_name:
+            continue
         out.append(item)
     return out
 
@@ -444,11 +464,13 @@ def apply_overrides(cfg: T, overrides: Sequence[str]) -> T:
     if isinstance(cfg, Config):
         schema = config_schema(_family_named(cfg.family, overrides))
     # as plain data: a family-section schema (config_schema) is not the class of a plain Config;
-    # a family=NAME override leaves the old family's section behind
+    # a family=NAME override leaves the old family's section and experiment keys behind
     data = config_to_dict(cfg)
     if isinstance(cfg, Config):
         target = _family_named(cfg.family, overrides)
         data["env"] = {k: v for k, v in data["env"].items() if k not in FAMILIES or k == target}
+        kept = {f.name for f in fields(typing.get_type_hints(schema)["experiment"])}
+        data["experiment"] = {k: v for k, v in data["experiment"].items() if k in kept}
     node = _merge(schema, _structured(schema), OmegaConf.create(data), "config")
     return _to_object(schema, _apply_overrides(schema, node, overrides), "with overrides")
 

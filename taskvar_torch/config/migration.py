@@ -3,15 +3,16 @@
 What an older taskvar_torch wrote still loads: a YAML file's, a checkpoint's or a results folder's
 config (:func:`migrate_config_data`) and ``key.sub=value`` overrides (:func:`migrate_overrides`).
 Removed keys (:data:`REMOVED_KEYS`) are dropped, renamed ones (:data:`RENAMED_KEYS`) spelt as
-they are now, and a family's own keys move from their old spellings at ``env.*`` to its section
-``env.<name>`` as the families declare it (``Family.legacy_env_keys``, ``legacy_section``;
-docs/families.md). :mod:`taskvar_torch.config.loader` runs it on everything it loads.
+they are now, a family's own keys move from their old spellings (``env.*``, ``train.*``) to its
+section ``env.<name>`` as the families declare it (``Family.legacy_env_keys``, ``legacy_section``;
+docs/families.md), and another family's experiment keys are dropped. :mod:`taskvar_torch.config.loader` runs it on everything it loads.
 """
 
 from __future__ import annotations
 
 import warnings
 from collections.abc import Mapping, Sequence
+from dataclasses import fields
 from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
@@ -57,51 +58,108 @@ def _drop_removed(out: dict, source: str) -> list[str]:
     return what
 
 
+def _families(out: dict) -> tuple[Any, list]:
+    """The family of the plain config dict ``out`` and every family whose declaration a
+    migration reads (an installed plugin is imported only for its own configs)."""
+    family = out.get("family", Config.family)
+    known = FAMILIES.loaded()
+    if isinstance(family, str) and family not in known and family in FAMILIES:
+        known[family] = FAMILIES[family]
+    return family, list(known.values())
+
+
 def _move_env_keys(out: dict) -> list[str]:
-    """The families' old env spellings in the plain config dict ``out`` migrated in place
-    (:func:`migrate_config_data`); what changed."""
+    """The families' old spellings of their env keys in the plain config dict ``out`` migrated
+    in place (:func:`migrate_config_data`); what changed."""
     env = out.get("env")
     if not isinstance(env, Mapping):
         return []
-    family = out.get("family", Config.family)
-    known = FAMILIES.loaded()  # an installed plugin is imported only for its own configs
-    if isinstance(family, str) and family not in known and family in FAMILIES:
-        known[family] = FAMILIES[family]
-    families = list(known.values())
+    family, families = _families(out)
     stale = [f.name for f in families if f.legacy_section and f.name in env and f.name != family]
-    moved = {f.name: [k for k in f.legacy_env_keys if k in env] for f in families}
-    moved = {name: keys for name, keys in moved.items() if keys}
+    moved = {f.name: [p for p in legacy_paths(f).items() if _held(out, p[0])] for f in families}
+    moved = {name: paths for name, paths in moved.items() if paths}
     if not stale and not moved:
         return []
-    new_env = dict(env)
+    out["env"] = dict(env)
     what = []
     for name in stale:
-        del new_env[name]
+        del out["env"][name]
         what.append(f"env.{name} is dropped (read only for family {name!r})")
-    for name, keys in moved.items():
-        legacy = {k: new_env.pop(k) for k in keys}
+    for name, paths in moved.items():
+        legacy = {}
+        for old, key in paths:
+            section, old_key = old.split(".")
+            out[section] = dict(out[section])
+            legacy[key] = out[section].pop(old_key)
+        first = paths[0][0]
         if name == family:
-            new_env[name] = {**legacy, **dict(new_env.get(name) or {})}
-            what.append(f"env.{keys[0]} and the other {name} keys are now env.{name}.* (moved)")
-        else:
-            what.append(f"the {name} keys at env.* ({', '.join(keys)}) are dropped")
-    out["env"] = new_env
+            out["env"][name] = {**legacy, **dict(out["env"].get(name) or {})}
+            what.append(
+                f"{first} and the other {name} keys are now env.{name}.* (moved)"
+                if len(paths) > 1
+                else f"{first} is now env.{name}.{paths[0][1]} (moved)"
+            )
+            continue
+        for section in dict.fromkeys(old.split(".")[0] for old, _ in paths):
+            keys = [old.split(".")[1] for old, _ in paths if old.startswith(section + ".")]
+            what.append(f"the {name} keys at {section}.* ({', '.join(keys)}) are dropped")
     return what
+
+
+def _drop_otherexperiment_keys(out: dict) -> list[str]:
+    """Another family's experiment keys (``experiment.trials`` in a windy config: every config
+    held them until the experiments' keys moved into their families) dropped from the plain
+    config dict ``out``; what was dropped."""
+    x = out.get("experiment")
+    if not isinstance(x, Mapping):
+        return []
+    family, families = _families(out)
+    own = next((experiment_keys(f) for f in families if f.name == family), set())
+    what = []
+    for f in families:
+        gone = [k for k in x if k in experiment_keys(f) - own] if f.name != family else []
+        if gone:
+            x = {k: v for k, v in x.items() if k not in gone}
+            what.append(
+                f"the {f.experiment.name} keys at experiment.* ({', '.join(gone)}) are dropped"
+            )
+    out["experiment"] = x
+    return what
+
+
+def experiment_keys(fam: Any) -> set[str]:
+    """The own keys of ``fam``'s experiment (``Experiment.config_class``), read at ``experiment.*``."""
+    cls = fam.experiment.config_class if fam.experiment is not None else None
+    return {f.name for f in fields(cls)} if cls is not None else set()
+
+
+def legacy_paths(fam: Any) -> dict[str, str]:
+    """The old spellings of ``fam``'s env keys (``Family.legacy_env_keys``) as dotted paths ->
+    the key of ``env.<name>`` each is now: ``layout`` was ``env.layout``, a dotted entry
+    (``train.composed_reward``) its own path."""
+    return {(k if "." in k else f"env.{k}"): k.rpartition(".")[2] for k in fam.legacy_env_keys}
+
+
+def _held(out: Mapping, dotted: str) -> bool:
+    """Whether the plain config dict ``out`` holds the two-part key ``dotted``."""
+    section, key = dotted.split(".")
+    return isinstance(out.get(section), Mapping) and key in out[section]
 
 
 def migrate_config_data(data: Any, source: str = "config", warn: bool = True) -> Any:
     """The one migration of old config data (a YAML file's, a checkpoint's or a results folder's
     ``config.yaml``) to the current schema, with one deprecation line (a ``FutureWarning``, unless
     ``warn`` is false) per config it changes: the :data:`REMOVED_KEYS` are dropped; and, as the
-    families declare it (docs/families.md), a family's ``legacy_env_keys`` found at ``env.*`` move
-    to ``env.<name>.*`` in a config of that family and are dropped in another's (never read
-    there); the section ``env.<name>`` of a family with ``legacy_section`` (every config written
-    before the families became packages held ``env.wargus``) is dropped from another family's
-    config. ``data`` is returned unchanged where nothing applies."""
+    families declare it (docs/families.md), a family's ``legacy_env_keys`` found at their old
+    spelling (``env.layout``, ``train.composed_reward``) move to ``env.<name>.*`` in a config of
+    that family and are dropped in another's (never read there); the section ``env.<name>`` of a
+    family with ``legacy_section`` (every config written before the families became packages held
+    ``env.wargus``) and another family's experiment keys (``experiment.trials`` in a windy
+    config) are dropped from another family's config. ``data`` is returned unchanged where nothing applies."""
     if not isinstance(data, (Mapping, DictConfig)):
         return data
     out = OmegaConf.to_container(data) if isinstance(data, DictConfig) else dict(data)
-    what = _drop_removed(out, source) + _move_env_keys(out)
+    what = _drop_removed(out, source) + _move_env_keys(out) + _drop_otherexperiment_keys(out)
     if not what:
         return data
     if warn:
@@ -128,9 +186,9 @@ def migrate_overrides(overrides: Sequence[str], family: str | None = None) -> li
     """``overrides`` with every renamed key (:data:`RENAMED_KEYS`) spelt as it is now and every
     removed one (:data:`REMOVED_KEYS`) left out, each with a deprecation line (a
     ``FutureWarning``); ``baseline.mlp=64+64`` becomes
-    ``heads.hidden=[64,64]``, and a family's ``legacy_env_keys`` at ``env.*`` (``env.layout=X``)
-    their ``env.<name>.*`` spelling in a config of that ``family`` (another family's is a one-line
-    ``ValueError``). A malformed old value is a one-line ``ValueError`` naming it."""
+    ``heads.hidden=[64,64]``, and a family's ``legacy_env_keys`` (``env.layout=X``,
+    ``train.composed_reward=sum``) their ``env.<name>.*`` spelling in a config of that ``family``
+    (another family's is a one-line ``ValueError``). A malformed old value is a one-line ``ValueError`` naming it."""
     out = []
     for item in overrides:
         key, sep, value = str(item).partition("=")
@@ -144,28 +202,27 @@ def migrate_overrides(overrides: Sequence[str], family: str | None = None) -> li
                 stacklevel=3,
             )
             continue
-        part = key.strip().split(".")
-        owner = next(
+        owner, now = next(
             (
-                n
+                (n, legacy_paths(f)[key.strip()])
                 for n, f in FAMILIES.loaded().items()
-                if len(part) == 2 and part[1] in f.legacy_env_keys
+                if key.strip() in legacy_paths(f)
             ),
-            None,
+            (None, None),
         )
-        if sep and part[0] == "env" and owner is not None:
+        if sep and owner is not None:
             if family != owner:
                 raise ValueError(
-                    f"{key.strip()} is a {owner} key (env.{owner}.{part[1]}); this config's family "
+                    f"{key.strip()} is a {owner} key (env.{owner}.{now}); this config's family "
                     f"is {family!r}"
                 )
             warnings.warn(
                 f"{key.strip()} is deprecated: the {owner} family's keys are env.{owner}.*; use "
-                f"env.{owner}.{part[1]}={value}",
+                f"env.{owner}.{now}={value}",
                 FutureWarning,
                 stacklevel=3,
             )
-            out.append(f"env.{owner}.{part[1]}={value}")
+            out.append(f"env.{owner}.{now}={value}")
             continue
         new = RENAMED_KEYS.get(key.strip())
         if not sep or new is None:

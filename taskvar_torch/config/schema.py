@@ -12,10 +12,13 @@ choice checks of :mod:`taskvar_torch.config.validate`; files and overrides are l
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import dataclasses
+import functools
+from dataclasses import dataclass, field, fields
 from typing import ClassVar
 
 from taskvar_torch.config.validate import validate_config
+from taskvar_torch.contract import family
 
 
 @dataclass(frozen=True)
@@ -157,9 +160,6 @@ class TrainConfig:
     """Hierarchy controller (any family with a composition hierarchy): metric of the descent to
     a component, raw (argmax R, the paper) or normalised ((R - tau) / scale per component, a
     common scale)."""
-    composed_reward: str = "env"
-    """Subtask reward of the composed option TG+FE (Wargus): env (the environment reward: it is
-    the full task, paper §3.4.2) or sum (TG's plus FE's subtask rewards)."""
     max_grad_norm: float | None = 10.0
     """Gradient-norm clipping; null disables it."""
     seeds: int = 1
@@ -279,23 +279,47 @@ class EvalConfig:
 
 @dataclass(frozen=True)
 class ExperimentConfig:
-    """The paper's experiments: windy Figure 2, Wargus Figure 4."""
+    """The keys every config's ``experiment`` holds; the figure experiment of the config's family
+    adds its own beside them (``Experiment.config_class``: windy Figure 2's, Wargus Figure 4's),
+    read flat under ``experiment.*`` (:func:`experiment_class`)."""
 
     runs: int = 5
     """Independent repetitions (windy: test runs; Wargus: repetitions)."""
-    episodes_per_run: int = 10_000
-    """Windy Figure 2: test episodes per run."""
-    trials: int = 500
-    """Wargus Figure 4: trials per repetition."""
-    learning_episodes_per_trial: int = 30
-    """Wargus Figure 4: learning episodes per trial."""
-    test_episodes_per_trial: int = 5
-    """Wargus Figure 4: nominal test episodes per trial (fixed seeds, no learning)."""
-    baselines: tuple[str, ...] = ()
-    """Wargus Figure 4: baseline agents run through the same protocol beside the paper's methods,
-    each a curve of its own (``recurrent``: docs/wargus-fig4.md#memory); default none."""
     quick_overrides: tuple[str, ...] = ()
     """key.sub=value overrides applied by load_config(..., quick=True) (smoke tests, notebooks)."""
+
+
+def experiment_class(family_name: str) -> type[ExperimentConfig]:
+    """The ``experiment`` section of a config of family ``family_name``: :class:`ExperimentConfig`,
+    or, where the family's experiment declares its own keys (``Experiment.config_class``), its
+    subclass with them too (``experiment.trials``), made once per class. Range checks of the own
+    keys run in the config's validation, which names ``experiment.<key>``."""
+    fam = family(family_name)  # an unknown family is a one-line error naming the known ones
+    own = fam.experiment.config_class if fam.experiment is not None else None
+    return ExperimentConfig if own is None else _with_own_keys(own)
+
+
+@functools.cache
+def _with_own_keys(own: type) -> type[ExperimentConfig]:
+    shared = {f.name for f in fields(ExperimentConfig)} & {f.name for f in fields(own)}
+    if shared:
+        raise ValueError(f"{own.__name__} redeclares the shared experiment keys {sorted(shared)}")
+    return dataclasses.make_dataclass(
+        own.__name__,
+        [],
+        bases=(own, ExperimentConfig),
+        frozen=True,
+        namespace={
+            "__module__": __name__,
+            "__post_init__": lambda self: None,  # checked by validate_config, naming the key
+            "__reduce__": lambda self: (_experiment_of, (own, dataclasses.asdict(self))),
+        },
+    )
+
+
+def _experiment_of(own: type, values: dict) -> ExperimentConfig:
+    """Unpickle an experiment section with own keys (its class is made at run time)."""
+    return _with_own_keys(own)(**values)
 
 
 @dataclass(frozen=True)
@@ -327,4 +351,13 @@ class Config:
     """The recurrent baseline's own settings (the rest are the heads' and train's)."""
 
     def __post_init__(self):
+        """Give ``experiment`` its family's own keys where it was built without them
+        (``Config(family="wargus")``, ``dataclasses.replace(cfg, family=...)``: the defaults, the
+        shared keys kept), then run the range and choice checks."""
+        section = experiment_class(self.family)
+        if type(self.experiment) is not section:
+            kept = {f.name: getattr(self.experiment, f.name) for f in fields(self.experiment)}
+            own = {f.name for f in fields(section)}
+            kept = {k: v for k, v in kept.items() if k in own}
+            object.__setattr__(self, "experiment", section(**kept))
         validate_config(self)

@@ -3,8 +3,9 @@
 
 :func:`validate_config` runs in ``Config.__post_init__``, so every way of building a config (YAML,
 overrides, a checkpoint's dict, ``dataclasses.replace``) is checked. Each error is one line naming
-the dotted key and what is allowed there. The family's own ``env`` keys are checked by the family
-registry (``Family.validate``, taskvar_torch/families/); the other family's keys are never read.
+the dotted key and what is allowed there. The family's own keys (``env.<family>.*``, its
+experiment's ``experiment.*``) are checked by their classes and the family's ``validate``
+(taskvar_torch/families/); another family's keys are never read.
 """
 
 from __future__ import annotations
@@ -19,8 +20,6 @@ from taskvar_torch import rng
 from taskvar_torch.config.choices import (
     ACTIVATIONS,
     COLLECTOR_BACKENDS,
-    COMPOSED_REWARDS,
-    FIG4_BASELINES,
     HEAD_NETWORKS,
     HIERARCHY_DESCENTS,
     LOGGERS,
@@ -131,16 +130,20 @@ def validate_config(cfg: Config) -> None:
     _check_heads(cfg, fam)
     _check_train(cfg, fam)
     _check_collector(cfg)
-    _check_eval_and_experiment(cfg)
+    _check_eval_and_experiment(cfg, fam)
     _check_baseline(cfg)
 
 
 def _check_family_section(cfg: Config, fam: Family) -> None:
     """``env.<family>.*``: the family's own keys, range-checked by its ``config_class``."""
-    section = fam.env_config(cfg)
-    if section is None:
+    _check_own_keys(f"env.{fam.name}", fam.config_class, fam.env_config(cfg))
+
+
+def _check_own_keys(where: str, cls: type | None, section: Any) -> None:
+    """A family's own keys (``env.<family>``, or its experiment's under ``experiment``) checked
+    by rebuilding their class ``cls`` from ``section``; an error names ``where.<field>``."""
+    if cls is None or section is None:
         return
-    cls = fam.config_class
     values = {f.name: getattr(section, f.name) for f in dataclasses.fields(cls)}
     try:
         cls(**values)
@@ -148,7 +151,7 @@ def _check_family_section(cfg: Config, fam: Family) -> None:
         msg = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         first = msg.split(" ", 1)[0].rstrip(":")
         sep = "." if first in values else ": "
-        raise ValueError(f"env.{fam.name}{sep}{msg}") from None
+        raise ValueError(f"{where}{sep}{msg}") from None
 
 
 def _check_heads(cfg: Config, fam: Family) -> None:
@@ -216,7 +219,6 @@ def _check_train(cfg: Config, fam: Family) -> None:
         )
     _one_of("train.robustness_until", t.robustness_until, ROBUSTNESS_UNTIL)
     _one_of("train.hierarchy_descent", t.hierarchy_descent, HIERARCHY_DESCENTS)
-    _one_of("train.composed_reward", t.composed_reward, COMPOSED_REWARDS)
     _within("train.lr", t.lr, 0.0, MAX_REAL, open_low=True)
     if t.lr_end is not None and not (math.isfinite(t.lr_end) and 0 < t.lr_end <= t.lr):
         raise ValueError(f"train.lr_end must be in (0, train.lr={t.lr}] or null, got {t.lr_end}")
@@ -293,19 +295,12 @@ def _check_collector(cfg: Config) -> None:
         )
 
 
-def _check_eval_and_experiment(cfg: Config) -> None:
-    """``eval.*`` and ``experiment.*``: the method and positive episode counts."""
+def _check_eval_and_experiment(cfg: Config, fam: Family) -> None:
+    """``eval.*``: the method and positive episode counts; ``experiment.*``: the family's
+    experiment's own keys, range-checked by its ``config_class`` (``experiment.runs`` is checked
+    first, with the seeds)."""
     _one_of("eval.method", cfg.eval.method, METHODS)
     _at_least("eval.episodes", cfg.eval.episodes, 1)
     _at_least("eval.batch_size", cfg.eval.batch_size, 1)
-
-    x = cfg.experiment
-    for name in ("episodes_per_run", "trials", "learning_episodes_per_trial"):
-        _at_least(f"experiment.{name}", getattr(x, name), 1)
-    _at_least("experiment.test_episodes_per_trial", x.test_episodes_per_trial, 1)
-    bad = [b for b in x.baselines if b not in FIG4_BASELINES]
-    if bad or len(set(x.baselines)) != len(x.baselines):
-        raise ValueError(
-            f"experiment.baselines must be distinct names among {list(FIG4_BASELINES)}, got "
-            f"{list(x.baselines)}"
-        )
+    if fam.experiment is not None:
+        _check_own_keys("experiment", fam.experiment.config_class, cfg.experiment)

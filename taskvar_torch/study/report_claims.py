@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from taskvar_torch.config.choices import FIG4_BASELINES
 from taskvar_torch.contract import FAMILIES
 from taskvar_torch.experiments.curves import trials_to_fraction_of_max
 from taskvar_torch.study import aggregate
@@ -225,7 +224,11 @@ def _pair(ci: Sequence[float]) -> str:
 
 def _fig4(g: Group, reps: int) -> tuple[list[Claim], str, dict[str, Any]]:
     held = [_held(r) for r in g.results]
-    extra = [m for m in FIG4_BASELINES if all(m in h["methods"] for h in held)]
+    extra = [  # experiment.baselines' curves, beside the paper's methods in every folder
+        m
+        for m in held[0]["methods"]
+        if m not in PAPER_METHODS and all(m in h["methods"] for h in held)
+    ]
     curves = {
         m: np.concatenate([_curves(r, m) for r in g.results]) for m in (*PAPER_METHODS, *extra)
     }  # (R, T) items per held-out test episode; experiment.baselines' curves in the evidence

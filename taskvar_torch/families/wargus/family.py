@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -27,15 +28,68 @@ from taskvar_torch.contract import (
 from taskvar_torch.families.wargus import dynamics as wargus
 from taskvar_torch.families.wargus.dynamics import WargusConfig, WargusInstances, wargus_instances
 from taskvar_torch.families.wargus.env import WargusEnv
-from taskvar_torch.families.wargus.subtasks import WargusSubtasks
+from taskvar_torch.families.wargus.subtasks import COMPOSED_REWARDS, WargusSubtasks
 
 if TYPE_CHECKING:
     from taskvar_torch.config import Config
 
 
-def section(cfg: Config) -> WargusConfig:
+MAX_COUNT = 2**31 - 1
+"""Largest count of Figure 4's keys (the config's counts' bound, config/validate.py)."""
+FIG4_BASELINES = ("recurrent",)
+"""The baselines ``experiment.baselines`` may name (families/wargus/fig4_recurrent.py)."""
+
+
+@dataclass(frozen=True)
+class WargusSection(WargusConfig):
+    """The Wargus family's own env keys, ``env.wargus.*``: the dynamics' shape constants
+    (:class:`WargusConfig`, what the env is built from) and the composed option's reward."""
+
+    composed_reward: str = "env"
+    """Subtask reward of the composed option TG+FE: env (the environment reward: it is the full
+    task, paper §3.4.2) or sum (TG's plus FE's subtask rewards)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        one_of("composed_reward", self.composed_reward, COMPOSED_REWARDS)
+
+
+@dataclass(frozen=True)
+class Fig4Config:
+    """Figure 4's own keys, read flat under ``experiment.*`` in a Wargus config beside the shared
+    ``experiment.runs`` (the repetitions) and ``experiment.quick_overrides``."""
+
+    trials: int = 500
+    """Wargus Figure 4: trials per repetition."""
+    learning_episodes_per_trial: int = 30
+    """Wargus Figure 4: learning episodes per trial."""
+    test_episodes_per_trial: int = 5
+    """Wargus Figure 4: nominal test episodes per trial (fixed seeds, no learning)."""
+    baselines: tuple[str, ...] = ()
+    """Wargus Figure 4: baseline agents run through the same protocol beside the paper's methods,
+    each a curve of its own (``recurrent``: docs/wargus-fig4.md#memory); default none."""
+
+    def __post_init__(self) -> None:
+        for name in ("trials", "learning_episodes_per_trial", "test_episodes_per_trial"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_COUNT:
+                raise ValueError(f"{name} must be in [1, {MAX_COUNT}], got {v}")
+        b = list(self.baselines)
+        if any(x not in FIG4_BASELINES for x in b) or len(set(b)) != len(b):
+            raise ValueError(
+                f"baselines must be distinct names among {list(FIG4_BASELINES)}, got {b}"
+            )
+
+
+def own_keys(cfg: Config) -> WargusSection:
     """The config's Wargus keys (``env.wargus``; defaults where it was built without them)."""
-    return getattr(cfg.env, "wargus", None) or WargusConfig()
+    return getattr(cfg.env, "wargus", None) or WargusSection()
+
+
+def section(cfg: Config) -> WargusConfig:
+    """The dynamics' constants of the config's Wargus keys (what the env is built from)."""
+    own = own_keys(cfg)
+    return WargusConfig(**{f.name: getattr(own, f.name) for f in dataclasses.fields(WargusConfig)})
 
 
 def _wargus_env_kwargs(cfg: Config) -> dict[str, Any]:
@@ -147,6 +201,7 @@ FIG4 = Experiment(
     "taskvar_torch.families.wargus.fig4",
     run="wargus_fig4",
     description="lifelong learning curves of the four methods on Wargus (paper Figure 4)",
+    config_class=Fig4Config,
     refusals=(
         (
             "checkpoint",
@@ -177,11 +232,12 @@ def family() -> Family:
         experiment=FIG4,
         env_kwargs=_wargus_env_kwargs,
         env_class=WargusEnv,
-        subtasks=lambda cfg, env: WargusSubtasks(composed_reward=cfg.train.composed_reward),
+        subtasks=lambda cfg, env: WargusSubtasks(composed_reward=own_keys(cfg).composed_reward),
         instance_names=WargusInstances.NAMES,
         validate=_validate_wargus,
-        config_class=WargusConfig,
+        config_class=WargusSection,
         legacy_section=True,  # every config held env.wargus until the families became packages
+        legacy_env_keys=("train.composed_reward",),  # at train.* until issue 57
         grid_side=lambda cfg: int(section(cfg).size),
         cells=lambda cfg: int(section(cfg).size) ** 2,
         observation=lambda cfg: "wargus",

@@ -1,4 +1,5 @@
-"""The windy family's own config keys, ``env.windy.*`` (docs/windy-fig2.md, docs/scale.md)."""
+"""The windy family's own config keys: ``env.windy.*`` (docs/windy-fig2.md, docs/scale.md) and
+its Figure 2 experiment's, ``experiment.*`` (:class:`Fig2Config`)."""
 
 from __future__ import annotations
 
@@ -9,6 +10,8 @@ from taskvar_torch import rng
 
 MAX_HORIZON = rng.RESET_COUNTER - 1
 """Largest ``env.windy.horizon``: step ``t`` draws from counters below ``rng.RESET_COUNTER``."""
+MAX_COUNT = 2**31 - 1
+"""Largest ``experiment.episodes_per_run`` (the config's counts' bound, config/validate.py)."""
 
 
 @dataclass(frozen=True)
@@ -47,6 +50,20 @@ class WindyConfig:
             raise ValueError(f"patch_radius must be in [0, 4096], got {self.patch_radius}")
 
 
+@dataclass(frozen=True)
+class Fig2Config:
+    """Figure 2's own keys, read flat under ``experiment.*`` in a windy config beside the shared
+    ``experiment.runs`` (the test runs) and ``experiment.quick_overrides``."""
+
+    episodes_per_run: int = 10_000
+    """Windy Figure 2: test episodes per run."""
+
+    def __post_init__(self) -> None:
+        v = self.episodes_per_run
+        if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= MAX_COUNT:
+            raise ValueError(f"episodes_per_run must be in [1, {MAX_COUNT}], got {v}")
+
+
 KEYS = tuple(WindyConfig.__dataclass_fields__)
 """The windy keys, which configs written before ``env.windy`` held at ``env.*``."""
 
@@ -56,4 +73,4 @@ def section(cfg: Any) -> WindyConfig:
     return getattr(cfg.env, "windy", None) or WindyConfig()
 
 
-__all__ = ["KEYS", "MAX_HORIZON", "WindyConfig", "section"]
+__all__ = ["KEYS", "MAX_HORIZON", "Fig2Config", "WindyConfig", "section"]

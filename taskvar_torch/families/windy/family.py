@@ -26,7 +26,7 @@ from taskvar_torch.contract import (
 )
 from taskvar_torch.families.windy import dynamics as windy
 from taskvar_torch.families.windy.config import KEYS as LEGACY_KEYS
-from taskvar_torch.families.windy.config import WindyConfig, section
+from taskvar_torch.families.windy.config import Fig2Config, WindyConfig, section
 from taskvar_torch.families.windy.env import OBS_ENCODINGS, WindyGridEnv
 from taskvar_torch.families.windy.env import observation_size as windy_observation_size
 from taskvar_torch.families.windy.instances import WindyInstances, windy_instances
@@ -353,6 +353,7 @@ FIG2 = Experiment(
     "taskvar_torch.families.windy.fig2",
     run="windy_fig2",
     description="paired rollouts of interruption vs averaging on windy grids (paper Figure 2)",
+    config_class=Fig2Config,
 )
 """Windy's figure experiment (paper Figure 2, docs/windy-fig2.md)."""
 
