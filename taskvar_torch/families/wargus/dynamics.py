@@ -57,7 +57,7 @@ new one appears out of sight). Both are 0 / False after a reset.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, fields
+from dataclasses import dataclass, fields
 from typing import Any, NamedTuple
 
 import torch
@@ -125,6 +125,9 @@ _R_PATROL = rng.RESET_COUNTER + 128  # + k * PATROL_START_TRIES + try
 _R_PICK = rng.RESET_COUNTER + 4096  # uniform choice among fixed seeds (on the env episode key)
 _INSTANCE_SALT = 0x5851F42D
 
+OPTION_KEYS = ("composed_reward",)
+"""Keys of the family's ``env.wargus`` section read by the options, not the dynamics
+(``families/wargus/family.py`` ``WargusSection``)."""
 NOMINAL_SEEDS = (0, 1, 2, 3, 4)
 """The paper's "5 nominal test episodes" with fixed parameters (paper §3.5.1, Wargus Figure 4)."""
 
@@ -200,13 +203,14 @@ class WargusConfig:
     def from_any(cls, config: WargusConfig | dict | None = None, **overrides: Any) -> WargusConfig:
         """A config from a config, a dict of fields or ``None``, with non-``None`` overrides.
 
-        Unknown field names raise ``ValueError`` naming them.
+        Unknown field names raise ``ValueError`` naming them; the family's keys the options read
+        (:data:`OPTION_KEYS`) are left out, so a config's whole ``env.wargus`` section builds it.
         """
         allowed = {f.name for f in fields(cls)}
         if config is None:
             base: dict[str, Any] = {}
         elif isinstance(config, WargusConfig):
-            base = asdict(config)
+            base = {name: getattr(config, name) for name in allowed}
         elif isinstance(config, dict):
             base = dict(config)
         else:
@@ -214,6 +218,7 @@ class WargusConfig:
                 f"config must be a WargusConfig, a dict or None, got {type(config).__name__}"
             )
         base.update({k: v for k, v in overrides.items() if v is not None})
+        base = {k: v for k, v in base.items() if k not in OPTION_KEYS}
         unknown = sorted(set(base) - allowed)
         if unknown:
             raise ValueError(

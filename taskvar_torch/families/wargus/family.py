@@ -88,8 +88,7 @@ def own_keys(cfg: Config) -> WargusSection:
 
 def section(cfg: Config) -> WargusConfig:
     """The dynamics' constants of the config's Wargus keys (what the env is built from)."""
-    own = own_keys(cfg)
-    return WargusConfig(**{f.name: getattr(own, f.name) for f in dataclasses.fields(WargusConfig)})
+    return WargusConfig.from_any(own_keys(cfg))
 
 
 def _wargus_env_kwargs(cfg: Config) -> dict[str, Any]:
