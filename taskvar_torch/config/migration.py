@@ -106,7 +106,7 @@ def _move_env_keys(out: dict) -> list[str]:
     return what
 
 
-def _drop_otherexperiment_keys(out: dict) -> list[str]:
+def _drop_other_experiment_keys(out: dict) -> list[str]:
     """Another family's experiment keys (``experiment.trials`` in a windy config: every config
     held them until the experiments' keys moved into their families) dropped from the plain
     config dict ``out``; what was dropped."""
@@ -159,7 +159,7 @@ def migrate_config_data(data: Any, source: str = "config", warn: bool = True) ->
     if not isinstance(data, (Mapping, DictConfig)):
         return data
     out = OmegaConf.to_container(data) if isinstance(data, DictConfig) else dict(data)
-    what = _drop_removed(out, source) + _move_env_keys(out) + _drop_otherexperiment_keys(out)
+    what = _drop_removed(out, source) + _move_env_keys(out) + _drop_other_experiment_keys(out)
     if not what:
         return data
     if warn:
