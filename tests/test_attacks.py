@@ -747,6 +747,7 @@ def test_overwrite_leaves_no_file_of_the_earlier_results(run_dir, tmp_path, caps
     assert [p.name for p in tmp_path.iterdir()] == ["E"]
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_overwrite_with_a_symlinked_logs_folder_removes_the_link_only(run_dir, tmp_path, capsys):
     """``--overwrite`` with ``logs`` a symlink deleted ``final.pt``, then stopped."""
     elsewhere = tmp_path / "elsewhere"

@@ -314,6 +314,7 @@ def test_sweep_ray_options_that_do_not_fit_are_one_line_errors(options, needle, 
 # taskvar eval --batch-size
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_eval_batch_size_does_not_change_the_paired_episodes(bundle, tmp_path, capsys):
     """``eval --batch-size N`` plays the same paired episodes in batches of N: the metrics and
     every episode's row equal those of one batch."""

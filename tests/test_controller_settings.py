@@ -105,6 +105,7 @@ def test_settings_reach_mu_bar_and_the_experiment_split():
         _check_checkpoint_overrides(["train.lr=0.1"])
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_load_heads_and_the_experiment_build_mu_bar_from_the_settings(tmp_path):
     cfg = load_config("configs/windy.yaml", TINY[:1] + TINY[3:])
     train(cfg, tmp_path / "run", progress=False)

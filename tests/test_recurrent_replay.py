@@ -51,10 +51,15 @@ def _filled_learner(config: str, batches: int, overrides=()):
     "config,batches,overrides",
     [
         ("configs/taxi.yaml", 30, []),
-        ("configs/windy.yaml", 40, []),
+        pytest.param("configs/windy.yaml", 40, [], marks=pytest.mark.slow),  # ~3 s: make test
         ("configs/wargus.yaml", 4, []),
         # one step per sub-env a batch, as the scale experiment's cells collect ((N, 1) batches)
-        ("configs/windy.yaml", 400, ["env.num_envs=16", "train.frames_per_batch=16"]),
+        pytest.param(
+            "configs/windy.yaml",
+            400,
+            ["env.num_envs=16", "train.frames_per_batch=16"],
+            marks=pytest.mark.slow,
+        ),
     ],
 )
 def test_sampled_slices_are_one_sub_env_trajectories(config, batches, overrides):
@@ -99,7 +104,10 @@ def test_burn_in_mask_skips_the_warm_up_unless_the_slice_starts_an_episode():
     assert bool(burn_in_mask(td, 0).all())
 
 
-@pytest.mark.parametrize("config,batches", [("configs/windy.yaml", 40), ("configs/taxi.yaml", 30)])
+@pytest.mark.parametrize(
+    "config,batches",
+    [pytest.param("configs/windy.yaml", 40, marks=pytest.mark.slow), ("configs/taxi.yaml", 30)],
+)
 def test_both_passes_start_a_slice_from_the_stored_state(config, batches):
     """With the weights of collection, the next-state pass at row j of a slice gives the online
     pass's Q-values at row j + 1: both start from the stored GRU state (a next-state pass started

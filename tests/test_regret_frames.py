@@ -64,6 +64,7 @@ def evaluated(run, tmp_path_factory):
     return m, out
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_the_final_point_is_taskvar_evals_exact_regret(run, evaluated):
     """The final heads' point is what ``taskvar eval`` reports for ``final.pt`` on the same
     episodes, method by method; the snapshots come first, in frame order."""

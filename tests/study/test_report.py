@@ -179,6 +179,7 @@ def test_a_rerun_replaces_its_own_files_only(tmp_path, capsys):
     assert png.read_bytes() == b"someone's picture"
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_figures_are_the_per_seed_numbers(tmp_path):
     levels = {"averaging": 1.0, "options": 1.2, "interruption": 1.2, "hierarchy": 1.6}
     folder = fig4_folder(tmp_path / "f", range(6), levels, trials=20)
@@ -192,6 +193,7 @@ def test_figures_are_the_per_seed_numbers(tmp_path):
     assert "interruption vs options: level" in order.reason or "tied" in order.reason
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_fig4_baseline_curve_joins_the_evidence(tmp_path):
     """A recurrent curve (``experiment.baselines``) is listed beside the paper's methods and in
     the probability of improvement; the verdicts still rest on the paper's methods alone."""

@@ -8,6 +8,7 @@ import json
 import subprocess
 from pathlib import Path
 
+import pytest
 from test_report import README, _block, _run, eval_folder, fig2_folder  # tests/study/
 
 from taskvar_torch.experiments.bundle_eval import eval_bundle
@@ -32,6 +33,7 @@ def _folders(tmp_path: Path, fig2: str | None, ev: str | None) -> list[str]:
     return [str(tmp_path / "fig2"), str(tmp_path / "eval")]
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_results_of_two_commits_are_refused_naming_both(tmp_path, capsys):
     dirs = _folders(tmp_path, A, B)
     out = tmp_path / "docs" / "claims.md"

@@ -196,6 +196,7 @@ def cartpole_hierarchy():
     )  # fmt: skip
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_a_declared_hierarchy_makes_eval_all_play_the_hierarchy(registered, tmp_path):
     from taskvar_torch.cli import main
 

@@ -436,6 +436,7 @@ def _fingerprint(folder: Path) -> dict[str, str]:
     }
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_nothing_written_is_lost(registered, tmp_path, capsys):
     """A failure after a checkpoint leaves it loadable; an ``eval --out`` into a folder of
     results whose env then fails leaves the folder byte for byte as it was."""

@@ -51,7 +51,9 @@ def test_the_walk_through_shows_the_example_as_it_is_in_under_100_lines():
     assert lines < 100 and f"DoorKey in {lines} lines" in doc
 
 
-@pytest.mark.parametrize("name", list(EXAMPLES))
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) if n == "doorkey" else n for n in EXAMPLES]
+)  # doorkey ~5 s: make test only
 def test_train_eval_shift_and_a_refused_resume_in_process(name, tmp_path, capsys):
     sys.path.insert(0, str(ROOT / "examples" / EXAMPLES[name][0]))
     module = __import__("taskvar_frozenlake" if name == "frozenlake" else "taskvar_doorkey")

@@ -132,6 +132,7 @@ def test_expected_return_over_points_is_the_mean_of_the_instances(oracle):
     assert float(got) == pytest.approx(float(want.mean()), abs=1e-12)
 
 
+@pytest.mark.slow  # ~2-3.5 s on a 2-core CPU: make test only
 def test_no_option_starts_outside_its_initiation_set_in_the_chains(oracle):
     init = oracle.initiation_table  # (S, O)
     beta = oracle.termination_table > 0  # (S, O)
