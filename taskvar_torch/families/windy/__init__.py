@@ -1,12 +1,5 @@
-"""The windy family (paper §3.3.1): its dynamics, env, Gymnasium wrapper, instances, options,
-exact oracles, rendering and the Figure 2 experiment, in one package (docs/families.md).
-
-Modules: :mod:`.dynamics` (pure batched transitions, layouts), :mod:`.env` (the TorchRL env),
-:mod:`.gym_env` (the Gymnasium env), :mod:`.instances`, :mod:`.subtasks` (exit options),
-:mod:`.oracle` (:class:`WindyOracle`, exact tables), :mod:`.sparse_oracle` (any grid size),
-:mod:`.replay_reference`, :mod:`.learnt` and :mod:`.head_report` (learnt heads measured exactly),
-:mod:`.render`, :mod:`.oracle_table`, :mod:`.fig2` with :mod:`.fig2_metrics` and
-:mod:`.fig2_report` (the paper's Figure 2), and :mod:`.family` (the declaration).
+"""The windy family (paper §3.3.1): dynamics, env, instances, options, exact oracles and the
+Figure 2 experiment (docs/windy-fig2.md, docs/oracle.md); :mod:`.family` is the declaration.
 """
 
 from taskvar_torch._lazy import lazy_names

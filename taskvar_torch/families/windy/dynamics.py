@@ -1,16 +1,8 @@
 """Windy gridworld family (paper §3.3.1): layouts, pure batched dynamics, exact model.
 
-Cells are flat indices ``row * width + col`` (row 0 is north). Everything a step needs is
-precomputed into small lookup tables (:class:`WindyModel`):
-
-    moved = move[cell, action]                    # the agent's move (walls and edges block)
-    nxt   = push[moved, direction] if gust else moved   # one gust if it ends in a windy cell
-
-``push[c, d] == c`` for non-windy cells, so the wind needs no separate mask. Both are folded into
-one table ``next[cell, action, direction, gust]``, so a batched step is one gather. The randomness
-is an input: ``gust`` is the step's Bernoulli(p) draw, made by the caller from keyed random numbers
-(``rng.py``) or any generator. Instance parameters ``(p, direction)`` are batched tensors; nothing
-else varies across the family.
+Cells are flat indices ``row * width + col`` (row 0 is north). A step is one gather in
+``next[cell, action, direction, gust]`` (the move, then at most one gust where the move ends in a
+windy cell); ``gust`` is the caller's Bernoulli(p) draw (``rng.py``).
 """
 
 from __future__ import annotations
@@ -208,11 +200,8 @@ def make_layout(
     wall_col: int | None = None,
     wind_cells_per_exit: int = 1,
 ) -> WindyLayout:
-    """Scaled-up generator (docs/scale.md): a full-height wall with ``num_exits`` one-cell gaps.
-
-    Exits are spread evenly from the north to the south border row (two exits sit on the border
-    rows, as in the default layout); the ``wind_cells_per_exit`` cells immediately west of each exit
-    are windy; the left column is the start column and everything east of the wall is goal.
+    """Scaled-up generator (docs/scale.md): a full-height wall with ``num_exits`` one-cell gaps,
+    ``wind_cells_per_exit`` windy cells west of each, start column west, goal east of the wall.
     """
     if num_exits < 2:
         raise ValueError(f"num_exits must be >= 2, got {num_exits}")
@@ -248,14 +237,9 @@ def default_horizon(layout: WindyLayout) -> int:
 
 
 class WindyModel:
-    """Lookup tables of one layout on one device; the pure step functions read only these.
-
-    Attributes (all tensors on ``device``):
-        move: (S, A) int64, cell after the agent's move.
-        push: (S, D) int64, cell after a gust (== the cell itself where not windy).
-        is_goal: (S,) bool. is_windy: (S,) bool. exit_id: (S,) int64, exit of a cell or -1.
-        start_cells: (K,) int64.
-    """
+    """Lookup tables of one layout on one device: ``move (S, A)``, ``push (S, D)`` (the cell itself
+    where not windy), ``is_goal``, ``is_windy``, ``exit_id (S,)`` (-1: no exit), ``start_cells
+    (K,)``."""
 
     def __init__(self, layout: WindyLayout, device: torch.device | str = "cpu"):
         self.layout = layout
@@ -290,10 +274,8 @@ def step(
     direction: torch.Tensor,  # (B,) int64
     gust: torch.Tensor,  # (B,) bool: the wind blows this step (a Bernoulli(p) draw)
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """One batched step (move, then at most one gust).
-
-    Returns ``(next_cell, terminated)``; the reward is -1 for every step.
-    """
+    """One batched step (move, then at most one gust): ``(next_cell, terminated)``; reward -1 per
+    step."""
     idx = torch.add(gust, direction, alpha=2).add_(action, alpha=8).add_(cell, alpha=32)  # (B,)
     nxt = model.next_flat.index_select(0, idx)  # (B,)
     return nxt, model.is_goal.index_select(0, nxt)
@@ -305,12 +287,8 @@ def transition_tensors(
     direction: torch.Tensor,  # (B,) int64
     dtype: torch.dtype = torch.float64,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Exact model ``P[B, S, A, S']`` and ``R[B, S, A]`` of the same dynamics as :func:`step`.
-
-    Goal cells are absorbing with reward 0 (the episode has ended there); every other action costs
-    -1. Built from the same ``move``/``push`` tables as :func:`step`, and checked against sampled
-    steps in the tests.
-    """
+    """Exact model ``P[B, S, A, S']`` and ``R[B, S, A]`` of :func:`step`'s dynamics; goal cells
+    absorb with reward 0, every other action costs -1."""
     p = torch.as_tensor(p, dtype=dtype, device=model.device).reshape(-1)
     direction = torch.as_tensor(direction, dtype=torch.int64, device=model.device).reshape(-1)
     B, S, A = p.shape[0], model.num_cells, model.num_actions

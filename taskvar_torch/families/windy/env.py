@@ -37,19 +37,10 @@ def observation_size(
 def observation_table(
     layout: windy.WindyLayout, encoding: str = "onehot", patch_radius: int = 2
 ) -> np.ndarray:
-    """Observation of every cell, ``(S, D)`` float32; the env gathers rows of it.
-
-    ``onehot``: one-hot over cells (D = S). ``coords_patch``: normalised ``(row, col)`` then a
-    ``(2r+1)^2`` local patch per channel wall-or-edge, windy, goal (D = 2 + 3 (2r+1)^2), for grids
-    too large for one-hot. ``fourier_patch``: ``coords_patch`` followed by ``sin, cos(2^j pi x)``
-    of each normalised coordinate, ``j = 0 .. ceil(log2(side))`` (random-feature style positional
-    encoding: cells far apart in value but close in coordinates, like two exits of the same
-    look, become easy to tell apart; docs/scale.md). ``rowcol_patch``: ``coords_patch`` followed by
-    a one-hot row and a one-hot column (D + H + W). ``exits_patch``: ``coords_patch`` followed
-    by the ``(row, col)`` offset from the cell to each exit, divided by the grid side (D + 2 x
-    exits): the feature each exit option's own subtask needs (with ``heads.option_inputs=subtask``
-    option k sees the coordinates, the patch and exit k's offset only; :class:`WindySubtasks`).
-    The instance is never in the observation.
+    """Observation of every cell, ``(S, D)`` float32 (the env gathers rows): ``onehot`` (D = S),
+    ``coords_patch`` (normalised ``(row, col)`` and a ``(2r+1)^2`` wall/windy/goal patch),
+    ``fourier_patch``, ``rowcol_patch`` and ``exits_patch`` (``coords_patch`` plus positional
+    features, docs/scale.md). The instance is never in it.
     """
     S = layout.num_cells
     if encoding == "onehot":
@@ -128,56 +119,24 @@ def start_cell(layout: windy.WindyLayout, start: object) -> int:
 class WindyGridEnv(BatchedFamilyEnv):
     """Batched windy gridworld family (paper §3.3.1) as a TorchRL environment.
 
-    ## Description
-    A grid with a wall pierced by exits; wind blows in the cells just west of the exits. Each
-    sub-environment draws its own hidden instance ``(p, direction)`` at every (partial) reset.
-
-    ## Action Space
-    ``Categorical(4)``: 0 north, 1 south, 2 east, 3 west. Walls and edges block moves.
-
-    ## Observation Space
-    ``observation``: one-hot cell (``onehot``) or coordinates plus a local patch
-    (``coords_patch``); ``cell``: the flat cell index ``row * width + col`` (int64).
-    ``("instance", "p")``, ``("instance", "direction")``: the hidden instance, for analysis only.
-
-    ## Starting State
-    A uniformly random start cell (``S``), or ``start=(row, col)``.
-
-    ## Reward
-    -1 per step until a goal cell is reached.
-
-    ## Episode End
-    Terminated on entering a goal cell; truncated after ``horizon`` steps.
-
-    ## Task parameters
-    ``p`` in [0, 1]: probability that a gust pushes the agent one cell toward ``direction`` when it
-    ends a step in a windy cell. Drawn from ``instances`` (``train``, ``test``, ``south``,
-    ``north``, or a :class:`WindyInstances`).
+    Each sub-env draws a hidden instance ``(p, direction)`` at every (partial) reset; actions
+    ``Categorical(4)`` (north, south, east, west); reward -1 a step; terminated on a goal cell,
+    truncated after ``horizon``. Keys: ``observation``, ``cell`` (``row * width + col``) and
+    ``("instance", "p" | "direction")`` (analysis only).
 
     Args:
         num_envs: batch size N.
         layout: layout name, map string or :class:`WindyLayout`.
-        instances: instance distribution.
+        instances: ``train``, ``test``, ``south``, ``north`` or a :class:`WindyInstances`.
         horizon: steps before truncation (default :func:`windy.default_horizon`).
-        obs_encoding: ``onehot`` or ``coords_patch``.
+        obs_encoding: see :func:`observation_table`.
         start: optional fixed start ``(row, col)``.
-        seed: seed; sub-environment ``i`` draws from key ``(seed, index_offset + i)``, so any split
-            of N environments reproduces the same trajectories.
-        index_offset: global index of sub-environment 0.
-        noise_seed: salt of the per-step wind stream. Two envs with the same ``seed`` draw the same
-            instances and start cells; with the same ``noise_seed`` they also see the same gusts
-            (common random numbers), with different ones independent gusts (the null comparison
-            of docs/windy-fig2.md).
-        validate_actions: check actions are in range, raising a one-line error (one host sync
-            per step). ``None`` (default): on CPU only, so that on an accelerator the step has no
-            host round trip.
+        seed: sub-env ``i`` draws from key ``(seed, index_offset + i)`` (any split reproduces).
+        index_offset: global index of sub-env 0.
+        noise_seed: salt of the gust stream; equal ``noise_seed`` means the same gusts
+            (docs/windy-fig2.md).
+        validate_actions: one-line error on an out-of-range action; ``None``: on CPU only.
         device: torch device.
-
-    Examples:
-        >>> env = WindyGridEnv(num_envs=8, seed=0)
-        >>> td = env.rollout(10)
-        >>> td["next", "reward"].shape
-        torch.Size([8, 10, 1])
     """
 
     def __init__(
@@ -298,10 +257,8 @@ class WindyGridEnv(BatchedFamilyEnv):
         )
 
     def _advance(self, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """One step of every sub-env with ``action`` ``(N,)``: draw the gusts, move, count the step.
-
-        Returns ``(cell, terminated, truncated)``, each ``(N,)``; the new state replaces the old.
-        """
+        """One step of every sub-env: gusts, move, count; returns ``(cell, terminated, truncated)``
+        ``(N,)``."""
         if self.validate_actions and (
             bool((action < 0).any()) or bool((action >= self.model.num_actions).any())
         ):

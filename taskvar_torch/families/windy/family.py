@@ -1,11 +1,6 @@
-"""The windy family: the paper's windy gridworlds (paper §3.3.1, docs/windy-fig2.md).
-
-Wind strength ``p`` and direction are the hidden instance, drawn per episode
-(:class:`~taskvar_torch.families.windy.instances.WindyInstances`); the options are "exit by
-exit k" (:mod:`~taskvar_torch.families.windy.subtasks`); small layouts have the exact oracle
-(:mod:`~taskvar_torch.families.windy.oracle`), large ones the sparse one. :func:`family` is the
-declaration the registry loads (``taskvar_torch.families`` entry point ``windy``), exactly as a
-user's package declares its own (docs/families.md).
+"""The windy family's declaration (paper §3.3.1, docs/windy-fig2.md): hidden ``(p, direction)``
+instances, "exit by exit k" options, the exact oracle; :func:`family` is the ``windy`` entry point
+(docs/families.md).
 """
 
 from __future__ import annotations
@@ -40,13 +35,8 @@ WINDY_INSTANCE_DIM = 1 + WINDY_DIRECTIONS  # (p, one_hot(direction))
 
 
 def windy_instance_features(td: TensorDictBase) -> torch.Tensor | None:
-    """``(B, F)`` features of each windy transition's hidden instance, or ``None`` if the batch has
-    none: ``(p, one_hot(direction))``, F = 5, from ``("instance", "p")`` and
-    ``("instance", "direction")``, which the trainer keeps in the replay only for the ``instance``
-    max-value estimator.
-
-    Only the instance-conditioned max-value critic reads them (offline, privileged: Definition 1's
-    max is over *instances*; ``taskvar_torch/heads/max_value.py``); no controller ever does.
+    """``(B, F = 5)`` features ``(p, one_hot(direction))`` of each transition's hidden instance, or
+    ``None`` without one; read only by the offline ``instance`` max-value estimator (Definition 1).
     """
     if (keys.INSTANCE, "p") not in td.keys(True, True):
         return None
@@ -68,11 +58,8 @@ MAX_WINDY_CELLS = (1 << 24) - 1
 
 
 def windy_layout(env: WindyConfig) -> windy.WindyLayout:
-    """The windy layout a :class:`WindyConfig` (``env.windy``) describes (a name, a map string, or generated).
-
-    Raises:
-        ValueError: naming ``env.windy.layout`` or the generator key at fault.
-    """
+    """The windy layout ``env.windy`` describes (name, map string or generated); ``ValueError``
+    naming the key at fault."""
     if env.layout != GENERATED:
         stray = [k for k in _GENERATOR_KEYS if getattr(env, k) is not None]
         if stray:
@@ -107,11 +94,7 @@ def windy_layout(env: WindyConfig) -> windy.WindyLayout:
 
 
 def windy_env_kwargs(cfg: Config) -> dict[str, Any]:
-    """Keyword arguments of ``WindyGridEnv`` for the training environment of ``cfg``.
-
-    Examples:
-        >>> env = WindyGridEnv(**windy_env_kwargs(cfg))  # doctest: +SKIP
-    """
+    """Keyword arguments of ``WindyGridEnv`` for the training environment of ``cfg``."""
     if cfg.family != "windy":
         raise ValueError(f"windy_env_kwargs needs family='windy', got family={cfg.family!r}")
     e = section(cfg)

@@ -1,23 +1,9 @@
 """Windy Figure 2 with the learnt networks (paper §3.3.1; docs/windy-fig2.md).
 
-:func:`windy_fig2` trains every head (``train.train`` into ``OUT/train``) or loads a given
-checkpoint, builds the averaging, options and interruption (Algorithm 1) controllers, and plays
-them on *paired* rollouts (the same instance, start cell and gust stream per episode, ``rng.py``)
-on each test distribution (``train``, ``south_only``) and on the sealed held-out episodes
-(:func:`heldout_seed`). Beside them: the *null* curve (averaging against itself with an
-independent gust stream), the *exact* figure where the oracle fits (each learnt controller's exact
-expected return per episode, ``WindyOracle.controller_return``), and where interruption fired with
-Theorem 1's premise checked at each firing.
-
-The metrics are :mod:`taskvar_torch.families.windy.fig2_metrics`, the report
-:mod:`taskvar_torch.families.windy.fig2_report`; this module is the protocol and re-exports their
-public names and the oracle functions it uses. Writes ``config.yaml``, ``train/``,
-``episodes.csv``, ``metrics.json``, ``fig2_train.png``, ``fig2_south_only.png`` and
-``interruptions_heatmap.png``; prints a table.
-
-Examples:
-    >>> cfg = load_config("configs/windy.yaml", quick=True)  # doctest: +SKIP
-    >>> metrics = windy_fig2(cfg, "results/windy-fig2-quick")  # doctest: +SKIP
+:func:`windy_fig2` trains (or loads) the heads, plays the averaging, options and interruption
+(Algorithm 1) controllers on paired rollouts of each test distribution and the sealed held-out
+episodes, and writes the results folder (docs/windy-fig2.md#outputs). Metrics live in
+:mod:`.fig2_metrics`, tables and plots in :mod:`.fig2_report`.
 """
 
 from __future__ import annotations
@@ -103,10 +89,9 @@ def test_seed(cfg: Config, run: int) -> int:
 
 
 def heldout_seed(cfg: Config, run: int) -> int:
-    """Seed of held-out run ``run``: the sealed seed ``HELDOUT_SEED + run`` drawn apart for the
-    training seed ``cfg.seed`` (:func:`~taskvar_torch.families.sealed_episode_seed`), so each
-    training seed's heads play their own held-out episodes (a CI over seeds counts the episodes'
-    noise), every method the same ones. Run 0 is ``taskvar eval --test heldout``'s episodes."""
+    """Seed of held-out run ``run``: ``HELDOUT_SEED + run`` sealed apart per training seed
+    (:func:`~taskvar_torch.families.sealed_episode_seed`); run 0 is ``taskvar eval --test
+    heldout``'s."""
     if not 0 <= int(run) < HELDOUT_SIZE:
         raise ValueError(f"experiment.runs must be at most {HELDOUT_SIZE} (the held-out seeds)")
     return sealed_episode_seed(HELDOUT_SEED + int(run), int(cfg.seed))
@@ -160,16 +145,11 @@ def evaluate(
     record_firings: bool = False,
     progress: Any = None,
 ) -> dict[str, np.ndarray]:
-    """Play ``episodes`` episodes (global indices ``0..episodes-1``) with ``method``, through
-    the one episode player (:func:`~taskvar_torch.experiments.paired.play`).
-
-    The same ``(seed, instances)`` gives every method the same instance and start per episode, and
-    the same gusts when ``noise_seed`` matches: the pairing of docs/windy-fig2.md. The env is seeded
-    per sub-env, so the result does not depend on ``batch_size``.
+    """Play ``episodes`` episodes with ``method`` through the one episode player
+    (:func:`~taskvar_torch.experiments.paired.play`), paired by ``(seed, instances, noise_seed)``.
 
     Returns per-episode arrays ``return``, ``length``, ``interruptions``, ``p``, ``direction``,
-    ``start`` and, with ``record_firings``, the firing events ``fire_episode``, ``fire_cell``,
-    ``fire_option`` (the option running when Algorithm 1 line 6 fired).
+    ``start`` and, with ``record_firings``, ``fire_episode``, ``fire_cell``, ``fire_option``.
     """
     ctrl = build_controller(method, heads, cfg)
     bs = int(batch_size or cfg.eval.batch_size)
@@ -206,11 +186,8 @@ def make_oracle(cfg: Config):
 def play_run(
     heads: Heads, cfg: Config, instances: str, seed: int, episodes: int, bar: Any = None
 ) -> tuple[dict[str, dict[str, np.ndarray]], dict[str, np.ndarray]]:
-    """One run's paired rollouts (protocol steps 3-4): every method in :data:`METHODS` order
-    (interruption records its firings), then the null averaging rollout (``NULL_NOISE_SEED``).
-
-    Returns ``({method: evaluate(...)}, null)``; asserts the pairing (same instances and starts
-    for every method).
+    """One run's paired rollouts: every method of :data:`METHODS`, then the null averaging rollout;
+    returns ``({method: evaluate(...)}, null)`` and asserts the pairing.
     """
     r = {
         m: evaluate(
@@ -270,12 +247,8 @@ def run_distribution(
     desc: str = "",
     seed_of: Any = test_seed,
 ) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Every method on R paired runs of E episodes of one test distribution; metrics and CSV rows.
-    Run ``r`` plays seed ``seed_of(cfg, r)`` (:func:`test_seed`; :func:`heldout_seed`).
-
-    Per run: :func:`play_run`, the exact returns of each learnt controller (with ``oracle``),
-    :func:`episode_columns`, the run's summary and CSV rows; then the pooled columns go to
-    :func:`~taskvar_torch.families.windy.fig2_metrics.summarise` and Theorem 1's check (step 6).
+    """Every method on R paired runs of E episodes of one test distribution (run ``r`` plays
+    ``seed_of(cfg, r)``): per-run summaries, CSV rows, pooled metrics and Theorem 1's check.
     """
     rows: list[dict[str, Any]] = []
     per_run: list[dict[str, Any]] = []
@@ -348,27 +321,17 @@ def windy_fig2(
     staged: bool = True,
     controller: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Train (or load ``checkpoint``), evaluate Figure 2's protocol, write the results folder.
+    """Train (or load ``checkpoint``), evaluate Figure 2's protocol, write ``out_dir``.
 
     Args:
-        cfg: a windy config; ``experiment.runs`` x ``experiment.episodes_per_run`` test episodes
-            per distribution, ``eval.batch_size`` environments in parallel.
-        out_dir: results folder (created), written like every results folder
-            (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, filled in a staging
-            folder, swapped in whole at the end; the training run goes to ``out_dir/train``).
-        checkpoint: a bundle written by ``train.train``; skips training (its config's env and
-            heads are used, ``cfg``'s experiment and eval sizes).
-        progress: progress bars (taskvar_torch/progress.py: plain lines away from a terminal).
-        quick: recorded in ``metrics.json`` (the config already holds the quick overrides).
-        plots: draw the PNGs (``False``: skip them, e.g. in sweeps; ``taskvar plot DIR`` draws
-            them later from the folder).
-        overwrite: replace the results (and training run) already in ``out_dir`` (without it
-            such a folder is refused; a killed run leaves them whole).
-        controller: controller settings applied to ``checkpoint``'s config
-            (``config/controller.py``; without a checkpoint they are config overrides).
-        staged: ``False``: write into ``out_dir`` directly (a sweep's point: the sweep holds its
-            folder and has refused results already there; ``overwrite`` then replaces a training
-            run in ``out_dir/train``).
+        cfg: a windy config (``experiment.runs`` x ``experiment.episodes_per_run`` episodes).
+        out_dir: results folder (:class:`~taskvar_torch.run_folder.ResultsFolder`); training goes
+            to ``out_dir/train``.
+        checkpoint: a bundle from ``train.train``; skips training.
+        progress: progress bars. quick: recorded in ``metrics.json``. plots: draw the PNGs.
+        overwrite: replace results already in ``out_dir`` (otherwise refused).
+        controller: controller settings (``config/controller.py``).
+        staged: ``False`` writes into ``out_dir`` directly (a sweep's point).
 
     Returns:
         The metrics dict written to ``metrics.json``.
@@ -469,13 +432,8 @@ def _check_inputs(
     overwrite: bool = False,
     controller: Sequence[str] = (),
 ) -> tuple[Heads | None, Config | None]:
-    """Every check before any work or any file written: the output folder (a training run
-    already in ``out/train`` unless ``overwrite``; with a ``folder``, results or other files
-    already in ``out``: ``folder.check``), the device, the memory, a given ``checkpoint``'s family
-    and place (not inside the ``folder``; then its heads and config are loaded).
-
-    Returns the checkpoint's ``(heads, config)``, or ``(None, None)`` without one.
-    """
+    """Every check before any work: output folder, device, memory, the checkpoint's family and
+    place. Returns the checkpoint's ``(heads, config)`` or ``(None, None)``."""
     check_output_folder(out)
     has_results = any((out / m).is_file() for m in RESULT_MARKERS)
     if checkpoint is None and run_files(out / "train") and not (has_results or overwrite):
@@ -547,12 +505,9 @@ def eval_checkpoint(
     noise_seed: int = 0,
     progress: bool = True,
 ) -> dict[str, Any]:
-    """Evaluate a saved windy bundle with ``method`` on test distribution ``test``; no retraining.
-
-    :func:`~taskvar_torch.experiments.bundle_eval.eval_bundle` with one method and no shift (no
-    plot): ``seed`` defaults to :func:`test_seed` of run 0, so ``windy_fig2``'s run ``r`` (seed
-    ``cfg.seed + 1 + r``, ``episodes_per_run`` episodes) is reproduced exactly by the same seed,
-    episodes and method. Writes ``out_dir/metrics.json`` (and ``episodes.csv``) when given.
+    """Evaluate a saved windy bundle with ``method`` on ``test`` without retraining
+    (:func:`~taskvar_torch.experiments.bundle_eval.eval_bundle`); the default ``seed`` reproduces
+    ``windy_fig2``'s run 0. Writes ``out_dir/metrics.json`` (and ``episodes.csv``) when given.
     """
     return eval_bundle(
         checkpoint,

@@ -1,24 +1,6 @@
-"""Windy Figure 2 statistics: the content of ``metrics.json`` (paper §3.3.1; docs/windy-fig2.md).
-
-:func:`summarise` turns one test distribution's pooled per-episode columns into the figure's
-numbers, :func:`run_summary` one run's, and :func:`theorem1_check` checks Theorem 1's premise at
-every state where interruption fired. Definitions used in ``metrics.json``:
-
-- the headline comparison is interruption - averaging per paired episode (same instance, start and
-  gusts): ``fraction_no_worse`` / ``fraction_better`` / ``fraction_worse``, ``mean_difference``
-  and its 95% CI half-width (:func:`~taskvar_torch.experiments.evaluation.paired_summary`);
-- ``null``: averaging - averaging with an independent gust stream, the "no worse" of two equally
-  good policies; ``options_vs_averaging`` and ``interruption_vs_options`` on the same pairing;
-- ``exact``: the same comparisons on the exact expected returns of the learnt controllers in each
-  episode's (instance, start), differences within :data:`EXACT_ATOL` of 0 counted as ties;
-- ``interruption_cells`` / ``interruptions_by_running_option``: where Algorithm 1 fired;
-- ``theorem1``: the premise ``V^{mu_bar}(s') <= V^{m,mu_bar}(s')`` at each firing and the
-  outcome of the episodes where it held at every firing / failed at some.
-
-Examples:
-    >>> METHODS
-    ('averaging', 'options', 'interruption')
-    >>> metrics = summarise(data, fires, cfg, runs=5, episodes=10000)  # doctest: +SKIP
+"""Windy Figure 2 statistics: the content of ``metrics.json`` (paper §3.3.1;
+docs/windy-fig2.md#outputs): :func:`summarise` (one distribution), :func:`run_summary` (one run)
+and :func:`theorem1_check` (Theorem 1's premise at every firing).
 """
 
 from __future__ import annotations
@@ -134,16 +116,9 @@ def theorem1_check(
     diff_vs_averaging: np.ndarray,
     chunk: int = 1000,
 ) -> dict[str, Any]:
-    """Theorem 1's premise at every state where interruption fired, and the outcome per case.
-
-    At a firing (s', o) in test instance m: premise ``V^{mu_bar}(s') <= V^{m,mu_bar}(s')`` (learnt
-    switching value vs the exact discounted value of the learnt options controller in m); the
-    proof's condition ``Q^{m,mu_bar}(s', o) <= V^{m,mu_bar}(s')``; and the max-value assumption
-    ``Q^{m,mu_bar}(s', o) <= Q_hat(s', o)``. Outcomes per episode group (premise held at every
-    firing / failed at some): interruption - options (exact, what the theorem bounds) and
-    interruption - averaging (sampled, paired). The values come from
-    :func:`~taskvar_torch.families.windy.learnt.firing_values`.
-    """
+    """Theorem 1's premise ``V^{mu_bar}(s') <= V^{m,mu_bar}(s')`` at every firing ``(s', o)``, the
+    proof's condition and the max-value assumption, and the outcome of the episodes where the
+    premise held at every firing / failed at some (values from :func:`.learnt.firing_values`)."""
     ep = rolls["fire_episode"]
     if ep.size == 0:
         return {"firings": 0, "episodes_with_firing": 0}

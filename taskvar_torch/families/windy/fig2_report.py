@@ -1,14 +1,5 @@
-"""Windy Figure 2 report: ``episodes.csv`` rows, the printed tables and the figures.
-
-Reads what :mod:`taskvar_torch.families.windy.fig2_metrics` computes (``metrics.json``; paper
-§3.3.1, docs/windy-fig2.md) and the per-episode columns of the protocol; :func:`plot_results`
-redraws ``fig2_train.png``, ``fig2_south_only.png`` (sorted paired differences per run, null
-dashed, exact dotted) and ``interruptions_heatmap.png`` from a results folder alone
-(``taskvar plot DIR``).
-
-Examples:
-    >>> print(format_table(json.loads(Path("DIR/metrics.json").read_text())))  # doctest: +SKIP
-    >>> plot_results("DIR")  # doctest: +SKIP
+"""Windy Figure 2 report: ``episodes.csv`` rows, the printed tables, and :func:`plot_results`, which
+redraws the figures from a results folder alone (``taskvar plot DIR``; docs/windy-fig2.md).
 """
 
 from __future__ import annotations

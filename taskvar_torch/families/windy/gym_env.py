@@ -16,16 +16,9 @@ from taskvar_torch.families.windy.env import WindyGridEnv, start_cell
 
 
 class WindyGridGymEnv(FamilyGymEnv):
-    """The windy gridworld family (paper §3.3.1) as one Gymnasium env: :class:`WindyGridEnv`'s
-    description, actions (``Discrete(4)``), start, reward and episode end.
-
-    Observation: ``Box(0, 1, (D,), float32)``, the batched env's ``observation`` (``onehot``,
-    ``coords_patch``, ...); the instance is never in it. Arguments: ``layout`` (a name, a map
-    string or a :class:`WindyLayout`), ``instances``, ``horizon``, ``obs_encoding``,
-    ``patch_radius``, ``render_mode`` (``ansi`` or ``rgb_array``). ``reset(options={"instance":
-    {"p": 0.7, "direction": "north"}, "start": (row, col)})`` pins the episode's instance and
-    start cell; ``info["instance"]`` reports the instance, ``info["cell"]`` the agent's
-    ``(row, col)``.
+    """The windy family (paper §3.3.1) as one Gymnasium env over :class:`WindyGridEnv`
+    (docs/gymnasium.md): ``Discrete(4)``, ``Box(0, 1, (D,))``; ``reset(options={"instance": {"p",
+    "direction"}, "start": (row, col)})`` pins an episode; ``info`` has ``instance`` and ``cell``.
     """
 
     env_class = WindyGridEnv

@@ -1,29 +1,11 @@
-"""Every learnt windy head against its exact optimum, at any grid size (docs/scale.md).
+"""Every learnt windy head against its exact optimum at any grid size (docs/scale.md,
+docs/oracle.md#which-reference-the-learnt-heads-should-reach).
 
-:func:`head_report` tabulates a trained bundle's heads at every cell (the env's own observation
-table) and measures, with a :class:`~taskvar_torch.families.windy.sparse_oracle.SparseWindyOracle`:
-
-- **averaging** (paper §3.1): the learnt greedy policy's discounted mean-MDP value, mean over the
-  start cells, against the optimum (``rel_gap = (V* - V) / |V*|``), and its exact expected episode
-  return (quadrature over the training distribution) against the optimum's;
-- **each exit option** (§3.2): its greedy policy's own objective (discounted mean-MDP subtask
-  value, mean over start cells) against the exact option optimum;
-- **mu_bar** (§3.2): at every start cell, whether the learnt switching head's choice is an exact
-  best option (``Q_mu`` of the exact option policies, ties within ``tie_atol``), and the mean
-  value lost by its choices;
-- **options controller**: the exact expected return of the learnt options controller (mu_bar's
-  pick at the start, then that option's greedy policy to the goal; windy options end only there)
-  against the oracle's own options controller and the averaging optimum;
-- **interruption controller** (Algorithm 1 with greedy mu_bar): the exact expected return and
-  interruptions per episode of the learnt controller and of the oracle's own (exact option
-  policies, Q_mu and Q_hat), :meth:`SparseWindyOracle.controller_returns`; the oracle's
-  interruption return against its options return is what offline interruption *can* add on
-  this layout and training distribution;
-- **interruption condition** (Algorithm 1 line 6, ``Q_hat(s, o) < max_q Q_mu(s, q)``): agreement
-  of the learnt condition with the exact one over every (open cell, option) pair, and how many
-  pairs each says fire.
-
-``within_2pct`` says whether a head's ``rel_gap <= 0.02`` (issue acceptance).
+:func:`head_report` measures with a
+:class:`~taskvar_torch.families.windy.sparse_oracle.SparseWindyOracle` the averaging head (§3.1),
+each exit option, mu_bar and the options and interruption controllers (§3.2, Algorithm 1), and
+the interruption condition's agreement with the exact one; ``rel_gap = (V* - V) / |V*|``,
+``within_2pct`` is ``rel_gap <= 0.02``.
 """
 
 from __future__ import annotations
@@ -65,10 +47,8 @@ def head_report(
     patch_radius: int = 2,
     with_max_value: bool = True,
 ) -> dict[str, Any]:
-    """Every head of a trained windy bundle measured against ``oracle`` (module docstring).
-
-    ``obs_encoding``/``patch_radius``: the bundle's ``env`` settings (its observation table).
-    ``with_max_value=False`` skips the max-value comparison (the slowest exact solve).
+    """Every head of a trained windy bundle measured against ``oracle`` (module docstring);
+    ``with_max_value=False`` skips the slowest exact solve.
     """
     table = observation_table(oracle.layout, obs_encoding, patch_radius)
     tensor = next(iter([*heads.parameters(), *heads.buffers()]), None)  # tables: buffers only

@@ -1,8 +1,5 @@
-"""Instance distributions: which member of a family (paper §2.2) each sub-environment gets
-at reset.
-
-A distribution is data (a frozen dataclass), sampled from per-episode keys (see ``rng.py``), so an
-instance depends only on (seed, sub-environment, episode).
+"""Windy instance distributions (paper §2.2): frozen data, sampled from per-episode keys
+(``rng.py``).
 """
 
 from __future__ import annotations
@@ -20,14 +17,9 @@ _C_P, _C_DIR, _C_POINT = rng.RESET_COUNTER + 1, rng.RESET_COUNTER + 2, rng.RESET
 
 @dataclass(frozen=True)
 class WindyInstances:
-    """Distribution of windy instances ``(p, direction)``.
-
-    ``p ~ U[p_low, p_high]`` and ``direction`` uniform over ``directions``; or, when ``points`` is
-    given, uniform over that finite set of ``(p, direction)`` pairs (a fixed instance is one point).
-
-    Named distributions (``WindyInstances.named``): ``train`` and ``test`` (the paper's: p ~ U[0,1],
-    north or south), ``south`` (the paper's "only southerly winds": pushes south), ``north``.
-    """
+    """Distribution of windy instances ``(p, direction)``: ``p ~ U[p_low, p_high]``, direction
+    uniform over ``directions``, or uniform over ``points``. Named: ``train``, ``test``, ``south``,
+    ``north``."""
 
     p_low: float = 0.0
     p_high: float = 1.0

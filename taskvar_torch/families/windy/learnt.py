@@ -1,10 +1,5 @@
-"""Learnt heads and controllers measured exactly by the oracle (windy Figure 2, paper §3.3.1;
-docs/windy-fig2.md, docs/oracle.md).
-
-Per-episode exact returns of a learnt controller (:func:`exact_returns`), Theorem 1's values at
-each interruption firing (:func:`firing_values`) and the learnt averaging head's exact return per
-start cell beside the mean-MDP optimum (:func:`learnt_vs_oracle_by_start`). ``oracle`` is a
-:class:`~taskvar_torch.families.windy.oracle.WindyOracle`.
+"""Learnt heads and controllers measured exactly by :class:`.oracle.WindyOracle` (paper §3.3.1;
+docs/oracle.md): :func:`exact_returns`, :func:`firing_values`, :func:`learnt_vs_oracle_by_start`.
 """
 
 from __future__ import annotations
@@ -44,14 +39,9 @@ def firing_values(
     rolls: dict[str, np.ndarray],
     chunk: int = 1000,
 ) -> dict[str, np.ndarray]:
-    """Theorem 1's values at every firing ``(s', o)`` of interruption, in its episode's instance m.
-
-    ``rolls``: ``fire_episode``, ``fire_cell``, ``fire_option`` per firing (the option running when
-    Algorithm 1 line 6 fired) and ``p``, ``direction`` per episode. Returns per firing:
-    ``v_mu_bar``: the learnt ``V^{mu_bar}(s')`` (switching head, mu_bar of ``options_ctrl``'s
-    heads); ``v_m``: ``V^{m,mu_bar}(s')`` and ``q_m``: ``Q^{m,mu_bar}(s', o)``, the exact discounted
-    values (``oracle.gamma``) of the learnt options controller in m (:func:`discounted_chain_values`);
-    ``q_hat``: the learnt ``Q_hat(s', o)`` (max-value head). Paper §3.3, Definition 1.
+    """Theorem 1's values at every interruption firing ``(s', o)`` in its episode's instance m
+    (paper §3.3, Definition 1): ``v_mu_bar``, ``v_m = V^{m,mu_bar}(s')``,
+    ``q_m = Q^{m,mu_bar}(s', o)`` and ``q_hat``; ``rolls`` holds the firings and the instances.
     """
     ep, cell, opt = rolls["fire_episode"], rolls["fire_cell"], rolls["fire_option"]
     chain = oracle.controller_chain(options_ctrl, obs_encoding=obs_encoding)

@@ -1,11 +1,5 @@
-"""The windy family's exact oracle, :class:`WindyOracle` (paper §3.1-3.4, Definition 1).
-
-Mean MDP, averaging policy, exit options, switching values ``Q_mu`` and ``mu_bar``, per-instance
-option values ``Q^{m,mu_bar}``, max-values ``Q_hat``, policy evaluation, exact returns and the
-tables as a :class:`~taskvar_torch.heads.bundle.Heads` bundle. The design decisions (discounted
-values, finite-horizon returns, quadrature, ties) are in docs/oracle.md, Design decisions. Controllers as Markov chains (Algorithms 1-2) come from
-:class:`~taskvar_torch.oracle.chains.ControllerChains`, what the learnt heads converge to from
-:class:`~taskvar_torch.families.windy.replay_reference.ReplayReference`.
+"""The windy family's exact oracle, :class:`WindyOracle` (paper §3.1-3.4, Definition 1;
+docs/oracle.md#design-decisions).
 """
 
 from __future__ import annotations
@@ -43,20 +37,14 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
     """Exact solver of a windy layout's family (docs/oracle.md).
 
     Args:
-        model_or_layout: a :class:`~taskvar_torch.families.windy.dynamics.WindyModel`, a layout, a layout name
-            (``default``, ``middle_exits``, ``whole_column_windy``) or a map string.
-        gamma: discount of the values compared against the networks.
-        horizon: episode length of the returns (default :func:`windy.default_horizon`, 100 on 5x5).
+        model_or_layout: a ``WindyModel``, a layout, a layout name or a map string.
+        gamma: discount of the values. horizon: episode length of the returns.
         train_instances: the training distribution (name, dict or :class:`WindyInstances`).
-        wrong_exit_penalty: subtask penalty for reaching the goal through another exit
-            (:class:`~taskvar_torch.families.windy.subtasks.WindySubtasks`).
-        p_grid: ``p`` values of Q_hat's default instance set: an int (evenly spaced over
-            ``[p_low, p_high]``) or a sequence of values.
-        mu_temperature: ``None`` for a greedy mu_bar, else the temperature of a softmax mu_bar.
-        quad_nodes: Gauss-Legendre nodes for expectations over ``p`` (default ``ceil(horizon/2)``:
-            exact for returns).
-        tol: value-iteration stopping tolerance.
-        device: torch device of the tables.
+        wrong_exit_penalty: subtask penalty for leaving through another exit.
+        p_grid: ``p`` values of Q_hat's instance set (an int: evenly spaced).
+        mu_temperature: ``None`` for a greedy mu_bar, else a softmax temperature.
+        quad_nodes: Gauss-Legendre nodes over ``p`` (default ``ceil(horizon/2)``).
+        tol: value-iteration tolerance. device: torch device of the tables.
     """
 
     def __init__(
@@ -186,11 +174,8 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
     def option_values(
         self, P: Tensor, R: Tensor, mu: Tensor, policies: Tensor | None = None
     ) -> Tensor:
-        """``Q^{m,mu}(s, o) (B, S, O)``: run option o from s, then continue with ``mu (S, O)`` (SMDP).
-
-        Solves ``Q(s,o) = r(s,a) + gamma sum_s' P(s,a,s') [(1-beta_o(s')) Q(s',o) + beta_o(s') V(s')]``
-        with ``a = pi^o(s)`` and ``V(s') = sum_q mu(s',q) Q(s',q)`` exactly (one linear solve).
-        """
+        """``Q^{m,mu}(s, o) (B, S, O)``: run option o from s, then continue with ``mu (S, O)``
+        (SMDP; one exact linear solve)."""
         B, S, K = P.shape[0], self.S, self.O  # K options
         pol = self.option_policies() if policies is None else policies  # (K, S)
         Po = torch.stack([policy_kernel(P, pol[o]) for o in range(K)], 2)  # (B, S, K, S')
@@ -227,11 +212,7 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
         return snap_ties(q)
 
     def switching_q(self) -> Tensor:
-        """``Q_mu (S, O)``: option values of mu_bar on the mean MDP, env reward (paper §3.2).
-
-        mu_bar is greedy (or softmax) in these values. Windy options terminate only at the goal, so
-        ``Q_mu(s, o)`` is the mean-MDP value of running ``pi^o`` from ``s``.
-        """
+        """``Q_mu (S, O)``: option values of mu_bar on the mean MDP, env reward (paper §3.2)."""
         return self._switching_q
 
     def mu_bar(self) -> Tensor:
@@ -295,10 +276,8 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
         return V
 
     def episode_return(self, policy: Tensor, p: Any, direction: Any, start: Any = None) -> Tensor:
-        """Exact expected ``horizon``-step undiscounted return of a stationary policy in an instance.
-
-        ``start``: ``None`` (every cell, ``(B, S)``), ``"uniform"`` (mean over start cells), a cell
-        index or ``(row, col)``. A scalar instance drops the batch dimension.
+        """Exact expected ``horizon``-step return of a stationary policy in an instance; ``start``:
+        ``None`` (``(B, S)``), ``"uniform"``, a cell or ``(row, col)``.
         """
         pt, d, scalar = self._instances_arg(p, direction)
         P, R = windy.transition_tensors(self.model, pt, d, dtype=torch.float64)
@@ -308,13 +287,9 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
         return out[0] if scalar else out
 
     def optimal_return(self, p: Any, direction: Any, start: Any = None) -> Tensor:
-        """Exact per-instance optimal ``horizon``-step undiscounted return ``(B, S)``: an agent
-        that knows ``(p, direction)`` (the ceiling of regret, docs/evaluation.md; paper §3.3.1's
-        return). Backward induction with a max over actions at every steps-to-go, so the optimum
-        is over all policies, time-dependent ones included (not the discounted-optimal greedy
-        policy of :meth:`optimal_q`): it bounds every controller's :meth:`controller_return`.
-        Same dynamics as :func:`windy.transition_tensors`, read from the ``move``/``push`` tables
-        (``O(B S A)`` a step). ``start`` as in :meth:`episode_return`."""
+        """Exact per-instance optimal ``horizon``-step return ``(B, S)`` over all policies (backward
+        induction), the ceiling of regret (docs/evaluation.md); ``start`` as in
+        :meth:`episode_return`."""
         pt, d, scalar = self._instances_arg(p, direction)
         m = self.model
         moved = m.move  # (S, A)
@@ -332,14 +307,9 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
     def step_regret(
         self, p: Any, direction: Any, cells: Any, actions: Any, alive: Any = None
     ) -> Tensor:
-        """Instantaneous regret ``(B, T)`` of the actions played in ``B`` episodes, one instance
-        each: ``V*_{H-t}(s_t) - Q*_{H-t}(s_t, a_t)`` at step ``t`` (``H = horizon``, the
-        per-instance optimum's values with ``H - t`` steps to go, as :meth:`optimal_return`), 0
-        where ``alive`` (default all) is false. ``cells``, ``actions``: ``(B, T)``, ``T <= H``.
-
-        By the performance-difference identity an episode's sum over steps is, in expectation over
-        the gusts, its regret against the per-instance optimum (exactly so where the instance is
-        deterministic, ``p`` 0 or 1): ``optimal_return - return`` (docs/evaluation.md)."""
+        """Instantaneous regret ``(B, T)``: ``V*_{H-t}(s_t) - Q*_{H-t}(s_t, a_t)``, 0 where not
+        ``alive``; its sum over an episode is in expectation ``optimal_return - return``
+        (docs/evaluation.md)."""
         pt, d, _ = self._instances_arg(p, direction)
         s, a, live = self._step_trace(pt.numel(), cells, actions, alive)
         B, T = s.shape
@@ -372,10 +342,8 @@ class WindyOracle(ControllerChains, ReplayReference, DerivedTables, WindyOracleB
     def expected_return(
         self, policy: Tensor, instances: Any = None, starts: Any = "uniform"
     ) -> Tensor:
-        """``E_m[return]`` of a policy when the instance is drawn per episode and held fixed.
-
-        Quadrature over ``instances`` (default: the training distribution), see :meth:`quadrature`.
-        ``starts``: ``"uniform"`` (scalar), ``None`` (per cell, ``(S,)``) or one cell.
+        """``E_m[return]`` of a policy, instance drawn per episode (quadrature over ``instances``);
+        ``starts``: ``"uniform"``, ``None`` (``(S,)``) or one cell.
         """
         pt, d, w = self.quadrature(instances)
         ret = self.episode_return(policy, pt, d, start=starts)  # (K, ...)

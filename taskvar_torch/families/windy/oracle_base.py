@@ -1,11 +1,6 @@
-"""What both windy oracles share: the layout, model, horizon, training distribution, Q_hat's
-``p`` grid, and instances as tensors (:class:`WindyOracleBase`).
-
-:class:`~taskvar_torch.families.windy.oracle.WindyOracle` (dense kernels, small layouts) and
-:class:`~taskvar_torch.families.windy.sparse_oracle.SparseWindyOracle` (successor tables, any
-size) solve the same windy instances ``(p, direction)`` (paper §3.1-3.3); both implement
-:class:`~taskvar_torch.oracle.protocol.OracleTables` over the instance set and the quadrature
-defined here.
+"""What both windy oracles (:class:`.oracle.WindyOracle`, :class:`.sparse_oracle.SparseWindyOracle`)
+share: the model, horizon, training distribution, Q_hat's ``p`` grid, the instance set and the
+quadrature (paper §3.1-3.3; docs/oracle.md).
 """
 
 from __future__ import annotations
@@ -49,15 +44,11 @@ class WindyOracleBase:
     """A windy layout's model and instances for an exact oracle.
 
     Args:
-        model_or_layout: a :class:`~taskvar_torch.families.windy.dynamics.WindyModel`, a layout,
-            a layout name or a map string.
-        gamma: discount of the values (the networks' ``gamma``), in [0, 1).
-        horizon: episode length of the returns (default :func:`windy.default_horizon`).
+        model_or_layout: a ``WindyModel``, a layout, a layout name or a map string.
+        gamma: discount of the values, in [0, 1). horizon: episode length of the returns.
         train_instances: the training distribution (name, dict or :class:`WindyInstances`).
-        p_grid: ``p`` values of Q_hat's instance set (an int: evenly spaced over the training
-            range).
-        quad_nodes: Gauss-Legendre nodes in ``p`` for expected returns (``None``:
-            ``ceil(horizon / 2)``, exact for returns).
+        p_grid: ``p`` values of Q_hat's instance set (an int: evenly spaced).
+        quad_nodes: Gauss-Legendre nodes in ``p`` (``None``: ``ceil(horizon / 2)``, exact).
         device: torch device of the tables.
     """
 
@@ -119,12 +110,9 @@ class WindyOracleBase:
         return pt.contiguous(), d.contiguous(), scalar and pt.numel() == 1
 
     def instance_set(self, instances: Any = None) -> tuple[Tensor, Tensor]:
-        """``(p (M,), direction (M,))`` of a finite instance set (Q_hat's max, Definition 1).
-
-        ``None``: the training distribution's ``points``, else ``p_grid`` x training directions. A
-        :class:`WindyInstances` (or name/dict): its points, else ``p_grid`` rescaled to its range x its
-        directions. A ``(p, direction)`` pair of sequences/tensors: those instances.
-        """
+        """``(p (M,), direction (M,))`` of a finite instance set (Q_hat's max, Definition 1):
+        ``None`` (the training one), a :class:`WindyInstances` (or name/dict), or a ``(p,
+        direction)`` pair."""
         if isinstance(instances, tuple) and len(instances) == 2:
             pt, d, _ = self._instances_arg(instances[0], instances[1])
             return pt, d
@@ -143,10 +131,8 @@ class WindyOracleBase:
         return pp, dd
 
     def quadrature(self, instances: Any = None) -> tuple[Tensor, Tensor, Tensor]:
-        """``(p (K,), direction (K,), weight (K,))`` integrating over an instance distribution.
-
-        Continuous ``p ~ U[p_low, p_high]``: Gauss-Legendre with ``quad_nodes`` nodes x uniform
-        directions; ``points``: each point with weight ``1/len(points)``.
+        """``(p (K,), direction (K,), weight (K,))`` integrating over an instance distribution
+        (Gauss-Legendre in ``p``, or each of ``points`` equally).
         """
         dist = self.train_instances if instances is None else windy_instances(instances)
         if dist.points is not None:

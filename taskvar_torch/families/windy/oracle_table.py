@@ -1,9 +1,5 @@
-"""The exact oracle's table for a windy family, and a picture of the grid (docs/oracle.md).
-
-For every start cell: the exact expected 100-step return (over the training distribution, instance
-held fixed per episode) of the mean-MDP optimal averaging policy (paper §3.1), the same under
-south-only test winds, its mean-MDP value, and each exit option's expected return. The PNG shows
-the grid, the averaging policy's actions and its per-cell expected return.
+"""The exact oracle's table of a windy layout per start cell, and a picture of the grid
+(docs/oracle.md#the-oracle-table).
 
 Usage: ``python -m taskvar_torch.families.windy.oracle_table [--layout default] [--out DIR]``.
 """

@@ -1,8 +1,5 @@
-"""What the learnt heads converge to: the fixed-instance objective and the first-visit replay
-MDP with its Q-learning fixed point (docs/oracle.md, "Which reference the learnt heads should
-reach"; the mean MDP of paper §3.1 is the other reference).
-
-:class:`ReplayReference` is mixed into :class:`~taskvar_torch.families.windy.oracle.WindyOracle`.
+"""What the learnt heads converge to: the fixed-instance objective and the first-visit replay MDP
+(docs/oracle.md#which-reference-the-learnt-heads-should-reach); mixed into ``WindyOracle``.
 """
 
 from __future__ import annotations
@@ -18,13 +15,7 @@ Tensor = torch.Tensor
 
 class ReplayReference:
     """Fixed-instance values and policies, visit probabilities, replay MDPs and their fixed points;
-    a mixin of :class:`WindyOracle`.
-
-    Uses the host's ``S``, ``A``, ``gamma``, ``tol``, ``horizon``, ``device``, ``is_goal``,
-    ``start_cells``, ``subtasks``, :meth:`quadrature`, :meth:`transition`,
-    :meth:`averaging_policy`, :meth:`option_policies` and its private option-reward, evaluation
-    and goal-zeroing helpers.
-    """
+    a mixin of :class:`WindyOracle`, whose tables and solvers it uses."""
 
     def _objective_tables(self, option: str | int | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """``(P (K, S, A, S), R (K, S, A), cont (S,), weight (K,))`` over the training quadrature:
@@ -45,18 +36,9 @@ class ReplayReference:
         return torch.einsum("k,ks->s", w, V)
 
     def fixed_instance_policy(self, option: str | int | None = None) -> Tensor:
-        """The best Markov policy for the fixed-instance objective ``E_m[V^{m, pi}]`` ``(S,)``.
-
-        Maximises the mean over start cells of :meth:`fixed_instance_value` (env reward, or option
-        ``option``'s subtask reward) by policy search over deterministic Markov policies: from the
-        mean-MDP optimum, change one cell's action at a time while that improves the objective by
-        more than ``TIE_ATOL`` (a local optimum under single-cell changes). Unlike the mean MDP
-        (paper §3.1), which redraws the instance at every step, this objective keeps it fixed for
-        the episode, as the training episodes and the printed returns do; a memoryless policy cannot
-        adapt to the instance, so the optimum differs from the mean-MDP one where a route is cheap
-        on average but traps the agent in some instances (``whole_column_windy``: the windy column
-        under a strong opposing wind).
-        """
+        """Best Markov policy ``(S,)`` for the fixed-instance objective ``E_m[V^{m, pi}]`` (env
+        reward or option ``option``'s), by single-cell policy search from the mean-MDP optimum (a
+        local optimum)."""
         P, R, cont, w = self._objective_tables(option)
         Pc = P * cont.view(1, 1, 1, -1)
         starts = self.start_cells
@@ -89,12 +71,8 @@ class ReplayReference:
         return pol
 
     def visit_probability(self, behaviour: Tensor, p: Any, direction: Any) -> Tensor:
-        """``(B, S, A)``: probability that an episode (uniform start cell, ``horizon`` steps) of the
-        stochastic policy ``behaviour (S, A)`` takes action a at cell s at least once, per instance.
-
-        This is how often a first-visit replay (``heads/first_visit.py``) holds a sample of (s, a)
-        from an episode of that instance. Backward induction over steps-to-go, all (s, a) at once.
-        """
+        """``(B, S, A)``: probability that an episode of ``behaviour (S, A)`` takes a at s at least
+        once, per instance (how often a first-visit replay holds (s, a))."""
         P, _ = self.transition(p, direction)  # (B, S, A, S')
         B, S, A = P.shape[0], self.S, self.A
         b = behaviour.to(P.dtype).to(self.device)  # (S, A)
@@ -118,13 +96,9 @@ class ReplayReference:
     def replay_mdp(
         self, behaviour: Tensor, option: str | int | None = None
     ) -> tuple[Tensor, Tensor]:
-        """The MDP a Q-learner sees in a first-visit replay of fixed-instance episodes ``(P, R)``.
-
-        At (s, a) the next state is drawn from the instance mixture weighted by the prior times the
-        chance that an episode of that instance visits (s, a) under ``behaviour (S, A)``
-        (:meth:`visit_probability`), not by the prior alone as in the mean MDP. Pairs no instance
-        visits keep the prior's weights. Env reward, or option ``option``'s subtask reward.
-        """
+        """``(P, R)`` a Q-learner sees in a first-visit replay: next states from the instance
+        mixture weighted by :meth:`visit_probability` under ``behaviour``; env or option
+        ``option``'s reward."""
         P, R, _, w = self._objective_tables(option)
         pt, d, _ = self.quadrature()
         v = self.visit_probability(behaviour, pt, d)  # (K, S, A)
@@ -136,12 +110,8 @@ class ReplayReference:
     def replay_policy(
         self, option: str | int | None = None, epsilon: float = 0.05, max_iter: int = 20
     ) -> Tensor:
-        """The Q-learning fixed point on its own epsilon-greedy first-visit replay ``(S,)``.
-
-        Iterates: behaviour = epsilon-greedy in the current policy; the greedy policy of the
-        optimal Q of :meth:`replay_mdp` (env reward, or the option's subtask reward with its
-        termination); until the policy repeats on the cells the behaviour visits (or ``max_iter``).
-        """
+        """The Q-learning fixed point ``(S,)`` on its own epsilon-greedy first-visit replay
+        (iterated until the policy repeats or ``max_iter``)."""
         _, _, cont, _ = self._objective_tables(option)
         k = (
             None

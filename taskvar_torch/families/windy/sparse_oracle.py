@@ -1,22 +1,9 @@
-"""Exact values of *large* windy layouts (51x51, 101x101): :class:`SparseWindyOracle`
-(docs/oracle.md, Large grids).
+"""Exact values of large windy layouts: :class:`SparseWindyOracle`
+(docs/oracle.md#large-grids-the-sparse-oracle).
 
-A windy step has at most two outcomes (the move, then a gust with probability ``p``), so a kernel
-is a *successor table* ``succ, prob (B, S, A, K)`` (``K = 2`` for one instance, ``1 + 4`` for the
-mean MDP) and every solve is a gather per sweep, batched over instances, on any device: value
-iteration for the optima (§3.1, §3.2), iterative policy evaluation stopped at a certified error
-``tol`` for ``Q_mu``, ``mu_bar``, ``Q^{m, mu_bar}`` and ``Q_hat`` (§3.2-3.3, Definition 1), and
-backward induction for exact returns, averaged by Gauss-Legendre quadrature in ``p``.
-
-The conventions are the dense oracle's (:class:`~taskvar_torch.families.windy.oracle.WindyOracle`),
-except that ties are snapped at ``tie_atol`` (values come from stopped iterations, not linear
-solves); on the small layouts both agree to ``1e-8`` (tests/families/windy/test_oracle_sparse.py).
-
-Examples:
-    >>> from taskvar_torch.families.windy.dynamics import make_layout
-    >>> oracle = SparseWindyOracle(make_layout(51, 51, num_exits=4, wind_cells_per_exit=2))
-    >>> oracle.averaging_policy().shape, oracle.option_q().shape
-    (torch.Size([2601]), torch.Size([4, 2601, 4]))
+A kernel is a successor table ``succ, prob (B, S, A, K)``; every solve is a gather per sweep,
+stopped at a certified error ``tol``, batched over instances, on any device. Ties are snapped at
+``tie_atol``; on small layouts it agrees with ``WindyOracle`` to ``1e-8``.
 """
 
 from __future__ import annotations
@@ -38,12 +25,8 @@ Tensor = torch.Tensor
 
 
 class SparseKernel:
-    """A batch of windy kernels as successor tables (``B`` instances or mixtures).
-
-    Attributes:
-        succ: ``(B, S, A, K)`` int64 next cells.
-        prob: ``(B, S, A, K)`` float64 probabilities (sum to 1 over K).
-    """
+    """Windy kernels as successor tables: ``succ (B, S, A, K)`` int64, ``prob`` float64 (sums to
+    1)."""
 
     def __init__(self, succ: Tensor, prob: Tensor):
         self.succ, self.prob = succ, prob
@@ -76,18 +59,9 @@ class SparseKernel:
 class SparseWindyOracle(WindyOracleBase):
     """Exact values of a windy layout of any size by per-instance iterations on successor tables.
 
-    Args:
-        model_or_layout: a :class:`~taskvar_torch.families.windy.dynamics.WindyModel`, a layout, a layout name
-            or a map string.
-        gamma: discount of the values (the networks' ``gamma``).
-        horizon: episode length of the returns (default :func:`windy.default_horizon`).
-        train_instances: the training distribution (name, dict or :class:`WindyInstances`).
-        wrong_exit_penalty: subtask penalty for reaching the goal through another exit.
-        p_grid: ``p`` values of Q_hat's instance set (an int: evenly spaced over the training range).
-        quad_nodes: Gauss-Legendre nodes in ``p`` for expected returns.
-        tol: certified sup-norm error of every iterative solve.
-        tie_atol: values closer than this are ties (lowest index wins).
-        device: torch device of the tables.
+    Args: as :class:`.oracle.WindyOracle` (``model_or_layout``, ``gamma``, ``horizon``,
+    ``train_instances``, ``wrong_exit_penalty``, ``p_grid``, ``quad_nodes``, ``device``), plus
+    ``tol`` (certified sup-norm error of every solve) and ``tie_atol`` (ties: lowest index wins).
     """
 
     def __init__(
@@ -116,10 +90,8 @@ class SparseWindyOracle(WindyOracleBase):
     # ---- kernels --------------------------------------------------------------------------------
 
     def kernel(self, p: Any, direction: Any) -> SparseKernel:
-        """Instances ``(p (B,), direction (B,))``: successors move / move-then-gust, ``K = 2``.
-
-        Goal cells are absorbing (values there are 0: the episode has ended).
-        """
+        """Instances ``(p (B,), direction (B,))``: successors move / move-then-gust (``K = 2``);
+        goals absorb."""
         p, d, _ = self._instances_arg(p, direction)
         B, S, A = p.numel(), self.S, self.A
         moved = self.model.move.unsqueeze(0).expand(B, S, A)
@@ -335,13 +307,8 @@ class SparseWindyOracle(WindyOracleBase):
     def expected_return(
         self, policy: Tensor, instances: Any = None, starts: str | None = "uniform", chunk: int = 64
     ) -> Tensor:
-        """``E_m[return]`` when the instance is drawn per episode and held fixed (quadrature over
-        ``instances``, default the training distribution). ``starts``: ``"uniform"`` (a scalar: the
-        mean over start cells) or ``None`` (``(S,)``, every cell).
-
-        With ``quad_nodes`` = ``ceil(horizon / 2)`` this is exact up to rounding (the return is a
-        polynomial of degree < horizon in ``p``); the default 32 nodes is not a certificate but
-        agrees with 64 nodes to 1e-6 on the shipped large layouts' averaging optimum (tests).
+        """``E_m[return]``, instance drawn per episode (quadrature over ``instances``); ``starts``:
+        ``"uniform"`` or ``None`` (``(S,)``). Exact with ``quad_nodes = ceil(horizon / 2)``.
         """
         p, d, w = self.quadrature(instances)
         total = torch.zeros(self.S, dtype=torch.float64, device=self.device)
@@ -363,24 +330,13 @@ class SparseWindyOracle(WindyOracleBase):
         starts: str | None = "uniform",
         chunk: int = 32,
     ) -> dict[str, Tensor]:
-        """Exact expected return and interruptions per episode of the options controller with a
-        greedy mu_bar, with offline interruption (Algorithm 1) when ``q_hat`` is given.
-
-        The controller is a Markov chain on (cell, running option), its decisions the controllers'
-        rule (:func:`~taskvar_torch.controllers.interruption.interruption_decide_of`): at the
-        start and never again (windy options end only at the goal) ``o_run = argmax_o Q_mu(s, o)``
-        (line 4); at every later step line 6, ``Q_hat(s, o_run) < max_q Q_mu(s, q)``, switches to
-        that argmax (lines 7-8); then ``a = pi^{o_run}(s)`` (line 11). An interruption is counted
-        whenever line 6 holds, even when mu_bar picks the running option again (the controllers'
-        ``interrupted``); the oracle's own tables have ties snapped, so this is :meth:`interruption_condition` on them.
-        Horizon-step returns by backward induction over steps-to-go, expected over ``instances``
-        (default: the training distribution) by :meth:`quadrature`, as :meth:`expected_return`.
+        """Exact expected return and interruptions per episode of the options controller (greedy
+        mu_bar), with offline interruption (Algorithm 1, lines 4-11) when ``q_hat`` is given.
 
         Args:
-            policies: ``(O, S)`` greedy option policies (exact or learnt).
-            q_mu: ``(S, O)`` switching values (mu_bar is greedy in them; first index on ties).
-            q_hat: ``(S, O)`` max-values; ``None``: plain options (no interruption).
-            starts: ``"uniform"`` (scalars: the mean over start cells) or ``None`` (``(S,)``).
+            policies: ``(O, S)`` greedy option policies. q_mu: ``(S, O)`` switching values.
+            q_hat: ``(S, O)`` max-values; ``None``: no interruption.
+            starts: ``"uniform"`` (scalars) or ``None`` (``(S,)``).
 
         Returns:
             ``{"expected_return": ..., "interruptions_per_episode": ...}``.
@@ -450,11 +406,9 @@ def outcome_planes(succ: Tensor, prob: Tensor) -> tuple[list[Tensor], list[Tenso
 
 
 def expect_planes(V: Tensor, succ: Sequence[Tensor], prob: Sequence[Tensor]) -> Tensor:
-    """``sum_j prob_j * V[succ_j]`` ``(B, n)`` for values ``V (B, S)``: one gather per outcome,
-    accumulated in outcome order. For ``K <= 2`` outcomes this is bit-equal to gathering all
-    outcomes and ``sum(-1)`` over them (tests/families/windy/test_oracle_sparse.py), and faster on the CPU, where
-    a reduction over a last dim of size 2 is slow (docs/benchmarks.md, "The exact oracle's chain
-    step")."""
+    """``sum_j prob_j * V[succ_j]`` ``(B, n)``: one gather per outcome, bit-equal to ``sum(-1)`` and
+    faster on the CPU (docs/benchmarks.md).
+    """
     out = V.gather(1, succ[0]).mul_(prob[0])
     for s, p in zip(succ[1:], prob[1:]):
         out.add_(V.gather(1, s).mul_(p))

@@ -11,14 +11,9 @@ from taskvar_torch.subtasks.base import Subtasks
 
 
 class WindySubtasks(Subtasks):
-    """Exit options: option k reaches the goal side through exit k.
-
-    - Initiation: every non-goal cell (anywhere left of the wall).
-    - Termination: on reaching the goal side (any goal cell) - the episode ends there too.
-    - Subtask reward: -1 per step; reaching the goal through another exit is a failure, charged
-      ``-wrong_exit_penalty`` on top (default: the horizon, the cost of never arriving), so the
-      option is credited with reaching *its* goal only.
-    """
+    """Exit options: option k reaches the goal side through exit k; initiation everywhere off the
+    goal, termination on the goal, subtask reward -1 a step plus ``-wrong_exit_penalty`` through
+    another exit."""
 
     def __init__(
         self, model: WindyModel, wrong_exit_penalty: float = 100.0, obs_encoding: str = "onehot"
