@@ -1,34 +1,23 @@
 """Wargus resource-gathering family (paper §3.5): config, instances, pure batched dynamics.
 
-A square grid (row 0 is north) without obstacles holds one agent, ``K`` patrols and ``M`` items.
-Everything is a batch of ``B`` episodes; positions are ``(row, col)`` int64.
+A square grid (row 0 is north), no obstacles, one agent, ``K`` patrols, ``M`` items; a batch of
+``B`` episodes. **State** (:class:`WargusState`): ``agent`` (B, 2), ``patrols`` (B, K, 2),
+``items`` (B, M, 2), ``t`` (B,), positions ``(row, col)`` int64.
 
-**State** (:class:`WargusState`): ``agent`` (B, 2), ``patrols`` (B, K, 2), ``items`` (B, M, 2),
-``t`` (B,). Shape constants live in :class:`WargusConfig` and are never batched.
+**Instance** (paper §3.5): an integer seed ``s in [0, 2^32)``; :func:`instance_key` makes it the
+key of the episode's counter-based stream (``rng.py``), from which every draw of the episode
+comes, so the same seed and actions give the same episode on any batch or device.
 
-**Instance** (paper §3.5: "a specific assignment of these two parameters produces one MDP"): the
-item-location process and the patrol's start and walk are random processes, so an episode's
-random seed for those *is* the instance. An instance is an integer seed
-``s in [0, 2^32)``; :func:`instance_key` hashes it into the key of the episode's counter-based
-random stream (``rng.py``), and every draw of the episode - agent start, patrol start, item
-locations, patrol walk and speed, hits - is ``rng.draw_*(key, counter)`` with one counter per
-(step, purpose): ``t * STRIDE + offset`` during steps, ``RESET_COUNTER + offset`` at reset. The
-same seed and the same actions therefore give the same episode, whatever the batch or device.
+**Step order** (:func:`step`):
 
-**Step order** (:func:`step`), one step of every episode of the batch:
+1. the agent moves one cell in one of 8 compass directions (8 = stay, with ``noop``), clipped;
+2. every item on the agent's cell is picked (+1 each) and reappears at a random other cell;
+3. each patrol moves with probability ``patrol_speed``: towards the agent if it sees it
+   (Chebyshev distance ``< sight``), else one random compass step, clipped;
+4. every patrol within Chebyshev distance ``<= shoot_range`` shoots; each shot destroys the agent
+   with probability ``hit_prob`` (terminated); the envs truncate at ``horizon``.
 
-1. the agent moves one cell in one of 8 compass directions (action 8 = stay, when ``noop``),
-   clipped at the edges;
-2. every item on the agent's cell is picked (+1 each) and re-appears at a uniformly random cell
-   other than the agent's (drawn from the instance stream);
-3. each patrol moves with probability ``patrol_speed``: if it sees the agent (Chebyshev distance
-   ``< sight``) one step along a shortest 8-connected path towards it (the sign of the
-   difference), else one uniformly random compass step, clipped at the edges;
-4. every patrol within Chebyshev distance ``<= shoot_range`` of the agent fires one shot (each step
-   it is in range); each shot destroys the agent with probability ``hit_prob``. Destruction ends
-   the episode (terminated); the environments truncate at ``horizon``.
-
-**Observation** (:func:`observe`), ``OBS_DIM = 24`` float32, the agent's view only:
+**Observation** (:func:`observe`), ``OBS_DIM = 24`` float32:
 
 =========  =====================================================================================
 index      meaning
@@ -42,17 +31,11 @@ index      meaning
 22:24      patrol offset ``(drow, dcol) / sight`` when seen, else 0
 =========  =====================================================================================
 
-"Nearest" is by Chebyshev distance, ties to the lowest index. Sectors are 45 degrees wide and
-centred on the compass directions, decided in exact integer arithmetic (no ``atan2``, so every
-device agrees); an object on the agent's own cell has an all-zero bearing. Bearings are always
-observed; offsets only when seen. Sight is symmetric: the agent sees a patrol exactly when the
-patrol sees the agent.
+Nearest by Chebyshev distance (ties: lowest index); 45-degree sectors in exact integer arithmetic;
+an object on the agent's cell has an all-zero bearing; sight is symmetric.
 
-**Events** beside the observation (integer state for subtask terminations: options
-terminate on events): ``picked``, the items picked on the step that led here, and ``item_lost``
-(:func:`item_lost`), the agent *lost sight of the item* on that step: an item was seen before the
-step, none is seen after it, and none was picked (reaching an item is not losing it, even when the
-new one appears out of sight). Both are 0 / False after a reset.
+**Events** (for subtask terminations): ``picked`` (items picked on the step that led here) and
+``item_lost`` (:func:`item_lost`); both 0 / False after a reset.
 """
 
 from __future__ import annotations
@@ -138,13 +121,11 @@ class WargusConfig:
 
     Args:
         size: grid side, in ``[4, 4096]``.
-        num_patrols: K, in ``[1, 64]``.
-        num_items: M items present at any time, in ``[1, 64]`` (the paper: 1).
-        sight: an object is seen when its Chebyshev distance is ``< sight``; in ``[1, size]``.
-        shoot_range: a patrol shoots when the Chebyshev distance is ``<= shoot_range``; in
-            ``[0, sight - 1]`` (a patrol only shoots an agent it sees).
+        num_patrols: K, in ``[1, 64]``. num_items: M, in ``[1, 64]`` (the paper: 1).
+        sight: an object is seen at Chebyshev distance ``< sight``; in ``[1, size]``.
+        shoot_range: a patrol shoots at distance ``<= shoot_range``; in ``[0, sight - 1]``.
         hit_prob: probability that a shot destroys the agent, in ``[0, 1]``.
-        patrol_speed: probability that a patrol moves on a given step, in ``[0, 1]``.
+        patrol_speed: probability that a patrol moves on a step, in ``[0, 1]``.
         horizon: steps before truncation, in ``[1, MAX_HORIZON]``.
         noop: add action 8, stay in place.
     """
@@ -201,11 +182,9 @@ class WargusConfig:
 
     @classmethod
     def from_any(cls, config: WargusConfig | dict | None = None, **overrides: Any) -> WargusConfig:
-        """A config from a config, a dict of fields or ``None``, with non-``None`` overrides.
-
-        Unknown field names raise ``ValueError`` naming them; the family's keys the options read
-        (:data:`OPTION_KEYS`) are left out, so a config's whole ``env.wargus`` section builds it.
-        """
+        """A config from a config, a dict or ``None``, with non-``None`` overrides; unknown names
+        raise ``ValueError``; :data:`OPTION_KEYS` are skipped, so a whole ``env.wargus`` section
+        builds it."""
         allowed = {f.name for f in fields(cls)}
         if config is None:
             base: dict[str, Any] = {}
@@ -236,18 +215,12 @@ CONFIGS = {
 
 @dataclass(frozen=True)
 class WargusInstances:
-    """Distribution of Wargus instances, i.e. of instance seeds (paper §3.5).
+    """Distribution of Wargus instance seeds (paper §3.5).
 
-    ``seeds=None`` (training): every episode gets a fresh seed, the sub-environment's episode key
-    (a function of the env seed, the global sub-environment index and the episode number, see
-    ``rng.py``). Otherwise the seeds come from the finite list ``seeds``: with ``order="cycle"``
-    (default) episode ``e`` of global sub-environment ``i`` plays ``seeds[(i + e) % len(seeds)]``,
-    so one env replays the list in order and ``len(seeds)`` envs play one seed each; with
-    ``order="uniform"`` each episode draws a seed uniformly (keyed, reproducible).
-
-    Named distributions (:meth:`named`): ``train`` and ``test`` (fresh seeds; test envs use their
-    own env seed), ``nominal`` (the fixed test seeds :data:`NOMINAL_SEEDS`, cycled).
-    """
+    ``seeds=None``: a fresh seed per episode (the episode key, ``rng.py``); else from ``seeds``,
+    with ``order="cycle"`` (episode ``e`` of sub-env ``i`` plays ``seeds[(i + e) % len(seeds)]``) or
+    ``"uniform"`` (keyed). Named (:meth:`named`): ``train``, ``test``, ``nominal``
+    (:data:`NOMINAL_SEEDS`, cycled)."""
 
     seeds: tuple[int, ...] | None = None
     order: str = "cycle"
@@ -406,13 +379,9 @@ def reset(
     key: torch.Tensor,  # (B,) int64 instance keys
     start: torch.Tensor | None = None,  # (B, 2) int64 or None
 ) -> WargusState:
-    """Initial state of each episode, drawn from its instance key.
-
-    The agent starts at a uniform cell (or ``start``); each item at a uniform cell other than the
-    agent's; each patrol at a uniform cell outside the agent's sight (Chebyshev distance
-    ``>= sight``), by keyed rejection sampling with ``PATROL_START_TRIES`` tries (the last try is
-    kept if none succeeds, e.g. when ``sight`` covers the whole grid).
-    """
+    """Initial state of each episode from its instance key: the agent at a uniform cell (or
+    ``start``), items elsewhere, patrols outside its sight (keyed rejection sampling,
+    ``PATROL_START_TRIES``)."""
     size, B = model.size, key.shape[0]
     k1 = key.unsqueeze(-1)  # (B, 1)
     if start is None:
@@ -437,11 +406,8 @@ def step(
     hit_prob: float | None = None,
     patrol_speed: float | None = None,
 ) -> tuple[WargusState, torch.Tensor, torch.Tensor]:
-    """One batched step in the order of the module docstring.
-
-    ``hit_prob`` / ``patrol_speed`` default to the config's. Returns ``(next_state, picked,
-    destroyed)``: ``picked`` (B,) int64 items picked (the reward), ``destroyed`` (B,) bool
-    (terminated). Truncation at the horizon is the caller's (``next_state.t``).
+    """One batched step in the module docstring's order; returns ``(next_state, picked (B,) int64,
+    destroyed (B,) bool)``; truncation is the caller's.
     """
     cfg = model.config
     hit_prob = cfg.hit_prob if hit_prob is None else hit_prob
@@ -502,12 +468,8 @@ def _nearest(
 
 
 def bearing_index(diff: torch.Tensor) -> torch.Tensor:
-    """Row ``(sr + 1) * 3 + (sc + 1)`` of :attr:`WargusModel.bearing_table` for offsets ``diff`` (..., 2).
-
-    Sectors are 45 degrees wide, centred on the 8 directions. The offset is east/west when
-    ``|drow| / |dcol| < tan(22.5°) = sqrt(2) - 1``, i.e. ``(|drow| + |dcol|)^2 < 2 dcol^2``
-    (exact in integers), symmetrically north/south, else diagonal; ``(0, 0)`` maps to row 4 (zeros).
-    """
+    """Row of :attr:`WargusModel.bearing_table` for offsets ``diff`` (..., 2): 45-degree sectors
+    decided in exact integers; ``(0, 0)`` maps to row 4 (zeros)."""
     a = diff.abs()  # (..., 2)
     s = (a[..., 0] + a[..., 1]).unsqueeze(-1)  # (..., 1)
     sq2 = 2 * a * a  # (..., 2)
@@ -548,12 +510,8 @@ def item_lost(
     seen_after: torch.Tensor,  # (B,) bool: item_seen after it
     picked: torch.Tensor,  # (B,) int64: items picked on the step
 ) -> torch.Tensor:
-    """The event "lost sight of the item" (B,) bool: seen before, not after, nothing picked.
-
-    Items stay put until picked, so with nothing picked the item goes out of sight only because the
-    agent walked away from it; a pickup whose new item appears out of sight is reaching the goal,
-    not losing it (the same reading as TG's robustness reward, ``families/wargus/subtasks.py``).
-    """
+    """The event "lost sight of the item" (B,) bool: seen before the step, not after, nothing
+    picked."""
     return seen_before & ~seen_after & (picked == 0)
 
 

@@ -34,65 +34,23 @@ _COMPILED_DYNAMICS: Compiled | None = None  # shared by every env of the process
 class WargusEnv(BatchedFamilyEnv):
     """Batched Wargus resource-gathering family (paper §3.5) as a TorchRL environment.
 
-    ## Description
-    On a ``size x size`` grid the agent collects items while ``num_patrols`` patrols hunt it:
-    a patrol walks at random until it sees the agent, then chases it and shoots once per step in
-    range. Each sub-environment draws its own hidden instance (an instance seed: the item-location
-    and patrol processes) at every (partial) reset. Dynamics and step order: ``families/wargus/dynamics.py``.
-
-    ## Action Space
-    ``Categorical(8)``: 0 N, 1 NE, 2 E, 3 SE, 4 S, 5 SW, 6 W, 7 NW; ``Categorical(9)`` with
-    ``noop=True`` (8 stays). Moves are clipped at the edges.
-
-    ## Observation Space
-    ``observation`` (N, 24) float32, laid out in ``families/wargus/dynamics.py`` (own position, nearest item and
-    patrol bearings, seen flags, offsets when seen). Integer state for relabelling subtask rewards
-    from raw transitions: ``agent_pos`` (N, 2) int64, ``item_seen`` (N,) bool, ``patrol_seen``
-    (N,) bool, ``picked`` (N,) int64 (items picked on the step that led here), ``item_lost`` (N,)
-    bool (the step that led here lost sight of the item: seen before, not after, nothing picked;
-    see ``families/wargus/dynamics.py``); ``picked`` and ``item_lost`` are 0 / False after a reset. Hidden, for
-    analysis only: ``("instance", "seed")`` (N,) int64, ``("instance", "patrol_pos")`` (N, K, 2),
-    ``("instance", "item_pos")`` (N, M, 2).
-
-    ## Starting State
-    Agent at a uniform cell (or ``start``), items elsewhere, patrols outside the agent's sight.
-
-    ## Reward
-    +1 per item picked.
-
-    ## Episode End
-    Terminated when a shot destroys the agent; truncated after ``horizon`` steps.
-
-    ## Arguments
-    ``config`` (a :class:`WargusConfig` or dict) and/or its fields as keywords (``size``,
-    ``num_patrols``, ``num_items``, ``sight``, ``shoot_range``, ``hit_prob``, ``patrol_speed``,
-    ``horizon``, ``noop``; non-``None`` keywords override ``config``).
-
-    ## Task parameters
-    The instance seed, drawn from ``instances`` (``train``, ``test``, ``nominal`` or a
-    :class:`WargusInstances`).
+    Each sub-env draws a hidden instance seed at every (partial) reset; dynamics, step order and the
+    ``observation (N, 24)`` layout are in ``families/wargus/dynamics.py``. Actions
+    ``Categorical(8)`` (0 N, 1 NE, ..., 7 NW; 9 with ``noop``); reward +1 per item; terminated when
+    destroyed, truncated at ``horizon``. Integer state for the subtasks: ``agent_pos``,
+    ``item_seen``, ``patrol_seen``, ``picked``, ``item_lost``; hidden (analysis only):
+    ``("instance", "seed" | "patrol_pos" | "item_pos")``.
 
     Args:
         num_envs: batch size N.
-        config: base config.
-        instances: instance distribution.
+        config: a :class:`WargusConfig` or dict; its fields as keywords override it.
+        instances: ``train``, ``test``, ``nominal`` or a :class:`WargusInstances`.
         start: optional fixed agent start ``(row, col)``.
-        seed: sub-environment ``i`` draws its episode keys from ``(seed, index_offset + i)``, so
-            any split of N environments reproduces the same trajectories.
-        index_offset: global index of sub-environment 0.
-        noise_seed: must be 0: a Wargus instance seed fixes the whole episode (patrol moves and
-            shots included), so there is no per-step noise to salt apart from the instance
-            (docs/families.md's constructor argument; anything else is a one-line error).
-        validate_actions: check actions are in range, raising a one-line error (one host sync
-            per step). ``None`` (default): on CPU only, so that on an accelerator the step has no
-            host round trip.
+        seed: sub-env ``i`` draws from ``(seed, index_offset + i)`` (any split reproduces).
+        index_offset: global index of sub-env 0.
+        noise_seed: must be 0 (the instance seed fixes the whole episode).
+        validate_actions: one-line error on an out-of-range action; ``None``: on CPU only.
         device: torch device.
-
-    Examples:
-        >>> env = WargusEnv(num_envs=8, seed=0)
-        >>> td = env.rollout(10)
-        >>> td["next", "observation"].shape
-        torch.Size([8, 10, 24])
     """
 
     def __init__(
@@ -288,21 +246,14 @@ class WargusEnv(BatchedFamilyEnv):
         return self.step_all(tensordict.get(keys.ACTION).reshape(-1))
 
     def reset_all(self) -> TensorDictBase:
-        """Start a new episode in every sub-environment and return their data.
-
-        The same draws and keys as ``reset()`` (no ``_reset`` mask), without ``EnvBase``'s checks
-        and transforms: the experiments' fast loop (``families/wargus/fig4_trial.py``) steps the
-        dynamics through :meth:`reset_all` / :meth:`step_all` on plain tensordicts.
+        """Start a new episode in every sub-env and return their data: ``reset()``'s draws without
+        ``EnvBase``'s checks and transforms (the Figure 4 fast loop).
         """
         return self._reset(None)
 
     def step_all(self, action: torch.Tensor) -> TensorDictBase:
-        """One step of every sub-environment with ``action`` ``(N,)`` int64.
-
-        Returns the data ``step()`` writes under ``"next"`` (observation, events, reward, done
-        flags, instance), without ``EnvBase``'s checks and transforms; no automatic reset (a done
-        sub-environment keeps stepping, as with ``step()``).
-        """
+        """One step of every sub-env with ``action (N,)``: what ``step()`` writes under ``"next"``,
+        without ``EnvBase``'s checks and transforms and without automatic reset."""
         if self.validate_actions:
             wargus.check_actions(self.model, action)
         state, picked, destroyed, observed, item_lost = self._dynamics(
@@ -317,10 +268,9 @@ class WargusEnv(BatchedFamilyEnv):
     _dynamics = staticmethod(_dynamics_step)  # the pure step of step_all (compile_dynamics)
 
     def compile_dynamics(self) -> None:
-        """Run :meth:`step_all`'s pure dynamics (``wargus.step``, ``observe``, ``item_lost``)
-        through ``torch.compile`` (``train.compile``; :class:`~taskvar_torch.compiling.Compiled`,
-        eager if compiling fails): the same bits (integer dynamics; tested), one fused kernel
-        instead of ~60 small ops per step. One compile per process and batch size."""
+        """Run :meth:`step_all`'s pure dynamics through ``torch.compile`` (``train.compile``;
+        :class:`~taskvar_torch.compiling.Compiled`): the same bits, one compile per batch size.
+        """
         global _COMPILED_DYNAMICS
         if _COMPILED_DYNAMICS is None:
             _COMPILED_DYNAMICS = Compiled(_dynamics_step, "the Wargus dynamics")

@@ -1,8 +1,5 @@
-"""The Wargus family: resource gathering with a hidden item and patrol (paper §3.5,
-docs/wargus-fig4.md).
-
-:func:`family` is the declaration the registry loads (``taskvar_torch.families`` entry point
-``wargus``), exactly as a user's package declares its own (docs/families.md).
+"""The Wargus family's declaration (paper §3.5, docs/wargus-fig4.md): :func:`family` is the
+``wargus`` entry point (docs/families.md).
 """
 
 from __future__ import annotations
@@ -102,12 +99,10 @@ def _wargus_env_kwargs(cfg: Config) -> dict[str, Any]:
 
 
 def wargus_state_features(td: Any, size: int, num_patrols: int, num_items: int) -> torch.Tensor:
-    """``(B, 2 * (num_items + num_patrols))``: every item's and every patrol's ``(row, col)``,
-    divided by ``size - 1`` (so in ``[0, 1]`` on a grid of that size), from the transitions'
-    ``("instance", "item_pos")`` (B, M, 2) and ``("instance", "patrol_pos")`` (B, K, 2): the
-    whole state the agent does not see (its own position is in the observation; the instance
-    seed is a random-stream key, not a feature). Read only by the ``informed`` baseline
-    (docs/memory.md); an env with other counts is a one-line ``ValueError``."""
+    """``(B, 2 * (M + K))``: every item's and patrol's ``(row, col) / (size - 1)`` from
+    ``("instance", "item_pos" | "patrol_pos")``; read only by the ``informed`` baseline
+    (docs/memory.md); other counts raise ``ValueError``.
+    """
     items = td.get((keys.INSTANCE, wargus.ITEM_POS))
     patrols = td.get((keys.INSTANCE, wargus.PATROL_POS))
     want = ((int(num_items), 2), (int(num_patrols), 2))

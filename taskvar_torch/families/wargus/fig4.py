@@ -1,34 +1,12 @@
-"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md, Protocol).
+"""Wargus Figure 4: the lifelong protocol (paper §3.5.1-3.5.3;
+docs/wargus-fig4.md#protocol-paper-351).
 
-:func:`wargus_fig4` runs R repetitions, each from its own seed ``cfg.seed + rep`` (own env
-streams, replay, generators and fresh networks: no prior knowledge). Each of its T trials is
-
-a. **learning**: ``experiment.learning_episodes_per_trial`` episodes of the training instances,
-   played side by side by the behaviour policy (``heads/behaviour.py``); the one multi-head
-   learner trains every head from their transitions;
-b. **test** (learning off): ``experiment.test_episodes_per_trial`` nominal episodes
-   (:data:`~taskvar_torch.families.wargus.dynamics.NOMINAL_SEEDS`) with each method (averaging,
-   options, interruption, hierarchy) side by side; score = items collected per test episode;
-c. **held-out test**: the same on the sealed held-out instance seeds
-   (:data:`~taskvar_torch.families.HELDOUT_SEEDS`), drawing nothing from the global stream.
-
-Repetitions run batched (:func:`~taskvar_torch.families.wargus.fig4_repetition.run_repetitions_batched`),
-each giving the numbers it gives alone; ``workers = W`` splits them over spawned processes
-(:func:`repetition_batches`). A fresh agent is :mod:`~taskvar_torch.families.wargus.fig4_agent`,
-one trial's loops :mod:`~taskvar_torch.families.wargus.fig4_trial`, one repetition's trials
-:mod:`~taskvar_torch.families.wargus.fig4_repetition`, the metrics
-:mod:`~taskvar_torch.families.wargus.fig4_metrics` and the report
-:mod:`~taskvar_torch.families.wargus.fig4_report`; this module re-exports their public names and
-those of :mod:`taskvar_torch.controllers.side_by_side` and :mod:`taskvar_torch.heads.snapshots`.
-
-Writes ``config.yaml``, ``rep{r}/final.pt``, ``per_trial.csv``, ``per_trial_heldout.csv``,
-``metrics.json`` and ``fig4.png``; with ``experiment.baselines`` each baseline's agents run the
-same protocol (:mod:`~taskvar_torch.families.wargus.fig4_recurrent`) into
-``per_trial_baselines.csv`` and ``rep{r}/recurrent.pt``.
-
-Examples:
-    >>> cfg = load_config(default_config_path(), quick=True)  # doctest: +SKIP
-    >>> metrics = wargus_fig4(cfg, "results/wargus-fig4-quick")  # doctest: +SKIP
+:func:`wargus_fig4` runs R repetitions (seed ``cfg.seed + rep``, no prior knowledge) of T trials
+(learning, nominal test, held-out test), batched
+(:func:`~.fig4_repetition.run_repetitions_batched`) or split over ``workers`` processes, and
+writes the results folder; this module re-exports the public names of :mod:`.fig4_agent`,
+:mod:`.fig4_trial`, :mod:`.fig4_repetition`, :mod:`.fig4_metrics`, :mod:`.fig4_report`,
+:mod:`taskvar_torch.controllers.side_by_side` and :mod:`taskvar_torch.heads.snapshots`.
 """
 
 from __future__ import annotations
@@ -120,10 +98,9 @@ def run_repetitions(
     run_batch: RunBatch = run_repetitions_batched,
     desc: str = EXPERIMENT,
 ) -> list[dict[str, Any]]:
-    """Every repetition, batched (``run_batch``: :func:`run_repetitions_batched`, or a baseline's
-    agents): in this process (``workers = 1``: one batch of all of them) or as ``workers``
-    batches in spawned processes (:func:`repetition_batches`). Each repetition gives the same
-    numbers either way."""
+    """Every repetition through ``run_batch``, here (``workers = 1``) or as ``workers`` batches in
+    spawned processes; the same numbers either way.
+    """
     reps = cfg.experiment.runs
     bar = progress_bar(
         total=reps * cfg.experiment.trials, disable=not progress, desc=desc, unit="trial"
@@ -179,14 +156,10 @@ def wargus_fig4(
     overwrite: bool = False,
     staged: bool = True,
 ) -> dict[str, Any]:
-    """Run the lifelong protocol (module docstring), write the results folder, print the table.
-
-    ``workers`` processes run the repetitions; ``plots=False`` skips ``fig4.png`` (``taskvar plot
-    DIR`` draws it later from the folder); ``overwrite`` replaces results already in ``out_dir``
-    (without it such a folder is refused). ``out_dir`` is written like every results folder
-    (:class:`~taskvar_torch.run_folder.ResultsFolder`: locked, filled in a staging folder and
-    swapped in whole); ``staged=False`` writes into it directly (a sweep's point: the sweep holds
-    its folder and has refused results already there).
+    """Run the lifelong protocol, write ``out_dir`` (a
+    :class:`~taskvar_torch.run_folder.ResultsFolder`), print the table. ``plots=False`` skips
+    ``fig4.png``; ``overwrite`` replaces results (otherwise refused); ``staged=False`` writes into
+    ``out_dir`` directly (a sweep's point).
     """
     FAMILIES["wargus"].require(cfg, "wargus-fig4")
     if cfg.train.eval_ema_tau is not None:

@@ -1,9 +1,6 @@
-"""A fresh agent of the Wargus Figure 4 lifelong protocol (paper §3.5.1: no prior knowledge;
-docs/wargus-fig4.md): fresh networks for every head, an empty replay buffer and its own
-exploration generator (:func:`make_agent`, :func:`make_behaviour`, seeded
-``seed + EXPLORATION_OFFSET``), the nominal and held-out test envs (:func:`make_test_env`,
-:func:`make_heldout_test_env`), the four methods' test controllers (:func:`make_test_controllers`)
-and the hierarchy's calibration after a trial (:func:`trial_calibration`).
+"""A fresh agent of the Wargus Figure 4 protocol (paper §3.5.1; docs/wargus-fig4.md): networks,
+replay and exploration generator, the test envs, the four methods' test controllers and the
+hierarchy's calibration after a trial.
 """
 
 from __future__ import annotations
@@ -97,10 +94,9 @@ def make_agent(cfg: Config, env: WargusEnv | TransformedEnv, seed: int) -> Lifel
 def make_test_env(
     cfg: Config, k: int, seed: int, first_trial: int = 0, trials: int = 1
 ) -> WargusEnv:
-    """The test env of ``trials`` trials from ``first_trial`` on: rows ``(g, method, j)``, where
-    episode ``j`` of trial ``t`` plays nominal seed ``(j + t) % k``, so every method plays all
-    ``k`` seeds every trial. With ``trials = 1`` the env can be reused: its next reset is the next
-    trial (the seeds cycle)."""
+    """Test env of ``trials`` trials from ``first_trial``: rows ``(g, method, j)``, episode ``j`` of
+    trial ``t`` playing nominal seed ``(j + t) % k``; with ``trials = 1`` each reset is the next
+    trial."""
     rows = tuple(
         s for g in range(trials) for _ in METHODS for s in trial_seeds(k, first_trial + g)[0]
     )

@@ -1,23 +1,6 @@
-"""Wargus Figure 4 statistics: the content of ``metrics.json`` (paper §3.5.3; docs/wargus-fig4.md).
-
-:func:`summarise` turns the per-trial test scores of every repetition into the figure's numbers.
-Definitions used in ``metrics.json``:
-
-- ``curve_mean`` / ``curve_std``: per trial, mean and standard deviation over repetitions of the
-  mean items per test episode (raw, unsmoothed);
-- ``curve_smoothed``: trailing moving average of ``curve_mean`` over ``smoothing_window`` trials
-  (``max(1, T // 20)``, 25 for 500 trials); trailing, so the value at trial t uses trials <= t;
-- ``final_score``: mean of ``curve_mean`` over the last 10% of trials (at least one);
-- ``trials_to_90pct``: first trial (1-based) at which ``curve_smoothed`` reaches 90% of
-  ``final_score`` (``T`` and ``reached_90pct = false`` if it never does);
-- ``trials_to_90pct_of_max``: the same against 90% of the smoothed curve's own maximum (the
-  paper's Figure 4 bars);
-- ``mean_over_trials`` / ``mean_first_250_trials``: mean items per test episode over all trials /
-  trials 1-250, with the standard deviation and a 95% CI half-width across repetitions;
-- ``hierarchy_trace``: fraction of the hierarchy's (alive) test steps at which each level / each
-  subtask held control (Algorithm 2's decision), over all trials and over the last 10%.
-
-The curve statistics themselves are :mod:`taskvar_torch.experiments.curves`'s.
+"""Wargus Figure 4 statistics: the content of ``metrics.json`` (paper §3.5.3;
+docs/wargus-fig4.md#protocol-paper-351, which defines each key); curves from
+:mod:`taskvar_torch.experiments.curves`.
 """
 
 from __future__ import annotations
@@ -99,14 +82,9 @@ def summarise(
     option_depths: Sequence[int],
     item_lost: np.ndarray | None = None,  # (R, T, M) item_lost events per test episode
 ) -> dict[str, Any]:
-    """``metrics.json``'s content (definitions in the module docstring).
-
-    ``items`` ``(R, T, M)``: mean items per test episode per repetition, trial and method
-    (:data:`METHODS` order); ``inter`` ``(R, T, M)``: interruptions per test episode; ``control``
-    ``(R, T, O)``: the hierarchy's live test steps per controlling subtask (``option_names``, at
-    composition-tree depths ``option_depths``); ``item_lost`` ``(R, T, M)``: item-lost events per
-    test episode (optional).
-    """
+    """``metrics.json``'s content from ``items``, ``inter`` and ``item_lost`` ``(R, T, M)`` (per
+    test episode, per repetition, trial and method) and ``control`` ``(R, T, O)`` (the hierarchy's
+    live test steps per subtask at depths ``option_depths``)."""
     R, T, M = items.shape
     nf = final_count(T)
     w = smoothing_window(T)

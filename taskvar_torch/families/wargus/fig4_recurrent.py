@@ -1,17 +1,8 @@
 """The recurrent baseline's curve in the Wargus Figure 4 protocol (docs/wargus-fig4.md#memory).
 
-With ``experiment.baselines: [recurrent]`` each repetition also runs a recurrent Q-network
-(:mod:`taskvar_torch.heads.recurrent`) through the same lifelong protocol as the paper's agent
-(paper §3.5.1), on its own: a fresh network and empty replay; each trial, **learning** on the same
-training instances the paper's agent learns on (epsilon-greedy at ``train.epsilon_at``; the trial's
-episodes go to the replay whole, then the gradient steps its frames called for, by
-:class:`~taskvar_torch.training.baselines.BaselineLearner` through
-:func:`~taskvar_torch.training.learning.update_phase`), then a greedy **test** on the trial's
-nominal and held-out seeds (:func:`~taskvar_torch.families.wargus.fig4_trial.trial_seeds`).
-
-It draws from its own streams (torch's generator seeded ``seed + RECURRENT_OFFSET`` inside
-``fork_rng``), so the paper's agent's numbers are the same with the curve on or off. Each
-repetition's network is saved as ``rep{r}/recurrent.pt`` beside ``rep{r}/final.pt``.
+With ``experiment.baselines: [recurrent]`` each repetition also trains a fresh recurrent
+Q-network through the same trials (learning on the training instances, greedy test on the
+trial's nominal and held-out seeds), from its own streams, saved as ``rep{r}/recurrent.pt``.
 """
 
 from __future__ import annotations
@@ -134,10 +125,8 @@ def learning_phase(agent: RecurrentAgent) -> dict[str, float]:
 
 
 def test_phase(agent: RecurrentAgent, trial: int) -> tuple[float, float]:
-    """Mean items per episode, greedy and learning off, on trial ``trial``'s nominal and held-out
-    instance seeds (:func:`~taskvar_torch.families.wargus.fig4_trial.trial_seeds`), all ``2 K``
-    episodes side by side in one batch of the episode player
-    (:func:`~taskvar_torch.experiments.paired.play`)."""
+    """Mean items per episode (greedy, learning off) on trial ``trial``'s nominal and held-out
+    seeds, in one batch of the episode player."""
     cfg, k = agent.cfg, agent.cfg.experiment.test_episodes_per_trial
     nominal, heldout = trial_seeds(k, trial)
     point = EvalPoint("", None, cfg, WargusInstances(seeds=nominal + heldout))
@@ -151,10 +140,9 @@ def run_recurrent_repetition(
     cfg: Config, rep: int, out_dir: str | os.PathLike, on_trial: Callable[[int, int], None] | None
 ) -> dict[str, Any]:
     """Repetition ``rep``'s recurrent agent through every trial; saves ``rep{rep}/recurrent.pt``.
-
-    Returns ``items`` and ``heldout_items`` ``(T,)`` (mean items per nominal / held-out test
-    episode), ``learn_items``, ``frames``, ``updates`` ``(T,)``, ``cpu_seconds`` per
-    :data:`PHASES` and ``seconds`` (wall)."""
+    Returns ``items``, ``heldout_items``, ``learn_items``, ``frames``, ``updates`` ``(T,)``,
+    ``cpu_seconds`` per :data:`PHASES` and ``seconds``.
+    """
     start = time.perf_counter()
     seed = repetition_seed(cfg, rep)
     rep_cfg = dataclasses.replace(cfg, seed=seed)

@@ -1,10 +1,6 @@
-"""One repetition of the Wargus Figure 4 lifelong protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md):
-its T trials of learning and nominal and held-out test phases, run **batched** with other
-repetitions (:func:`run_repetitions_batched`: one loop steps every repetition's learning episodes
-at once, each keeping its own learner, replay, generators and test phases, so each gives the
-numbers it gives alone) or alone (:func:`run_repetition`), :data:`TEST_GROUP` trials tested side
-by side on frozen copies of their heads; its held-out summary (:func:`heldout_summary`) and the
-hierarchy's depths.
+"""Repetitions of the Wargus Figure 4 protocol (paper §3.5.1-3.5.3; docs/wargus-fig4.md), batched
+(:func:`run_repetitions_batched`) or alone (:func:`run_repetition`), each giving the numbers it
+gives alone; :func:`heldout_summary`.
 """
 
 from __future__ import annotations
@@ -138,10 +134,7 @@ def _test_env(
 
 
 def _test_pending(cfg: Config, runs: Sequence[_Repetition]) -> None:
-    """The nominal and held-out test phases of the trials not tested yet, of every repetition of
-    ``runs`` (each with the same number pending) side by side in one batch: repetition ``s``'s
-    frozen heads and calibrations on its own block of rows (:func:`_test_env`), so each gets the
-    episodes it gets alone. Without snapshots (``group = 1``: the live heads) one at a time."""
+    """Test phases of the trials not tested yet, every repetition side by side on its own rows."""
     tick = time.process_time()
     k = cfg.experiment.test_episodes_per_trial
     if runs[0].group == 1 and len(runs) > 1:
@@ -219,30 +212,17 @@ def run_repetitions_batched(
     on_trial: Callable[[int, int], None] | None = None,
     test_group: int = TEST_GROUP,
 ) -> list[dict[str, Any]]:
-    """Repetitions ``reps`` of the lifelong protocol (module docstring) in one batched loop;
-    saves each ``rep{rep}/final.pt``.
+    """Repetitions ``reps`` in one batched loop; saves each ``rep{rep}/final.pt``.
 
-    Each repetition keeps its own agent (heads, learner, replay buffer and generator, exploration
-    generator, counters), its own test policy and test phases; their learning phases run as one
-    loop (:func:`learning_phases`): one env of ``len(reps) x L`` sub-environments in seed-major
-    blocks, one behaviour pass over the repetitions' heads stacked (heads/seeds.py), each block at
-    its own epsilon and drawing from its own repetition's generators, each repetition updating on
-    its own schedule, after which its new weights are copied into the acting stack. Every
-    repetition's numbers are therefore those it gives alone (tested equal), whatever it shares a
-    batch with; only the per-step work is shared.
-
-    The test phases of ``test_group`` consecutive trials run side by side after their learning
-    phases, each with a frozen copy of the heads taken at the end of its trial
-    (:func:`test_trials`): the same episodes as testing each trial at once (``test_group = 1``).
-
-    Runs inside :func:`torch.random.fork_rng`, repetition ``r``'s networks initialised from the
-    global stream seeded :func:`repetition_seed`, so the caller's stream is left untouched.
+    Each repetition keeps its own agent, generators, schedule and test phases
+    (:func:`learning_phases`, docs/seeds.md#figure-4-repetitions), so its numbers are those it gives
+    alone; ``test_group`` trials are tested side by side on frozen heads (:func:`test_trials`). Runs
+    inside :func:`torch.random.fork_rng`.
 
     Returns, per repetition:
-        ``items``, ``interruptions`` and ``item_lost`` ``(T, M)``, ``control_steps`` ``(T, O)``,
-        ``learn_items``, ``frames``, ``updates`` ``(T,)``, ``option_names``, ``seconds`` (the
-        batch's wall) and ``cpu_seconds``: CPU seconds per phase (:data:`PHASES`; the shared
-        learning loop split evenly between the repetitions).
+        ``items``, ``interruptions``, ``item_lost`` ``(T, M)``, ``control_steps`` ``(T, O)``,
+        ``learn_items``, ``frames``, ``updates`` ``(T,)``, ``option_names``, ``seconds`` and
+        ``cpu_seconds`` per :data:`PHASES`.
     """
     start = time.perf_counter()
     S = len(reps)

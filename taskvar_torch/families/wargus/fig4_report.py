@@ -1,12 +1,5 @@
-"""Wargus Figure 4 report: ``per_trial.csv`` rows, the printed table and ``fig4.png``.
-
-Reads what :mod:`taskvar_torch.families.wargus.fig4_metrics` computes (``metrics.json``; paper
-§3.5.3, docs/wargus-fig4.md); :func:`plot_results` redraws the figure from a results folder alone
-(``taskvar plot DIR``).
-
-Examples:
-    >>> print(format_table(json.loads(Path("DIR/metrics.json").read_text())))  # doctest: +SKIP
-    >>> plot_results("DIR")  # doctest: +SKIP
+"""Wargus Figure 4 report: ``per_trial.csv`` rows, the printed table, and :func:`plot_results`,
+which redraws ``fig4.png`` from a results folder alone (docs/wargus-fig4.md).
 """
 
 from __future__ import annotations

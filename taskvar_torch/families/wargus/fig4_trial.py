@@ -1,24 +1,8 @@
-"""One trial of the Wargus Figure 4 protocol: a learning phase, then a test phase (paper §3.5.1;
-docs/wargus-fig4.md). The protocol around it (agent construction, repetitions, results) is
-:mod:`taskvar_torch.families.wargus.fig4`, which re-exports every name here.
-
-* :class:`LifelongAgent` holds what one repetition learns (every head, one learner, one replay
-  buffer) and its counters; :func:`learn_due` takes the gradient steps the frames played call for.
-* :func:`learning_phase`: one episode per sub-environment of the training instance distribution,
-  learning on; :func:`learning_phases`: several repetitions' at once, in one loop (each still
-  learning exactly what it learns alone).
-* :func:`test_phase` / :func:`test_trials`: the nominal test episodes of every method side by side,
-  learning off.
-
-Speed (docs/benchmarks.md, ``benchmarks/wargus_trial.py``): the loops step the pure dynamics
-through :meth:`WargusEnv.reset_all` / :meth:`WargusEnv.step_all` (no ``EnvBase`` checks,
-transforms or ``step_mdp``), write replay once per update phase, run every head in one stacked
-pass (:class:`~taskvar_torch.heads.snapshots.HeadValues`), and test several trials
-(:data:`~taskvar_torch.families.wargus.fig4_repetition.TEST_GROUP`) side by side on frozen copies of their
-heads (:func:`test_trials` with :class:`~taskvar_torch.controllers.side_by_side.SideBySide`). The
-TorchRL loops they are tested bit-equal to live in ``benchmarks/reference/wargus_torchrl_trial.py``.
-``train.compile`` also runs the behaviour's choices, the dynamics step and the learner's losses
-through ``torch.compile`` (``taskvar_torch/compiling.py``).
+"""One trial of the Wargus Figure 4 protocol (paper §3.5.1; docs/wargus-fig4.md): the learning
+phase (:func:`learning_phase`, :func:`learning_phases`) and the test phase (:func:`test_phase`,
+:func:`test_trials`), stepping the pure dynamics through ``reset_all``/``step_all``
+(docs/benchmarks.md); the TorchRL loops they equal are in
+``benchmarks/reference/wargus_torchrl_trial.py``.
 """
 
 from __future__ import annotations
@@ -67,11 +51,9 @@ class LifelongAgent:
 
 
 def learn_due(agent: LifelongAgent, t: Any) -> None:
-    """``train.updates_per_batch`` updates for every ``train.frames_per_batch`` frames played (after
-    ``train.init_random_frames``: :func:`~taskvar_torch.training.learning.learning_started`), each on one
-    shared sample for every head (:func:`~taskvar_torch.training.learning.update_phase`, at the learner's
-    ``train.lr``: this agent does not apply ``train.lr_end``, which no shipped config sets); their
-    CPU time (sampling included) is added to ``agent.update_seconds``."""
+    """``train.updates_per_batch`` updates (one shared sample each) per ``train.frames_per_batch``
+    frames played, at ``train.lr``; their CPU time goes to ``agent.update_seconds``.
+    """
     while agent.pending >= t.frames_per_batch:
         agent.pending -= t.frames_per_batch
         if learning_started(agent.frames, len(agent.buffer), t):
@@ -99,29 +81,16 @@ def nominal_seeds(k: int) -> tuple[int, ...]:
 
 
 def trial_seeds(k: int, trial: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """The instance seeds of trial ``trial``'s (0-based) ``k`` test episodes, nominal and held-out:
-    episode ``j`` plays nominal seed ``nominal_seeds(k)[(j + trial) % k]`` (every seed every trial)
-    and held-out seed ``HELDOUT_SEEDS[(trial k + j) % len(HELDOUT_SEEDS)]`` (the trials walk
-    through the sealed held-out instances in turn); every method plays the same (paired)."""
+    """Instance seeds of trial ``trial``'s ``k`` test episodes: nominal ``(j + trial) % k`` and
+    held-out ``HELDOUT_SEEDS[(trial k + j) % len]``, the same for every method."""
     seeds, n = nominal_seeds(k), len(HELDOUT_SEEDS)
     nominal = tuple(seeds[(j + trial) % k] for j in range(k))
     return nominal, tuple(HELDOUT_SEEDS[(trial * k + j) % n] for j in range(k))
 
 
 def learning_phase(agent: LifelongAgent, env: WargusEnv) -> dict[str, float]:
-    """One episode per sub-environment (training instances) with learning on (paper §3.5.1).
-
-    Transitions of live episodes are replayed; every ``frames_per_batch`` frames played the learner
-    takes ``updates_per_batch`` gradient steps on every head. Returns the mean items per episode
-    and the frames played.
-
-    The fast loop: it steps ``env``'s dynamics directly (:meth:`WargusEnv.reset_all` /
-    :meth:`WargusEnv.step_all`, no ``EnvBase`` checks, transforms or ``step_mdp``), carries
-    ``is_init`` and the behaviour mode itself, and filters first visits and writes the kept
-    transitions to the replay buffer once per update phase (before any sample, so the buffer
-    holds the same rows in the same order). Same draws, same transitions, same updates as the
-    TorchRL loop ``learning_phase_torchrl`` (``benchmarks/reference/wargus_torchrl_trial.py``,
-    tested equal). :func:`learning_phases` with one agent.
+    """One episode per sub-env (training instances), learning on (paper §3.5.1); returns mean items
+    per episode and frames played. :func:`learning_phases` with one agent.
     """
     return learning_phases([agent], env, agent.behaviour, agent.first_visit)[0]
 
@@ -133,18 +102,9 @@ def learning_phases(
     first_visit: FirstVisitFilter,
     on_update: Callable[[int], None] | None = None,
 ) -> list[dict[str, float]]:
-    """:func:`learning_phase` of ``S = len(agents)`` repetitions at once, in one loop.
-
-    ``env``'s sub-environments are ``S`` seed-major blocks (:meth:`WargusEnv.set_seed_blocks`,
-    block ``s`` drawing what repetition ``s``'s own env draws); ``behaviour`` acts for every block
-    at once (the repetitions' heads stacked, :func:`~taskvar_torch.heads.seeds.stack_seeds`, with
-    ``generators``: block ``s`` draws from repetition ``s``'s exploration generator only), each
-    block at its own repetition's epsilon; ``first_visit`` has a row per sub-environment. Each
-    repetition keeps its own counters, replay buffer and learner: its update phases fall where its
-    own frames call for them (:func:`learn_due`), on its own samples, and ``on_update(s)`` follows
-    repetition ``s``'s update phase (to copy its new weights into the acting stack). So each
-    repetition plays and learns exactly what it does alone (tested equal); only the per-step work
-    (behaviour, dynamics, staging) is shared.
+    """:func:`learning_phase` of ``S = len(agents)`` repetitions in one loop: seed-major blocks of
+    ``env``, one stacked behaviour pass, each repetition with its own generator, epsilon, counters,
+    replay and learner; ``on_update(s)`` follows repetition ``s``'s update phase.
     """
     S = len(agents)
     t = agents[0].cfg.train
@@ -219,12 +179,9 @@ def _flush(
     first_visit: FirstVisitFilter,
     use_first_visit: bool,
 ) -> None:
-    """Write the staged transitions of live episodes (``masks``) that are kept to the replay
-    buffers, block ``s`` of the sub-environments to ``agents[s]``'s (one ``extend`` each, in step
-    order); ``use_first_visit``: first visits only, filtered here for all the staged steps at once
-    (:meth:`FirstVisitFilter.visit_steps`, equal to a visit per step). Writing a repetition's
-    transitions before its own update phase is due changes nothing it samples: its buffer holds
-    the same rows in the same order when it next samples."""
+    """Write the kept staged transitions of live episodes to each block's replay (first visits only
+    with ``use_first_visit``), in step order.
+    """
     if not staged:
         return
     batch = torch.cat(staged)  # (T N,) step-major
@@ -248,14 +205,8 @@ def _flush(
 
 
 def test_phase(policy: SideBySide, env: WargusEnv, k: int) -> dict[str, np.ndarray]:
-    """The nominal test episodes of every method, side by side, learning off (paper §3.5.1).
-
-    Returns per method ``items`` (mean per test episode), ``interruptions`` (per episode) and,
-    over the hierarchy's live steps, the count of steps each subtask held control. ``env``: the
-    test env (:func:`~taskvar_torch.families.wargus.fig4_agent.make_test_env`), at its next trial.
-    The fast loop (:func:`test_trials` with the live heads); the same episodes as TorchRL's
-    (``test_phase_torchrl``, ``benchmarks/reference/wargus_torchrl_trial.py``, tested equal).
-    """
+    """The nominal test episodes of every method side by side, learning off (paper §3.5.1): per
+    method ``items``, ``interruptions`` and the hierarchy's steps per controlling subtask."""
     return test_trials(policy, env, k, None)[0]
 
 
@@ -267,17 +218,9 @@ def test_trials(
     snapshots: Sequence[Sequence[torch.Tensor]] | None,
     calibrations: Sequence[RobustnessCalibration | None] | None = None,
 ) -> list[dict[str, np.ndarray]]:
-    """The test phases of ``G`` trials side by side: trial ``g`` with frozen heads
-    ``snapshots[g]`` (:meth:`HeadValues.snapshot`; ``None``: one trial, the live heads) on rows
-    ``(g, method, episode)`` of ``env``
-    (:func:`~taskvar_torch.families.wargus.fig4_agent.make_test_env` with ``trials=G``).
-
-    Steps ``env``'s dynamics directly (:meth:`WargusEnv.step_all`) with
-    :meth:`SideBySide.decide_batch`, carries ``running_option`` (-1 at the start) itself, and stops
-    when every episode is done. Test episodes read nothing learnt later and draw nothing from the
-    global stream, so testing a trial later, beside others, gives the episodes it gave right after
-    its learning phase (tested equal). Returns one :func:`test_phase` result per trial.
-    """
+    """Test phases of ``G`` trials side by side, trial ``g`` on frozen heads ``snapshots[g]``
+    (``None``: the live heads) on rows ``(g, method, episode)``; one :func:`test_phase` result per
+    trial."""
     params = None
     G = 1
     if snapshots is not None:

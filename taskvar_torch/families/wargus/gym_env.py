@@ -20,25 +20,10 @@ from taskvar_torch.families.wargus.env import WargusEnv
 
 
 class WargusGymEnv(FamilyGymEnv):
-    """Wargus resource gathering (paper §3.5) as one Gymnasium env: :class:`WargusEnv`'s
-    description, actions (``Discrete(8)``, ``Discrete(9)`` with ``noop``), start, reward and
-    episode end.
-
-    Observation: ``Box(24,)`` float32, the batched env's ``observation`` (layout in
-    ``families/wargus/dynamics.py``); the instance is never in it. Arguments: the
-    :class:`WargusConfig` fields (``size``, ``num_patrols``, ``num_items``, ``sight``,
-    ``shoot_range``, ``hit_prob``, ``patrol_speed``, ``horizon``, ``noop``), ``instances`` and
-    ``render_mode`` (``ansi`` or ``rgb_array``). ``reset(options={"instance": {"seed": s},
-    "start": (row, col)})`` pins the episode's instance seed and start cell. ``info`` holds the
-    instance (``seed``, the hidden ``patrol_pos`` and ``item_pos``), the integer state the
-    subtasks read as :class:`WargusEnv` emits it (``agent_pos``, ``item_seen``, ``patrol_seen``,
-    ``picked``, ``item_lost``) and the step count ``t``.
-
-    Examples:
-        >>> env = WargusGymEnv(render_mode="ansi")
-        >>> obs, info = env.reset(seed=0, options={"instance": {"seed": 7}})
-        >>> obs.shape, info["instance"]["seed"]
-        ((24,), 7)
+    """Wargus (paper §3.5) as one Gymnasium env over :class:`WargusEnv` (docs/gymnasium.md):
+    ``Discrete(8)`` (9 with ``noop``), ``Box(24,)``; arguments the :class:`WargusConfig` fields,
+    ``instances``, ``render_mode``; ``reset(options={"instance": {"seed": s}, "start": (row,
+    col)})`` pins an episode; ``info`` holds the instance, the subtasks' integer state and ``t``.
     """
 
     env_class = WargusEnv

@@ -1,12 +1,5 @@
-"""Wargus rendering: a text grid (``ansi``) and a uint8 image (``rgb_array``), numpy only.
-
-Both show the agent, the item(s), the patrol(s), the patrols' sight and shoot radii, and (image only)
-the agent's own sight.
-
-Text legend: ``A`` agent, ``P`` patrol, ``I`` item, ``*`` inside a patrol's shoot range, ``+``
-inside a patrol's sight, ``.`` elsewhere. Image: blue disc agent, dark red square patrol, gold
-diamond item; light blue cells are within the agent's sight, pink within a patrol's sight, salmon
-within its shoot range; each sight area also has a border in its owner's colour.
+"""Wargus rendering, numpy only: a text grid (``ansi``: ``A`` agent, ``P`` patrol, ``I`` item,
+``*`` shoot range, ``+`` sight) and a uint8 image (``rgb_array``).
 """
 
 from __future__ import annotations
@@ -119,10 +112,8 @@ def _outline(img: np.ndarray, pos: np.ndarray, radius: int, px: int, col: np.nda
 
 
 def rgb(frame: Frame, cell_px: int | None = None) -> np.ndarray:
-    """The grid as an ``(H, W, 3)`` uint8 image, ``H = W = size * cell_px``.
-
-    ``cell_px`` defaults to ``max(4, 256 // size)`` (a 32x32 grid gives 256x256 pixels).
-    """
+    """The grid as an ``(H, W, 3)`` uint8 image, ``H = W = size * cell_px`` (default ``max(4, 256 //
+    size)``)."""
     cfg, n = frame.config, frame.config.size
     px = max(4, 256 // n) if cell_px is None else int(cell_px)
     if px < 2:

@@ -1,33 +1,14 @@
-"""The robustness critics against Monte Carlo returns of their own option (paper §3.4.3, Wargus).
+"""The robustness critics against Monte Carlo returns of their own option (paper §3.4.3, Wargus;
+docs/hierarchy-critics.md).
 
-``R(o, s, a)`` "estimates the expectation that the option o will be able to achieve its goals from
-state s and action a" (§3.4.3). With ``train.robustness_target = "option"`` each critic is the
-Q-function of option o's robustness reward under o's own greedy policy ``pi^o`` (the root's: the
-averaging policy with ``train.hierarchy_root_policy = "averaging"``), discounted by
-``train.robustness_gamma`` and, with ``train.robustness_until = "termination"``, cut at o's own
-termination ``beta_o`` or the episode's destruction (``taskvar_torch/heads/robustness.py``):
-
-    y_o = rr_o + gamma_R * (1 - terminated) * (1 - beta_o(s')) * R_o(s', pi^o(s'))
-
-:func:`robustness_monte_carlo` measures each critic against what that target averages: it plays
-fixed Wargus instances; whenever o can take control (``Subtasks.startable``) it starts o and runs
-``pi^o`` until ``beta_o(s')`` or the episode ends (between runs the averaging policy moves the
-agent), and at every step t of a run it compares the predicted ``R(o, s_t, a_t)`` with the
-discounted return-to-go of o's robustness reward up to the run's end (:func:`option_returns`, the
-TD target's horizon exactly). ``"episode"`` runs o from its first start to the episode's end.
-
-Truncation at the horizon is not a termination: the TD target bootstraps through it, so the critic
-predicts robustness past the horizon that no rollout can observe. ``truncation="bootstrap"``
-completes a censored return with the critic's own ``gamma^k R_o(s_T, pi^o(s_T))``, as the target
-does (``tail_weight`` reports how much of the "MC" value that is); ``"exclude"`` drops the
-censored steps.
-
-The threshold is the hierarchy's (:func:`hierarchy_thresholds`): calibrated on training states
-like :func:`taskvar_torch.factory.make_method_controller`, or the config's fixed tau. ``agree`` is
-the share of steps where the decision ``R > tau[o]`` is the same by the critic and by the return;
-``agree_ranked`` the same with the return's threshold moved to keep the critic's share of steps
-above it: the decisions a calibrated threshold would make if the critic ranked states as the
-returns do but on another scale (a calibration absorbs a scale or offset error, not a ranking one).
+Each critic ``R_o`` is the Q-function of o's robustness reward under o's greedy policy, cut at
+o's termination (``taskvar_torch/heads/robustness.py``). :func:`robustness_monte_carlo` plays
+fixed instances, runs o wherever it can start until ``beta_o`` or the episode's end, and compares
+``R(o, s_t, a_t)`` with the discounted return-to-go of the run (:func:`option_returns`). A run the
+horizon censors is completed by the critic's own tail (``truncation="bootstrap"``) or dropped
+(``"exclude"``). ``agree``: the share of steps where ``R > tau[o]`` is decided alike by critic and
+return, ``tau`` the hierarchy's (:func:`hierarchy_thresholds`); ``agree_ranked``: the same with
+the return's threshold at the critic's share of steps above it.
 """
 
 from __future__ import annotations
@@ -72,12 +53,8 @@ def option_returns(
     next_values: torch.Tensor,  # (T, N) R_o(s_{t+1}, pi^o(s_{t+1})), read where bootstrap
     gamma: float,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Discounted return-to-go of each step within its own run, and its bootstrap tail weight.
-
-    ``G_t = r_t + gamma * (G_{t+1} if the run continues; R_o(s_{t+1}) if censored after t; else
-    0)``; the tail weight ``W_t`` is the factor of the bootstrap value in ``G_t`` (``gamma^k`` for a
-    censored run, 0 for one that ended). ``(T, N)`` each, 0 on inactive steps. A step where
-    ``ends`` holds never adds a later run's rewards: returns stop at the option's termination.
+    """Discounted return-to-go ``G_t`` of each step within its own run and the weight ``W_t`` of its
+    bootstrap tail (``gamma^k`` if censored, else 0), ``(T, N)`` each, 0 on inactive steps.
     """
     g = torch.zeros_like(rewards[0])
     w = torch.zeros_like(rewards[0])
@@ -138,25 +115,18 @@ def robustness_monte_carlo(
     tau: torch.Tensor | Sequence[float] | None = None,
     truncation: str = "bootstrap",
 ) -> dict[str, dict[str, float]]:
-    """Each option's robustness critic against Monte Carlo returns of its own runs (module doc).
+    """Each option's robustness critic against Monte Carlo returns of its own runs (module
+    docstring).
 
-    Args:
-        heads: a Wargus bundle's heads (options, averaging and robustness).
-        cfg: its config (``load_heads`` returns both).
-        seeds: Wargus instance seeds, one episode each (batched: one sub-env per seed). Use
-            training-distribution seeds (e.g. 10000+), never the nominal test seeds.
-        subtasks: default ``make_subtasks(cfg, env)``.
-        tau: ``(O,)`` thresholds; default :func:`hierarchy_thresholds` (the hierarchy's).
-        truncation: ``"bootstrap"`` or ``"exclude"`` (module docstring).
+    Args: heads, cfg: a Wargus bundle's heads and config (``load_heads``). seeds: instance seeds,
+        one episode each; use training-distribution seeds, never nominal ones. subtasks: default
+        ``make_subtasks(cfg, env)``. tau: ``(O,)`` thresholds; default :func:`hierarchy_thresholds`.
+        truncation: ``"bootstrap"`` or ``"exclude"``.
 
     Returns:
         ``{option: {n, runs, censored, tail_weight, predicted, mc, mae, bias, corr, tau,
-        critic_above, mc_above, agree, agree_ranked}}``: ``n`` steps compared, ``runs`` started,
-        ``censored`` the share of those steps whose run the horizon cut, ``tail_weight`` the mean
-        weight of the critic's own tail in the MC value, ``bias`` mean(predicted - MC), ``corr``
-        Pearson's r,
-        ``*_above`` the share with value > tau, ``agree`` the share where both sides of tau agree,
-        ``agree_ranked`` that with MC's threshold at the critic's share (module docstring).
+        critic_above, mc_above, agree, agree_ranked}}`` (``bias``: mean(predicted - MC), ``corr``:
+        Pearson's r, ``*_above``: share above tau).
     """
     t = cfg.train
     if family(cfg).env_class is not WargusEnv:  # it plays fixed WargusEnv instances

@@ -1,11 +1,10 @@
 """Wargus capabilities (paper §3.5.2): ToGoal, FromEnemy and their composition TG+FE.
 
-Everything is computed from raw transitions with the integer state keys the Wargus envs emit
-(``families/wargus/dynamics.py``): ``item_seen``, ``patrol_seen`` and the events ``picked`` and ``item_lost``
-(of the step that led to the state) at the root of ``td`` (state s)
-and under ``("next", ...)`` (state s'), plus ``("next", "terminated")`` (destruction: the only
-way a Wargus episode terminates). Inputs have any batch shape ``(*B)``; outputs are ``(*B, 3)``
-in the order of :attr:`WargusSubtasks.names`.
+Computed from raw transitions with the integer state keys the Wargus envs emit
+(``families/wargus/dynamics.py``): ``item_seen``, ``patrol_seen``, ``picked`` and ``item_lost``
+at the root of ``td`` (s) and under ``("next", ...)`` (s'), and ``("next", "terminated")``
+(destruction). Any batch shape ``(*B)``; outputs ``(*B, 3)`` in :attr:`WargusSubtasks.names`
+order.
 
 Options (paper Figure 3: ``TG+FE`` is the root, ``TG`` and ``FE`` its components):
 
@@ -23,45 +22,15 @@ option        initiation     termination beta(s')                       subtask 
                                                                         = "sum"``: TG + FE
 ============  =============  =========================================  ==============================
 
-Termination is a function of s' only, but TG's reads the *events* of the step that led to s'
-(options "terminate upon the occurrence of an event such as seeing the adversary or losing sight
-of the goal item", paper §3.5.2): ``item_lost`` (the item was seen at s, is not at s', and none
-was picked) and ``picked``; "seeing the patrol" is read as the state ``patrol_seen`` (TG stops
-whenever a patrol is in sight, so FE or the root can take over). TG therefore ends on *losing*
-sight of the item, not wherever the item is unseen: started (or continuing) where the item is out
-of sight, it runs - seeking the item by its always-observed bearing - until it sees a patrol, picks
-an item, or sees the item and then loses it again. FE ends when no patrol is in sight (escaped; it
-ends at once where started out of sight); TG+FE is the whole task, and its policy is the full-task
-averaging policy on the environment reward alone (paper §3.4.2), so its default subtask reward is
-the environment's.
+TG ends on *losing* sight of the item (an event of the step, paper §3.5.2), not wherever it is
+unseen. :meth:`WargusSubtasks.startable`: TG where no patrol is seen, FE where one is, the root
+anywhere; the subgoals conflict where a patrol is seen (:meth:`WargusSubtasks.no_conflict`).
 
-Where a component can take control (:meth:`WargusSubtasks.startable`): TG where no patrol is in
-sight, FE where one is (each elsewhere would end at once), the root anywhere. The subgoals
-*conflict* where a patrol is in sight (:meth:`WargusSubtasks.no_conflict`: no patrol seen).
-
-Why a destruction penalty in FE's subtask reward: without it, destruction ends FE's stream of -1s,
-so the FE policy would learn to be shot (one -1) rather than flee (several -1s then +1). The
-default ``destruction_penalty = 10`` charges destruction like staying in sight forever at
-gamma = 0.9 (``1 / (1 - gamma)``).
-
-Robustness rewards (paper §3.5.2) for the transition s -> s':
-
-- ``TG``: +1 when the step ends where the item is seen, -1 when it leaves the area where the item
-  is seen, 0 otherwise. Picking an item counts as ending where the item is seen (+1), even if the
-  new item appears out of sight: reaching the goal is not losing it.
-- ``FE``: -1 for every step that ends within a patrol's sight, +1 once when escaping it (seen at s,
-  not at s'), 0 otherwise; optionally ``-robustness_destruction_penalty`` on destruction (default
-  0, the paper's literal reward).
-- ``TG+FE``: the sum.
-
-Scale of the threshold (``heads/robustness.py``): the critics are Q-functions of these rewards
-under pi^o, discounted by gamma_R and cut at the option's own termination. So R(TG) counts the
-steps with the item in sight until the pick (-1 and the end where sight is lost), R(FE) is at most
-1 (positive only just before an escape) and about -1 per step still to spend in sight, and
-R(TG+FE), which never terminates, sums both along the averaging policy until destruction. A fixed
-tau (the paper's 2) means different things on these scales; the calibrated threshold sets
-tau(TG+FE) on training states so that the root keeps control on a stated share of the no-conflict
-states.
+Robustness rewards (paper §3.5.2) for s -> s': ``TG``: +1 when the step ends with the item seen
+(a pick counts), -1 when it leaves sight of it, else 0; ``FE``: -1 per step ending in a patrol's
+sight, +1 once on escaping, optionally ``-robustness_destruction_penalty`` on destruction;
+``TG+FE``: the sum. The critics' scales differ per option (R(FE) <= 1, R(TG+FE) sums both until
+destruction), hence the calibrated threshold (docs/hierarchy-critics.md).
 """
 
 from __future__ import annotations
@@ -98,17 +67,11 @@ class WargusSubtasks(Subtasks):
     """ToGoal, FromEnemy and TG+FE, vectorised over transitions (paper §3.5.2).
 
     Args:
-        destruction_penalty: subtask-reward cost of being destroyed for FE (and TG+FE with
-            ``composed_reward="sum"``).
-        robustness_destruction_penalty: robustness-reward cost of being destroyed for FE (and
-            TG+FE); 0 is the paper's literal reward.
-        composed_reward: TG+FE's subtask reward: ``"env"`` (the environment reward: TG+FE is the
-            full task, paper §3.4.2) or ``"sum"`` (TG's plus FE's subtask rewards).
-
-    Examples:
-        >>> sub = WargusSubtasks()
-        >>> sub.names, sub.hierarchy.components("TG+FE")
-        (('TG', 'FE', 'TG+FE'), ('TG', 'FE'))
+        destruction_penalty: subtask-reward cost of destruction for FE (and TG+FE with ``"sum"``).
+        robustness_destruction_penalty: robustness-reward cost of destruction for FE and TG+FE (0:
+            the paper's literal reward).
+        composed_reward: TG+FE's subtask reward, ``"env"`` (the full task, paper §3.4.2) or
+            ``"sum"`` (TG's plus FE's).
     """
 
     names = (TG, FE, TG_FE)
@@ -141,11 +104,8 @@ class WargusSubtasks(Subtasks):
         return torch.ones(*seen.shape, 3, dtype=torch.bool, device=seen.device)
 
     def termination(self, td: TensorDictBase) -> torch.Tensor:
-        """``(*B, 3)`` bool beta at the state at the root of ``td`` (pass ``td["next"]``).
-
-        TG: patrol seen, or the step that led here lost sight of the item (``item_lost``) or picked
-        an item; FE: no patrol seen; TG+FE: never (module docstring).
-        """
+        """``(*B, 3)`` bool beta at the state at the root of ``td`` (pass ``td["next"]``; module
+        docstring)."""
         patrol_seen = td.get(PATROL_SEEN)  # (*B,)
         tg = patrol_seen | td.get(ITEM_LOST) | (td.get(PICKED) > 0)
         return torch.stack((tg, ~patrol_seen, torch.zeros_like(tg)), -1)
