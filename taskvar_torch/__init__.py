@@ -1,28 +1,11 @@
 """taskvar_torch: offline learning across task variations for online performance, in PyTorch.
 
-The front door (``import taskvar_torch as tv``) holds what a user needs; the modules behind it are
-the implementation:
-
-- configs: :func:`load_config` (YAML + ``key=value`` overrides, strict);
-- training: :func:`train` (every head of the paper from one replay, docs/design.md);
-- acting: :func:`load_heads` (a trained bundle), :func:`make_env`, :func:`make_subtasks`,
-  :func:`make_controller` (averaging, options, interruption, hierarchy: Algorithms 1-2),
-  :class:`Heads` (the bundle controllers read, trained or exact);
-- measuring: :func:`evaluate` (``taskvar eval``: a bundle on named test distributions and shifts),
-  :func:`run_episodes` (one batched episode per sub-env);
-- families: :class:`Family`, :class:`TestDistribution`, :func:`register_family`,
-  :func:`check_family`, :func:`family` (docs/families.md).
-
-Importing the package registers every family's Gymnasium ids (``Family.gym_ids``): the built-in
-``taskvar/WindyGrid-v0``, ``taskvar/Wargus-v0``, ``taskvar/Taxi-v0`` and their variants, and those
-of installed families (see :mod:`taskvar_torch.envs.registration`). The names above that need the
-learner are imported on first use, so ``import taskvar_torch`` stays light.
-
-Examples:
-    >>> import taskvar_torch as tv
-    >>> cfg = tv.load_config("configs/windy.yaml", ["train.total_frames=20000"])  # doctest: +SKIP
-    >>> tv.train(cfg, "runs/windy")  # doctest: +SKIP
-    >>> heads, cfg = tv.load_heads("runs/windy/final.pt")  # doctest: +SKIP
+The front door (docs/design.md#public-interface): :func:`load_config`, :func:`train`,
+:func:`load_heads`, :func:`make_env`, :func:`make_subtasks`, :func:`make_controller`,
+:class:`Heads`, :func:`evaluate`, :func:`run_episodes`, and the family contract
+(:class:`Family`, :class:`TestDistribution`, :func:`register_family`, :func:`check_family`,
+:func:`family`; docs/families.md). Importing registers every family's Gymnasium ids; names that
+need the learner load on first use.
 """
 
 from taskvar_torch import _startup  # noqa: I001  (first: the command's start-up signals)

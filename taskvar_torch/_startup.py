@@ -1,11 +1,6 @@
-"""The first thing ``import taskvar_torch`` runs: whether the process is the ``taskvar`` command,
-and, if so, a signal handler that covers Python's start-up imports.
-
-Importing the package takes seconds (torch, TorchRL); until the command's own handling is in
-place (:func:`taskvar_torch.cli.main`), Ctrl-C would end in a traceback and SIGTERM in a silent
-death. Started as the command (the ``taskvar`` console script or ``python -m taskvar_torch.cli``),
-either signal here prints the documented line ``taskvar COMMAND: interrupted by SIGNAL`` and exits
-with 128 + N: nothing has been written yet. A program that imports the package is left alone.
+"""The first thing ``import taskvar_torch`` runs: when the process is the ``taskvar`` command, a
+handler that turns Ctrl-C or SIGTERM during the start-up imports into the documented line
+``taskvar COMMAND: interrupted by SIGNAL`` and exit status 128 + N (docs/reliability.md#outcomes).
 """
 
 from __future__ import annotations

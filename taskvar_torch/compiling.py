@@ -1,17 +1,5 @@
-"""``torch.compile`` with an eager fallback, for the hot paths ``train.compile`` turns on.
-
-:class:`Compiled` wraps a pure function (no side effects, so a failed call can simply be rerun):
-the first call compiles it (Dynamo + Inductor, static shapes; a new input shape recompiles), and
-if compiling fails (no C++ compiler, an unsupported op) the error is warned once and every later
-call runs the eager function. Used for the learner's losses
-(:class:`~taskvar_torch.heads.learner.CompiledLosses`) and the Wargus dynamics step
-(:meth:`~taskvar_torch.families.wargus.env.WargusEnv.compile_dynamics`); numbers and compile times:
-docs/benchmarks.md.
-
-Examples:
-    >>> f = Compiled(lambda x: (x * 2).relu(), "doubling")  # doctest: +SKIP
-    >>> f(torch.ones(3))  # doctest: +SKIP
-    tensor([2., 2., 2.])
+"""``torch.compile`` with an eager fallback for the hot paths ``train.compile`` turns on (the
+learner's losses, the Wargus dynamics step; docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -24,17 +12,9 @@ import torch
 
 
 class Compiled:
-    """``fn`` through ``torch.compile(fn, dynamic=False)``, falling back to ``fn`` if that fails.
-
-    Args:
-        fn: a pure function of tensors (and static Python values).
-        what: what ``fn`` computes, for the warning.
-
-    Attributes:
-        eager: ``fn``.
-        compiled: the compiled ``fn``.
-        failed: the exception compiling raised, or ``None``.
-    """
+    """Pure ``fn`` through ``torch.compile(fn, dynamic=False)`` on first call; if compiling fails,
+    one warning naming ``what`` and ``fn`` eager from then on. Attributes: ``eager``, ``compiled``,
+    ``failed`` (the exception, or ``None``)."""
 
     def __init__(self, fn: Callable[..., Any], what: str):
         self.eager = fn

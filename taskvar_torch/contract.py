@@ -1,26 +1,11 @@
-"""The family contract and registry: what each task family brings, behind one public contract
-(docs/families.md).
+"""The family contract and registry (docs/families.md#the-contract).
 
 A family is a distribution over MDPs sharing states and actions (paper §2): its batched env, its
-options (subtasks), its named instance and test distributions, and what the heads, the exact oracle
-and the experiments can use of it. Everything that depends on the family reads the registry
-(:func:`family`) instead of testing the family's name, so a new family needs no edit of the package:
-
-- :func:`register_family` adds one from code in the same process;
-- the entry-point group ``taskvar_torch.families`` adds those of any installed package (the way
-  Gymnasium and pytest find plugins), so the installed ``taskvar`` command sees them; an entry
-  point names a :class:`Family` or a callable returning one;
-- :func:`check_family` checks the contract and names what is missing in one line.
-
-The built-in families (``taskvar_torch/families/<name>/``) come through the same door as an
-installed package's: :data:`BUILTIN` names their entry points. This module sits at the bottom of
-the package (it imports only :mod:`taskvar_torch.rng`), so every layer may read the registry.
-
-Examples:
-    >>> family("windy").experiment.name
-    'windy-fig2'
-    >>> sorted(FAMILIES)[:2]
-    ['taxi', 'wargus']
+options, its named instance and test distributions, and what the heads, the oracle and the
+experiments can use of it. Code reads the registry (:func:`family`), never a family's name;
+families come from :func:`register_family` or the ``taskvar_torch.families`` entry-point group
+(the built-ins too, :data:`BUILTIN`). This module imports only :mod:`taskvar_torch.rng`, so every
+layer may read it.
 """
 
 from __future__ import annotations
@@ -75,12 +60,9 @@ HELDOUT_SEEDS = tuple(range(HELDOUT_SEED, HELDOUT_SEED + HELDOUT_SIZE))
 
 
 def sealed_episode_seed(sealed: int, training_seed: int) -> int:
-    """The env seed under which the bundle of training seed ``training_seed`` plays the sealed
-    test seed ``sealed`` (docs/evaluation.md, Seed): ``rng.sub_env_key(sealed, training_seed)``,
-    a 32-bit hash. Each training seed thus plays its own independent draw of the sealed test
-    distribution (its instances' distribution unchanged, other episodes), so a CI over training
-    seeds counts the episodes' noise too; every method of one bundle plays the same draw (paired).
-    Distinct training seeds always get distinct seeds (the hash is a bijection of the key)."""
+    """Env seed under which training seed ``training_seed``'s bundle plays sealed test seed
+    ``sealed`` (docs/evaluation.md): ``rng.sub_env_key(sealed, training_seed)``, distinct per
+    training seed, the same for every method of a bundle (paired)."""
     return int(
         rng.sub_env_key(rng.check_seed(sealed, "sealed seed"), rng.check_seed(training_seed))
     )
@@ -103,16 +85,15 @@ class PatchLayout:
 
 @dataclass(frozen=True)
 class TestDistribution:
-    """A named test distribution of a family (``taskvar eval --test NAME``): which instances its
-    episodes draw and which env keys it changes from the bundle's training config.
+    """A named test distribution of a family (``taskvar eval --test NAME``).
 
     Attributes:
-        description: what it shifts, in one line (docs/evaluation.md lists them all).
-        instances: a named instance distribution or the fields of one (a dict).
-        overrides: config overrides of ``env`` keys (``key=value``), validated like a config.
-        seed: a sealed test seed (``HELDOUT_SEED``): ``taskvar eval`` plays it, drawn for the
-            bundle's training seed (:func:`sealed_episode_seed`), and refuses another ``--seed``;
-            ``None``: the evaluation's seed (the bundle's ``seed + 1``).
+        description: what it shifts, in one line (docs/evaluation.md).
+        instances: a named instance distribution or its fields (a dict).
+        overrides: ``env`` config overrides (``key=value``), validated like a config.
+        seed: a sealed test seed (``HELDOUT_SEED``) played per training seed
+            (:func:`sealed_episode_seed`; another ``--seed`` is refused); ``None``: the
+            evaluation's.
     """
 
     __test__ = False  # not a pytest test class
@@ -125,27 +106,21 @@ class TestDistribution:
 
 @dataclass(frozen=True)
 class Experiment:
-    """One experiment: its module and the names of its entry points there (``taskvar experiment
-    NAME``). A family declares its figure experiment (``Family.experiment``); the registry
-    (:mod:`taskvar_torch.experiments.registry`) lists every family's and the scale experiment.
+    """One experiment (``taskvar experiment NAME``): its module and entry points there; a family
+    declares its figure experiment (``Family.experiment``).
 
     Attributes:
         name: ``taskvar experiment NAME`` and ``metrics.json``'s ``"experiment"``.
         module: dotted module holding the functions below.
-        run: the function running it (``run(cfg, out_dir, ...) -> metrics``).
-        plot: ``plot(out_dir) -> [png paths]`` (redraws from the results folder alone).
+        run: ``run(cfg, out_dir, ...) -> metrics``.
+        plot: ``plot(out_dir) -> [png paths]`` (from the results folder alone).
         default_config: ``default_config() -> Path`` of its YAML config.
         schema: the config dataclass its YAML follows (``Config`` or ``ScaleConfig``).
-        loader: ``loader(path, overrides, quick=...) -> config`` in its module, for a schema
-            other than ``Config`` (``Config``: :func:`taskvar_torch.config.load_config`).
+        loader: ``loader(path, overrides, quick=...) -> config`` for a schema other than ``Config``.
         description: one line for ``--help``.
-        config_class: the experiment's own keys, a frozen dataclass read flat under
-            ``experiment.*`` beside the keys every config has (``runs``, ``quick_overrides``), in a
-            config of the family that declares it only (another family's config refuses them as
-            unknown keys); ``None``: no own keys. Checked by the family's ``validate``.
-        refusals: why the experiment does not take an option of ``taskvar experiment`` (option
-            -> the one-line reason); an option it neither takes nor names here is refused with
-            a generic line.
+        config_class: its own keys, a frozen dataclass read flat under ``experiment.*`` in its
+            family's configs only; ``None``: none.
+        refusals: option of ``taskvar experiment`` -> the one-line reason it is not taken.
     """
 
     name: str
@@ -197,79 +172,50 @@ class Experiment:
 class Family:
     """One task family: how to build its env and options from a config, and what it supports.
 
-    The first five attributes are required; the rest are optional capabilities (``None``: the
-    family does not offer it, and the commands that need it say so in one line). docs/families.md
-    has the contract the env and the subtasks must honour, and a walk-through.
+    The first five attributes are required; the rest are optional (``None``: not offered, and a
+    command that needs it says so in one line). Their meanings in full, and the contract the env
+    and subtasks honour: docs/families.md#the-contract.
 
     Attributes:
         name: the config's ``family`` value.
         env_class: the batched TorchRL env (a ``BatchedFamilyEnv``); its constructor takes
             ``num_envs``, ``seed``, ``instances``, ``index_offset``, ``noise_seed`` and
-            ``validate_actions`` besides what ``env_kwargs`` gives.
+            ``validate_actions`` besides ``env_kwargs``.
         env_kwargs: config -> keyword arguments of ``env_class`` for the training env.
         subtasks: (config, env) -> the family's options (a :class:`Subtasks`).
-        instance_names: the named instance distributions (``env.instances``, ``eval.test``).
-        config_class: the family's own env keys, a frozen dataclass read under
-            ``env.<name>`` (strictly: a misspelt key is a one-line error naming it; its
-            ``__post_init__`` range errors start with the field's name). ``None``: no own keys.
-        validate: extra checks of a config of this family; raises a one-line ``ValueError``.
+        instance_names: the named instance distributions (must include ``train``).
+        config_class: own env keys, a frozen dataclass read strictly under ``env.<name>``.
+        validate: extra checks of a config of this family (one-line ``ValueError``).
         tests: the named test distributions (``taskvar eval --test``), the first the default.
-        instance_fields: an instance distribution (name, dict or object) -> its fields as a dict,
-            for ``--shift env.instances.FIELD=...``; ``None``: the instances cannot be shifted.
-        make_instances: fields -> an instance distribution (raises a one-line ``ValueError``).
-        shift_aliases: extra ``env.instances.FIELD`` names ``make_instances`` accepts (windy's
-            ``p``: one wind strength for the band).
-        instance_dim: features of the hidden instance the heads may read offline
-            (``train.max_value_estimator=instance``), computed by ``instance_features``.
-        instance_features: a tensordict of transitions -> ``(B, instance_dim)`` features of
-            their ``("instance", ...)`` entries.
-        informed_features: config -> ``(dim, features)``, what the ``informed`` baseline reads
-            beside the observation (docs/memory.md): ``features`` maps transitions to ``(B, dim)``
-            features of the hidden instance and state. ``None``: ``(instance_dim,
-            instance_features)``. Its own hook because its dimension may depend on the config
-            (Wargus: the item and patrol positions) and because only the baseline reads it, never
-            the ``instance`` max-value estimator (Definition 1's max over instances).
-        oracle: config -> the family's exact oracle for that env, or ``None`` where it has none
-            (too large, another encoding): an
-            :class:`~taskvar_torch.oracle.protocol.ExactOracle` (docs/families.md; not imported
-            here: this module is the package's bottom).
-        oracle_summary: (heads, config) -> lines comparing the learnt heads with the exact oracle
-            (printed after ``taskvar train``); ``None``: nothing printed.
-        averaging_optimum: config -> the exact mean-MDP averaging policy ``(cells,)`` over
-            ``cell``, the scale experiment's reference (also for grids too large for ``oracle``).
-        head_report: (config, heads, with_max_value) -> every head against exact values (the
-            scale experiment's ``head_report``).
-        experiment: the family's figure experiment (an :class:`Experiment`: ``taskvar experiment
-            NAME``, sweeps); the experiment registry lists every family's.
-        grid_side: config -> the grid's side length (the scale experiment's tables).
+        instance_fields: an instance distribution -> its fields as a dict (``--shift``).
+        make_instances: fields -> an instance distribution (one-line ``ValueError``).
+        shift_aliases: extra ``env.instances.FIELD`` names ``make_instances`` accepts.
+        instance_dim: features of the hidden instance, computed by ``instance_features``.
+        instance_features: transitions -> ``(B, instance_dim)`` features of ``("instance", ...)``.
+        informed_features: config -> ``(dim, features)`` for the ``informed`` baseline;
+            ``None``: ``(instance_dim, instance_features)``.
+        oracle: config -> an :class:`~taskvar_torch.oracle.protocol.ExactOracle`, or ``None``.
+        oracle_summary: (heads, config) -> lines printed after ``taskvar train``.
+        averaging_optimum: config -> the exact mean-MDP averaging policy ``(cells,)``.
+        head_report: (config, heads, with_max_value) -> every head against exact values.
+        experiment: the family's figure experiment (an :class:`Experiment`).
+        grid_side: config -> the grid's side length.
         cells: config -> the number of positions of the agent.
         observation: config -> the observation encoding's name.
-        observation_size: config -> the observation's length, without building the env (the
-            memory estimate, :mod:`taskvar_torch.config.memory`); ``None``: read from a
-            one-environment env.
+        observation_size: config -> the observation's length without building the env; ``None``:
+            read from a one-environment env.
         conv_patch: config -> the observation's patch layout (``heads.network=conv``).
-        option_inputs: the subtasks define per-option input features
-            (``heads.option_inputs=subtask``).
+        option_inputs: per-option input features (``heads.option_inputs=subtask``).
         description: one line for listings.
-        gym_ids: the Gymnasium ids the family registers (``gym.make(id)``): id -> ``(entry
-            point "module:Class", keyword arguments)``, registered when the family is (lazily:
-            nothing is imported until ``gym.make``); :func:`taskvar_torch.envs.registration
-            .register_envs` registers every family's on ``import taskvar_torch``.
-        legacy_env_keys: keys of ``config_class`` that configs of an older version held
-            elsewhere: ``KEY`` at ``env.KEY``, or the dotted path it had (``train.composed_reward``);
-            the loader moves them to ``env.<name>.*`` with a deprecation line (and an override
-            ``env.KEY=V`` likewise: :func:`taskvar_torch.config.migration.migrate_overrides`).
-        legacy_section: configs of an older version held ``env.<name>`` whatever their family;
-            the loader drops it from another family's config with a deprecation line.
-        resumable: a checkpoint's ``env.state_dict()`` continues every episode exactly
-            (``runtime_state``); ``False`` (an env whose state lives outside tensors, e.g. the
-            Gymnasium adapter's): ``taskvar train --resume`` refuses in one line and
-            ``check_family`` skips the resume check.
-        failed_below: what failure means for the family's score (docs/report.md#failed-seeds):
-            a training seed whose score in a ``taskvar report`` row (its mean return per episode,
-            the number the compact tables show) is below this failed: it does not reach the goal
-            the reward pays for; the row's cell says ``k/n seeds failed``. Chosen from the
-            family's reward definition alone, never from results. ``None``: no failure rule.
+        gym_ids: Gymnasium id -> ``("module:Class", kwargs)``, registered lazily.
+        legacy_env_keys: keys of ``config_class`` older configs held elsewhere (``KEY`` at
+            ``env.KEY`` or a dotted path), moved with a deprecation line.
+        legacy_section: older configs held ``env.<name>`` whatever their family; dropped elsewhere
+            with a deprecation line.
+        resumable: ``env.state_dict()`` continues every episode; ``False``: ``--resume`` refuses
+            and ``check_family`` skips the resume check.
+        failed_below: a seed whose mean return per episode is below this failed
+            (docs/report.md#failed-seeds); chosen from the reward alone. ``None``: no rule.
     """
 
     name: str
@@ -328,11 +274,10 @@ class Family:
         noise_seed: int | None = None,
         validate_actions: bool | None = None,
     ) -> EnvBase:
-        """The family's batched env of ``cfg`` (no transforms). ``None`` keeps the config's value
-        (``env.num_envs``, ``seed``, ``env.instances``); ``index_offset`` is the global index of
-        sub-environment 0 in the keyed streams (envs with offsets 0, n, 2n... are disjoint slices
-        of one env of the summed size); ``noise_seed`` keys the per-step noise apart from the
-        instances (common random numbers for paired episodes)."""
+        """The family's batched env of ``cfg`` (no transforms); ``None`` keeps the config's value.
+        ``index_offset``: global index of sub-env 0 in the keyed streams; ``noise_seed``: keys the
+        per-step noise apart from the instances.
+        """
         kw = self.env_kwargs(cfg)
         kw["index_offset"] = int(index_offset)
         if num_envs is not None:
@@ -369,14 +314,9 @@ class Family:
 
 
 def _entry_points() -> list[importlib.metadata.EntryPoint]:
-    """The built-in families (:data:`BUILTIN`) and the ``taskvar_torch.families`` entry points of
-    every installed distribution, as entry points loaded the same way.
-
-    The built-ins come first and from :data:`BUILTIN` itself, so a source checkout whose installed
-    metadata is stale still has them. Every copy of a distribution's metadata is read, not only
-    the first on ``sys.path`` (which ``importlib.metadata.entry_points`` keeps): a stale
-    ``*.egg-info`` left in a source checkout would otherwise hide the installed package's entry
-    points when run from that folder.
+    """The built-in families (:data:`BUILTIN`, first) and every installed distribution's
+    ``taskvar_torch.families`` entry points, every copy of the metadata read (a stale
+    ``*.egg-info`` cannot hide them).
     """
     out = [
         importlib.metadata.EntryPoint(name=name, value=value, group=ENTRY_POINT_GROUP)
@@ -392,15 +332,9 @@ def _entry_points() -> list[importlib.metadata.EntryPoint]:
 
 
 class _Registry(Mapping):
-    """Every family by name: the ones registered in this process and those of installed packages'
-    ``taskvar_torch.families`` entry points.
-
-    An entry point is imported only when its family is asked for by name (``FAMILIES[name]``,
-    ``name in FAMILIES``, :func:`family`): a plugin that hangs, crashes or exits on import cannot
-    take down a command that does not use it. Iterating gives every name (the entry points' read
-    from the installed metadata, nothing imported); :meth:`values` and :meth:`items` import every
-    family, :meth:`loaded` only those already imported and the built-in ones. A plugin that fails
-    to load is one warning naming it, and its name is in :attr:`broken`.
+    """Every family by name, registered or from entry points. An entry point is imported only when
+    its family is asked for (a broken plugin cannot take down a command that does not use it);
+    iterating imports nothing; one that fails to load is one warning, and listed in :attr:`broken`.
     """
 
     def __init__(self) -> None:
@@ -588,21 +522,12 @@ def one_of(key: str, value: Any, allowed: tuple[str, ...]) -> None:
 
 
 def register_family(fam: Family, *, replace: bool = False) -> Family:
-    """Add ``fam`` to the registry, so every command, experiment and controller can use it.
-
-    Args:
-        fam: the family (see :class:`Family` and docs/families.md for the contract).
-        replace: replace a family of the same name registered earlier (never a built-in one).
-
-    Returns:
-        ``fam``.
+    """Add ``fam`` to the registry (contract: :class:`Family`, docs/families.md) and return it;
+    ``replace`` replaces an earlier family of that name (never a built-in one).
 
     Raises:
-        ValueError: in one line, a declaration that breaks the contract, a name of a built-in
-            family, or a name already taken (without ``replace``).
-
-    Examples:
-        >>> register_family(Family(name="corridor", env_class=CorridorEnv, ...))  # doctest: +SKIP
+        ValueError: in one line, a declaration that breaks the contract, a built-in family's name,
+            or a name already taken (without ``replace``).
     """
     if not isinstance(fam, Family):
         raise ValueError(f"register_family takes a Family, got {type(fam).__name__}")

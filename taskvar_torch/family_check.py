@@ -1,19 +1,7 @@
-"""``check_family``: does a family honour the contract every command relies on (docs/families.md)?
-
-It builds the family's env and options from a default config of the family and checks, in order:
-the declaration (:func:`~taskvar_torch.families.register_family`'s checks), the env's specs at N=1
-and N>1 (``torchrl.envs.utils.check_env_specs``), the hidden ``("instance", ...)`` entry beside
-(never inside) the observation, keyed seeding that does not depend on how the batch is split
-(``index_offset``), exact resume (an env loaded from another's ``state_dict()`` mid-episode
-steps as that one does; skipped for a family declared ``resumable=False``), the horizon, the
-subtasks' shapes, the instance features, and every named test distribution. The first miss is
-a one-line ``ValueError`` that names it; a failure of a user's code inside the family (a
-Gymnasium family's env, options, instances: :mod:`taskvar_torch.guest`) is its own one-line
-``UserCodeError``, naming the function and where.
-
-Examples:
-    >>> from taskvar_torch import check_family, family
-    >>> check_family(family("windy"))
+"""``check_family``: does a family honour the contract every command relies on? What it checks, in
+order, is docs/families.md#what-check_family-checks; the first miss is a one-line ``ValueError``,
+a failure of a user's code inside the family a one-line ``UserCodeError``
+(:mod:`taskvar_torch.guest`).
 """
 
 from __future__ import annotations
@@ -59,13 +47,11 @@ def _rollout(env, steps: int, offset: int) -> list[TensorDictBase]:
 
 
 def check_family(fam: Family, num_envs: int = 4) -> None:
-    """Check that ``fam`` honours the family contract; a one-line ``ValueError`` names the first
-    thing missing or wrong.
+    """Check that ``fam`` honours the family contract (docs/families.md#what-check_family-checks).
 
     Args:
-        fam: the family, registered or not (an unregistered one is registered for the check's
-            duration, since its default config is built through the registry; its name must be
-            free).
+        fam: the family, registered or not (an unregistered one is registered for the check; its
+            name must be free).
         num_envs: the batch size of the N>1 checks (at least 2).
 
     Raises:
@@ -190,12 +176,8 @@ def _check(fam: Family, n: int) -> None:
 
 
 def _check_resume(fam: Family, cfg, n: int) -> None:
-    """Exact resume, as ``taskvar train --resume`` does it: run an env mid-episode (half of its
-    sub-envs after a partial reset), load its ``state_dict()`` into a fresh env of the same size
-    (another seed) that has been reset, then step both under the same actions past the horizon
-    (every sub-env ends an episode; the other half is reset partway): every output must agree. On
-    a miss, name the tensor attributes ``(N, ...)`` of the env that differ right after the load
-    (the state its ``runtime_state`` leaves out)."""
+    """Exact resume as ``taskvar train --resume`` does it: an env saved mid-episode and loaded into
+    a fresh one must step alike; a miss names the attributes that differ after the load."""
     g = torch.Generator().manual_seed(0)
     env = fam.make_env(cfg, n, seed=5)
     A, shape, T = int(env.action_spec.space.n), env.action_spec.shape, _RESUME_STEPS

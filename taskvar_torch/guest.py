@@ -1,13 +1,6 @@
 """A user's code is a guest: every call the Gymnasium adapter makes into it goes through
-:func:`guest`, so a failure there is one line naming the family, the function and where it was
-called, said to be in the user's code (docs/reliability.md, "Your code's failures").
-
-``taskvar`` prints a :class:`UserCodeError` as ``taskvar COMMAND: error: LINE`` with exit status 2
-(:mod:`taskvar_torch.cli.failures`), never as an internal error of the package. A ``SystemExit`` or
-``KeyboardInterrupt`` raised by the user's code is that same line; a ``KeyboardInterrupt`` that a
-signal raised (Ctrl-C, SIGTERM: one with a ``signum``) passes through as the interrupt it is.
-
-The built-in families' batched torch envs are not user code and never come through here.
+:func:`guest`, so a failure there is one line naming the family, the function and where
+(docs/reliability.md#your-codes-failures); ``taskvar`` prints it with exit status 2.
 """
 
 from __future__ import annotations
@@ -74,16 +67,15 @@ def guest(
     where: str | Callable[[], str] = "",
     **kwargs: Any,
 ) -> Any:
-    """``fn(*args, **kwargs)``, a call into a user's code: any exception it raises (``SystemExit`` and a
-    ``KeyboardInterrupt`` of its own included) becomes a one-line :class:`UserCodeError`
-    ``family 'F': WHAT raised TYPE: MESSAGE (WHERE): this is in your code, ...``.
+    """``fn(*args, **kwargs)``, a call into a user's code: any exception (``SystemExit`` and its own
+    ``KeyboardInterrupt`` included; a signal's passes through) becomes a one-line
+    :class:`UserCodeError` ``family 'F': WHAT raised TYPE: MESSAGE (WHERE): this is in your code,
+    ...``.
 
     Args:
-        family: the family's name.
-        what: the function, as the user knows it (``env.step``, ``option 'upright' policy``).
+        family: the family's name. what: the function as the user knows it (``env.step``).
         fn, args, kwargs: the call.
-        where: where it was called (``sub-environment 0, step 3, observation [...]``), or a
-            function that says it (called on a failure only: the call itself stays cheap).
+        where: where it was called, or a function that says it (called on a failure only).
     """
     try:
         return fn(*args, **kwargs)

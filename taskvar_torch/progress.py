@@ -1,24 +1,7 @@
-"""Progress bars that stay readable in a log file.
-
-On a terminal (or in a notebook) :func:`progress_bar` is tqdm's bar. Anywhere else (``taskvar
-experiment ... > log``, CI, a batch job) redrawing a bar would leave hundreds of carriage-return
-frames on one line, so it prints a plain line instead, each time another ``every`` (5%) of the
-total is done or ``interval`` (30 s) has passed, and one at the end::
-
-    train:  25% 12500/50000 frame, 41 s
-    train:  30% 15000/50000 frame, 49 s, loss_avg=0.0123
-
-Both objects take the calls the package makes on a bar: ``update``, ``set_postfix``,
-``set_postfix_str``, ``close``, the ``n`` and ``total`` attributes, iteration and ``with``.
-
-Examples:
-    >>> import io
-    >>> log = io.StringIO()
-    >>> with progress_bar(total=4, desc="demo", unit="step", file=log) as bar:
-    ...     for _ in range(4):
-    ...         bar.update(1)
-    >>> "\\r" in log.getvalue(), log.getvalue().count("\\n") <= 5
-    (False, True)
+"""Progress bars that stay readable in a log file: tqdm's on a terminal or notebook, else plain
+lines (:class:`LineProgress`) every ``every`` (5%) of the total or ``interval`` (30 s), and one
+at the end. Both take ``update``, ``set_postfix``, ``set_postfix_str``, ``close``, ``n``,
+``total``, iteration and ``with``.
 """
 
 from __future__ import annotations
@@ -52,13 +35,9 @@ def progress_bar(
     Args:
         iterable: iterate over it, one step per item (``total`` defaults to its length).
         total: steps expected; ``None``: unknown (lines by time only).
-        desc: label at the start of each line.
-        unit: what a step is (``frame``, ``ep``, ``point``).
-        initial: steps already done (a resumed run).
-        disable: no output at all.
-        file: the stream written to (default ``sys.stderr``); whether it is a terminal decides.
-        every: away from a terminal, a line each time this share of ``total`` is done.
-        interval: away from a terminal, also a line after this many seconds without one.
+        desc, unit: label of each line and what a step is. initial: steps already done.
+        disable: no output. file: the stream (default ``sys.stderr``); a terminal decides.
+        every, interval: away from a terminal, a line per this share of ``total`` or seconds.
     """
     stream = sys.stderr if file is None else file
     if disable or _IN_NOTEBOOK or _isatty(stream):
@@ -77,12 +56,8 @@ def _isatty(stream: Any) -> bool:
 
 
 class LineProgress:
-    """tqdm's bar as plain lines, for streams that are not terminals (:func:`progress_bar`).
-
-    A line when another ``every`` share of ``total`` is done, or after ``interval`` seconds since
-    the last line with progress made, and a last one at :meth:`close`; at most
-    ``1 / every + 1`` lines plus one per ``interval`` of wall time, none holding a ``'\\r'``.
-    """
+    """tqdm's bar as plain lines for non-terminal streams: at most ``1 / every + 1`` lines plus one
+    per ``interval`` of wall time, none holding a ``'\\r'``."""
 
     def __init__(
         self,

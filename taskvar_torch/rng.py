@@ -1,15 +1,9 @@
-"""Counter-based random numbers: keyed, batched, identical on every device and batch split.
+"""Counter-based random numbers: keyed, batched, identical on every device and batch split
+(docs/design.md#randomness-keyed-not-a-shared-generator).
 
-A ``torch.Generator`` hands out one stream per *batch*, so a sub-environment's draws would change
-with the number of environments it is batched with. Like Gymnax/JAX keys, we instead give every
-sub-environment episode an integer key and draw ``bits = hash(key, counter)``: the draw depends
-only on (seed, sub-environment index, episode, step), never on N, the device or the order of calls.
-That gives bit-identical trajectories whatever N is split into, and common random numbers for
-paired evaluation (docs/windy-fig2.md) for free.
-
-Keys are uint32 values. The generic functions work on Python ints, numpy ``int64`` arrays and torch
-``int64`` tensors; the ``*_i32`` functions are the hot-path versions on torch ``int32`` tensors
-(uint32 bit patterns, wrapping multiplication), 2-4x faster, and agree bit for bit (tested).
+Every sub-env episode has an integer key and draws ``bits = hash(key, counter)``. Keys are uint32;
+the generic functions take Python ints, numpy ``int64`` and torch ``int64``; the ``*_i32``
+hot-path versions take torch ``int32`` and agree bit for bit.
 """
 
 from __future__ import annotations
@@ -96,11 +90,8 @@ def check_seed(seed, key: str = "seed") -> int:
 
 
 def sub_env_key(seed: int, index):
-    """Base key of sub-environment ``index`` under ``seed`` (``index`` is global, see ``index_offset``).
-
-    ``seed`` is an integer in ``[0, 2**32 - 1]``: keys are 32 bits, so a larger or negative seed
-    would wrap onto another seed's streams; it is a ``ValueError`` instead.
-    """
+    """Base key of global sub-env ``index`` under ``seed``; a ``seed`` outside ``[0, 2**32 - 1]`` is
+    a ``ValueError``."""
     return hash32((hash32(check_seed(seed)) + index * _GOLDEN) & MASK32)
 
 
