@@ -1,25 +1,7 @@
-"""Strict experiment configs: frozen dataclasses mirrored by ``configs/*.yaml`` (docs/design.md,
-Configs).
-
-- :mod:`~taskvar_torch.config.schema`: the dataclasses (:class:`Config` and its sections), each
-  field with a docstring;
-- :mod:`~taskvar_torch.config.choices`: the allowed values of the choice fields and
-  :data:`METHODS`;
-- :mod:`~taskvar_torch.config.validate`: the range and choice checks run on construction;
-- :mod:`~taskvar_torch.config.loader`: YAML file -> OmegaConf structured schema -> overrides ->
-  frozen dataclass, for any config dataclass, with one-line errors naming the dotted key;
-- :mod:`~taskvar_torch.config.help`: ``--help`` text from the field docstrings.
-
-Every name is importable from ``taskvar_torch.config`` itself, as are :func:`atomic_write`
-(``taskvar_torch/io.py``) and the family helpers the config is read through
-(``taskvar_torch/contract.py``).
-
-Examples:
-    >>> cfg = load_config("configs/windy.yaml", ["train.lr=0.01"])
-    >>> cfg.train.lr
-    0.01
-    >>> config_from_dict(config_to_dict(cfg)) == cfg
-    True
+"""Strict experiment configs: frozen dataclasses mirrored by ``configs/*.yaml``
+(docs/design.md#configs): :mod:`.schema` (the dataclasses), :mod:`.choices`, :mod:`.validate`,
+:mod:`.loader` (YAML -> OmegaConf -> overrides -> frozen dataclass) and :mod:`.help`. Every name
+is importable from here, with :func:`atomic_write` and the family helpers.
 """
 
 from taskvar_torch.config.choices import (

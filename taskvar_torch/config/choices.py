@@ -1,9 +1,5 @@
-"""The allowed values of the config's choice fields, and the paper's method list.
-
-Defined here, below both :mod:`~taskvar_torch.config.schema` and
-:mod:`~taskvar_torch.config.validate`: ``Config.__post_init__`` runs the validation, and the
-validation checks values against these tuples, so neither of those modules can hold them without
-importing the other.
+"""The allowed values of the config's choice fields, and the paper's method list (below
+:mod:`.schema` and :mod:`.validate`, which both read them).
 """
 
 from __future__ import annotations

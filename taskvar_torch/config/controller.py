@@ -1,13 +1,6 @@
-"""Controller settings: the ``train.*`` keys that set what a controller does with trained heads,
-changeable at evaluation without retraining (``taskvar eval --checkpoint B
-train.robustness_threshold=fixed``, ``taskvar experiment windy-fig2 --checkpoint B
-train.mu_bar=softmax``; docs/evaluation.md).
-
-They are read where the controllers are built (``factory.make_method_controller``,
-``factory.calibrate``) and by mu_bar (``Heads.softmax_temperature``). Two of them,
-``train.hierarchy_root_policy`` and ``train.mu_bar`` / ``mu_bar_temperature``, also shaped the
-heads' training targets (the root's robustness target, the switching head's bootstrap); changed at
-evaluation they change the controller only, on heads trained for the bundle's values.
+"""Controller settings: the ``train.*`` keys a controller reads from trained heads, changeable at
+evaluation without retraining (docs/evaluation.md); changing one there changes the controller
+only, on heads trained for the bundle's values.
 """
 
 from __future__ import annotations

@@ -1,14 +1,5 @@
-"""``--help`` text of a config schema, from the docstring below each field (docs/design.md, Configs).
-
-A field's docstring is the string literal right below it in the dataclass body (PEP 257's
-"attribute docstring"). Python discards such literals at runtime, so :func:`field_docs` reads them
-back from the class source with the standard library's :mod:`ast`. A library that does the same
-(``simple_parsing``, ``docstring_parser``'s attribute docs, ``tyro``) would be a new dependency
-and a different CLI for this one small function, which is why none is used.
-
-Examples:
-    >>> field_docs(Config)["seed"]
-    'Master seed of environments, networks and exploration.'
+"""``--help`` text of a config schema from the attribute docstring below each field
+(docs/design.md#configs), read back from the class source with :mod:`ast`.
 """
 
 from __future__ import annotations
@@ -113,13 +104,8 @@ def _key_line(cls: type, name: str, prefix: str) -> str:
 
 
 def config_help(cls: type = Config, prefix: str = "") -> str:
-    """``--help-all`` text: one line per dotted key with its type, default and docstring.
-
-    A nested dataclass field is a header line followed by its own keys; ``cls`` may be any
-    config dataclass whose fields all have defaults. For :class:`Config`, every registered
-    family's own keys follow (``Family.config_class``, under ``env.<name>``; its experiment's,
-    ``Experiment.config_class``, under ``experiment``).
-    """
+    """``--help-all`` text: one line per dotted key (type, default, docstring), nested dataclasses
+    as headers; for :class:`Config`, every family's ``env.<name>`` and experiment keys follow."""
     lines = []
     docs = field_docs(cls)
     hints = _hints(cls)

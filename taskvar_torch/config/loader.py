@@ -1,24 +1,9 @@
-"""Strict loading of config dataclasses with OmegaConf structured configs (docs/design.md, Configs).
+"""Strict loading of config dataclasses with OmegaConf structured configs (docs/design.md#configs).
 
-One pipeline serves every schema, the training :class:`~taskvar_torch.config.schema.Config` and
-the scale experiment's ``ScaleConfig`` alike (:func:`load_strict`): the YAML file is merged into
-``OmegaConf.structured(schema)``, Hydra-style ``key.sub=value`` overrides are merged on top, and
-``OmegaConf.to_object`` builds the frozen dataclass, whose ``__post_init__`` checks ranges and
-choices. An unknown or misspelt key anywhere, or a value of the wrong type, is a one-line
-``ValueError`` naming the full dotted key (for an unknown key, also the closest allowed key and
-the keys allowed at that level); a range or choice error gets its source appended (the file,
-an override, a checkpoint).
-
-:func:`load_config`, :func:`apply_overrides`, :func:`config_from_dict`, :func:`config_to_dict`,
-:func:`config_to_yaml` and :func:`save_config_yaml` are the :class:`Config` entry points; the
-last four take any config dataclass.
-
-Examples:
-    >>> cfg = load_config("configs/windy.yaml", ["train.lr=0.01"])
-    >>> cfg.train.lr
-    0.01
-    >>> config_from_dict(config_to_dict(cfg)) == cfg
-    True
+One pipeline for every schema (:func:`load_strict`): YAML merged into
+``OmegaConf.structured(schema)``, ``key.sub=value`` overrides on top, then the frozen dataclass,
+whose ``__post_init__`` checks ranges and choices. An unknown key or wrong type is a one-line
+``ValueError`` naming the dotted key (and the closest allowed one); range errors name their source.
 """
 
 from __future__ import annotations
@@ -56,16 +41,9 @@ _LIST_ITEM = "a list is set whole (e.g. {key}=[...]); its items cannot be set on
 
 
 def config_schema(family_name: str | None = None) -> type[Config]:
-    """The :class:`Config` schema of a config of family ``family_name``: :class:`Config` itself,
-    or, for a family with its own keys (docs/families.md), a subclass whose ``env`` holds them
-    under ``env.<family name>`` (``Family.config_class``) and whose ``experiment`` holds its
-    experiment's beside the shared ones (``Experiment.config_class``, flat: ``experiment.trials``;
-    :func:`~taskvar_torch.config.schema.experiment_class`), loaded as strictly as the rest (a
-    misspelt key, or another family's, is a one-line error naming it).
-
-    Only the config's own family adds its keys, so a windy config's dict is the same whichever
-    families are installed. The subclass is made once per family and pickles as its dict.
-    """
+    """The :class:`Config` schema of family ``family_name``'s configs: :class:`Config`, or a
+    subclass holding ``Family.config_class`` under ``env.<name>`` and ``Experiment.config_class``
+    under ``experiment`` (docs/families.md); made once per family, pickles as its dict."""
     if family_name is None:  # the schema's default family
         family_name = Config.family
     fam = family(family_name)  # an unknown family is a one-line error naming the known ones

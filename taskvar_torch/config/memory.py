@@ -1,28 +1,9 @@
-"""A conservative estimate of the memory a config will allocate, checked before allocating.
-
-The range checks (:mod:`taskvar_torch.config.validate`) bound every key on its own; a config can
-still ask for more memory than the machine has (``env.num_envs=10**9``, ``train.buffer_size=
-10**12``, ``heads.hidden=[100000, 100000]``, a one-hot 4096x4096 grid), and torch would then fail
-deep inside an allocation, or only once training has filled its replay buffer. :func:`estimate`
-adds up what a run holds at once, by the config key that drives it:
-
-==================  ===========================================================================
-key                 what it counts
-==================  ===========================================================================
-env.<family>        the family's per-cell observation table (cells x observation: its grid)
-env.num_envs        the environments' observations, first-visit flags and the collected batch
-train.buffer_size   the replay rows (observation, next observation and the other keys)
-heads.hidden        every head's weights with their gradients, targets, Adam moments and
-                    average
-train.batch_size    the activations of a training batch (``eval.batch_size`` in an evaluation)
---episodes          per-episode result rows of an evaluation (``taskvar eval --episodes``,
-                    ``experiment.episodes_per_run`` x runs in the experiments)
-==================  ===========================================================================
-
-Each term is an upper bound (docs/design.md, "Reliability"): a replay row takes
-``8 x observation + 512`` bytes, a result row 2 kB.
-:func:`check_memory` refuses a config whose estimate exceeds the memory available now (Linux
-``MemAvailable``, or the cgroup's limit where lower) in one line naming the largest term's key.
+"""A conservative estimate of the memory a config will allocate, checked before allocating
+(docs/reliability.md#memory-estimated-before-it-is-allocated): :func:`estimate` adds up upper
+bounds by the config key that drives each term (``env.<family>``, ``env.num_envs``,
+``train.buffer_size``, ``heads.hidden``, ``train.batch_size``, ``--episodes``);
+:func:`check_memory` refuses a config over the memory available now in one line naming the
+largest term's key.
 """
 
 from __future__ import annotations

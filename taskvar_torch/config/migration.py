@@ -1,12 +1,6 @@
-"""The one migration of old configs to the current schema, each change with a deprecation line.
-
-What an older taskvar_torch wrote still loads: a YAML file's, a checkpoint's or a results folder's
-config (:func:`migrate_config_data`) and ``key.sub=value`` overrides (:func:`migrate_overrides`).
-Removed keys (:data:`REMOVED_KEYS`) are dropped, renamed ones (:data:`RENAMED_KEYS`) spelt as
-they are now, a family's own keys move from their old spellings (``env.*``, ``train.*``) to its
-section ``env.<name>`` as the families declare it (``Family.legacy_env_keys``, ``legacy_section``;
-docs/families.md), and another family's experiment keys are dropped. :mod:`taskvar_torch.config.loader` runs it on everything it loads.
-"""
+"""The one migration of old configs (files, checkpoints, results folders:
+:func:`migrate_config_data`; overrides: :func:`migrate_overrides`) to the current schema, each
+change with a deprecation line; :mod:`.loader` runs it on everything it loads."""
 
 from __future__ import annotations
 
@@ -147,15 +141,11 @@ def _held(out: Mapping, dotted: str) -> bool:
 
 
 def migrate_config_data(data: Any, source: str = "config", warn: bool = True) -> Any:
-    """The one migration of old config data (a YAML file's, a checkpoint's or a results folder's
-    ``config.yaml``) to the current schema, with one deprecation line (a ``FutureWarning``, unless
-    ``warn`` is false) per config it changes: the :data:`REMOVED_KEYS` are dropped; and, as the
-    families declare it (docs/families.md), a family's ``legacy_env_keys`` found at their old
-    spelling (``env.layout``, ``train.composed_reward``) move to ``env.<name>.*`` in a config of
-    that family and are dropped in another's (never read there); the section ``env.<name>`` of a
-    family with ``legacy_section`` (every config written before the families became packages held
-    ``env.wargus``) and another family's experiment keys (``experiment.trials`` in a windy
-    config) are dropped from another family's config. ``data`` is returned unchanged where nothing applies."""
+    """Migrate old config ``data`` to the current schema, one deprecation line (``FutureWarning``
+    unless ``warn`` is false) per config changed: :data:`REMOVED_KEYS` dropped; a family's
+    ``legacy_env_keys`` moved to ``env.<name>.*`` in its configs and dropped in others; another
+    family's ``legacy_section`` and experiment keys dropped (docs/families.md). Unchanged otherwise.
+    """
     if not isinstance(data, (Mapping, DictConfig)):
         return data
     out = OmegaConf.to_container(data) if isinstance(data, DictConfig) else dict(data)

@@ -1,22 +1,10 @@
 """``taskvar report``: the paper's claims and the Results tables, regenerated from results folders
-by one command (docs/report.md is its guide, docs/claims.md its output).
+(docs/report.md#taskvar-report is its guide, docs/claims.md its output).
 
-It reads results folders (each holding ``metrics.json``, or ``seed<k>/`` folders of one training
-seed each), groups them by experiment and config, aggregates over seeds with ``rliable``
-(:mod:`taskvar_torch.study.aggregate`) and scores each claim of :data:`RULES` on the sealed
-held-out instances (``families.HELDOUT_SEED``): Figure 2 (§3.3.1), Figure 4's ordering and speed
-(§3.5.3) and §3.2's premise. A claim's verdict is ``reproduced``, ``partly``, ``not`` or ``not
-measured``; a group of fewer than :data:`MIN_SEEDS` seeds is exploratory and scores none.
-Results that score no claim can join the Results table alone (:func:`add_rows`, ``--add``).
-
-The Results block (:mod:`~taskvar_torch.study.report_results`) goes on docs/results.md, or on a
-page of its own where the marker comments are missing (:func:`target_page`); the per-group
-summaries are kept beside the claims page (``<stem>-results.json``) for ``--add``. Bad input is
-one line (:class:`ReportError`) and nothing is written; every file is written atomically.
-
-This module writes the pages, the Results block and the figures; the folders are read and
-grouped by :mod:`~taskvar_torch.study.report_folders`, the claims scored by
-:mod:`~taskvar_torch.study.report_claims`.
+This module writes the claims page, the Results block (docs/results.md or a page of its own,
+:func:`target_page`), the summaries beside the claims page and the figures, atomically; bad input
+is one line (:class:`ReportError`) and nothing is written. Folders are read by
+:mod:`.report_folders`, claims scored by :mod:`.report_claims`.
 """
 
 from __future__ import annotations
@@ -354,17 +342,11 @@ def add_rows(
     mixed_commits: bool = False,
 ) -> tuple[list[Path], Report]:
     """``taskvar report --add``: add these folders' rows to the Results of the page ``readme``
-    (``--page``/``--readme``: docs/results.md, or an older README that still holds the markers;
-    without them, :func:`target_page`), keeping the rows of results not given (each row names
-    its config digest), and write no claims page, so no row links one.
-    Their summaries join those kept beside the claims page (``<stem>-results.json``; a group of
-    the same label and config replaced; ``drop``: config digests whose rows go, see
-    :func:`drop_rows`), and the compact tables and the regret figure are drawn again from them
-    all. Refused where a folder scores one of the paper's claims: the claims
-    page must then be rewritten from every folder (an exploratory group's, which scores none, may
-    join). ``claims``: the claims page the summaries are kept beside (default
-    :func:`default_claims`). Rows of another commit than the kept ones' are refused unless
-    ``mixed_commits`` (docs/report.md)."""
+    (:func:`target_page`), keeping the rows of results not given and the summaries beside
+    ``claims``; ``drop``: config digests whose rows go. Refused where a folder scores one of the
+    paper's claims (then rewrite the claims page from every folder) and, unless ``mixed_commits``,
+    for results of different commits (docs/report.md).
+    """
     if int(reps) < 100:
         raise ReportError(f"--reps must be >= 100 bootstrap resamples, got {reps}")
     claims_path = default_claims(readme) if claims is None else Path(claims)

@@ -1,21 +1,8 @@
-"""The paper's claims scored on the groups of results folders ``taskvar report`` reads
-(docs/claims.md is the page, docs/report.md its guide), on the **sealed held-out** instances only
-(:attr:`~taskvar_torch.study.report_folders.Group.sealed`; a family's other test distributions
-are tabled under their own names) and on groups of >= ``MIN_SEEDS`` training seeds only (a
-smaller group is exploratory: its figures shown, its verdict ``not measured``):
-
-- **Figure 2** (§3.3.1): offline interruption no worse than the averaging policy in almost 80% of
-  held-out episodes (:func:`_fig2`);
-- **Figure 4** (§3.5.3): the ordering hierarchy > interruption > options > averaging over the
-  first half of the trials, and the speed to 90% of the maximum (:func:`_fig4`);
-- **§3.2's premise**: a capability is less affected by variability than the full task, over the
-  points of a ``taskvar eval --shift`` curve (:func:`_eval`);
-
-each aggregated over training seeds with ``rliable`` (:mod:`taskvar_torch.study.aggregate`)
-and given a verdict by the rules in :data:`RULES`. :func:`build_report` computes every group's
-claims, Results row, profile panel and the per-group summaries behind the compact tables
-(:mod:`~taskvar_torch.study.report_results`); :mod:`~taskvar_torch.study.report`
-writes them.
+"""The paper's claims scored on the groups ``taskvar report`` reads (docs/claims.md; guide
+docs/report.md): Figure 2 (§3.3.1, :func:`_fig2`), Figure 4's ordering and speed (§3.5.3,
+:func:`_fig4`) and §3.2's premise (:func:`_eval`), on the sealed held-out instances only and on
+groups of >= ``MIN_SEEDS`` seeds only, aggregated with ``rliable`` and judged by :data:`RULES`.
+:func:`build_report` computes every group's claims, Results row, profile panel and summary.
 """
 
 from __future__ import annotations

@@ -1,13 +1,7 @@
-"""The results folders ``taskvar report`` reads (docs/report.md): :func:`load_result` reads
-one folder's ``metrics.json`` and config, :func:`collect` expands every ``DIR`` (a results folder
-or a folder of ``seed<k>/`` results folders) and groups the results by experiment and config (the
-config without its seed), checked: one config per ``DIR``, no training seed twice. A group of
-fewer than :data:`MIN_SEEDS` seeds is read too, as exploratory (:attr:`Group.exploratory`: its
-rows say so and it scores no claim). Bad input is one line (:class:`ReportError`, a
-``ValueError``).
-
-The claims are scored from these groups by :mod:`~taskvar_torch.study.report_claims` and
-written by :mod:`~taskvar_torch.study.report`.
+"""The results folders ``taskvar report`` reads (docs/report.md): :func:`load_result` reads one,
+:func:`collect` expands every ``DIR`` (or its ``seed<k>/`` folders) and groups the results by
+experiment and config; a group under :data:`MIN_SEEDS` seeds is exploratory. Bad input is one
+line (:class:`ReportError`).
 """
 
 from __future__ import annotations

@@ -1,19 +1,7 @@
-"""The Results at a glance (docs/results.md, linked from the README), written by
-``taskvar report`` (:mod:`taskvar_torch.study.report`) from the same results folders as the
-claims:
-
-- per family, one compact table: the methods as columns, one row per results group (a test
-  distribution, a protocol), each cell the method's score as the mean over training seeds with its
-  95% stratified-bootstrap CI (rliable), the best mean of the methods that do not see the hidden
-  instance in bold and a ``≈`` on every method not separated from it (:func:`marks`), and
-  ``(k/n seeds failed)`` where ``k`` seeds scored below the family's ``failed_below``;
-- one figure: the regret of each method per family and row, with its CI, to the exact per-instance
-  optimum where the results have it (exact for memoryless methods, from sampled returns for the
-  baselines: hollow markers), else to the ``informed`` head (a learnt ceiling);
-- the data behind both (one summary per group, :func:`summarise`), kept as JSON beside the claims
-  page so that ``taskvar report --add`` can redraw them with the groups it adds.
-
-Nothing here branches on a family's name: a family is whatever the results call it.
+"""The Results at a glance (docs/results.md; docs/report.md#taskvar-report), written by
+``taskvar report``: per family one compact table (mean over seeds with its 95% CI, the best in
+bold, ``≈`` where not separated, :func:`marks`; ``(k/n seeds failed)``), one regret figure, and
+the per-group summaries behind both (:func:`summarise`). Nothing branches on a family's name.
 """
 
 from __future__ import annotations
@@ -96,15 +84,10 @@ def summarise(
     reps: int,
     failed_below: float | None = None,
 ) -> dict[str, Any]:
-    """One group's summary: ``group`` (its ``label``, ``digest``, ``kind``, ``family``, ``row``,
-    ``budget``, ``seeds``, ``score``) with each method's mean score and 95% CI over training seeds
-    (``per_seed[m]``: one score per seed, the same seeds and episodes for every method), the
-    marks (:func:`marks`), and ``regret`` (its reference, ``{method: per-seed regret}``, the methods whose
-    regret comes from sampled returns) summarised the same way.
-
-    ``failed_below``: the family's failure rule (``Family.failed_below``, docs/report.md#failed-seeds);
-    where set, the summary keeps it and each method's ``seeds_failed`` (its seeds whose score is
-    below it) of its ``seeds`` scored; ``None``: neither."""
+    """One group's summary: ``group`` (label, digest, kind, family, row, budget, seeds, score), each
+    method's mean and 95% CI over ``per_seed`` scores, the :func:`marks`, ``regret`` summarised the
+    same way and, with ``failed_below`` (docs/report.md#failed-seeds), each method's
+    ``seeds_failed``."""
     scores = {m: np.asarray(per_seed[m], dtype=np.float64) for m in _ordered(list(per_seed))}
     est = aggregate.interval_estimates(scores, reps)
     out = dict(group)
