@@ -176,7 +176,7 @@ def test_robustness_rewards_on_hand_built_transitions():
 
 def test_robustness_ranks_item_seen_and_patrol_sight_as_intended():
     # on real transitions: TG's robustness reward is positive where the item is seen, FE's negative
-    # inside the patrol's sight; the sustained values set the scale of tau (module docstring)
+    # inside the patrol's sight; the sustained values set the scale of tau (docs/hierarchy-critics.md)
     env = WargusEnv(32, seed=0, size=12, sight=5, shoot_range=2, hit_prob=0.3, horizon=60)
     td = env.rollout(120, break_when_any_done=False)
     rr = WargusSubtasks().robustness_reward(td)
