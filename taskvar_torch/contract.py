@@ -459,6 +459,14 @@ def check_declaration(fam: Family) -> None:
     if not fam.instance_names or not all(isinstance(n, str) for n in fam.instance_names):
         raise ValueError(f"family {fam.name!r}: instance_names must name at least one distribution")
     _check_keys_class(fam, fam.config_class, "config_class", f"env.{fam.name}.*")
+    own = {f.name for f in dataclasses.fields(fam.config_class)} if fam.config_class else set()
+    for old in fam.legacy_env_keys:
+        parts = old.split(".") if isinstance(old, str) else [""]
+        if len(parts) > 2 or not all(p.isidentifier() for p in parts) or parts[-1] not in own:
+            raise ValueError(
+                f"family {fam.name!r}: legacy_env_keys entries must be KEY or SECTION.KEY naming "
+                f"a field of config_class ({sorted(own)}), got {old!r}"
+            )
     if fam.experiment is not None and not isinstance(fam.experiment, Experiment):
         raise ValueError(
             f"family {fam.name!r}: experiment must be an Experiment (taskvar_torch.contract), "

@@ -401,6 +401,9 @@ def test_the_experiments_keys_are_their_familys():
     assert (
         type(taxi.experiment) is ExperimentConfig and taxi.experiment.runs == windy.experiment.runs
     )
+    # a loaded config's sections are its family's: replace() cannot switch family (one line)
+    _raises_one_line(["a windy config does not become a taxi one", "apply_overrides"],
+                     dataclasses.replace, windy, family="taxi")  # fmt: skip
 
 
 def test_train_composed_reward_migrates_to_env_wargus_with_one_deprecation_line():

@@ -84,6 +84,10 @@ def test_name_clashes_and_bad_declarations_are_refused(hall):
         register_family(dataclasses.replace(hall, name="hall2", instance_dim=2))
     with pytest.raises(ValueError, match="takes a Family"):
         register_family("hall")  # type: ignore[arg-type]
+    # an old spelling that is no KEY or SECTION.KEY of config_class would break every config load
+    for bad in ("train.a.b", "nonexistent", "train.nonexistent", "1x"):
+        with pytest.raises(ValueError, match=f"legacy_env_keys entries .* got '{bad}'"):
+            register_family(dataclasses.replace(hall, name="hall2", legacy_env_keys=(bad,)))
 
 
 class _SplitDependentEnv(corridor.CorridorEnv):

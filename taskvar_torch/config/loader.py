@@ -85,7 +85,7 @@ def _schema_with_sections(
         sections,
         bases=(Config,),
         frozen=True,
-        namespace={"__module__": __name__, "__reduce__": _reduce_config},
+        namespace={"__module__": __name__, "__reduce__": _reduce_config, "_schema_family": name},
     )
 
 

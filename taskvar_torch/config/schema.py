@@ -352,8 +352,16 @@ class Config:
 
     def __post_init__(self):
         """Give ``experiment`` its family's own keys where it was built without them
-        (``Config(family="wargus")``, ``dataclasses.replace(cfg, family=...)``: the defaults, the
-        shared keys kept), then run the range and choice checks."""
+        (``Config(family="wargus")``: the defaults, the shared keys kept), then run the range and
+        choice checks. A loaded config's family does not change by ``dataclasses.replace`` (its
+        sections are the old family's): a one-line ``ValueError`` naming ``apply_overrides``."""
+        was = getattr(type(self), "_schema_family", None)  # a loaded config's own family
+        if was is not None and was != self.family:
+            raise ValueError(
+                f"family: a {was} config does not become a {self.family} one by "
+                f"dataclasses.replace; use apply_overrides(cfg, ['family={self.family}', ...]) "
+                "or load_config"
+            )
         section = experiment_class(self.family)
         if type(self.experiment) is not section:
             kept = {f.name: getattr(self.experiment, f.name) for f in fields(self.experiment)}
