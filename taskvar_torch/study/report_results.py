@@ -35,8 +35,9 @@ def is_ceiling_row(methods: Mapping[str, Mapping[str, Any]]) -> bool:
 
 
 def _validation_label(label: str) -> str:
-    """The label of the same bundles' validation row: its ``--test`` made ``train``."""
-    return re.sub(r"--test \S+", "--test train", label)
+    """The label of the same bundles' validation row: its ``--test`` made ``train``, a
+    ``--shift`` curve's too (the curve is over the same bundles)."""
+    return re.sub(r"--test \S+", "--test train", re.sub(r" --shift \S+", "", label))
 
 
 def ceiling_gate(s: Mapping[str, Any], summaries: Sequence[Mapping[str, Any]]) -> tuple[bool, str]:

@@ -89,3 +89,7 @@ def test_informed_is_called_a_ceiling_only_where_the_gate_holds():
     ok, why = ceiling_gate(held, [held])
     assert not ok and "no --test train row" in why
     assert NO_CEILING not in _cell(held, "informed", rows)
+    # a shift curve of the same bundles is validated on their --test train row too
+    shift = _row("eval x --test heldout --shift env.instances.p=0.0,1.0", averaging=-13.8,
+                 blind=-14.5, recurrent=-4.6, informed=-4.3)  # fmt: skip
+    assert ceiling_gate(shift, [train, shift]) == (True, "")
