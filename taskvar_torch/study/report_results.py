@@ -220,12 +220,14 @@ def _cell(s: Mapping[str, Any], m: str, summaries: Sequence[Mapping[str, Any]] =
     if e is None:
         return "-"
     text = f"{e['mean']:.2f} [{e['ci95'][0]:.2f}, {e['ci95'][1]:.2f}]"
-    if m == CEILING and not ceiling_gate(s, summaries)[0]:
-        return f"{text} ({NO_CEILING}){failed_text(e)}"
     best, tied = _marked(s)
-    if m == best:
-        return f"**{text}**{failed_text(e)}"
-    return (f"{text} {TIE_MARK}" if m in tied else text) + failed_text(e)
+    if m == CEILING and not ceiling_gate(s, summaries)[0]:
+        text = f"{text} ({NO_CEILING})"
+    elif m == best:
+        text = f"**{text}**"
+    elif m in tied:
+        text = f"{text} {TIE_MARK}"
+    return text + failed_text(e)
 
 
 def _by_family(summaries: Sequence[Mapping[str, Any]]) -> dict[str, list[Mapping[str, Any]]]:
